@@ -1,0 +1,1 @@
+//! Mesh files: STL, OBJ, COLLADA (via mesh-loader) and glTF/GLB (via gltf).
