@@ -10,4 +10,6 @@
 //! frame `b` to frame `a`), lengths are metres and angles radians unless a
 //! name says otherwise. Cameras use OpenCV axes (x right, y down, z forward).
 
+pub mod camera;
 pub mod mesh;
+pub mod raster;

@@ -1,0 +1,1 @@
+//! Pinhole cameras with OpenCV distortion.

@@ -1,0 +1,1 @@
+//! Triangle rasterizer: binary mask, per-link label map and depth.
