@@ -11,5 +11,8 @@
 //! name says otherwise. Cameras use OpenCV axes (x right, y down, z forward).
 
 pub mod camera;
+pub mod kinematics;
 pub mod mesh;
+pub mod npy;
 pub mod raster;
+pub mod robot;
