@@ -16,3 +16,5 @@ pub mod mesh;
 pub mod npy;
 pub mod raster;
 pub mod robot;
+pub mod actions;
+pub mod embodiment;
