@@ -80,7 +80,9 @@ impl Trajectory {
         };
         let dim = first.len();
         if dim == 0 {
-            return Err(fmt("frame 0 is empty: expected at least one value per row".into()));
+            return Err(fmt(
+                "frame 0 is empty: expected at least one value per row".into()
+            ));
         }
         for (f, row) in rows.iter().enumerate() {
             if row.len() != dim {
@@ -90,7 +92,9 @@ impl Trajectory {
                 )));
             }
             if let Some((c, v)) = row.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-                return Err(fmt(format!("frame {f}, column {c}: value {v} is not a finite number")));
+                return Err(fmt(format!(
+                    "frame {f}, column {c}: value {v} is not a finite number"
+                )));
             }
         }
         Ok(Self {
@@ -153,9 +157,7 @@ impl Trajectory {
             other => {
                 return Err(ActionError::Format {
                     source_name: name,
-                    message: format!(
-                        "unknown extension \"{other}\": expected .json, .csv or .npy"
-                    ),
+                    message: format!("unknown extension \"{other}\": expected .json, .csv or .npy"),
                 })
             }
         };
@@ -169,21 +171,27 @@ pub fn parse_json_rows(text: &str, source_name: &str) -> Result<Vec<Vec<f64>>, A
         source_name: source_name.to_string(),
         message,
     };
-    let v: serde_json::Value = serde_json::from_str(text).map_err(|e| fmt(format!("invalid JSON: {e}")))?;
+    let v: serde_json::Value =
+        serde_json::from_str(text).map_err(|e| fmt(format!("invalid JSON: {e}")))?;
     let serde_json::Value::Array(frames) = v else {
-        return Err(fmt("expected a JSON array of frames, each an array of numbers".into()));
+        return Err(fmt(
+            "expected a JSON array of frames, each an array of numbers".into(),
+        ));
     };
     frames
         .iter()
         .enumerate()
         .map(|(f, row)| {
             let serde_json::Value::Array(vals) = row else {
-                return Err(fmt(format!("frame {f}: expected an array of numbers, found {row}")));
+                return Err(fmt(format!(
+                    "frame {f}: expected an array of numbers, found {row}"
+                )));
             };
             vals.iter()
                 .enumerate()
                 .map(|(c, x)| {
-                    x.as_f64().ok_or_else(|| fmt(format!("frame {f}, column {c}: {x} is not a number")))
+                    x.as_f64()
+                        .ok_or_else(|| fmt(format!("frame {f}, column {c}: {x} is not a number")))
                 })
                 .collect()
         })
@@ -285,7 +293,9 @@ pub fn actions_to_joints(
     };
     let expected = 7 * end_effectors.len();
     if end_effectors.is_empty() {
-        return Err(fmt("the robot has no end effector configured for actions".into()));
+        return Err(fmt(
+            "the robot has no end effector configured for actions".into()
+        ));
     }
     if actions.dim() != expected {
         let arms: Vec<&str> = end_effectors.iter().map(|e| e.arm.as_str()).collect();
@@ -296,7 +306,9 @@ pub fn actions_to_joints(
             arms.join(", ")
         )));
     }
-    robot.check_q(q_start, 1e-9).map_err(|m| fmt(format!("start configuration: {m}")))?;
+    robot
+        .check_q(q_start, 1e-9)
+        .map_err(|m| fmt(format!("start configuration: {m}")))?;
     let limits = robot.dof_limits();
     for (f, row) in actions.rows.iter().enumerate() {
         for (k, ee) in end_effectors.iter().enumerate() {
@@ -322,7 +334,12 @@ pub fn actions_to_joints(
             let own: Vec<usize> = chains[k]
                 .iter()
                 .copied()
-                .filter(|d| chains.iter().enumerate().all(|(o, c)| o == k || !c.contains(d)))
+                .filter(|d| {
+                    chains
+                        .iter()
+                        .enumerate()
+                        .all(|(o, c)| o == k || !c.contains(d))
+                })
                 .collect();
             IkSolver::new(robot, ee.link, Some(&own))
         })

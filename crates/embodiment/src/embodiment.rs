@@ -98,10 +98,13 @@ impl Embodiment {
             .collect();
         let mut e = Self::with_end_effectors(robot, &ees)?;
         for (joint, value) in spec.home {
-            let d = e.robot.dof_index(joint).ok_or_else(|| EmbodimentError::Invalid {
-                source_name: spec.name.to_string(),
-                message: format!("home joint \"{joint}\" is not an actuated joint"),
-            })?;
+            let d = e
+                .robot
+                .dof_index(joint)
+                .ok_or_else(|| EmbodimentError::Invalid {
+                    source_name: spec.name.to_string(),
+                    message: format!("home joint \"{joint}\" is not an actuated joint"),
+                })?;
             e.home[d] = *value;
         }
         Ok(e)
@@ -135,7 +138,11 @@ impl Embodiment {
             .iter()
             .enumerate()
             .map(|(i, l)| {
-                let arm = if ee_links.len() == 1 { "arm".to_string() } else { format!("arm{i}") };
+                let arm = if ee_links.len() == 1 {
+                    "arm".to_string()
+                } else {
+                    format!("arm{i}")
+                };
                 (arm, l.clone(), gripper_joints.get(i).cloned())
             })
             .collect();
@@ -165,7 +172,12 @@ impl Embodiment {
             let l = robot.link_index(link).ok_or_else(|| {
                 invalid(format!(
                     "end-effector link \"{link}\" does not exist (links: {})",
-                    robot.links.iter().map(|l| l.name.as_str()).collect::<Vec<_>>().join(", ")
+                    robot
+                        .links
+                        .iter()
+                        .map(|l| l.name.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
                 ))
             })?;
             let gripper_dof = match gripper {
@@ -211,5 +223,9 @@ impl Embodiment {
 
 /// Comma-separated built-in robot names.
 pub fn builtin_names() -> String {
-    BUILTIN_ROBOTS.iter().map(|b| b.name).collect::<Vec<_>>().join(", ")
+    BUILTIN_ROBOTS
+        .iter()
+        .map(|b| b.name)
+        .collect::<Vec<_>>()
+        .join(", ")
 }

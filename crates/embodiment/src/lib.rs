@@ -10,11 +10,11 @@
 //! frame `b` to frame `a`), lengths are metres and angles radians unless a
 //! name says otherwise. Cameras use OpenCV axes (x right, y down, z forward).
 
+pub mod actions;
 pub mod camera;
+pub mod embodiment;
 pub mod kinematics;
 pub mod mesh;
 pub mod npy;
 pub mod raster;
 pub mod robot;
-pub mod actions;
-pub mod embodiment;

@@ -14,10 +14,22 @@ fn mdh(a: f64, d: f64, alpha: f64, theta: f64) -> Matrix4<f64> {
     let (sa, ca) = alpha.sin_cos();
     let (st, ct) = theta.sin_cos();
     Matrix4::new(
-        ct, -st, 0.0, a, //
-        st * ca, ct * ca, -sa, -d * sa, //
-        st * sa, ct * sa, ca, d * ca, //
-        0.0, 0.0, 0.0, 1.0,
+        ct,
+        -st,
+        0.0,
+        a, //
+        st * ca,
+        ct * ca,
+        -sa,
+        -d * sa, //
+        st * sa,
+        ct * sa,
+        ca,
+        d * ca, //
+        0.0,
+        0.0,
+        0.0,
+        1.0,
     )
 }
 
@@ -65,10 +77,21 @@ fn franka_fk_matches_the_dh_table() {
     let robot = &e.robot;
     assert_eq!(robot.dof(), 8, "7 arm joints + 1 finger joint");
     let names = [
-        "panda_link1", "panda_link2", "panda_link3", "panda_link4", "panda_link5", "panda_link6",
-        "panda_link7", "panda_link8", "panda_hand", "panda_hand_tcp",
+        "panda_link1",
+        "panda_link2",
+        "panda_link3",
+        "panda_link4",
+        "panda_link5",
+        "panda_link6",
+        "panda_link7",
+        "panda_link8",
+        "panda_hand",
+        "panda_hand_tcp",
     ];
-    let idx: Vec<usize> = names.iter().map(|n| robot.link_index(n).expect(n)).collect();
+    let idx: Vec<usize> = names
+        .iter()
+        .map(|n| robot.link_index(n).expect(n))
+        .collect();
     let mut rng = SplitMix64::new(1);
     for _ in 0..500 {
         let q = random_q(robot, &mut rng);
@@ -76,7 +99,11 @@ fn franka_fk_matches_the_dh_table() {
         let reference = panda_dh(&q);
         for (k, &l) in idx.iter().enumerate() {
             let err = max_abs_diff(&poses[l], &reference[k]);
-            assert!(err < 1e-9, "{} differs from DH by {err} at q={q:?}", names[k]);
+            assert!(
+                err < 1e-9,
+                "{} differs from DH by {err} at q={q:?}",
+                names[k]
+            );
             // link_pose walks only the chain; same answer.
             assert!(max_abs_diff(&robot.link_pose(l, &q), &reference[k]) < 1e-9);
         }
@@ -98,8 +125,14 @@ fn mimic_finger_moves_opposite() {
     let p = r.link_poses(&q);
     let l_in_hand = p[hand].inverse() * p[lf];
     let r_in_hand = p[hand].inverse() * p[rf];
-    assert!((l_in_hand.translation.y - 0.03).abs() < 1e-12, "{l_in_hand}");
-    assert!((r_in_hand.translation.y + 0.03).abs() < 1e-12, "{r_in_hand}");
+    assert!(
+        (l_in_hand.translation.y - 0.03).abs() < 1e-12,
+        "{l_in_hand}"
+    );
+    assert!(
+        (r_in_hand.translation.y + 0.03).abs() < 1e-12,
+        "{r_in_hand}"
+    );
 }
 
 #[test]
@@ -138,7 +171,11 @@ fn ik_round_trip_warm_start() {
     let r = &e.robot;
     let tcp = r.link_index("panda_hand_tcp").expect("tcp");
     let solver = IkSolver::new(r, tcp, None);
-    assert_eq!(solver.free_dofs(), &[0, 1, 2, 3, 4, 5, 6], "finger joint is not on the tcp chain");
+    assert_eq!(
+        solver.free_dofs(),
+        &[0, 1, 2, 3, 4, 5, 6],
+        "finger joint is not on the tcp chain"
+    );
     let opts = IkOptions::default();
     let limits = r.dof_limits();
     let mut rng = SplitMix64::new(42);
@@ -184,7 +221,10 @@ fn ik_cold_start_uses_restarts() {
         assert_eq!(solver.solve(&target, &e.home, &opts), sol);
     }
     eprintln!("cold-start IK: {ok}/{n} reached");
-    assert!(ok * 100 >= 97 * n, "{ok}/{n} reached from home with restarts");
+    assert!(
+        ok * 100 >= 97 * n,
+        "{ok}/{n} reached from home with restarts"
+    );
 }
 
 #[test]
@@ -192,8 +232,15 @@ fn ik_unreachable_target_is_reported_not_silently_wrong() {
     let e = Embodiment::builtin("franka").expect("franka");
     let tcp = e.robot.link_index("panda_hand_tcp").expect("tcp");
     let solver = IkSolver::new(&e.robot, tcp, None);
-    let opts = IkOptions { restarts: 4, ..IkOptions::default() };
-    let sol = solver.solve(&pose_from_xyz_rpy([2.0, 0.0, 0.5, 3.14, 0.0, 0.0]), &e.home, &opts);
+    let opts = IkOptions {
+        restarts: 4,
+        ..IkOptions::default()
+    };
+    let sol = solver.solve(
+        &pose_from_xyz_rpy([2.0, 0.0, 0.5, 3.14, 0.0, 0.0]),
+        &e.home,
+        &opts,
+    );
     assert!(!sol.reached);
     assert!(sol.position_error_m > 0.5, "{}", sol.position_error_m);
 }
@@ -228,15 +275,24 @@ fn actions_to_joints_follow_a_trajectory() {
         })
         .collect();
     let actions = franka_actions_from_joints(&e, &qs, 1.0);
-    let (joints, residuals) =
-        actions_to_joints(&e.robot, &e.end_effectors, &actions, &e.home, &IkOptions::default(), false)
-            .expect("reachable");
+    let (joints, residuals) = actions_to_joints(
+        &e.robot,
+        &e.end_effectors,
+        &actions,
+        &e.home,
+        &IkOptions::default(),
+        false,
+    )
+    .expect("reachable");
     assert_eq!(joints.len(), 40);
     assert_eq!(residuals.len(), 40);
     let g = e.robot.dof_index("panda_finger_joint1").expect("finger");
     for (f, q) in joints.iter().enumerate() {
         let (dp, dr) = pose_error(&e.robot.link_pose(tcp, q), &e.robot.link_pose(tcp, &qs[f]));
-        assert!(dp < 1e-3 && dr < 0.5f64.to_radians(), "frame {f}: {dp} m {dr} rad");
+        assert!(
+            dp < 1e-3 && dr < 0.5f64.to_radians(),
+            "frame {f}: {dp} m {dr} rad"
+        );
         assert!(q[g].abs() < 1e-12, "gripper 1 = closed = lower limit");
     }
     // Warm start: after the first frame, no restarts were needed.
@@ -251,26 +307,47 @@ fn action_errors_name_frame_and_value() {
     let err = actions_to_joints(&e.robot, &e.end_effectors, &wrong, &e.home, &opts, false)
         .expect_err("wrong dim")
         .to_string();
-    assert!(err.contains("6 values per frame") && err.contains("expects 7"), "{err}");
+    assert!(
+        err.contains("6 values per frame") && err.contains("expects 7"),
+        "{err}"
+    );
 
-    let far = Trajectory::new("far.json", vec![vec![0.4, 0.0, 0.5, 3.14, 0.0, 0.0, 0.0], vec![3.0, 0.0, 0.5, 3.14, 0.0, 0.0, 0.0]])
-        .expect("valid table");
+    let far = Trajectory::new(
+        "far.json",
+        vec![
+            vec![0.4, 0.0, 0.5, 3.14, 0.0, 0.0, 0.0],
+            vec![3.0, 0.0, 0.5, 3.14, 0.0, 0.0, 0.0],
+        ],
+    )
+    .expect("valid table");
     let err = actions_to_joints(&e.robot, &e.end_effectors, &far, &e.home, &opts, false)
         .expect_err("unreachable")
         .to_string();
-    assert!(err.contains("far.json") && err.contains("frame 1") && err.contains("--allow-ik-residual"), "{err}");
-    let (joints, res) = actions_to_joints(&e.robot, &e.end_effectors, &far, &e.home, &opts, true).expect("allowed");
+    assert!(
+        err.contains("far.json") && err.contains("frame 1") && err.contains("--allow-ik-residual"),
+        "{err}"
+    );
+    let (joints, res) =
+        actions_to_joints(&e.robot, &e.end_effectors, &far, &e.home, &opts, true).expect("allowed");
     assert_eq!(joints.len(), 2);
     assert!(res[0].reached && !res[1].reached);
 
-    let bad_grip = Trajectory::new("g.json", vec![vec![0.4, 0.0, 0.5, 3.14, 0.0, 0.0, 1.5]]).expect("valid");
+    let bad_grip =
+        Trajectory::new("g.json", vec![vec![0.4, 0.0, 0.5, 3.14, 0.0, 0.0, 1.5]]).expect("valid");
     let err = actions_to_joints(&e.robot, &e.end_effectors, &bad_grip, &e.home, &opts, false)
         .expect_err("gripper")
         .to_string();
     assert!(err.contains("1.5") && err.contains("gripper"), "{err}");
 
-    let err = Trajectory::new("n.json", vec![vec![0.0, f64::NAN]]).expect_err("nan").to_string();
-    assert!(err.contains("frame 0, column 1") && err.contains("NaN"), "{err}");
-    let err = Trajectory::new("r.json", vec![vec![0.0, 1.0], vec![1.0]]).expect_err("ragged").to_string();
+    let err = Trajectory::new("n.json", vec![vec![0.0, f64::NAN]])
+        .expect_err("nan")
+        .to_string();
+    assert!(
+        err.contains("frame 0, column 1") && err.contains("NaN"),
+        "{err}"
+    );
+    let err = Trajectory::new("r.json", vec![vec![0.0, 1.0], vec![1.0]])
+        .expect_err("ragged")
+        .to_string();
     assert!(err.contains("frame 1 has 1 values"), "{err}");
 }
