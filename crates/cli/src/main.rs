@@ -1,1 +1,41 @@
-fn main() {}
+//! `bridgev2w`: the command-line tool.
+
+mod bench;
+mod demo;
+mod masks_cmd;
+mod overlay;
+mod robot_info;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+/// BridgeV2W: action-conditioned embodied world model.
+#[derive(Debug, Parser)]
+#[command(name = "bridgev2w", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Render embodiment masks for a joint or end-effector action trajectory.
+    Masks(masks_cmd::MasksArgs),
+    /// Print a robot's links, actuated joints (the --joints column order) and end effectors.
+    RobotInfo(robot_info::RobotInfoArgs),
+    /// Run the built-in demo: the Franka doing a pick, masks and a GIF overlay in ./demo-out/.
+    Demo(demo::DemoArgs),
+    /// Benchmarks against peers measured in the same run.
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Masks(a) => masks_cmd::run(&a),
+        Command::RobotInfo(a) => robot_info::run(&a),
+        Command::Demo(a) => demo::run(&a),
+        Command::Bench(b) => bench::run(&b),
+    }
+}

@@ -18,3 +18,5 @@ pub mod mesh;
 pub mod npy;
 pub mod raster;
 pub mod robot;
+pub mod masks;
+pub mod png;

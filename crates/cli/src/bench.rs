@@ -1,0 +1,295 @@
+//! `bridgev2w bench`: speed against peers measured in the same run.
+
+use crate::masks_cmd::progress_bar;
+use anyhow::{bail, Context, Result};
+use bridgev2w_embodiment::camera::{Camera, Intrinsics};
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::kinematics::{random_q, IkOptions, IkSolver, SplitMix64};
+use bridgev2w_embodiment::masks::render_trajectory;
+use bridgev2w_embodiment::npy::{read_npy, write_atomic, write_npy};
+use bridgev2w_embodiment::robot::{LoadOptions, Robot};
+use nalgebra::{Point3, Vector3};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum BenchCommand {
+    /// Mask rendering: this renderer vs pybullet's getCameraImage (TinyRenderer) on
+    /// pybullet's own franka_panda/panda.urdf with its OBJ meshes.
+    Masks(MasksBench),
+    /// Forward kinematics poses/s and warm-started IK time per solve (built-in Franka).
+    Kinematics(KinematicsBench),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct MasksBench {
+    /// Frames in the joint trajectory.
+    #[arg(long, default_value_t = 100)]
+    frames: usize,
+    /// Times the trajectory is rendered (by each renderer).
+    #[arg(long, default_value_t = 3)]
+    repeat: usize,
+    #[arg(long, default_value_t = 720)]
+    width: u32,
+    #[arg(long, default_value_t = 480)]
+    height: u32,
+    /// Worker processes for pybullet (default: all cores, like this renderer's threads).
+    #[arg(long)]
+    workers: Option<usize>,
+    /// Only measure this renderer (no Python needed) on the given URDF.
+    #[arg(long)]
+    no_pybullet: bool,
+    /// URDF to render (default: pybullet's franka_panda/panda.urdf).
+    #[arg(long)]
+    urdf: Option<PathBuf>,
+    /// Repository root (holds scripts/bench/); default: found from the current directory.
+    #[arg(long)]
+    repo: Option<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct KinematicsBench {
+    /// Forward-kinematics evaluations.
+    #[arg(long, default_value_t = 2_000_000)]
+    fk: usize,
+    /// Warm-started IK solves along a smooth trajectory.
+    #[arg(long, default_value_t = 20_000)]
+    ik: usize,
+}
+
+pub fn run(cmd: &BenchCommand) -> Result<()> {
+    match cmd {
+        BenchCommand::Masks(a) => masks(a),
+        BenchCommand::Kinematics(a) => kinematics(a),
+    }
+}
+
+fn find_repo(explicit: Option<&Path>) -> Result<PathBuf> {
+    if let Some(r) = explicit {
+        return Ok(r.to_path_buf());
+    }
+    let cwd = std::env::current_dir()?;
+    cwd.ancestors()
+        .find(|d| d.join("scripts/bench/pybullet_masks.py").is_file())
+        .map(Path::to_path_buf)
+        .context("cannot find scripts/bench/pybullet_masks.py above the current directory: run from the repository or pass --repo")
+}
+
+fn bench_python(repo: &Path) -> Result<PathBuf> {
+    let python = repo.join(".venv-bench/bin/python");
+    let status = Command::new("bash")
+        .arg(repo.join("scripts/bench/setup-venv.sh"))
+        .current_dir(repo)
+        .stdout(std::process::Stdio::null())
+        .status()
+        .context("running scripts/bench/setup-venv.sh")?;
+    if !status.success() || !python.is_file() {
+        bail!("scripts/bench/setup-venv.sh failed: cannot install pybullet into .venv-bench (use --no-pybullet to bench this renderer alone)");
+    }
+    Ok(python)
+}
+
+/// The bench trajectory: every actuated joint sweeps a sine within its limits.
+fn sweep(robot: &Robot, frames: usize) -> Vec<Vec<f64>> {
+    let limits = robot.dof_limits();
+    (0..frames)
+        .map(|f| {
+            let s = f as f64 / frames.max(1) as f64;
+            limits
+                .iter()
+                .enumerate()
+                .map(|(i, &(lo, hi))| {
+                    let (lo, hi) = (lo.max(-2.5), hi.min(2.5));
+                    let mid = 0.5 * (lo + hi);
+                    let amp = 0.35 * (hi - lo);
+                    mid + amp * (std::f64::consts::TAU * s + i as f64).sin()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+fn bench_camera(width: u32, height: u32) -> Result<Camera> {
+    let intr = Intrinsics {
+        fx: 560.0,
+        fy: 560.0,
+        cx: 359.5,
+        cy: 239.5,
+        width: 720,
+        height: 480,
+        distortion: None,
+    };
+    let cam = Camera::look_at(intr, Point3::new(1.5, 0.9, 0.9), Point3::new(0.2, 0.0, 0.4), Vector3::z())?;
+    Ok(cam.rescaled(width, height))
+}
+
+fn masks(a: &MasksBench) -> Result<()> {
+    if a.frames == 0 || a.repeat == 0 {
+        bail!("--frames and --repeat must be positive");
+    }
+    let threads = rayon::current_num_threads();
+    let workers = a.workers.unwrap_or(threads);
+    let (repo, python) = if a.no_pybullet {
+        (None, None)
+    } else {
+        let repo = find_repo(a.repo.as_deref())?;
+        let py = bench_python(&repo)?;
+        (Some(repo), Some(py))
+    };
+    let urdf = match (&a.urdf, &python, &repo) {
+        (Some(u), _, _) => u.clone(),
+        (None, Some(py), Some(repo)) => {
+            let out = Command::new(py)
+                .arg(repo.join("scripts/bench/pybullet_masks.py"))
+                .args(["--urdf", "pybullet:franka_panda/panda.urdf", "--print-urdf-path"])
+                .output()
+                .context("running pybullet_masks.py --print-urdf-path")?;
+            if !out.status.success() {
+                bail!("pybullet_masks.py --print-urdf-path failed: {}", String::from_utf8_lossy(&out.stderr));
+            }
+            PathBuf::from(String::from_utf8_lossy(&out.stdout).trim())
+        }
+        _ => bail!("--no-pybullet needs --urdf PATH"),
+    };
+    let t0 = Instant::now();
+    let robot = Robot::from_urdf_file(&urdf, &LoadOptions::default())?;
+    let load_s = t0.elapsed().as_secs_f64();
+    let triangles: usize = robot.links.iter().filter_map(|l| l.mesh.as_ref()).map(|m| m.triangles.len()).sum();
+    let camera = bench_camera(a.width, a.height)?;
+    let joints = sweep(&robot, a.frames);
+    println!(
+        "scene: {} ({} links, {triangles} triangles, loaded in {load_s:.3} s), {} frames x {} repeats at {}x{}",
+        urdf.display(),
+        robot.links.len(),
+        a.frames,
+        a.repeat,
+        a.width,
+        a.height
+    );
+
+    // This renderer: warm-up pass, then timed passes.
+    let mut ours = render_trajectory(&robot, &camera, &joints, &|| {});
+    let pb = progress_bar(a.frames * a.repeat, "bridgev2w renderer");
+    let t0 = Instant::now();
+    for _ in 0..a.repeat {
+        ours = render_trajectory(&robot, &camera, &joints, &|| pb.inc(1));
+    }
+    let ours_s = t0.elapsed().as_secs_f64();
+    pb.finish_and_clear();
+    let ours_rate = (a.frames * a.repeat) as f64 / ours_s;
+    println!("bridgev2w rasterizer      {ours_rate:>10.1} masks/s  ({threads} threads)");
+
+    let (Some(python), Some(repo)) = (python, repo) else {
+        return Ok(());
+    };
+    let tmp = tempfile::tempdir()?;
+    let cam_path = tmp.path().join("camera.json");
+    write_atomic(&cam_path, camera.to_json().as_bytes())?;
+    let joints_path = tmp.path().join("joints.npy");
+    let flat: Vec<f64> = joints.iter().flatten().copied().collect();
+    write_npy(&joints_path, &[joints.len(), robot.dof()], &flat)?;
+    let names_path = tmp.path().join("joint_names.json");
+    write_atomic(&names_path, serde_json::to_string(&robot.dof_names())?.as_bytes())?;
+    let masks_path = tmp.path().join("pybullet_masks.npy");
+    eprintln!("running pybullet getCameraImage (TinyRenderer) with {workers} worker process(es)...");
+    let out = Command::new(&python)
+        .arg(repo.join("scripts/bench/pybullet_masks.py"))
+        .arg("--urdf")
+        .arg(&urdf)
+        .arg("--joints")
+        .arg(&joints_path)
+        .arg("--joint-names")
+        .arg(&names_path)
+        .arg("--camera")
+        .arg(&cam_path)
+        .args(["--workers", &workers.to_string(), "--repeat", &a.repeat.to_string()])
+        .arg("--out")
+        .arg(&masks_path)
+        .output()
+        .context("running scripts/bench/pybullet_masks.py")?;
+    if !out.status.success() {
+        bail!("pybullet_masks.py failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout.lines().rev().find(|l| l.trim_start().starts_with('{')).context("pybullet_masks.py printed no JSON result")?;
+    let v: serde_json::Value = serde_json::from_str(line)?;
+    let py_rate = v["masks_per_s"].as_f64().context("pybullet result has no masks_per_s")?;
+    println!("pybullet TinyRenderer     {py_rate:>10.1} masks/s  ({workers} processes)");
+    println!("ratio                     {:>10.1}x", ours_rate / py_rate);
+
+    // Agreement: the two renderers should draw the same robot.
+    let theirs = read_npy(&masks_path)?;
+    let hw = (a.width * a.height) as usize;
+    if theirs.data.len() == hw * ours.len() {
+        let mut iou_sum = 0.0;
+        for (t, f) in ours.iter().enumerate() {
+            let (mut inter, mut uni) = (0usize, 0usize);
+            for (i, &l) in f.labels.iter().enumerate() {
+                let a = l != 0;
+                let b = theirs.data[t * hw + i] != 0.0;
+                inter += usize::from(a && b);
+                uni += usize::from(a || b);
+            }
+            iou_sum += if uni == 0 { 1.0 } else { inter as f64 / uni as f64 };
+        }
+        println!("mask agreement (mean IoU) {:>10.4}", iou_sum / ours.len() as f64);
+    } else {
+        eprintln!("warning: pybullet masks have {} values, expected {}", theirs.data.len(), hw * ours.len());
+    }
+    ours.clear();
+    Ok(())
+}
+
+fn kinematics(a: &KinematicsBench) -> Result<()> {
+    let e = Embodiment::builtin("franka")?;
+    let r = &e.robot;
+    let mut rng = SplitMix64::new(1);
+    let qs: Vec<Vec<f64>> = (0..1024).map(|_| random_q(r, &mut rng)).collect();
+    let mut buf = Vec::with_capacity(r.links.len());
+    let mut sink = 0.0;
+    let t0 = Instant::now();
+    for i in 0..a.fk {
+        r.link_poses_into(&qs[i % qs.len()], &mut buf);
+        sink += buf[buf.len() - 1].translation.x;
+    }
+    let fk_s = t0.elapsed().as_secs_f64();
+    println!(
+        "forward kinematics  {:>12.0} poses/s per core  ({} links per pose; checksum {sink:.3})",
+        a.fk as f64 / fk_s,
+        r.links.len()
+    );
+
+    let tcp = r.link_index("panda_hand_tcp").context("no tcp")?;
+    let solver = IkSolver::new(r, tcp, None);
+    let opts = IkOptions::default();
+    // A smooth joint path; targets from FK; each solve warm-started from the previous solution.
+    let mut q = e.home.clone();
+    let targets: Vec<_> = (0..a.ik)
+        .map(|i| {
+            let s = i as f64 * 0.01;
+            let mut qt = e.home.clone();
+            qt[0] = 0.8 * s.sin();
+            qt[1] = -0.5 + 0.4 * (0.7 * s).sin();
+            qt[3] = -2.0 + 0.5 * (0.5 * s).cos();
+            qt[5] = 1.6 + 0.4 * (0.3 * s).sin();
+            r.link_pose(tcp, &qt)
+        })
+        .collect();
+    let (mut reached, mut iters) = (0usize, 0usize);
+    let t0 = Instant::now();
+    for t in &targets {
+        let sol = solver.solve(t, &q, &opts);
+        reached += usize::from(sol.reached);
+        iters += sol.iterations;
+        q = sol.q;
+    }
+    let ik_s = t0.elapsed().as_secs_f64();
+    println!(
+        "inverse kinematics  {:>12.2} us per warm-started solve  ({reached}/{} reached, {:.2} iterations on average)",
+        ik_s / a.ik as f64 * 1e6,
+        a.ik,
+        iters as f64 / a.ik as f64
+    );
+    Ok(())
+}

@@ -1,0 +1,213 @@
+//! `bridgev2w masks`.
+
+use anyhow::{bail, Context, Result};
+use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, FrameResidual, Trajectory};
+use bridgev2w_embodiment::camera::Camera;
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::kinematics::IkOptions;
+use bridgev2w_embodiment::masks::{render_trajectory, write_outputs, WriteOptions};
+use bridgev2w_embodiment::npy::{write_atomic, write_npy};
+use bridgev2w_embodiment::raster::RenderOutput;
+use bridgev2w_embodiment::robot::LoadOptions;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+
+/// Which robot, shared by several commands.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RobotArgs {
+    /// Built-in robot (franka, agibot-g1) or a URDF file.
+    #[arg(long)]
+    pub robot: String,
+    /// Directory searched for package:// and relative mesh paths (repeatable).
+    #[arg(long = "mesh-path", value_name = "DIR")]
+    pub mesh_path: Vec<PathBuf>,
+    /// End-effector link for --actions with a URDF file (repeat per arm, in action order).
+    #[arg(long = "ee-link", value_name = "LINK")]
+    pub ee_link: Vec<String>,
+    /// Gripper joint driven by each arm's gripper value (URDF files; same order as --ee-link).
+    #[arg(long = "gripper-joint", value_name = "JOINT")]
+    pub gripper_joint: Vec<String>,
+}
+
+impl RobotArgs {
+    pub fn load(&self) -> Result<Embodiment> {
+        for d in &self.mesh_path {
+            if !d.is_dir() {
+                bail!("--mesh-path {}: not a directory", d.display());
+            }
+        }
+        let options = LoadOptions {
+            mesh_search_paths: self.mesh_path.clone(),
+            use_ros_package_path: true,
+            skip_geometry: false,
+        };
+        Ok(Embodiment::load(&self.robot, &options, &self.ee_link, &self.gripper_joint)?)
+    }
+}
+
+/// Arguments of `masks`.
+#[derive(Debug, clap::Args)]
+#[command(group(clap::ArgGroup::new("input").required(true).args(["joints", "actions"])))]
+pub struct MasksArgs {
+    #[command(flatten)]
+    pub robot: RobotArgs,
+    /// Camera JSON: fx, fy, cx, cy, width, height, optional distortion, and
+    /// world_from_camera (4x4 row-major) or extrinsics_xyz_rpy.
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// Joint positions per frame (JSON array of arrays, CSV or .npy), URDF order of actuated joints.
+    #[arg(long)]
+    pub joints: Option<PathBuf>,
+    /// End-effector actions per frame: 7-D [x,y,z,roll,pitch,yaw,gripper] per arm.
+    #[arg(long)]
+    pub actions: Option<PathBuf>,
+    /// Output width (the camera intrinsics are rescaled).
+    #[arg(long, default_value_t = 720)]
+    pub width: u32,
+    /// Output height (the camera intrinsics are rescaled).
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Render frames whose IK target is out of reach (flagged in ik.json) instead of failing.
+    #[arg(long)]
+    pub allow_ik_residual: bool,
+    /// IK position tolerance in millimetres.
+    #[arg(long, default_value_t = 1.0)]
+    pub ik_tol_mm: f64,
+    /// IK rotation tolerance in degrees.
+    #[arg(long, default_value_t = 0.5)]
+    pub ik_tol_deg: f64,
+    /// Also write depth.npy (float32 metres, inf = background).
+    #[arg(long)]
+    pub depth: bool,
+    /// Skip the per-frame PNGs.
+    #[arg(long)]
+    pub no_png: bool,
+}
+
+pub fn load_camera(path: &Path, width: u32, height: u32) -> Result<Camera> {
+    if width == 0 || height == 0 {
+        bail!("--width {width} --height {height}: expected positive sizes");
+    }
+    let camera = Camera::from_json_file(path)?;
+    Ok(camera.rescaled(width, height))
+}
+
+/// Joint trajectory from `--joints` or `--actions`, with IK residuals for actions.
+pub fn joint_trajectory(
+    e: &Embodiment,
+    joints: Option<&Path>,
+    actions: Option<&Path>,
+    ik: &IkOptions,
+    allow_residual: bool,
+) -> Result<(Vec<Vec<f64>>, Vec<FrameResidual>)> {
+    if let Some(p) = joints {
+        let t = Trajectory::read(p)?;
+        if t.dim() != e.robot.dof() {
+            bail!(
+                "{}: {} values per frame but robot \"{}\" has {} actuated joints ({}); see `bridgev2w robot-info --robot {}`{}",
+                p.display(),
+                t.dim(),
+                e.robot.name,
+                e.robot.dof(),
+                e.robot.dof_names().join(", "),
+                e.robot.source_name,
+                if t.dim() == e.action_dim() { "; these look like end-effector actions: use --actions" } else { "" }
+            );
+        }
+        check_joint_trajectory(&e.robot, &t)?;
+        return Ok((t.rows, Vec::new()));
+    }
+    let Some(p) = actions else { bail!("give --joints or --actions") };
+    let t = Trajectory::read(p)?;
+    let spinner = ProgressBar::new_spinner().with_message(format!("inverse kinematics for {} frames", t.len()));
+    let result = actions_to_joints(&e.robot, &e.end_effectors, &t, &e.home, ik, allow_residual);
+    spinner.finish_and_clear();
+    Ok(result?)
+}
+
+pub fn progress_bar(len: usize, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb.set_message(what.to_string());
+    pb
+}
+
+pub fn render_with_progress(e: &Embodiment, camera: &Camera, joints: &[Vec<f64>]) -> Vec<RenderOutput> {
+    let pb = progress_bar(joints.len(), "rendering masks");
+    let frames = render_trajectory(&e.robot, camera, joints, &|| pb.inc(1));
+    pb.finish_and_clear();
+    frames
+}
+
+/// Writes the residual report `ik.json`.
+pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<()> {
+    let p = dir.join("ik.json");
+    let v = serde_json::json!({
+        "frames_not_reached": residuals.iter().filter(|r| !r.reached).map(|r| r.frame).collect::<Vec<_>>(),
+        "max_position_error_m": residuals.iter().map(|r| r.position_error_m).fold(0.0, f64::max),
+        "max_rotation_error_rad": residuals.iter().map(|r| r.rotation_error_rad).fold(0.0, f64::max),
+        "residuals": residuals,
+    });
+    write_atomic(&p, serde_json::to_string_pretty(&v)?.as_bytes()).with_context(|| format!("{}", p.display()))?;
+    Ok(())
+}
+
+pub fn run(args: &MasksArgs) -> Result<()> {
+    let e = args.robot.load()?;
+    let camera = load_camera(&args.camera, args.width, args.height)?;
+    if !(args.ik_tol_mm > 0.0 && args.ik_tol_deg > 0.0) {
+        bail!("--ik-tol-mm {} --ik-tol-deg {}: expected positive tolerances", args.ik_tol_mm, args.ik_tol_deg);
+    }
+    let ik = IkOptions {
+        position_tolerance_m: args.ik_tol_mm * 1e-3,
+        rotation_tolerance_rad: args.ik_tol_deg.to_radians(),
+        ..IkOptions::default()
+    };
+    let (joints, residuals) =
+        joint_trajectory(&e, args.joints.as_deref(), args.actions.as_deref(), &ik, args.allow_ik_residual)?;
+    let frames = render_with_progress(&e, &camera, &joints);
+    let written = write_outputs(&args.out, &e.robot, &frames, WriteOptions { pngs: !args.no_png, depth: args.depth })?;
+    let flat: Vec<f64> = joints.iter().flatten().copied().collect();
+    write_npy(&args.out.join("joints.npy"), &[joints.len(), e.robot.dof()], &flat)?;
+    if !residuals.is_empty() {
+        write_ik_report(&args.out, &residuals)?;
+        let missed: Vec<usize> = residuals.iter().filter(|r| !r.reached).map(|r| r.frame).collect();
+        if !missed.is_empty() {
+            eprintln!(
+                "warning: IK did not reach the target within tolerance in {} frame(s) (first: {:?}); see {}",
+                missed.len(),
+                &missed[..missed.len().min(10)],
+                args.out.join("ik.json").display()
+            );
+        }
+    }
+    report_empty(&written.empty_frames, frames.len());
+    println!(
+        "wrote {} frames ({}x{}) of robot \"{}\" to {}",
+        frames.len(),
+        args.width,
+        args.height,
+        e.robot.name,
+        args.out.display()
+    );
+    Ok(())
+}
+
+pub fn report_empty(empty: &[usize], total: usize) {
+    if empty.len() == total && total > 0 {
+        eprintln!("warning: every mask is empty: the robot is not in view; check the camera extrinsics (world_from_camera maps camera to robot-base coordinates; OpenCV axes: x right, y down, z forward)");
+    } else if !empty.is_empty() {
+        eprintln!(
+            "warning: {} of {total} masks are empty (robot out of view), first frames: {:?}",
+            empty.len(),
+            &empty[..empty.len().min(10)]
+        );
+    }
+}

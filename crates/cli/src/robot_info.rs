@@ -1,0 +1,72 @@
+//! `bridgev2w robot-info`.
+
+use crate::masks_cmd::RobotArgs;
+use anyhow::Result;
+use bridgev2w_embodiment::masks::label_of_link;
+
+/// Arguments of `robot-info`.
+#[derive(Debug, clap::Args)]
+pub struct RobotInfoArgs {
+    #[command(flatten)]
+    robot: RobotArgs,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(args: &RobotInfoArgs) -> Result<()> {
+    let e = args.robot.load()?;
+    let r = &e.robot;
+    let limits = r.dof_limits();
+    if args.json {
+        let v = serde_json::json!({
+            "name": r.name,
+            "source": r.source_name,
+            "joints": r.dof_names().iter().zip(&limits).zip(&e.home).map(|((n, (lo, hi)), h)| {
+                serde_json::json!({"name": n, "lower": finite_or_null(*lo), "upper": finite_or_null(*hi), "home": h})
+            }).collect::<Vec<_>>(),
+            "links": r.links.iter().enumerate().map(|(i, l)| serde_json::json!({
+                "name": l.name,
+                "label": l.mesh.as_ref().map(|_| label_of_link(i)),
+                "triangles": l.mesh.as_ref().map_or(0, |m| m.triangles.len()),
+            })).collect::<Vec<_>>(),
+            "end_effectors": e.end_effectors.iter().map(|ee| serde_json::json!({
+                "arm": ee.arm,
+                "link": r.links[ee.link].name,
+                "gripper_joint": ee.gripper_dof.map(|d| r.joints[r.dofs[d]].name.clone()),
+            })).collect::<Vec<_>>(),
+            "action_dim": e.action_dim(),
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    println!("robot \"{}\" from {}", r.name, r.source_name);
+    println!("\nactuated joints, in --joints column order ({}):", r.dof());
+    for (i, (name, (lo, hi))) in r.dof_names().iter().zip(&limits).enumerate() {
+        println!("  {i:>2}  {name:<28} [{lo:>9.4}, {hi:>9.4}]  home {:.4}", e.home[i]);
+    }
+    println!("\nlinks (label = value in labels.npy; 0 is background):");
+    for (i, l) in r.links.iter().enumerate() {
+        match &l.mesh {
+            Some(m) => println!("  {:>3}  {:<28} {} triangles", label_of_link(i), l.name, m.triangles.len()),
+            None => println!("    -  {:<28} (no geometry)", l.name),
+        }
+    }
+    if e.end_effectors.is_empty() {
+        println!("\nno end effectors: --actions needs --ee-link (joint trajectories work as is)");
+    } else {
+        println!(
+            "\nend effectors, in --actions order ({}-D actions: [x,y,z,roll,pitch,yaw,gripper] per arm):",
+            e.action_dim()
+        );
+        for ee in &e.end_effectors {
+            let g = ee.gripper_dof.map_or("none".to_string(), |d| r.joints[r.dofs[d]].name.clone());
+            println!("  {:<6} link {:<24} gripper joint {g}", ee.arm, r.links[ee.link].name);
+        }
+    }
+    Ok(())
+}
+
+fn finite_or_null(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}

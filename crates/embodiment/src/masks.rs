@@ -1,0 +1,181 @@
+//! Joint trajectories to embodiment masks, and writing them to disk.
+//!
+//! Every link with visual geometry gets the label `link index + 1` (0 is
+//! background); [`link_labels`] names them. Frames are rendered in parallel;
+//! the result does not depend on the number of threads.
+
+use crate::camera::Camera;
+use crate::npy::{write_atomic, write_npy, NpyError};
+use crate::raster::{Rasterizer, RenderItem, RenderOutput};
+use crate::robot::Robot;
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// `(label, link name)` for every link that has geometry.
+pub fn link_labels(robot: &Robot) -> Vec<(u16, String)> {
+    robot
+        .links
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| l.mesh.is_some())
+        .map(|(i, l)| (label_of_link(i), l.name.clone()))
+        .collect()
+}
+
+/// Label of link `i`.
+pub fn label_of_link(i: usize) -> u16 {
+    u16::try_from(i + 1).unwrap_or(u16::MAX)
+}
+
+/// Renders one frame: the robot at `q` seen by the rasterizer's camera.
+///
+/// # Panics
+/// If `q.len() != robot.dof()` (validate with [`Robot::check_q`]).
+pub fn render_frame(robot: &Robot, rasterizer: &Rasterizer, q: &[f64], out: &mut RenderOutput) {
+    let poses = robot.link_poses(q);
+    let items: Vec<RenderItem> = robot
+        .links
+        .iter()
+        .enumerate()
+        .filter_map(|(i, l)| {
+            l.mesh.as_ref().map(|m| RenderItem {
+                mesh: m,
+                world_from_mesh: poses[i],
+                label: label_of_link(i),
+            })
+        })
+        .collect();
+    rasterizer.render_into(&items, out);
+}
+
+/// Renders every frame of a joint trajectory in parallel. `on_frame` is
+/// called once per finished frame (for progress bars), from any thread.
+///
+/// # Panics
+/// If a frame has the wrong number of joint values.
+pub fn render_trajectory(
+    robot: &Robot,
+    camera: &Camera,
+    joints: &[Vec<f64>],
+    on_frame: &(dyn Fn() + Sync),
+) -> Vec<RenderOutput> {
+    let rasterizer = Rasterizer::new(camera);
+    let (w, h) = (camera.intrinsics.width, camera.intrinsics.height);
+    joints
+        .par_iter()
+        .map(|q| {
+            let mut out = RenderOutput::new(w, h);
+            render_frame(robot, &rasterizer, q, &mut out);
+            on_frame();
+            out
+        })
+        .collect()
+}
+
+/// Errors writing mask outputs.
+#[derive(Debug, thiserror::Error)]
+pub enum WriteError {
+    /// A `.npy` write failed.
+    #[error(transparent)]
+    Npy(#[from] NpyError),
+    /// Any other file failed.
+    #[error("{path}: {message}")]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// What failed.
+        message: String,
+    },
+}
+
+/// What [`write_outputs`] wrote.
+#[derive(Debug, Clone, Default)]
+pub struct WrittenFiles {
+    /// Paths written, in order.
+    pub files: Vec<PathBuf>,
+    /// Frames whose mask is empty (the robot is not in view).
+    pub empty_frames: Vec<usize>,
+}
+
+/// Options for [`write_outputs`].
+#[derive(Debug, Clone, Copy)]
+pub struct WriteOptions {
+    /// Write `frames/000000.png`... (mask as 0/255 grayscale).
+    pub pngs: bool,
+    /// Write `depth.npy` (float32 metres, `inf` = background).
+    pub depth: bool,
+}
+
+/// Writes `masks.npy` (uint8 `[T,H,W]`, 0/1), `labels.npy` (uint16
+/// `[T,H,W]`), `labels.json` and, per options, `frames/*.png` and
+/// `depth.npy` into `dir` (created if needed). Every file is written
+/// atomically.
+pub fn write_outputs(
+    dir: &Path,
+    robot: &Robot,
+    frames: &[RenderOutput],
+    options: WriteOptions,
+) -> Result<WrittenFiles, WriteError> {
+    let file_err = |path: &Path, message: String| WriteError::File {
+        path: path.to_path_buf(),
+        message,
+    };
+    std::fs::create_dir_all(dir).map_err(|e| file_err(dir, format!("cannot create directory: {e}")))?;
+    let (w, h) = frames.first().map_or((0, 0), |f| (f.width as usize, f.height as usize));
+    let shape = [frames.len(), h, w];
+    let mut written = WrittenFiles::default();
+
+    let masks: Vec<u8> = frames.iter().flat_map(|f| f.labels.iter().map(|&l| u8::from(l != 0))).collect();
+    let p = dir.join("masks.npy");
+    write_npy(&p, &shape, &masks)?;
+    written.files.push(p);
+
+    let labels: Vec<u16> = frames.iter().flat_map(|f| f.labels.iter().copied()).collect();
+    let p = dir.join("labels.npy");
+    write_npy(&p, &shape, &labels)?;
+    written.files.push(p);
+
+    let names = serde_json::json!({
+        "background": 0,
+        "robot": robot.name,
+        "labels": link_labels(robot)
+            .into_iter()
+            .map(|(label, link)| serde_json::json!({"label": label, "link": link}))
+            .collect::<Vec<_>>(),
+    });
+    let p = dir.join("labels.json");
+    let text = serde_json::to_string_pretty(&names).map_err(|e| file_err(&p, e.to_string()))?;
+    write_atomic(&p, text.as_bytes()).map_err(|e| file_err(&p, e.to_string()))?;
+    written.files.push(p);
+
+    if options.depth {
+        let depth: Vec<f32> = frames.iter().flat_map(|f| f.depth_m.iter().copied()).collect();
+        let p = dir.join("depth.npy");
+        write_npy(&p, &shape, &depth)?;
+        written.files.push(p);
+    }
+
+    if options.pngs {
+        let fdir = dir.join("frames");
+        std::fs::create_dir_all(&fdir).map_err(|e| file_err(&fdir, format!("cannot create directory: {e}")))?;
+        let pngs: Result<Vec<PathBuf>, WriteError> = frames
+            .par_iter()
+            .enumerate()
+            .map(|(t, f)| {
+                let p = fdir.join(format!("{t:06}.png"));
+                let gray: Vec<u8> = f.labels.iter().map(|&l| if l != 0 { 255 } else { 0 }).collect();
+                let bytes = crate::png::encode_gray8(f.width, f.height, &gray);
+                write_atomic(&p, &bytes).map_err(|e| file_err(&p, e.to_string()))?;
+                Ok(p)
+            })
+            .collect();
+        written.files.extend(pngs?);
+    }
+    written.empty_frames = frames
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| f.coverage() == 0)
+        .map(|(t, _)| t)
+        .collect();
+    Ok(written)
+}
