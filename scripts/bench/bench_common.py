@@ -152,9 +152,22 @@ def to_pybullet(m: np.ndarray) -> list[float]:
     return [float(x) for x in np.asarray(m).T.reshape(-1)]
 
 
-def camera_matrices(cam: dict, near=0.01, far=10.0):
+# pybullet's TinyRenderer rasterises bottom-up and samples each pixel at its
+# lower-left corner instead of its centre. Measured with small spheres against
+# the exact OpenCV projection (scripts/check_robots.py, [camera]): the plain
+# projection puts objects +0.5 px right and -0.5 px up. Shifting the principal
+# point by (-0.5, +0.5) px makes the sample points coincide with OpenCV pixel
+# centres, so masks match a centre-sampling rasteriser.
+TINYRENDERER_PIXEL_SHIFT = (-0.5, 0.5)
+
+
+def camera_matrices(cam: dict, near=0.01, far=10.0, tinyrenderer=True):
+    """pybullet view and projection matrices (flat column-major lists) for an OpenCV camera."""
     view = gl_view_matrix(cam["world_from_camera"])
-    proj = gl_projection_matrix(cam["fx"], cam["fy"], cam["cx"], cam["cy"], cam["width"], cam["height"], near, far)
+    sx, sy = TINYRENDERER_PIXEL_SHIFT if tinyrenderer else (0.0, 0.0)
+    proj = gl_projection_matrix(
+        cam["fx"], cam["fy"], cam["cx"] + sx, cam["cy"] + sy, cam["width"], cam["height"], near, far
+    )
     return to_pybullet(view), to_pybullet(proj)
 
 
