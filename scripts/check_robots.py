@@ -17,7 +17,10 @@ Run with the bench venv (scripts/bench/setup-venv.sh):
     x in {0.4, 0.5, 0.6}, y in {0, +-0.25} (each arm on its side and the
     middle), z in {0.9, 1.0, 1.1}: position-only and with the gripper
     pointing down; reports the residuals. Position-only residuals must be
-    < 1 mm.
+    < 1 mm; the pointing-down (top-down grasp) numbers are informational:
+    with 0.3 m + 0.3 m arm segments the far (x = 0.6) and high (z = 1.1)
+    targets are out of reach with the gripper vertical. Set CHECK_VERBOSE=1
+    for per-target residuals.
 
 Exit status is non-zero if a check fails.
 """
@@ -333,38 +336,82 @@ def check_g1_reach(out_dir):
     rest = [rest_named.get(n, 0.0) for n in names]
     down = p.getQuaternionFromEuler([math.pi, 0, 0])  # gripper z (approach) pointing down
 
-    def solve(tcp, target, orn):
-        for i, v in zip(dof, rest):
-            p.resetJointState(body, i, v, physicsClientId=client)
-        best = (1e9, None)
-        for _ in range(60):
-            kw = dict(
-                lowerLimits=lower,
-                upperLimits=upper,
-                jointRanges=ranges,
-                restPoses=rest,
-                maxNumIterations=200,
-                residualThreshold=1e-6,
-                physicsClientId=client,
+    all_q0 = [0.0] * len(dof)
+
+    def arm_cols(side):
+        return [k for k, n in enumerate(names) if n.startswith(f"{side}_arm_joint")]
+
+    def fk(tcp):
+        st = p.getLinkState(body, lidx[tcp], computeForwardKinematics=True, physicsClientId=client)
+        return np.array(st[4]), st[5]
+
+    def set_q(q):
+        for i, v in zip(dof, q):
+            p.resetJointState(body, i, float(v), physicsClientId=client)
+
+    def errors(tcp, target, orn):
+        pos, cur = fk(tcp)
+        e_pos = float(np.linalg.norm(pos - target))
+        if orn is None:
+            return e_pos, 0.0
+        d = p.getDifferenceQuaternion(cur, orn)
+        return e_pos, 2 * math.acos(min(1.0, abs(d[3])))
+
+    def refine(tcp, target, orn, q, cols, iters=300, lam=0.02):
+        """Damped least squares on one arm's joints with pybullet's Jacobian, clamped to limits."""
+        q = np.array(q, dtype=np.float64)
+        for _ in range(iters):
+            set_q(q)
+            pos, cur = fk(tcp)
+            e = target - pos
+            jl, ja = p.calculateJacobian(
+                body, lidx[tcp], [0, 0, 0], list(q), all_q0, all_q0, physicsClientId=client
             )
-            if orn is None:
-                sol = p.calculateInverseKinematics(body, lidx[tcp], target, **kw)
-            else:
-                sol = p.calculateInverseKinematics(body, lidx[tcp], target, orn, **kw)
-            sol = np.clip(sol, lower, upper)
-            for i, v in zip(dof, sol):
-                p.resetJointState(body, i, v, physicsClientId=client)
-            st = p.getLinkState(body, lidx[tcp], computeForwardKinematics=True, physicsClientId=client)
-            err = float(np.linalg.norm(np.array(st[4]) - target))
-            ang = 0.0
+            J = np.array(jl)[:, cols]
             if orn is not None:
-                d = p.getDifferenceQuaternion(st[5], orn)
-                ang = 2 * math.acos(min(1.0, abs(d[3])))
-            score = err + 0.05 * ang
-            if score < best[0]:
-                best = (score, (err, ang))
-            if err < 1e-5 and ang < 1e-3:
+                R_cur = np.array(p.getMatrixFromQuaternion(cur)).reshape(3, 3)
+                R_tgt = np.array(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
+                # small-angle rotation error (world frame)
+                e_rot = 0.5 * sum(np.cross(R_cur[:, k], R_tgt[:, k]) for k in range(3))
+                e = np.concatenate([e, 0.3 * e_rot])
+                J = np.vstack([J, 0.3 * np.array(ja)[:, cols]])
+            if np.linalg.norm(e) < 1e-7:
                 break
+            dq = J.T @ np.linalg.solve(J @ J.T + lam * lam * np.eye(len(e)), e)
+            q[cols] = np.clip(q[cols] + dq, np.array(lower)[cols], np.array(upper)[cols])
+        set_q(q)
+        return q
+
+    def solve(tcp, target, orn, seeds=8):
+        """pybullet calculateInverseKinematics (null space towards `rest`), then a DLS refinement."""
+        cols = arm_cols(tcp.split("_")[0])
+        rng = np.random.default_rng(0)
+        best = None
+        for s_i in range(seeds):
+            start = np.array(rest, dtype=np.float64)
+            if s_i > 0:
+                start[cols] += rng.normal(0, 0.8, len(cols))
+                start = np.clip(start, lower, upper)
+            set_q(start)
+            kw = dict(
+                lowerLimits=lower, upperLimits=upper, jointRanges=ranges, restPoses=list(start),
+                maxNumIterations=200, residualThreshold=1e-6, physicsClientId=client,
+            )
+            for _ in range(20):
+                if orn is None:
+                    sol = p.calculateInverseKinematics(body, lidx[tcp], list(target), **kw)
+                else:
+                    sol = p.calculateInverseKinematics(body, lidx[tcp], list(target), orn, **kw)
+                q = np.array(start)
+                q[cols] = np.clip(np.array(sol)[cols], np.array(lower)[cols], np.array(upper)[cols])
+                set_q(q)
+            q = refine(tcp, target, orn, q, cols)
+            e, a = errors(tcp, target, orn)
+            if best is None or e + 0.05 * a < best[0]:
+                best = (e + 0.05 * a, (e, a), q)
+            if e < 1e-5 and a < 1e-3:
+                break
+        set_q(best[2])
         return best[1]
 
     ok = True
@@ -376,6 +423,8 @@ def check_g1_reach(out_dir):
                 for y in ys:
                     for z in (0.9, 1.0, 1.1):
                         e, a = solve(tcp, np.array([x, y, z]), orn)
+                        if os.environ.get("CHECK_VERBOSE"):
+                            print(f"    {side} {mode} {(x, y, z)}: {e * 1000:.2f} mm {math.degrees(a):.1f} deg")
                         errs.append(e)
                         angs.append(a)
                         if worst is None or e > worst[0]:
