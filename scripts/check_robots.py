@@ -415,6 +415,26 @@ def check_g1_reach(out_dir):
         return best[1]
 
     ok = True
+    # mirror symmetry: right arm at M q == left arm at q reflected in y
+    M = np.array([1, -1, -1, 1, -1, 1, -1.0])
+    rng = np.random.default_rng(3)
+    lcols, rcols = arm_cols("left"), arm_cols("right")
+    worst = 0.0
+    for _ in range(50):
+        q = np.array(all_q0)
+        q[lcols] = rng.uniform(np.array(lower)[lcols], np.array(upper)[lcols])
+        q[rcols] = M * q[lcols]
+        set_q(q)
+        pl, ql = fk("left_gripper_tcp")
+        pr, qr = fk("right_gripper_tcp")
+        Rl = np.array(p.getMatrixFromQuaternion(ql)).reshape(3, 3)
+        Rr = np.array(p.getMatrixFromQuaternion(qr)).reshape(3, 3)
+        S = np.diag([1, -1, 1.0])
+        # reflected frame S Rl S (the y column flips handedness twice)
+        worst = max(worst, np.abs(S @ pl - pr).max(), np.abs(S @ Rl @ S - Rr).max())
+    sym = worst < 1e-5
+    ok &= sym
+    print(f"[reach] mirror symmetry right(M q) vs left(q) reflected: max error {worst:.2e} -> " + ("PASS" if sym else "FAIL"))
     for side, ys in (("left", (0.0, 0.25)), ("right", (0.0, -0.25))):
         tcp = f"{side}_gripper_tcp"
         for mode, orn in (("position", None), ("pointing-down", down)):
