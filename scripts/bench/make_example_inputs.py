@@ -51,7 +51,7 @@ def main():
 
     os.makedirs(args.out_dir, exist_ok=True)
     cam = bc.look_at_camera(
-        eye=(1.2, -0.8, 0.7), target=(0.25, 0.0, 0.45), width=args.width, height=args.height, fx=args.fx
+        eye=(1.3, -0.75, 0.75), target=(0.1, 0.0, 0.4), width=args.width, height=args.height, fx=args.fx
     )
     paths = {
         "camera": os.path.join(args.out_dir, "camera.json"),
