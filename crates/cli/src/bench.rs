@@ -120,7 +120,12 @@ fn bench_camera(width: u32, height: u32) -> Result<Camera> {
         height: 480,
         distortion: None,
     };
-    let cam = Camera::look_at(intr, Point3::new(1.5, 0.9, 0.9), Point3::new(0.2, 0.0, 0.4), Vector3::z())?;
+    let cam = Camera::look_at(
+        intr,
+        Point3::new(1.5, 0.9, 0.9),
+        Point3::new(0.2, 0.0, 0.4),
+        Vector3::z(),
+    )?;
     Ok(cam.rescaled(width, height))
 }
 
@@ -142,11 +147,18 @@ fn masks(a: &MasksBench) -> Result<()> {
         (None, Some(py), Some(repo)) => {
             let out = Command::new(py)
                 .arg(repo.join("scripts/bench/pybullet_masks.py"))
-                .args(["--urdf", "pybullet:franka_panda/panda.urdf", "--print-urdf-path"])
+                .args([
+                    "--urdf",
+                    "pybullet:franka_panda/panda.urdf",
+                    "--print-urdf-path",
+                ])
                 .output()
                 .context("running pybullet_masks.py --print-urdf-path")?;
             if !out.status.success() {
-                bail!("pybullet_masks.py --print-urdf-path failed: {}", String::from_utf8_lossy(&out.stderr));
+                bail!(
+                    "pybullet_masks.py --print-urdf-path failed: {}",
+                    String::from_utf8_lossy(&out.stderr)
+                );
             }
             PathBuf::from(String::from_utf8_lossy(&out.stdout).trim())
         }
@@ -155,7 +167,12 @@ fn masks(a: &MasksBench) -> Result<()> {
     let t0 = Instant::now();
     let robot = Robot::from_urdf_file(&urdf, &LoadOptions::default())?;
     let load_s = t0.elapsed().as_secs_f64();
-    let triangles: usize = robot.links.iter().filter_map(|l| l.mesh.as_ref()).map(|m| m.triangles.len()).sum();
+    let triangles: usize = robot
+        .links
+        .iter()
+        .filter_map(|l| l.mesh.as_ref())
+        .map(|m| m.triangles.len())
+        .sum();
     let camera = bench_camera(a.width, a.height)?;
     let joints = sweep(&robot, a.frames);
     println!(
@@ -190,9 +207,14 @@ fn masks(a: &MasksBench) -> Result<()> {
     let flat: Vec<f64> = joints.iter().flatten().copied().collect();
     write_npy(&joints_path, &[joints.len(), robot.dof()], &flat)?;
     let names_path = tmp.path().join("joint_names.json");
-    write_atomic(&names_path, serde_json::to_string(&robot.dof_names())?.as_bytes())?;
+    write_atomic(
+        &names_path,
+        serde_json::to_string(&robot.dof_names())?.as_bytes(),
+    )?;
     let masks_path = tmp.path().join("pybullet_masks.npy");
-    eprintln!("running pybullet getCameraImage (TinyRenderer) with {workers} worker process(es)...");
+    eprintln!(
+        "running pybullet getCameraImage (TinyRenderer) with {workers} worker process(es)..."
+    );
     let out = Command::new(&python)
         .arg(repo.join("scripts/bench/pybullet_masks.py"))
         .arg("--urdf")
@@ -203,18 +225,32 @@ fn masks(a: &MasksBench) -> Result<()> {
         .arg(&names_path)
         .arg("--camera")
         .arg(&cam_path)
-        .args(["--workers", &workers.to_string(), "--repeat", &a.repeat.to_string()])
+        .args([
+            "--workers",
+            &workers.to_string(),
+            "--repeat",
+            &a.repeat.to_string(),
+        ])
         .arg("--out")
         .arg(&masks_path)
         .output()
         .context("running scripts/bench/pybullet_masks.py")?;
     if !out.status.success() {
-        bail!("pybullet_masks.py failed:\n{}", String::from_utf8_lossy(&out.stderr));
+        bail!(
+            "pybullet_masks.py failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
     }
     let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout.lines().rev().find(|l| l.trim_start().starts_with('{')).context("pybullet_masks.py printed no JSON result")?;
+    let line = stdout
+        .lines()
+        .rev()
+        .find(|l| l.trim_start().starts_with('{'))
+        .context("pybullet_masks.py printed no JSON result")?;
     let v: serde_json::Value = serde_json::from_str(line)?;
-    let py_rate = v["masks_per_s"].as_f64().context("pybullet result has no masks_per_s")?;
+    let py_rate = v["masks_per_s"]
+        .as_f64()
+        .context("pybullet result has no masks_per_s")?;
     println!("pybullet TinyRenderer     {py_rate:>10.1} masks/s  ({workers} processes)");
     println!("ratio                     {:>10.1}x", ours_rate / py_rate);
 
@@ -231,11 +267,22 @@ fn masks(a: &MasksBench) -> Result<()> {
                 inter += usize::from(a && b);
                 uni += usize::from(a || b);
             }
-            iou_sum += if uni == 0 { 1.0 } else { inter as f64 / uni as f64 };
+            iou_sum += if uni == 0 {
+                1.0
+            } else {
+                inter as f64 / uni as f64
+            };
         }
-        println!("mask agreement (mean IoU) {:>10.4}", iou_sum / ours.len() as f64);
+        println!(
+            "mask agreement (mean IoU) {:>10.4}",
+            iou_sum / ours.len() as f64
+        );
     } else {
-        eprintln!("warning: pybullet masks have {} values, expected {}", theirs.data.len(), hw * ours.len());
+        eprintln!(
+            "warning: pybullet masks have {} values, expected {}",
+            theirs.data.len(),
+            hw * ours.len()
+        );
     }
     ours.clear();
     Ok(())

@@ -39,3 +39,16 @@ fn main() -> Result<()> {
         Command::Bench(b) => bench::run(&b),
     }
 }
+
+/// Writes to stdout; a closed pipe (`| head`) ends the output quietly.
+pub fn print_stdout(text: &str) -> Result<()> {
+    use std::io::Write;
+    let mut stdout = std::io::stdout().lock();
+    match stdout
+        .write_all(text.as_bytes())
+        .and_then(|()| stdout.flush())
+    {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(()),
+    }
+}

@@ -1,7 +1,9 @@
 //! `bridgev2w masks`.
 
 use anyhow::{bail, Context, Result};
-use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, FrameResidual, Trajectory};
+use bridgev2w_embodiment::actions::{
+    actions_to_joints, check_joint_trajectory, FrameResidual, Trajectory,
+};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
@@ -41,7 +43,12 @@ impl RobotArgs {
             use_ros_package_path: true,
             skip_geometry: false,
         };
-        Ok(Embodiment::load(&self.robot, &options, &self.ee_link, &self.gripper_joint)?)
+        Ok(Embodiment::load(
+            &self.robot,
+            &options,
+            &self.ee_link,
+            &self.gripper_joint,
+        )?)
     }
 }
 
@@ -120,9 +127,12 @@ pub fn joint_trajectory(
         check_joint_trajectory(&e.robot, &t)?;
         return Ok((t.rows, Vec::new()));
     }
-    let Some(p) = actions else { bail!("give --joints or --actions") };
+    let Some(p) = actions else {
+        bail!("give --joints or --actions")
+    };
     let t = Trajectory::read(p)?;
-    let spinner = ProgressBar::new_spinner().with_message(format!("inverse kinematics for {} frames", t.len()));
+    let spinner = ProgressBar::new_spinner()
+        .with_message(format!("inverse kinematics for {} frames", t.len()));
     let result = actions_to_joints(&e.robot, &e.end_effectors, &t, &e.home, ik, allow_residual);
     spinner.finish_and_clear();
     Ok(result?)
@@ -139,7 +149,11 @@ pub fn progress_bar(len: usize, what: &str) -> ProgressBar {
     pb
 }
 
-pub fn render_with_progress(e: &Embodiment, camera: &Camera, joints: &[Vec<f64>]) -> Vec<RenderOutput> {
+pub fn render_with_progress(
+    e: &Embodiment,
+    camera: &Camera,
+    joints: &[Vec<f64>],
+) -> Vec<RenderOutput> {
     let pb = progress_bar(joints.len(), "rendering masks");
     let frames = render_trajectory(&e.robot, camera, joints, &|| pb.inc(1));
     pb.finish_and_clear();
@@ -155,7 +169,8 @@ pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<()> {
         "max_rotation_error_rad": residuals.iter().map(|r| r.rotation_error_rad).fold(0.0, f64::max),
         "residuals": residuals,
     });
-    write_atomic(&p, serde_json::to_string_pretty(&v)?.as_bytes()).with_context(|| format!("{}", p.display()))?;
+    write_atomic(&p, serde_json::to_string_pretty(&v)?.as_bytes())
+        .with_context(|| format!("{}", p.display()))?;
     Ok(())
 }
 
@@ -163,22 +178,47 @@ pub fn run(args: &MasksArgs) -> Result<()> {
     let e = args.robot.load()?;
     let camera = load_camera(&args.camera, args.width, args.height)?;
     if !(args.ik_tol_mm > 0.0 && args.ik_tol_deg > 0.0) {
-        bail!("--ik-tol-mm {} --ik-tol-deg {}: expected positive tolerances", args.ik_tol_mm, args.ik_tol_deg);
+        bail!(
+            "--ik-tol-mm {} --ik-tol-deg {}: expected positive tolerances",
+            args.ik_tol_mm,
+            args.ik_tol_deg
+        );
     }
     let ik = IkOptions {
         position_tolerance_m: args.ik_tol_mm * 1e-3,
         rotation_tolerance_rad: args.ik_tol_deg.to_radians(),
         ..IkOptions::default()
     };
-    let (joints, residuals) =
-        joint_trajectory(&e, args.joints.as_deref(), args.actions.as_deref(), &ik, args.allow_ik_residual)?;
+    let (joints, residuals) = joint_trajectory(
+        &e,
+        args.joints.as_deref(),
+        args.actions.as_deref(),
+        &ik,
+        args.allow_ik_residual,
+    )?;
     let frames = render_with_progress(&e, &camera, &joints);
-    let written = write_outputs(&args.out, &e.robot, &frames, WriteOptions { pngs: !args.no_png, depth: args.depth })?;
+    let written = write_outputs(
+        &args.out,
+        &e.robot,
+        &frames,
+        WriteOptions {
+            pngs: !args.no_png,
+            depth: args.depth,
+        },
+    )?;
     let flat: Vec<f64> = joints.iter().flatten().copied().collect();
-    write_npy(&args.out.join("joints.npy"), &[joints.len(), e.robot.dof()], &flat)?;
+    write_npy(
+        &args.out.join("joints.npy"),
+        &[joints.len(), e.robot.dof()],
+        &flat,
+    )?;
     if !residuals.is_empty() {
         write_ik_report(&args.out, &residuals)?;
-        let missed: Vec<usize> = residuals.iter().filter(|r| !r.reached).map(|r| r.frame).collect();
+        let missed: Vec<usize> = residuals
+            .iter()
+            .filter(|r| !r.reached)
+            .map(|r| r.frame)
+            .collect();
         if !missed.is_empty() {
             eprintln!(
                 "warning: IK did not reach the target within tolerance in {} frame(s) (first: {:?}); see {}",

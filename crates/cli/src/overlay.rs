@@ -58,7 +58,9 @@ pub fn overlay(frame: &RenderOutput, background: &[u8]) -> Vec<u8> {
         .depth_m
         .iter()
         .filter(|d| d.is_finite())
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &d| (lo.min(d), hi.max(d)));
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &d| {
+            (lo.min(d), hi.max(d))
+        });
     let span = (hi - lo).max(1e-3);
     for (i, (&label, &d)) in frame.labels.iter().zip(&frame.depth_m).enumerate() {
         if label == 0 {
@@ -81,11 +83,15 @@ pub fn write_gif(path: &Path, width: u32, height: u32, frames: &[Vec<u8>], fps: 
         enc.set_repeat(Repeat::Infinite)?;
         let delay = Delay::from_numer_denom_ms(1000, fps.max(1));
         for rgb in frames {
-            let rgba: Vec<u8> = rgb.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect();
+            let rgba: Vec<u8> = rgb
+                .chunks_exact(3)
+                .flat_map(|p| [p[0], p[1], p[2], 255])
+                .collect();
             let img = RgbaImage::from_raw(width, height, rgba).context("frame size mismatch")?;
             enc.encode_frame(Frame::from_parts(img, 0, 0, delay))?;
         }
     }
-    bridgev2w_embodiment::npy::write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))?;
+    bridgev2w_embodiment::npy::write_atomic(path, &bytes)
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }

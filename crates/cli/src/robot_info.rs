@@ -2,6 +2,13 @@
 
 use crate::masks_cmd::RobotArgs;
 use anyhow::Result;
+
+macro_rules! outln {
+    ($out:expr, $($arg:tt)*) => {{
+        $out.push_str(&format!($($arg)*));
+        $out.push('\n');
+    }};
+}
 use bridgev2w_embodiment::masks::label_of_link;
 
 /// Arguments of `robot-info`.
@@ -16,6 +23,7 @@ pub struct RobotInfoArgs {
 
 pub fn run(args: &RobotInfoArgs) -> Result<()> {
     let e = args.robot.load()?;
+    let mut out = String::new();
     let r = &e.robot;
     let limits = r.dof_limits();
     if args.json {
@@ -37,34 +45,61 @@ pub fn run(args: &RobotInfoArgs) -> Result<()> {
             })).collect::<Vec<_>>(),
             "action_dim": e.action_dim(),
         });
-        println!("{}", serde_json::to_string_pretty(&v)?);
-        return Ok(());
+        outln!(out, "{}", serde_json::to_string_pretty(&v)?);
+        return crate::print_stdout(&out);
     }
-    println!("robot \"{}\" from {}", r.name, r.source_name);
-    println!("\nactuated joints, in --joints column order ({}):", r.dof());
+    outln!(out, "robot \"{}\" from {}", r.name, r.source_name);
+    outln!(
+        out,
+        "\nactuated joints, in --joints column order ({}):",
+        r.dof()
+    );
     for (i, (name, (lo, hi))) in r.dof_names().iter().zip(&limits).enumerate() {
-        println!("  {i:>2}  {name:<28} [{lo:>9.4}, {hi:>9.4}]  home {:.4}", e.home[i]);
+        outln!(
+            out,
+            "  {i:>2}  {name:<28} [{lo:>9.4}, {hi:>9.4}]  home {:.4}",
+            e.home[i]
+        );
     }
-    println!("\nlinks (label = value in labels.npy; 0 is background):");
+    outln!(
+        out,
+        "\nlinks (label = value in labels.npy; 0 is background):"
+    );
     for (i, l) in r.links.iter().enumerate() {
         match &l.mesh {
-            Some(m) => println!("  {:>3}  {:<28} {} triangles", label_of_link(i), l.name, m.triangles.len()),
-            None => println!("    -  {:<28} (no geometry)", l.name),
+            Some(m) => outln!(
+                out,
+                "  {:>3}  {:<28} {} triangles",
+                label_of_link(i),
+                l.name,
+                m.triangles.len()
+            ),
+            None => outln!(out, "    -  {:<28} (no geometry)", l.name),
         }
     }
     if e.end_effectors.is_empty() {
-        println!("\nno end effectors: --actions needs --ee-link (joint trajectories work as is)");
+        outln!(
+            out,
+            "\nno end effectors: --actions needs --ee-link (joint trajectories work as is)"
+        );
     } else {
-        println!(
+        outln!(out,
             "\nend effectors, in --actions order ({}-D actions: [x,y,z,roll,pitch,yaw,gripper] per arm):",
             e.action_dim()
         );
         for ee in &e.end_effectors {
-            let g = ee.gripper_dof.map_or("none".to_string(), |d| r.joints[r.dofs[d]].name.clone());
-            println!("  {:<6} link {:<24} gripper joint {g}", ee.arm, r.links[ee.link].name);
+            let g = ee
+                .gripper_dof
+                .map_or("none".to_string(), |d| r.joints[r.dofs[d]].name.clone());
+            outln!(
+                out,
+                "  {:<6} link {:<24} gripper joint {g}",
+                ee.arm,
+                r.links[ee.link].name
+            );
         }
     }
-    Ok(())
+    crate::print_stdout(&out)
 }
 
 fn finite_or_null(v: f64) -> Option<f64> {
