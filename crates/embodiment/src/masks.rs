@@ -120,17 +120,26 @@ pub fn write_outputs(
         path: path.to_path_buf(),
         message,
     };
-    std::fs::create_dir_all(dir).map_err(|e| file_err(dir, format!("cannot create directory: {e}")))?;
-    let (w, h) = frames.first().map_or((0, 0), |f| (f.width as usize, f.height as usize));
+    std::fs::create_dir_all(dir)
+        .map_err(|e| file_err(dir, format!("cannot create directory: {e}")))?;
+    let (w, h) = frames
+        .first()
+        .map_or((0, 0), |f| (f.width as usize, f.height as usize));
     let shape = [frames.len(), h, w];
     let mut written = WrittenFiles::default();
 
-    let masks: Vec<u8> = frames.iter().flat_map(|f| f.labels.iter().map(|&l| u8::from(l != 0))).collect();
+    let masks: Vec<u8> = frames
+        .iter()
+        .flat_map(|f| f.labels.iter().map(|&l| u8::from(l != 0)))
+        .collect();
     let p = dir.join("masks.npy");
     write_npy(&p, &shape, &masks)?;
     written.files.push(p);
 
-    let labels: Vec<u16> = frames.iter().flat_map(|f| f.labels.iter().copied()).collect();
+    let labels: Vec<u16> = frames
+        .iter()
+        .flat_map(|f| f.labels.iter().copied())
+        .collect();
     let p = dir.join("labels.npy");
     write_npy(&p, &shape, &labels)?;
     written.files.push(p);
@@ -149,7 +158,10 @@ pub fn write_outputs(
     written.files.push(p);
 
     if options.depth {
-        let depth: Vec<f32> = frames.iter().flat_map(|f| f.depth_m.iter().copied()).collect();
+        let depth: Vec<f32> = frames
+            .iter()
+            .flat_map(|f| f.depth_m.iter().copied())
+            .collect();
         let p = dir.join("depth.npy");
         write_npy(&p, &shape, &depth)?;
         written.files.push(p);
@@ -157,13 +169,18 @@ pub fn write_outputs(
 
     if options.pngs {
         let fdir = dir.join("frames");
-        std::fs::create_dir_all(&fdir).map_err(|e| file_err(&fdir, format!("cannot create directory: {e}")))?;
+        std::fs::create_dir_all(&fdir)
+            .map_err(|e| file_err(&fdir, format!("cannot create directory: {e}")))?;
         let pngs: Result<Vec<PathBuf>, WriteError> = frames
             .par_iter()
             .enumerate()
             .map(|(t, f)| {
                 let p = fdir.join(format!("{t:06}.png"));
-                let gray: Vec<u8> = f.labels.iter().map(|&l| if l != 0 { 255 } else { 0 }).collect();
+                let gray: Vec<u8> = f
+                    .labels
+                    .iter()
+                    .map(|&l| if l != 0 { 255 } else { 0 })
+                    .collect();
                 let bytes = crate::png::encode_gray8(f.width, f.height, &gray);
                 write_atomic(&p, &bytes).map_err(|e| file_err(&p, e.to_string()))?;
                 Ok(p)
