@@ -1,0 +1,315 @@
+//! The `bridgev2w` binary: the masks contract, robot-info and bad input.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().expect("run bridgev2w")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+const CAMERA: &str = r#"{"fx": 300, "fy": 300, "cx": 159.5, "cy": 119.5, "width": 320, "height": 240,
+  "world_from_camera": [[-0.3939, 0.3019, -0.8682, 1.7],
+                        [0.9191, 0.1294, -0.3721, 0.6],
+                        [0.0, -0.9445, -0.3284, 1.0],
+                        [0, 0, 0, 1]]}"#;
+
+fn write(dir: &Path, name: &str, text: &str) -> String {
+    let p = dir.join(name);
+    std::fs::write(&p, text).expect("write");
+    p.display().to_string()
+}
+
+const HOME: [f64; 8] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785, 0.04];
+
+fn joints_json(frames: usize) -> String {
+    let rows: Vec<Vec<f64>> = (0..frames)
+        .map(|t| {
+            let mut q = HOME.to_vec();
+            q[0] = 0.05 * t as f64;
+            q
+        })
+        .collect();
+    serde_json::to_string(&rows).expect("json")
+}
+
+fn npy_shape(path: &Path) -> (String, Vec<usize>) {
+    let a = bridgev2w_embodiment_npy(path);
+    (a.0, a.1)
+}
+
+/// Minimal .npy header reader (independent of the crate's reader).
+fn bridgev2w_embodiment_npy(path: &Path) -> (String, Vec<usize>) {
+    let bytes = std::fs::read(path).expect("read npy");
+    assert_eq!(&bytes[..6], b"\x93NUMPY");
+    let len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let header = std::str::from_utf8(&bytes[10..10 + len]).expect("utf8");
+    let descr = header
+        .split("'descr': '")
+        .nth(1)
+        .and_then(|s| s.split('\'').next())
+        .expect("descr")
+        .to_string();
+    let shape = header
+        .split("'shape': (")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .expect("shape")
+        .split(',')
+        .filter_map(|s| s.trim().parse().ok())
+        .collect();
+    (descr, shape)
+}
+
+#[test]
+fn masks_contract_with_joints_json_csv_and_actions() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let cam = write(dir.path(), "camera.json", CAMERA);
+    let joints = write(dir.path(), "joints.json", &joints_json(4));
+    let out = dir.path().join("out");
+    let o = run(&[
+        "masks",
+        "--robot",
+        "franka",
+        "--camera",
+        &cam,
+        "--joints",
+        &joints,
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        npy_shape(&out.join("masks.npy")),
+        ("|u1".to_string(), vec![4, 120, 160])
+    );
+    assert_eq!(
+        npy_shape(&out.join("labels.npy")),
+        ("<u2".to_string(), vec![4, 120, 160])
+    );
+    assert!(out.join("labels.json").is_file());
+    assert!(out.join("frames/000003.png").is_file());
+
+    // CSV with a header row gives the same masks.
+    let mut csv = String::from("j1,j2,j3,j4,j5,j6,j7,finger\n");
+    for t in 0..4 {
+        let mut q = HOME.to_vec();
+        q[0] = 0.05 * t as f64;
+        csv.push_str(
+            &q.iter()
+                .map(|v| v.to_string())
+                .collect::<Vec<_>>()
+                .join(","),
+        );
+        csv.push('\n');
+    }
+    let csv_path = write(dir.path(), "joints.csv", &csv);
+    let out2 = dir.path().join("out2");
+    let o = run(&[
+        "masks",
+        "--robot",
+        "franka",
+        "--camera",
+        &cam,
+        "--joints",
+        &csv_path,
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--out",
+        out2.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read(out.join("masks.npy")).expect("a"),
+        std::fs::read(out2.join("masks.npy")).expect("b")
+    );
+
+    // End-effector actions through IK.
+    let actions = write(
+        dir.path(),
+        "actions.json",
+        "[[0.45, 0.0, 0.3, 3.14159, 0.0, 0.0, 0.0], [0.45, 0.05, 0.3, 3.14159, 0.0, 0.0, 1.0]]",
+    );
+    let out3 = dir.path().join("out3");
+    let o = run(&[
+        "masks",
+        "--robot",
+        "franka",
+        "--camera",
+        &cam,
+        "--actions",
+        &actions,
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--out",
+        out3.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(npy_shape(&out3.join("masks.npy")).1, vec![2, 120, 160]);
+    let ik: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out3.join("ik.json")).expect("ik"))
+            .expect("json");
+    assert_eq!(ik["frames_not_reached"].as_array().map(Vec::len), Some(0));
+}
+
+#[test]
+fn bad_input_gets_clear_errors() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let cam = write(dir.path(), "camera.json", CAMERA);
+    let joints = write(dir.path(), "joints.json", &joints_json(2));
+    let out = dir.path().join("o").display().to_string();
+    let cases: Vec<(Vec<String>, Vec<&str>)> = vec![
+        (
+            vec![
+                "--joints".into(),
+                write(dir.path(), "short.json", "[[0.1, 0.2]]"),
+            ],
+            vec!["short.json", "2 values per frame", "8 actuated joints"],
+        ),
+        (
+            vec![
+                "--joints".into(),
+                write(dir.path(), "nan.csv", "0,0,0,-2,0,1.5,0,nan\n"),
+            ],
+            vec!["nan.csv", "frame 0, column 7"],
+        ),
+        (
+            vec![
+                "--joints".into(),
+                write(dir.path(), "limits.json", "[[0,0,0,1.0,0,1.5,0,0.01]]"),
+            ],
+            vec!["limits.json", "frame 0", "panda_joint4", "limits"],
+        ),
+        (
+            vec![
+                "--actions".into(),
+                write(dir.path(), "far.json", "[[3.0, 0, 0.3, 3.14, 0, 0, 0]]"),
+            ],
+            vec!["far.json", "frame 0", "not reached", "--allow-ik-residual"],
+        ),
+        (
+            vec![
+                "--actions".into(),
+                write(dir.path(), "dim.json", "[[0.4, 0, 0.3, 3.14, 0, 0]]"),
+            ],
+            vec!["dim.json", "6 values per frame", "expects 7"],
+        ),
+        (
+            vec!["--joints".into(), write(dir.path(), "bad.txt", "1 2 3")],
+            vec!["bad.txt", "unknown extension"],
+        ),
+    ];
+    for (extra, needles) in cases {
+        let mut args: Vec<String> = [
+            "masks", "--robot", "franka", "--camera", &cam, "--out", &out,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra);
+        let o = bin().args(&args).output().expect("run");
+        let err = stderr(&o);
+        assert!(!o.status.success(), "{args:?} should fail");
+        assert!(!err.contains("panicked"), "{err}");
+        for n in needles {
+            assert!(
+                err.contains(n),
+                "stderr for {args:?} should mention {n:?}: {err}"
+            );
+        }
+    }
+    // Camera errors.
+    let bad_cam = write(
+        dir.path(),
+        "badcam.json",
+        &CAMERA.replace("\"fx\": 300", "\"fx\": -3"),
+    );
+    let o = run(&[
+        "masks", "--robot", "franka", "--camera", &bad_cam, "--joints", &joints, "--out", &out,
+    ]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("fx") && stderr(&o).contains("badcam.json"),
+        "{}",
+        stderr(&o)
+    );
+    let rot_cam = write(
+        dir.path(),
+        "rotcam.json",
+        &CAMERA.replace("-0.3939", "-0.9"),
+    );
+    let o = run(&[
+        "masks", "--robot", "franka", "--camera", &rot_cam, "--joints", &joints, "--out", &out,
+    ]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("rotation"),
+        "{}",
+        stderr(&o)
+    );
+    // Unknown robot, missing URDF.
+    let o = run(&[
+        "masks", "--robot", "ur5", "--camera", &cam, "--joints", &joints, "--out", &out,
+    ]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("franka, agibot-g1"),
+        "{}",
+        stderr(&o)
+    );
+    let bad_urdf = write(dir.path(), "broken.urdf", "<robot name='x'><link name='a'>");
+    let o = run(&[
+        "masks", "--robot", &bad_urdf, "--camera", &cam, "--joints", &joints, "--out", &out,
+    ]);
+    assert!(
+        !o.status.success()
+            && stderr(&o).contains("broken.urdf")
+            && stderr(&o).contains("malformed"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
+fn camera_looking_away_warns() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let away = r#"{"fx": 300, "fy": 300, "cx": 159.5, "cy": 119.5, "width": 320, "height": 240, "extrinsics_xyz_rpy": [3.0, 0.0, 0.5, 0.0, 1.5707963, 0.0]}"#;
+    let cam = write(dir.path(), "away.json", away);
+    let joints = write(dir.path(), "joints.json", &joints_json(2));
+    let out = dir.path().join("o");
+    let o = run(&[
+        "masks",
+        "--robot",
+        "franka",
+        "--camera",
+        &cam,
+        "--joints",
+        &joints,
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("every mask is empty"), "{}", stderr(&o));
+}
+
+#[test]
+fn robot_info_prints_joint_order() {
+    let o = run(&["robot-info", "--robot", "agibot-g1", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
+    assert_eq!(v["action_dim"], 14);
+    assert_eq!(v["joints"][0]["name"], "left_arm_joint1");
+    assert_eq!(v["end_effectors"][1]["arm"], "right");
+}

@@ -1,0 +1,159 @@
+//! The full pipeline: URDF + joints + camera -> masks aligned with projections.
+
+use bridgev2w_embodiment::camera::{Camera, Intrinsics};
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::masks::{link_labels, render_trajectory, write_outputs, WriteOptions};
+use bridgev2w_embodiment::npy::read_npy;
+use bridgev2w_embodiment::robot::{LoadOptions, Robot};
+use nalgebra::{Point3, Vector3};
+
+fn camera() -> Camera {
+    let intr = Intrinsics {
+        fx: 500.0,
+        fy: 500.0,
+        cx: 319.5,
+        cy: 239.5,
+        width: 640,
+        height: 480,
+        distortion: None,
+    };
+    Camera::look_at(
+        intr,
+        Point3::new(1.5, 0.0, 0.5),
+        Point3::new(0.0, 0.0, 0.5),
+        Vector3::z(),
+    )
+    .expect("camera")
+}
+
+/// A sphere carried by a prismatic joint: its mask centroid must sit on the
+/// projection of the sphere centre computed by FK.
+#[test]
+fn mask_centroid_follows_forward_kinematics() {
+    let urdf = r#"<robot name="slider">
+      <link name="base"/>
+      <link name="ball"><visual><origin xyz="0 0 0.5"/><geometry><sphere radius="0.05"/></geometry></visual></link>
+      <joint name="slide" type="prismatic"><parent link="base"/><child link="ball"/><axis xyz="0 1 0"/>
+        <limit lower="-0.4" upper="0.4" effort="1" velocity="1"/></joint>
+    </robot>"#;
+    let robot =
+        Robot::from_urdf_str(urdf, "slider.urdf", None, &LoadOptions::default()).expect("urdf");
+    let cam = camera();
+    let joints: Vec<Vec<f64>> = (0..9).map(|i| vec![-0.4 + 0.1 * i as f64]).collect();
+    let frames = render_trajectory(&robot, &cam, &joints, &|| {});
+    for (q, f) in joints.iter().zip(&frames) {
+        let (mut sx, mut sy, mut n) = (0.0, 0.0, 0.0);
+        for (i, &l) in f.labels.iter().enumerate() {
+            if l != 0 {
+                assert_eq!(l, 2, "the ball is link 1 -> label 2");
+                sx += (i % 640) as f64;
+                sy += (i / 640) as f64;
+                n += 1.0;
+            }
+        }
+        assert!(n > 100.0);
+        let c = cam.project(&Point3::new(0.0, q[0], 0.5)).expect("in front");
+        // A sphere's silhouette centroid is within a fraction of a pixel of
+        // the projected centre at this distance and field of view.
+        assert!(
+            (sx / n - c.x).abs() < 0.5 && (sy / n - c.y).abs() < 0.5,
+            "q={q:?}: centroid ({}, {}) vs {c}",
+            sx / n,
+            sy / n
+        );
+    }
+}
+
+#[test]
+fn builtin_robots_render_and_outputs_are_written() {
+    let dir = tempfile::tempdir().expect("tmp");
+    for name in ["franka", "agibot-g1"] {
+        let e = Embodiment::builtin(name).expect("builtin");
+        let intr = Intrinsics {
+            fx: 300.0,
+            fy: 300.0,
+            cx: 159.5,
+            cy: 119.5,
+            width: 320,
+            height: 240,
+            distortion: None,
+        };
+        let cam = Camera::look_at(
+            intr,
+            Point3::new(2.2, 0.6, 1.2),
+            Point3::new(0.2, 0.0, 0.6),
+            Vector3::z(),
+        )
+        .expect("cam");
+        let joints = vec![e.home.clone(); 3];
+        let frames = render_trajectory(&e.robot, &cam, &joints, &|| {});
+        assert!(frames.iter().all(|f| f.coverage() > 500), "{name} visible");
+        // Every label drawn names a link with geometry.
+        let labels: Vec<u16> = link_labels(&e.robot).into_iter().map(|(l, _)| l).collect();
+        assert!(frames[0]
+            .labels
+            .iter()
+            .all(|l| *l == 0 || labels.contains(l)));
+        let out = dir.path().join(name);
+        let w = write_outputs(
+            &out,
+            &e.robot,
+            &frames,
+            WriteOptions {
+                pngs: true,
+                depth: true,
+            },
+        )
+        .expect("write");
+        assert!(w.empty_frames.is_empty());
+        let masks = read_npy(&out.join("masks.npy")).expect("masks");
+        assert_eq!(masks.shape, vec![3, 240, 320]);
+        assert_eq!(masks.descr, "|u1");
+        assert!(masks.data.iter().all(|&v| v == 0.0 || v == 1.0));
+        let lab = read_npy(&out.join("labels.npy")).expect("labels");
+        assert_eq!(lab.descr, "<u2");
+        assert_eq!(
+            read_npy(&out.join("depth.npy")).expect("depth").descr,
+            "<f4"
+        );
+        assert!(out.join("frames/000002.png").is_file());
+        let names: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("labels.json")).expect("json"))
+                .expect("json");
+        assert_eq!(names["labels"].as_array().map(Vec::len), Some(labels.len()));
+    }
+}
+
+#[test]
+fn camera_looking_away_gives_empty_frames() {
+    let e = Embodiment::builtin("franka").expect("franka");
+    let intr = Intrinsics {
+        fx: 300.0,
+        fy: 300.0,
+        cx: 159.5,
+        cy: 119.5,
+        width: 320,
+        height: 240,
+        distortion: None,
+    };
+    let cam = Camera::look_at(
+        intr,
+        Point3::new(2.0, 0.0, 0.5),
+        Point3::new(4.0, 0.0, 0.5),
+        Vector3::z(),
+    )
+    .expect("cam");
+    let frames = render_trajectory(&e.robot, &cam, &[e.home.clone()], &|| {});
+    let dir = tempfile::tempdir().expect("tmp");
+    let w = write_outputs(
+        dir.path(),
+        &e.robot,
+        &frames,
+        WriteOptions {
+            pngs: false,
+            depth: false,
+        },
+    )
+    .expect("write");
+    assert_eq!(w.empty_frames, vec![0]);
+}
