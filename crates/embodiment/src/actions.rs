@@ -38,25 +38,30 @@ pub enum ActionError {
         message: String,
     },
     /// The IK could not reach a target within tolerance.
-    #[error("{source_name}: frame {frame}, arm \"{arm}\": end-effector target {target:?} not reached: residual {position_mm:.2} mm / {rotation_deg:.2} deg (tolerance {tol_mm:.2} mm / {tol_deg:.2} deg); the pose may be outside the workspace or joint limits (use --allow-ik-residual to render anyway and flag the frames)")]
-    Unreachable {
-        /// File path or input name.
-        source_name: String,
-        /// Frame index.
-        frame: usize,
-        /// Arm name.
-        arm: String,
-        /// `[x, y, z, roll, pitch, yaw]` requested.
-        target: [f64; 6],
-        /// Remaining position error.
-        position_mm: f64,
-        /// Remaining rotation error.
-        rotation_deg: f64,
-        /// Position tolerance.
-        tol_mm: f64,
-        /// Rotation tolerance.
-        tol_deg: f64,
-    },
+    #[error(transparent)]
+    Unreachable(Box<Unreachable>),
+}
+
+/// An end-effector target the IK could not reach.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("{source_name}: frame {frame}, arm \"{arm}\": end-effector target {target:?} not reached: residual {position_mm:.2} mm / {rotation_deg:.2} deg (tolerance {tol_mm:.2} mm / {tol_deg:.2} deg); the pose may be outside the workspace or joint limits (use --allow-ik-residual to render anyway and flag the frames)")]
+pub struct Unreachable {
+    /// File path or input name.
+    pub source_name: String,
+    /// Frame index.
+    pub frame: usize,
+    /// Arm name.
+    pub arm: String,
+    /// `[x, y, z, roll, pitch, yaw]` requested.
+    pub target: [f64; 6],
+    /// Remaining position error.
+    pub position_mm: f64,
+    /// Remaining rotation error.
+    pub rotation_deg: f64,
+    /// Position tolerance.
+    pub tol_mm: f64,
+    /// Rotation tolerance.
+    pub tol_deg: f64,
 }
 
 /// A numeric table: `rows[frame][column]`.
@@ -398,7 +403,7 @@ pub fn actions_to_joints(
             }
             if !res.reached && !allow_residual {
                 let t = &row[7 * k..7 * k + 6];
-                return Err(ActionError::Unreachable {
+                return Err(ActionError::Unreachable(Box::new(Unreachable {
                     source_name: actions.source_name.clone(),
                     frame: f,
                     arm: ee.arm.clone(),
@@ -407,7 +412,7 @@ pub fn actions_to_joints(
                     rotation_deg: res.rotation_error_rad.to_degrees(),
                     tol_mm: opts.position_tolerance_m * 1e3,
                     tol_deg: opts.rotation_tolerance_rad.to_degrees(),
-                });
+                })));
             }
             residuals.push(res.clone());
         }

@@ -204,6 +204,9 @@ pub struct IkSolver<'r> {
     limits: Vec<(f64, f64)>,
 }
 
+/// A movable joint on the chain: world axis, world origin, dof, multiplier, kind.
+type AxisColumn = (Vector3<f64>, Vector3<f64>, usize, f64, JointKind);
+
 /// Stop refining once errors are this small (far below any tolerance).
 const TIGHT_POSITION_M: f64 = 1e-6;
 const TIGHT_ROTATION_RAD: f64 = 1e-5;
@@ -296,7 +299,7 @@ impl<'r> IkSolver<'r> {
         // First pass: pose of each movable joint's frame; we need the
         // end-effector position before forming the columns, so store them.
         let mut pose = Isometry3::identity();
-        let mut axes: [(Vector3<f64>, Vector3<f64>, usize, f64, JointKind); 32] =
+        let mut axes: [AxisColumn; 32] =
             [(Vector3::zeros(), Vector3::zeros(), 0, 0.0, JointKind::Fixed); 32];
         let mut n = 0;
         for &j in &self.chain {

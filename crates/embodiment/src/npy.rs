@@ -258,7 +258,7 @@ pub fn encode_npy<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
     let total = (prefix + header.len() + 1).div_ceil(64) * 64;
     header.push_str(&" ".repeat(total - prefix - header.len() - 1));
     header.push('\n');
-    let mut out = Vec::with_capacity(total + data.len() * std::mem::size_of::<T>());
+    let mut out = Vec::with_capacity(total + std::mem::size_of_val(data));
     out.extend_from_slice(b"\x93NUMPY");
     out.push(version);
     out.push(0);

@@ -655,7 +655,7 @@ impl Builder<'_> {
                     ))
                 }
                 urdf_rs::Geometry::Capsule { radius, length } => {
-                    if !positive(*radius) || !(length.is_finite() && *length >= 0.0) {
+                    if !(positive(*radius) && length.is_finite() && *length >= 0.0) {
                         return Err(bad(format!(
                             "capsule radius={radius} length={length}: expected radius > 0 and length >= 0"
                         )));

@@ -237,7 +237,7 @@ fn ik_unreachable_target_is_reported_not_silently_wrong() {
         ..IkOptions::default()
     };
     let sol = solver.solve(
-        &pose_from_xyz_rpy([2.0, 0.0, 0.5, 3.14, 0.0, 0.0]),
+        &pose_from_xyz_rpy([2.0, 0.0, 0.5, 3.1, 0.0, 0.0]),
         &e.home,
         &opts,
     );
@@ -315,8 +315,8 @@ fn action_errors_name_frame_and_value() {
     let far = Trajectory::new(
         "far.json",
         vec![
-            vec![0.4, 0.0, 0.5, 3.14, 0.0, 0.0, 0.0],
-            vec![3.0, 0.0, 0.5, 3.14, 0.0, 0.0, 0.0],
+            vec![0.4, 0.0, 0.5, 3.1, 0.0, 0.0, 0.0],
+            vec![3.0, 0.0, 0.5, 3.1, 0.0, 0.0, 0.0],
         ],
     )
     .expect("valid table");
@@ -333,7 +333,7 @@ fn action_errors_name_frame_and_value() {
     assert!(res[0].reached && !res[1].reached);
 
     let bad_grip =
-        Trajectory::new("g.json", vec![vec![0.4, 0.0, 0.5, 3.14, 0.0, 0.0, 1.5]]).expect("valid");
+        Trajectory::new("g.json", vec![vec![0.4, 0.0, 0.5, 3.1, 0.0, 0.0, 1.5]]).expect("valid");
     let err = actions_to_joints(&e.robot, &e.end_effectors, &bad_grip, &e.home, &opts, false)
         .expect_err("gripper")
         .to_string();

@@ -143,7 +143,7 @@ fn camera_looking_away_gives_empty_frames() {
         Vector3::z(),
     )
     .expect("cam");
-    let frames = render_trajectory(&e.robot, &cam, &[e.home.clone()], &|| {});
+    let frames = render_trajectory(&e.robot, &cam, std::slice::from_ref(&e.home), &|| {});
     let dir = tempfile::tempdir().expect("tmp");
     let w = write_outputs(
         dir.path(),
