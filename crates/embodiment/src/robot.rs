@@ -689,7 +689,18 @@ impl Builder<'_> {
                     }
                 }
             };
-            merged.append(&part.transformed(&link_from_visual));
+            let placed = part.transformed(&link_from_visual);
+            if let Some(v) = placed
+                .vertices
+                .iter()
+                .find(|v| !v.iter().all(|c| c.is_finite()))
+            {
+                return Err(self.invalid(format!(
+                    "link \"{}\" visual {vi}: a vertex lands at {v:?} after scale and origin: expected coordinates within the f32 range",
+                    l.name
+                )));
+            }
+            merged.append(&placed);
         }
         Ok(Some(Arc::new(merged)))
     }
