@@ -18,7 +18,7 @@ fn camera() -> Camera {
     };
     Camera::look_at(
         intrinsics,
-        Point3::new(1.2, 0.9, 0.8),
+        Point3::new(0.75, 0.55, 0.6),
         Point3::new(0.0, 0.0, 0.35),
         Vector3::z(),
     )

@@ -144,16 +144,19 @@ pub struct Rasterizer {
     remap: Option<Remap>,
 }
 
-/// A vertex in the camera frame with its clip outcode.
-#[derive(Debug, Clone, Copy, Default)]
+/// A vertex in the camera frame with its clip outcode and, when inside all
+/// clip planes, its projection.
+#[derive(Debug, Clone, Copy)]
 struct CamVertex {
     p: [f32; 3],
     /// Bit i set when outside clip plane i (see [`Planes`]).
     outcode: u8,
+    /// Projection, valid when `outcode == 0`.
+    screen: ScreenVertex,
 }
 
 /// A vertex ready for rasterization: fixed-point screen position and 1/z.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct ScreenVertex {
     x: i64,
     y: i64,
@@ -333,37 +336,82 @@ impl Target<'_> {
         iz_dy *= inv_area;
 
         let width = self.width;
+        let wide = x1 - x0 >= SPAN_MIN_WIDTH_PX;
         for (row, y) in (y0..=y1).enumerate() {
-            let mut e0 = e_row[0];
-            let mut e1 = e_row[1];
-            let mut e2 = e_row[2];
             let iz_row = (iz_origin + row as f64 * iz_dy) as f32;
             let base = y as usize * width;
-            let mut dxf = 0.0f32;
-            for x in x0..=x1 {
-                if (e0 | e1 | e2) >= 0 {
-                    let inv_z = iz_row + dxf * iz_dx;
-                    let z = 1.0 / inv_z;
-                    let idx = base + x as usize;
-                    let (Some(d), Some(l)) = (self.depth_m.get_mut(idx), self.labels.get_mut(idx))
-                    else {
-                        return;
-                    };
-                    if z < *d || (z == *d && label < *l) {
-                        *d = z;
-                        *l = label;
+            // Covered pixels of this row: x0 + [lo, hi] (offsets from x0).
+            let (lo, hi) = if wide {
+                row_span(&e_row, &step_x, x1 - x0)
+            } else {
+                (0, x1 - x0)
+            };
+            if lo <= hi {
+                let start = base + (x0 + lo) as usize;
+                let end = base + (x0 + hi) as usize;
+                let (Some(depths), Some(labels)) = (
+                    self.depth_m.get_mut(start..=end),
+                    self.labels.get_mut(start..=end),
+                ) else {
+                    return;
+                };
+                let mut e = [
+                    e_row[0] + lo * step_x[0],
+                    e_row[1] + lo * step_x[1],
+                    e_row[2] + lo * step_x[2],
+                ];
+                let mut dxf = lo as f32;
+                for (d, l) in depths.iter_mut().zip(labels.iter_mut()) {
+                    // In a span every pixel is inside; the test is then a
+                    // predictable always-true branch.
+                    if (e[0] | e[1] | e[2]) >= 0 {
+                        let z = 1.0 / (iz_row + dxf * iz_dx);
+                        if z < *d || (z == *d && label < *l) {
+                            *d = z;
+                            *l = label;
+                        }
                     }
+                    e[0] += step_x[0];
+                    e[1] += step_x[1];
+                    e[2] += step_x[2];
+                    dxf += 1.0;
                 }
-                e0 += step_x[0];
-                e1 += step_x[1];
-                e2 += step_x[2];
-                dxf += 1.0;
             }
             e_row[0] += step_y[0];
             e_row[1] += step_y[1];
             e_row[2] += step_y[2];
         }
     }
+}
+
+/// Bounding boxes at least this wide (pixels) are traversed by exact
+/// per-row spans instead of testing every pixel of the box.
+const SPAN_MIN_WIDTH_PX: i64 = 8;
+
+/// The offsets `[lo, hi]` within `[0, max_offset]` where all three biased
+/// edge functions `e[i] + k * step[i]` are >= 0 (exact integer arithmetic,
+/// so the result equals testing each pixel). Empty when `lo > hi`.
+#[inline]
+fn row_span(e: &[i64; 3], step: &[i64; 3], max_offset: i64) -> (i64, i64) {
+    let (mut lo, mut hi) = (0i64, max_offset);
+    for i in 0..3 {
+        let (e, s) = (e[i], step[i]);
+        if s > 0 {
+            if e < 0 {
+                // k >= ceil(-e / s)
+                lo = lo.max((-e + s - 1) / s);
+            }
+        } else if s < 0 {
+            if e < 0 {
+                return (1, 0);
+            }
+            // k <= floor(e / -s)
+            hi = hi.min(e / -s);
+        } else if e < 0 {
+            return (1, 0);
+        }
+    }
+    (lo, hi)
 }
 
 impl Rasterizer {
@@ -527,10 +575,13 @@ impl Rasterizer {
                     r[1][0] * v.x + r[1][1] * v.y + r[1][2] * v.z + r[1][3],
                     r[2][0] * v.x + r[2][1] * v.y + r[2][2] * v.z + r[2][3],
                 ];
-                CamVertex {
-                    p,
-                    outcode: planes.outcode(&p),
-                }
+                let outcode = planes.outcode(&p);
+                let screen = if outcode == 0 {
+                    project(k, &p)
+                } else {
+                    ScreenVertex::default()
+                };
+                CamVertex { p, outcode, screen }
             }));
             for tri in &item.mesh.triangles {
                 let (Some(a), Some(b), Some(c)) = (
@@ -545,10 +596,7 @@ impl Rasterizer {
                 }
                 let any_out = a.outcode | b.outcode | c.outcode;
                 if any_out == 0 {
-                    target.draw_triangle(
-                        [project(k, &a.p), project(k, &b.p), project(k, &c.p)],
-                        item.label,
-                    );
+                    target.draw_triangle([a.screen, b.screen, c.screen], item.label);
                 } else {
                     let mut poly = [[0.0f32; 3]; MAX_POLY];
                     let n = clip_polygon([a.p, b.p, c.p], &planes, any_out, &mut poly);
