@@ -486,7 +486,8 @@ impl Camera {
     /// distortion applied). `None` if the point's camera-frame z is <= 1e-9 m.
     pub fn project(&self, p_world: &Point3<f64>) -> Option<Point2<f64>> {
         let p_camera = self.world_from_camera.inverse_transform_point(p_world);
-        if !(p_camera.z > MIN_PROJECT_Z_M) {
+        // Also rejects NaN.
+        if p_camera.z.is_nan() || p_camera.z <= MIN_PROJECT_Z_M {
             return None;
         }
         let (mut x, mut y) = (p_camera.x / p_camera.z, p_camera.y / p_camera.z);

@@ -196,8 +196,9 @@ impl Planes {
     fn outcode(&self, p: &[f32; 3]) -> u8 {
         let mut code = 0u8;
         for (i, plane) in self.planes.iter().enumerate() {
-            // `!(d >= 0)` also flags NaN as outside.
-            if !(Self::distance(plane, p) >= 0.0) {
+            // NaN counts as outside.
+            let d = Self::distance(plane, p);
+            if d.is_nan() || d < 0.0 {
                 code |= 1 << i;
             }
         }

@@ -638,7 +638,7 @@ fn near_plane_clipping() {
             if out.labels[i] != 0 {
                 assert!(f64::from(v) > k.cy, "pixel ({u}, {v}) above the horizon");
                 let d = out.depth_m[i];
-                assert!(d >= 0.0099 && d <= 1.0 + 1e-3, "depth {d}");
+                assert!((0.0099..=1.0 + 1e-3).contains(&d), "depth {d}");
                 // Depth of the plane y = 0.02 seen at row v: z = 0.02 fy / (v - cy).
                 let z = 0.02 * k.fy / (f64::from(v) - k.cy);
                 assert!((f64::from(d) - z).abs() < 1e-3 * z.max(1.0), "{d} vs {z}");
@@ -821,4 +821,77 @@ fn empty_scene_and_buffer_reuse() {
         },
     ]);
     assert_eq!(out.coverage(), 0);
+}
+
+/// Camera-frame point at depth `z` that projects exactly to pixel `(u, v)`.
+fn unproject(cam: &Camera, u: f64, v: f64, z: f64) -> Point3<f32> {
+    let k = &cam.intrinsics;
+    Point3::new(
+        ((u - k.cx) / k.fx * z) as f32,
+        ((v - k.cy) / k.fy * z) as f32,
+        z as f32,
+    )
+}
+
+#[test]
+fn top_left_rule_on_pixel_centres() {
+    let cam = identity_camera(97, 71);
+    let raster = Rasterizer::new(&cam);
+    let render = |mesh: &TriMesh| {
+        raster.render(&[RenderItem {
+            mesh,
+            world_from_mesh: Isometry3::identity(),
+            label: 1,
+        }])
+    };
+    // An axis-aligned rectangle with corners on pixel centres, split along
+    // its diagonal: top and left edges are drawn, bottom and right are not,
+    // so exactly 20 x 10 pixels are covered.
+    let rect = TriMesh {
+        vertices: vec![
+            unproject(&cam, 10.0, 10.0, 1.0),
+            unproject(&cam, 30.0, 10.0, 1.0),
+            unproject(&cam, 30.0, 20.0, 1.0),
+            unproject(&cam, 10.0, 20.0, 1.0),
+        ],
+        triangles: vec![[0, 1, 2], [2, 3, 0]],
+    };
+    let out = render(&rect);
+    assert_eq!(out.coverage(), 200);
+    assert_eq!(out.labels[(10 * 97 + 10) as usize], 1);
+    assert_eq!(out.labels[(19 * 97 + 29) as usize], 1);
+    assert_eq!(out.labels[(20 * 97 + 15) as usize], 0);
+    assert_eq!(out.labels[(15 * 97 + 30) as usize], 0);
+    // A quad whose diagonal passes through pixel centres (slope 5/4).
+    let quad = TriMesh {
+        vertices: vec![
+            unproject(&cam, 20.0, 10.0, 1.0),
+            unproject(&cam, 70.0, 15.0, 1.3),
+            unproject(&cam, 60.0, 60.0, 0.9),
+            unproject(&cam, 25.0, 50.0, 1.1),
+        ],
+        triangles: vec![[0, 1, 2], [0, 2, 3]],
+    };
+    let whole = render(&quad);
+    let mut total = 0;
+    let mut counts = vec![0u32; whole.labels.len()];
+    for tri in &quad.triangles {
+        let single = TriMesh {
+            vertices: quad.vertices.clone(),
+            triangles: vec![*tri],
+        };
+        let out = render(&single);
+        total += out.coverage();
+        for (c, &l) in counts.iter_mut().zip(&out.labels) {
+            *c += u32::from(l != 0);
+        }
+    }
+    assert_eq!(total, whole.coverage());
+    assert!(counts.iter().all(|&c| c <= 1));
+    // Diagonal pixel centres (20 + 4k, 10 + 5k) strictly inside the quad are
+    // covered by exactly one triangle.
+    for k in 1..8u32 {
+        let (u, v) = (20 + 4 * k, 10 + 5 * k);
+        assert_eq!(counts[(v * 97 + u) as usize], 1, "({u}, {v})");
+    }
 }
