@@ -312,14 +312,6 @@ pub fn world_from_camera_from_xyz_rpy(v: [f64; 6]) -> Isometry3<f64> {
     )
 }
 
-/// Distortion as written in JSON: an object or `[k1, k2, p1, p2, k3]`.
-#[derive(Debug, Deserialize)]
-#[serde(untagged)]
-enum DistortionJson {
-    Array([f64; 5]),
-    Object(Distortion),
-}
-
 /// The camera file format.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -330,8 +322,9 @@ struct CameraJson {
     cy: f64,
     width: u32,
     height: u32,
+    /// An object `{k1, k2, p1, p2, k3}` or an array `[k1, k2, p1, p2, k3]`.
     #[serde(default)]
-    distortion: Option<DistortionJson>,
+    distortion: Option<serde_json::Value>,
     #[serde(default)]
     world_from_camera: Option<[[f64; 4]; 4]>,
     #[serde(default)]
@@ -358,6 +351,41 @@ fn invalid(origin: &str, field: &str, value: String, expected: &str) -> CameraEr
         field: field.to_string(),
         value,
         expected: expected.to_string(),
+    }
+}
+
+/// Distortion from its JSON value: an object (missing coefficients are 0,
+/// unknown keys rejected) or an array of exactly 5 numbers.
+fn parse_distortion(value: serde_json::Value, origin: &str) -> Result<Distortion, CameraError> {
+    const EXPECTED: &str =
+        "an object {\"k1\", \"k2\", \"p1\", \"p2\", \"k3\"} or an array [k1, k2, p1, p2, k3]";
+    match value {
+        serde_json::Value::Array(items) => {
+            if items.len() != 5 {
+                return Err(invalid(
+                    origin,
+                    "distortion",
+                    format!("an array of {} values", items.len()),
+                    EXPECTED,
+                ));
+            }
+            let mut k = [0.0; 5];
+            for (i, (slot, item)) in k.iter_mut().zip(&items).enumerate() {
+                *slot = item.as_f64().ok_or_else(|| {
+                    invalid(
+                        origin,
+                        &format!("distortion[{i}]"),
+                        item.to_string(),
+                        "a number",
+                    )
+                })?;
+            }
+            let [k1, k2, p1, p2, k3] = k;
+            Ok(Distortion { k1, k2, p1, p2, k3 })
+        }
+        serde_json::Value::Object(_) => serde_json::from_value::<Distortion>(value)
+            .map_err(|e| invalid(origin, "distortion", e.to_string(), EXPECTED)),
+        other => Err(invalid(origin, "distortion", other.to_string(), EXPECTED)),
     }
 }
 
@@ -541,10 +569,10 @@ impl Camera {
             column: e.column(),
             message: e.to_string(),
         })?;
-        let distortion = parsed.distortion.map(|d| match d {
-            DistortionJson::Array([k1, k2, p1, p2, k3]) => Distortion { k1, k2, p1, p2, k3 },
-            DistortionJson::Object(d) => d,
-        });
+        let distortion = parsed
+            .distortion
+            .map(|d| parse_distortion(d, source))
+            .transpose()?;
         let intrinsics = Intrinsics {
             fx: parsed.fx,
             fy: parsed.fy,

@@ -313,6 +313,18 @@ fn json_errors() {
     let e = json_err(&format!(r#"{{{HEAD}, "fxx": 1, {ext}}}"#));
     assert!(e.contains("unknown field") && e.contains("fxx"), "{e}");
 
+    let e = json_err(&format!(
+        r#"{{{HEAD}, "distortion": [0.1, 0.2, 0.3], {ext}}}"#
+    ));
+    assert!(
+        e.contains("\"distortion\"") && e.contains("3 values"),
+        "{e}"
+    );
+    let e = json_err(&format!(
+        r#"{{{HEAD}, "distortion": {{"k1": 0.1, "kk2": 0.2}}, {ext}}}"#
+    ));
+    assert!(e.contains("distortion") && e.contains("kk2"), "{e}");
+
     let e = json_err(r#"{"fx": 600,"#);
     assert!(e.contains("invalid camera JSON"), "{e}");
 
