@@ -1,4 +1,12 @@
-//! Rasterizer throughput: 8 capsules/spheres of ~2k triangles at 720x480.
+//! Rasterizer throughput at 720x480.
+//!
+//! Always: 8 capsules/spheres of ~2k triangles each. Optionally, when the
+//! environment variable `BRIDGEV2W_RASTER_SCENE` names a JSON file
+//! `[{"mesh": "path.obj", "position": [x, y, z], "quaternion_xyzw": [..],
+//! "scale": [..]}, ...]` (e.g. a Franka Panda's visual meshes posed by a
+//! simulator), that scene too, seen from the same viewpoint as the reference
+//! measurement (eye (1.125, 0.825, 0.9), target (0, 0, 0.35), 50° vertical
+//! field of view).
 
 use bridgev2w_embodiment::camera::{Camera, Distortion, Intrinsics};
 use bridgev2w_embodiment::mesh::TriMesh;
@@ -95,5 +103,110 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench);
+/// A minimal OBJ reader for the benchmark: `v` and `f` records, polygons
+/// fan-triangulated, negative (relative) indices supported.
+fn read_obj(path: &str, scale: [f32; 3]) -> TriMesh {
+    let text = std::fs::read_to_string(path).expect("readable OBJ");
+    let mut mesh = TriMesh::default();
+    for line in text.lines() {
+        let mut fields = line.split_whitespace();
+        match fields.next() {
+            Some("v") => {
+                let c: Vec<f32> = fields.take(3).map(|f| f.parse().expect("number")).collect();
+                mesh.vertices.push(Point3::new(
+                    c[0] * scale[0],
+                    c[1] * scale[1],
+                    c[2] * scale[2],
+                ));
+            }
+            Some("f") => {
+                let n = mesh.vertices.len() as i64;
+                let idx: Vec<u32> = fields
+                    .map(|f| {
+                        let i: i64 = f.split('/').next().expect("index").parse().expect("int");
+                        (if i < 0 { n + i } else { i - 1 }) as u32
+                    })
+                    .collect();
+                for k in 1..idx.len().saturating_sub(1) {
+                    mesh.triangles.push([idx[0], idx[k], idx[k + 1]]);
+                }
+            }
+            _ => {}
+        }
+    }
+    mesh
+}
+
+fn bench_scene_file(c: &mut Criterion) {
+    let Ok(path) = std::env::var("BRIDGEV2W_RASTER_SCENE") else {
+        return;
+    };
+    let text = std::fs::read_to_string(&path).expect("readable scene");
+    let entries: Vec<serde_json::Value> = serde_json::from_str(&text).expect("scene JSON");
+    let f32s = |v: &serde_json::Value| -> Vec<f64> {
+        v.as_array()
+            .expect("array")
+            .iter()
+            .map(|x| x.as_f64().expect("number"))
+            .collect()
+    };
+    let mut placed = Vec::new();
+    for e in &entries {
+        let s = f32s(&e["scale"]);
+        let mesh = read_obj(
+            e["mesh"].as_str().expect("mesh path"),
+            [s[0] as f32, s[1] as f32, s[2] as f32],
+        );
+        let p = f32s(&e["position"]);
+        let q = f32s(&e["quaternion_xyzw"]);
+        let pose = Isometry3::from_parts(
+            Translation3::new(p[0], p[1], p[2]),
+            UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2])),
+        );
+        placed.push((mesh, pose));
+    }
+    let triangles: usize = placed.iter().map(|(m, _)| m.triangles.len()).sum();
+    let fy = 240.0 / 25f64.to_radians().tan();
+    let intrinsics = Intrinsics {
+        fx: fy,
+        fy,
+        cx: 359.5,
+        cy: 239.5,
+        width: 720,
+        height: 480,
+        distortion: None,
+    };
+    let camera = Camera::look_at(
+        intrinsics,
+        Point3::new(1.125, 0.825, 0.9),
+        Point3::new(0.0, 0.0, 0.35),
+        Vector3::z(),
+    )
+    .expect("valid camera");
+    let raster = Rasterizer::new(&camera);
+    let items: Vec<RenderItem> = placed
+        .iter()
+        .enumerate()
+        .map(|(i, (mesh, pose))| RenderItem {
+            mesh,
+            world_from_mesh: *pose,
+            label: i as u16 + 1,
+        })
+        .collect();
+    let mut out = RenderOutput::new(720, 480);
+    raster.render_into(&items, &mut out);
+    eprintln!(
+        "scene file: {} meshes, {triangles} triangles, coverage {} px",
+        items.len(),
+        out.coverage()
+    );
+    let mut group = c.benchmark_group("raster_720x480_scene_file");
+    group.throughput(Throughput::Elements(1));
+    group.bench_function("render_into_1_frame", |b| {
+        b.iter(|| raster.render_into(&items, &mut out))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench, bench_scene_file);
 criterion_main!(benches);
