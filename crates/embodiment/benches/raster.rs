@@ -64,6 +64,18 @@ fn meshes() -> Vec<TriMesh> {
         .collect()
 }
 
+/// Minimum wall time of `f` over `n` runs, milliseconds (robust to other
+/// load on a shared machine).
+fn min_time_ms(n: usize, mut f: impl FnMut()) -> f64 {
+    (0..n)
+        .map(|_| {
+            let t = std::time::Instant::now();
+            f();
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
 fn bench(c: &mut Criterion) {
     let camera = camera();
     let raster = Rasterizer::new(&camera);
@@ -73,9 +85,10 @@ fn bench(c: &mut Criterion) {
     let mut out = RenderOutput::new(720, 480);
     raster.render_into(&items, &mut out);
     eprintln!(
-        "scene: {triangles} triangles, coverage {} px of {}",
+        "scene: {triangles} triangles, coverage {} px of {}, min {:.3} ms/frame",
         out.coverage(),
-        720 * 480
+        720 * 480,
+        min_time_ms(200, || raster.render_into(&items, &mut out))
     );
 
     let mut group = c.benchmark_group("raster_720x480");
@@ -196,9 +209,10 @@ fn bench_scene_file(c: &mut Criterion) {
     let mut out = RenderOutput::new(720, 480);
     raster.render_into(&items, &mut out);
     eprintln!(
-        "scene file: {} meshes, {triangles} triangles, coverage {} px",
+        "scene file: {} meshes, {triangles} triangles, coverage {} px, min {:.3} ms/frame",
         items.len(),
-        out.coverage()
+        out.coverage(),
+        min_time_ms(200, || raster.render_into(&items, &mut out))
     );
     let mut group = c.benchmark_group("raster_720x480_scene_file");
     group.throughput(Throughput::Elements(1));

@@ -144,23 +144,16 @@ pub struct Rasterizer {
     remap: Option<Remap>,
 }
 
-/// A vertex in the camera frame with its clip outcode and, when inside all
-/// clip planes, its projection.
-#[derive(Debug, Clone, Copy)]
-struct CamVertex {
-    p: [f32; 3],
-    /// Bit i set when outside clip plane i (see [`Planes`]).
-    outcode: u8,
-    /// Projection, valid when `outcode == 0`.
-    screen: ScreenVertex,
-}
-
-/// A vertex ready for rasterization: fixed-point screen position and 1/z.
+/// A vertex ready for rasterization: fixed-point screen position (1/256
+/// pixel; bounded by the guard band, so i32 suffices), 1/z, and its clip
+/// outcode (bit i set when outside clip plane i of [`Planes`]; position and
+/// 1/z are only meaningful when the outcode is 0).
 #[derive(Debug, Clone, Copy, Default)]
 struct ScreenVertex {
-    x: i64,
-    y: i64,
-    inv_z: f64,
+    x: i32,
+    y: i32,
+    inv_z: f32,
+    outcode: u8,
 }
 
 /// Clip planes in the camera frame: `a·p + d >= 0` is inside. Plane 0 is the
@@ -265,6 +258,14 @@ fn clip_polygon(
     n
 }
 
+/// A screen vertex widened for exact edge-function arithmetic.
+#[derive(Debug, Clone, Copy)]
+struct Vertex64 {
+    x: i64,
+    y: i64,
+    inv_z: f64,
+}
+
 /// The depth and label buffers drawn into, row-major, `width` x `height`.
 struct Target<'a> {
     width: usize,
@@ -276,8 +277,27 @@ struct Target<'a> {
 impl Target<'_> {
     /// Rasterizes one triangle (any winding) with the top-left fill rule.
     #[inline]
-    fn draw_triangle(&mut self, v: [ScreenVertex; 3], label: u16) {
-        let [v0, mut v1, mut v2] = v;
+    fn draw_triangle(&mut self, v: [&ScreenVertex; 3], label: u16) {
+        let wide = |s: &ScreenVertex| Vertex64 {
+            x: i64::from(s.x),
+            y: i64::from(s.y),
+            inv_z: f64::from(s.inv_z),
+        };
+        let [v0, mut v1, mut v2] = v.map(wide);
+        // Bounding box of pixel centres (integer coordinates) inside the
+        // image: ceil / floor of the fixed-point extent (arithmetic shifts).
+        let one = 1i64 << SUBPIXEL_BITS;
+        let min_x = v0.x.min(v1.x).min(v2.x);
+        let max_x = v0.x.max(v1.x).max(v2.x);
+        let min_y = v0.y.min(v1.y).min(v2.y);
+        let max_y = v0.y.max(v1.y).max(v2.y);
+        let x0 = (-((-min_x) >> SUBPIXEL_BITS)).max(0);
+        let x1 = (max_x >> SUBPIXEL_BITS).min(self.width as i64 - 1);
+        let y0 = (-((-min_y) >> SUBPIXEL_BITS)).max(0);
+        let y1 = (max_y >> SUBPIXEL_BITS).min(self.height as i64 - 1);
+        if x0 > x1 || y0 > y1 {
+            return;
+        }
         let mut area = (v1.x - v0.x) * (v2.y - v0.y) - (v1.y - v0.y) * (v2.x - v0.x);
         if area == 0 {
             return;
@@ -285,19 +305,6 @@ impl Target<'_> {
         if area < 0 {
             std::mem::swap(&mut v1, &mut v2);
             area = -area;
-        }
-        // Bounding box of pixel centres (integer coordinates) inside the image.
-        let one = 1i64 << SUBPIXEL_BITS;
-        let min_x = v0.x.min(v1.x).min(v2.x);
-        let max_x = v0.x.max(v1.x).max(v2.x);
-        let min_y = v0.y.min(v1.y).min(v2.y);
-        let max_y = v0.y.max(v1.y).max(v2.y);
-        let x0 = (-((-min_x).div_euclid(one))).max(0);
-        let x1 = max_x.div_euclid(one).min(self.width as i64 - 1);
-        let y0 = (-((-min_y).div_euclid(one))).max(0);
-        let y1 = max_y.div_euclid(one).min(self.height as i64 - 1);
-        if x0 > x1 || y0 > y1 {
-            return;
         }
         // Edge i is opposite vertex i: e_i(p) = (b - a) x (p - a) for edge a->b.
         // With positive area, inside means e_i >= 0 on all edges. Top-left
@@ -318,9 +325,31 @@ impl Target<'_> {
             step_x[i] = -dy * one;
             step_y[i] = dx * one;
         }
-        // 1/z as a plane over pixel coordinates: sum_i (e_i / area) inv_z_i.
         let inv_area = 1.0 / area as f64;
         let iz = [v0.inv_z, v1.inv_z, v2.inv_z];
+        if x0 == x1 && y0 == y1 {
+            // One candidate pixel (most triangles of dense meshes): test it
+            // directly; same depth formula as the general path at (x0, y0).
+            if (e_row[0] | e_row[1] | e_row[2]) < 0 {
+                return;
+            }
+            let mut iz_origin = 0.0f64;
+            for i in 0..3 {
+                let (a, b) = edges[i];
+                let e = (b.x - a.x) * (py - a.y) - (b.y - a.y) * (px - a.x);
+                iz_origin += e as f64 * iz[i];
+            }
+            let z = 1.0 / ((iz_origin * inv_area) as f32);
+            let idx = y0 as usize * self.width + x0 as usize;
+            if let (Some(d), Some(l)) = (self.depth_m.get_mut(idx), self.labels.get_mut(idx)) {
+                if z < *d || (z == *d && label < *l) {
+                    *d = z;
+                    *l = label;
+                }
+            }
+            return;
+        }
+        // 1/z as a plane over pixel coordinates: sum_i (e_i / area) inv_z_i.
         let mut iz_dx = 0.0f64;
         let mut iz_dy = 0.0f64;
         let mut iz_origin = 0.0f64;
@@ -557,7 +586,10 @@ impl Rasterizer {
             labels: &mut out.labels,
             depth_m: &mut out.depth_m,
         };
-        let mut verts: Vec<CamVertex> = Vec::new();
+        // Per item scratch, reused: camera-frame positions (for clipping) and
+        // screen vertices (for the fast path).
+        let mut cam: Vec<[f32; 3]> = Vec::new();
+        let mut screen: Vec<ScreenVertex> = Vec::new();
         for item in items {
             if item.label == 0 {
                 continue;
@@ -569,48 +601,54 @@ impl Rasterizer {
             }
             let r: [[f32; 4]; 3] =
                 std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)] as f32));
-            verts.clear();
-            verts.extend(item.mesh.vertices.iter().map(|v| {
-                let p = [
+            cam.clear();
+            cam.extend(item.mesh.vertices.iter().map(|v| {
+                [
                     r[0][0] * v.x + r[0][1] * v.y + r[0][2] * v.z + r[0][3],
                     r[1][0] * v.x + r[1][1] * v.y + r[1][2] * v.z + r[1][3],
                     r[2][0] * v.x + r[2][1] * v.y + r[2][2] * v.z + r[2][3],
-                ];
-                let outcode = planes.outcode(&p);
-                let screen = if outcode == 0 {
-                    project(k, &p)
+                ]
+            }));
+            screen.clear();
+            screen.extend(cam.iter().map(|p| {
+                let outcode = planes.outcode(p);
+                if outcode == 0 {
+                    project(k, p)
                 } else {
-                    ScreenVertex::default()
-                };
-                CamVertex { p, outcode, screen }
+                    ScreenVertex {
+                        outcode,
+                        ..ScreenVertex::default()
+                    }
+                }
             }));
             for tri in &item.mesh.triangles {
-                let (Some(a), Some(b), Some(c)) = (
-                    verts.get(tri[0] as usize),
-                    verts.get(tri[1] as usize),
-                    verts.get(tri[2] as usize),
-                ) else {
+                let [i0, i1, i2] = tri.map(|i| i as usize);
+                let (Some(a), Some(b), Some(c)) = (screen.get(i0), screen.get(i1), screen.get(i2))
+                else {
                     continue;
                 };
+                let any_out = a.outcode | b.outcode | c.outcode;
+                if any_out == 0 {
+                    target.draw_triangle([a, b, c], item.label);
+                    continue;
+                }
                 if a.outcode & b.outcode & c.outcode != 0 {
                     continue;
                 }
-                let any_out = a.outcode | b.outcode | c.outcode;
-                if any_out == 0 {
-                    target.draw_triangle([a.screen, b.screen, c.screen], item.label);
-                } else {
-                    let mut poly = [[0.0f32; 3]; MAX_POLY];
-                    let n = clip_polygon([a.p, b.p, c.p], &planes, any_out, &mut poly);
-                    if n < 3 {
-                        continue;
-                    }
-                    let p0 = project(k, &poly[0]);
-                    for j in 1..n - 1 {
-                        target.draw_triangle(
-                            [p0, project(k, &poly[j]), project(k, &poly[j + 1])],
-                            item.label,
-                        );
-                    }
+                let (Some(pa), Some(pb), Some(pc)) = (cam.get(i0), cam.get(i1), cam.get(i2)) else {
+                    continue;
+                };
+                let mut poly = [[0.0f32; 3]; MAX_POLY];
+                let n = clip_polygon([*pa, *pb, *pc], &planes, any_out, &mut poly);
+                if n < 3 {
+                    continue;
+                }
+                let p0 = project(k, &poly[0]);
+                for j in 1..n - 1 {
+                    target.draw_triangle(
+                        [&p0, &project(k, &poly[j]), &project(k, &poly[j + 1])],
+                        item.label,
+                    );
                 }
             }
         }
@@ -624,9 +662,20 @@ fn project(k: &Pinhole, p: &[f32; 3]) -> ScreenVertex {
     let u = k.fx * p[0] * inv_z + k.cx;
     let v = k.fy * p[1] * inv_z + k.cy;
     ScreenVertex {
-        x: (u * SUBPIXEL).round() as i64,
-        y: (v * SUBPIXEL).round() as i64,
-        inv_z: f64::from(inv_z),
+        x: round_to_i32(u * SUBPIXEL),
+        y: round_to_i32(v * SUBPIXEL),
+        inv_z,
+        outcode: 0,
+    }
+}
+
+/// Rounds half away from zero (saturating; NaN -> 0) without a libm call.
+#[inline]
+fn round_to_i32(x: f32) -> i32 {
+    if x >= 0.0 {
+        (x + 0.5) as i32
+    } else {
+        (x - 0.5) as i32
     }
 }
 
