@@ -276,7 +276,7 @@ struct Target<'a> {
 
 impl Target<'_> {
     /// Rasterizes one triangle (any winding) with the top-left fill rule.
-    #[inline]
+    #[inline(never)]
     fn draw_triangle(&mut self, v: [&ScreenVertex; 3], label: u16) {
         let wide = |s: &ScreenVertex| Vertex64 {
             x: i64::from(s.x),
@@ -588,6 +588,8 @@ impl Rasterizer {
         };
         // Per item scratch, reused: camera-frame positions (for clipping) and
         // screen vertices (for the fast path).
+        let last_x = k.width as i32 - 1;
+        let last_y = k.height as i32 - 1;
         let mut cam: Vec<[f32; 3]> = Vec::new();
         let mut screen: Vec<ScreenVertex> = Vec::new();
         for item in items {
@@ -629,7 +631,19 @@ impl Rasterizer {
                 };
                 let any_out = a.outcode | b.outcode | c.outcode;
                 if any_out == 0 {
-                    target.draw_triangle([a, b, c], item.label);
+                    // Cheap reject of triangles whose bounding box holds no
+                    // pixel centre of the image (most sub-pixel triangles).
+                    let min_x = a.x.min(b.x).min(c.x);
+                    let max_x = a.x.max(b.x).max(c.x);
+                    let min_y = a.y.min(b.y).min(c.y);
+                    let max_y = a.y.max(b.y).max(c.y);
+                    let x0 = (-((-min_x) >> SUBPIXEL_BITS)).max(0);
+                    let x1 = (max_x >> SUBPIXEL_BITS).min(last_x);
+                    let y0 = (-((-min_y) >> SUBPIXEL_BITS)).max(0);
+                    let y1 = (max_y >> SUBPIXEL_BITS).min(last_y);
+                    if x0 <= x1 && y0 <= y1 {
+                        target.draw_triangle([a, b, c], item.label);
+                    }
                     continue;
                 }
                 if a.outcode & b.outcode & c.outcode != 0 {
