@@ -214,6 +214,14 @@ fn bench_scene_file(c: &mut Criterion) {
         out.coverage(),
         min_time_ms(200, || raster.render_into(&items, &mut out))
     );
+    let frames: Vec<Vec<RenderItem>> = (0..16).map(|_| items.clone()).collect();
+    eprintln!(
+        "scene file: render_frames of 16 frames on {} rayon threads: min {:.3} ms/frame",
+        rayon::current_num_threads(),
+        min_time_ms(20, || {
+            std::hint::black_box(raster.render_frames(&frames));
+        }) / 16.0
+    );
     let mut group = c.benchmark_group("raster_720x480_scene_file");
     group.throughput(Throughput::Elements(1));
     group.bench_function("render_into_1_frame", |b| {
