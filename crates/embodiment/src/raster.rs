@@ -185,15 +185,24 @@ impl Planes {
         plane[0] * p[0] + plane[1] * p[1] + plane[2] * p[2] + plane[3]
     }
 
+    /// Clip outcode of `p`: bit i set when outside plane i (NaN counts as
+    /// outside). Uses the planes' structure (each ignores one or two
+    /// coordinates), which gives the same distances as [`Planes::distance`]
+    /// for finite points.
     #[inline]
     fn outcode(&self, p: &[f32; 3]) -> u8 {
+        let [x, y, z] = *p;
+        let [near, left, right, top, bottom] = &self.planes;
+        let d = [
+            z + near[3],
+            left[0] * x + left[2] * z,
+            right[0] * x + right[2] * z,
+            top[1] * y + top[2] * z,
+            bottom[1] * y + bottom[2] * z,
+        ];
         let mut code = 0u8;
-        for (i, plane) in self.planes.iter().enumerate() {
-            // NaN counts as outside.
-            let d = Self::distance(plane, p);
-            if d.is_nan() || d < 0.0 {
-                code |= 1 << i;
-            }
+        for (i, d) in d.iter().enumerate() {
+            code |= u8::from(d.is_nan() | (*d < 0.0)) << i;
         }
         code
     }
@@ -603,26 +612,28 @@ impl Rasterizer {
             }
             let r: [[f32; 4]; 3] =
                 std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)] as f32));
+            let n = item.mesh.vertices.len();
             cam.clear();
-            cam.extend(item.mesh.vertices.iter().map(|v| {
-                [
+            cam.resize(n, [0.0; 3]);
+            screen.clear();
+            screen.resize(n, ScreenVertex::default());
+            for ((v, c), sv) in item.mesh.vertices.iter().zip(&mut cam).zip(&mut screen) {
+                let p = [
                     r[0][0] * v.x + r[0][1] * v.y + r[0][2] * v.z + r[0][3],
                     r[1][0] * v.x + r[1][1] * v.y + r[1][2] * v.z + r[1][3],
                     r[2][0] * v.x + r[2][1] * v.y + r[2][2] * v.z + r[2][3],
-                ]
-            }));
-            screen.clear();
-            screen.extend(cam.iter().map(|p| {
-                let outcode = planes.outcode(p);
-                if outcode == 0 {
-                    project(k, p)
+                ];
+                *c = p;
+                let outcode = planes.outcode(&p);
+                *sv = if outcode == 0 {
+                    project(k, &p)
                 } else {
                     ScreenVertex {
                         outcode,
                         ..ScreenVertex::default()
                     }
-                }
-            }));
+                };
+            }
             for tri in &item.mesh.triangles {
                 let [i0, i1, i2] = tri.map(|i| i as usize);
                 let (Some(a), Some(b), Some(c)) = (screen.get(i0), screen.get(i1), screen.get(i2))
