@@ -26,7 +26,12 @@
 //!   (shrunk if the field of view is very wide) that covers the undistorted
 //!   locations of all output pixel centres, and each output pixel copies the
 //!   nearest pinhole pixel of its undistorted location (precomputed once in
-//!   [`Rasterizer::new`]).
+//!   [`Rasterizer::new`]). The pinhole buffer is allocated per rendered
+//!   frame; undistorted frames allocate only one small per-call scratch of
+//!   transformed vertices.
+//! - Performance (720x480, one thread, release): about 1.7 ms per frame for
+//!   8 capsules/spheres of ~2k triangles each and about 3.7 ms for a Franka
+//!   Panda's visual meshes (103k triangles); see `benches/raster.rs`.
 
 use crate::camera::Camera;
 use crate::mesh::TriMesh;
