@@ -270,7 +270,8 @@ impl Intrinsics {
     /// Uses the pixel-centre convention: with `sx = width / self.width`,
     /// `fx' = fx sx` and `cx' = (cx + 0.5) sx - 0.5` (same for y), so that a
     /// scene point keeps its relative position in the image. Distortion acts
-    /// on normalized coordinates and is unchanged.
+    /// on normalized coordinates and is unchanged. A zero `width` or
+    /// `height` gives intrinsics that [`Intrinsics::validate`] rejects.
     pub fn rescaled(&self, width: u32, height: u32) -> Intrinsics {
         let sx = f64::from(width) / f64::from(self.width);
         let sy = f64::from(height) / f64::from(self.height);

@@ -521,9 +521,13 @@ impl Rasterizer {
                     Some((x, y)) => {
                         let su = (fx * x + cx).round();
                         let sv = (fy * y + cy).round();
-                        if su >= 0.0 && sv >= 0.0 && su < f64::from(width) && sv < f64::from(height)
-                        {
-                            sv as u32 * width + su as u32
+                        let index = sv * f64::from(width) + su;
+                        let inside = su >= 0.0
+                            && sv >= 0.0
+                            && su < f64::from(width)
+                            && sv < f64::from(height);
+                        if inside && index < f64::from(u32::MAX) {
+                            index as u32
                         } else {
                             u32::MAX
                         }

@@ -907,3 +907,55 @@ fn top_left_rule_on_pixel_centres() {
         assert_eq!(counts[(v * 97 + u) as usize], 1, "({u}, {v})");
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    /// Two triangles sharing an edge, on opposite sides of it: every pixel is
+    /// drawn at most once and the union has no holes along the edge.
+    #[test]
+    fn shared_edge_random(coords in proptest::collection::vec(-0.35f32..0.35, 8),
+                          depths in proptest::collection::vec(0.5f32..2.0, 4)) {
+        let cam = identity_camera(64, 48);
+        let raster = Rasterizer::new(&cam);
+        let v: Vec<Point3<f32>> = (0..4)
+            .map(|i| Point3::new(coords[2 * i] * depths[i], coords[2 * i + 1] * depths[i], depths[i]))
+            .collect();
+        let p: Vec<_> = v
+            .iter()
+            .map(|q| cam.project(&q.cast::<f64>()).expect("in front"))
+            .collect();
+        let side = |c: usize| {
+            (p[1].x - p[0].x) * (p[c].y - p[0].y) - (p[1].y - p[0].y) * (p[c].x - p[0].x)
+        };
+        prop_assume!(side(2) * side(3) < 0.0);
+        let mesh = |triangles: Vec<[u32; 3]>| TriMesh { vertices: v.clone(), triangles };
+        let render = |m: &TriMesh| {
+            raster.render(&[RenderItem { mesh: m, world_from_mesh: Isometry3::identity(), label: 1 }])
+        };
+        let first = render(&mesh(vec![[0, 1, 2]]));
+        let second = render(&mesh(vec![[1, 0, 3]]));
+        let both = render(&mesh(vec![[0, 1, 2], [1, 0, 3]]));
+        for ((a, b), c) in first.labels.iter().zip(&second.labels).zip(&both.labels) {
+            prop_assert!(!(*a != 0 && *b != 0), "pixel drawn twice");
+            prop_assert_eq!(*a != 0 || *b != 0, *c != 0);
+        }
+        // No holes: a pixel centre clearly inside either triangle (by more
+        // than the 1/256 px vertex snapping) is covered.
+        let inside = |t: [usize; 3], x: f64, y: f64| {
+            let e = |i: usize, j: usize| {
+                let (a, b) = (p[t[i]], p[t[j]]);
+                let len = ((b.x - a.x).powi(2) + (b.y - a.y).powi(2)).sqrt();
+                ((b.x - a.x) * (y - a.y) - (b.y - a.y) * (x - a.x)) / len
+            };
+            let (e0, e1, e2) = (e(0, 1), e(1, 2), e(2, 0));
+            let margin = 0.02;
+            (e0 > margin && e1 > margin && e2 > margin) || (e0 < -margin && e1 < -margin && e2 < -margin)
+        };
+        for (i, &c) in both.labels.iter().enumerate() {
+            let (x, y) = ((i % 64) as f64, (i / 64) as f64);
+            if inside([0, 1, 2], x, y) || inside([1, 0, 3], x, y) {
+                prop_assert!(c != 0, "hole at ({}, {})", x, y);
+            }
+        }
+    }
+}
