@@ -380,7 +380,9 @@ impl Target<'_> {
         iz_dy *= inv_area;
 
         let width = self.width;
-        let wide = x1 - x0 >= SPAN_MIN_WIDTH_PX;
+        // Boxes of several columns are traversed by exact per-row spans; a
+        // single column is tested pixel by pixel.
+        let wide = x1 > x0;
         for (row, y) in (y0..=y1).enumerate() {
             let iz_row = (iz_origin + row as f64 * iz_dy) as f32;
             let base = y as usize * width;
@@ -427,10 +429,6 @@ impl Target<'_> {
         }
     }
 }
-
-/// Bounding boxes at least this wide (pixels) are traversed by exact
-/// per-row spans instead of testing every pixel of the box.
-const SPAN_MIN_WIDTH_PX: i64 = 8;
 
 /// The offsets `[lo, hi]` within `[0, max_offset]` where all three biased
 /// edge functions `e[i] + k * step[i]` are >= 0 (exact integer arithmetic,
