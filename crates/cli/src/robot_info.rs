@@ -37,6 +37,7 @@ pub fn run(args: &RobotInfoArgs) -> Result<()> {
                 "name": l.name,
                 "label": l.mesh.as_ref().map(|_| label_of_link(i)),
                 "triangles": l.mesh.as_ref().map_or(0, |m| m.triangles.len()),
+                "closed": l.mesh_closed,
             })).collect::<Vec<_>>(),
             "end_effectors": e.end_effectors.iter().map(|ee| serde_json::json!({
                 "arm": ee.arm,

@@ -42,6 +42,7 @@ pub fn render_frame(robot: &Robot, rasterizer: &Rasterizer, q: &[f64], out: &mut
                 mesh: m,
                 world_from_mesh: poses[i],
                 label: label_of_link(i),
+                cull_back_faces: l.mesh_closed,
             })
         })
         .collect();

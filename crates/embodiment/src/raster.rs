@@ -61,6 +61,13 @@ pub struct RenderItem<'a> {
     /// Label written to covered pixels; must be >= 1 (0 is background, items
     /// labelled 0 are not drawn).
     pub label: u16,
+    /// Skip triangles facing away from the camera. Only for closed meshes
+    /// with outward (counter-clockwise seen from outside) winding, see
+    /// [`TriMesh::is_closed`]; the result is then unchanged, since every
+    /// pixel a back face covers is covered by a nearer front face. Ignored
+    /// for a frame in which any vertex of the mesh is behind the near plane
+    /// (the camera could be inside it).
+    pub cull_back_faces: bool,
 }
 
 /// A rendered frame, row-major (`index = y * width + x`).
@@ -624,6 +631,7 @@ impl Rasterizer {
             cam.resize(n, [0.0; 3]);
             screen.clear();
             screen.resize(n, ScreenVertex::default());
+            let mut outcodes_any = 0u8;
             for ((v, c), sv) in item.mesh.vertices.iter().zip(&mut cam).zip(&mut screen) {
                 let p = [
                     r[0][0] * v.x + r[0][1] * v.y + r[0][2] * v.z + r[0][3],
@@ -632,6 +640,7 @@ impl Rasterizer {
                 ];
                 *c = p;
                 let outcode = planes.outcode(&p);
+                outcodes_any |= outcode;
                 *sv = if outcode == 0 {
                     project(k, &p)
                 } else {
@@ -641,6 +650,9 @@ impl Rasterizer {
                     }
                 };
             }
+            // Back faces are hidden only when the camera is outside the
+            // mesh, which holds when no vertex is behind the near plane.
+            let cull = item.cull_back_faces && outcodes_any & 1 == 0;
             for tri in &item.mesh.triangles {
                 let [i0, i1, i2] = tri.map(|i| i as usize);
                 let (Some(a), Some(b), Some(c)) = (screen.get(i0), screen.get(i1), screen.get(i2))
@@ -660,6 +672,17 @@ impl Rasterizer {
                     let y0 = (-((-min_y) >> SUBPIXEL_BITS)).max(0);
                     let y1 = (max_y >> SUBPIXEL_BITS).min(last_y);
                     if x0 <= x1 && y0 <= y1 {
+                        if cull {
+                            // Screen y points down: a positive signed area
+                            // is a triangle seen from behind.
+                            let area = (i64::from(b.x) - i64::from(a.x))
+                                * (i64::from(c.y) - i64::from(a.y))
+                                - (i64::from(b.y) - i64::from(a.y))
+                                    * (i64::from(c.x) - i64::from(a.x));
+                            if area > 0 {
+                                continue;
+                            }
+                        }
                         target.draw_triangle([a, b, c], item.label);
                     }
                     continue;

@@ -157,6 +157,9 @@ pub struct Link {
     /// All `<visual>` geometry merged into one mesh in the link frame, or
     /// `None` if the link has no visual geometry.
     pub mesh: Option<Arc<TriMesh>>,
+    /// Whether `mesh` is closed (every part bounds a volume) with outward
+    /// winding, so back faces may be culled when rendering.
+    pub mesh_closed: bool,
 }
 
 /// Options for building a robot from URDF.
@@ -478,7 +481,7 @@ impl Builder<'_> {
             let l = &urdf.links[old];
             let parent_joint = joint_of_child.get(&old).map(|&ji| new_joint_index[ji]);
             let parent = parent_joint.map(|j: usize| joints[j].parent);
-            let mesh = if self.options.skip_geometry {
+            let geometry = if self.options.skip_geometry {
                 None
             } else {
                 self.link_mesh(l)?
@@ -487,7 +490,8 @@ impl Builder<'_> {
                 name: l.name.clone(),
                 parent_joint,
                 parent,
-                mesh,
+                mesh_closed: geometry.as_ref().is_some_and(|g| g.1),
+                mesh: geometry.map(|g| g.0),
             });
         }
         Ok(Robot {
@@ -621,11 +625,12 @@ impl Builder<'_> {
         })
     }
 
-    fn link_mesh(&mut self, l: &urdf_rs::Link) -> Result<Option<Arc<TriMesh>>, RobotError> {
+    fn link_mesh(&mut self, l: &urdf_rs::Link) -> Result<Option<(Arc<TriMesh>, bool)>, RobotError> {
         if l.visual.is_empty() {
             return Ok(None);
         }
         let mut merged = TriMesh::default();
+        let mut all_closed = true;
         for (vi, v) in l.visual.iter().enumerate() {
             self.check_pose(&v.origin, &format!("link \"{}\" visual {vi}", l.name))?;
             let link_from_visual = pose_to_isometry(&v.origin);
@@ -700,9 +705,17 @@ impl Builder<'_> {
                     l.name
                 )));
             }
-            merged.append(&placed);
+            // Closed parts are made outward-facing so the renderer may skip
+            // their back faces (exact for closed surfaces).
+            let part_closed = placed.is_closed();
+            all_closed &= part_closed;
+            if part_closed && placed.signed_volume() < 0.0 {
+                merged.append(&placed.flipped());
+            } else {
+                merged.append(&placed);
+            }
         }
-        Ok(Some(Arc::new(merged)))
+        Ok(Some((Arc::new(merged), all_closed)))
     }
 
     fn mesh_file(&mut self, link: &str, filename: &str) -> Result<Arc<TriMesh>, RobotError> {
@@ -722,11 +735,15 @@ impl Builder<'_> {
         if let Some(mesh) = self.mesh_cache.get(path) {
             return Ok(mesh.clone());
         }
-        let mesh = Arc::new(load_mesh(path).map_err(|source| RobotError::Mesh {
-            source_name: self.source_name.to_string(),
-            link: link.to_string(),
-            source,
-        })?);
+        let mesh = Arc::new(
+            load_mesh(path)
+                .map_err(|source| RobotError::Mesh {
+                    source_name: self.source_name.to_string(),
+                    link: link.to_string(),
+                    source,
+                })?
+                .welded(),
+        );
         self.mesh_cache.insert(path.clone(), mesh.clone());
         Ok(mesh)
     }

@@ -55,6 +55,88 @@ impl TriMesh {
         }
     }
 
+    /// The same surface with bitwise-identical vertex positions merged and
+    /// degenerate triangles (two equal corners) dropped. Mesh files often
+    /// repeat a position once per face corner (for normals or texture
+    /// coordinates); welding shrinks the per-vertex work of rendering
+    /// without changing what is drawn.
+    pub fn welded(&self) -> Self {
+        let mut index_of: std::collections::HashMap<[u32; 3], u32> =
+            std::collections::HashMap::with_capacity(self.vertices.len());
+        let mut vertices = Vec::new();
+        let remap: Vec<u32> = self
+            .vertices
+            .iter()
+            .map(|v| {
+                // +0.0 and -0.0 are the same point.
+                let key = [v.x + 0.0, v.y + 0.0, v.z + 0.0].map(f32::to_bits);
+                *index_of.entry(key).or_insert_with(|| {
+                    vertices.push(*v);
+                    (vertices.len() - 1) as u32
+                })
+            })
+            .collect();
+        let triangles = self
+            .triangles
+            .iter()
+            .filter_map(|t| {
+                let r = t.map(|i| remap.get(i as usize).copied());
+                match r {
+                    [Some(a), Some(b), Some(c)] if a != b && b != c && a != c => Some([a, b, c]),
+                    _ => None,
+                }
+            })
+            .collect();
+        Self {
+            vertices,
+            triangles,
+        }
+    }
+
+    /// Whether the mesh is closed and consistently oriented: every directed
+    /// edge `a -> b` of a triangle appears exactly once, and so does its
+    /// reverse `b -> a` (each edge borders exactly two triangles that
+    /// traverse it in opposite directions). Such a mesh bounds a volume.
+    pub fn is_closed(&self) -> bool {
+        if self.triangles.is_empty() {
+            return false;
+        }
+        let mut edges: std::collections::HashMap<(u32, u32), u32> =
+            std::collections::HashMap::with_capacity(self.triangles.len() * 3);
+        for t in &self.triangles {
+            for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+                *edges.entry((a, b)).or_insert(0) += 1;
+            }
+        }
+        edges
+            .iter()
+            .all(|(&(a, b), &n)| n == 1 && edges.get(&(b, a)) == Some(&1))
+    }
+
+    /// Signed volume (positive when triangles wind counter-clockwise seen
+    /// from outside, i.e. normals point out). Meaningful for closed meshes.
+    pub fn signed_volume(&self) -> f64 {
+        self.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| {
+                    self.vertices
+                        .get(i as usize)
+                        .map_or(nalgebra::Vector3::zeros(), |v| v.coords.cast::<f64>())
+                });
+                a.dot(&b.cross(&c)) / 6.0
+            })
+            .sum()
+    }
+
+    /// The mesh with every triangle's winding reversed.
+    pub fn flipped(mut self) -> Self {
+        for t in &mut self.triangles {
+            t.swap(1, 2);
+        }
+        self
+    }
+
     /// Axis-aligned bounds `(min, max)`, or `None` for an empty mesh.
     pub fn bounds(&self) -> Option<(Point3<f32>, Point3<f32>)> {
         let first = *self.vertices.first()?;
@@ -118,6 +200,14 @@ impl TriMesh {
         for r in 0..=rings {
             let polar = PI * r as f32 / rings as f32;
             let (s, c) = polar.sin_cos();
+            // Exact poles, so that welding closes the mesh there.
+            let (s, c) = if r == 0 {
+                (0.0, 1.0)
+            } else if r == rings {
+                (0.0, -1.0)
+            } else {
+                (s, c)
+            };
             let z_offset = if 2 * r < rings {
                 half
             } else if 2 * r > rings {
@@ -145,10 +235,13 @@ impl TriMesh {
                 triangles.push([b, c, d]);
             }
         }
+        // Pole rings collapse to one vertex (and a zero-length equator band
+        // disappears): the result is closed.
         Self {
             vertices,
             triangles,
         }
+        .welded()
     }
 
     /// A closed cylinder along z centred on the origin, as URDF's `<cylinder>`.
@@ -224,6 +317,59 @@ mod tests {
         let (lo, hi) = b.bounds().expect("non-empty");
         assert_eq!((lo.x, hi.y, hi.z), (-0.1, 0.2, 0.3));
         assert_eq!(b.triangles.len(), 12);
+    }
+
+    #[test]
+    fn welding_merges_repeated_positions() {
+        // Two triangles of a quad with every corner stored separately.
+        let p = |x: f32, y: f32| Point3::new(x, y, 0.0);
+        let m = TriMesh {
+            vertices: vec![
+                p(0.0, 0.0),
+                p(1.0, 0.0),
+                p(1.0, 1.0),
+                p(0.0, 0.0),
+                p(1.0, 1.0),
+                p(-0.0, 1.0),
+                p(0.0, 0.0),
+            ],
+            triangles: vec![[0, 1, 2], [3, 4, 5], [0, 3, 6]],
+        };
+        let w = m.welded();
+        assert_eq!(w.vertices.len(), 4);
+        assert_eq!(w.triangles.len(), 2, "the degenerate triangle is dropped");
+        for (a, b) in m.triangles.iter().zip(&w.triangles) {
+            for k in 0..3 {
+                let (va, vb) = (m.vertices[a[k] as usize], w.vertices[b[k] as usize]);
+                assert!((va - vb).norm() == 0.0);
+            }
+        }
+    }
+
+    #[test]
+    fn closed_meshes_and_orientation() {
+        let cube = TriMesh::cuboid([1.0, 2.0, 3.0]);
+        assert!(cube.is_closed());
+        assert!(
+            (cube.signed_volume() - 6.0).abs() < 1e-9,
+            "outward: {}",
+            cube.signed_volume()
+        );
+        assert!((cube.clone().flipped().signed_volume() + 6.0).abs() < 1e-9);
+        for m in [
+            TriMesh::sphere(0.5, 16),
+            TriMesh::cylinder(0.2, 1.0, 16),
+            TriMesh::capsule(0.2, 0.5, 16),
+        ] {
+            assert!(m.is_closed());
+            assert!(m.signed_volume() > 0.0);
+        }
+        let mut open = cube.clone();
+        open.triangles.pop();
+        assert!(!open.is_closed());
+        let mut inconsistent = cube;
+        inconsistent.triangles[0].swap(1, 2);
+        assert!(!inconsistent.is_closed());
     }
 
     #[test]
