@@ -235,7 +235,10 @@ fn gltf_external_buffer_resolves_relative_to_file() {
     let err = load_mesh_from_bytes(json.as_bytes(), MeshFormat::Gltf, "cube.gltf").unwrap_err();
     assert!(matches!(err, MeshError::Parse { .. }), "{err:?}");
     let msg = err.to_string();
-    assert!(msg.contains("cube.gltf") && msg.contains("cube.bin"), "{msg}");
+    assert!(
+        msg.contains("cube.gltf") && msg.contains("cube.bin"),
+        "{msg}"
+    );
 }
 
 #[test]
@@ -282,7 +285,10 @@ fn glb_node_hierarchy_strips_fans_and_skipped_points() {
     assert_bounds(&m, [9.0, -1.0, -1.0], [11.0, 1.0, 1.0]);
     // (x, y) -> (-2y, 2x) + (10, 0): the first corner (-0.5, -0.5, -0.5).
     let v0 = m.vertices[0];
-    assert!((v0.x - 11.0).abs() < 1e-5 && (v0.y + 1.0).abs() < 1e-5, "{v0:?}");
+    assert!(
+        (v0.x - 11.0).abs() < 1e-5 && (v0.y + 1.0).abs() < 1e-5,
+        "{v0:?}"
+    );
 }
 
 #[test]
@@ -321,7 +327,10 @@ fn same_cube_in_every_format_has_the_same_bounds() {
 fn missing_file_is_io_error_naming_the_path() {
     let err = load_mesh(Path::new("/no/such/dir/robot_link.stl")).unwrap_err();
     assert!(matches!(err, MeshError::Io { .. }), "{err:?}");
-    assert!(err.to_string().contains("/no/such/dir/robot_link.stl"), "{err}");
+    assert!(
+        err.to_string().contains("/no/such/dir/robot_link.stl"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -350,7 +359,12 @@ fn garbage_is_an_error_for_every_format() {
         MeshFormat::Gltf,
         MeshFormat::Glb,
     ] {
-        for bytes in [&garbage[..], b"", b"hello world\n", b"solid x\nfacet nonsense"] {
+        for bytes in [
+            &garbage[..],
+            b"",
+            b"hello world\n",
+            b"solid x\nfacet nonsense",
+        ] {
             let err = load_mesh_from_bytes(bytes, format, "garbage.bin").unwrap_err();
             assert!(
                 matches!(
@@ -385,7 +399,10 @@ fn gltf_index_out_of_range_is_invalid() {
     let err = load_mesh_from_bytes(&glb(&json, &bin), MeshFormat::Glb, "oob.glb").unwrap_err();
     match &err {
         MeshError::Invalid { message, .. } => {
-            assert!(message.contains("triangle 11 references vertex 99"), "{message}")
+            assert!(
+                message.contains("triangle 11 references vertex 99"),
+                "{message}"
+            )
         }
         other => panic!("{other:?}"),
     }

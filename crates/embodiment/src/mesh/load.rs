@@ -250,7 +250,10 @@ fn validate(name: &str, mesh: &TriMesh) -> Result<(), MeshError> {
         .iter()
         .position(|v| !(v.x.is_finite() && v.y.is_finite() && v.z.is_finite()))
     {
-        return Err(invalid(name, format!("vertex {i} has a non-finite coordinate")));
+        return Err(invalid(
+            name,
+            format!("vertex {i} has a non-finite coordinate"),
+        ));
     }
     check_indices(name, "", &mesh.triangles, mesh.vertices.len())?;
     if mesh.triangles.is_empty() {
@@ -301,8 +304,11 @@ fn append_part(
     }
     let base = out.vertices.len() as u32;
     out.vertices.extend(vertices);
-    out.triangles
-        .extend(triangles.iter().map(|t| [t[0] + base, t[1] + base, t[2] + base]));
+    out.triangles.extend(
+        triangles
+            .iter()
+            .map(|t| [t[0] + base, t[1] + base, t[2] + base]),
+    );
     Ok(())
 }
 
@@ -316,7 +322,13 @@ fn merge_scene(name: &str, scene: mesh_loader::Scene) -> Result<TriMesh, MeshErr
             .iter()
             .map(|v| Point3::new(v[0], v[1], v[2]))
             .collect();
-        append_part(name, &format!("sub-mesh {i}: "), &mut out, vertices, &m.faces)?;
+        append_part(
+            name,
+            &format!("sub-mesh {i}: "),
+            &mut out,
+            vertices,
+            &m.faces,
+        )?;
     }
     Ok(out)
 }
@@ -364,9 +376,7 @@ fn collada_precheck(text: &str) -> Result<(), String> {
             .unwrap_or(section.len());
         let body = &section[..end];
         if body.contains("<Name_array") || body.contains("<IDREF_array") {
-            return Err(
-                "Name_array/IDREF_array in a geometry source is not supported".to_string(),
-            );
+            return Err("Name_array/IDREF_array in a geometry source is not supported".to_string());
         }
         rest = &section[end..];
         if end == section.len() {
@@ -461,10 +471,8 @@ fn load_gltf(bytes: &[u8], name: &str, base: Option<&Path>) -> Result<TriMesh, G
     match scene {
         Some(scene) => {
             let mut visits = 0usize;
-            let mut stack: Vec<(gltf::Node, Matrix4<f32>, usize)> = scene
-                .nodes()
-                .map(|n| (n, Matrix4::identity(), 0))
-                .collect();
+            let mut stack: Vec<(gltf::Node, Matrix4<f32>, usize)> =
+                scene.nodes().map(|n| (n, Matrix4::identity(), 0)).collect();
             while let Some((node, parent, depth)) = stack.pop() {
                 visits += 1;
                 if visits > MAX_NODE_VISITS {
@@ -496,7 +504,14 @@ fn load_gltf(bytes: &[u8], name: &str, base: Option<&Path>) -> Result<TriMesh, G
         }
         None => {
             for mesh in document.meshes() {
-                add_gltf_mesh(name, &mut out, &mesh, &Matrix4::identity(), &buffers, budget)?;
+                add_gltf_mesh(
+                    name,
+                    &mut out,
+                    &mesh,
+                    &Matrix4::identity(),
+                    &buffers,
+                    budget,
+                )?;
             }
         }
     }
