@@ -23,12 +23,8 @@ impl TriMesh {
     pub fn append(&mut self, other: &TriMesh) {
         let base = self.vertices.len() as u32;
         self.vertices.extend_from_slice(&other.vertices);
-        self.triangles.extend(
-            other
-                .triangles
-                .iter()
-                .map(|t| [t[0] + base, t[1] + base, t[2] + base]),
-        );
+        self.triangles
+            .extend(other.triangles.iter().map(|t| [t[0] + base, t[1] + base, t[2] + base]));
     }
 
     /// Multiplies every vertex coordinate by `scale` (per axis).
@@ -44,11 +40,9 @@ impl TriMesh {
     /// Axis-aligned bounds `(min, max)`, or `None` for an empty mesh.
     pub fn bounds(&self) -> Option<(Point3<f32>, Point3<f32>)> {
         let first = *self.vertices.first()?;
-        Some(
-            self.vertices
-                .iter()
-                .fold((first, first), |(lo, hi), v| (lo.inf(v), hi.sup(v))),
-        )
+        Some(self.vertices.iter().fold((first, first), |(lo, hi), v| {
+            (lo.inf(v), hi.sup(v))
+        }))
     }
 
     /// An axis-aligned box centred on the origin with full side lengths `size`.
@@ -65,23 +59,14 @@ impl TriMesh {
             .collect();
         // Two triangles per face; corner index bits are (x, y, z).
         let triangles = vec![
-            [0, 2, 1],
-            [1, 2, 3], // z-
-            [4, 5, 6],
-            [5, 7, 6], // z+
-            [0, 1, 4],
-            [1, 5, 4], // y-
-            [2, 6, 3],
-            [3, 6, 7], // y+
-            [0, 4, 2],
-            [2, 4, 6], // x-
-            [1, 3, 5],
-            [3, 7, 5], // x+
+            [0, 2, 1], [1, 2, 3], // z-
+            [4, 5, 6], [5, 7, 6], // z+
+            [0, 1, 4], [1, 5, 4], // y-
+            [2, 6, 3], [3, 6, 7], // y+
+            [0, 4, 2], [2, 4, 6], // x-
+            [1, 3, 5], [3, 7, 5], // x+
         ];
-        Self {
-            vertices,
-            triangles,
-        }
+        Self { vertices, triangles }
     }
 
     /// A UV sphere of `radius` with `segments` around the z axis and
@@ -131,10 +116,7 @@ impl TriMesh {
                 triangles.push([b, c, d]);
             }
         }
-        Self {
-            vertices,
-            triangles,
-        }
+        Self { vertices, triangles }
     }
 
     /// A closed cylinder along z centred on the origin, as URDF's `<cylinder>`.
@@ -159,10 +141,7 @@ impl TriMesh {
             triangles.push([top_a, bot_a, top_b]);
             triangles.push([top_b, bot_a, bot_b]);
         }
-        Self {
-            vertices,
-            triangles,
-        }
+        Self { vertices, triangles }
     }
 }
 
@@ -171,10 +150,7 @@ mod tests {
     use super::*;
 
     fn max_radius(m: &TriMesh) -> f32 {
-        m.vertices
-            .iter()
-            .map(|v| v.coords.norm())
-            .fold(0.0, f32::max)
+        m.vertices.iter().map(|v| v.coords.norm()).fold(0.0, f32::max)
     }
 
     #[test]
@@ -185,11 +161,7 @@ mod tests {
         }
         let (lo, hi) = m.bounds().expect("non-empty");
         assert!((hi.z - 0.3).abs() < 1e-6 && (lo.z + 0.3).abs() < 1e-6);
-        assert!(m
-            .triangles
-            .iter()
-            .flatten()
-            .all(|&i| (i as usize) < m.vertices.len()));
+        assert!(m.triangles.iter().flatten().all(|&i| (i as usize) < m.vertices.len()));
     }
 
     #[test]
