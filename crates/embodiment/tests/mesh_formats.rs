@@ -1,5 +1,7 @@
 //! Loading each mesh format from fixtures, and the errors for bad input.
 
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
+
 use bridgev2w_embodiment::mesh::load::{load_mesh, load_mesh_from_bytes, MeshError, MeshFormat};
 use bridgev2w_embodiment::mesh::TriMesh;
 use std::path::{Path, PathBuf};

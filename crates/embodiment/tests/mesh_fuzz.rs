@@ -285,13 +285,12 @@ fn regressions_do_not_panic() {
         };
         seen += 1;
         let bytes = std::fs::read(&path).expect("read");
-        for result in [
+        let results = [
             load_mesh(&path),
             load_mesh_from_bytes(&bytes, format, "regression"),
-        ] {
-            if let Ok(m) = result {
-                check_mesh(&m).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-            }
+        ];
+        for m in results.into_iter().flatten() {
+            check_mesh(&m).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         }
     }
     assert!(seen > 0, "no regression files in {}", dir.display());
