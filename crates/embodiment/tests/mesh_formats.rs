@@ -468,3 +468,45 @@ fn collada_huge_declared_count_is_rejected() {
     let err = load_mesh_from_bytes(text.as_bytes(), MeshFormat::Collada, "huge.dae").unwrap_err();
     assert!(matches!(err, MeshError::Parse { .. }), "{err:?}");
 }
+
+#[test]
+fn gltf_huge_sparse_accessor_is_rejected_before_allocating() {
+    // A sparse POSITION accessor without a bufferView claims 4e9 vertices
+    // (zero-filled): reading it would need ~48 GB.
+    let json = cube_gltf_json(r#"[{"mesh": 0}]"#, "[0]", r#"{"byteLength": 168}"#).replace(
+        r#"{"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3","#,
+        r#"{"componentType": 5126, "count": 4000000000, "type": "VEC3",
+      "sparse": {"count": 1, "indices": {"bufferView": 1, "componentType": 5123},
+                 "values": {"bufferView": 0}},"#,
+    );
+    assert!(json.contains("4000000000"));
+    let err = load_mesh_from_bytes(&glb(&json, &cube_buffer()), MeshFormat::Glb, "sparse.glb")
+        .unwrap_err();
+    match &err {
+        MeshError::Invalid { message, .. } => {
+            assert!(message.contains("count 4000000000 exceeds"), "{message}")
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn gltf_exponential_node_dag_is_rejected() {
+    // Node i has node i+1 as a child twice: 2^24 paths to the last node.
+    let nodes: Vec<String> = (0..24)
+        .map(|i| format!(r#"{{"children": [{0}, {0}]}}"#, i + 1))
+        .chain([r#"{"mesh": 0}"#.to_string()])
+        .collect();
+    let json = cube_gltf_json(
+        &format!("[{}]", nodes.join(",")),
+        "[0]",
+        r#"{"byteLength": 168}"#,
+    );
+    let r = load_mesh_from_bytes(&glb(&json, &cube_buffer()), MeshFormat::Glb, "dag.glb");
+    match r {
+        Err(MeshError::Invalid { message, .. }) => {
+            assert!(message.contains("more than 65536 nodes"), "{message}")
+        }
+        other => panic!("{:?}", other.map(|m| m.triangles.len())),
+    }
+}
