@@ -510,3 +510,14 @@ fn gltf_exponential_node_dag_is_rejected() {
         other => panic!("{:?}", other.map(|m| m.triangles.len())),
     }
 }
+
+#[test]
+fn collada_utf16_with_bom_loads() {
+    let text = std::fs::read_to_string(fixture("cube.dae")).unwrap();
+    let mut bytes = vec![0xFF, 0xFE];
+    for unit in text.encode_utf16() {
+        bytes.extend_from_slice(&unit.to_le_bytes());
+    }
+    let m = load_mesh_from_bytes(&bytes, MeshFormat::Collada, "utf16.dae").unwrap();
+    assert_eq!(m.triangles.len(), 12);
+}
