@@ -22,7 +22,14 @@
 //! triangle), and the third-party parsers are run under
 //! [`std::panic::catch_unwind`] so malformed input gives a [`MeshError`]
 //! rather than a panic. Some declared sizes are checked before parsing so a
-//! small hostile file cannot request a huge allocation.
+//! small hostile file cannot request a huge allocation, and COLLADA inputs
+//! that would make mesh-loader loop forever are rejected up front.
+//!
+//! Caveats: a caught parser panic still runs the process's panic hook (by
+//! default a "thread ... panicked at" line on stderr) before it becomes an
+//! error, and catching needs `panic = "unwind"` (a `panic = "abort"` build
+//! would abort on such files). Known panicking inputs are collected in
+//! `tests/data/mesh/regressions/`.
 
 use super::TriMesh;
 use nalgebra::{Matrix4, Point3};
