@@ -157,3 +157,47 @@ fn camera_looking_away_gives_empty_frames() {
     .expect("write");
     assert_eq!(w.empty_frames, vec![0]);
 }
+
+/// Back-face culling of closed meshes must not change the output.
+#[test]
+fn back_face_culling_is_exact_for_closed_meshes() {
+    use bridgev2w_embodiment::kinematics::{random_q, SplitMix64};
+    use bridgev2w_embodiment::raster::{Rasterizer, RenderItem};
+    let e = Embodiment::builtin("franka").expect("franka");
+    let r = &e.robot;
+    assert!(r.links.iter().filter(|l| l.mesh.is_some()).all(|l| l.mesh_closed), "primitive links are closed");
+    let mut rng = SplitMix64::new(11);
+    let intr = Intrinsics { fx: 400.0, fy: 400.0, cx: 199.5, cy: 149.5, width: 400, height: 300, distortion: None };
+    let eyes = [Point3::new(1.5, 0.5, 0.8), Point3::new(-0.8, -1.2, 1.5), Point3::new(0.6, 0.0, 2.0), Point3::new(0.3, 0.3, 0.35)];
+    let mut drawn = 0;
+    for eye in eyes {
+        let cam = Camera::look_at(intr.clone(), eye, Point3::new(0.3, 0.0, 0.4), Vector3::z()).expect("cam");
+        let raster = Rasterizer::new(&cam);
+        for _ in 0..5 {
+            let q = random_q(r, &mut rng);
+            let poses = r.link_poses(&q);
+            let items = |cull: bool| -> Vec<RenderItem> {
+                r.links
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, l)| {
+                        l.mesh.as_ref().map(|m| RenderItem {
+                            mesh: m,
+                            world_from_mesh: poses[i],
+                            label: i as u16 + 1,
+                            cull_back_faces: cull,
+                        })
+                    })
+                    .collect()
+            };
+            let a = raster.render(&items(false));
+            let b = raster.render(&items(true));
+            assert_eq!(a.labels, b.labels);
+            for (x, y) in a.depth_m.iter().zip(&b.depth_m) {
+                assert!(x == y || (x - y).abs() < 1e-5, "{x} vs {y}");
+            }
+            drawn += a.coverage();
+        }
+    }
+    assert!(drawn > 10_000);
+}
