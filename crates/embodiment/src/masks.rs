@@ -65,7 +65,13 @@ pub fn render_trajectory(
     joints
         .par_iter()
         .map(|q| {
-            let mut out = RenderOutput::new(w, h);
+            // Empty buffers: render_into sizes and clears them once.
+            let mut out = RenderOutput {
+                width: w,
+                height: h,
+                labels: Vec::new(),
+                depth_m: Vec::new(),
+            };
             render_frame(robot, &rasterizer, q, &mut out);
             on_frame();
             out

@@ -165,13 +165,33 @@ fn back_face_culling_is_exact_for_closed_meshes() {
     use bridgev2w_embodiment::raster::{Rasterizer, RenderItem};
     let e = Embodiment::builtin("franka").expect("franka");
     let r = &e.robot;
-    assert!(r.links.iter().filter(|l| l.mesh.is_some()).all(|l| l.mesh_closed), "primitive links are closed");
+    assert!(
+        r.links
+            .iter()
+            .filter(|l| l.mesh.is_some())
+            .all(|l| l.mesh_closed),
+        "primitive links are closed"
+    );
     let mut rng = SplitMix64::new(11);
-    let intr = Intrinsics { fx: 400.0, fy: 400.0, cx: 199.5, cy: 149.5, width: 400, height: 300, distortion: None };
-    let eyes = [Point3::new(1.5, 0.5, 0.8), Point3::new(-0.8, -1.2, 1.5), Point3::new(0.6, 0.0, 2.0), Point3::new(0.3, 0.3, 0.35)];
+    let intr = Intrinsics {
+        fx: 400.0,
+        fy: 400.0,
+        cx: 199.5,
+        cy: 149.5,
+        width: 400,
+        height: 300,
+        distortion: None,
+    };
+    let eyes = [
+        Point3::new(1.5, 0.5, 0.8),
+        Point3::new(-0.8, -1.2, 1.5),
+        Point3::new(0.6, 0.0, 2.0),
+        Point3::new(0.3, 0.3, 0.35),
+    ];
     let mut drawn = 0;
     for eye in eyes {
-        let cam = Camera::look_at(intr.clone(), eye, Point3::new(0.3, 0.0, 0.4), Vector3::z()).expect("cam");
+        let cam = Camera::look_at(intr.clone(), eye, Point3::new(0.3, 0.0, 0.4), Vector3::z())
+            .expect("cam");
         let raster = Rasterizer::new(&cam);
         for _ in 0..5 {
             let q = random_q(r, &mut rng);
