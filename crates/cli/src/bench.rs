@@ -111,15 +111,7 @@ fn sweep(robot: &Robot, frames: usize) -> Vec<Vec<f64>> {
 }
 
 fn bench_camera(width: u32, height: u32) -> Result<Camera> {
-    let intr = Intrinsics {
-        fx: 560.0,
-        fy: 560.0,
-        cx: 359.5,
-        cy: 239.5,
-        width: 720,
-        height: 480,
-        distortion: None,
-    };
+    let intr = Intrinsics::centered(560.0, 720, 480);
     let cam = Camera::look_at(
         intr,
         Point3::new(1.5, 0.9, 0.9),

@@ -29,15 +29,7 @@ pub struct DemoArgs {
 /// The built-in demo camera: 720x480, looking at the Franka's workspace
 /// from the front-right, about 1.3 m away.
 pub fn demo_camera() -> Result<Camera> {
-    let intrinsics = Intrinsics {
-        fx: 560.0,
-        fy: 560.0,
-        cx: 359.5,
-        cy: 239.5,
-        width: 720,
-        height: 480,
-        distortion: None,
-    };
+    let intrinsics = Intrinsics::centered(560.0, 720, 480);
     Ok(Camera::look_at(
         intrinsics,
         Point3::new(1.3, 0.8, 0.85),

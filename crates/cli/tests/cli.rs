@@ -11,6 +11,13 @@ fn run(args: &[&str]) -> Output {
     bin().args(args).output().expect("run bridgev2w")
 }
 
+/// `bridgev2w masks --robot franka --camera CAMERA REST...`
+fn franka_masks(camera: &str, rest: &[&str]) -> Output {
+    let mut args = vec!["masks", "--robot", "franka", "--camera", camera];
+    args.extend_from_slice(rest);
+    run(&args)
+}
+
 fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
@@ -74,21 +81,19 @@ fn masks_contract_with_joints_json_csv_and_actions() {
     let cam = write(dir.path(), "camera.json", CAMERA);
     let joints = write(dir.path(), "joints.json", &joints_json(4));
     let out = dir.path().join("out");
-    let o = run(&[
-        "masks",
-        "--robot",
-        "franka",
-        "--camera",
+    let o = franka_masks(
         &cam,
-        "--joints",
-        &joints,
-        "--width",
-        "160",
-        "--height",
-        "120",
-        "--out",
-        out.to_str().expect("utf8"),
-    ]);
+        &[
+            "--joints",
+            &joints,
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--out",
+            out.to_str().expect("utf8"),
+        ],
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(
         npy_shape(&out.join("masks.npy")),
@@ -116,21 +121,19 @@ fn masks_contract_with_joints_json_csv_and_actions() {
     }
     let csv_path = write(dir.path(), "joints.csv", &csv);
     let out2 = dir.path().join("out2");
-    let o = run(&[
-        "masks",
-        "--robot",
-        "franka",
-        "--camera",
+    let o = franka_masks(
         &cam,
-        "--joints",
-        &csv_path,
-        "--width",
-        "160",
-        "--height",
-        "120",
-        "--out",
-        out2.to_str().expect("utf8"),
-    ]);
+        &[
+            "--joints",
+            &csv_path,
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--out",
+            out2.to_str().expect("utf8"),
+        ],
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(
         std::fs::read(out.join("masks.npy")).expect("a"),
@@ -144,21 +147,19 @@ fn masks_contract_with_joints_json_csv_and_actions() {
         "[[0.45, 0.0, 0.3, 3.14159, 0.0, 0.0, 0.0], [0.45, 0.05, 0.3, 3.14159, 0.0, 0.0, 1.0]]",
     );
     let out3 = dir.path().join("out3");
-    let o = run(&[
-        "masks",
-        "--robot",
-        "franka",
-        "--camera",
+    let o = franka_masks(
         &cam,
-        "--actions",
-        &actions,
-        "--width",
-        "160",
-        "--height",
-        "120",
-        "--out",
-        out3.to_str().expect("utf8"),
-    ]);
+        &[
+            "--actions",
+            &actions,
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--out",
+            out3.to_str().expect("utf8"),
+        ],
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(npy_shape(&out3.join("masks.npy")).1, vec![2, 120, 160]);
     let ik: serde_json::Value =
@@ -239,9 +240,7 @@ fn bad_input_gets_clear_errors() {
         "badcam.json",
         &CAMERA.replace("\"fx\": 300", "\"fx\": -3"),
     );
-    let o = run(&[
-        "masks", "--robot", "franka", "--camera", &bad_cam, "--joints", &joints, "--out", &out,
-    ]);
+    let o = franka_masks(&bad_cam, &["--joints", &joints, "--out", &out]);
     assert!(
         !o.status.success() && stderr(&o).contains("fx") && stderr(&o).contains("badcam.json"),
         "{}",
@@ -252,9 +251,7 @@ fn bad_input_gets_clear_errors() {
         "rotcam.json",
         &CAMERA.replace("-0.3939", "-0.9"),
     );
-    let o = run(&[
-        "masks", "--robot", "franka", "--camera", &rot_cam, "--joints", &joints, "--out", &out,
-    ]);
+    let o = franka_masks(&rot_cam, &["--joints", &joints, "--out", &out]);
     assert!(
         !o.status.success() && stderr(&o).contains("rotation"),
         "{}",
@@ -289,17 +286,10 @@ fn camera_looking_away_warns() {
     let cam = write(dir.path(), "away.json", away);
     let joints = write(dir.path(), "joints.json", &joints_json(2));
     let out = dir.path().join("o");
-    let o = run(&[
-        "masks",
-        "--robot",
-        "franka",
-        "--camera",
+    let o = franka_masks(
         &cam,
-        "--joints",
-        &joints,
-        "--out",
-        out.to_str().expect("utf8"),
-    ]);
+        &["--joints", &joints, "--out", out.to_str().expect("utf8")],
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stderr(&o).contains("every mask is empty"), "{}", stderr(&o));
 }

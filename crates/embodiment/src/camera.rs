@@ -213,6 +213,22 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// An ideal pinhole camera of `width` x `height` with focal length
+    /// `focal_px` (both axes) and the principal point at the image centre
+    /// (`(width - 1) / 2`, `(height - 1) / 2` in the pixel-centre
+    /// convention), no distortion.
+    pub fn centered(focal_px: f64, width: u32, height: u32) -> Self {
+        Self {
+            fx: focal_px,
+            fy: focal_px,
+            cx: (f64::from(width) - 1.0) / 2.0,
+            cy: (f64::from(height) - 1.0) / 2.0,
+            width,
+            height,
+            distortion: None,
+        }
+    }
+
     /// Checks that focal lengths are finite and > 0, the principal point is
     /// finite, the image is non-empty and distortion coefficients are finite.
     pub fn validate(&self) -> Result<(), CameraError> {

@@ -8,6 +8,7 @@ use crate::camera::Camera;
 use crate::npy::{write_atomic, write_npy, NpyError};
 use crate::raster::{Rasterizer, RenderItem, RenderOutput};
 use crate::robot::Robot;
+use nalgebra::Isometry3;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -27,26 +28,37 @@ pub fn label_of_link(i: usize) -> u16 {
     u16::try_from(i + 1).unwrap_or(u16::MAX)
 }
 
+/// The robot's link meshes placed at `world_from_link` poses (from
+/// [`Robot::link_poses`]), labelled by [`label_of_link`]. With
+/// `cull_closed`, closed meshes skip their back faces (exact, faster).
+pub fn render_items<'a>(
+    robot: &'a Robot,
+    poses: &[Isometry3<f64>],
+    cull_closed: bool,
+) -> Vec<RenderItem<'a>> {
+    robot
+        .links
+        .iter()
+        .zip(poses)
+        .enumerate()
+        .filter_map(|(i, (l, pose))| {
+            l.mesh.as_ref().map(|m| RenderItem {
+                mesh: m,
+                world_from_mesh: *pose,
+                label: label_of_link(i),
+                cull_back_faces: cull_closed && l.mesh_closed,
+            })
+        })
+        .collect()
+}
+
 /// Renders one frame: the robot at `q` seen by the rasterizer's camera.
 ///
 /// # Panics
 /// If `q.len() != robot.dof()` (validate with [`Robot::check_q`]).
 pub fn render_frame(robot: &Robot, rasterizer: &Rasterizer, q: &[f64], out: &mut RenderOutput) {
     let poses = robot.link_poses(q);
-    let items: Vec<RenderItem> = robot
-        .links
-        .iter()
-        .enumerate()
-        .filter_map(|(i, l)| {
-            l.mesh.as_ref().map(|m| RenderItem {
-                mesh: m,
-                world_from_mesh: poses[i],
-                label: label_of_link(i),
-                cull_back_faces: l.mesh_closed,
-            })
-        })
-        .collect();
-    rasterizer.render_into(&items, out);
+    rasterizer.render_into(&render_items(robot, &poses, true), out);
 }
 
 /// Renders every frame of a joint trajectory in parallel. `on_frame` is

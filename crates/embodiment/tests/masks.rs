@@ -8,15 +8,7 @@ use bridgev2w_embodiment::robot::{LoadOptions, Robot};
 use nalgebra::{Point3, Vector3};
 
 fn camera() -> Camera {
-    let intr = Intrinsics {
-        fx: 500.0,
-        fy: 500.0,
-        cx: 319.5,
-        cy: 239.5,
-        width: 640,
-        height: 480,
-        distortion: None,
-    };
+    let intr = Intrinsics::centered(500.0, 640, 480);
     Camera::look_at(
         intr,
         Point3::new(1.5, 0.0, 0.5),
@@ -69,15 +61,7 @@ fn builtin_robots_render_and_outputs_are_written() {
     let dir = tempfile::tempdir().expect("tmp");
     for name in ["franka", "agibot-g1"] {
         let e = Embodiment::builtin(name).expect("builtin");
-        let intr = Intrinsics {
-            fx: 300.0,
-            fy: 300.0,
-            cx: 159.5,
-            cy: 119.5,
-            width: 320,
-            height: 240,
-            distortion: None,
-        };
+        let intr = Intrinsics::centered(300.0, 320, 240);
         let cam = Camera::look_at(
             intr,
             Point3::new(2.2, 0.6, 1.2),
@@ -127,15 +111,7 @@ fn builtin_robots_render_and_outputs_are_written() {
 #[test]
 fn camera_looking_away_gives_empty_frames() {
     let e = Embodiment::builtin("franka").expect("franka");
-    let intr = Intrinsics {
-        fx: 300.0,
-        fy: 300.0,
-        cx: 159.5,
-        cy: 119.5,
-        width: 320,
-        height: 240,
-        distortion: None,
-    };
+    let intr = Intrinsics::centered(300.0, 320, 240);
     let cam = Camera::look_at(
         intr,
         Point3::new(2.0, 0.0, 0.5),
@@ -162,7 +138,8 @@ fn camera_looking_away_gives_empty_frames() {
 #[test]
 fn back_face_culling_is_exact_for_closed_meshes() {
     use bridgev2w_embodiment::kinematics::{random_q, SplitMix64};
-    use bridgev2w_embodiment::raster::{Rasterizer, RenderItem};
+    use bridgev2w_embodiment::masks::render_items;
+    use bridgev2w_embodiment::raster::Rasterizer;
     let e = Embodiment::builtin("franka").expect("franka");
     let r = &e.robot;
     assert!(
@@ -173,15 +150,7 @@ fn back_face_culling_is_exact_for_closed_meshes() {
         "primitive links are closed"
     );
     let mut rng = SplitMix64::new(11);
-    let intr = Intrinsics {
-        fx: 400.0,
-        fy: 400.0,
-        cx: 199.5,
-        cy: 149.5,
-        width: 400,
-        height: 300,
-        distortion: None,
-    };
+    let intr = Intrinsics::centered(400.0, 400, 300);
     let eyes = [
         Point3::new(1.5, 0.5, 0.8),
         Point3::new(-0.8, -1.2, 1.5),
@@ -196,22 +165,8 @@ fn back_face_culling_is_exact_for_closed_meshes() {
         for _ in 0..5 {
             let q = random_q(r, &mut rng);
             let poses = r.link_poses(&q);
-            let items = |cull: bool| -> Vec<RenderItem> {
-                r.links
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(i, l)| {
-                        l.mesh.as_ref().map(|m| RenderItem {
-                            mesh: m,
-                            world_from_mesh: poses[i],
-                            label: i as u16 + 1,
-                            cull_back_faces: cull,
-                        })
-                    })
-                    .collect()
-            };
-            let a = raster.render(&items(false));
-            let b = raster.render(&items(true));
+            let a = raster.render(&render_items(r, &poses, false));
+            let b = raster.render(&render_items(r, &poses, true));
             assert_eq!(a.labels, b.labels);
             for (x, y) in a.depth_m.iter().zip(&b.depth_m) {
                 assert!(x == y || (x - y).abs() < 1e-5, "{x} vs {y}");

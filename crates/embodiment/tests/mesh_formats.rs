@@ -37,19 +37,7 @@ fn cube() -> TriMesh {
 
 /// Binary STL bytes for `mesh`.
 fn binary_stl(mesh: &TriMesh) -> Vec<u8> {
-    let mut out = vec![0u8; 80];
-    out[..11].copy_from_slice(b"binary cube");
-    out.extend_from_slice(&(mesh.triangles.len() as u32).to_le_bytes());
-    for t in &mesh.triangles {
-        out.extend_from_slice(&[0u8; 12]);
-        for &i in t {
-            for c in mesh.vertices[i as usize].iter() {
-                out.extend_from_slice(&c.to_le_bytes());
-            }
-        }
-        out.extend_from_slice(&[0u8; 2]);
-    }
-    out
+    mesh.to_binary_stl()
 }
 
 /// A GLB container: 12-byte header, JSON chunk, optional BIN chunk.

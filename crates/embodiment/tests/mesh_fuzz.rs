@@ -84,19 +84,7 @@ fn check_mesh(m: &TriMesh) -> Result<(), String> {
 }
 
 fn binary_stl() -> Vec<u8> {
-    let cube = TriMesh::cuboid([1.0, 1.0, 1.0]);
-    let mut out = vec![0u8; 80];
-    out.extend_from_slice(&(cube.triangles.len() as u32).to_le_bytes());
-    for t in &cube.triangles {
-        out.extend_from_slice(&[0u8; 12]);
-        for &i in t {
-            for c in cube.vertices[i as usize].iter() {
-                out.extend_from_slice(&c.to_le_bytes());
-            }
-        }
-        out.extend_from_slice(&[0u8; 2]);
-    }
-    out
+    TriMesh::cuboid([1.0, 1.0, 1.0]).to_binary_stl()
 }
 
 /// A GLB of the glTF fixture: its data-URI buffer moved into the BIN chunk.

@@ -137,6 +137,30 @@ impl TriMesh {
         self
     }
 
+    /// The mesh as a binary STL file (80-byte header, zero normals; STL
+    /// stores three corners per triangle, so shared vertices are repeated).
+    pub fn to_binary_stl(&self) -> Vec<u8> {
+        let mut out = vec![0u8; 80];
+        let header = b"bridgev2w binary STL";
+        out[..header.len()].copy_from_slice(header);
+        out.extend_from_slice(&(self.triangles.len() as u32).to_le_bytes());
+        for t in &self.triangles {
+            out.extend_from_slice(&[0u8; 12]);
+            for &i in t {
+                let v = self
+                    .vertices
+                    .get(i as usize)
+                    .copied()
+                    .unwrap_or_else(Point3::origin);
+                for c in v.iter() {
+                    out.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+            out.extend_from_slice(&[0u8; 2]);
+        }
+        out
+    }
+
     /// Axis-aligned bounds `(min, max)`, or `None` for an empty mesh.
     pub fn bounds(&self) -> Option<(Point3<f32>, Point3<f32>)> {
         let first = *self.vertices.first()?;
