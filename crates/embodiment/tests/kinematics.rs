@@ -351,3 +351,65 @@ fn action_errors_name_frame_and_value() {
         .to_string();
     assert!(err.contains("frame 1 has 1 values"), "{err}");
 }
+
+/// Dual-arm 14-D actions (left then right) on the AgiBot G1: each arm's IK
+/// moves only its own joints; grippers map onto their finger joints.
+#[test]
+fn dual_arm_actions_round_trip() {
+    let e = Embodiment::builtin("agibot-g1").expect("g1");
+    let r = &e.robot;
+    assert_eq!(e.action_dim(), 14);
+    let (lt, rt) = (e.end_effectors[0].link, e.end_effectors[1].link);
+    // A joint-space motion of both arms from a bent-elbow pose.
+    let qs: Vec<Vec<f64>> = (0..20)
+        .map(|t| {
+            let s = t as f64 / 19.0;
+            let mut q = e.home.clone();
+            for (arm, sign) in [("left", 1.0), ("right", -1.0)] {
+                let d = |j: usize| r.dof_index(&format!("{arm}_arm_joint{j}")).expect("joint");
+                q[d(1)] = -0.6 - 0.3 * s;
+                q[d(2)] = sign * (0.2 + 0.2 * s);
+                q[d(4)] = -1.2 + 0.4 * s;
+                q[d(6)] = 0.3 * s;
+            }
+            q
+        })
+        .collect();
+    let rows: Vec<Vec<f64>> = qs
+        .iter()
+        .enumerate()
+        .map(|(t, q)| {
+            let mut a = xyz_rpy_from_pose(&r.link_pose(lt, q)).to_vec();
+            a.push(if t < 10 { 0.0 } else { 1.0 });
+            a.extend(xyz_rpy_from_pose(&r.link_pose(rt, q)));
+            a.push(0.5);
+            a
+        })
+        .collect();
+    let actions = Trajectory::new("dual.json", rows).expect("valid");
+    let (joints, residuals) = actions_to_joints(
+        r,
+        &e.end_effectors,
+        &actions,
+        &e.home,
+        &IkOptions::default(),
+        false,
+    )
+    .expect("reachable");
+    assert_eq!(residuals.len(), 40, "one residual per arm per frame");
+    let lg = e.end_effectors[0].gripper_dof.expect("left gripper");
+    let rg = e.end_effectors[1].gripper_dof.expect("right gripper");
+    let (lo, hi) = r.dof_limits()[lg];
+    for (t, q) in joints.iter().enumerate() {
+        for link in [lt, rt] {
+            let (dp, dr) = pose_error(&r.link_pose(link, q), &r.link_pose(link, &qs[t]));
+            assert!(
+                dp < 1e-3 && dr < 0.5f64.to_radians(),
+                "frame {t}: {dp} m {dr} rad"
+            );
+        }
+        let expected_left = if t < 10 { hi } else { lo };
+        assert!((q[lg] - expected_left).abs() < 1e-12);
+        assert!((q[rg] - 0.5 * (lo + hi)).abs() < 1e-12);
+    }
+}

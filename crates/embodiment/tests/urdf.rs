@@ -158,3 +158,30 @@ fn mesh_path_resolution() {
     let c = mesh_candidates("file:///abs/x.stl", None, &opts);
     assert_eq!(c, vec![Path::new("/abs/x.stl").to_path_buf()]);
 }
+
+#[test]
+fn unknown_mesh_format_names_the_file() {
+    let dir = tempfile::tempdir().expect("tmp");
+    std::fs::write(
+        dir.path().join("part.ply"),
+        b"ply\nformat ascii 1.0\nend_header\n",
+    )
+    .expect("write");
+    let urdf = dir.path().join("r.urdf");
+    std::fs::write(
+        &urdf,
+        "<robot name='x'><link name='a'><visual><geometry><mesh filename='part.ply'/></geometry></visual></link></robot>",
+    )
+    .expect("write");
+    let err = Robot::from_urdf_file(&urdf, &LoadOptions::default())
+        .expect_err("ply")
+        .to_string();
+    assert!(
+        err.contains("part.ply") && err.contains("link \"a\""),
+        "{err}"
+    );
+    assert!(
+        err.contains(".stl") || err.contains("stl"),
+        "lists supported formats: {err}"
+    );
+}
