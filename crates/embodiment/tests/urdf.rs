@@ -185,3 +185,49 @@ fn unknown_mesh_format_names_the_file() {
         "lists supported formats: {err}"
     );
 }
+
+#[test]
+fn package_meshes_are_found_scaled_and_welded() {
+    use bridgev2w_embodiment::mesh::TriMesh;
+    let dir = tempfile::tempdir().expect("tmp");
+    let pkg = dir.path().join("ws/src/my_robot");
+    std::fs::create_dir_all(pkg.join("meshes")).expect("mkdir");
+    std::fs::create_dir_all(dir.path().join("elsewhere")).expect("mkdir");
+    std::fs::write(
+        pkg.join("meshes/cube.stl"),
+        TriMesh::cuboid([1.0, 1.0, 1.0]).to_binary_stl(),
+    )
+    .expect("stl");
+    let urdf = dir.path().join("elsewhere/robot.urdf");
+    std::fs::write(
+        &urdf,
+        r#"<robot name="r">
+          <link name="a"><visual><origin xyz="0 0 1"/><geometry><mesh filename="package://my_robot/meshes/cube.stl" scale="2 1 0.5"/></geometry></visual></link>
+          <link name="b"><visual><geometry><mesh filename="package://my_robot/meshes/cube.stl"/></geometry></visual></link>
+          <joint name="j" type="fixed"><parent link="a"/><child link="b"/></joint>
+        </robot>"#,
+    )
+    .expect("urdf");
+    // Not found without the search path; the error lists where it looked.
+    let err = Robot::from_urdf_file(&urdf, &LoadOptions::default())
+        .expect_err("no path")
+        .to_string();
+    assert!(
+        err.contains("cube.stl") && err.contains("--mesh-path"),
+        "{err}"
+    );
+    let opts = LoadOptions {
+        mesh_search_paths: vec![dir.path().join("ws/src")],
+        ..Default::default()
+    };
+    let r = Robot::from_urdf_file(&urdf, &opts).expect("found");
+    let a = r.links[0].mesh.as_ref().expect("a mesh");
+    let (lo, hi) = a.bounds().expect("bounds");
+    assert_eq!((lo.x, hi.x, lo.z, hi.z), (-1.0, 1.0, 0.75, 1.25));
+    assert_eq!(
+        a.vertices.len(),
+        8,
+        "STL corners welded back to the cube's 8 vertices"
+    );
+    assert!(r.links[0].mesh_closed && r.links[1].mesh_closed);
+}
