@@ -203,6 +203,7 @@ impl Planes {
     /// coordinates), which gives the same distances as [`Planes::distance`]
     /// for finite points.
     #[inline]
+    #[cfg(test)]
     fn outcode(&self, p: &[f32; 3]) -> u8 {
         let [x, y, z] = *p;
         let [near, left, right, top, bottom] = &self.planes;
@@ -547,8 +548,6 @@ const CLASS_LARGE: usize = 4;
 /// items and frames (their contents never outlive one item).
 #[derive(Debug, Default)]
 struct Scratch {
-    /// Camera-frame vertex positions (for clipping).
-    cam: Vec<[f32; 3]>,
     /// Screen vertices.
     screen: Vec<ScreenVertex>,
     /// Triangle indices per class.
@@ -797,7 +796,7 @@ impl Rasterizer {
         };
         let last_x = k.width as i32 - 1;
         let last_y = k.height as i32 - 1;
-        let Scratch { cam, screen, lists } = scratch;
+        let Scratch { screen, lists } = scratch;
         for item in items {
             if item.label == 0 {
                 continue;
@@ -809,33 +808,7 @@ impl Rasterizer {
             }
             let r: [[f32; 4]; 3] =
                 std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)] as f32));
-            let n = item.mesh.vertices.len();
-            cam.clear();
-            cam.resize(n, [0.0; 3]);
-            screen.clear();
-            screen.resize(n, ScreenVertex::default());
-            let mut outcodes_any = 0u8;
-            for ((v, c), sv) in item
-                .mesh
-                .vertices
-                .iter()
-                .zip(cam.iter_mut())
-                .zip(screen.iter_mut())
-            {
-                let p = [
-                    r[0][0] * v.x + r[0][1] * v.y + r[0][2] * v.z + r[0][3],
-                    r[1][0] * v.x + r[1][1] * v.y + r[1][2] * v.z + r[1][3],
-                    r[2][0] * v.x + r[2][1] * v.y + r[2][2] * v.z + r[2][3],
-                ];
-                *c = p;
-                let outcode = planes.outcode(&p);
-                outcodes_any |= outcode;
-                // Projected unconditionally (no branch); position and 1/z of
-                // a vertex with a non-zero outcode are never read.
-                let mut s = project(k, &p);
-                s.outcode = outcode;
-                *sv = s;
-            }
+            let outcodes_any = transform_vertices(&item.mesh.vertices, &r, k, &planes, screen);
             // Back faces are hidden only when the camera is outside the
             // mesh, which holds when no vertex is behind the near plane.
             let cull = item.cull_back_faces && outcodes_any & 1 == 0;
@@ -866,11 +839,15 @@ impl Rasterizer {
                 if a.outcode & b.outcode & c.outcode != 0 {
                     continue;
                 }
-                let (Some(pa), Some(pb), Some(pc)) = (cam.get(i0), cam.get(i1), cam.get(i2)) else {
+                let vertices = &item.mesh.vertices;
+                let (Some(pa), Some(pb), Some(pc)) =
+                    (vertices.get(i0), vertices.get(i1), vertices.get(i2))
+                else {
                     continue;
                 };
+                let cam = [pa, pb, pc].map(|v| transform(&r, v.x, v.y, v.z));
                 let mut poly = [[0.0f32; 3]; MAX_POLY];
-                let n = clip_polygon([*pa, *pb, *pc], &planes, any_out, &mut poly);
+                let n = clip_polygon(cam, &planes, any_out, &mut poly);
                 if n < 3 {
                     continue;
                 }
@@ -980,6 +957,90 @@ impl Rasterizer {
             }
         }
     }
+}
+
+/// Maps a mesh-frame point to the camera frame with the 3x4 matrix `r`.
+#[inline(always)]
+fn transform(r: &[[f32; 4]; 3], x: f32, y: f32, z: f32) -> [f32; 3] {
+    [
+        r[0][0] * x + r[0][1] * y + r[0][2] * z + r[0][3],
+        r[1][0] * x + r[1][1] * y + r[1][2] * z + r[1][3],
+        r[2][0] * x + r[2][1] * y + r[2][2] * z + r[2][3],
+    ]
+}
+
+/// Transforms mesh vertices by `r`, computes their outcodes and projects
+/// them into `screen` (resized to match), four at a time with SIMD. Returns
+/// the OR of all outcodes. Same IEEE operations in the same order as
+/// [`transform`], [`Planes::outcode`] and [`project`] (so bit-identical
+/// results); position and 1/z of a vertex with a non-zero outcode are
+/// unspecified (never read), which lets rounding use a plain truncating
+/// conversion (exact here: guard-band coordinates are far below 2^31).
+fn transform_vertices(
+    vertices: &[nalgebra::Point3<f32>],
+    r: &[[f32; 4]; 3],
+    k: &Pinhole,
+    planes: &Planes,
+    screen: &mut Vec<ScreenVertex>,
+) -> u8 {
+    use wide::{f32x4, CmpGe};
+    const LANES: usize = 4;
+    screen.clear();
+    screen.resize(vertices.len(), ScreenVertex::default());
+    let m: [[f32x4; 4]; 3] = r.map(|row| row.map(f32x4::splat));
+    let [near, left, right, top, bottom] = planes.planes.map(|p| p.map(f32x4::splat));
+    let zero = f32x4::splat(0.0);
+    let half = f32x4::splat(0.5);
+    let (fx, fy) = (f32x4::splat(k.fx), f32x4::splat(k.fy));
+    let (cx, cy) = (f32x4::splat(k.cx), f32x4::splat(k.cy));
+    let subpixel = f32x4::splat(SUBPIXEL);
+    let mut any = 0i32;
+    for (vs, out) in vertices.chunks(LANES).zip(screen.chunks_mut(LANES)) {
+        let mut x = [0.0f32; LANES];
+        let mut y = [0.0f32; LANES];
+        let mut z = [0.0f32; LANES];
+        for (i, v) in vs.iter().enumerate() {
+            x[i] = v.x;
+            y[i] = v.y;
+            z[i] = v.z;
+        }
+        let (x, y, z) = (f32x4::from(x), f32x4::from(y), f32x4::from(z));
+        let p: [f32x4; 3] =
+            std::array::from_fn(|i| m[i][0] * x + m[i][1] * y + m[i][2] * z + m[i][3]);
+        let [px, py, pz] = p;
+        // Bit j of lane mask j: outside plane (d < 0 or NaN, i.e. !(d >= 0)).
+        let outside = [
+            pz + near[3],
+            left[0] * px + left[2] * pz,
+            right[0] * px + right[2] * pz,
+            top[1] * py + top[2] * pz,
+            bottom[1] * py + bottom[2] * pz,
+        ]
+        .map(|d| !d.cmp_ge(zero).move_mask() & 0xF);
+        let inv_z = f32x4::splat(1.0) / pz;
+        let round = |v: f32x4| (v + half.copysign(v)).fast_trunc_int().to_array();
+        let sx = round((fx * px * inv_z + cx) * subpixel);
+        let sy = round((fy * py * inv_z + cy) * subpixel);
+        let inv_z = inv_z.to_array();
+        for (i, o) in out.iter_mut().enumerate() {
+            let mut code = 0u8;
+            for (plane, mask) in outside.iter().enumerate() {
+                code |= (((mask >> i) & 1) as u8) << plane;
+            }
+            *o = ScreenVertex {
+                x: sx[i],
+                y: sy[i],
+                inv_z: inv_z[i],
+                outcode: code,
+            };
+        }
+        // Padding lanes of the last chunk are not part of the mesh.
+        let valid = (1i32 << vs.len()) - 1;
+        any |= outside.iter().enumerate().fold(0, |acc, (plane, mask)| {
+            acc | (i32::from(mask & valid != 0) << plane)
+        });
+    }
+    any as u8
 }
 
 /// Projects a camera-frame point with z >= near to fixed-point pixels.
