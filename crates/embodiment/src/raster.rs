@@ -389,6 +389,58 @@ impl Target<'_> {
         }
     }
 
+    /// [`Target::draw_small`] with `N` = 1 for four triangles at once, the
+    /// per-triangle setup in SIMD lanes (same integer and IEEE operations).
+    #[inline(always)]
+    fn draw_one_x4(&mut self, tris: [[&ScreenVertex; 3]; 4], label: u16) {
+        use wide::{f64x4, i32x4, CmpEq, CmpGt, CmpLt};
+        let lanes_i32 = |k: usize, f: fn(&ScreenVertex) -> i32| {
+            i32x4::from([f(tris[0][k]), f(tris[1][k]), f(tris[2][k]), f(tris[3][k])])
+        };
+        let lanes_iz = |k: usize| f64x4::from(tris.map(|t| f64::from(t[k].inv_z)));
+        let xs = [0, 1, 2].map(|k| lanes_i32(k, |s| s.x));
+        let ys = [0, 1, 2].map(|k| lanes_i32(k, |s| s.y));
+        let x0 = -((-xs[0].min(xs[1]).min(xs[2])) >> SUBPIXEL_BITS as i32);
+        let y0 = -((-ys[0].min(ys[1]).min(ys[2])) >> SUBPIXEL_BITS as i32);
+        let (ox, oy) = (x0 << SUBPIXEL_BITS as i32, y0 << SUBPIXEL_BITS as i32);
+        let q = [0, 1, 2].map(|k| (xs[k] - ox, ys[k] - oy, lanes_iz(k)));
+        let area = (q[1].0 - q[0].0) * (q[2].1 - q[0].1) - (q[1].1 - q[0].1) * (q[2].0 - q[0].0);
+        let zero = i32x4::splat(0);
+        let neg = area.cmp_lt(zero);
+        let neg64 = f64x4::from_i32x4(area).cmp_lt(f64x4::splat(0.0));
+        let pick = |a: &(i32x4, i32x4, f64x4), b: &(i32x4, i32x4, f64x4)| {
+            (
+                neg.blend(a.0, b.0),
+                neg.blend(a.1, b.1),
+                neg64.blend(a.2, b.2),
+            )
+        };
+        let p = [q[0], pick(&q[2], &q[1]), pick(&q[1], &q[2])];
+        let area = f64x4::from_i32x4(area.abs());
+        let mut covered = i32x4::splat(-1);
+        let mut iz_origin = f64x4::splat(0.0);
+        for (i, (a, b)) in [(1, 2), (2, 0), (0, 1)].into_iter().enumerate() {
+            let (a, b) = (&p[a], &p[b]);
+            let dx = b.0 - a.0;
+            let dy = b.1 - a.1;
+            let top_left = dy.cmp_lt(zero) | (dy.cmp_eq(zero) & dx.cmp_gt(zero));
+            let e = dx * (zero - a.1) - dy * (zero - a.0);
+            // Masks are -1 where set: the bias of 1 for non-top-left edges.
+            let biased = e + !top_left;
+            covered = covered & !biased.cmp_lt(zero);
+            iz_origin = iz_origin + f64x4::from_i32x4(e) * p[i].2;
+        }
+        let inv_area = f64x4::splat(1.0) / area;
+        let w = (iz_origin * inv_area).to_array();
+        let covered = covered.move_mask();
+        let (x0, y0) = (x0.to_array(), y0.to_array());
+        for i in 0..4 {
+            let z = 1.0 / (w[i] as f32);
+            let idx = y0[i] as usize * self.width + x0[i] as usize;
+            self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
+        }
+    }
+
     /// Rasterizes one triangle (any winding) with the top-left fill rule.
     #[inline(never)]
     fn draw_triangle(&mut self, v: [&ScreenVertex; 3], label: u16) {
@@ -864,7 +916,20 @@ impl Rasterizer {
                 let [i0, i1, i2] = triangles.get(t as usize)?.map(|i| i as usize);
                 Some([screen.get(i0)?, screen.get(i1)?, screen.get(i2)?])
             };
-            for &t in &lists[CLASS_ONE][..lens[CLASS_ONE]] {
+            let ones = &lists[CLASS_ONE][..lens[CLASS_ONE]];
+            let mut chunks = ones.chunks_exact(4);
+            for chunk in &mut chunks {
+                let v = [0, 1, 2, 3].map(|i| vertices(chunk[i]));
+                if let [Some(a), Some(b), Some(c), Some(d)] = v {
+                    target.draw_one_x4([a, b, c, d], item.label);
+                } else {
+                    // Not reached: listed triangles have valid indices.
+                    for v in v.into_iter().flatten() {
+                        target.draw_small::<1>(v, item.label);
+                    }
+                }
+            }
+            for &t in chunks.remainder() {
                 if let Some(v) = vertices(t) {
                     target.draw_small::<1>(v, item.label);
                 }
