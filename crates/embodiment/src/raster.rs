@@ -27,11 +27,21 @@
 //!   locations of all output pixel centres, and each output pixel copies the
 //!   nearest pinhole pixel of its undistorted location (precomputed once in
 //!   [`Rasterizer::new`]). The pinhole buffer is allocated per rendered
-//!   frame; undistorted frames allocate only one small per-call scratch of
-//!   transformed vertices.
+//!   frame; undistorted frames reuse per-thread scratch buffers.
+//! - Implementation: vertices are transformed, clip-tested and projected
+//!   four at a time with SIMD (`wide`). Unclipped triangles are sorted into
+//!   per-thread lists by bounding-box size without data-dependent branches;
+//!   those whose box lies inside the image and holds 1, 2 or 2x2 pixel
+//!   centres are drawn by branch-free code with 32-bit edge functions (one-
+//!   pixel triangles set up four at a time in SIMD lanes), the rest by the
+//!   general span rasterizer. Coverage and depth use the same integer and
+//!   floating-point operations on every path, so the output is bit-identical
+//!   to drawing each triangle with the general path (tested).
 //! - Performance (720x480, one thread, release): about 1.7 ms per frame for
-//!   8 capsules/spheres of ~2k triangles each and about 3.7 ms for a Franka
-//!   Panda's visual meshes (103k triangles); see `benches/raster.rs`.
+//!   8 capsules/spheres of ~2k triangles each and about 3.3 ms per mask for
+//!   pybullet's Franka Panda visual meshes (103k triangles, `bridgev2w bench
+//!   masks`, including output allocation and kinematics); see
+//!   `benches/raster.rs`.
 
 use crate::camera::Camera;
 use crate::mesh::TriMesh;
@@ -427,8 +437,8 @@ impl Target<'_> {
             let e = dx * (zero - a.1) - dy * (zero - a.0);
             // Masks are -1 where set: the bias of 1 for non-top-left edges.
             let biased = e + !top_left;
-            covered = covered & !biased.cmp_lt(zero);
-            iz_origin = iz_origin + f64x4::from_i32x4(e) * p[i].2;
+            covered &= !biased.cmp_lt(zero);
+            iz_origin += f64x4::from_i32x4(e) * p[i].2;
         }
         let inv_area = f64x4::splat(1.0) / area;
         let w = (iz_origin * inv_area).to_array();
@@ -438,6 +448,47 @@ impl Target<'_> {
             let z = 1.0 / (w[i] as f32);
             let idx = y0[i] as usize * self.width + x0[i] as usize;
             self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
+        }
+    }
+
+    /// Draws the listed triangles: with [`Target::draw_small`] for `N` =
+    /// 1, 2, 4 (four at a time in SIMD lanes for `N` = 1), and with
+    /// [`Target::draw_triangle`] for `N` = 0.
+    #[inline(never)]
+    fn draw_list<const N: usize>(
+        &mut self,
+        list: &[u32],
+        triangles: &[[u32; 3]],
+        screen: &[ScreenVertex],
+        label: u16,
+    ) {
+        let vertices = |t: u32| -> Option<[&ScreenVertex; 3]> {
+            let [i0, i1, i2] = triangles.get(t as usize)?.map(|i| i as usize);
+            Some([screen.get(i0)?, screen.get(i1)?, screen.get(i2)?])
+        };
+        let mut rest = list;
+        if N == 1 {
+            let mut chunks = list.chunks_exact(4);
+            for chunk in &mut chunks {
+                let v = [0, 1, 2, 3].map(|i| vertices(chunk[i]));
+                if let [Some(a), Some(b), Some(c), Some(d)] = v {
+                    self.draw_one_x4([a, b, c, d], label);
+                } else {
+                    // Not reached: listed triangles have valid indices.
+                    for v in v.into_iter().flatten() {
+                        self.draw_small::<1>(v, label);
+                    }
+                }
+            }
+            rest = chunks.remainder();
+        }
+        for &t in rest {
+            if let Some(v) = vertices(t) {
+                match N {
+                    0 => self.draw_triangle(v, label),
+                    _ => self.draw_small::<N>(v, label),
+                }
+            }
         }
     }
 
@@ -911,44 +962,12 @@ impl Rasterizer {
                     );
                 }
             }
-            let triangles = &item.mesh.triangles;
-            let vertices = |t: u32| -> Option<[&ScreenVertex; 3]> {
-                let [i0, i1, i2] = triangles.get(t as usize)?.map(|i| i as usize);
-                Some([screen.get(i0)?, screen.get(i1)?, screen.get(i2)?])
-            };
-            let ones = &lists[CLASS_ONE][..lens[CLASS_ONE]];
-            let mut chunks = ones.chunks_exact(4);
-            for chunk in &mut chunks {
-                let v = [0, 1, 2, 3].map(|i| vertices(chunk[i]));
-                if let [Some(a), Some(b), Some(c), Some(d)] = v {
-                    target.draw_one_x4([a, b, c, d], item.label);
-                } else {
-                    // Not reached: listed triangles have valid indices.
-                    for v in v.into_iter().flatten() {
-                        target.draw_small::<1>(v, item.label);
-                    }
-                }
-            }
-            for &t in chunks.remainder() {
-                if let Some(v) = vertices(t) {
-                    target.draw_small::<1>(v, item.label);
-                }
-            }
-            for &t in &lists[CLASS_TWO][..lens[CLASS_TWO]] {
-                if let Some(v) = vertices(t) {
-                    target.draw_small::<2>(v, item.label);
-                }
-            }
-            for &t in &lists[CLASS_QUAD][..lens[CLASS_QUAD]] {
-                if let Some(v) = vertices(t) {
-                    target.draw_small::<4>(v, item.label);
-                }
-            }
-            for &t in &lists[CLASS_LARGE][..lens[CLASS_LARGE]] {
-                if let Some(v) = vertices(t) {
-                    target.draw_triangle(v, item.label);
-                }
-            }
+            let (triangles, label) = (&item.mesh.triangles[..], item.label);
+            let list = |class: usize| &lists[class][..lens[class]];
+            target.draw_list::<1>(list(CLASS_ONE), triangles, screen, label);
+            target.draw_list::<2>(list(CLASS_TWO), triangles, screen, label);
+            target.draw_list::<4>(list(CLASS_QUAD), triangles, screen, label);
+            target.draw_list::<0>(list(CLASS_LARGE), triangles, screen, label);
         }
     }
 

@@ -190,8 +190,8 @@ fn back_face_culling_is_exact_for_closed_meshes() {
     ];
     let mut drawn = 0;
     for eye in eyes {
-        let cam = Camera::look_at(intr.clone(), eye, Point3::new(0.3, 0.0, 0.4), Vector3::z())
-            .expect("cam");
+        let cam =
+            Camera::look_at(intr, eye, Point3::new(0.3, 0.0, 0.4), Vector3::z()).expect("cam");
         let raster = Rasterizer::new(&cam);
         for _ in 0..5 {
             let q = random_q(r, &mut rng);
