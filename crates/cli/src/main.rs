@@ -4,6 +4,7 @@ mod bench;
 mod demo;
 mod masks_cmd;
 mod overlay;
+mod parity_cmd;
 mod robot_info;
 
 use anyhow::Result;
@@ -28,6 +29,8 @@ enum Command {
     /// Benchmarks against peers measured in the same run.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Check the world model against diffusers on parity fixtures (scripts/parity/).
+    Parity(parity_cmd::ParityArgs),
 }
 
 fn main() -> Result<()> {
@@ -37,6 +40,7 @@ fn main() -> Result<()> {
         Command::RobotInfo(a) => robot_info::run(&a),
         Command::Demo(a) => demo::run(&a),
         Command::Bench(b) => bench::run(&b),
+        Command::Parity(a) => parity_cmd::run(&a),
     }
 }
 

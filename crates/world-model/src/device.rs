@@ -1,0 +1,116 @@
+//! Where and in which precision the model runs: the crate's own types, so callers
+//! need not depend on tch.
+
+use crate::error::{Result, WorldModelError};
+use std::fmt;
+use std::str::FromStr;
+
+/// A compute device.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ComputeDevice {
+    /// The CPU.
+    Cpu,
+    /// CUDA GPU by ordinal.
+    Cuda(usize),
+}
+
+impl ComputeDevice {
+    /// CUDA:0 when libtorch sees a GPU, else the CPU.
+    pub fn auto() -> Self {
+        if tch::Cuda::is_available() {
+            Self::Cuda(0)
+        } else {
+            Self::Cpu
+        }
+    }
+
+    /// The tch device.
+    pub fn to_tch(self) -> tch::Device {
+        match self {
+            Self::Cpu => tch::Device::Cpu,
+            Self::Cuda(i) => tch::Device::Cuda(i),
+        }
+    }
+
+    /// Checks that the device exists on this machine.
+    pub fn check_available(self) -> Result<Self> {
+        match self {
+            Self::Cpu => Ok(self),
+            Self::Cuda(i) => {
+                let n = tch::Cuda::device_count();
+                if (i as i64) < n {
+                    Ok(self)
+                } else {
+                    Err(WorldModelError::input(
+                        "device",
+                        format!("cuda:{i} requested but libtorch sees {n} CUDA device(s)"),
+                    ))
+                }
+            }
+        }
+    }
+}
+
+impl fmt::Display for ComputeDevice {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Cpu => write!(f, "cpu"),
+            Self::Cuda(i) => write!(f, "cuda:{i}"),
+        }
+    }
+}
+
+impl FromStr for ComputeDevice {
+    type Err = WorldModelError;
+    /// `cpu`, `cuda`, `cuda:N` or `auto`.
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "cpu" => Ok(Self::Cpu),
+            "cuda" => Ok(Self::Cuda(0)),
+            "auto" => Ok(Self::auto()),
+            _ => s
+                .strip_prefix("cuda:")
+                .and_then(|i| i.parse().ok())
+                .map(Self::Cuda)
+                .ok_or_else(|| {
+                    WorldModelError::input(
+                        "device",
+                        format!("`{s}`: expected cpu, cuda, cuda:N or auto"),
+                    )
+                }),
+        }
+    }
+}
+
+/// Numeric precision of weights and activations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Precision {
+    /// 32-bit float.
+    F32,
+    /// bfloat16.
+    Bf16,
+}
+
+impl Precision {
+    /// The tch kind.
+    pub fn kind(self) -> tch::Kind {
+        match self {
+            Self::F32 => tch::Kind::Float,
+            Self::Bf16 => tch::Kind::BFloat16,
+        }
+    }
+}
+
+impl FromStr for Precision {
+    type Err = WorldModelError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "f32" | "fp32" | "float32" => Ok(Self::F32),
+            "bf16" | "bfloat16" => Ok(Self::Bf16),
+            _ => Err(WorldModelError::input(
+                "precision",
+                format!("`{s}`: expected f32 or bf16"),
+            )),
+        }
+    }
+}

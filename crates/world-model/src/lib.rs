@@ -1,0 +1,16 @@
+//! The world model of BridgeV2W: a CogVideoX-architecture image-to-video diffusion
+//! transformer with a 3D causal VAE, conditioned on embodiment-mask videos through a
+//! ControlNet branch and fine-tuned with LoRA. Numerically compatible with diffusers
+//! (`AutoencoderKLCogVideoX`, `CogVideoXTransformer3DModel`, the CogVideoX DDIM/DPM
+//! schedulers) and loading their checkpoints unchanged.
+//!
+//! The tensor engine is libtorch through `tch`; the public entry points take and
+//! return this crate's own types.
+
+pub mod device;
+pub mod error;
+pub mod parity;
+pub mod weights;
+
+pub use device::{ComputeDevice, Precision};
+pub use error::{Result, WorldModelError};

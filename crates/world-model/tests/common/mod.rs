@@ -1,0 +1,62 @@
+//! Parity fixtures for tests: generated on demand by the committed script with the
+//! project venv's diffusers, cached under `target/parity-fixtures/` and regenerated
+//! when the script, its modules or the arguments change.
+
+#![allow(dead_code, clippy::unwrap_used)]
+
+use std::hash::{Hash, Hasher};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The repository root.
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").canonicalize().unwrap()
+}
+
+/// The project venv's python; panics with the fix when it is missing.
+pub fn venv_python() -> PathBuf {
+    let python = repo_root().join(".venv/bin/python");
+    assert!(
+        python.is_file(),
+        "{} not found: run scripts/setup-venv.sh (./run test does) to install torch and diffusers",
+        python.display()
+    );
+    python
+}
+
+fn scripts_digest(args: &[&str]) -> String {
+    let dir = repo_root().join("scripts/parity");
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "py"))
+        .collect();
+    entries.sort();
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    for p in entries {
+        p.file_name().hash(&mut h);
+        std::fs::read(&p).unwrap().hash(&mut h);
+    }
+    args.hash(&mut h);
+    format!("{:016x}", h.finish())
+}
+
+/// The fixture `name` made by `make_parity_fixture.py ARGS` (generated if stale).
+pub fn fixture(name: &str, args: &[&str]) -> PathBuf {
+    let out = repo_root().join("target/parity-fixtures").join(name);
+    let digest = scripts_digest(args);
+    let stamp = out.join("stamp");
+    if std::fs::read_to_string(&stamp).is_ok_and(|s| s == digest) {
+        return out;
+    }
+    let status = Command::new(venv_python())
+        .arg(repo_root().join("scripts/parity/make_parity_fixture.py"))
+        .args(args)
+        .arg("--out")
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(status.success(), "make_parity_fixture.py {args:?} failed");
+    std::fs::write(&stamp, digest).unwrap();
+    out
+}
