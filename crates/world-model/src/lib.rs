@@ -10,6 +10,7 @@
 pub mod device;
 pub mod error;
 pub mod parity;
+pub mod scheduler;
 pub mod weights;
 
 pub use device::{ComputeDevice, Precision};

@@ -132,8 +132,8 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
     let model_dir = dir.join("model");
     let computed = tch::no_grad(|| -> Result<Vec<(String, Tensor)>> {
         // One arm per kind: each module computes its outputs from `model_dir` and `io`.
-        #[allow(clippy::match_single_binding)]
         match kind.as_str() {
+            "scheduler" => crate::scheduler::fixture_outputs(&model_dir, &io),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",
@@ -141,7 +141,6 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
             )),
         }
     })?;
-    let _ = &model_dir;
     let outputs = compare(&io, &computed)?;
     Ok(ParityReport { kind, outputs })
 }

@@ -1,0 +1,666 @@
+//! The CogVideoX noise schedulers, numerically as diffusers' `CogVideoXDDIMScheduler`
+//! and `CogVideoXDPMScheduler`.
+//!
+//! Noise schedule: betas (`scaled_linear`: squares of a linspace of square roots,
+//! `linear`, `squaredcos_cap_v2`, or given), `alphas_cumprod` shifted to a lower
+//! signal-to-noise ratio by `snr_shift_scale` (`a / (s + (1 - s) a)`), optionally
+//! rescaled to zero terminal SNR (Lin et al. 2023, algorithm 1). Inference timesteps
+//! by `leading`, `linspace` or `trailing` spacing. Both samplers take a v-prediction
+//! (or epsilon / sample) model output and step from timestep `t` to
+//! `t - num_train_timesteps / num_inference_steps` (diffusers' rule, also for trailing
+//! spacing); the final step goes to `final_alpha_cumprod` (1 with `set_alpha_to_one`).
+//!
+//! The schedule's scalars are computed in f64 (`scaled_linear` is f64 in diffusers
+//! too; for the f32 schedules the betas and the cumulative product are rounded to f32
+//! as diffusers computes them) and applied to tensors as scalars.
+
+use crate::error::{read_json, Result, WorldModelError};
+use std::path::Path;
+use tch::Tensor;
+
+/// How betas are laid out over the training timesteps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BetaSchedule {
+    /// Linear in beta (f32).
+    Linear,
+    /// Linear in sqrt(beta), squared (f64).
+    ScaledLinear,
+    /// Cosine alpha-bar (f32), betas capped at 0.999.
+    SquaredcosCapV2,
+}
+
+/// What the model predicts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PredictionType {
+    /// The added noise.
+    Epsilon,
+    /// The clean sample.
+    Sample,
+    /// The velocity `sqrt(a) noise - sqrt(1 - a) x0`.
+    VPrediction,
+}
+
+/// How inference timesteps are spread over the training timesteps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TimestepSpacing {
+    /// `round(linspace(0, N - 1, n))`, descending.
+    Linspace,
+    /// `arange(n) * (N / n) + steps_offset`, descending.
+    Leading,
+    /// `round(arange(N, 0, -N / n)) - 1`.
+    Trailing,
+}
+
+/// Which sampler steps the chain.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SamplerKind {
+    /// `CogVideoXDDIMScheduler` (deterministic).
+    Ddim,
+    /// `CogVideoXDPMScheduler` (second-order, stochastic).
+    Dpm,
+}
+
+fn default_train_timesteps() -> usize {
+    1000
+}
+fn default_beta_start() -> f64 {
+    0.00085
+}
+fn default_beta_end() -> f64 {
+    0.012
+}
+fn default_beta_schedule() -> BetaSchedule {
+    BetaSchedule::ScaledLinear
+}
+fn default_true() -> bool {
+    true
+}
+fn default_prediction() -> PredictionType {
+    PredictionType::Epsilon
+}
+fn default_spacing() -> TimestepSpacing {
+    TimestepSpacing::Leading
+}
+fn default_snr_shift() -> f64 {
+    3.0
+}
+
+/// A scheduler config, as diffusers' `scheduler_config.json` (unknown fields ignored,
+/// missing ones get diffusers' defaults).
+#[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
+pub struct SchedulerConfig {
+    /// `CogVideoXDDIMScheduler` or `CogVideoXDPMScheduler` (absent: DDIM).
+    #[serde(
+        rename = "_class_name",
+        default,
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub class_name: Option<String>,
+    /// Training timesteps N.
+    #[serde(default = "default_train_timesteps")]
+    pub num_train_timesteps: usize,
+    /// First beta.
+    #[serde(default = "default_beta_start")]
+    pub beta_start: f64,
+    /// Last beta.
+    #[serde(default = "default_beta_end")]
+    pub beta_end: f64,
+    /// Beta layout.
+    #[serde(default = "default_beta_schedule")]
+    pub beta_schedule: BetaSchedule,
+    /// Explicit betas (override the schedule).
+    #[serde(default)]
+    pub trained_betas: Option<Vec<f64>>,
+    /// Final step goes to alpha-bar 1 (else to alpha-bar of timestep 0).
+    #[serde(default = "default_true")]
+    pub set_alpha_to_one: bool,
+    /// Added to `leading` timesteps.
+    #[serde(default)]
+    pub steps_offset: i64,
+    /// What the model predicts.
+    #[serde(default = "default_prediction")]
+    pub prediction_type: PredictionType,
+    /// Inference timestep spacing.
+    #[serde(default = "default_spacing")]
+    pub timestep_spacing: TimestepSpacing,
+    /// Rescale to zero terminal SNR.
+    #[serde(default)]
+    pub rescale_betas_zero_snr: bool,
+    /// SNR shift `s`: alpha-bar becomes `a / (s + (1 - s) a)`.
+    #[serde(default = "default_snr_shift")]
+    pub snr_shift_scale: f64,
+}
+
+impl SchedulerConfig {
+    fn cogvideox(snr_shift_scale: f64) -> Self {
+        Self {
+            class_name: Some("CogVideoXDDIMScheduler".to_owned()),
+            num_train_timesteps: 1000,
+            beta_start: 0.00085,
+            beta_end: 0.012,
+            beta_schedule: BetaSchedule::ScaledLinear,
+            trained_betas: None,
+            set_alpha_to_one: true,
+            steps_offset: 0,
+            prediction_type: PredictionType::VPrediction,
+            timestep_spacing: TimestepSpacing::Trailing,
+            rescale_betas_zero_snr: true,
+            snr_shift_scale,
+        }
+    }
+
+    /// `THUDM/CogVideoX-5b-I2V`'s `scheduler/scheduler_config.json`.
+    pub fn cogvideox_5b_i2v() -> Self {
+        Self::cogvideox(1.0)
+    }
+
+    /// `THUDM/CogVideoX-2b`'s `scheduler/scheduler_config.json`.
+    pub fn cogvideox_2b() -> Self {
+        Self::cogvideox(3.0)
+    }
+
+    /// Reads `scheduler_config.json`.
+    pub fn load(path: &Path) -> Result<Self> {
+        let cfg: Self = read_json(path)?;
+        cfg.validate(path)?;
+        Ok(cfg)
+    }
+
+    /// The sampler named by `_class_name`.
+    pub fn sampler_kind(&self) -> Result<SamplerKind> {
+        match self.class_name.as_deref() {
+            None | Some("CogVideoXDDIMScheduler") => Ok(SamplerKind::Ddim),
+            Some("CogVideoXDPMScheduler") => Ok(SamplerKind::Dpm),
+            Some(other) => Err(WorldModelError::config(
+                "scheduler_config.json",
+                "_class_name",
+                format!("`{other}`: expected CogVideoXDDIMScheduler or CogVideoXDPMScheduler"),
+            )),
+        }
+    }
+
+    fn validate(&self, path: &Path) -> Result<()> {
+        if self.num_train_timesteps == 0 {
+            return Err(WorldModelError::config(
+                path,
+                "num_train_timesteps",
+                "must be at least 1",
+            ));
+        }
+        if let Some(b) = &self.trained_betas {
+            if b.len() != self.num_train_timesteps {
+                return Err(WorldModelError::config(
+                    path,
+                    "trained_betas",
+                    format!(
+                        "has {} values, num_train_timesteps is {}",
+                        b.len(),
+                        self.num_train_timesteps
+                    ),
+                ));
+            }
+        }
+        if !(self.snr_shift_scale.is_finite() && self.snr_shift_scale > 0.0) {
+            return Err(WorldModelError::config(
+                path,
+                "snr_shift_scale",
+                format!("{}: expected a positive number", self.snr_shift_scale),
+            ));
+        }
+        self.sampler_kind().map_err(|_| {
+            WorldModelError::config(
+                path,
+                "_class_name",
+                format!(
+                    "`{}`: expected CogVideoXDDIMScheduler or CogVideoXDPMScheduler",
+                    self.class_name.as_deref().unwrap_or_default()
+                ),
+            )
+        })?;
+        Ok(())
+    }
+}
+
+/// Rounds through f32 (diffusers keeps these schedules in float32).
+fn f32r(x: f64) -> f64 {
+    x as f32 as f64
+}
+
+/// torch.linspace's evaluation order (from both ends toward the middle).
+fn linspace(start: f64, end: f64, n: usize) -> Vec<f64> {
+    if n == 1 {
+        return vec![start];
+    }
+    let step = (end - start) / (n - 1) as f64;
+    let half = n / 2;
+    (0..n)
+        .map(|i| {
+            if i < half {
+                start + step * i as f64
+            } else {
+                end - step * (n - 1 - i) as f64
+            }
+        })
+        .collect()
+}
+
+/// The noise schedule: alpha-bar per training timestep.
+#[derive(Debug, Clone)]
+pub struct NoiseSchedule {
+    /// `alphas_cumprod` after SNR shift and optional zero-SNR rescale.
+    pub alphas_cumprod: Vec<f64>,
+    /// Alpha-bar after the last step.
+    pub final_alpha_cumprod: f64,
+}
+
+impl NoiseSchedule {
+    /// Computes the schedule of a config.
+    pub fn new(cfg: &SchedulerConfig) -> Self {
+        let n = cfg.num_train_timesteps;
+        // f32 schedules are rounded at every stored stage, as torch float32 tensors are.
+        let (betas, is_f32): (Vec<f64>, bool) = match (&cfg.trained_betas, cfg.beta_schedule) {
+            (Some(b), _) => (b.iter().map(|&x| f32r(x)).collect(), true),
+            (None, BetaSchedule::Linear) => (
+                linspace(f32r(cfg.beta_start), f32r(cfg.beta_end), n)
+                    .into_iter()
+                    .map(f32r)
+                    .collect(),
+                true,
+            ),
+            (None, BetaSchedule::ScaledLinear) => (
+                linspace(cfg.beta_start.sqrt(), cfg.beta_end.sqrt(), n)
+                    .into_iter()
+                    .map(|x| x * x)
+                    .collect(),
+                false,
+            ),
+            (None, BetaSchedule::SquaredcosCapV2) => {
+                let alpha_bar = |t: f64| {
+                    ((t + 0.008) / 1.008 * std::f64::consts::PI / 2.0)
+                        .cos()
+                        .powi(2)
+                };
+                (
+                    (0..n)
+                        .map(|i| {
+                            let t1 = i as f64 / n as f64;
+                            let t2 = (i + 1) as f64 / n as f64;
+                            f32r((1.0 - alpha_bar(t2) / alpha_bar(t1)).min(0.999))
+                        })
+                        .collect(),
+                    true,
+                )
+            }
+        };
+        let round = |x: f64| if is_f32 { f32r(x) } else { x };
+        let mut cumprod = 1.0f64;
+        let s = if is_f32 {
+            f32r(cfg.snr_shift_scale)
+        } else {
+            cfg.snr_shift_scale
+        };
+        let mut alphas_cumprod: Vec<f64> = betas
+            .iter()
+            .map(|&b| {
+                cumprod = round(cumprod * round(1.0 - b));
+                cumprod
+            })
+            .map(|a| round(a / round(s + round(round(1.0 - s) * a))))
+            .collect();
+        if cfg.rescale_betas_zero_snr {
+            let sqrt: Vec<f64> = alphas_cumprod.iter().map(|a| round(a.sqrt())).collect();
+            let first = sqrt[0];
+            let last = sqrt[n - 1];
+            let scale = round(first / round(first - last));
+            alphas_cumprod = sqrt
+                .iter()
+                .map(|&x| {
+                    let y = round(round(x - last) * scale);
+                    round(y * y)
+                })
+                .collect();
+        }
+        let final_alpha_cumprod = if cfg.set_alpha_to_one {
+            1.0
+        } else {
+            alphas_cumprod[0]
+        };
+        Self {
+            alphas_cumprod,
+            final_alpha_cumprod,
+        }
+    }
+
+    /// Alpha-bar at a training timestep (negative: the final alpha-bar).
+    pub fn alpha_bar(&self, t: i64) -> Result<f64> {
+        if t < 0 {
+            return Ok(self.final_alpha_cumprod);
+        }
+        self.alphas_cumprod.get(t as usize).copied().ok_or_else(|| {
+            WorldModelError::input(
+                "timestep",
+                format!(
+                    "{t} is outside the {} training timesteps",
+                    self.alphas_cumprod.len()
+                ),
+            )
+        })
+    }
+}
+
+/// Inference timesteps (descending) for `num_inference_steps` steps.
+pub fn inference_timesteps(cfg: &SchedulerConfig, num_inference_steps: usize) -> Result<Vec<i64>> {
+    let n = cfg.num_train_timesteps;
+    if num_inference_steps == 0 || num_inference_steps > n {
+        return Err(WorldModelError::input(
+            "num_inference_steps",
+            format!("{num_inference_steps}: expected 1..={n} (the training timesteps)"),
+        ));
+    }
+    let k = num_inference_steps;
+    Ok(match cfg.timestep_spacing {
+        TimestepSpacing::Linspace => linspace(0.0, (n - 1) as f64, k)
+            .into_iter()
+            .rev()
+            .map(|x| x.round_ties_even() as i64)
+            .collect(),
+        TimestepSpacing::Leading => {
+            let ratio = (n / k) as i64;
+            (0..k as i64)
+                .rev()
+                .map(|i| i * ratio + cfg.steps_offset)
+                .collect()
+        }
+        TimestepSpacing::Trailing => {
+            // numpy: arange(N, 0, -N/k) has ceil(N / (N/k)) elements.
+            let ratio = n as f64 / k as f64;
+            let count = ((n as f64) / ratio).ceil() as usize;
+            (0..count)
+                .map(|i| (n as f64 - i as f64 * ratio).round_ties_even() as i64 - 1)
+                .collect()
+        }
+    })
+}
+
+/// A CogVideoX sampler: the schedule, the inference timesteps and the sampler state.
+#[derive(Debug)]
+pub struct Scheduler {
+    cfg: SchedulerConfig,
+    kind: SamplerKind,
+    schedule: NoiseSchedule,
+    timesteps: Vec<i64>,
+    /// DPM: the previous step's predicted clean sample.
+    old_pred_original: Option<Tensor>,
+    step_index: usize,
+}
+
+impl Scheduler {
+    /// A sampler for a config (its `_class_name` picks DDIM or DPM).
+    pub fn new(cfg: SchedulerConfig) -> Result<Self> {
+        cfg.validate(Path::new("scheduler config"))?;
+        let kind = cfg.sampler_kind()?;
+        Ok(Self {
+            schedule: NoiseSchedule::new(&cfg),
+            cfg,
+            kind,
+            timesteps: Vec::new(),
+            old_pred_original: None,
+            step_index: 0,
+        })
+    }
+
+    /// Overrides the sampler kind (DDIM or DPM) keeping the schedule.
+    pub fn with_kind(mut self, kind: SamplerKind) -> Self {
+        self.kind = kind;
+        self
+    }
+
+    /// The config.
+    pub fn config(&self) -> &SchedulerConfig {
+        &self.cfg
+    }
+
+    /// The sampler kind.
+    pub fn kind(&self) -> SamplerKind {
+        self.kind
+    }
+
+    /// The noise schedule.
+    pub fn schedule(&self) -> &NoiseSchedule {
+        &self.schedule
+    }
+
+    /// Sets `num_inference_steps` and resets the sampler state.
+    pub fn set_timesteps(&mut self, num_inference_steps: usize) -> Result<&[i64]> {
+        self.timesteps = inference_timesteps(&self.cfg, num_inference_steps)?;
+        self.old_pred_original = None;
+        self.step_index = 0;
+        Ok(&self.timesteps)
+    }
+
+    /// The inference timesteps (after [`Scheduler::set_timesteps`]).
+    pub fn timesteps(&self) -> &[i64] {
+        &self.timesteps
+    }
+
+    fn prev_timestep(&self, t: i64) -> i64 {
+        let k = self.timesteps.len().max(1);
+        t - (self.cfg.num_train_timesteps / k) as i64
+    }
+
+    fn pred_original(&self, model_output: &Tensor, sample: &Tensor, a_t: f64) -> Tensor {
+        let b_t = 1.0 - a_t;
+        match self.cfg.prediction_type {
+            PredictionType::Epsilon => (sample - model_output * b_t.sqrt()) / a_t.sqrt(),
+            PredictionType::Sample => model_output.shallow_clone(),
+            PredictionType::VPrediction => sample * a_t.sqrt() - model_output * b_t.sqrt(),
+        }
+    }
+
+    /// One DDIM step from timestep `t`: returns (previous sample, predicted x0).
+    pub fn step_ddim(
+        &self,
+        model_output: &Tensor,
+        t: i64,
+        sample: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        check_same_shape(model_output, sample)?;
+        let a_t = self.schedule.alpha_bar(t)?;
+        let a_prev = self.schedule.alpha_bar(self.prev_timestep(t))?;
+        let x0 = self.pred_original(model_output, sample, a_t);
+        let c_sample = ((1.0 - a_prev) / (1.0 - a_t)).sqrt();
+        let c_x0 = a_prev.sqrt() - a_t.sqrt() * c_sample;
+        Ok((sample * c_sample + &x0 * c_x0, x0))
+    }
+
+    /// One DPM-Solver step from timestep `t` (`t_back`: the previous, larger
+    /// timestep; `old_x0`: its predicted x0). `noise(shape)` draws standard normal
+    /// noise: once per step, twice on second-order steps (diffusers' draw order).
+    pub fn step_dpm(
+        &self,
+        model_output: &Tensor,
+        old_x0: Option<&Tensor>,
+        t: i64,
+        t_back: Option<i64>,
+        sample: &Tensor,
+        noise: &mut dyn FnMut(&[i64]) -> Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        check_same_shape(model_output, sample)?;
+        let prev_t = self.prev_timestep(t);
+        let a_t = self.schedule.alpha_bar(t)?;
+        let a_prev = self.schedule.alpha_bar(prev_t)?;
+        let x0 = self.pred_original(model_output, sample, a_t);
+        let lambda = |a: f64| (a / (1.0 - a)).sqrt().ln();
+        let h = lambda(a_prev) - lambda(a_t);
+        let mult1 = ((1.0 - a_prev) / (1.0 - a_t)).sqrt() * (-h).exp();
+        let mult2 = (-2.0 * h).exp_m1() * a_prev.sqrt();
+        let mult_noise = (1.0 - a_prev).sqrt() * (1.0 - (-2.0 * h).exp()).sqrt();
+        let shape = sample.size();
+        let first_noise = noise(&shape);
+        let first = sample * mult1 - &x0 * mult2 + first_noise * mult_noise;
+        let (Some(old_x0), Some(t_back)) = (old_x0, t_back) else {
+            return Ok((first, x0));
+        };
+        if prev_t < 0 {
+            return Ok((first, x0));
+        }
+        let r = (lambda(a_t) - lambda(self.schedule.alpha_bar(t_back)?)) / h;
+        let mult3 = 1.0 + 1.0 / (2.0 * r);
+        let mult4 = 1.0 / (2.0 * r);
+        let denoised = &x0 * mult3 - old_x0 * mult4;
+        let second_noise = noise(&shape);
+        Ok((
+            sample * mult1 - denoised * mult2 + second_noise * mult_noise,
+            x0,
+        ))
+    }
+
+    /// Steps the chain once with the next inference timestep (as the CogVideoX
+    /// pipelines do), returning the previous sample.
+    pub fn step(
+        &mut self,
+        model_output: &Tensor,
+        sample: &Tensor,
+        noise: &mut dyn FnMut(&[i64]) -> Tensor,
+    ) -> Result<Tensor> {
+        let i = self.step_index;
+        let t = *self.timesteps.get(i).ok_or_else(|| {
+            WorldModelError::input(
+                "step",
+                format!(
+                    "step {i} beyond the {} inference timesteps (call set_timesteps first)",
+                    self.timesteps.len()
+                ),
+            )
+        })?;
+        let prev = match self.kind {
+            SamplerKind::Ddim => self.step_ddim(model_output, t, sample)?.0,
+            SamplerKind::Dpm => {
+                let t_back = (i > 0).then(|| self.timesteps[i - 1]);
+                let (prev, x0) = self.step_dpm(
+                    model_output,
+                    self.old_pred_original.as_ref(),
+                    t,
+                    t_back,
+                    sample,
+                    noise,
+                )?;
+                self.old_pred_original = Some(x0);
+                prev
+            }
+        };
+        self.step_index += 1;
+        Ok(prev)
+    }
+
+    fn per_sample(&self, timesteps: &Tensor, like: &Tensor) -> Result<Tensor> {
+        let ts: Vec<i64> =
+            Vec::<i64>::try_from(timesteps.to_kind(tch::Kind::Int64).flatten(0, -1))?;
+        let values = ts
+            .iter()
+            .map(|&t| {
+                if t < 0 {
+                    Err(WorldModelError::input(
+                        "timesteps",
+                        format!("{t} is negative"),
+                    ))
+                } else {
+                    self.schedule.alpha_bar(t)
+                }
+            })
+            .collect::<Result<Vec<f64>>>()?;
+        let mut shape = vec![values.len() as i64];
+        shape.extend(std::iter::repeat_n(1, like.dim().saturating_sub(1)));
+        // [B] -> [B, 1, ..., 1] broadcasting over the sample dims
+        Ok(Tensor::from_slice(&values)
+            .to_kind(like.kind())
+            .to_device(like.device())
+            .reshape(shape.as_slice()))
+    }
+
+    /// Forward diffusion: `sqrt(a_t) x0 + sqrt(1 - a_t) noise`, one timestep per batch item.
+    pub fn add_noise(
+        &self,
+        original: &Tensor,
+        noise: &Tensor,
+        timesteps: &Tensor,
+    ) -> Result<Tensor> {
+        check_same_shape(noise, original)?;
+        // diffusers casts alpha-bar to the sample dtype before the square roots.
+        let a = self.per_sample(timesteps, original)?;
+        Ok(a.sqrt() * original + (-&a + 1.0).sqrt() * noise)
+    }
+
+    /// The v-prediction target: `sqrt(a_t) noise - sqrt(1 - a_t) x0`.
+    pub fn velocity(&self, sample: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
+        check_same_shape(noise, sample)?;
+        let a = self.per_sample(timesteps, sample)?;
+        Ok(a.sqrt() * noise - (-&a + 1.0).sqrt() * sample)
+    }
+}
+
+fn check_same_shape(a: &Tensor, b: &Tensor) -> Result<()> {
+    if a.size() != b.size() {
+        return Err(WorldModelError::input(
+            "model_output",
+            format!(
+                "shape {:?} differs from the sample's {:?}",
+                a.size(),
+                b.size()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Parity fixture arm (`kind: "scheduler"`): runs the deterministic chain of the
+/// fixture and returns `timesteps`, `prev_sample_step_K` for every step, `noisy` and
+/// `velocity`.
+pub(crate) fn fixture_outputs(
+    model_dir: &Path,
+    io: &crate::parity::FixtureIo,
+) -> Result<Vec<(String, Tensor)>> {
+    let cfg = SchedulerConfig::load(&model_dir.join("scheduler_config.json"))?;
+    let mut sched = Scheduler::new(cfg)?;
+    let steps = io.get("num_inference_steps")?.int64_value(&[]);
+    if steps <= 0 {
+        return Err(WorldModelError::input(
+            "num_inference_steps",
+            format!("{steps}: expected a positive count"),
+        ));
+    }
+    let timesteps = sched.set_timesteps(steps as usize)?.to_vec();
+    let mut out = vec![("timesteps".to_owned(), Tensor::from_slice(&timesteps))];
+    let model_outputs = io.get("model_output")?;
+    let mut sample = io.get("sample")?.shallow_clone();
+    for k in 0..timesteps.len() {
+        let mut draw = 0;
+        let mut missing = None;
+        let mut noise = |shape: &[i64]| -> Tensor {
+            let name = format!("noise_step_{k}_{draw}");
+            draw += 1;
+            io.get(&name)
+                .map(|t| t.shallow_clone())
+                .unwrap_or_else(|e| {
+                    missing = Some(e);
+                    Tensor::full(shape, f64::NAN, (tch::Kind::Float, tch::Device::Cpu))
+                })
+        };
+        sample = sched.step(&model_outputs.get(k as i64), &sample, &mut noise)?;
+        if let Some(e) = missing {
+            return Err(e);
+        }
+        out.push((format!("prev_sample_step_{k}"), sample.shallow_clone()));
+    }
+    if io.contains("add_noise_timesteps") {
+        let original = io.get("original")?;
+        let noise = io.get("noise")?;
+        let ts = io.get("add_noise_timesteps")?;
+        out.push(("noisy".to_owned(), sched.add_noise(original, noise, ts)?));
+        out.push(("velocity".to_owned(), sched.velocity(original, noise, ts)?));
+    }
+    Ok(out)
+}
