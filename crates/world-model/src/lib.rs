@@ -9,6 +9,7 @@
 
 pub mod device;
 pub mod error;
+pub mod lora;
 pub mod parity;
 pub mod scheduler;
 pub mod weights;
