@@ -252,8 +252,7 @@ mod tests {
         );
         tch::no_grad(|| {
             let b = l.lora().unwrap().b.shallow_clone();
-            let _ = b
-                .shallow_clone()
+            b.shallow_clone()
                 .copy_(&Tensor::randn(b.size(), (Kind::Float, Device::Cpu)));
         });
         let x = Tensor::randn([4, 12], (Kind::Float, Device::Cpu));
