@@ -12,6 +12,7 @@ pub mod error;
 pub mod lora;
 pub mod parity;
 pub mod scheduler;
+pub mod video;
 pub mod weights;
 
 pub use device::{ComputeDevice, Precision};
