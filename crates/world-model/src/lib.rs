@@ -12,6 +12,7 @@ pub mod device;
 pub mod error;
 pub mod lora;
 pub mod parity;
+pub mod pipeline;
 pub mod scheduler;
 pub mod video;
 pub mod weights;
