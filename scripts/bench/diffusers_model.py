@@ -1,0 +1,98 @@
+#!/usr/bin/env python3
+"""Peer for `bridgev2w bench model`: times diffusers' CogVideoX transformer forward and
+VAE encode/decode on the same configs, shapes and thread count as the Rust side, and
+prints one JSON line of seconds (best of --repeat).
+
+The configs come from JSON files written by the Rust side (the same dicts it uses), so
+both sides build the same architecture; weights are random (timing only).
+"""
+import argparse
+import json
+import os
+import sys
+import time
+
+
+def best_of(fn, repeat):
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--transformer-config", required=True)
+    ap.add_argument("--vae-config", required=True)
+    ap.add_argument("--frames", type=int, required=True, help="video frames (latent frames = (F-1)/4+1)")
+    ap.add_argument("--height", type=int, required=True)
+    ap.add_argument("--width", type=int, required=True)
+    ap.add_argument("--text-len", type=int, default=226)
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+
+    import torch
+    from diffusers import AutoencoderKLCogVideoX, CogVideoXTransformer3DModel
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    dtype = torch.float32 if args.dtype == "f32" else torch.bfloat16
+    dev = torch.device(args.device)
+    torch.manual_seed(0)
+    with open(args.transformer_config) as f:
+        tcfg = {k: v for k, v in json.load(f).items() if not k.startswith("_")}
+    with open(args.vae_config) as f:
+        vcfg = {k: v for k, v in json.load(f).items() if not k.startswith("_")}
+    out = {"threads": torch.get_num_threads(), "device": args.device, "dtype": args.dtype}
+
+    lat_f = (args.frames - 1) // 4 + 1
+    lat_h, lat_w = args.height // 8, args.width // 8
+    transformer = CogVideoXTransformer3DModel(**tcfg).to(dev, dtype).eval()
+    x = torch.randn(1, lat_f, tcfg.get("in_channels", 16), lat_h, lat_w, device=dev, dtype=dtype)
+    text = torch.randn(1, args.text_len, tcfg.get("text_embed_dim", 4096), device=dev, dtype=dtype)
+    ts = torch.tensor([500], device=dev)
+    rope = None
+    if tcfg.get("use_rotary_positional_embeddings"):
+        from diffusers.models.embeddings import get_3d_rotary_pos_embed
+        p = tcfg.get("patch_size", 2)
+        gh, gw = lat_h // p, lat_w // p
+        rope = get_3d_rotary_pos_embed(
+            embed_dim=tcfg.get("attention_head_dim", 64), crops_coords=((0, 0), (gh, gw)),
+            grid_size=(gh, gw), temporal_size=lat_f, device=dev,
+        )
+    with torch.no_grad():
+        def fwd():
+            transformer(hidden_states=x, encoder_hidden_states=text, timestep=ts,
+                        image_rotary_emb=rope, return_dict=False)
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+        fwd()  # warm-up
+        out["transformer_forward_s"] = best_of(fwd, args.repeat)
+    del transformer
+
+    vae = AutoencoderKLCogVideoX(**vcfg).to(dev, dtype).eval()
+    video = torch.rand(1, 3, args.frames, args.height, args.width, device=dev, dtype=dtype) * 2 - 1
+    latents = torch.randn(1, vcfg.get("latent_channels", 16), lat_f, lat_h, lat_w, device=dev, dtype=dtype)
+    with torch.no_grad():
+        def enc():
+            vae.encode(video).latent_dist.mean
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+
+        def dec():
+            vae.decode(latents)
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+        out["vae_encode_s"] = best_of(enc, args.repeat)
+        out["vae_decode_s"] = best_of(dec, args.repeat)
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
