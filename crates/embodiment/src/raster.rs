@@ -659,6 +659,8 @@ struct Scratch {
 
 thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+    /// Depth map of [`Rasterizer::render_labels`].
+    static DEPTH: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
 }
 
 /// Class of an unclipped triangle (all outcodes 0), computed without
@@ -839,10 +841,15 @@ impl Rasterizer {
     pub fn render_into(&self, items: &[RenderItem], out: &mut RenderOutput) {
         out.reset(self.width, self.height);
         match &self.remap {
-            None => self.draw_items(items, &self.pinhole, out),
+            None => self.draw_items(items, &self.pinhole, &mut out.labels, &mut out.depth_m),
             Some(remap) => {
                 let mut buffer = RenderOutput::new(remap.pinhole.width, remap.pinhole.height);
-                self.draw_items(items, &remap.pinhole, &mut buffer);
+                self.draw_items(
+                    items,
+                    &remap.pinhole,
+                    &mut buffer.labels,
+                    &mut buffer.depth_m,
+                );
                 for ((&src, label), depth) in remap
                     .source
                     .iter()
@@ -860,17 +867,55 @@ impl Rasterizer {
         }
     }
 
+    /// Renders `items` and returns only the label map (row-major, camera
+    /// size; [`RenderOutput::labels`] of [`Rasterizer::render`]). Faster
+    /// than a full render: the depth map is a reused per-thread buffer and
+    /// the label map is written only where something is drawn.
+    pub fn render_labels(&self, items: &[RenderItem]) -> Vec<u16> {
+        if self.remap.is_some() {
+            return self.render(items).labels;
+        }
+        let n = self.width as usize * self.height as usize;
+        // Zeroed allocation: untouched (background) pages are never written.
+        let mut labels = vec![0u16; n];
+        DEPTH.with(|depth| {
+            let mut fresh = Vec::new();
+            let mut guard = depth.try_borrow_mut();
+            let depth = match &mut guard {
+                Ok(depth) => &mut **depth,
+                Err(_) => &mut fresh,
+            };
+            depth.clear();
+            depth.resize(n, f32::INFINITY);
+            self.draw_items(items, &self.pinhole, &mut labels, depth);
+        });
+        labels
+    }
+
     /// Renders one frame per entry of `frames`, in parallel with rayon. The
     /// result does not depend on the number of threads.
     pub fn render_frames(&self, frames: &[Vec<RenderItem>]) -> Vec<RenderOutput> {
         frames.par_iter().map(|items| self.render(items)).collect()
     }
 
-    /// Draws all items into `out`, which has the size of `k`.
-    fn draw_items(&self, items: &[RenderItem], k: &Pinhole, out: &mut RenderOutput) {
+    /// Draws all items into `labels` and `depth_m`, row-major buffers of
+    /// the size of `k` (background-initialized by the caller).
+    fn draw_items(
+        &self,
+        items: &[RenderItem],
+        k: &Pinhole,
+        labels: &mut [u16],
+        depth_m: &mut [f32],
+    ) {
+        let mut target = Target {
+            width: k.width as usize,
+            height: k.height as usize,
+            labels,
+            depth_m,
+        };
         SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
-            Ok(mut scratch) => self.draw_items_with(items, k, out, &mut scratch),
-            Err(_) => self.draw_items_with(items, k, out, &mut Scratch::default()),
+            Ok(mut scratch) => self.draw_items_with(items, k, &mut target, &mut scratch),
+            Err(_) => self.draw_items_with(items, k, &mut target, &mut Scratch::default()),
         });
     }
 
@@ -887,16 +932,10 @@ impl Rasterizer {
         &self,
         items: &[RenderItem],
         k: &Pinhole,
-        out: &mut RenderOutput,
+        target: &mut Target,
         scratch: &mut Scratch,
     ) {
         let planes = Planes::new(k);
-        let mut target = Target {
-            width: k.width as usize,
-            height: k.height as usize,
-            labels: &mut out.labels,
-            depth_m: &mut out.depth_m,
-        };
         let last_x = k.width as i32 - 1;
         let last_y = k.height as i32 - 1;
         let Scratch { screen, lists } = scratch;
