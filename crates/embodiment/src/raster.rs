@@ -787,7 +787,7 @@ const MEDIUM: usize = 3;
 struct Scratch {
     /// Screen vertices.
     screen: Vec<ScreenVertex>,
-    /// Class of every triangle, padded to a multiple of 16 with
+    /// Class of every triangle, padded to a multiple of 64 with
     /// [`CLASS_SKIP`].
     classes: Vec<u8>,
     /// Triangle indices per class.
@@ -909,17 +909,24 @@ fn classify_x4(
 }
 
 /// Appends to `list` the indices of the entries of `classes` equal to
-/// `class` (`classes.len()` a multiple of 16), in increasing order.
+/// `class` (`classes.len()` a multiple of 64), in increasing order.
 #[inline(never)]
 fn collect_class(classes: &[u8], class: u8, list: &mut Vec<u32>) {
     use wide::u8x16;
     list.clear();
     let key = u8x16::splat(class);
-    for (chunk, block) in classes.chunks_exact(16).enumerate() {
+    let mask = |block: &[u8]| {
         let mut bytes = [0u8; 16];
         bytes.copy_from_slice(block);
-        let mut bits = u8x16::from(bytes).cmp_eq(key).move_mask() as u32;
-        let base = (chunk * 16) as u32;
+        u64::from(u8x16::from(bytes).cmp_eq(key).move_mask() as u16)
+    };
+    // Blocks of 64: fewer loop exits to mispredict than with 16.
+    for (chunk, block) in classes.chunks_exact(64).enumerate() {
+        let mut bits = mask(&block[..16])
+            | mask(&block[16..32]) << 16
+            | mask(&block[32..48]) << 32
+            | mask(&block[48..]) << 48;
+        let base = (chunk * 64) as u32;
         while bits != 0 {
             list.push(base + bits.trailing_zeros());
             bits &= bits - 1;
@@ -1181,7 +1188,7 @@ impl Rasterizer {
             let cull = item.cull_back_faces && outcodes_any & 1 == 0;
             let triangles = &item.mesh.triangles[..];
             classes.clear();
-            classes.resize(triangles.len().div_ceil(16) * 16, CLASS_SKIP);
+            classes.resize(triangles.len().div_ceil(64) * 64, CLASS_SKIP);
             for (tris, out) in triangles.chunks(4).zip(classes.chunks_exact_mut(4)) {
                 // Padding lanes: out-of-range indices, skipped.
                 let tri = |i: usize| tris.get(i).copied().unwrap_or([u32::MAX; 3]);
@@ -1332,7 +1339,6 @@ fn transform_vertices(
     use wide::{f32x4, i32x4, CmpGe};
     const LANES: usize = 4;
     screen.clear();
-    screen.resize(vertices.len(), ScreenVertex::default());
     let m: [[f32x4; 4]; 3] = r.map(|row| row.map(f32x4::splat));
     let [near, left, right, top, bottom] = planes.planes.map(|p| p.map(f32x4::splat));
     let zero = f32x4::splat(0.0);
@@ -1340,17 +1346,11 @@ fn transform_vertices(
     let (fx, fy) = (f32x4::splat(k.fx), f32x4::splat(k.fy));
     let (cx, cy) = (f32x4::splat(k.cx), f32x4::splat(k.cy));
     let subpixel = f32x4::splat(SUBPIXEL);
-    let mut any = 0i32;
-    for (vs, out) in vertices.chunks(LANES).zip(screen.chunks_mut(LANES)) {
-        let mut x = [0.0f32; LANES];
-        let mut y = [0.0f32; LANES];
-        let mut z = [0.0f32; LANES];
-        for (i, v) in vs.iter().enumerate() {
-            x[i] = v.x;
-            y[i] = v.y;
-            z[i] = v.z;
-        }
-        let (x, y, z) = (f32x4::from(x), f32x4::from(y), f32x4::from(z));
+    // Four vertices: their screen vertices and outcode lanes.
+    let four = |vs: &[nalgebra::Point3<f32>; LANES]| {
+        let x = f32x4::from([vs[0].x, vs[1].x, vs[2].x, vs[3].x]);
+        let y = f32x4::from([vs[0].y, vs[1].y, vs[2].y, vs[3].y]);
+        let z = f32x4::from([vs[0].z, vs[1].z, vs[2].z, vs[3].z]);
         let p: [f32x4; 3] =
             std::array::from_fn(|i| m[i][0] * x + m[i][1] * y + m[i][2] * z + m[i][3]);
         let [px, py, pz] = p;
@@ -1373,15 +1373,30 @@ fn transform_vertices(
         let sx = round((fx * px * inv_z + cx) * subpixel);
         let sy = round((fy * py * inv_z + cy) * subpixel);
         let lanes = i32x4::transpose([sx, sy, bytemuck::cast::<_, i32x4>(inv_z), code]);
-        for (o, lane) in out.iter_mut().zip(lanes) {
-            *o = ScreenVertex(lane);
-        }
-        // Padding lanes of the last chunk are not part of the mesh.
-        let code = code.to_array();
-        for c in &code[..vs.len()] {
-            any |= c;
-        }
+        (lanes.map(ScreenVertex), code)
+    };
+    let mut any = i32x4::splat(0);
+    let mut chunks = vertices.chunks_exact(LANES);
+    for vs in &mut chunks {
+        let Ok(vs) = <&[_; LANES]>::try_from(vs) else {
+            continue;
+        };
+        let (out, code) = four(vs);
+        screen.extend_from_slice(&out);
+        any |= code;
     }
+    let rest = chunks.remainder();
+    if !rest.is_empty() {
+        // Padding lanes (copies of a mesh vertex) change neither the
+        // outcodes' union nor the screen vertices kept.
+        let mut vs = [rest[0]; LANES];
+        vs[..rest.len()].copy_from_slice(rest);
+        let (out, code) = four(&vs);
+        screen.extend_from_slice(&out[..rest.len()]);
+        any |= code;
+    }
+    let any = any.to_array();
+    let any = any[0] | any[1] | any[2] | any[3];
     any as u8
 }
 
