@@ -868,10 +868,14 @@ fn classify_x4(
     let zero = i32x4::splat(0);
     let any_out = o0 | o1 | o2;
     let all_out = o0 & o1 & o2;
-    let min_x = x0.min(x1).min(x2);
-    let max_x = x0.max(x1).max(x2);
-    let min_y = y0.min(y1).min(y2);
-    let max_y = y0.max(y1).max(y2);
+    // Bounding box, in f32 (exact: coordinates of unclipped triangles are
+    // integers below 2^23 in magnitude; min/max are single instructions).
+    let (fx0, fx1, fx2) = (x0.round_float(), x1.round_float(), x2.round_float());
+    let (fy0, fy1, fy2) = (y0.round_float(), y1.round_float(), y2.round_float());
+    let min_x = fx0.fast_min(fx1).fast_min(fx2).fast_trunc_int();
+    let max_x = fx0.fast_max(fx1).fast_max(fx2).fast_trunc_int();
+    let min_y = fy0.fast_min(fy1).fast_min(fy2).fast_trunc_int();
+    let max_y = fy0.fast_max(fy1).fast_max(fy2).fast_trunc_int();
     // Pixel centres of the unclamped bounding box.
     let shift = SUBPIXEL_BITS as i32;
     let cx0 = zero - ((zero - min_x) >> shift);
@@ -879,7 +883,16 @@ fn classify_x4(
     let cy0 = zero - ((zero - min_y) >> shift);
     let cy1 = max_y >> shift;
     let (lx, ly) = (i32x4::splat(last_x), i32x4::splat(last_y));
-    let empty = cx0.max(zero).cmp_gt(cx1.min(lx)) | cy0.max(zero).cmp_gt(cy1.min(ly));
+    // No centre in the box clamped to the image: max(c0, 0) > min(c1, last)
+    // on either axis.
+    let no_image = i32x4::splat(-i32::from(last_x < 0 || last_y < 0));
+    let empty = cx0.cmp_gt(cx1)
+        | cx0.cmp_gt(lx)
+        | cx1.cmp_lt(zero)
+        | cy0.cmp_gt(cy1)
+        | cy0.cmp_gt(ly)
+        | cy1.cmp_lt(zero)
+        | no_image;
     let f = f64x4::from_i32x4;
     let area = f(x1 - x0) * f(y2 - y0) - f(y1 - y0) * f(x2 - x0);
     let area_zero = LANE_MASKS[area.cmp_eq(f64x4::splat(0.0)).move_mask() as usize & 15];
