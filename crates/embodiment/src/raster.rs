@@ -893,12 +893,18 @@ fn classify_x4(
         | cy0.cmp_gt(ly)
         | cy1.cmp_lt(zero)
         | no_image;
+    let unclipped = any_out.cmp_eq(zero);
+    // Often (meshes finer than the pixels, in coherent triangle order)
+    // all four are skipped: no need for areas and classes.
+    let skipped = (unclipped & empty) | !all_out.cmp_eq(zero);
+    if skipped.move_mask() == 0b1111 {
+        return [CLASS_SKIP; 4];
+    }
     let f = f64x4::from_i32x4;
     let area = f(x1 - x0) * f(y2 - y0) - f(y1 - y0) * f(x2 - x0);
     let area_zero = LANE_MASKS[area.cmp_eq(f64x4::splat(0.0)).move_mask() as usize & 15];
     let back = LANE_MASKS[area.cmp_gt(f64x4::splat(0.0)).move_mask() as usize & 15];
     let culled = if cull { back } else { zero };
-    let unclipped = any_out.cmp_eq(zero);
     let keep = unclipped & !(empty | area_zero | culled);
     let clip = !unclipped & all_out.cmp_eq(zero);
     let outside = cx0.cmp_lt(zero) | cx1.cmp_gt(lx) | cy0.cmp_lt(zero) | cy1.cmp_gt(ly);
