@@ -39,11 +39,12 @@
 //!   use the same integer values and floating-point operations on every
 //!   path, so the output is bit-identical to drawing each triangle with the
 //!   general path (tested).
-//! - Performance (720x480, one thread, release): about 1.7 ms per frame for
-//!   8 capsules/spheres of ~2k triangles each and about 3.3 ms per mask for
-//!   pybullet's Franka Panda visual meshes (103k triangles, `bridgev2w bench
-//!   masks`, including output allocation and kinematics); see
-//!   `benches/raster.rs`.
+//! - Performance (720x480, one thread, release, minimum over runs on a
+//!   shared machine): about 1.3 ms per frame for 8 capsules/spheres of ~2k
+//!   triangles each (`benches/raster.rs`) and about 2.5 ms per label map
+//!   ([`Rasterizer::render_labels`], including output allocation and
+//!   kinematics) for pybullet's Franka Panda visual meshes (103k
+//!   triangles, `bridgev2w bench masks`, `examples/panda_masks.rs`).
 
 use crate::camera::Camera;
 use crate::mesh::TriMesh;
