@@ -1217,6 +1217,11 @@ impl Rasterizer {
                 out.copy_from_slice(&c);
             }
             for (class, list) in lists.iter_mut().enumerate().skip(1) {
+                if class == usize::from(CLASS_CLIP) && outcodes_any == 0 {
+                    // Every vertex inside every clip plane: nothing clipped.
+                    list.clear();
+                    continue;
+                }
                 collect_class(classes, class as u8, list);
             }
             let label = item.label;
