@@ -91,6 +91,30 @@ pub fn render_trajectory(
         .collect()
 }
 
+/// The label maps of [`render_trajectory`] alone (row-major, 0 =
+/// background), without depth maps: faster when only masks and labels are
+/// needed. `on_frame` as for [`render_trajectory`].
+///
+/// # Panics
+/// If a frame has the wrong number of joint values.
+pub fn render_trajectory_labels(
+    robot: &Robot,
+    camera: &Camera,
+    joints: &[Vec<f64>],
+    on_frame: &(dyn Fn() + Sync),
+) -> Vec<Vec<u16>> {
+    let rasterizer = Rasterizer::new(camera);
+    joints
+        .par_iter()
+        .map(|q| {
+            let poses = robot.link_poses(q);
+            let labels = rasterizer.render_labels(&render_items(robot, &poses, true));
+            on_frame();
+            labels
+        })
+        .collect()
+}
+
 /// Errors writing mask outputs.
 #[derive(Debug, thiserror::Error)]
 pub enum WriteError {

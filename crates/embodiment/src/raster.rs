@@ -29,25 +29,29 @@
 //!   [`Rasterizer::new`]). The pinhole buffer is allocated per rendered
 //!   frame; undistorted frames reuse per-thread scratch buffers.
 //! - Implementation: vertices are transformed, clip-tested and projected
-//!   four at a time with SIMD (`wide`). Unclipped triangles are sorted into
-//!   per-thread lists by bounding-box size without data-dependent branches;
-//!   those whose box lies inside the image and holds 1, 2 or 2x2 pixel
-//!   centres are drawn by branch-free code with 32-bit edge functions (one-
-//!   pixel triangles set up four at a time in SIMD lanes), the rest by the
-//!   general span rasterizer. Coverage and depth use the same integer and
-//!   floating-point operations on every path, so the output is bit-identical
-//!   to drawing each triangle with the general path (tested).
-//! - Performance (720x480, one thread, release): about 1.7 ms per frame for
-//!   8 capsules/spheres of ~2k triangles each and about 3.3 ms per mask for
-//!   pybullet's Franka Panda visual meshes (103k triangles, `bridgev2w bench
-//!   masks`, including output allocation and kinematics); see
-//!   `benches/raster.rs`.
+//!   four at a time with SIMD (`wide`). Triangles are classified four at a
+//!   time in SIMD lanes by bounding-box size, without data-dependent
+//!   branches, and sorted into per-thread lists: those whose box lies inside
+//!   the image and holds 1, 2 or 2x2 pixel centres are drawn four at a time
+//!   in SIMD lanes with exact f32 edge functions; those with boxes of up to
+//!   4 x 16 centres row by row, four pixels of a row in SIMD lanes; the rest
+//!   (and clipped ones) by the general span rasterizer. Coverage and depth
+//!   use the same integer values and floating-point operations on every
+//!   path, so the output is bit-identical to drawing each triangle with the
+//!   general path (tested).
+//! - Performance (720x480, one thread, release, minimum over runs on a
+//!   shared machine): about 1.3 ms per frame for 8 capsules/spheres of ~2k
+//!   triangles each (`benches/raster.rs`) and about 2.5 ms per label map
+//!   ([`Rasterizer::render_labels`], including output allocation and
+//!   kinematics) for pybullet's Franka Panda visual meshes (103k
+//!   triangles, `bridgev2w bench masks`, `examples/panda_masks.rs`).
 
 use crate::camera::Camera;
 use crate::mesh::TriMesh;
 use nalgebra::Isometry3;
 use rayon::prelude::*;
 use std::cell::RefCell;
+use wide::{f32x4, f64x4, i32x4, CmpEq, CmpGe, CmpGt, CmpLt, CmpNe};
 
 /// Near clipping plane, camera-frame z in metres.
 pub const NEAR_PLANE_M: f32 = 0.01;
@@ -170,13 +174,42 @@ pub struct Rasterizer {
 /// A vertex ready for rasterization: fixed-point screen position (1/256
 /// pixel; bounded by the guard band, so i32 suffices), 1/z, and its clip
 /// outcode (bit i set when outside clip plane i of [`Planes`]; position and
-/// 1/z are only meaningful when the outcode is 0).
+/// 1/z are only meaningful when the outcode is 0), stored as the SIMD lanes
+/// `[x, y, bits of 1/z, outcode]` so that four vertices load and transpose
+/// into per-field lanes cheaply.
 #[derive(Debug, Clone, Copy, Default)]
-struct ScreenVertex {
-    x: i32,
-    y: i32,
-    inv_z: f32,
-    outcode: u8,
+struct ScreenVertex(wide::i32x4);
+
+impl ScreenVertex {
+    #[inline(always)]
+    fn new(x: i32, y: i32, inv_z: f32, outcode: u8) -> Self {
+        Self(wide::i32x4::from([
+            x,
+            y,
+            inv_z.to_bits() as i32,
+            i32::from(outcode),
+        ]))
+    }
+
+    #[inline(always)]
+    fn x(&self) -> i32 {
+        self.0.as_array_ref()[0]
+    }
+
+    #[inline(always)]
+    fn y(&self) -> i32 {
+        self.0.as_array_ref()[1]
+    }
+
+    #[inline(always)]
+    fn inv_z(&self) -> f32 {
+        f32::from_bits(self.0.as_array_ref()[2] as u32)
+    }
+
+    #[inline(always)]
+    fn outcode(&self) -> u8 {
+        self.0.as_array_ref()[3] as u8
+    }
 }
 
 /// Clip planes in the camera frame: `a·p + d >= 0` is inside. Plane 0 is the
@@ -320,105 +353,76 @@ impl Target<'_> {
         }
     }
 
-    /// Draws a triangle whose bounding box lies inside the image and holds
-    /// `N` pixel centres: 1, 2 (1x2 or 2x1) or 4 (2x2). Same coverage and
-    /// depth as [`Target::draw_triangle`] (same integer edge functions, here
-    /// in i32, which suffices for boxes under 3 pixels wide, and the same
-    /// floating-point depth operations), without data-dependent branches.
+    /// [`Target::depth_test`] of the four pixels from `idx` on, in SIMD
+    /// lanes (`covered`: lane masks). Uncovered pixels keep their values,
+    /// so the four may extend past the end of an image row (not past the
+    /// buffer: the last pixels of the buffer are tested one by one).
     #[inline(always)]
-    fn draw_small<const N: usize>(&mut self, v: [&ScreenVertex; 3], label: u16) {
-        let one = 1i32 << SUBPIXEL_BITS;
-        let min_x = v[0].x.min(v[1].x).min(v[2].x);
-        let max_x = v[0].x.max(v[1].x).max(v[2].x);
-        let min_y = v[0].y.min(v[1].y).min(v[2].y);
-        let max_y = v[0].y.max(v[1].y).max(v[2].y);
-        let x0 = -((-min_x) >> SUBPIXEL_BITS);
-        let y0 = -((-min_y) >> SUBPIXEL_BITS);
-        let (span_x, span_y) = ((max_x >> SUBPIXEL_BITS) - x0, (max_y >> SUBPIXEL_BITS) - y0);
-        // Coordinates relative to the pixel centre (x0, y0).
-        let (ox, oy) = (x0 * one, y0 * one);
-        let rel = |s: &ScreenVertex| (s.x - ox, s.y - oy, f64::from(s.inv_z));
-        let (p0, q1, q2) = (rel(v[0]), rel(v[1]), rel(v[2]));
-        let area = (q1.0 - p0.0) * (q2.1 - p0.1) - (q1.1 - p0.1) * (q2.0 - p0.0);
-        let neg = area < 0;
-        let p1 = if neg { q2 } else { q1 };
-        let p2 = if neg { q1 } else { q2 };
-        let area = area.abs();
-        let edges = [(p1, p2), (p2, p0), (p0, p1)];
-        let mut e = [0i32; 3];
-        let mut e_unbiased = [0i32; 3];
-        let mut step_x = [0i32; 3];
-        let mut step_y = [0i32; 3];
-        for (i, (a, b)) in edges.iter().enumerate() {
-            let dx = b.0 - a.0;
-            let dy = b.1 - a.1;
-            let top_left = (dy < 0) | ((dy == 0) & (dx > 0));
-            e_unbiased[i] = dx * (-a.1) - dy * (-a.0);
-            e[i] = e_unbiased[i] - i32::from(!top_left);
-            step_x[i] = -dy * one;
-            step_y[i] = dx * one;
-        }
-        let inv_area = 1.0 / f64::from(area);
-        let iz = [p0.2, p1.2, p2.2];
-        let mut iz_origin = 0.0f64;
-        for i in 0..3 {
-            iz_origin += f64::from(e_unbiased[i]) * iz[i];
-        }
-        let width = self.width;
-        if N == 1 {
-            let z = 1.0 / ((iz_origin * inv_area) as f32);
-            let covered = (e[0] | e[1] | e[2]) >= 0;
-            self.depth_test(y0 as usize * width + x0 as usize, z, label, covered);
+    fn depth_test_x4(&mut self, idx: usize, z: f32x4, label: u16, covered: i32x4) {
+        let (Some(d), Some(l)) = (
+            self.depth_m.get_mut(idx..idx + 4),
+            self.labels.get_mut(idx..idx + 4),
+        ) else {
+            let (z, covered) = (z.to_array(), covered.move_mask());
+            for (c, &z) in z.iter().enumerate() {
+                self.depth_test(idx + c, z, label, (covered >> c) & 1 != 0);
+            }
             return;
-        }
-        let mut iz_dx = 0.0f64;
-        let mut iz_dy = 0.0f64;
-        for i in 0..3 {
-            iz_dx += f64::from(step_x[i]) * iz[i];
-            iz_dy += f64::from(step_y[i]) * iz[i];
-        }
-        iz_origin *= inv_area;
-        let iz_dx = (iz_dx * inv_area) as f32;
-        iz_dy *= inv_area;
-        for j in 0..N {
-            let (cx, cy) = if N == 2 {
-                (j as i32 * span_x, j as i32 * span_y)
-            } else {
-                ((j & 1) as i32, (j >> 1) as i32)
-            };
-            let ej = [
-                e[0] + cx * step_x[0] + cy * step_y[0],
-                e[1] + cx * step_x[1] + cy * step_y[1],
-                e[2] + cx * step_x[2] + cy * step_y[2],
-            ];
-            let covered = (ej[0] | ej[1] | ej[2]) >= 0;
-            let w = (iz_origin + f64::from(cy) * iz_dy) as f32 + cx as f32 * iz_dx;
-            let z = 1.0 / w;
-            let idx = (y0 + cy) as usize * width + (x0 + cx) as usize;
-            self.depth_test(idx, z, label, covered);
+        };
+        let old_d = f32x4::from([d[0], d[1], d[2], d[3]]);
+        let old_l = i32x4::from([l[0], l[1], l[2], l[3]].map(i32::from));
+        let label_v = i32x4::splat(i32::from(label));
+        let nearer = bytemuck::cast::<f32x4, i32x4>(z.cmp_lt(old_d));
+        let equal = bytemuck::cast::<f32x4, i32x4>(z.cmp_eq(old_d));
+        let win = covered & (nearer | (equal & label_v.cmp_lt(old_l)));
+        let new_d = bytemuck::cast::<i32x4, f32x4>(win)
+            .blend(z, old_d)
+            .to_array();
+        let new_l = win.blend(label_v, old_l).to_array();
+        d.copy_from_slice(&new_d);
+        for (l, n) in l.iter_mut().zip(new_l) {
+            *l = n as u16;
         }
     }
 
-    /// [`Target::draw_small`] with `N` = 1 for four triangles at once, the
-    /// per-triangle setup in SIMD lanes (same integer and IEEE operations).
+    /// Draws four triangles (SIMD lanes of `g`, see [`gather_x4`]) whose
+    /// bounding boxes lie inside the image and hold `N` pixel centres each:
+    /// 1, 2 (1x2 or 2x1) or 4 (2x2). Same coverage and depth as
+    /// [`Target::draw_triangle`]: the same edge functions, here in f32,
+    /// which is exact since these boxes are under 3 pixels wide (fixed-point
+    /// coordinates relative to the box's first pixel centre are below 2^10,
+    /// their products below 2^20), and the same floating-point depth
+    /// operations; no data-dependent branches.
     #[inline(always)]
-    fn draw_one_x4(&mut self, tris: [[&ScreenVertex; 3]; 4], label: u16) {
-        use wide::{f64x4, i32x4, CmpEq, CmpGt, CmpLt};
-        let lanes_i32 = |k: usize, f: fn(&ScreenVertex) -> i32| {
-            i32x4::from([f(tris[0][k]), f(tris[1][k]), f(tris[2][k]), f(tris[3][k])])
-        };
-        let lanes_iz = |k: usize| f64x4::from(tris.map(|t| f64::from(t[k].inv_z)));
-        let xs = [0, 1, 2].map(|k| lanes_i32(k, |s| s.x));
-        let ys = [0, 1, 2].map(|k| lanes_i32(k, |s| s.y));
-        let x0 = -((-xs[0].min(xs[1]).min(xs[2])) >> SUBPIXEL_BITS as i32);
-        let y0 = -((-ys[0].min(ys[1]).min(ys[2])) >> SUBPIXEL_BITS as i32);
-        let (ox, oy) = (x0 << SUBPIXEL_BITS as i32, y0 << SUBPIXEL_BITS as i32);
-        let q = [0, 1, 2].map(|k| (xs[k] - ox, ys[k] - oy, lanes_iz(k)));
-        let area = (q[1].0 - q[0].0) * (q[2].1 - q[0].1) - (q[1].1 - q[0].1) * (q[2].0 - q[0].0);
+    fn draw_small_x4<const N: usize>(&mut self, g: &[[i32x4; 4]; 3], label: u16) {
+        let shift = SUBPIXEL_BITS as i32;
         let zero = i32x4::splat(0);
-        let neg = area.cmp_lt(zero);
-        let neg64 = f64x4::from_i32x4(area).cmp_lt(f64x4::splat(0.0));
-        let pick = |a: &(i32x4, i32x4, f64x4), b: &(i32x4, i32x4, f64x4)| {
+        let [[x0, y0, iz0, _], [x1, y1, iz1, _], [x2, y2, iz2, _]] = *g;
+        // First pixel centre of each box (ceil of the fixed-point minimum).
+        let px = zero - ((zero - x0.min(x1).min(x2)) >> shift);
+        let py = zero - ((zero - y0.min(y1).min(y2)) >> shift);
+        let (ox, oy) = (px << shift, py << shift);
+        let rel = |x: i32x4, y: i32x4, iz: i32x4| {
+            let iz = bytemuck::cast::<i32x4, f32x4>(iz).to_array();
+            (
+                (x - ox).round_float(),
+                (y - oy).round_float(),
+                f64x4::from([
+                    f64::from(iz[0]),
+                    f64::from(iz[1]),
+                    f64::from(iz[2]),
+                    f64::from(iz[3]),
+                ]),
+            )
+        };
+        let q = [rel(x0, y0, iz0), rel(x1, y1, iz1), rel(x2, y2, iz2)];
+        let fzero = f32x4::splat(0.0);
+        let area = (q[1].0 - q[0].0) * (q[2].1 - q[0].1) - (q[1].1 - q[0].1) * (q[2].0 - q[0].0);
+        // Negative area: swap vertices 1 and 2 (positive orientation).
+        let neg = area.cmp_lt(fzero);
+        let neg64 =
+            f64x4::from_i32x4(bytemuck::cast::<f32x4, i32x4>(neg)).cmp_ne(f64x4::splat(0.0));
+        let pick = |a: &(f32x4, f32x4, f64x4), b: &(f32x4, f32x4, f64x4)| {
             (
                 neg.blend(a.0, b.0),
                 neg.blend(a.1, b.1),
@@ -426,34 +430,155 @@ impl Target<'_> {
             )
         };
         let p = [q[0], pick(&q[2], &q[1]), pick(&q[1], &q[2])];
-        let area = f64x4::from_i32x4(area.abs());
-        let mut covered = i32x4::splat(-1);
+        let inv_area = f64x4::splat(1.0) / int_f64(area.abs());
+        let one = f32x4::splat(SUBPIXEL);
+        let mut e = [fzero; 3];
+        let mut step_x = [fzero; 3];
+        let mut step_y = [fzero; 3];
         let mut iz_origin = f64x4::splat(0.0);
         for (i, (a, b)) in [(1, 2), (2, 0), (0, 1)].into_iter().enumerate() {
             let (a, b) = (&p[a], &p[b]);
             let dx = b.0 - a.0;
             let dy = b.1 - a.1;
-            let top_left = dy.cmp_lt(zero) | (dy.cmp_eq(zero) & dx.cmp_gt(zero));
-            let e = dx * (zero - a.1) - dy * (zero - a.0);
-            // Masks are -1 where set: the bias of 1 for non-top-left edges.
-            let biased = e + !top_left;
-            covered &= !biased.cmp_lt(zero);
-            iz_origin += f64x4::from_i32x4(e) * p[i].2;
+            let top_left = dy.cmp_lt(fzero) | (dy.cmp_eq(fzero) & dx.cmp_gt(fzero));
+            let unbiased = dx * (fzero - a.1) - dy * (fzero - a.0);
+            // Edges that are not top-left exclude their boundary: bias 1.
+            e[i] = unbiased - (f32x4::splat(1.0) & !top_left);
+            step_x[i] = (fzero - dy) * one;
+            step_y[i] = dx * one;
+            iz_origin += int_f64(unbiased) * p[i].2;
         }
-        let inv_area = f64x4::splat(1.0) / area;
-        let w = (iz_origin * inv_area).to_array();
-        let covered = covered.move_mask();
-        let (x0, y0) = (x0.to_array(), y0.to_array());
-        for i in 0..4 {
-            let z = 1.0 / (w[i] as f32);
-            let idx = y0[i] as usize * self.width + x0[i] as usize;
-            self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
+        let (px, py) = (px.to_array(), py.to_array());
+        let width = self.width;
+        if N == 1 {
+            let covered =
+                (e[0].cmp_ge(fzero) & e[1].cmp_ge(fzero) & e[2].cmp_ge(fzero)).move_mask();
+            let w = (iz_origin * inv_area).to_array();
+            for i in 0..4 {
+                let z = 1.0 / (w[i] as f32);
+                let idx = py[i] as usize * width + px[i] as usize;
+                self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
+            }
+            return;
+        }
+        let mut iz_dx = f64x4::splat(0.0);
+        let mut iz_dy = f64x4::splat(0.0);
+        for i in 0..3 {
+            iz_dx += int_f64(step_x[i]) * p[i].2;
+            iz_dy += int_f64(step_y[i]) * p[i].2;
+        }
+        let iz_origin = iz_origin * inv_area;
+        let iz_dx = (iz_dx * inv_area).to_array();
+        let iz_dy = iz_dy * inv_area;
+        // Pixel offsets (cx, cy) from the first centre: for two pixels the
+        // box's far centre, for four the 2x2 block.
+        let (far_x, far_y) = if N == 2 {
+            let sx = (x0.max(x1).max(x2) >> shift) - i32x4::from(px);
+            let sy = (y0.max(y1).max(y2) >> shift) - i32x4::from(py);
+            (sx.round_float(), sy.round_float())
+        } else {
+            (f32x4::splat(1.0), f32x4::splat(1.0))
+        };
+        for j in 0..N {
+            let (cx, cy) = match (N, j) {
+                (2, 0) | (4, 0) => (fzero, fzero),
+                (2, _) => (far_x, far_y),
+                (_, 1) => (f32x4::splat(1.0), fzero),
+                (_, 2) => (fzero, f32x4::splat(1.0)),
+                _ => (f32x4::splat(1.0), f32x4::splat(1.0)),
+            };
+            let ej = |i: usize| e[i] + cx * step_x[i] + cy * step_y[i];
+            let covered =
+                (ej(0).cmp_ge(fzero) & ej(1).cmp_ge(fzero) & ej(2).cmp_ge(fzero)).move_mask();
+            let row = (iz_origin + int_f64(cy) * iz_dy).to_array();
+            let (cx, cy) = (cx.to_array(), cy.to_array());
+            for i in 0..4 {
+                let w = row[i] as f32 + cx[i] * iz_dx[i] as f32;
+                let z = 1.0 / w;
+                let idx = (py[i] + cy[i] as i32) as usize * width + (px[i] + cx[i] as i32) as usize;
+                self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
+            }
         }
     }
 
-    /// Draws the listed triangles: with [`Target::draw_small`] for `N` =
-    /// 1, 2, 4 (four at a time in SIMD lanes for `N` = 1), and with
-    /// [`Target::draw_triangle`] for `N` = 0.
+    /// Draws a triangle whose bounding box lies inside the image and holds
+    /// at most [`MEDIUM_COLUMNS`] x [`MEDIUM_ROWS`] pixel centres. Same
+    /// coverage and depth as [`Target::draw_triangle`] (same integer edge
+    /// functions, here in i32, which suffices for these boxes: fixed-point
+    /// coordinates relative to the first pixel centre are below 2^13, edge
+    /// values below 2^26; and the same floating-point depth operations), a
+    /// row of up to four pixels at a time in SIMD lanes.
+    #[inline(never)]
+    fn draw_medium(&mut self, v: [&ScreenVertex; 3], label: u16) {
+        let one = 1i32 << SUBPIXEL_BITS;
+        let min_x = v[0].x().min(v[1].x()).min(v[2].x());
+        let max_x = v[0].x().max(v[1].x()).max(v[2].x());
+        let min_y = v[0].y().min(v[1].y()).min(v[2].y());
+        let max_y = v[0].y().max(v[1].y()).max(v[2].y());
+        let x0 = -((-min_x) >> SUBPIXEL_BITS);
+        let y0 = -((-min_y) >> SUBPIXEL_BITS);
+        let columns = ((max_x >> SUBPIXEL_BITS) - x0 + 1).clamp(0, MEDIUM_COLUMNS as i32);
+        let rows = ((max_y >> SUBPIXEL_BITS) - y0 + 1).clamp(0, MEDIUM_ROWS as i32);
+        // Coordinates relative to the pixel centre (x0, y0).
+        let (ox, oy) = (x0 * one, y0 * one);
+        let rel = |s: &ScreenVertex| (s.x() - ox, s.y() - oy, f64::from(s.inv_z()));
+        let (p0, q1, q2) = (rel(v[0]), rel(v[1]), rel(v[2]));
+        let area = (q1.0 - p0.0) * (q2.1 - p0.1) - (q1.1 - p0.1) * (q2.0 - p0.0);
+        if area == 0 {
+            return;
+        }
+        let (p1, p2) = if area < 0 { (q2, q1) } else { (q1, q2) };
+        let edges = [(p1, p2), (p2, p0), (p0, p1)];
+        let iz = [p0.2, p1.2, p2.2];
+        let lanes = i32x4::from([0, 1, 2, 3]);
+        let mut e = [i32x4::splat(0); 3];
+        let mut step_y = [0i32; 3];
+        let mut iz_origin = 0.0f64;
+        let mut iz_dx = 0.0f64;
+        let mut iz_dy = 0.0f64;
+        for (i, (a, b)) in edges.iter().enumerate() {
+            let dx = b.0 - a.0;
+            let dy = b.1 - a.1;
+            let top_left = (dy < 0) | ((dy == 0) & (dx > 0));
+            let unbiased = dx * (-a.1) - dy * (-a.0);
+            let step_x = -dy * one;
+            step_y[i] = dx * one;
+            // Lanes: the pixels x0 .. x0 + 3 of the first row.
+            let first = unbiased - i32::from(!top_left);
+            e[i] = i32x4::from([
+                first,
+                first + step_x,
+                first + 2 * step_x,
+                first + 3 * step_x,
+            ]);
+            iz_origin += f64::from(unbiased) * iz[i];
+            iz_dx += f64::from(step_x) * iz[i];
+            iz_dy += f64::from(step_y[i]) * iz[i];
+        }
+        let inv_area = 1.0 / f64::from(area.abs());
+        iz_origin *= inv_area;
+        let iz_dx = (iz_dx * inv_area) as f32;
+        iz_dy *= inv_area;
+        // dxf * iz_dx per lane, dxf the column offset (as in draw_triangle).
+        let column_iz = lanes.round_float() * f32x4::splat(iz_dx);
+        let in_box = lanes.cmp_lt(i32x4::splat(columns));
+        let width = self.width;
+        for row in 0..rows {
+            let iz_row = (iz_origin + f64::from(row) * iz_dy) as f32;
+            let z = f32x4::splat(1.0) / (f32x4::splat(iz_row) + column_iz);
+            let covered = (e[0] | e[1] | e[2]).cmp_gt(i32x4::splat(-1)) & in_box;
+            let base = (y0 + row) as usize * width + x0 as usize;
+            self.depth_test_x4(base, z, label, covered);
+            for i in 0..3 {
+                e[i] += i32x4::splat(step_y[i]);
+            }
+        }
+    }
+
+    /// Draws the listed triangles: with [`Target::draw_small_x4`] for `N` =
+    /// 1, 2, 4, four at a time (the last group padded by repeating a
+    /// triangle, which draws nothing new), with [`Target::draw_medium`] for
+    /// `N` = [`MEDIUM`] and with [`Target::draw_triangle`] for `N` = 0.
     #[inline(never)]
     fn draw_list<const N: usize>(
         &mut self,
@@ -462,33 +587,31 @@ impl Target<'_> {
         screen: &[ScreenVertex],
         label: u16,
     ) {
-        let vertices = |t: u32| -> Option<[&ScreenVertex; 3]> {
-            let [i0, i1, i2] = triangles.get(t as usize)?.map(|i| i as usize);
-            Some([screen.get(i0)?, screen.get(i1)?, screen.get(i2)?])
-        };
-        let mut rest = list;
-        if N == 1 {
-            let mut chunks = list.chunks_exact(4);
-            for chunk in &mut chunks {
-                let v = [0, 1, 2, 3].map(|i| vertices(chunk[i]));
-                if let [Some(a), Some(b), Some(c), Some(d)] = v {
-                    self.draw_one_x4([a, b, c, d], label);
-                } else {
-                    // Not reached: listed triangles have valid indices.
-                    for v in v.into_iter().flatten() {
-                        self.draw_small::<1>(v, label);
-                    }
+        let tri = |t: u32| triangles.get(t as usize).copied().unwrap_or([u32::MAX; 3]);
+        if N == MEDIUM {
+            for &t in list {
+                let [i0, i1, i2] = tri(t);
+                let v = |i: u32| screen.get(i as usize);
+                if let (Some(a), Some(b), Some(c)) = (v(i0), v(i1), v(i2)) {
+                    self.draw_medium([a, b, c], label);
                 }
             }
-            rest = chunks.remainder();
+            return;
         }
-        for &t in rest {
-            if let Some(v) = vertices(t) {
-                match N {
-                    0 => self.draw_triangle(v, label),
-                    _ => self.draw_small::<N>(v, label),
+        if N == 0 {
+            for &t in list {
+                let [i0, i1, i2] = tri(t);
+                let v = |i: u32| screen.get(i as usize);
+                if let (Some(a), Some(b), Some(c)) = (v(i0), v(i1), v(i2)) {
+                    self.draw_triangle([a, b, c], label);
                 }
             }
+            return;
+        }
+        for chunk in list.chunks(4) {
+            let t = |i: usize| tri(chunk.get(i).copied().unwrap_or(chunk[0]));
+            let g = gather_x4([t(0), t(1), t(2), t(3)], screen);
+            self.draw_small_x4::<N>(&g, label);
         }
     }
 
@@ -496,9 +619,9 @@ impl Target<'_> {
     #[inline(never)]
     fn draw_triangle(&mut self, v: [&ScreenVertex; 3], label: u16) {
         let wide = |s: &ScreenVertex| Vertex64 {
-            x: i64::from(s.x),
-            y: i64::from(s.y),
-            inv_z: f64::from(s.inv_z),
+            x: i64::from(s.x()),
+            y: i64::from(s.y()),
+            inv_z: f64::from(s.inv_z()),
         };
         let [v0, mut v1, mut v2] = v.map(wide);
         // Bounding box of pixel centres (integer coordinates) inside the
@@ -633,19 +756,31 @@ impl Target<'_> {
     }
 }
 
-/// Triangle classes of the fast path, see [`classify`].
-const CLASSES: usize = 5;
+/// Triangle classes of the fast path, see [`classify_x4`].
+const CLASSES: usize = 7;
 /// Not drawn: no pixel centre in the image's part of the bounding box, zero
-/// area, or culled back face.
-const CLASS_SKIP: usize = 0;
+/// area, culled back face, or all vertices outside one clip plane.
+const CLASS_SKIP: u8 = 0;
 /// Bounding box inside the image holding exactly one pixel centre.
-const CLASS_ONE: usize = 1;
+const CLASS_ONE: u8 = 1;
 /// Bounding box inside the image holding two pixel centres (1x2 or 2x1).
-const CLASS_TWO: usize = 2;
+const CLASS_TWO: u8 = 2;
 /// Bounding box inside the image holding 2x2 pixel centres.
-const CLASS_QUAD: usize = 3;
-/// Anything else drawn: [`Target::draw_triangle`].
-const CLASS_LARGE: usize = 4;
+const CLASS_QUAD: u8 = 3;
+/// Any other unclipped triangle: [`Target::draw_triangle`].
+const CLASS_LARGE: u8 = 4;
+/// Some vertex outside a clip plane: clipped, then
+/// [`Target::draw_triangle`].
+const CLASS_CLIP: u8 = 5;
+/// Not small, bounding box inside the image holding at most
+/// [`MEDIUM_COLUMNS`] x [`MEDIUM_ROWS`] pixel centres:
+/// [`Target::draw_medium`].
+const CLASS_MEDIUM: u8 = 6;
+/// Largest box of [`CLASS_MEDIUM`], pixel centres.
+const MEDIUM_COLUMNS: usize = 4;
+const MEDIUM_ROWS: usize = 16;
+/// `draw_list` selector of [`Target::draw_medium`].
+const MEDIUM: usize = 3;
 
 /// Per-thread scratch buffers of [`Rasterizer::draw_items`], reused across
 /// items and frames (their contents never outlive one item).
@@ -653,53 +788,169 @@ const CLASS_LARGE: usize = 4;
 struct Scratch {
     /// Screen vertices.
     screen: Vec<ScreenVertex>,
+    /// Class of every triangle, padded to a multiple of 64 with
+    /// [`CLASS_SKIP`].
+    classes: Vec<u8>,
     /// Triangle indices per class.
     lists: [Vec<u32>; CLASSES],
 }
 
 thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+    /// Depth map of [`Rasterizer::render_labels`].
+    static DEPTH: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
 }
 
-/// Class of an unclipped triangle (all outcodes 0), computed without
-/// branches. `last_x`, `last_y`: largest pixel coordinates of the image.
+/// Stands in for the vertex of an out-of-range index (and for the padding
+/// of the last group of four triangles): outside every clip plane, so the
+/// triangle is skipped.
+const INVALID_VERTEX: ScreenVertex = ScreenVertex(wide::i32x4::new([0, 0, 0, 0x1F]));
+
+/// Lane masks (-1 where set) of the 4-bit masks 0..16.
+const LANE_MASKS: [wide::i32x4; 16] = {
+    let mut m = [wide::i32x4::new([0; 4]); 16];
+    let mut bits = 0;
+    while bits < 16 {
+        let mut lanes = [0i32; 4];
+        let mut i = 0;
+        while i < 4 {
+            lanes[i] = -(((bits >> i) & 1) as i32);
+            i += 1;
+        }
+        m[bits] = wide::i32x4::new(lanes);
+        bits += 1;
+    }
+    m
+};
+
+/// Converts integer-valued lanes below 2^31 in magnitude to f64 (exact).
 #[inline(always)]
-fn classify(
-    a: &ScreenVertex,
-    b: &ScreenVertex,
-    c: &ScreenVertex,
+fn int_f64(v: f32x4) -> f64x4 {
+    f64x4::from_i32x4(v.round_int())
+}
+
+/// The vertices of four triangles (vertex indices `tris`) as SIMD lanes:
+/// per triangle vertex k, `[x, y, bits of 1/z, outcode]` of the four
+/// triangles. An out-of-range index gives [`INVALID_VERTEX`].
+#[inline(always)]
+fn gather_x4(tris: [[u32; 3]; 4], screen: &[ScreenVertex]) -> [[i32x4; 4]; 3] {
+    let vertex = |i: u32| screen.get(i as usize).copied().unwrap_or(INVALID_VERTEX).0;
+    // (Explicit arrays: `array::map` is not always inlined.)
+    let gather = |k: usize| {
+        i32x4::transpose([
+            vertex(tris[0][k]),
+            vertex(tris[1][k]),
+            vertex(tris[2][k]),
+            vertex(tris[3][k]),
+        ])
+    };
+    [gather(0), gather(1), gather(2)]
+}
+
+/// Classes of four triangles (vertex indices `tris`, screen vertices
+/// `screen`), computed in SIMD lanes without branches. `cull`: skip back
+/// faces (positive signed area, screen y pointing down); `last_x`, `last_y`:
+/// largest pixel coordinates of the image. A triangle with an out-of-range
+/// index is skipped.
+///
+/// The signed area is computed in f64, which is exact for unclipped
+/// triangles: their fixed-point coordinates lie in the guard band, below
+/// 2^23 in magnitude, so coordinate differences (i32) are below 2^24 and
+/// the products below 2^48 (lanes of clipped triangles are ignored).
+#[inline(never)]
+fn classify_x4(
+    tris: [[u32; 3]; 4],
+    screen: &[ScreenVertex],
     cull: bool,
     last_x: i32,
     last_y: i32,
-) -> usize {
-    let min_x = a.x.min(b.x).min(c.x);
-    let max_x = a.x.max(b.x).max(c.x);
-    let min_y = a.y.min(b.y).min(c.y);
-    let max_y = a.y.max(b.y).max(c.y);
+) -> [u8; 4] {
+    let [[x0, y0, _, o0], [x1, y1, _, o1], [x2, y2, _, o2]] = gather_x4(tris, screen);
+    let zero = i32x4::splat(0);
+    let any_out = o0 | o1 | o2;
+    let all_out = o0 & o1 & o2;
+    // Bounding box, in f32 (exact: coordinates of unclipped triangles are
+    // integers below 2^23 in magnitude; min/max are single instructions).
+    let (fx0, fx1, fx2) = (x0.round_float(), x1.round_float(), x2.round_float());
+    let (fy0, fy1, fy2) = (y0.round_float(), y1.round_float(), y2.round_float());
+    let min_x = fx0.fast_min(fx1).fast_min(fx2).fast_trunc_int();
+    let max_x = fx0.fast_max(fx1).fast_max(fx2).fast_trunc_int();
+    let min_y = fy0.fast_min(fy1).fast_min(fy2).fast_trunc_int();
+    let max_y = fy0.fast_max(fy1).fast_max(fy2).fast_trunc_int();
     // Pixel centres of the unclamped bounding box.
-    let cx0 = -((-min_x) >> SUBPIXEL_BITS);
-    let cx1 = max_x >> SUBPIXEL_BITS;
-    let cy0 = -((-min_y) >> SUBPIXEL_BITS);
-    let cy1 = max_y >> SUBPIXEL_BITS;
-    let nonempty = (cx0.max(0) <= cx1.min(last_x)) & (cy0.max(0) <= cy1.min(last_y));
-    // Screen y points down: a positive signed area is a triangle seen from
-    // behind.
-    let area = (i64::from(b.x) - i64::from(a.x)) * (i64::from(c.y) - i64::from(a.y))
-        - (i64::from(b.y) - i64::from(a.y)) * (i64::from(c.x) - i64::from(a.x));
-    let keep = nonempty & (area != 0) & !(cull & (area > 0));
-    let inside = (cx0 >= 0) & (cx1 <= last_x) & (cy0 >= 0) & (cy1 <= last_y);
+    let shift = SUBPIXEL_BITS as i32;
+    let cx0 = zero - ((zero - min_x) >> shift);
+    let cx1 = max_x >> shift;
+    let cy0 = zero - ((zero - min_y) >> shift);
+    let cy1 = max_y >> shift;
+    let (lx, ly) = (i32x4::splat(last_x), i32x4::splat(last_y));
+    // No centre in the box clamped to the image: max(c0, 0) > min(c1, last)
+    // on either axis.
+    let no_image = i32x4::splat(-i32::from(last_x < 0 || last_y < 0));
+    let empty = cx0.cmp_gt(cx1)
+        | cx0.cmp_gt(lx)
+        | cx1.cmp_lt(zero)
+        | cy0.cmp_gt(cy1)
+        | cy0.cmp_gt(ly)
+        | cy1.cmp_lt(zero)
+        | no_image;
+    let unclipped = any_out.cmp_eq(zero);
+    // Often (meshes finer than the pixels, in coherent triangle order)
+    // all four are skipped: no need for areas and classes.
+    let skipped = (unclipped & empty) | !all_out.cmp_eq(zero);
+    if skipped.move_mask() == 0b1111 {
+        return [CLASS_SKIP; 4];
+    }
+    let f = f64x4::from_i32x4;
+    let area = f(x1 - x0) * f(y2 - y0) - f(y1 - y0) * f(x2 - x0);
+    let area_zero = LANE_MASKS[area.cmp_eq(f64x4::splat(0.0)).move_mask() as usize & 15];
+    let back = LANE_MASKS[area.cmp_gt(f64x4::splat(0.0)).move_mask() as usize & 15];
+    let culled = if cull { back } else { zero };
+    let keep = unclipped & !(empty | area_zero | culled);
+    let clip = !unclipped & all_out.cmp_eq(zero);
+    let outside = cx0.cmp_lt(zero) | cx1.cmp_gt(lx) | cy0.cmp_lt(zero) | cy1.cmp_gt(ly);
     let (nx, ny) = (cx1 - cx0, cy1 - cy0);
     // With `keep`, nx and ny are >= 0; 1 + nx + ny is then the small class.
-    let small = inside & ((nx as u32) <= 1) & ((ny as u32) <= 1);
-    let class = if small {
-        (1 + nx + ny) as usize
-    } else {
-        CLASS_LARGE
+    let not_one = i32x4::splat(!1);
+    let small = !outside & (nx & not_one).cmp_eq(zero) & (ny & not_one).cmp_eq(zero);
+    let medium = !outside
+        & (nx & i32x4::splat(!(MEDIUM_COLUMNS as i32 - 1))).cmp_eq(zero)
+        & (ny & i32x4::splat(!(MEDIUM_ROWS as i32 - 1))).cmp_eq(zero);
+    let drawn = small.blend(
+        i32x4::splat(1) + nx + ny,
+        medium.blend(
+            i32x4::splat(i32::from(CLASS_MEDIUM)),
+            i32x4::splat(i32::from(CLASS_LARGE)),
+        ),
+    );
+    let class = keep.blend(drawn, clip & i32x4::splat(i32::from(CLASS_CLIP)));
+    let c = class.to_array();
+    [c[0] as u8, c[1] as u8, c[2] as u8, c[3] as u8]
+}
+
+/// Appends to `list` the indices of the entries of `classes` equal to
+/// `class` (`classes.len()` a multiple of 64), in increasing order.
+#[inline(never)]
+fn collect_class(classes: &[u8], class: u8, list: &mut Vec<u32>) {
+    use wide::u8x16;
+    list.clear();
+    let key = u8x16::splat(class);
+    let mask = |block: &[u8]| {
+        let mut bytes = [0u8; 16];
+        bytes.copy_from_slice(block);
+        u64::from(u8x16::from(bytes).cmp_eq(key).move_mask() as u16)
     };
-    if keep {
-        class
-    } else {
-        CLASS_SKIP
+    // Blocks of 64: fewer loop exits to mispredict than with 16.
+    for (chunk, block) in classes.chunks_exact(64).enumerate() {
+        let mut bits = mask(&block[..16])
+            | mask(&block[16..32]) << 16
+            | mask(&block[32..48]) << 32
+            | mask(&block[48..]) << 48;
+        let base = (chunk * 64) as u32;
+        while bits != 0 {
+            list.push(base + bits.trailing_zeros());
+            bits &= bits - 1;
+        }
     }
 }
 
@@ -839,10 +1090,15 @@ impl Rasterizer {
     pub fn render_into(&self, items: &[RenderItem], out: &mut RenderOutput) {
         out.reset(self.width, self.height);
         match &self.remap {
-            None => self.draw_items(items, &self.pinhole, out),
+            None => self.draw_items(items, &self.pinhole, &mut out.labels, &mut out.depth_m),
             Some(remap) => {
                 let mut buffer = RenderOutput::new(remap.pinhole.width, remap.pinhole.height);
-                self.draw_items(items, &remap.pinhole, &mut buffer);
+                self.draw_items(
+                    items,
+                    &remap.pinhole,
+                    &mut buffer.labels,
+                    &mut buffer.depth_m,
+                );
                 for ((&src, label), depth) in remap
                     .source
                     .iter()
@@ -860,26 +1116,63 @@ impl Rasterizer {
         }
     }
 
+    /// Renders `items` and returns only the label map (row-major, camera
+    /// size; [`RenderOutput::labels`] of [`Rasterizer::render`]). Faster
+    /// than a full render: the depth map is a reused per-thread buffer and
+    /// the label map is written only where something is drawn.
+    pub fn render_labels(&self, items: &[RenderItem]) -> Vec<u16> {
+        if self.remap.is_some() {
+            return self.render(items).labels;
+        }
+        let n = self.width as usize * self.height as usize;
+        // Zeroed allocation: untouched (background) pages are never written.
+        let mut labels = vec![0u16; n];
+        DEPTH.with(|depth| {
+            let mut fresh = Vec::new();
+            let mut guard = depth.try_borrow_mut();
+            let depth = match &mut guard {
+                Ok(depth) => &mut **depth,
+                Err(_) => &mut fresh,
+            };
+            depth.clear();
+            depth.resize(n, f32::INFINITY);
+            self.draw_items(items, &self.pinhole, &mut labels, depth);
+        });
+        labels
+    }
+
     /// Renders one frame per entry of `frames`, in parallel with rayon. The
     /// result does not depend on the number of threads.
     pub fn render_frames(&self, frames: &[Vec<RenderItem>]) -> Vec<RenderOutput> {
         frames.par_iter().map(|items| self.render(items)).collect()
     }
 
-    /// Draws all items into `out`, which has the size of `k`.
-    fn draw_items(&self, items: &[RenderItem], k: &Pinhole, out: &mut RenderOutput) {
+    /// Draws all items into `labels` and `depth_m`, row-major buffers of
+    /// the size of `k` (background-initialized by the caller).
+    fn draw_items(
+        &self,
+        items: &[RenderItem],
+        k: &Pinhole,
+        labels: &mut [u16],
+        depth_m: &mut [f32],
+    ) {
+        let mut target = Target {
+            width: k.width as usize,
+            height: k.height as usize,
+            labels,
+            depth_m,
+        };
         SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
-            Ok(mut scratch) => self.draw_items_with(items, k, out, &mut scratch),
-            Err(_) => self.draw_items_with(items, k, out, &mut Scratch::default()),
+            Ok(mut scratch) => self.draw_items_with(items, k, &mut target, &mut scratch),
+            Err(_) => self.draw_items_with(items, k, &mut target, &mut Scratch::default()),
         });
     }
 
     /// [`Rasterizer::draw_items`] with explicit scratch buffers.
     ///
-    /// Triangles are sorted into classes without data-dependent branches:
-    /// those whose bounding box lies inside the image and holds 1, 2 or 2x2
-    /// pixel centres are drawn by branch-free small-triangle code with 32-bit
-    /// edge functions; the others (and clipped ones) by
+    /// Triangles are classified four at a time ([`classify_x4`]) and drawn
+    /// per class: small ones with [`Target::draw_small_x4`], medium ones
+    /// with [`Target::draw_medium`], the others (and clipped ones) with
     /// [`Target::draw_triangle`]. The result is the same as drawing every
     /// triangle with [`Target::draw_triangle`], since both compute identical
     /// coverage and depth and the depth test does not depend on the order.
@@ -887,19 +1180,17 @@ impl Rasterizer {
         &self,
         items: &[RenderItem],
         k: &Pinhole,
-        out: &mut RenderOutput,
+        target: &mut Target,
         scratch: &mut Scratch,
     ) {
         let planes = Planes::new(k);
-        let mut target = Target {
-            width: k.width as usize,
-            height: k.height as usize,
-            labels: &mut out.labels,
-            depth_m: &mut out.depth_m,
-        };
         let last_x = k.width as i32 - 1;
         let last_y = k.height as i32 - 1;
-        let Scratch { screen, lists } = scratch;
+        let Scratch {
+            screen,
+            classes,
+            lists,
+        } = scratch;
         for item in items {
             if item.label == 0 {
                 continue;
@@ -915,33 +1206,41 @@ impl Rasterizer {
             // Back faces are hidden only when the camera is outside the
             // mesh, which holds when no vertex is behind the near plane.
             let cull = item.cull_back_faces && outcodes_any & 1 == 0;
-            let ntri = item.mesh.triangles.len();
-            for list in lists.iter_mut() {
-                if list.len() < ntri {
-                    list.resize(ntri, 0);
-                }
+            let triangles = &item.mesh.triangles[..];
+            classes.clear();
+            classes.resize(triangles.len().div_ceil(64) * 64, CLASS_SKIP);
+            for (tris, out) in triangles.chunks(4).zip(classes.chunks_exact_mut(4)) {
+                // Padding lanes: out-of-range indices, skipped.
+                let tri = |i: usize| tris.get(i).copied().unwrap_or([u32::MAX; 3]);
+                let tris = [tri(0), tri(1), tri(2), tri(3)];
+                let c = classify_x4(tris, screen, cull, last_x, last_y);
+                out.copy_from_slice(&c);
             }
-            let mut lens = [0usize; CLASSES];
-            for (t, tri) in item.mesh.triangles.iter().enumerate() {
-                let [i0, i1, i2] = tri.map(|i| i as usize);
+            for (class, list) in lists.iter_mut().enumerate().skip(1) {
+                if class == usize::from(CLASS_CLIP) && outcodes_any == 0 {
+                    // Every vertex inside every clip plane: nothing clipped.
+                    list.clear();
+                    continue;
+                }
+                collect_class(classes, class as u8, list);
+            }
+            let label = item.label;
+            let list = |class: u8| &lists[usize::from(class)][..];
+            target.draw_list::<1>(list(CLASS_ONE), triangles, screen, label);
+            target.draw_list::<2>(list(CLASS_TWO), triangles, screen, label);
+            target.draw_list::<4>(list(CLASS_QUAD), triangles, screen, label);
+            target.draw_list::<MEDIUM>(list(CLASS_MEDIUM), triangles, screen, label);
+            target.draw_list::<0>(list(CLASS_LARGE), triangles, screen, label);
+            for &t in list(CLASS_CLIP) {
+                let Some(&[i0, i1, i2]) = triangles.get(t as usize) else {
+                    continue;
+                };
+                let [i0, i1, i2] = [i0, i1, i2].map(|i| i as usize);
                 let (Some(a), Some(b), Some(c)) = (screen.get(i0), screen.get(i1), screen.get(i2))
                 else {
                     continue;
                 };
-                let any_out = a.outcode | b.outcode | c.outcode;
-                if any_out == 0 {
-                    let class = classify(a, b, c, cull, last_x, last_y);
-                    if let (Some(list), Some(len)) = (lists.get_mut(class), lens.get_mut(class)) {
-                        if let Some(slot) = list.get_mut(*len) {
-                            *slot = t as u32;
-                            *len += 1;
-                        }
-                    }
-                    continue;
-                }
-                if a.outcode & b.outcode & c.outcode != 0 {
-                    continue;
-                }
+                let any_out = a.outcode() | b.outcode() | c.outcode();
                 let vertices = &item.mesh.vertices;
                 let (Some(pa), Some(pb), Some(pc)) =
                     (vertices.get(i0), vertices.get(i1), vertices.get(i2))
@@ -958,16 +1257,10 @@ impl Rasterizer {
                 for j in 1..n - 1 {
                     target.draw_triangle(
                         [&p0, &project(k, &poly[j]), &project(k, &poly[j + 1])],
-                        item.label,
+                        label,
                     );
                 }
             }
-            let (triangles, label) = (&item.mesh.triangles[..], item.label);
-            let list = |class: usize| &lists[class][..lens[class]];
-            target.draw_list::<1>(list(CLASS_ONE), triangles, screen, label);
-            target.draw_list::<2>(list(CLASS_TWO), triangles, screen, label);
-            target.draw_list::<4>(list(CLASS_QUAD), triangles, screen, label);
-            target.draw_list::<0>(list(CLASS_LARGE), triangles, screen, label);
         }
     }
 
@@ -1028,10 +1321,10 @@ impl Rasterizer {
                 for j in 1..n - 1 {
                     let (p1, p2) = (project(k, &poly[j]), project(k, &poly[j + 1]));
                     if cull && any_out == 0 {
-                        let area = (i64::from(p1.x) - i64::from(p0.x))
-                            * (i64::from(p2.y) - i64::from(p0.y))
-                            - (i64::from(p1.y) - i64::from(p0.y))
-                                * (i64::from(p2.x) - i64::from(p0.x));
+                        let area = (i64::from(p1.x()) - i64::from(p0.x()))
+                            * (i64::from(p2.y()) - i64::from(p0.y()))
+                            - (i64::from(p1.y()) - i64::from(p0.y()))
+                                * (i64::from(p2.x()) - i64::from(p0.x()));
                         if area > 0 {
                             continue;
                         }
@@ -1060,6 +1353,7 @@ fn transform(r: &[[f32; 4]; 3], x: f32, y: f32, z: f32) -> [f32; 3] {
 /// results); position and 1/z of a vertex with a non-zero outcode are
 /// unspecified (never read), which lets rounding use a plain truncating
 /// conversion (exact here: guard-band coordinates are far below 2^31).
+#[inline(never)]
 fn transform_vertices(
     vertices: &[nalgebra::Point3<f32>],
     r: &[[f32; 4]; 3],
@@ -1067,10 +1361,9 @@ fn transform_vertices(
     planes: &Planes,
     screen: &mut Vec<ScreenVertex>,
 ) -> u8 {
-    use wide::{f32x4, CmpGe};
+    use wide::{f32x4, i32x4, CmpGe};
     const LANES: usize = 4;
     screen.clear();
-    screen.resize(vertices.len(), ScreenVertex::default());
     let m: [[f32x4; 4]; 3] = r.map(|row| row.map(f32x4::splat));
     let [near, left, right, top, bottom] = planes.planes.map(|p| p.map(f32x4::splat));
     let zero = f32x4::splat(0.0);
@@ -1078,52 +1371,57 @@ fn transform_vertices(
     let (fx, fy) = (f32x4::splat(k.fx), f32x4::splat(k.fy));
     let (cx, cy) = (f32x4::splat(k.cx), f32x4::splat(k.cy));
     let subpixel = f32x4::splat(SUBPIXEL);
-    let mut any = 0i32;
-    for (vs, out) in vertices.chunks(LANES).zip(screen.chunks_mut(LANES)) {
-        let mut x = [0.0f32; LANES];
-        let mut y = [0.0f32; LANES];
-        let mut z = [0.0f32; LANES];
-        for (i, v) in vs.iter().enumerate() {
-            x[i] = v.x;
-            y[i] = v.y;
-            z[i] = v.z;
-        }
-        let (x, y, z) = (f32x4::from(x), f32x4::from(y), f32x4::from(z));
+    // Four vertices: their screen vertices and outcode lanes.
+    let four = |vs: &[nalgebra::Point3<f32>; LANES]| {
+        let x = f32x4::from([vs[0].x, vs[1].x, vs[2].x, vs[3].x]);
+        let y = f32x4::from([vs[0].y, vs[1].y, vs[2].y, vs[3].y]);
+        let z = f32x4::from([vs[0].z, vs[1].z, vs[2].z, vs[3].z]);
         let p: [f32x4; 3] =
             std::array::from_fn(|i| m[i][0] * x + m[i][1] * y + m[i][2] * z + m[i][3]);
         let [px, py, pz] = p;
-        // Bit j of lane mask j: outside plane (d < 0 or NaN, i.e. !(d >= 0)).
-        let outside = [
+        // Outcode lanes: bit j set when outside plane j (d < 0 or NaN,
+        // i.e. !(d >= 0)).
+        let distances = [
             pz + near[3],
             left[0] * px + left[2] * pz,
             right[0] * px + right[2] * pz,
             top[1] * py + top[2] * pz,
             bottom[1] * py + bottom[2] * pz,
-        ]
-        .map(|d| !d.cmp_ge(zero).move_mask() & 0xF);
+        ];
+        let mut code = i32x4::splat(0);
+        for (plane, d) in distances.iter().enumerate() {
+            let outside = !bytemuck::cast::<_, i32x4>(d.cmp_ge(zero));
+            code |= outside & i32x4::splat(1 << plane);
+        }
         let inv_z = f32x4::splat(1.0) / pz;
-        let round = |v: f32x4| (v + half.copysign(v)).fast_trunc_int().to_array();
+        let round = |v: f32x4| (v + half.copysign(v)).fast_trunc_int();
         let sx = round((fx * px * inv_z + cx) * subpixel);
         let sy = round((fy * py * inv_z + cy) * subpixel);
-        let inv_z = inv_z.to_array();
-        for (i, o) in out.iter_mut().enumerate() {
-            let mut code = 0u8;
-            for (plane, mask) in outside.iter().enumerate() {
-                code |= (((mask >> i) & 1) as u8) << plane;
-            }
-            *o = ScreenVertex {
-                x: sx[i],
-                y: sy[i],
-                inv_z: inv_z[i],
-                outcode: code,
-            };
-        }
-        // Padding lanes of the last chunk are not part of the mesh.
-        let valid = (1i32 << vs.len()) - 1;
-        any |= outside.iter().enumerate().fold(0, |acc, (plane, mask)| {
-            acc | (i32::from(mask & valid != 0) << plane)
-        });
+        let lanes = i32x4::transpose([sx, sy, bytemuck::cast::<_, i32x4>(inv_z), code]);
+        (lanes.map(ScreenVertex), code)
+    };
+    let mut any = i32x4::splat(0);
+    let mut chunks = vertices.chunks_exact(LANES);
+    for vs in &mut chunks {
+        let Ok(vs) = <&[_; LANES]>::try_from(vs) else {
+            continue;
+        };
+        let (out, code) = four(vs);
+        screen.extend_from_slice(&out);
+        any |= code;
     }
+    let rest = chunks.remainder();
+    if !rest.is_empty() {
+        // Padding lanes (copies of a mesh vertex) change neither the
+        // outcodes' union nor the screen vertices kept.
+        let mut vs = [rest[0]; LANES];
+        vs[..rest.len()].copy_from_slice(rest);
+        let (out, code) = four(&vs);
+        screen.extend_from_slice(&out[..rest.len()]);
+        any |= code;
+    }
+    let any = any.to_array();
+    let any = any[0] | any[1] | any[2] | any[3];
     any as u8
 }
 
@@ -1133,12 +1431,12 @@ fn project(k: &Pinhole, p: &[f32; 3]) -> ScreenVertex {
     let inv_z = 1.0 / p[2];
     let u = k.fx * p[0] * inv_z + k.cx;
     let v = k.fy * p[1] * inv_z + k.cy;
-    ScreenVertex {
-        x: round_to_i32(u * SUBPIXEL),
-        y: round_to_i32(v * SUBPIXEL),
+    ScreenVertex::new(
+        round_to_i32(u * SUBPIXEL),
+        round_to_i32(v * SUBPIXEL),
         inv_z,
-        outcode: 0,
-    }
+        0,
+    )
 }
 
 /// Rounds half away from zero (saturating; NaN -> 0) without a libm call.
@@ -1200,6 +1498,92 @@ mod tests {
             vertices,
             triangles,
         }
+    }
+
+    /// Triangles of 0 to 7 pixels anywhere in (and around) a small image,
+    /// so that every class occurs, also touching the image borders and the
+    /// last pixels of the buffer: same output as the reference.
+    #[test]
+    fn size_classes_match_reference_at_borders() {
+        use crate::camera::Intrinsics;
+        let (w, h) = (37u32, 23u32);
+        let intrinsics = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 18.0,
+            cy: 11.0,
+            width: w,
+            height: h,
+            distortion: None,
+        };
+        let camera = Camera::look_at(
+            intrinsics,
+            nalgebra::Point3::new(0.0, 0.0, 0.0),
+            nalgebra::Point3::new(0.0, 0.0, 1.0),
+            nalgebra::Vector3::y(),
+        )
+        .expect("camera");
+        let rasterizer = Rasterizer::new(&camera);
+        let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+        let mut drawn = 0;
+        for case in 0..60 {
+            let mut vertices = Vec::new();
+            let mut triangles = Vec::new();
+            let max_size = [1.5, 3.0, 7.0][case % 3];
+            for t in 0..400u32 {
+                // Pixel-space centre, biased towards the bottom-right corner
+                // in a third of the cases; 1 px = 0.01 m at z = 1.
+                let corner = case % 3 == 1 && t % 2 == 0;
+                let (u, v) = if corner {
+                    (w as f32 - 4.0 * rng.next(), h as f32 - 4.0 * rng.next())
+                } else {
+                    (
+                        (w as f32 + 4.0) * rng.next() - 2.0,
+                        (h as f32 + 4.0) * rng.next() - 2.0,
+                    )
+                };
+                let z = 1.0 + rng.next();
+                for _ in 0..3 {
+                    let du = max_size * (rng.next() - 0.5);
+                    let dv = max_size * (rng.next() - 0.5);
+                    // Snap some vertices to pixel centres and edges.
+                    let snap = |p: f32| {
+                        if rng.0 % 4 == 0 {
+                            (p * 2.0).round() / 2.0
+                        } else {
+                            p
+                        }
+                    };
+                    let (pu, pv) = (snap(u + du), snap(v + dv));
+                    vertices.push(nalgebra::Point3::new(
+                        (pu - 18.0) * 0.01 * z,
+                        (pv - 11.0) * 0.01 * z,
+                        z,
+                    ));
+                }
+                triangles.push([3 * t, 3 * t + 1, 3 * t + 2]);
+            }
+            let mesh = TriMesh {
+                vertices,
+                triangles,
+            };
+            let items = [RenderItem {
+                mesh: &mesh,
+                world_from_mesh: Isometry3::identity(),
+                label: 1 + (case % 3) as u16,
+                cull_back_faces: case % 2 == 1,
+            }];
+            let fast = rasterizer.render(&items);
+            let mut reference = RenderOutput::new(w, h);
+            rasterizer.draw_items_reference(&items, &rasterizer.pinhole, &mut reference);
+            assert_eq!(fast.labels, reference.labels, "case {case}");
+            for (a, b) in fast.depth_m.iter().zip(&reference.depth_m) {
+                assert_eq!(a.to_bits(), b.to_bits(), "case {case}");
+            }
+            assert_eq!(rasterizer.render_labels(&items), reference.labels);
+            drawn += fast.coverage();
+        }
+        assert!(drawn > 5000, "{drawn}");
     }
 
     #[test]

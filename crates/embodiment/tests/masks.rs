@@ -176,3 +176,40 @@ fn back_face_culling_is_exact_for_closed_meshes() {
     }
     assert!(drawn > 10_000);
 }
+
+/// The labels-only render equals the labels of the full render, frame by
+/// frame (also after other frames reused its per-thread depth buffer), with
+/// and without lens distortion.
+#[test]
+fn labels_only_trajectory_matches_full_render() {
+    use bridgev2w_embodiment::camera::Distortion;
+    use bridgev2w_embodiment::kinematics::{random_q, SplitMix64};
+    use bridgev2w_embodiment::masks::render_trajectory_labels;
+    let e = Embodiment::builtin("franka").expect("franka");
+    let mut rng = SplitMix64::new(5);
+    let joints: Vec<Vec<f64>> = (0..6).map(|_| random_q(&e.robot, &mut rng)).collect();
+    let mut distorted = Intrinsics::centered(300.0, 320, 240);
+    distorted.distortion = Some(Distortion {
+        k1: -0.2,
+        k2: 0.05,
+        p1: 0.001,
+        p2: -0.001,
+        k3: 0.0,
+    });
+    for intr in [Intrinsics::centered(300.0, 320, 240), distorted] {
+        let cam = Camera::look_at(
+            intr,
+            Point3::new(1.6, 0.7, 1.0),
+            Point3::new(0.3, 0.0, 0.4),
+            Vector3::z(),
+        )
+        .expect("cam");
+        let full = render_trajectory(&e.robot, &cam, &joints, &|| {});
+        let labels = render_trajectory_labels(&e.robot, &cam, &joints, &|| {});
+        assert_eq!(full.len(), labels.len());
+        for (f, l) in full.iter().zip(&labels) {
+            assert!(f.coverage() > 500);
+            assert_eq!(&f.labels, l);
+        }
+    }
+}
