@@ -38,6 +38,7 @@ pub fn run(args: &RobotInfoArgs) -> Result<()> {
                 "label": l.mesh.as_ref().map(|_| label_of_link(i)),
                 "triangles": l.mesh.as_ref().map_or(0, |m| m.triangles.len()),
                 "closed": l.mesh_closed,
+                "closed_triangles": l.mesh_closed_triangles,
             })).collect::<Vec<_>>(),
             "end_effectors": e.end_effectors.iter().map(|ee| serde_json::json!({
                 "arm": ee.arm,

@@ -47,7 +47,7 @@ fn scene(meshes: &[TriMesh], t: f64) -> Vec<RenderItem<'_>> {
                     UnitQuaternion::from_euler_angles(0.4 * s + t, 0.2 * s, 0.0),
                 ),
                 label: i as u16 + 1,
-                cull_back_faces: false,
+                closed_triangles: 0,
             }
         })
         .collect()
@@ -205,7 +205,7 @@ fn bench_scene_file(c: &mut Criterion) {
             mesh,
             world_from_mesh: *pose,
             label: i as u16 + 1,
-            cull_back_faces: false,
+            closed_triangles: 0,
         })
         .collect();
     let mut out = RenderOutput::new(720, 480);

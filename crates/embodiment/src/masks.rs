@@ -46,7 +46,11 @@ pub fn render_items<'a>(
                 mesh: m,
                 world_from_mesh: *pose,
                 label: label_of_link(i),
-                cull_back_faces: cull_closed && l.mesh_closed,
+                closed_triangles: if cull_closed {
+                    l.mesh_closed_triangles
+                } else {
+                    0
+                },
             })
         })
         .collect()

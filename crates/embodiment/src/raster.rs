@@ -76,13 +76,15 @@ pub struct RenderItem<'a> {
     /// Label written to covered pixels; must be >= 1 (0 is background, items
     /// labelled 0 are not drawn).
     pub label: u16,
-    /// Skip triangles facing away from the camera. Only for closed meshes
-    /// with outward (counter-clockwise seen from outside) winding, see
-    /// [`TriMesh::is_closed`]; the result is then unchanged, since every
-    /// pixel a back face covers is covered by a nearer front face. Ignored
-    /// for a frame in which any vertex of the mesh is behind the near plane
-    /// (the camera could be inside it).
-    pub cull_back_faces: bool,
+    /// Number of leading triangles of `mesh` whose back faces (those facing
+    /// away from the camera) may be skipped: 0 for none, `usize::MAX` for
+    /// all. Only for triangles forming closed connected components with
+    /// outward (counter-clockwise seen from outside) winding, see
+    /// [`TriMesh::closed_components_first`]; the result is then unchanged,
+    /// since every pixel a back face covers is covered by a nearer front
+    /// face of the same component. Ignored for a frame in which any vertex of
+    /// the mesh is behind the near plane (the camera could be inside it).
+    pub closed_triangles: usize,
 }
 
 /// A rendered frame, row-major (`index = y * width + x`).
@@ -807,6 +809,9 @@ thread_local! {
 const INVALID_VERTEX: ScreenVertex = ScreenVertex(wide::i32x4::new([0, 0, 0, 0x1F]));
 
 /// Lane masks (-1 where set) of the 4-bit masks 0..16.
+/// Lane numbers 0..4.
+const LANE_INDEX: i32x4 = i32x4::new([0, 1, 2, 3]);
+
 const LANE_MASKS: [wide::i32x4; 16] = {
     let mut m = [wide::i32x4::new([0; 4]); 16];
     let mut bits = 0;
@@ -848,7 +853,8 @@ fn gather_x4(tris: [[u32; 3]; 4], screen: &[ScreenVertex]) -> [[i32x4; 4]; 3] {
 }
 
 /// Classes of four triangles (vertex indices `tris`, screen vertices
-/// `screen`), computed in SIMD lanes without branches. `cull`: skip back
+/// `screen`), computed in SIMD lanes without branches. `cull`: lanes whose
+/// back faces are skipped (all bits set) or kept (zero), back
 /// faces (positive signed area, screen y pointing down); `last_x`, `last_y`:
 /// largest pixel coordinates of the image. A triangle with an out-of-range
 /// index is skipped.
@@ -861,7 +867,7 @@ fn gather_x4(tris: [[u32; 3]; 4], screen: &[ScreenVertex]) -> [[i32x4; 4]; 3] {
 fn classify_x4(
     tris: [[u32; 3]; 4],
     screen: &[ScreenVertex],
-    cull: bool,
+    cull: i32x4,
     last_x: i32,
     last_y: i32,
 ) -> [u8; 4] {
@@ -905,7 +911,7 @@ fn classify_x4(
     let area = f(x1 - x0) * f(y2 - y0) - f(y1 - y0) * f(x2 - x0);
     let area_zero = LANE_MASKS[area.cmp_eq(f64x4::splat(0.0)).move_mask() as usize & 15];
     let back = LANE_MASKS[area.cmp_gt(f64x4::splat(0.0)).move_mask() as usize & 15];
-    let culled = if cull { back } else { zero };
+    let culled = cull & back;
     let keep = unclipped & !(empty | area_zero | culled);
     let clip = !unclipped & all_out.cmp_eq(zero);
     let outside = cx0.cmp_lt(zero) | cx1.cmp_gt(lx) | cy0.cmp_lt(zero) | cy1.cmp_gt(ly);
@@ -1205,14 +1211,26 @@ impl Rasterizer {
             let outcodes_any = transform_vertices(&item.mesh.vertices, &r, k, &planes, screen);
             // Back faces are hidden only when the camera is outside the
             // mesh, which holds when no vertex is behind the near plane.
-            let cull = item.cull_back_faces && outcodes_any & 1 == 0;
+            let n_cull = if outcodes_any & 1 == 0 {
+                item.closed_triangles
+            } else {
+                0
+            };
             let triangles = &item.mesh.triangles[..];
             classes.clear();
             classes.resize(triangles.len().div_ceil(64) * 64, CLASS_SKIP);
-            for (tris, out) in triangles.chunks(4).zip(classes.chunks_exact_mut(4)) {
+            for (chunk, (tris, out)) in triangles
+                .chunks(4)
+                .zip(classes.chunks_exact_mut(4))
+                .enumerate()
+            {
                 // Padding lanes: out-of-range indices, skipped.
                 let tri = |i: usize| tris.get(i).copied().unwrap_or([u32::MAX; 3]);
                 let tris = [tri(0), tri(1), tri(2), tri(3)];
+                // Lane i culls when triangle 4 * chunk + i < n_cull.
+                let first = i32::try_from(chunk * 4).unwrap_or(i32::MAX);
+                let n = i32::try_from(n_cull).unwrap_or(i32::MAX);
+                let cull = (i32x4::splat(first) + LANE_INDEX).cmp_lt(i32x4::splat(n));
                 let c = classify_x4(tris, screen, cull, last_x, last_y);
                 out.copy_from_slice(&c);
             }
@@ -1299,8 +1317,9 @@ impl Rasterizer {
                 })
                 .collect();
             let outcodes: Vec<u8> = cam.iter().map(|p| planes.outcode(p)).collect();
-            let cull = item.cull_back_faces && outcodes.iter().all(|o| o & 1 == 0);
-            for tri in &item.mesh.triangles {
+            let cull = outcodes.iter().all(|o| o & 1 == 0);
+            for (ti, tri) in item.mesh.triangles.iter().enumerate() {
+                let cull = cull && ti < item.closed_triangles;
                 let [i0, i1, i2] = tri.map(|i| i as usize);
                 let codes = [outcodes[i0], outcodes[i1], outcodes[i2]];
                 let any_out = codes[0] | codes[1] | codes[2];
@@ -1571,7 +1590,7 @@ mod tests {
                 mesh: &mesh,
                 world_from_mesh: Isometry3::identity(),
                 label: 1 + (case % 3) as u16,
-                cull_back_faces: case % 2 == 1,
+                closed_triangles: if case % 2 == 1 { usize::MAX } else { 0 },
             }];
             let fast = rasterizer.render(&items);
             let mut reference = RenderOutput::new(w, h);
@@ -1629,7 +1648,7 @@ mod tests {
                         UnitQuaternion::from_euler_angles(0.01 * case as f64, 0.0, 0.0),
                     ),
                     label: 1 + (i as u16 % 2),
-                    cull_back_faces: case % 2 == 1,
+                    closed_triangles: if case % 2 == 1 { usize::MAX } else { 0 },
                 })
                 .collect();
             let fast = rasterizer.render(&items);
@@ -1643,6 +1662,55 @@ mod tests {
             assert_eq!(fast.labels, reference.labels, "case {case}");
             for (a, b) in fast.depth_m.iter().zip(&reference.depth_m) {
                 assert_eq!(a.to_bits(), b.to_bits(), "case {case}");
+            }
+        }
+    }
+
+    #[test]
+    fn culling_closed_components_changes_nothing() {
+        use crate::camera::Intrinsics;
+        // An open box (one face missing: its inside shows), an inward-wound
+        // closed box and a sphere, as one mesh with closed components first.
+        let mut open = TriMesh::cuboid([0.3, 0.3, 0.3]);
+        open.triangles.truncate(open.triangles.len() - 2);
+        let inward = TriMesh::cuboid([0.2, 0.25, 0.15])
+            .transformed(&Isometry3::translation(0.4, 0.0, 0.0))
+            .flipped();
+        let sphere = TriMesh::sphere(0.15, 24).transformed(&Isometry3::translation(-0.4, 0.1, 0.0));
+        let mut mesh = TriMesh::default();
+        mesh.append(&open);
+        mesh.append(&inward);
+        mesh.append(&sphere);
+        let (mesh, n_closed) = mesh.closed_components_first();
+        assert_eq!(n_closed, inward.triangles.len() + sphere.triangles.len());
+        let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+        for case in 0..24 {
+            let angle = f64::from(rng.next()) * std::f64::consts::TAU;
+            let height = -0.8 + 1.6 * f64::from(rng.next());
+            let eye = nalgebra::Point3::new(1.6 * angle.cos(), 1.6 * angle.sin(), height);
+            let camera = Camera::look_at(
+                Intrinsics::centered(150.0, 160, 120),
+                eye,
+                nalgebra::Point3::origin(),
+                nalgebra::Vector3::z(),
+            )
+            .expect("camera");
+            let rasterizer = Rasterizer::new(&camera);
+            let item = |closed_triangles| RenderItem {
+                mesh: &mesh,
+                world_from_mesh: Isometry3::identity(),
+                label: 3,
+                closed_triangles,
+            };
+            let culled = rasterizer.render(&[item(n_closed)]);
+            let full = rasterizer.render(&[item(0)]);
+            assert!(full.coverage() > 1000, "case {case}: {}", full.coverage());
+            assert_eq!(culled.labels, full.labels, "case {case}");
+            for (a, b) in culled.depth_m.iter().zip(&full.depth_m) {
+                assert!(
+                    a == b || (a - b).abs() <= 1e-5 * b.abs(),
+                    "case {case}: {a} vs {b}"
+                );
             }
         }
     }

@@ -160,6 +160,11 @@ pub struct Link {
     /// Whether `mesh` is closed (every part bounds a volume) with outward
     /// winding, so back faces may be culled when rendering.
     pub mesh_closed: bool,
+    /// Number of leading triangles of `mesh` that belong to closed,
+    /// outward-wound connected components (all of them when `mesh_closed`):
+    /// the renderer may skip their back faces. Meshes are stored with such
+    /// components first ([`TriMesh::closed_components_first`]).
+    pub mesh_closed_triangles: usize,
 }
 
 /// Options for building a robot from URDF.
@@ -490,7 +495,10 @@ impl Builder<'_> {
                 name: l.name.clone(),
                 parent_joint,
                 parent,
-                mesh_closed: geometry.as_ref().is_some_and(|g| g.1),
+                mesh_closed: geometry
+                    .as_ref()
+                    .is_some_and(|g| g.1 == g.0.triangles.len()),
+                mesh_closed_triangles: geometry.as_ref().map_or(0, |g| g.1),
                 mesh: geometry.map(|g| g.0),
             });
         }
@@ -625,12 +633,17 @@ impl Builder<'_> {
         })
     }
 
-    fn link_mesh(&mut self, l: &urdf_rs::Link) -> Result<Option<(Arc<TriMesh>, bool)>, RobotError> {
+    fn link_mesh(
+        &mut self,
+        l: &urdf_rs::Link,
+    ) -> Result<Option<(Arc<TriMesh>, usize)>, RobotError> {
         if l.visual.is_empty() {
             return Ok(None);
         }
-        let mut merged = TriMesh::default();
-        let mut all_closed = true;
+        // Closed components of every visual first (outward-wound), then
+        // the open ones.
+        let mut closed = TriMesh::default();
+        let mut open = TriMesh::default();
         for (vi, v) in l.visual.iter().enumerate() {
             self.check_pose(&v.origin, &format!("link \"{}\" visual {vi}", l.name))?;
             let link_from_visual = pose_to_isometry(&v.origin);
@@ -705,17 +718,23 @@ impl Builder<'_> {
                     l.name
                 )));
             }
-            // Closed parts are made outward-facing so the renderer may skip
-            // their back faces (exact for closed surfaces).
-            let part_closed = placed.is_closed();
-            all_closed &= part_closed;
-            if part_closed && placed.signed_volume() < 0.0 {
-                merged.append(&placed.flipped());
-            } else {
-                merged.append(&placed);
-            }
+            // Closed components are made outward-facing so the renderer may
+            // skip their back faces (exact for closed surfaces).
+            let (sorted, n_closed) = placed.closed_components_first();
+            let (head, tail) = sorted.triangles.split_at(n_closed);
+            closed.append(&TriMesh {
+                vertices: sorted.vertices.clone(),
+                triangles: head.to_vec(),
+            });
+            open.append(&TriMesh {
+                vertices: sorted.vertices,
+                triangles: tail.to_vec(),
+            });
         }
-        Ok(Some((Arc::new(merged), all_closed)))
+        let n_closed = closed.triangles.len();
+        closed.append(&open);
+        // Each visual's vertices were appended twice: drop unused ones.
+        Ok(Some((Arc::new(closed.compacted()), n_closed)))
     }
 
     fn mesh_file(&mut self, link: &str, filename: &str) -> Result<Arc<TriMesh>, RobotError> {

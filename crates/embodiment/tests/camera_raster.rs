@@ -390,7 +390,7 @@ fn sphere_silhouette_matches_analytic() {
             mesh: &mesh,
             world_from_mesh: at(centre.x, centre.y, centre.z),
             label: 3,
-            cull_back_faces: false,
+            closed_triangles: 0,
         }]);
         let rendered: Vec<bool> = out.labels.iter().map(|&l| l == 3).collect();
         let mut analytic = Vec::new();
@@ -436,7 +436,7 @@ fn rotated_box_silhouette_and_depth_match_analytic() {
         mesh: &mesh,
         world_from_mesh: Isometry3::identity(),
         label: 1,
-        cull_back_faces: false,
+        closed_triangles: 0,
     }]);
     let eye = cam.world_from_camera.translation.vector;
     let lo = Vector3::new(-size[0] / 2.0, -size[1] / 2.0, -size[2] / 2.0) - eye;
@@ -476,13 +476,13 @@ fn plane_depth_and_occlusion() {
             mesh: &wall,
             world_from_mesh: at(0.0, 0.0, 2.1),
             label: 1,
-            cull_back_faces: false,
+            closed_triangles: 0,
         },
         RenderItem {
             mesh: &near_box,
             world_from_mesh: at(0.0, 0.0, 1.1),
             label: 2,
-            cull_back_faces: false,
+            closed_triangles: 0,
         },
     ];
     for order in [[0, 1], [1, 0]] {
@@ -534,7 +534,7 @@ fn tilted_plane_depth_is_perspective_correct() {
         mesh: &mesh,
         world_from_mesh: at(0.0, 0.0, 1.0),
         label: 1,
-        cull_back_faces: false,
+        closed_triangles: 0,
     }]);
     let k = cam.intrinsics;
     let mut worst = 0.0f64;
@@ -588,7 +588,7 @@ fn shared_edges_cover_each_pixel_exactly_once() {
             mesh,
             world_from_mesh: Isometry3::identity(),
             label: 1,
-            cull_back_faces: false,
+            closed_triangles: 0,
         }]);
         let mut per_pixel = vec![0u32; whole.labels.len()];
         let mut sum = 0;
@@ -601,7 +601,7 @@ fn shared_edges_cover_each_pixel_exactly_once() {
                 mesh: &single,
                 world_from_mesh: Isometry3::identity(),
                 label: 1,
-                cull_back_faces: false,
+                closed_triangles: 0,
             }]);
             sum += out.coverage();
             for (c, &l) in per_pixel.iter_mut().zip(&out.labels) {
@@ -622,7 +622,7 @@ fn shared_edges_cover_each_pixel_exactly_once() {
         mesh: &fan,
         world_from_mesh: Isometry3::identity(),
         label: 1,
-        cull_back_faces: false,
+        closed_triangles: 0,
     }]);
     for v in 25..46u32 {
         for u in 35..62u32 {
@@ -648,7 +648,7 @@ fn near_plane_clipping() {
         mesh: &mesh,
         world_from_mesh: Isometry3::identity(),
         label: 1,
-        cull_back_faces: false,
+        closed_triangles: 0,
     }]);
     // The plane y = 0.02 is seen below the horizon only: rows v > cy.
     assert!(out.coverage() > 500, "{}", out.coverage());
@@ -679,7 +679,7 @@ fn near_plane_clipping() {
         mesh: &behind,
         world_from_mesh: Isometry3::identity(),
         label: 1,
-        cull_back_faces: false,
+        closed_triangles: 0,
     }]);
     assert_eq!(out.coverage(), 0);
     // A camera inside a box sees the box all around: every pixel covered.
@@ -688,7 +688,7 @@ fn near_plane_clipping() {
         mesh: &room,
         world_from_mesh: Isometry3::identity(),
         label: 5,
-        cull_back_faces: false,
+        closed_triangles: 0,
     }]);
     assert_eq!(out.coverage(), 100 * 100);
     assert!(out.depth_m.iter().all(|&d| (d - 2.0).abs() < 1e-3));
@@ -716,7 +716,7 @@ fn distorted_render_matches_distorted_projection() {
             mesh: &mesh,
             world_from_mesh: at(centre.x, centre.y, centre.z),
             label: 7,
-            cull_back_faces: false,
+            closed_triangles: 0,
         }]);
         let (mut su, mut sv, mut n) = (0.0, 0.0, 0.0);
         for (i, &l) in out.labels.iter().enumerate() {
@@ -764,7 +764,7 @@ fn render_frames_is_deterministic_across_thread_counts() {
                     mesh: &sphere,
                     world_from_mesh: at(0.1 * t.cos(), 0.1 * t.sin(), 0.0),
                     label: 1,
-                    cull_back_faces: false,
+                    closed_triangles: 0,
                 },
                 RenderItem {
                     mesh: &capsule,
@@ -773,7 +773,7 @@ fn render_frames_is_deterministic_across_thread_counts() {
                         UnitQuaternion::from_euler_angles(t, 0.3, 0.0),
                     ),
                     label: 2,
-                    cull_back_faces: false,
+                    closed_triangles: 0,
                 },
             ]
         })
@@ -815,7 +815,7 @@ fn empty_scene_and_buffer_reuse() {
         mesh: &mesh,
         world_from_mesh: at(0.0, 0.0, 1.0),
         label: 4,
-        cull_back_faces: false,
+        closed_triangles: 0,
     };
     let mut reused = RenderOutput::new(3, 2);
     raster.render_into(&[item], &mut reused);
@@ -840,13 +840,13 @@ fn empty_scene_and_buffer_reuse() {
             mesh: &broken,
             world_from_mesh: at(0.0, 0.0, 1.0),
             label: 1,
-            cull_back_faces: false,
+            closed_triangles: 0,
         },
         RenderItem {
             mesh: &mesh,
             world_from_mesh: at(0.0, 0.0, 1.0),
             label: 0,
-            cull_back_faces: false,
+            closed_triangles: 0,
         },
     ]);
     assert_eq!(out.coverage(), 0);
@@ -871,7 +871,7 @@ fn top_left_rule_on_pixel_centres() {
             mesh,
             world_from_mesh: Isometry3::identity(),
             label: 1,
-            cull_back_faces: false,
+            closed_triangles: 0,
         }])
     };
     // An axis-aligned rectangle with corners on pixel centres, split along
@@ -948,7 +948,7 @@ proptest! {
         prop_assume!(side(2) * side(3) < 0.0);
         let mesh = |triangles: Vec<[u32; 3]>| TriMesh { vertices: v.clone(), triangles };
         let render = |m: &TriMesh| {
-            raster.render(&[RenderItem { mesh: m, world_from_mesh: Isometry3::identity(), label: 1 , cull_back_faces: false }])
+            raster.render(&[RenderItem { mesh: m, world_from_mesh: Isometry3::identity(), label: 1 , closed_triangles: 0 }])
         };
         let first = render(&mesh(vec![[0, 1, 2]]));
         let second = render(&mesh(vec![[1, 0, 3]]));

@@ -113,10 +113,85 @@ impl TriMesh {
             .all(|(&(a, b), &n)| n == 1 && edges.get(&(b, a)) == Some(&1))
     }
 
-    /// Signed volume (positive when triangles wind counter-clockwise seen
-    /// from outside, i.e. normals point out). Meaningful for closed meshes.
-    pub fn signed_volume(&self) -> f64 {
-        self.triangles
+    /// The same triangles reordered so that those of closed, consistently
+    /// oriented connected components (see [`TriMesh::is_closed`]) come
+    /// first, each such component wound outward (flipped when its signed
+    /// volume is negative), followed by the remaining (open) components in
+    /// their original order. Returns the mesh and the number of leading
+    /// triangles in closed components: the renderer may skip back faces of
+    /// exactly those. Components are connected through shared vertex
+    /// indices, so weld ([`TriMesh::welded`]) first.
+    pub fn closed_components_first(&self) -> (Self, usize) {
+        let n = self.vertices.len();
+        // Union-find over vertices; triangles with an out-of-range index form
+        // no component and count as open.
+        let mut parent: Vec<u32> = (0..n as u32).collect();
+        fn find(parent: &mut [u32], mut x: u32) -> u32 {
+            while parent[x as usize] != x {
+                let up = parent[parent[x as usize] as usize];
+                parent[x as usize] = up;
+                x = up;
+            }
+            x
+        }
+        let valid = |t: &[u32; 3]| t.iter().all(|&i| (i as usize) < n);
+        for t in self.triangles.iter().filter(|t| valid(t)) {
+            let a = find(&mut parent, t[0]);
+            for &v in &t[1..] {
+                let b = find(&mut parent, v);
+                parent[b as usize] = a;
+            }
+        }
+        // Triangles grouped by component root, in first-appearance order.
+        let mut groups: Vec<Vec<[u32; 3]>> = Vec::new();
+        let mut group_of: std::collections::HashMap<u32, usize> = std::collections::HashMap::new();
+        let mut invalid = Vec::new();
+        for t in &self.triangles {
+            if !valid(t) {
+                invalid.push(*t);
+                continue;
+            }
+            let root = find(&mut parent, t[0]);
+            let g = *group_of.entry(root).or_insert_with(|| {
+                groups.push(Vec::new());
+                groups.len() - 1
+            });
+            groups[g].push(*t);
+        }
+        let mut closed = Vec::with_capacity(self.triangles.len());
+        let mut open = Vec::new();
+        for triangles in groups {
+            let part = TriMesh {
+                vertices: Vec::new(),
+                triangles,
+            };
+            if part.is_closed() {
+                let outward = self.signed_volume_of(&part.triangles) >= 0.0;
+                closed.extend(part.triangles.iter().map(|t| {
+                    if outward {
+                        *t
+                    } else {
+                        [t[0], t[2], t[1]]
+                    }
+                }));
+            } else {
+                open.extend(part.triangles);
+            }
+        }
+        let n_closed = closed.len();
+        closed.extend(open);
+        closed.extend(invalid);
+        (
+            Self {
+                vertices: self.vertices.clone(),
+                triangles: closed,
+            },
+            n_closed,
+        )
+    }
+
+    fn signed_volume_of(&self, triangles: &[[u32; 3]]) -> f64 {
+        triangles
             .iter()
             .map(|t| {
                 let [a, b, c] = t.map(|i| {
@@ -127,6 +202,40 @@ impl TriMesh {
                 a.dot(&b.cross(&c)) / 6.0
             })
             .sum()
+    }
+
+    /// The same triangles (same order) with unreferenced vertices dropped
+    /// and the rest renumbered in order of first use.
+    pub fn compacted(&self) -> Self {
+        let mut remap = vec![u32::MAX; self.vertices.len()];
+        let mut vertices = Vec::new();
+        let triangles = self
+            .triangles
+            .iter()
+            .map(|t| {
+                t.map(|i| match remap.get_mut(i as usize) {
+                    Some(r) => {
+                        if *r == u32::MAX {
+                            *r = vertices.len() as u32;
+                            vertices.push(self.vertices[i as usize]);
+                        }
+                        *r
+                    }
+                    // Out of range stays out of range.
+                    None => u32::MAX,
+                })
+            })
+            .collect();
+        Self {
+            vertices,
+            triangles,
+        }
+    }
+
+    /// Signed volume (positive when triangles wind counter-clockwise seen
+    /// from outside, i.e. normals point out). Meaningful for closed meshes.
+    pub fn signed_volume(&self) -> f64 {
+        self.signed_volume_of(&self.triangles)
     }
 
     /// The mesh with every triangle's winding reversed.
@@ -394,6 +503,54 @@ mod tests {
         let mut inconsistent = cube;
         inconsistent.triangles[0].swap(1, 2);
         assert!(!inconsistent.is_closed());
+    }
+
+    #[test]
+    fn closed_components_come_first_and_outward() {
+        // An open cube (one triangle missing), an inward-wound closed cube
+        // and an outward closed sphere in one mesh.
+        let mut open = TriMesh::cuboid([1.0, 1.0, 1.0]);
+        open.triangles.pop();
+        let inward = TriMesh::cuboid([0.5, 0.5, 0.5])
+            .transformed(&nalgebra::Isometry3::translation(3.0, 0.0, 0.0))
+            .flipped();
+        let sphere =
+            TriMesh::sphere(0.3, 8).transformed(&nalgebra::Isometry3::translation(-3.0, 0.0, 0.0));
+        let mut m = TriMesh::default();
+        m.append(&open);
+        m.append(&inward);
+        m.append(&sphere);
+        let (sorted, n_closed) = m.closed_components_first();
+        assert_eq!(n_closed, inward.triangles.len() + sphere.triangles.len());
+        assert_eq!(sorted.triangles.len(), m.triangles.len());
+        assert_eq!(sorted.vertices, m.vertices);
+        let head = TriMesh {
+            vertices: sorted.vertices.clone(),
+            triangles: sorted.triangles[..n_closed].to_vec(),
+        };
+        assert!(head.is_closed());
+        let expected = 0.125 + sphere.signed_volume();
+        assert!(
+            (head.signed_volume() - expected).abs() < 1e-6,
+            "{}",
+            head.signed_volume()
+        );
+        // The open cube's triangles follow, unchanged and in order.
+        assert_eq!(
+            &sorted.triangles[n_closed..],
+            &m.triangles[..open.triangles.len()]
+        );
+        // Same set of triangles up to winding.
+        let key = |t: &[u32; 3]| {
+            let mut k = *t;
+            k.sort_unstable();
+            k
+        };
+        let mut a: Vec<_> = m.triangles.iter().map(key).collect();
+        let mut b: Vec<_> = sorted.triangles.iter().map(key).collect();
+        a.sort_unstable();
+        b.sort_unstable();
+        assert_eq!(a, b);
     }
 
     #[test]
