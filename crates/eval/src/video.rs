@@ -1,0 +1,429 @@
+//! Per-frame video metrics: PSNR, SSIM and Mask-IoU, averaged over frames and
+//! then over videos (each video weighs the same whatever its length).
+
+use crate::{MetricError, Result};
+use rayon::prelude::*;
+
+/// An RGB frame, row-major `[height, width, 3]`, values in `[0, 1]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// Interleaved RGB values, `(y * width + x) * 3 + channel`.
+    pub rgb: Vec<f32>,
+}
+
+impl Frame {
+    /// A frame from `[0, 1]` values; errors when the length is not
+    /// `width * height * 3` or a value is not finite.
+    pub fn new(width: usize, height: usize, rgb: Vec<f32>) -> Result<Self> {
+        if rgb.len() != width * height * 3 {
+            return Err(MetricError::Invalid(format!(
+                "frame of {width}x{height} needs {} RGB values, got {}",
+                width * height * 3,
+                rgb.len()
+            )));
+        }
+        if let Some(i) = rgb.iter().position(|v| !v.is_finite()) {
+            return Err(MetricError::Invalid(format!(
+                "frame value {i} is {}: expected a finite number in [0, 1]",
+                rgb[i]
+            )));
+        }
+        Ok(Self { width, height, rgb })
+    }
+
+    /// A frame from 8-bit RGB (`value / 255`).
+    pub fn from_rgb8(width: usize, height: usize, rgb: &[u8]) -> Result<Self> {
+        Self::new(
+            width,
+            height,
+            rgb.iter().map(|&v| f32::from(v) / 255.0).collect(),
+        )
+    }
+
+    fn check_same(&self, other: &Frame, what: &str) -> Result<()> {
+        if (self.width, self.height) != (other.width, other.height) {
+            return Err(MetricError::ShapeMismatch {
+                what: what.to_string(),
+                left: format!("{}x{}", self.width, self.height),
+                right: format!("{}x{}", other.width, other.height),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// PSNR value reported for (near-)identical frames, whose MSE is below
+/// [`PSNR_MSE_FLOOR`].
+pub const PSNR_IDENTICAL: f64 = 100.0;
+/// MSE below which two frames count as identical for PSNR.
+pub const PSNR_MSE_FLOOR: f64 = 1e-10;
+
+/// PSNR of one frame pair on `[0, 1]` data: `20 log10(1 / sqrt(mse))`, or
+/// [`PSNR_IDENTICAL`] when `mse < 1e-10`.
+pub fn psnr(pred: &Frame, gt: &Frame) -> Result<f64> {
+    pred.check_same(gt, "PSNR frames")?;
+    let sum: f64 = pred
+        .rgb
+        .chunks(4096)
+        .zip(gt.rgb.chunks(4096))
+        .map(|(a, b)| {
+            a.iter()
+                .zip(b)
+                .map(|(&x, &y)| {
+                    let d = f64::from(x) - f64::from(y);
+                    d * d
+                })
+                .sum::<f64>()
+        })
+        .sum();
+    let mse = sum / pred.rgb.len().max(1) as f64;
+    Ok(if mse < PSNR_MSE_FLOOR {
+        PSNR_IDENTICAL
+    } else {
+        20.0 * (1.0 / mse.sqrt()).log10()
+    })
+}
+
+/// Side of the SSIM window, pixels.
+pub const SSIM_WINDOW: usize = 11;
+/// Standard deviation of the SSIM window's Gaussian, pixels.
+pub const SSIM_SIGMA: f64 = 1.5;
+const SSIM_K1: f64 = 0.01;
+const SSIM_K2: f64 = 0.03;
+
+/// The normalised 1-D Gaussian of the SSIM window (11 taps, sigma 1.5).
+pub fn ssim_window() -> [f64; SSIM_WINDOW] {
+    let r = (SSIM_WINDOW / 2) as f64;
+    let mut w = [0.0; SSIM_WINDOW];
+    for (i, v) in w.iter_mut().enumerate() {
+        let x = i as f64 - r;
+        *v = (-x * x / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp();
+    }
+    let s: f64 = w.iter().sum();
+    w.map(|v| v / s)
+}
+
+/// SSIM of one frame pair (Wang et al. 2004): 11x11 Gaussian window with
+/// sigma 1.5, K1 = 0.01, K2 = 0.03, data range 1, population (co)variances,
+/// averaged over the valid region only (windows entirely inside the frame,
+/// no padding), per RGB channel and then over the channels. This is
+/// scikit-image's `structural_similarity(..., gaussian_weights=True,
+/// sigma=1.5, use_sample_covariance=False, data_range=1, channel_axis=-1)`.
+pub fn ssim(pred: &Frame, gt: &Frame) -> Result<f64> {
+    pred.check_same(gt, "SSIM frames")?;
+    let (w, h) = (pred.width, pred.height);
+    if w < SSIM_WINDOW || h < SSIM_WINDOW {
+        return Err(MetricError::Invalid(format!(
+            "SSIM needs frames of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {w}x{h}"
+        )));
+    }
+    let window = ssim_window();
+    let mut total = 0.0;
+    for c in 0..3 {
+        let x: Vec<f64> = pred
+            .rgb
+            .iter()
+            .skip(c)
+            .step_by(3)
+            .map(|&v| f64::from(v))
+            .collect();
+        let y: Vec<f64> = gt
+            .rgb
+            .iter()
+            .skip(c)
+            .step_by(3)
+            .map(|&v| f64::from(v))
+            .collect();
+        total += ssim_plane(&x, &y, w, h, &window);
+    }
+    Ok(total / 3.0)
+}
+
+/// Mean SSIM over the valid region of one channel.
+fn ssim_plane(x: &[f64], y: &[f64], w: usize, h: usize, window: &[f64; SSIM_WINDOW]) -> f64 {
+    let (vw, vh) = (w - SSIM_WINDOW + 1, h - SSIM_WINDOW + 1);
+    // Horizontal pass over every row for the five moments, valid columns
+    // only: [5][h * vw].
+    let mut horizontal = vec![vec![0.0f64; h * vw]; 5];
+    let mut products = vec![vec![0.0f64; w]; 5];
+    for row in 0..h {
+        let (xr, yr) = (&x[row * w..(row + 1) * w], &y[row * w..(row + 1) * w]);
+        for i in 0..w {
+            let (a, b) = (xr[i], yr[i]);
+            products[0][i] = a;
+            products[1][i] = b;
+            products[2][i] = a * a;
+            products[3][i] = b * b;
+            products[4][i] = a * b;
+        }
+        for (out, p) in horizontal.iter_mut().zip(&products) {
+            let out = &mut out[row * vw..(row + 1) * vw];
+            for (k, &wk) in window.iter().enumerate() {
+                for (o, &v) in out.iter_mut().zip(&p[k..k + vw]) {
+                    *o += wk * v;
+                }
+            }
+        }
+    }
+    let c1 = SSIM_K1 * SSIM_K1;
+    let c2 = SSIM_K2 * SSIM_K2;
+    let mut sum = 0.0f64;
+    let mut m: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0; vw]);
+    for row in 0..vh {
+        for (out, hz) in m.iter_mut().zip(&horizontal) {
+            out.iter_mut().for_each(|v| *v = 0.0);
+            for (k, &wk) in window.iter().enumerate() {
+                let src = &hz[(row + k) * vw..(row + k + 1) * vw];
+                for (o, &v) in out.iter_mut().zip(src) {
+                    *o += wk * v;
+                }
+            }
+        }
+        let mut row_sum = 0.0f64;
+        let [mx, my, mxx, myy, mxy] = &m;
+        for ((((&ux, &uy), &xx), &yy), &xy) in mx.iter().zip(my).zip(mxx).zip(myy).zip(mxy) {
+            let vx = xx - ux * ux;
+            let vy = yy - uy * uy;
+            let vxy = xy - ux * uy;
+            let num = (2.0 * ux * uy + c1) * (2.0 * vxy + c2);
+            let den = (ux * ux + uy * uy + c1) * (vx + vy + c2);
+            row_sum += num / den;
+        }
+        sum += row_sum;
+    }
+    sum / (vw * vh) as f64
+}
+
+/// Intersection over union of two binary masks (non-zero = robot). Two
+/// empty masks agree perfectly: 1.
+pub fn mask_iou(pred: &[u8], gt: &[u8]) -> Result<f64> {
+    if pred.len() != gt.len() {
+        return Err(MetricError::ShapeMismatch {
+            what: "Mask-IoU masks".into(),
+            left: format!("{} pixels", pred.len()),
+            right: format!("{} pixels", gt.len()),
+        });
+    }
+    let (mut inter, mut union) = (0usize, 0usize);
+    for (&a, &b) in pred.iter().zip(gt) {
+        let (a, b) = (a != 0, b != 0);
+        inter += usize::from(a && b);
+        union += usize::from(a || b);
+    }
+    Ok(if union == 0 {
+        1.0
+    } else {
+        inter as f64 / union as f64
+    })
+}
+
+/// A per-frame metric averaged over the frames of one video pair.
+pub fn video_mean<T>(
+    pred: &[T],
+    gt: &[T],
+    what: &str,
+    metric: impl Fn(&T, &T) -> Result<f64> + Sync,
+) -> Result<f64>
+where
+    T: Sync,
+{
+    if pred.len() != gt.len() {
+        return Err(MetricError::ShapeMismatch {
+            what: format!("{what}: frame counts"),
+            left: pred.len().to_string(),
+            right: gt.len().to_string(),
+        });
+    }
+    if pred.is_empty() {
+        return Err(MetricError::Invalid(format!(
+            "{what}: a video has no frames"
+        )));
+    }
+    let values = pred
+        .par_iter()
+        .zip(gt)
+        .enumerate()
+        .map(|(i, (a, b))| {
+            metric(a, b).map_err(|e| MetricError::Invalid(format!("{what}, frame {i}: {e}")))
+        })
+        .collect::<Result<Vec<f64>>>()?;
+    Ok(values.iter().sum::<f64>() / values.len() as f64)
+}
+
+/// Mean PSNR over the frames of one video pair.
+pub fn video_psnr(pred: &[Frame], gt: &[Frame]) -> Result<f64> {
+    video_mean(pred, gt, "PSNR", psnr)
+}
+
+/// Mean SSIM over the frames of one video pair.
+pub fn video_ssim(pred: &[Frame], gt: &[Frame]) -> Result<f64> {
+    video_mean(pred, gt, "SSIM", ssim)
+}
+
+/// Mean Mask-IoU over the frames (one mask per frame) of one video pair.
+pub fn video_mask_iou(pred: &[Vec<u8>], gt: &[Vec<u8>]) -> Result<f64> {
+    video_mean(pred, gt, "Mask-IoU", |a, b| mask_iou(a, b))
+}
+
+/// Mean of per-video values (each video weighs the same).
+pub fn mean_over_videos(values: &[f64]) -> Result<f64> {
+    if values.is_empty() {
+        return Err(MetricError::Invalid("no videos to average".into()));
+    }
+    Ok(values.iter().sum::<f64>() / values.len() as f64)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> f32 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    fn random_frame(rng: &mut Rng, w: usize, h: usize) -> Frame {
+        Frame::new(w, h, (0..w * h * 3).map(|_| rng.next()).collect()).unwrap()
+    }
+
+    /// Straightforward SSIM in f64: a full 2-D window at every valid
+    /// position (a second implementation).
+    fn ssim_reference(a: &Frame, b: &Frame) -> f64 {
+        let g = ssim_window();
+        let (w, h) = (a.width, a.height);
+        let (c1, c2) = (1e-4, 9e-4);
+        let mut total = 0.0;
+        for c in 0..3 {
+            let px = |f: &Frame, x: usize, y: usize| f64::from(f.rgb[(y * w + x) * 3 + c]);
+            let mut sum = 0.0;
+            let mut n = 0;
+            for y0 in 0..=h - SSIM_WINDOW {
+                for x0 in 0..=w - SSIM_WINDOW {
+                    let (mut ux, mut uy, mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                    for j in 0..SSIM_WINDOW {
+                        for i in 0..SSIM_WINDOW {
+                            let wt = g[i] * g[j];
+                            let (p, q) = (px(a, x0 + i, y0 + j), px(b, x0 + i, y0 + j));
+                            ux += wt * p;
+                            uy += wt * q;
+                            xx += wt * p * p;
+                            yy += wt * q * q;
+                            xy += wt * p * q;
+                        }
+                    }
+                    let (vx, vy, vxy) = (xx - ux * ux, yy - uy * uy, xy - ux * uy);
+                    sum += ((2.0 * ux * uy + c1) * (2.0 * vxy + c2))
+                        / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+                    n += 1;
+                }
+            }
+            total += sum / n as f64;
+        }
+        total / 3.0
+    }
+
+    #[test]
+    fn psnr_closed_form() {
+        let a = Frame::new(4, 3, vec![0.5; 36]).unwrap();
+        let b = Frame::new(4, 3, vec![0.6; 36]).unwrap();
+        // mse = 0.01 -> 20 log10(1 / 0.1) = 20 dB.
+        assert!((psnr(&a, &b).unwrap() - 20.0).abs() < 1e-5);
+        assert_eq!(psnr(&a, &a).unwrap(), PSNR_IDENTICAL);
+        let c = Frame::new(4, 3, vec![0.0; 36]).unwrap();
+        let d = Frame::new(4, 3, vec![1.0; 36]).unwrap();
+        assert!(psnr(&c, &d).unwrap().abs() < 1e-12);
+    }
+
+    #[test]
+    fn ssim_matches_direct_window_sums() {
+        let mut rng = Rng(7);
+        for (w, h) in [(11, 11), (23, 17), (40, 31)] {
+            let a = random_frame(&mut rng, w, h);
+            // A correlated second frame: a blend with noise.
+            let noise = random_frame(&mut rng, w, h);
+            let b = Frame::new(
+                w,
+                h,
+                a.rgb
+                    .iter()
+                    .zip(&noise.rgb)
+                    .map(|(x, n)| 0.7 * x + 0.3 * n)
+                    .collect(),
+            )
+            .unwrap();
+            let fast = ssim(&a, &b).unwrap();
+            let reference = ssim_reference(&a, &b);
+            assert!(
+                (fast - reference).abs() < 2e-5,
+                "{w}x{h}: {fast} vs {reference}"
+            );
+            assert!(fast > 0.3 && fast < 0.99, "{fast}");
+        }
+    }
+
+    #[test]
+    fn ssim_of_identical_frames_is_one_and_symmetric() {
+        let mut rng = Rng(11);
+        let a = random_frame(&mut rng, 32, 20);
+        let b = random_frame(&mut rng, 32, 20);
+        assert!((ssim(&a, &a).unwrap() - 1.0).abs() < 1e-5);
+        let (ab, ba) = (ssim(&a, &b).unwrap(), ssim(&b, &a).unwrap());
+        assert!((ab - ba).abs() < 1e-6);
+        // Independent noise: close to zero structure.
+        assert!(ab.abs() < 0.1, "{ab}");
+    }
+
+    #[test]
+    fn ssim_of_constant_frames_closed_form() {
+        // Constant frames: variances vanish, SSIM = (2 a b + C1) / (a^2 + b^2 + C1).
+        let (p, q) = (0.2f32, 0.7f32);
+        let a = Frame::new(12, 12, vec![p; 12 * 12 * 3]).unwrap();
+        let b = Frame::new(12, 12, vec![q; 12 * 12 * 3]).unwrap();
+        let (p, q) = (f64::from(p), f64::from(q));
+        let expected = (2.0 * p * q + 1e-4) / (p * p + q * q + 1e-4);
+        assert!((ssim(&a, &b).unwrap() - expected).abs() < 1e-9);
+    }
+
+    #[test]
+    fn errors_name_the_problem() {
+        let a = Frame::new(12, 12, vec![0.0; 432]).unwrap();
+        let small = Frame::new(10, 12, vec![0.0; 360]).unwrap();
+        assert!(matches!(
+            psnr(&a, &small),
+            Err(MetricError::ShapeMismatch { .. })
+        ));
+        let e = ssim(&small, &small).unwrap_err().to_string();
+        assert!(e.contains("11x11") && e.contains("10x12"), "{e}");
+        assert!(Frame::new(2, 2, vec![0.0; 11]).is_err());
+        let e = Frame::new(1, 1, vec![0.0, f32::NAN, 0.0])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("NaN"), "{e}");
+        let e = video_psnr(std::slice::from_ref(&a), &[a.clone(), a.clone()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("frame counts"), "{e}");
+    }
+
+    #[test]
+    fn mask_iou_counts() {
+        let a = [1u8, 1, 0, 0, 1];
+        let b = [1u8, 0, 0, 1, 1];
+        assert!((mask_iou(&a, &b).unwrap() - 0.5).abs() < 1e-12);
+        assert_eq!(mask_iou(&[0, 0], &[0, 0]).unwrap(), 1.0);
+        assert_eq!(mask_iou(&[255, 0], &[0, 7]).unwrap(), 0.0);
+        assert!(mask_iou(&[0], &[0, 0]).is_err());
+        let v = video_mask_iou(&[a.to_vec(), a.to_vec()], &[b.to_vec(), a.to_vec()]).unwrap();
+        assert!((v - 0.75).abs() < 1e-12);
+    }
+}
