@@ -2,6 +2,7 @@
 
 mod bench;
 mod demo;
+mod eval_cmd;
 mod masks_cmd;
 mod overlay;
 mod parity_cmd;
@@ -31,6 +32,10 @@ enum Command {
     Bench(bench::BenchCommand),
     /// Check the world model against diffusers on parity fixtures (scripts/parity/).
     Parity(parity_cmd::ParityArgs),
+    /// Video metrics (PSNR, SSIM, Mask-IoU, ...) between predicted and ground-truth videos.
+    Eval(eval_cmd::EvalArgs),
+    /// Policy-evaluation metrics (MMRV, Pearson r) between real and world-model success rates.
+    EvalPolicy(eval_cmd::EvalPolicyArgs),
 }
 
 fn main() -> Result<()> {
@@ -41,6 +46,8 @@ fn main() -> Result<()> {
         Command::Demo(a) => demo::run(&a),
         Command::Bench(b) => bench::run(&b),
         Command::Parity(a) => parity_cmd::run(&a),
+        Command::Eval(a) => eval_cmd::run_eval(&a),
+        Command::EvalPolicy(a) => eval_cmd::run_eval_policy(&a),
     }
 }
 

@@ -1,0 +1,417 @@
+//! `bridgev2w eval` (video metrics between predicted and ground-truth videos)
+//! and `bridgev2w eval-policy` (MMRV and Pearson r between real and
+//! world-model success rates).
+
+use anyhow::{bail, Context, Result};
+use bridgev2w_eval::ranking::{mmrv, pearson};
+use bridgev2w_eval::video::{mask_iou, psnr, ssim, Frame};
+use clap::Args;
+use rayon::prelude::*;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// The metrics, in the paper's column order.
+const METRICS: [&str; 5] = ["psnr", "ssim", "lpips", "fvd", "mask_iou"];
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Predicted videos: one folder of PNG frames (000000.png, ...) per video.
+    #[arg(long)]
+    pub pred: PathBuf,
+    /// Ground-truth videos, matched to --pred by name.
+    #[arg(long)]
+    pub gt: PathBuf,
+    /// Robot masks of the predicted videos (one folder of PNG masks per video, non-zero = robot).
+    #[arg(long, requires = "masks_gt")]
+    pub masks_pred: Option<PathBuf>,
+    /// Robot masks of the ground-truth videos (e.g. from the dataset or `bridgev2w masks`).
+    #[arg(long, requires = "masks_pred")]
+    pub masks_gt: Option<PathBuf>,
+    /// Comma-separated metrics: psnr, ssim, lpips, fvd, mask_iou.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "psnr,ssim,lpips,fvd,mask_iou"
+    )]
+    pub metrics: Vec<String>,
+    /// Also write the results as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+pub struct EvalPolicyArgs {
+    /// Real-robot success rates: JSON {"task": {"policy": rate}} or CSV task,policy,success_rate.
+    #[arg(long)]
+    pub real: PathBuf,
+    /// World-model success rates for the same tasks and policies, same formats.
+    #[arg(long)]
+    pub sim: PathBuf,
+    /// Also write the results as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// The video names (sub-folders) of a directory, sorted.
+fn video_names(dir: &Path, what: &str) -> Result<Vec<String>> {
+    let entries =
+        std::fs::read_dir(dir).with_context(|| format!("{what} directory {}", dir.display()))?;
+    let mut names = Vec::new();
+    for e in entries {
+        let e = e.with_context(|| format!("reading {what} directory {}", dir.display()))?;
+        let path = e.path();
+        let name = e.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') {
+            continue;
+        }
+        if path.is_dir() {
+            names.push(name);
+        } else if path
+            .extension()
+            .is_some_and(|x| x.eq_ignore_ascii_case("mp4"))
+        {
+            bail!(
+                "{}: MP4 videos are not read by `bridgev2w eval` yet; extract the frames into a folder of PNGs (000000.png, ...)",
+                path.display()
+            );
+        }
+    }
+    if names.is_empty() {
+        bail!(
+            "{what} directory {} holds no videos (expected one folder of PNG frames per video)",
+            dir.display()
+        );
+    }
+    names.sort();
+    Ok(names)
+}
+
+/// The PNG files of one video folder, sorted by name.
+fn frame_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("video folder {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x.eq_ignore_ascii_case("png")))
+        .collect();
+    if files.is_empty() {
+        bail!("video folder {} has no PNG frames", dir.display());
+    }
+    files.sort();
+    Ok(files)
+}
+
+fn read_frame(path: &Path) -> Result<Frame> {
+    let img = image::open(path)
+        .with_context(|| format!("frame {}: not a readable image", path.display()))?
+        .to_rgb8();
+    let (w, h) = img.dimensions();
+    Ok(Frame::from_rgb8(w as usize, h as usize, img.as_raw())?)
+}
+
+fn read_mask(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
+    let img = image::open(path)
+        .with_context(|| format!("mask {}: not a readable image", path.display()))?
+        .to_luma8();
+    let (w, h) = img.dimensions();
+    Ok((w, h, img.into_raw()))
+}
+
+/// Per-video values of the frame metrics.
+#[derive(Debug, Default, Clone)]
+struct VideoScores {
+    psnr: Option<f64>,
+    ssim: Option<f64>,
+    mask_iou: Option<f64>,
+}
+
+fn check_frames(name: &str, what: &str, pred: &[PathBuf], gt: &[PathBuf]) -> Result<()> {
+    if pred.len() != gt.len() {
+        bail!(
+            "video \"{name}\": {} predicted {what} vs {} ground-truth {what}: frame counts must match",
+            pred.len(),
+            gt.len()
+        );
+    }
+    Ok(())
+}
+
+fn score_video(a: &EvalArgs, name: &str, want: &BTreeMap<&str, bool>) -> Result<VideoScores> {
+    let mut s = VideoScores::default();
+    if want["psnr"] || want["ssim"] {
+        let pred = frame_files(&a.pred.join(name))?;
+        let gt = frame_files(&a.gt.join(name))?;
+        check_frames(name, "frames", &pred, &gt)?;
+        let (mut sum_psnr, mut sum_ssim) = (0.0, 0.0);
+        for (i, (p, g)) in pred.iter().zip(&gt).enumerate() {
+            let (fp, fg) = (read_frame(p)?, read_frame(g)?);
+            if (fp.width, fp.height) != (fg.width, fg.height) {
+                bail!(
+                    "video \"{name}\", frame {i}: predicted {}x{} ({}) vs ground truth {}x{} ({}): resolutions must match",
+                    fp.width, fp.height, p.display(), fg.width, fg.height, g.display()
+                );
+            }
+            if want["psnr"] {
+                sum_psnr += psnr(&fp, &fg)?;
+            }
+            if want["ssim"] {
+                sum_ssim +=
+                    ssim(&fp, &fg).with_context(|| format!("video \"{name}\", frame {i}"))?;
+            }
+        }
+        let n = pred.len() as f64;
+        s.psnr = want["psnr"].then_some(sum_psnr / n);
+        s.ssim = want["ssim"].then_some(sum_ssim / n);
+    }
+    if want["mask_iou"] {
+        if let (Some(mp), Some(mg)) = (&a.masks_pred, &a.masks_gt) {
+            let pred = frame_files(&mp.join(name))?;
+            let gt = frame_files(&mg.join(name))?;
+            check_frames(name, "masks", &pred, &gt)?;
+            let mut sum = 0.0;
+            for (i, (p, g)) in pred.iter().zip(&gt).enumerate() {
+                let ((wp, hp, vp), (wg, hg, vg)) = (read_mask(p)?, read_mask(g)?);
+                if (wp, hp) != (wg, hg) {
+                    bail!("video \"{name}\", mask {i}: predicted {wp}x{hp} vs ground truth {wg}x{hg}: resolutions must match");
+                }
+                sum += mask_iou(&vp, &vg)?;
+            }
+            s.mask_iou = Some(sum / pred.len() as f64);
+        }
+    }
+    Ok(s)
+}
+
+pub fn run_eval(a: &EvalArgs) -> Result<()> {
+    let mut want: BTreeMap<&str, bool> = METRICS.iter().map(|&m| (m, false)).collect();
+    for m in &a.metrics {
+        let m = m.trim().to_ascii_lowercase();
+        match want.get_mut(m.as_str()) {
+            Some(w) => *w = true,
+            None => bail!(
+                "--metrics: unknown metric \"{m}\" (expected some of {})",
+                METRICS.join(", ")
+            ),
+        }
+    }
+    let names = video_names(&a.pred, "--pred")?;
+    let gt_names = video_names(&a.gt, "--gt")?;
+    let missing: Vec<&String> = names.iter().filter(|n| !gt_names.contains(n)).collect();
+    let extra: Vec<&String> = gt_names.iter().filter(|n| !names.contains(n)).collect();
+    if !missing.is_empty() || !extra.is_empty() {
+        bail!(
+            "--pred and --gt videos must match by name: missing in --gt: {missing:?}; missing in --pred: {extra:?}"
+        );
+    }
+    let mut unavailable: BTreeMap<&str, String> = BTreeMap::new();
+    if want["mask_iou"] && a.masks_pred.is_none() {
+        unavailable.insert(
+            "mask_iou",
+            "needs robot masks of both videos: --masks-pred DIR --masks-gt DIR".into(),
+        );
+    }
+    for m in ["lpips", "fvd"] {
+        if want[m] {
+            unavailable.insert(
+                m,
+                format!(
+                    "the {} network is not part of this build yet",
+                    m.to_uppercase()
+                ),
+            );
+        }
+    }
+    let pb = indicatif::ProgressBar::new(names.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{msg} {bar:40} {pos}/{len} videos [{elapsed}<{eta}]",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    pb.set_message("evaluating");
+    let scores = names
+        .par_iter()
+        .map(|n| {
+            let r = score_video(a, n, &want);
+            pb.inc(1);
+            r
+        })
+        .collect::<Result<Vec<_>>>()?;
+    pb.finish_and_clear();
+    let mean = |f: fn(&VideoScores) -> Option<f64>| -> Option<f64> {
+        let v: Vec<f64> = scores.iter().filter_map(f).collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let values: BTreeMap<&str, Option<f64>> = [
+        ("psnr", mean(|s| s.psnr)),
+        ("ssim", mean(|s| s.ssim)),
+        ("lpips", None),
+        ("fvd", None),
+        ("mask_iou", mean(|s| s.mask_iou)),
+    ]
+    .into_iter()
+    .collect();
+    let shown: Vec<&str> = METRICS.iter().copied().filter(|m| want[m]).collect();
+    let header = ["PSNR", "SSIM", "LPIPS", "FVD", "Mask-IoU"];
+    let mut text = String::new();
+    let cols: Vec<&str> = shown
+        .iter()
+        .map(|m| header[METRICS.iter().position(|x| x == m).unwrap_or(0)])
+        .collect();
+    text.push_str(&format!("| videos | {} |\n", cols.join(" | ")));
+    text.push_str(&format!("|---|{}\n", "---|".repeat(cols.len())));
+    let cells: Vec<String> = shown
+        .iter()
+        .map(|m| match values[m] {
+            Some(v) if *m == "psnr" => format!("{v:.2}"),
+            Some(v) => format!("{v:.4}"),
+            None => "n/a".into(),
+        })
+        .collect();
+    text.push_str(&format!("| {} | {} |\n", names.len(), cells.join(" | ")));
+    for (m, why) in &unavailable {
+        text.push_str(&format!("\n{m}: unavailable: {why}"));
+    }
+    if !unavailable.is_empty() {
+        text.push('\n');
+    }
+    crate::print_stdout(&text)?;
+    if let Some(path) = &a.json {
+        let mut obj = serde_json::Map::new();
+        for m in &shown {
+            obj.insert((*m).into(), serde_json::json!(values[m]));
+        }
+        obj.insert("num_videos".into(), serde_json::json!(names.len()));
+        obj.insert("unavailable".into(), serde_json::json!(unavailable));
+        write_json_atomic(path, &serde_json::Value::Object(obj))?;
+    }
+    Ok(())
+}
+
+/// Success rates per task and policy.
+type Rates = BTreeMap<String, BTreeMap<String, f64>>;
+
+fn read_rates(path: &Path) -> Result<Rates> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let rates: Rates = if path
+        .extension()
+        .is_some_and(|x| x.eq_ignore_ascii_case("csv"))
+    {
+        let mut rates = Rates::new();
+        for (i, line) in text.lines().enumerate() {
+            let line = line.trim();
+            if line.is_empty() || (i == 0 && line.to_ascii_lowercase().starts_with("task")) {
+                continue;
+            }
+            let f: Vec<&str> = line.split(',').map(str::trim).collect();
+            let [task, policy, rate] = f[..] else {
+                bail!(
+                    "{}, line {}: expected task,policy,success_rate, got \"{line}\"",
+                    path.display(),
+                    i + 1
+                );
+            };
+            let rate: f64 = rate.parse().map_err(|_| {
+                anyhow::anyhow!(
+                    "{}, line {}: success rate \"{rate}\" is not a number",
+                    path.display(),
+                    i + 1
+                )
+            })?;
+            rates
+                .entry(task.into())
+                .or_default()
+                .insert(policy.into(), rate);
+        }
+        rates
+    } else {
+        serde_json::from_str(&text).with_context(|| {
+            format!(
+                "{}: expected JSON {{\"task\": {{\"policy\": success_rate}}}}",
+                path.display()
+            )
+        })?
+    };
+    for (task, policies) in &rates {
+        for (policy, r) in policies {
+            if !(r.is_finite() && (0.0..=1.0).contains(r)) {
+                bail!(
+                    "{}: task \"{task}\", policy \"{policy}\": success rate {r} is outside [0, 1]",
+                    path.display()
+                );
+            }
+        }
+    }
+    if rates.is_empty() {
+        bail!("{}: no success rates", path.display());
+    }
+    Ok(rates)
+}
+
+pub fn run_eval_policy(a: &EvalPolicyArgs) -> Result<()> {
+    let real = read_rates(&a.real)?;
+    let sim = read_rates(&a.sim)?;
+    let mut rows = Vec::new();
+    for (task, real_p) in &real {
+        let Some(sim_p) = sim.get(task) else {
+            bail!(
+                "task \"{task}\" is in {} but not in {}",
+                a.real.display(),
+                a.sim.display()
+            );
+        };
+        let policies: Vec<&String> = real_p.keys().collect();
+        if sim_p.keys().collect::<Vec<_>>() != policies {
+            bail!(
+                "task \"{task}\": policies differ between {} ({:?}) and {} ({:?})",
+                a.real.display(),
+                policies,
+                a.sim.display(),
+                sim_p.keys().collect::<Vec<_>>()
+            );
+        }
+        let r: Vec<f64> = real_p.values().copied().collect();
+        let s: Vec<f64> = sim_p.values().copied().collect();
+        rows.push((task.clone(), mmrv(&s, &r)?, pearson(&s, &r)?));
+    }
+    if let Some(task) = sim.keys().find(|t| !real.contains_key(*t)) {
+        bail!(
+            "task \"{task}\" is in {} but not in {}",
+            a.sim.display(),
+            a.real.display()
+        );
+    }
+    let n = rows.len() as f64;
+    let avg = (
+        rows.iter().map(|r| r.1).sum::<f64>() / n,
+        rows.iter().map(|r| r.2).sum::<f64>() / n,
+    );
+    let mut text = String::from("| Tasks | MMRV | Pearson r |\n|---|---|---|\n");
+    for (t, m, p) in &rows {
+        text.push_str(&format!("| {t} | {m:.3} | {p:.3} |\n"));
+    }
+    text.push_str(&format!("| Avg. | {:.3} | {:.3} |\n", avg.0, avg.1));
+    crate::print_stdout(&text)?;
+    if let Some(path) = &a.json {
+        let tasks: serde_json::Map<String, serde_json::Value> = rows
+            .iter()
+            .map(|(t, m, p)| (t.clone(), serde_json::json!({"mmrv": m, "pearson": p})))
+            .collect();
+        let v = serde_json::json!({"tasks": tasks, "average": {"mmrv": avg.0, "pearson": avg.1}});
+        write_json_atomic(path, &v)?;
+    }
+    Ok(())
+}
+
+/// Writes JSON through a temporary file in the same directory, renamed into place.
+fn write_json_atomic(path: &Path, v: &serde_json::Value) -> Result<()> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let mut tmp = tempfile::NamedTempFile::new_in(dir)
+        .with_context(|| format!("creating a temporary file in {}", dir.display()))?;
+    serde_json::to_writer_pretty(&mut tmp, v)?;
+    tmp.persist(path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}

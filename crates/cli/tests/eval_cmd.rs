@@ -1,0 +1,255 @@
+//! `bridgev2w eval` and `bridgev2w eval-policy`.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+        .args(args)
+        .output()
+        .expect("run bridgev2w")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn write_png(path: &Path, w: u32, h: u32, f: impl Fn(u32, u32, u32) -> u8) {
+    std::fs::create_dir_all(path.parent().expect("parent")).expect("mkdir");
+    let img = image::RgbImage::from_fn(w, h, |x, y| {
+        image::Rgb([f(x, y, 0), f(x, y, 1), f(x, y, 2)])
+    });
+    img.save(path).expect("save png");
+}
+
+fn pattern(x: u32, y: u32, c: u32, t: u32) -> u8 {
+    (20 + (x * 7 + y * 13 + c * 29 + t * 31) % 180) as u8
+}
+
+#[test]
+fn eval_psnr_ssim_mask_iou_json() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    for t in 0..3u32 {
+        let name = format!("{t:06}.png");
+        // Video "a": identical; video "b": every value +10.
+        write_png(&d.join("gt/a").join(&name), 24, 16, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("pred/a").join(&name), 24, 16, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("gt/b").join(&name), 24, 16, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("pred/b").join(&name), 24, 16, |x, y, c| {
+            pattern(x, y, c, t) + 10
+        });
+        // Masks: "a" agree; "b": left half vs left three quarters (IoU 2/3).
+        let mask = |limit: u32| move |x: u32, _y: u32, _c: u32| if x < limit { 255 } else { 0 };
+        write_png(&d.join("mgt/a").join(&name), 24, 16, mask(12));
+        write_png(&d.join("mpred/a").join(&name), 24, 16, mask(12));
+        write_png(&d.join("mgt/b").join(&name), 24, 16, mask(12));
+        write_png(&d.join("mpred/b").join(&name), 24, 16, mask(18));
+    }
+    let p = |s: &str| d.join(s).to_string_lossy().into_owned();
+    let json = p("out.json");
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--masks-pred",
+        &p("mpred"),
+        "--masks-gt",
+        &p("mgt"),
+        "--json",
+        &json,
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        table.contains("| videos | PSNR | SSIM | LPIPS | FVD | Mask-IoU |"),
+        "{table}"
+    );
+    assert!(table.contains("lpips: unavailable"), "{table}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    assert_eq!(v["num_videos"], 2);
+    // PSNR: 100 (identical) and 20 log10(255 / 10), averaged over videos.
+    let expected_psnr = (100.0 + 20.0 * (255.0f64 / 10.0).log10()) / 2.0;
+    let got = v["psnr"].as_f64().expect("psnr");
+    assert!(
+        (got - expected_psnr).abs() < 1e-4,
+        "{got} vs {expected_psnr}"
+    );
+    // SSIM: 1 for "a"; for "b" a constant offset keeps the structure term at
+    // 1 and lowers only the luminance term, so the mean lies just below 1.
+    let ssim = v["ssim"].as_f64().expect("ssim");
+    assert!(ssim > 0.99 && ssim < 1.0, "{ssim}");
+    let iou = v["mask_iou"].as_f64().expect("iou");
+    assert!((iou - (1.0 + 12.0 / 18.0) / 2.0).abs() < 1e-9, "{iou}");
+    assert!(
+        v["lpips"].is_null() && v["unavailable"]["fvd"].is_string(),
+        "{v}"
+    );
+}
+
+#[test]
+fn eval_bad_input_names_video_and_frame() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let p = |s: &str| d.join(s).to_string_lossy().into_owned();
+    for t in 0..2u32 {
+        let name = format!("{t:06}.png");
+        write_png(&d.join("gt/v").join(&name), 16, 16, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("pred/v").join(&name), 16, 16, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+    }
+    // Unmatched names.
+    write_png(&d.join("pred/w/000000.png"), 16, 16, |_, _, _| 0);
+    let o = run(&["eval", "--pred", &p("pred"), "--gt", &p("gt")]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("missing in --gt: [\"w\"]"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_dir_all(d.join("pred/w")).expect("rm");
+    // Frame-count mismatch.
+    write_png(&d.join("pred/v/000002.png"), 16, 16, |_, _, _| 0);
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--metrics",
+        "psnr",
+    ]);
+    assert!(
+        stderr(&o).contains("video \"v\": 3 predicted frames vs 2"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_file(d.join("pred/v/000002.png")).expect("rm");
+    // Resolution mismatch names the frame.
+    write_png(&d.join("pred/v/000001.png"), 16, 12, |_, _, _| 0);
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--metrics",
+        "psnr",
+    ]);
+    assert!(
+        stderr(&o).contains("video \"v\", frame 1: predicted 16x12"),
+        "{}",
+        stderr(&o)
+    );
+    // Corrupt image.
+    std::fs::write(d.join("pred/v/000001.png"), b"not a png").expect("write");
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--metrics",
+        "ssim",
+    ]);
+    assert!(
+        stderr(&o).contains("000001.png: not a readable image"),
+        "{}",
+        stderr(&o)
+    );
+    // Unknown metric, empty folder.
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--metrics",
+        "psnr,bleu",
+    ]);
+    assert!(
+        stderr(&o).contains("unknown metric \"bleu\""),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::create_dir_all(d.join("empty")).expect("mkdir");
+    let o = run(&["eval", "--pred", &p("empty"), "--gt", &p("gt")]);
+    assert!(stderr(&o).contains("holds no videos"), "{}", stderr(&o));
+}
+
+#[test]
+fn eval_policy_table_and_json() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let real = d.join("real.json");
+    let sim = d.join("sim.csv");
+    std::fs::write(
+        &real,
+        r#"{"push": {"p1": 0.2, "p2": 0.6, "p3": 0.8}, "pick": {"p1": 0.1, "p2": 0.5, "p3": 0.9}}"#,
+    )
+    .expect("write");
+    // push: p1 and p2 swapped (MMRV 0.8 / 3); pick: same order, linear (r = 1).
+    std::fs::write(&sim, "task,policy,success_rate\npush,p1,0.5\npush,p2,0.1\npush,p3,0.9\npick,p1,0.2\npick,p2,0.6\npick,p3,1.0\n")
+        .expect("write");
+    let json = d.join("out.json");
+    let o = run(&[
+        "eval-policy",
+        "--real",
+        &real.to_string_lossy(),
+        "--sim",
+        &sim.to_string_lossy(),
+        "--json",
+        &json.to_string_lossy(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("| push | 0.267 |"), "{table}");
+    assert!(table.contains("| pick | 0.000 | 1.000 |"), "{table}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    let avg = v["average"]["mmrv"].as_f64().expect("avg");
+    assert!((avg - 0.8 / 6.0).abs() < 1e-9, "{avg}");
+    // Mismatched policies and out-of-range rates are errors naming them.
+    std::fs::write(
+        &sim,
+        "push,p1,0.5\npush,p2,0.1\npick,p1,0.2\npick,p2,0.6\npick,p3,1.0\n",
+    )
+    .expect("write");
+    let o = run(&[
+        "eval-policy",
+        "--real",
+        &real.to_string_lossy(),
+        "--sim",
+        &sim.to_string_lossy(),
+    ]);
+    assert!(
+        stderr(&o).contains("task \"push\": policies differ"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::write(&sim, "push,p1,1.5\n").expect("write");
+    let o = run(&[
+        "eval-policy",
+        "--real",
+        &real.to_string_lossy(),
+        "--sim",
+        &sim.to_string_lossy(),
+    ]);
+    assert!(
+        stderr(&o).contains("success rate 1.5 is outside [0, 1]"),
+        "{}",
+        stderr(&o)
+    );
+}
