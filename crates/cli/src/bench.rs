@@ -20,6 +20,25 @@ pub enum BenchCommand {
     Masks(MasksBench),
     /// Forward kinematics poses/s and warm-started IK time per solve (built-in Franka).
     Kinematics(KinematicsBench),
+    /// PSNR + SSIM frames/s: bridgev2w-eval vs scikit-image on the same frames.
+    Metrics(MetricsBench),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct MetricsBench {
+    /// Frame pairs scored.
+    #[arg(long, default_value_t = 50)]
+    frames: usize,
+    #[arg(long, default_value_t = 720)]
+    width: usize,
+    #[arg(long, default_value_t = 480)]
+    height: usize,
+    /// Worker processes for scikit-image (default: all cores, like this crate's threads).
+    #[arg(long)]
+    workers: Option<usize>,
+    /// Repository root (holds scripts/bench/); default: found from the current directory.
+    #[arg(long)]
+    repo: Option<PathBuf>,
 }
 
 #[derive(Debug, clap::Args)]
@@ -62,6 +81,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Masks(a) => masks(a),
         BenchCommand::Kinematics(a) => kinematics(a),
+        BenchCommand::Metrics(a) => metrics(a),
     }
 }
 
@@ -334,6 +354,115 @@ fn kinematics(a: &KinematicsBench) -> Result<()> {
         ik_s / a.ik as f64 * 1e6,
         a.ik,
         iters as f64 / a.ik as f64
+    );
+    Ok(())
+}
+
+/// Deterministic test frames: smooth colour gradients with texture and
+/// noise; the "predicted" frame is a blurred, shifted, noisy copy.
+fn metric_frames(n: usize, w: usize, h: usize) -> (Vec<u8>, Vec<u8>) {
+    let mut rng = SplitMix64::new(17);
+    let mut noise = || (rng.next_u64() >> 56) as i32 - 128;
+    let mut gt = vec![0u8; n * h * w * 3];
+    let mut pred = vec![0u8; n * h * w * 3];
+    for t in 0..n {
+        for y in 0..h {
+            for x in 0..w {
+                for c in 0..3 {
+                    let i = ((t * h + y) * w + x) * 3 + c;
+                    let smooth = (x * (c + 1) * 255 / w + y * 255 / h + t * 3) % 256;
+                    let texture = ((x / 8 + y / 8 + c) % 2) as i32 * 40;
+                    let g = (smooth as i32 / 2 + texture + noise() / 16).clamp(0, 255);
+                    gt[i] = g as u8;
+                    pred[i] = (g + 6 + noise() / 8).clamp(0, 255) as u8;
+                }
+            }
+        }
+    }
+    (pred, gt)
+}
+
+fn metrics(a: &MetricsBench) -> Result<()> {
+    use bridgev2w_eval::video::{psnr, ssim, Frame};
+    use rayon::prelude::*;
+    let (w, h, n) = (a.width, a.height, a.frames);
+    if n == 0 || w < 11 || h < 11 {
+        bail!("--frames must be >= 1 and --width/--height >= 11 (the SSIM window)");
+    }
+    let (pred, gt) = metric_frames(n, w, h);
+    let frame_len = w * h * 3;
+    let threads = rayon::current_num_threads();
+    println!("scene: {n} frame pairs at {w}x{h} (RGB, uint8)");
+    // Conversion to [0, 1] floats is part of the timed work on both sides.
+    let t0 = Instant::now();
+    let ours: Vec<(f64, f64)> = (0..n)
+        .into_par_iter()
+        .map(|t| -> Result<(f64, f64)> {
+            let r = t * frame_len..(t + 1) * frame_len;
+            let p = Frame::from_rgb8(w, h, &pred[r.clone()])?;
+            let g = Frame::from_rgb8(w, h, &gt[r])?;
+            Ok((psnr(&p, &g)?, ssim(&p, &g)?))
+        })
+        .collect::<Result<_>>()?;
+    let ours_s = t0.elapsed().as_secs_f64();
+    let ours_rate = n as f64 / ours_s;
+    println!("bridgev2w-eval PSNR+SSIM  {ours_rate:>10.2} frames/s  ({threads} threads)");
+    let repo = find_repo(a.repo.as_deref())?;
+    let python = bench_python(&repo)?;
+    let workers = a.workers.unwrap_or(threads).max(1);
+    let tmp = tempfile::tempdir()?;
+    let (pred_path, gt_path) = (tmp.path().join("pred.npy"), tmp.path().join("gt.npy"));
+    write_npy(&pred_path, &[n, h, w, 3], &pred)?;
+    write_npy(&gt_path, &[n, h, w, 3], &gt)?;
+    eprintln!("running scikit-image with {workers} worker process(es)...");
+    let out = Command::new(&python)
+        .arg(repo.join("scripts/bench/skimage_metrics.py"))
+        // One core per worker process, like one rayon thread per core.
+        .envs([("OMP_NUM_THREADS", "1"), ("OPENBLAS_NUM_THREADS", "1")])
+        .arg("--pred")
+        .arg(&pred_path)
+        .arg("--gt")
+        .arg(&gt_path)
+        .args(["--workers", &workers.to_string()])
+        .output()
+        .context("running scripts/bench/skimage_metrics.py")?;
+    if !out.status.success() {
+        bail!(
+            "skimage_metrics.py failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout
+        .lines()
+        .rev()
+        .find(|l| l.trim_start().starts_with('{'))
+        .context("skimage_metrics.py printed no JSON result")?;
+    let v: serde_json::Value = serde_json::from_str(line)?;
+    let seconds = v["seconds"]
+        .as_f64()
+        .context("scikit-image result has no seconds")?;
+    let values = |key: &str| -> Result<Vec<f64>> {
+        v[key]
+            .as_array()
+            .context("scikit-image result lacks per-frame values")?
+            .iter()
+            .map(|x| x.as_f64().context("non-numeric value"))
+            .collect()
+    };
+    let (their_psnr, their_ssim) = (values("psnr")?, values("ssim")?);
+    let py_rate = n as f64 / seconds;
+    println!("scikit-image PSNR+SSIM    {py_rate:>10.2} frames/s  ({workers} processes)");
+    println!("ratio                     {:>10.1}x", ours_rate / py_rate);
+    let max_diff = |ours: &mut dyn Iterator<Item = f64>, theirs: &[f64]| {
+        ours.zip(theirs)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max)
+    };
+    println!(
+        "agreement: max |SSIM diff| {:.2e}, max |PSNR diff| {:.2e} dB",
+        max_diff(&mut ours.iter().map(|o| o.1), &their_ssim),
+        max_diff(&mut ours.iter().map(|o| o.0), &their_psnr)
     );
     Ok(())
 }

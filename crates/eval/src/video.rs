@@ -144,47 +144,62 @@ pub fn ssim(pred: &Frame, gt: &Frame) -> Result<f64> {
 }
 
 /// Mean SSIM over the valid region of one channel.
+///
+/// Separable filtering in f64 (the variances `E[x^2] - E[x]^2` cancel
+/// catastrophically in f32): each input row is filtered horizontally into a
+/// ring of the last [`SSIM_WINDOW`] rows (five moments each, small enough to
+/// stay in cache), and every full ring yields one output row.
 fn ssim_plane(x: &[f64], y: &[f64], w: usize, h: usize, window: &[f64; SSIM_WINDOW]) -> f64 {
-    let (vw, vh) = (w - SSIM_WINDOW + 1, h - SSIM_WINDOW + 1);
-    // Horizontal pass over every row for the five moments, valid columns
-    // only: [5][h * vw].
-    let mut horizontal = vec![vec![0.0f64; h * vw]; 5];
-    let mut products = vec![vec![0.0f64; w]; 5];
+    let vw = w - SSIM_WINDOW + 1;
+    let vh = h - SSIM_WINDOW + 1;
+    // ring[slot][moment][column]: horizontally filtered moments of one row.
+    let mut ring: Vec<[Vec<f64>; 5]> = (0..SSIM_WINDOW)
+        .map(|_| std::array::from_fn(|_| vec![0.0; vw]))
+        .collect();
+    let mut products: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0; w]);
+    let mut m: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0; vw]);
+    let c1 = SSIM_K1 * SSIM_K1;
+    let c2 = SSIM_K2 * SSIM_K2;
+    let mut sum = 0.0;
     for row in 0..h {
         let (xr, yr) = (&x[row * w..(row + 1) * w], &y[row * w..(row + 1) * w]);
-        for i in 0..w {
-            let (a, b) = (xr[i], yr[i]);
-            products[0][i] = a;
-            products[1][i] = b;
-            products[2][i] = a * a;
-            products[3][i] = b * b;
-            products[4][i] = a * b;
+        {
+            let [px, py, pxx, pyy, pxy] = &mut products;
+            for i in 0..w {
+                let (a, b) = (xr[i], yr[i]);
+                px[i] = a;
+                py[i] = b;
+                pxx[i] = a * a;
+                pyy[i] = b * b;
+                pxy[i] = a * b;
+            }
         }
-        for (out, p) in horizontal.iter_mut().zip(&products) {
-            let out = &mut out[row * vw..(row + 1) * vw];
+        let slot = &mut ring[row % SSIM_WINDOW];
+        for (out, p) in slot.iter_mut().zip(&products) {
+            out.fill(0.0);
             for (k, &wk) in window.iter().enumerate() {
                 for (o, &v) in out.iter_mut().zip(&p[k..k + vw]) {
                     *o += wk * v;
                 }
             }
         }
-    }
-    let c1 = SSIM_K1 * SSIM_K1;
-    let c2 = SSIM_K2 * SSIM_K2;
-    let mut sum = 0.0f64;
-    let mut m: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0; vw]);
-    for row in 0..vh {
-        for (out, hz) in m.iter_mut().zip(&horizontal) {
-            out.iter_mut().for_each(|v| *v = 0.0);
+        if row + 1 < SSIM_WINDOW {
+            continue;
+        }
+        // Output row `row + 1 - SSIM_WINDOW`: ring slot of input row r is
+        // r % SSIM_WINDOW.
+        let top = row + 1 - SSIM_WINDOW;
+        for (moment, out) in m.iter_mut().enumerate() {
+            out.fill(0.0);
             for (k, &wk) in window.iter().enumerate() {
-                let src = &hz[(row + k) * vw..(row + k + 1) * vw];
+                let src = &ring[(top + k) % SSIM_WINDOW][moment];
                 for (o, &v) in out.iter_mut().zip(src) {
                     *o += wk * v;
                 }
             }
         }
-        let mut row_sum = 0.0f64;
         let [mx, my, mxx, myy, mxy] = &m;
+        let mut row_sum = 0.0;
         for ((((&ux, &uy), &xx), &yy), &xy) in mx.iter().zip(my).zip(mxx).zip(myy).zip(mxy) {
             let vx = xx - ux * ux;
             let vy = yy - uy * uy;
