@@ -124,21 +124,7 @@ pub fn ssim(pred: &Frame, gt: &Frame) -> Result<f64> {
     let window = ssim_window();
     let mut total = 0.0;
     for c in 0..3 {
-        let x: Vec<f64> = pred
-            .rgb
-            .iter()
-            .skip(c)
-            .step_by(3)
-            .map(|&v| f64::from(v))
-            .collect();
-        let y: Vec<f64> = gt
-            .rgb
-            .iter()
-            .skip(c)
-            .step_by(3)
-            .map(|&v| f64::from(v))
-            .collect();
-        total += ssim_plane(&x, &y, w, h, &window);
+        total += ssim_plane(&pred.rgb, &gt.rgb, c, w, h, &window);
     }
     Ok(total / 3.0)
 }
@@ -149,7 +135,14 @@ pub fn ssim(pred: &Frame, gt: &Frame) -> Result<f64> {
 /// catastrophically in f32): each input row is filtered horizontally into a
 /// ring of the last [`SSIM_WINDOW`] rows (five moments each, small enough to
 /// stay in cache), and every full ring yields one output row.
-fn ssim_plane(x: &[f64], y: &[f64], w: usize, h: usize, window: &[f64; SSIM_WINDOW]) -> f64 {
+fn ssim_plane(
+    x: &[f32],
+    y: &[f32],
+    channel: usize,
+    w: usize,
+    h: usize,
+    window: &[f64; SSIM_WINDOW],
+) -> f64 {
     let vw = w - SSIM_WINDOW + 1;
     let vh = h - SSIM_WINDOW + 1;
     // ring[slot][moment][column]: horizontally filtered moments of one row.
@@ -158,15 +151,24 @@ fn ssim_plane(x: &[f64], y: &[f64], w: usize, h: usize, window: &[f64; SSIM_WIND
         .collect();
     let mut products: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0; w]);
     let mut m: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0; vw]);
+    let mut values = vec![0.0; vw];
     let c1 = SSIM_K1 * SSIM_K1;
     let c2 = SSIM_K2 * SSIM_K2;
     let mut sum = 0.0;
     for row in 0..h {
-        let (xr, yr) = (&x[row * w..(row + 1) * w], &y[row * w..(row + 1) * w]);
+        // Channel `channel` of the interleaved RGB row.
+        let xr = x[row * w * 3..(row + 1) * w * 3]
+            .iter()
+            .skip(channel)
+            .step_by(3);
+        let yr = y[row * w * 3..(row + 1) * w * 3]
+            .iter()
+            .skip(channel)
+            .step_by(3);
         {
             let [px, py, pxx, pyy, pxy] = &mut products;
-            for i in 0..w {
-                let (a, b) = (xr[i], yr[i]);
+            for (i, (&a, &b)) in xr.zip(yr).enumerate() {
+                let (a, b) = (f64::from(a), f64::from(b));
                 px[i] = a;
                 py[i] = b;
                 pxx[i] = a * a;
@@ -176,12 +178,8 @@ fn ssim_plane(x: &[f64], y: &[f64], w: usize, h: usize, window: &[f64; SSIM_WIND
         }
         let slot = &mut ring[row % SSIM_WINDOW];
         for (out, p) in slot.iter_mut().zip(&products) {
-            out.fill(0.0);
-            for (k, &wk) in window.iter().enumerate() {
-                for (o, &v) in out.iter_mut().zip(&p[k..k + vw]) {
-                    *o += wk * v;
-                }
-            }
+            let taps: [&[f64]; SSIM_WINDOW] = std::array::from_fn(|k| &p[k..k + vw]);
+            symmetric_filter(&taps, window, out);
         }
         if row + 1 < SSIM_WINDOW {
             continue;
@@ -190,27 +188,55 @@ fn ssim_plane(x: &[f64], y: &[f64], w: usize, h: usize, window: &[f64; SSIM_WIND
         // r % SSIM_WINDOW.
         let top = row + 1 - SSIM_WINDOW;
         for (moment, out) in m.iter_mut().enumerate() {
-            out.fill(0.0);
-            for (k, &wk) in window.iter().enumerate() {
-                let src = &ring[(top + k) % SSIM_WINDOW][moment];
-                for (o, &v) in out.iter_mut().zip(src) {
-                    *o += wk * v;
-                }
-            }
+            let taps: [&[f64]; SSIM_WINDOW] =
+                std::array::from_fn(|k| &ring[(top + k) % SSIM_WINDOW][moment][..]);
+            symmetric_filter(&taps, window, out);
         }
         let [mx, my, mxx, myy, mxy] = &m;
-        let mut row_sum = 0.0;
-        for ((((&ux, &uy), &xx), &yy), &xy) in mx.iter().zip(my).zip(mxx).zip(myy).zip(mxy) {
+        for ((((&ux, &uy), &xx), &yy), (&xy, v)) in mx
+            .iter()
+            .zip(my)
+            .zip(mxx)
+            .zip(myy)
+            .zip(mxy.iter().zip(values.iter_mut()))
+        {
             let vx = xx - ux * ux;
             let vy = yy - uy * uy;
             let vxy = xy - ux * uy;
             let num = (2.0 * ux * uy + c1) * (2.0 * vxy + c2);
             let den = (ux * ux + uy * uy + c1) * (vx + vy + c2);
-            row_sum += num / den;
+            *v = num / den;
         }
-        sum += row_sum;
+        // Eight independent partial sums: no serial dependency chain.
+        let mut partial = [0.0; 8];
+        let chunks = values.chunks_exact(8);
+        let rest: f64 = chunks.remainder().iter().sum();
+        for c in chunks {
+            for (p, v) in partial.iter_mut().zip(c) {
+                *p += v;
+            }
+        }
+        sum += partial.iter().sum::<f64>() + rest;
     }
     sum / (vw * vh) as f64
+}
+
+/// `out[i] = sum_k window[k] * taps[k][i]` for the symmetric window
+/// (`window[k] == window[10 - k]`), pairing mirrored taps; one store per
+/// output, vectorised across `i`.
+#[inline]
+fn symmetric_filter(taps: &[&[f64]; SSIM_WINDOW], window: &[f64; SSIM_WINDOW], out: &mut [f64]) {
+    let n = out.len();
+    let [t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10] = taps.map(|t| &t[..n]);
+    let [w0, w1, w2, w3, w4, w5, ..] = *window;
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = (t0[i] + t10[i]) * w0
+            + (t1[i] + t9[i]) * w1
+            + (t2[i] + t8[i]) * w2
+            + (t3[i] + t7[i]) * w3
+            + (t4[i] + t6[i]) * w4
+            + t5[i] * w5;
+    }
 }
 
 /// Intersection over union of two binary masks (non-zero = robot). Two
