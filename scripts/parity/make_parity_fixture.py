@@ -24,6 +24,7 @@ KINDS = {
     "transformer": "fixture_transformer",
     "vae": "fixture_vae",
     "scheduler": "fixture_scheduler",
+    "lpips": "fixture_lpips",
 }
 
 

@@ -37,6 +37,13 @@ pub struct EvalArgs {
     /// Also write the results as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// LPIPS weights (AlexNet trunk + v0.1 heads, safetensors; see
+    /// scripts/convert_reference_weights.py). Without them LPIPS is reported unavailable.
+    #[arg(long)]
+    pub lpips_weights: Option<PathBuf>,
+    /// Device for the LPIPS network: cpu, cuda, cuda:N or auto.
+    #[arg(long, default_value = "auto")]
+    pub device: String,
 }
 
 #[derive(Debug, Args)]
@@ -236,6 +243,10 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
         })
         .collect::<Result<Vec<_>>>()?;
     pb.finish_and_clear();
+    let lpips = match (&a.lpips_weights, want["lpips"]) {
+        (Some(weights), true) => Some(lpips_scores(a, weights, &names)?),
+        _ => None,
+    };
     let mean = |f: fn(&VideoScores) -> Option<f64>| -> Option<f64> {
         let v: Vec<f64> = scores.iter().filter_map(f).collect();
         (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
@@ -243,7 +254,10 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
     let values: BTreeMap<&str, Option<f64>> = [
         ("psnr", mean(|s| s.psnr)),
         ("ssim", mean(|s| s.ssim)),
-        ("lpips", None),
+        (
+            "lpips",
+            lpips.map(|v| v.iter().sum::<f64>() / v.len() as f64),
+        ),
         ("fvd", None),
         ("mask_iou", mean(|s| s.mask_iou)),
     ]
@@ -284,6 +298,69 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
         write_json_atomic(path, &serde_json::Value::Object(obj))?;
     }
     Ok(())
+}
+
+fn read_video(dir: &Path) -> Result<bridgev2w_world_model::video::Video> {
+    let files = frame_files(dir)?;
+    let mut data = Vec::new();
+    let mut size = None;
+    for (i, f) in files.iter().enumerate() {
+        let frame = read_frame(f)?;
+        let s = (frame.width, frame.height);
+        if *size.get_or_insert(s) != s {
+            bail!(
+                "{}: frame {i} is {}x{}, earlier frames {}x{}",
+                dir.display(),
+                s.0,
+                s.1,
+                size.map_or(0, |x| x.0),
+                size.map_or(0, |x| x.1)
+            );
+        }
+        data.extend_from_slice(&frame.rgb);
+    }
+    let (width, height) = size.unwrap_or((0, 0));
+    Ok(bridgev2w_world_model::video::Video {
+        frames: files.len(),
+        height,
+        width,
+        data,
+    })
+}
+
+/// Mean LPIPS over the frames of every video (one network, videos in turn).
+fn lpips_scores(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<Vec<f64>> {
+    use bridgev2w_world_model::nets::lpips::Lpips;
+    let device: bridgev2w_world_model::ComputeDevice = a.device.parse()?;
+    let net = Lpips::load(&[weights.to_path_buf()], device)
+        .with_context(|| format!("loading LPIPS weights {}", weights.display()))?;
+    let pb = indicatif::ProgressBar::new(names.len() as u64);
+    pb.set_message("LPIPS");
+    let mut out = Vec::with_capacity(names.len());
+    for name in names {
+        let (p, g) = (
+            read_video(&a.pred.join(name))?,
+            read_video(&a.gt.join(name))?,
+        );
+        if (p.frames, p.height, p.width) != (g.frames, g.height, g.width) {
+            bail!(
+                "video \"{name}\": predicted {} frames of {}x{} vs ground truth {} frames of {}x{}",
+                p.frames,
+                p.width,
+                p.height,
+                g.frames,
+                g.width,
+                g.height
+            );
+        }
+        out.push(
+            net.video_distance(&p, &g, 8)
+                .with_context(|| format!("LPIPS of video \"{name}\""))?,
+        );
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    Ok(out)
 }
 
 /// Success rates per task and policy.

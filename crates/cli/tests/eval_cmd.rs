@@ -253,3 +253,80 @@ fn eval_policy_table_and_json() {
         stderr(&o)
     );
 }
+
+#[test]
+fn eval_lpips_with_weights_file() {
+    use bridgev2w_world_model::nets::lpips::Lpips;
+    use bridgev2w_world_model::ComputeDevice;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    // Random trunk, heads of ones: a valid (untrained) LPIPS network.
+    tch::manual_seed(3);
+    let net = Lpips::new(ComputeDevice::Cpu).expect("lpips");
+    let mut named: Vec<(String, tch::Tensor)> = net.var_store().variables().into_iter().collect();
+    for (k, t) in &mut named {
+        if k.starts_with("lin") {
+            *t = t.ones_like();
+        }
+    }
+    let weights = d.join("lpips.safetensors");
+    bridgev2w_world_model::weights::save_safetensors(&named, &weights).expect("save");
+    for t in 0..2u32 {
+        let name = format!("{t:06}.png");
+        write_png(&d.join("gt/a").join(&name), 40, 32, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("pred/a").join(&name), 40, 32, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("gt/b").join(&name), 40, 32, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("pred/b").join(&name), 40, 32, |x, y, c| {
+            pattern(y, x, c, t + 1)
+        });
+    }
+    let p = |s: &str| d.join(s).to_string_lossy().into_owned();
+    let json = p("out.json");
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--metrics",
+        "lpips",
+        "--lpips-weights",
+        &p("lpips.safetensors"),
+        "--device",
+        "cpu",
+        "--json",
+        &json,
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    let got = v["lpips"].as_f64().expect("lpips");
+    // Video "a" is identical (0); "b" differs: the mean is half of b's.
+    let net = Lpips::load(&[weights], ComputeDevice::Cpu).expect("load");
+    let frame = |f: &dyn Fn(u32, u32, u32) -> u8| bridgev2w_world_model::video::Image {
+        height: 32,
+        width: 40,
+        data: (0..32u32)
+            .flat_map(|y| (0..40u32).flat_map(move |x| (0..3u32).map(move |c| (x, y, c))))
+            .map(|(x, y, c)| f32::from(f(x, y, c)) / 255.0)
+            .collect(),
+    };
+    let b: f64 = (0..2u32)
+        .map(|t| {
+            net.distance(
+                &frame(&|x, y, c| pattern(y, x, c, t + 1)),
+                &frame(&|x, y, c| pattern(x, y, c, t)),
+            )
+            .expect("distance")
+        })
+        .sum::<f64>()
+        / 2.0;
+    assert!(b > 0.0);
+    assert!((got - b / 2.0).abs() < 1e-5 * b, "{got} vs {}", b / 2.0);
+}

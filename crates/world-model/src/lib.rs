@@ -11,6 +11,7 @@ pub mod checkpoint;
 pub mod device;
 pub mod error;
 pub mod lora;
+pub mod nets;
 pub mod parity;
 pub mod pipeline;
 pub mod scheduler;

@@ -134,6 +134,7 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
         // One arm per kind: each module computes its outputs from `model_dir` and `io`.
         match kind.as_str() {
             "scheduler" => crate::scheduler::fixture_outputs(&model_dir, &io),
+            "lpips" => crate::nets::lpips::fixture_outputs(&model_dir, &io),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",

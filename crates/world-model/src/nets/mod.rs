@@ -1,0 +1,6 @@
+//! Frozen reference networks used by the metrics and losses: LPIPS (AlexNet
+//! trunk with the v0.1 linear heads). Weights come from user-supplied
+//! safetensors files with torchvision's and the `lpips` package's key names
+//! (`scripts/convert_reference_weights.py` converts the `.pth` releases).
+
+pub mod lpips;
