@@ -25,6 +25,7 @@ KINDS = {
     "vae": "fixture_vae",
     "scheduler": "fixture_scheduler",
     "lpips": "fixture_lpips",
+    "raft": "fixture_raft",
 }
 
 

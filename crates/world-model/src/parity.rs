@@ -135,6 +135,7 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
         match kind.as_str() {
             "scheduler" => crate::scheduler::fixture_outputs(&model_dir, &io),
             "lpips" => crate::nets::lpips::fixture_outputs(&model_dir, &io),
+            "raft" => crate::nets::raft::fixture_outputs(&model_dir, &meta, &io),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",

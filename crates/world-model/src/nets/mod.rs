@@ -1,6 +1,7 @@
 //! Frozen reference networks used by the metrics and losses: LPIPS (AlexNet
-//! trunk with the v0.1 linear heads). Weights come from user-supplied
+//! trunk with the v0.1 linear heads) and RAFT optical flow (large, small). Weights come from user-supplied
 //! safetensors files with torchvision's and the `lpips` package's key names
 //! (`scripts/convert_reference_weights.py` converts the `.pth` releases).
 
 pub mod lpips;
+pub mod raft;
