@@ -556,6 +556,12 @@ impl Scheduler {
         Ok(prev)
     }
 
+    /// Alpha-bar of each batch item's timestep (`timesteps` `[B]`), shaped
+    /// `[B, 1, ..., 1]` to broadcast over `like`, in `like`'s dtype and device.
+    pub fn alpha_bar_like(&self, timesteps: &Tensor, like: &Tensor) -> Result<Tensor> {
+        self.per_sample(timesteps, like)
+    }
+
     fn per_sample(&self, timesteps: &Tensor, like: &Tensor) -> Result<Tensor> {
         let ts: Vec<i64> =
             Vec::<i64>::try_from(timesteps.to_kind(tch::Kind::Int64).flatten(0, -1))?;

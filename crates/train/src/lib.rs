@@ -1,0 +1,41 @@
+//! Training BridgeV2W: the paper's losses and (later) the trainer.
+//!
+//! * [`losses::diffusion_loss`]: the v-prediction objective in `x0` space.
+//! * [`losses::dynamics_loss`]: latent dynamics consistency over offsets `1..=K`.
+//! * [`flow`]: the optical-flow loss (direction + magnitude on moving pixels)
+//!   with a frozen, differentiable [`flow::FlowEstimator`] (RAFT, or a light
+//!   Lucas-Kanade stand-in for CPU runs).
+
+pub mod flow;
+pub mod losses;
+
+/// Errors of the training code.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// An input tensor or option that does not fit.
+    #[error("{what}: {message}")]
+    Input {
+        /// What was wrong.
+        what: String,
+        /// Why, with the value and what was expected.
+        message: String,
+    },
+    /// From the world model.
+    #[error(transparent)]
+    WorldModel(#[from] bridgev2w_world_model::error::WorldModelError),
+    /// From libtorch.
+    #[error("torch: {0}")]
+    Torch(#[from] tch::TchError),
+}
+
+impl TrainError {
+    pub(crate) fn input(what: impl Into<String>, message: impl Into<String>) -> Self {
+        Self::Input {
+            what: what.into(),
+            message: message.into(),
+        }
+    }
+}
+
+/// Result of the training code.
+pub type Result<T> = std::result::Result<T, TrainError>;
