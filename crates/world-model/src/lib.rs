@@ -15,6 +15,7 @@ pub mod nets;
 pub mod parity;
 pub mod pipeline;
 pub mod scheduler;
+pub mod transformer;
 pub mod video;
 pub mod weights;
 

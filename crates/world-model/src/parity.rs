@@ -136,10 +136,11 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
             "scheduler" => crate::scheduler::fixture_outputs(&model_dir, &io),
             "lpips" => crate::nets::lpips::fixture_outputs(&model_dir, &io),
             "raft" => crate::nets::raft::fixture_outputs(&model_dir, &meta, &io),
+            "transformer" => crate::transformer::fixture_outputs(&model_dir, &io),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",
-                format!("`{other}`: expected transformer, vae or scheduler"),
+                format!("`{other}`: expected transformer, vae, scheduler, lpips or raft"),
             )),
         }
     })?;

@@ -211,3 +211,13 @@ pub fn save_safetensors(named: &[(String, Tensor)], path: &Path) -> Result<()> {
 pub fn parameter_count(vs: &VarStore) -> i64 {
     vs.variables().values().map(|t| t.numel() as i64).sum()
 }
+
+/// Elements of the learnable variables only (PyTorch's `parameters()`:
+/// buffers such as batch-norm statistics or CogVideoX's learned-position
+/// buffer excluded).
+pub fn learnable_parameter_count(vs: &VarStore) -> i64 {
+    vs.trainable_variables()
+        .iter()
+        .map(|t| t.numel() as i64)
+        .sum()
+}

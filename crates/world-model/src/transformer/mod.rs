@@ -1,0 +1,363 @@
+//! The CogVideoX diffusion transformer: diffusers' `CogVideoXTransformer3DModel`
+//! (0.42.1), numerically identical in f32 and loading `transformer/`
+//! checkpoints (single file or shards) unchanged.
+//!
+//! Latents `[B, F, C, H, W]` (for image-to-video, `C = 32`: the noisy latents
+//! and the first-frame image latents concatenated) become `F * H/p * W/p`
+//! patch tokens, joined by the projected text tokens; every
+//! [`CogVideoXBlock`] attends over text and video jointly (RoPE on video
+//! tokens for 5B models) with adaptive LayerNorm modulation from the
+//! timestep embedding; the head predicts `[B, F, C_out, H, W]`.
+//!
+//! The forward pass is split for the ControlNet branch: [`CogVideoXTransformer3DModel::embed`],
+//! the [`CogVideoXTransformer3DModel::blocks`], [`CogVideoXTransformer3DModel::finish`],
+//! and [`CogVideoXTransformer3DModel::forward_with_residuals`] which adds a
+//! residual to the video tokens after each block. Dropout is not applied
+//! (CogVideoX uses none).
+
+pub mod config;
+pub mod layers;
+pub mod positions;
+
+pub use config::TransformerConfig;
+pub use layers::{CogVideoXBlock, PatchEmbed};
+pub use positions::{rotary_for_latents, Rotary};
+
+use crate::device::{ComputeDevice, Precision};
+use crate::error::{Result, WorldModelError};
+use crate::lora::LoraConfig;
+use crate::weights::{load_component, parameter_count};
+use layers::{timestep_embedding, OutputHead, TimestepMlp};
+use std::path::Path;
+use tch::nn::{self, VarStore};
+use tch::{Kind, Tensor};
+
+/// The embedded inputs: what every block receives.
+#[derive(Debug)]
+pub struct Embedded {
+    /// Video tokens `[B, N, D]`.
+    pub video: Tensor,
+    /// Text tokens `[B, L, D]`.
+    pub text: Tensor,
+    /// Timestep (+ ofs) embedding `[B, time_embed_dim]`.
+    pub temb: Tensor,
+    /// `(B, F, H, W)` of the input latents.
+    pub latent_shape: (i64, i64, i64, i64),
+}
+
+/// `CogVideoXTransformer3DModel`.
+#[derive(Debug)]
+pub struct CogVideoXTransformer3DModel {
+    cfg: TransformerConfig,
+    /// The patch embedding (`patch_embed`).
+    pub patch_embed: PatchEmbed,
+    time_embedding: TimestepMlp,
+    ofs_embedding: Option<TimestepMlp>,
+    blocks: Vec<CogVideoXBlock>,
+    head: OutputHead,
+}
+
+impl CogVideoXTransformer3DModel {
+    /// Creates the variables under `p` (the model root: keys `patch_embed.*`,
+    /// `transformer_blocks.{i}.*`, ...).
+    pub fn new(cfg: &TransformerConfig, p: &nn::Path) -> Result<Self> {
+        cfg.validate(Path::new("<transformer config>"))?;
+        let patch_embed = PatchEmbed::new(cfg, p / "patch_embed", cfg.in_channels);
+        let time_embedding =
+            TimestepMlp::new(p / "time_embedding", cfg.inner_dim(), cfg.time_embed_dim);
+        let ofs_embedding = cfg
+            .ofs_embed_dim
+            .map(|d| TimestepMlp::new(p / "ofs_embedding", d, d));
+        let blocks = (0..cfg.num_layers)
+            .map(|i| CogVideoXBlock::new(cfg, p / "transformer_blocks" / i))
+            .collect();
+        let head = OutputHead::new(cfg, p);
+        Ok(Self {
+            cfg: cfg.clone(),
+            patch_embed,
+            time_embedding,
+            ofs_embedding,
+            blocks,
+            head,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &TransformerConfig {
+        &self.cfg
+    }
+
+    /// The blocks, in order.
+    pub fn blocks(&self) -> &[CogVideoXBlock] {
+        &self.blocks
+    }
+
+    /// The timestep (+ ofs) embedding `[B, time_embed_dim]` of `timestep` `[B]`.
+    pub fn time_embed(
+        &self,
+        timestep: &Tensor,
+        ofs: Option<&Tensor>,
+        kind: Kind,
+    ) -> Result<Tensor> {
+        let t = timestep_embedding(
+            timestep,
+            self.cfg.inner_dim(),
+            self.cfg.flip_sin_to_cos,
+            self.cfg.freq_shift as f64,
+        )
+        .to_kind(kind);
+        let mut emb = self.time_embedding.forward(&t);
+        if let (Some(mlp), Some(d)) = (&self.ofs_embedding, self.cfg.ofs_embed_dim) {
+            let ofs = ofs.ok_or_else(|| {
+                WorldModelError::input(
+                    "ofs",
+                    "this model has an ofs embedding: pass the ofs value (2.0 in the I2V pipeline)",
+                )
+            })?;
+            let o =
+                timestep_embedding(ofs, d, self.cfg.flip_sin_to_cos, self.cfg.freq_shift as f64)
+                    .to_kind(kind);
+            emb = &emb + mlp.forward(&o);
+        }
+        Ok(emb)
+    }
+
+    /// Embeds latents `[B, F, C, H, W]`, text `[B, L, text_dim]` and timesteps `[B]`.
+    pub fn embed(
+        &self,
+        hidden_states: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep: &Tensor,
+        ofs: Option<&Tensor>,
+    ) -> Result<Embedded> {
+        let size = hidden_states.size();
+        let [b, f, _c, h, w] = size[..] else {
+            return Err(WorldModelError::input(
+                "hidden_states",
+                format!("shape {size:?}: expected [B, F, C, H, W]"),
+            ));
+        };
+        let es = encoder_hidden_states.size();
+        if es.len() != 3 || es[0] != b || es[2] != self.cfg.text_embed_dim {
+            return Err(WorldModelError::input(
+                "encoder_hidden_states",
+                format!(
+                    "shape {es:?}: expected [{b}, L, {}]",
+                    self.cfg.text_embed_dim
+                ),
+            ));
+        }
+        if timestep.size() != [b] {
+            return Err(WorldModelError::input(
+                "timestep",
+                format!("shape {:?}: expected [{b}]", timestep.size()),
+            ));
+        }
+        let temb = self.time_embed(timestep, ofs, hidden_states.kind())?;
+        let tokens = self
+            .patch_embed
+            .forward(encoder_hidden_states, hidden_states)?; // [B, L + N, D]
+        let l = es[1];
+        let n = tokens.size()[1] - l;
+        Ok(Embedded {
+            video: tokens.narrow(1, l, n),
+            text: tokens.narrow(1, 0, l),
+            temb,
+            latent_shape: (b, f, h, w),
+        })
+    }
+
+    /// The head and unpatchify: `[B, F, C_out, H, W]` from the final video tokens.
+    pub fn finish(&self, emb: &Embedded, video: &Tensor) -> Tensor {
+        let (b, f, h, w) = emb.latent_shape;
+        let p = self.cfg.patch_size;
+        let x = self.head.forward(video, &emb.temb); // [B, N, per-token]
+        match self.cfg.patch_size_t {
+            None => x
+                .reshape([b, f, h / p, w / p, -1, p, p].as_slice()) // [B, F, h, w, C, p, p]
+                .permute([0, 1, 4, 2, 5, 3, 6].as_slice()) // [B, F, C, h, p, w, p]
+                .flatten(5, 6) // [B, F, C, h, p, W]
+                .flatten(3, 4), // [B, F, C, H, W]
+            Some(pt) => x
+                .reshape([b, (f + pt - 1) / pt, h / p, w / p, -1, pt, p, p].as_slice()) // [B, F/pt, h, w, C, pt, p, p]
+                .permute([0, 1, 5, 4, 2, 6, 3, 7].as_slice()) // [B, F/pt, pt, C, h, p, w, p]
+                .flatten(6, 7) // [..., h, p, W]
+                .flatten(4, 5) // [B, F/pt, pt, C, H, W]
+                .flatten(1, 2), // [B, F, C, H, W]
+        }
+    }
+
+    /// The rotary embedding for latents of this shape (the pipeline's), if the
+    /// model uses RoPE.
+    pub fn rotary_for(&self, hidden_states: &Tensor) -> Result<Option<Rotary>> {
+        let s = hidden_states.size();
+        if s.len() != 5 {
+            return Err(WorldModelError::input(
+                "hidden_states",
+                format!("shape {s:?}: expected [B, F, C, H, W]"),
+            ));
+        }
+        Ok(
+            rotary_for_latents(&self.cfg, s[1], s[3], s[4], hidden_states.device())?
+                .map(|r| r.to(hidden_states.device(), Kind::Float)),
+        )
+    }
+
+    /// The predicted `[B, F, C_out, H, W]` (velocity for v-prediction models).
+    /// `rotary`: the pipeline's rotary embedding (see [`Self::rotary_for`]);
+    /// required for RoPE models.
+    pub fn forward(
+        &self,
+        hidden_states: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep: &Tensor,
+        rotary: Option<&Rotary>,
+        ofs: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        self.forward_with_residuals(
+            hidden_states,
+            encoder_hidden_states,
+            timestep,
+            rotary,
+            ofs,
+            &mut |_, _| None,
+        )
+    }
+
+    /// As [`Self::forward`], adding `residual(i, video)` (when `Some`,
+    /// `[B, N, D]`) to the video tokens after block `i`: the ControlNet
+    /// injection point.
+    pub fn forward_with_residuals(
+        &self,
+        hidden_states: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep: &Tensor,
+        rotary: Option<&Rotary>,
+        ofs: Option<&Tensor>,
+        residual: &mut dyn FnMut(usize, &Tensor) -> Option<Tensor>,
+    ) -> Result<Tensor> {
+        if self.cfg.use_rotary_positional_embeddings && rotary.is_none() {
+            return Err(WorldModelError::input(
+                "image_rotary_emb",
+                "this model uses rotary embeddings: pass them (rotary_for computes the pipeline's)",
+            ));
+        }
+        let emb = self.embed(hidden_states, encoder_hidden_states, timestep, ofs)?;
+        if let Some(r) = rotary {
+            if r.tokens() != emb.video.size()[1] {
+                return Err(WorldModelError::input(
+                    "image_rotary_emb",
+                    format!(
+                        "{} positions for {} video tokens",
+                        r.tokens(),
+                        emb.video.size()[1]
+                    ),
+                ));
+            }
+        }
+        let (mut video, mut text) = (emb.video.shallow_clone(), emb.text.shallow_clone());
+        for (i, block) in self.blocks.iter().enumerate() {
+            let (v, t) = block.forward(&video, &text, &emb.temb, rotary);
+            video = match residual(i, &v) {
+                Some(r) => v + r,
+                None => v,
+            };
+            text = t;
+        }
+        Ok(self.finish(&emb, &video))
+    }
+
+    /// Attaches LoRA adapters (rank, alpha) to every block's attention
+    /// projections, their variables under `p` with PEFT key names
+    /// (`transformer_blocks.{i}.attn1.to_q.lora_A.weight`, ...).
+    pub fn attach_lora(&mut self, p: &nn::Path, cfg: LoraConfig) -> Result<()> {
+        for (i, block) in self.blocks.iter_mut().enumerate() {
+            block.attach_lora(&(p / "transformer_blocks" / i), cfg)?;
+        }
+        Ok(())
+    }
+
+    /// Merges (or unmerges) every LoRA adapter into its base weight.
+    pub fn set_lora_merged(&mut self, merged: bool) {
+        for block in &mut self.blocks {
+            for (_, layer) in block.attn1.projections_mut() {
+                if merged {
+                    layer.merge();
+                } else {
+                    layer.unmerge();
+                }
+            }
+        }
+    }
+}
+
+/// A transformer with its own variable store, loaded from a diffusers folder.
+#[derive(Debug)]
+pub struct LoadedTransformer {
+    /// The variables (frozen after loading).
+    pub vs: VarStore,
+    /// The model.
+    pub model: CogVideoXTransformer3DModel,
+}
+
+impl LoadedTransformer {
+    /// Random weights for `cfg` on `device` in `precision`.
+    pub fn random(
+        cfg: &TransformerConfig,
+        device: ComputeDevice,
+        precision: Precision,
+    ) -> Result<Self> {
+        let mut vs = VarStore::new(device.check_available()?.to_tch());
+        let model = CogVideoXTransformer3DModel::new(cfg, &vs.root())?;
+        if precision == Precision::Bf16 {
+            vs.bfloat16();
+        }
+        Ok(Self { vs, model })
+    }
+
+    /// Loads `dir/config.json` and the weights (strict key match).
+    pub fn load(dir: &Path, device: ComputeDevice, precision: Precision) -> Result<Self> {
+        let cfg = TransformerConfig::from_file(&dir.join("config.json"))?;
+        let mut me = Self::random(&cfg, device, Precision::F32)?;
+        load_component(&me.vs, dir)?;
+        if precision == Precision::Bf16 {
+            me.vs.bfloat16();
+        }
+        me.vs.freeze();
+        Ok(me)
+    }
+
+    /// Parameters.
+    pub fn parameter_count(&self) -> i64 {
+        parameter_count(&self.vs)
+    }
+}
+
+/// Outputs of a `transformer` parity fixture: `sample` (with the model's own
+/// rotary embedding), `sample_fixture_rope` (with the fixture's, when given)
+/// and `rope_cos` / `rope_sin` (the model's tables, compared with the pipeline's).
+pub fn fixture_outputs(
+    model_dir: &Path,
+    io: &crate::parity::FixtureIo,
+) -> Result<Vec<(String, Tensor)>> {
+    let t = LoadedTransformer::load(model_dir, ComputeDevice::Cpu, Precision::F32)?;
+    let hidden = io.get("hidden_states")?;
+    let text = io.get("encoder_hidden_states")?;
+    let timestep = io.get("timestep")?;
+    let ofs = if io.contains("ofs") {
+        Some(io.get("ofs")?)
+    } else {
+        None
+    };
+    let rotary = t.model.rotary_for(hidden)?;
+    let mut out = vec![(
+        "sample".to_string(),
+        t.model
+            .forward(hidden, text, timestep, rotary.as_ref(), ofs)?,
+    )];
+    if let Some(r) = &rotary {
+        out.push(("rope_cos".into(), r.cos.shallow_clone()));
+        out.push(("rope_sin".into(), r.sin.shallow_clone()));
+    }
+    Ok(out)
+}

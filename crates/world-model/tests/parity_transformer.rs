@@ -1,0 +1,305 @@
+//! The CogVideoX transformer against diffusers, LoRA identities, loading and
+//! configuration errors, and parameter counts of the full-size presets.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use bridgev2w_world_model::lora::LoraConfig;
+use bridgev2w_world_model::parity::{run_fixture, DEFAULT_TOLERANCE};
+use bridgev2w_world_model::transformer::{
+    CogVideoXTransformer3DModel, LoadedTransformer, TransformerConfig,
+};
+use bridgev2w_world_model::weights::learnable_parameter_count;
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use std::path::Path;
+use tch::nn::VarStore;
+use tch::{Device, Kind, Tensor};
+
+fn check(name: &str, args: &[&str], outputs: usize) {
+    let dir = common::fixture(name, args);
+    let report = run_fixture(&dir).unwrap();
+    assert_eq!(report.outputs.len(), outputs, "{name}: outputs compared");
+    for o in &report.outputs {
+        assert!(
+            o.max_rel <= DEFAULT_TOLERANCE,
+            "{name}: {} rel {:e} abs {:e}",
+            o.name,
+            o.max_rel,
+            o.max_abs
+        );
+    }
+}
+
+#[test]
+fn i2v_rope_learned_positions_at_training_size() {
+    check(
+        "tf-5b-i2v",
+        &["transformer", "--style", "5b-i2v", "--shape", "2,3,8,8,12"],
+        3,
+    );
+}
+
+#[test]
+fn i2v_other_frame_count_falls_back_to_sincos_and_loads_shards() {
+    // 4 latent frames against sample_frames 9 (3 latent frames); sharded weights.
+    check(
+        "tf-5b-i2v-frames",
+        &[
+            "transformer",
+            "--style",
+            "5b-i2v",
+            "--shape",
+            "2,4,8,8,12",
+            "--sample-frames",
+            "9",
+            "--shard",
+        ],
+        3,
+    );
+}
+
+#[test]
+fn sincos_2b_style_other_grid_and_odd_frames() {
+    check(
+        "tf-2b-grid",
+        &[
+            "transformer",
+            "--style",
+            "2b",
+            "--shape",
+            "1,3,16,8,12",
+            "--sample-size",
+            "6,10",
+            "--sample-frames",
+            "13",
+        ],
+        1,
+    );
+}
+
+#[test]
+fn cogvideox_1_5_temporal_patches_and_ofs() {
+    check(
+        "tf-1.5",
+        &[
+            "transformer",
+            "--style",
+            "5b-i2v",
+            "--shape",
+            "1,4,8,8,12",
+            "--config-json",
+            r#"{"ofs_embed_dim": 32, "patch_size_t": 2, "use_learned_positional_embeddings": false}"#,
+        ],
+        3,
+    );
+}
+
+fn tiny_inputs(cfg: &TransformerConfig, b: i64, f: i64) -> (Tensor, Tensor, Tensor) {
+    tch::manual_seed(7);
+    let opts = (Kind::Float, Device::Cpu);
+    (
+        Tensor::randn(
+            [b, f, cfg.in_channels, cfg.sample_height, cfg.sample_width],
+            opts,
+        ),
+        Tensor::randn([b, cfg.max_text_seq_length, cfg.text_embed_dim], opts),
+        Tensor::from_slice(&[3i64, 977][..b as usize]),
+    )
+}
+
+#[test]
+fn lora_with_zero_b_is_the_base_model_and_merging_is_exact() {
+    let cfg = TransformerConfig::tiny();
+    let vs = VarStore::new(Device::Cpu);
+    let mut model = CogVideoXTransformer3DModel::new(&cfg, &vs.root()).unwrap();
+    let (x, text, t) = tiny_inputs(&cfg, 2, 3);
+    let rot = model.rotary_for(&x).unwrap();
+    let base = model.forward(&x, &text, &t, rot.as_ref(), None).unwrap();
+    let adapters = VarStore::new(Device::Cpu);
+    model
+        .attach_lora(
+            &adapters.root(),
+            LoraConfig {
+                rank: 4,
+                alpha: 8.0,
+            },
+        )
+        .unwrap();
+    // PEFT key names.
+    let keys = adapters.variables();
+    assert!(
+        keys.contains_key("transformer_blocks.1.attn1.to_out.0.lora_B.weight"),
+        "{:?}",
+        keys.keys()
+    );
+    assert_eq!(keys.len(), 2 * 4 * cfg.num_layers as usize);
+    let with_zero_b = model.forward(&x, &text, &t, rot.as_ref(), None).unwrap();
+    assert_eq!(
+        f64::try_from((&with_zero_b - &base).abs().max()).unwrap(),
+        0.0
+    );
+    // Non-zero B changes the output; merging gives the same output.
+    tch::no_grad(|| {
+        for (k, v) in adapters.variables() {
+            if k.ends_with("lora_B.weight") {
+                let mut v = v;
+                v.copy_(&(Tensor::randn_like(&v) * 0.05));
+            }
+        }
+    });
+    let adapted = model.forward(&x, &text, &t, rot.as_ref(), None).unwrap();
+    assert!(f64::try_from((&adapted - &base).abs().max()).unwrap() > 1e-4);
+    model.set_lora_merged(true);
+    let merged = model.forward(&x, &text, &t, rot.as_ref(), None).unwrap();
+    assert!(f64::try_from((&merged - &adapted).abs().max()).unwrap() < 1e-5);
+    model.set_lora_merged(false);
+    let unmerged = model.forward(&x, &text, &t, rot.as_ref(), None).unwrap();
+    assert!(f64::try_from((&unmerged - &adapted).abs().max()).unwrap() < 1e-5);
+}
+
+#[test]
+fn residual_hook_sees_every_block_and_zero_residuals_change_nothing() {
+    let cfg = TransformerConfig::tiny();
+    let vs = VarStore::new(Device::Cpu);
+    let model = CogVideoXTransformer3DModel::new(&cfg, &vs.root()).unwrap();
+    let (x, text, t) = tiny_inputs(&cfg, 1, 3);
+    let rot = model.rotary_for(&x).unwrap();
+    let base = model.forward(&x, &text, &t, rot.as_ref(), None).unwrap();
+    let mut seen = vec![];
+    let zero = model
+        .forward_with_residuals(&x, &text, &t, rot.as_ref(), None, &mut |i, v| {
+            seen.push(i);
+            Some(v.zeros_like())
+        })
+        .unwrap();
+    assert_eq!(seen, (0..cfg.num_layers as usize).collect::<Vec<_>>());
+    assert_eq!(f64::try_from((&zero - &base).abs().max()).unwrap(), 0.0);
+    let pushed = model
+        .forward_with_residuals(&x, &text, &t, rot.as_ref(), None, &mut |i, v| {
+            (i == 0).then(|| v.randn_like())
+        })
+        .unwrap();
+    assert!(f64::try_from((&pushed - &base).abs().max()).unwrap() > 1e-3);
+}
+
+#[test]
+fn errors_name_the_problem() {
+    let cfg = TransformerConfig::tiny();
+    let vs = VarStore::new(Device::Cpu);
+    let model = CogVideoXTransformer3DModel::new(&cfg, &vs.root()).unwrap();
+    let (x, text, t) = tiny_inputs(&cfg, 1, 3);
+    // Learned positions at another resolution: diffusers refuses too.
+    let wide = Tensor::randn([1, 3, cfg.in_channels, 8, 16], (Kind::Float, Device::Cpu));
+    let rot = model.rotary_for(&wide).unwrap();
+    let e = model
+        .forward(&wide, &text, &t, rot.as_ref(), None)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("training size 8x12"), "{e}");
+    // RoPE model without rotary tables.
+    let e = model
+        .forward(&x, &text, &t, None, None)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("rotary"), "{e}");
+    // Wrong channel count.
+    let bad = x.narrow(2, 0, 4);
+    let e = model
+        .forward(
+            &bad,
+            &text,
+            &t,
+            model.rotary_for(&bad).unwrap().as_ref(),
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("4 channels"), "{e}");
+    // Config validation names the field.
+    let mut bad_cfg = TransformerConfig::tiny();
+    bad_cfg.attention_head_dim = 12;
+    let e = bad_cfg
+        .validate(Path::new("cfg.json"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("attention_head_dim") && e.contains("cfg.json"),
+        "{e}"
+    );
+    // Strict loading: a weight missing from the file is named.
+    let dir = common::fixture(
+        "tf-5b-i2v",
+        &["transformer", "--style", "5b-i2v", "--shape", "2,3,8,8,12"],
+    )
+    .join("model");
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::copy(dir.join("config.json"), tmp.path().join("config.json")).unwrap();
+    let named: Vec<(String, Tensor)> = bridgev2w_world_model::weights::read_safetensors(
+        &dir.join("diffusion_pytorch_model.safetensors"),
+    )
+    .unwrap()
+    .into_iter()
+    .filter(|(k, _)| k != "proj_out.bias")
+    .collect();
+    bridgev2w_world_model::weights::save_safetensors(
+        &named,
+        &tmp.path().join("diffusion_pytorch_model.safetensors"),
+    )
+    .unwrap();
+    let e = LoadedTransformer::load(tmp.path(), ComputeDevice::Cpu, Precision::F32)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("proj_out.bias"), "{e}");
+}
+
+/// diffusers' parameter count for `cfg` (meta device).
+fn diffusers_count(cfg: &TransformerConfig) -> i64 {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("config.json");
+    std::fs::write(&path, serde_json::to_string(cfg).unwrap()).unwrap();
+    let out = std::process::Command::new(common::venv_python())
+        .arg(common::repo_root().join("scripts/parity/param_count.py"))
+        .args(["--component", "transformer", "--config"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    v["parameters"].as_i64().unwrap()
+}
+
+fn rust_count(cfg: &TransformerConfig) -> i64 {
+    let vs = VarStore::new(Device::Cpu);
+    let _model = CogVideoXTransformer3DModel::new(cfg, &vs.root()).unwrap();
+    learnable_parameter_count(&vs)
+}
+
+/// The full-size presets: one- and two-block models at full width are built
+/// (a few hundred million parameters each), the per-block count extrapolated
+/// to all blocks; each is checked against diffusers.
+fn check_full_size(full: TransformerConfig) {
+    let with_layers = |n| TransformerConfig {
+        num_layers: n,
+        ..full.clone()
+    };
+    let (one, two) = (rust_count(&with_layers(1)), rust_count(&with_layers(2)));
+    assert_eq!(one, diffusers_count(&with_layers(1)));
+    assert_eq!(two, diffusers_count(&with_layers(2)));
+    let extrapolated = one + (full.num_layers - 1) * (two - one);
+    assert_eq!(extrapolated, diffusers_count(&full));
+}
+
+#[test]
+fn parameter_count_of_cogvideox_5b_i2v_matches_diffusers() {
+    check_full_size(TransformerConfig::cogvideox_5b_i2v());
+}
+
+#[test]
+fn parameter_count_of_cogvideox_2b_matches_diffusers() {
+    check_full_size(TransformerConfig::cogvideox_2b());
+}
