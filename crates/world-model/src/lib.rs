@@ -16,6 +16,7 @@ pub mod parity;
 pub mod pipeline;
 pub mod scheduler;
 pub mod transformer;
+pub mod vae;
 pub mod video;
 pub mod weights;
 

@@ -137,6 +137,7 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
             "lpips" => crate::nets::lpips::fixture_outputs(&model_dir, &io),
             "raft" => crate::nets::raft::fixture_outputs(&model_dir, &meta, &io),
             "transformer" => crate::transformer::fixture_outputs(&model_dir, &io),
+            "vae" => crate::vae::parity_outputs(&model_dir, &meta, &meta_path, &io),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",

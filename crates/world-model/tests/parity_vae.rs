@@ -1,0 +1,180 @@
+//! The CogVideoX VAE against diffusers (frame batching, odd and even frame
+//! counts, slicing, tiling, the full-size architecture), loading and
+//! configuration errors, and parameter counts of the presets.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use bridgev2w_world_model::parity::{run_fixture, DEFAULT_TOLERANCE};
+use bridgev2w_world_model::vae::{AutoencoderKLCogVideoX, VaeConfig};
+use bridgev2w_world_model::weights::learnable_parameter_count;
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use std::path::Path;
+use tch::nn::VarStore;
+use tch::Device;
+
+fn check(name: &str, args: &[&str]) {
+    let dir = common::fixture(name, args);
+    let report = run_fixture(&dir).unwrap();
+    assert_eq!(
+        report.outputs.len(),
+        3,
+        "{name}: latent_sample, latent_mean, decoded"
+    );
+    for o in &report.outputs {
+        assert!(
+            o.max_rel <= DEFAULT_TOLERANCE,
+            "{name}: {} rel {:e} abs {:e}",
+            o.name,
+            o.max_rel,
+            o.max_abs
+        );
+    }
+}
+
+#[test]
+fn nine_frames_one_encoder_batch() {
+    check("vae-9", &["vae", "--frames", "9"]);
+}
+
+#[test]
+fn seventeen_frames_two_batches_with_slicing() {
+    // Encoder batches 9 + 8 frames, decoder 3 + 2 latent frames; batch 2 sliced.
+    check(
+        "vae-17-sliced",
+        &[
+            "vae",
+            "--frames",
+            "17",
+            "--batch",
+            "2",
+            "--slicing",
+            "--height",
+            "24",
+            "--width",
+            "16",
+        ],
+    );
+}
+
+#[test]
+fn even_frame_count_and_other_latent_length() {
+    check("vae-8", &["vae", "--frames", "8"]);
+    check(
+        "vae-13-dec4",
+        &["vae", "--frames", "13", "--latent-frames", "4"],
+    );
+}
+
+#[test]
+fn spatial_tiling_with_blending() {
+    check(
+        "vae-tiled",
+        &[
+            "vae",
+            "--frames",
+            "9",
+            "--height",
+            "96",
+            "--width",
+            "80",
+            "--tiling",
+            "--tile-sample-height",
+            "64",
+            "--tile-sample-width",
+            "48",
+            "--tile-overlap-height",
+            "0.25",
+            "--tile-overlap-width",
+            "0.25",
+        ],
+    );
+}
+
+#[test]
+fn full_size_cogvideox_architecture_on_a_small_clip() {
+    check(
+        "vae-5b-i2v",
+        &[
+            "vae",
+            "--preset",
+            "cogvideox-5b-i2v",
+            "--frames",
+            "9",
+            "--height",
+            "16",
+            "--width",
+            "16",
+        ],
+    );
+}
+
+#[test]
+fn loading_and_config_errors_name_the_problem() {
+    let dir = common::fixture("vae-9", &["vae", "--frames", "9"]).join("model");
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::copy(dir.join("config.json"), tmp.path().join("config.json")).unwrap();
+    let named: Vec<(String, tch::Tensor)> = bridgev2w_world_model::weights::read_safetensors(
+        &dir.join("diffusion_pytorch_model.safetensors"),
+    )
+    .unwrap()
+    .into_iter()
+    .filter(|(k, _)| k != "decoder.conv_out.conv.bias")
+    .collect();
+    bridgev2w_world_model::weights::save_safetensors(
+        &named,
+        &tmp.path().join("diffusion_pytorch_model.safetensors"),
+    )
+    .unwrap();
+    let e = AutoencoderKLCogVideoX::load(tmp.path(), ComputeDevice::Cpu, Precision::F32)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("decoder.conv_out.conv.bias"), "{e}");
+    let mut cfg = VaeConfig::tiny();
+    cfg.norm_num_groups = 5;
+    let e = cfg
+        .validate(Path::new("vae/config.json"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("vae/config.json") && e.contains("norm_num_groups"),
+        "{e}"
+    );
+}
+
+fn diffusers_count(cfg: &VaeConfig) -> i64 {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("config.json");
+    std::fs::write(&path, serde_json::to_string(cfg).unwrap()).unwrap();
+    let out = std::process::Command::new(common::venv_python())
+        .arg(common::repo_root().join("scripts/parity/param_count.py"))
+        .args(["--component", "vae", "--config"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    v["parameters"].as_i64().unwrap()
+}
+
+#[test]
+fn parameter_counts_match_diffusers() {
+    for cfg in [
+        VaeConfig::cogvideox_5b_i2v(),
+        VaeConfig::cogvideox_2b(),
+        VaeConfig::tiny(),
+    ] {
+        let vs = VarStore::new(Device::Cpu);
+        let _vae = AutoencoderKLCogVideoX::new(&cfg, vs.root()).unwrap();
+        assert_eq!(
+            learnable_parameter_count(&vs),
+            diffusers_count(&cfg),
+            "{cfg:?}"
+        );
+    }
+}
