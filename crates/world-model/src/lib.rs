@@ -7,7 +7,9 @@
 //! The tensor engine is libtorch through `tch`; the public entry points take and
 //! return this crate's own types.
 
+pub mod bridge;
 pub mod checkpoint;
+pub mod controlnet;
 pub mod device;
 pub mod error;
 pub mod lora;

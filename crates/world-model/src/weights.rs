@@ -221,3 +221,111 @@ pub fn learnable_parameter_count(vs: &VarStore) -> i64 {
         .map(|t| t.numel() as i64)
         .sum()
 }
+
+/// Reads the header of a safetensors file: `(header JSON, byte offset of the data)`.
+fn read_safetensors_header(
+    path: &Path,
+) -> Result<(serde_json::Map<String, serde_json::Value>, u64)> {
+    use std::io::Read;
+    let bad = |m: String| {
+        WorldModelError::io(
+            path,
+            std::io::Error::new(std::io::ErrorKind::InvalidData, m),
+        )
+    };
+    let mut f = std::fs::File::open(path).map_err(|e| WorldModelError::io(path, e))?;
+    let file_len = f
+        .metadata()
+        .map_err(|e| WorldModelError::io(path, e))?
+        .len();
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len)
+        .map_err(|_| bad("not a safetensors file: shorter than its 8-byte header length".into()))?;
+    let n = u64::from_le_bytes(len);
+    if n.saturating_add(8) > file_len || n > 100 << 20 {
+        return Err(bad(format!(
+            "not a safetensors file: header length {n} for a {file_len}-byte file"
+        )));
+    }
+    let mut header = vec![0u8; n as usize];
+    f.read_exact(&mut header)
+        .map_err(|e| bad(format!("truncated header: {e}")))?;
+    let value: serde_json::Value = serde_json::from_slice(&header)
+        .map_err(|e| bad(format!("safetensors header is not JSON: {e}")))?;
+    match value {
+        serde_json::Value::Object(map) => Ok((map, 8 + n)),
+        _ => Err(bad("safetensors header is not a JSON object".into())),
+    }
+}
+
+/// The `__metadata__` string map of a safetensors file (empty when absent).
+pub fn read_safetensors_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
+    let (header, _) = read_safetensors_header(path)?;
+    let mut out = BTreeMap::new();
+    if let Some(serde_json::Value::Object(meta)) = header.get("__metadata__") {
+        for (k, v) in meta {
+            if let Some(s) = v.as_str() {
+                out.insert(k.clone(), s.to_owned());
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// As [`save_safetensors`], with a `__metadata__` string map in the header (as
+/// the `safetensors` library's `metadata=`), written atomically.
+pub fn save_safetensors_with_metadata(
+    named: &[(String, Tensor)],
+    metadata: &BTreeMap<String, String>,
+    path: &Path,
+) -> Result<()> {
+    use std::io::{Seek, SeekFrom, Write};
+    let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
+    let dir = dir.unwrap_or(Path::new("."));
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "weights".to_owned());
+    let plain = dir.join(format!(".{file_name}.plain-{}", std::process::id()));
+    save_safetensors(named, &plain)?;
+    let result = (|| -> Result<()> {
+        let (mut header, data_start) = read_safetensors_header(&plain)?;
+        header.insert(
+            "__metadata__".to_owned(),
+            serde_json::Value::Object(
+                metadata
+                    .iter()
+                    .map(|(k, v)| (k.clone(), serde_json::Value::String(v.clone())))
+                    .collect(),
+            ),
+        );
+        let mut json = serde_json::to_vec(&header).map_err(|e| WorldModelError::Json {
+            path: path.to_path_buf(),
+            error: e,
+        })?;
+        // Pad with spaces so the data starts 8-byte aligned, as the library does.
+        while (json.len() + 8) % 8 != 0 {
+            json.push(b' ');
+        }
+        let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
+        let io = |e| WorldModelError::io(&tmp, e);
+        let mut src = std::fs::File::open(&plain).map_err(|e| WorldModelError::io(&plain, e))?;
+        src.seek(SeekFrom::Start(data_start))
+            .map_err(|e| WorldModelError::io(&plain, e))?;
+        let mut dst = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(io)?);
+        dst.write_all(&(json.len() as u64).to_le_bytes())
+            .map_err(io)?;
+        dst.write_all(&json).map_err(io)?;
+        std::io::copy(&mut src, &mut dst).map_err(io)?;
+        dst.into_inner()
+            .map_err(|e| io(e.into_error()))?
+            .sync_all()
+            .map_err(io)?;
+        std::fs::rename(&tmp, path).map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            WorldModelError::io(path, e)
+        })
+    })();
+    let _ = std::fs::remove_file(&plain);
+    result
+}

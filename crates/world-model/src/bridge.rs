@@ -1,0 +1,606 @@
+//! The BridgeV2W model: a CogVideoX image-to-video backbone (VAE + transformer,
+//! frozen), LoRA adapters on its attention, and the mask [`ControlNet`] branch;
+//! it implements [`Denoiser`] and [`WorldModel`].
+//!
+//! Files: the backbone is a diffusers pipeline folder (loaded unchanged); BridgeV2W's
+//! own weights (ControlNet + LoRA) are one safetensors file with keys
+//! `controlnet.*` and `transformer.transformer_blocks.{i}.attn1.{to_q,to_k,to_v,to_out.0}.lora_{A,B}.weight`
+//! and its [`BridgeV2WConfig`] as JSON in the header's `__metadata__["bridgev2w_config"]`.
+
+use crate::checkpoint::{PipelineFolder, PromptEmbedding};
+use crate::controlnet::{ControlNet, ControlNetConfig};
+use crate::device::{ComputeDevice, Precision};
+use crate::error::{Result, WorldModelError};
+use crate::lora::LoraConfig;
+use crate::pipeline::{sample_latents, Denoiser, Guidance, PredictOptions, WorldModel};
+use crate::scheduler::{Scheduler, SchedulerConfig};
+use crate::transformer::{LoadedTransformer, TransformerConfig};
+use crate::vae::{AutoencoderKLCogVideoX, VaeConfig};
+use crate::video::{Image, MaskVideo, Video};
+use crate::weights::{
+    load_weights, read_safetensors_metadata, save_safetensors, save_safetensors_with_metadata,
+    DIFFUSERS_WEIGHTS_STEM,
+};
+use std::collections::BTreeMap;
+use std::path::Path;
+use tch::nn::VarStore;
+use tch::{Device, Kind, Tensor};
+
+/// The metadata key of the config in a BridgeV2W weights file.
+pub const CONFIG_METADATA_KEY: &str = "bridgev2w_config";
+
+/// BridgeV2W's own settings (the backbone's are in its diffusers configs).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct BridgeV2WConfig {
+    /// Pixel frames per clip (`4k + 1`; the paper: 25).
+    pub frames: usize,
+    /// Pixel height (the paper: 480).
+    pub height: usize,
+    /// Pixel width (the paper: 720).
+    pub width: usize,
+    /// The mask branch.
+    pub controlnet: ControlNetConfig,
+    /// LoRA on the backbone's attention (none: the backbone is used as is).
+    pub lora: Option<LoraConfig>,
+}
+
+impl Default for BridgeV2WConfig {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+impl BridgeV2WConfig {
+    /// The paper's setting: 25 frames at 480x720, 8 branch blocks, LoRA 64/64.
+    pub fn paper() -> Self {
+        Self {
+            frames: 25,
+            height: 480,
+            width: 720,
+            controlnet: ControlNetConfig::default(),
+            lora: Some(LoraConfig::paper()),
+        }
+    }
+
+    /// Test size (for the `tiny` VAE and transformer presets): 9 frames at
+    /// 64x96, one branch block, LoRA rank 4.
+    pub fn tiny() -> Self {
+        Self {
+            frames: 9,
+            height: 64,
+            width: 96,
+            controlnet: ControlNetConfig::with_layers(1),
+            lora: Some(LoraConfig {
+                rank: 4,
+                alpha: 4.0,
+            }),
+        }
+    }
+
+    /// Checks the clip shape against the VAE and transformer.
+    pub fn validate(&self, vae: &VaeConfig, tf: &TransformerConfig) -> Result<()> {
+        let t = vae.temporal_compression_ratio as usize;
+        if self.frames == 0 || (self.frames - 1) % t.max(1) != 0 {
+            return Err(WorldModelError::input(
+                "frames",
+                format!(
+                    "{}: expected {t}k + 1 (the VAE's temporal compression)",
+                    self.frames
+                ),
+            ));
+        }
+        let m = (vae.spatial_compression() * tf.patch_size) as usize;
+        if self.height == 0 || self.width == 0 || self.height % m != 0 || self.width % m != 0 {
+            return Err(WorldModelError::input(
+                "resolution",
+                format!(
+                    "{}x{} (HxW): expected multiples of {m} (VAE downsampling x patch size)",
+                    self.height, self.width
+                ),
+            ));
+        }
+        if tf.in_channels != 2 * vae.latent_channels {
+            return Err(WorldModelError::input(
+                "transformer.in_channels",
+                format!(
+                    "{}: an image-to-video backbone takes 2 x {} latent channels",
+                    tf.in_channels, vae.latent_channels
+                ),
+            ));
+        }
+        self.controlnet.validate(tf)
+    }
+
+    /// Latent frames of a clip.
+    pub fn latent_frames(&self, vae: &VaeConfig) -> usize {
+        (self.frames - 1) / vae.temporal_compression_ratio as usize + 1
+    }
+}
+
+/// The BridgeV2W model.
+#[derive(Debug)]
+pub struct BridgeV2W {
+    cfg: BridgeV2WConfig,
+    /// The VAE's variables.
+    pub vae_vs: VarStore,
+    /// The 3D causal VAE.
+    pub vae: AutoencoderKLCogVideoX,
+    /// The backbone (variables frozen).
+    pub transformer: LoadedTransformer,
+    /// BridgeV2W's trainable variables: `controlnet.*` and the LoRA adapters.
+    pub adapters: VarStore,
+    /// The mask branch.
+    pub controlnet: ControlNet,
+    /// The sampler's configuration.
+    pub scheduler: SchedulerConfig,
+    /// The fixed prompt's embedding `[L, text_dim]`.
+    pub prompt: Tensor,
+    device: Device,
+    kind: Kind,
+}
+
+impl BridgeV2W {
+    /// Assembles the model around a VAE and a backbone: creates the branch
+    /// (blocks copied from the backbone's first `N`) and the LoRA adapters.
+    pub fn assemble(
+        cfg: BridgeV2WConfig,
+        mut vae_vs: VarStore,
+        vae: AutoencoderKLCogVideoX,
+        mut transformer: LoadedTransformer,
+        scheduler: SchedulerConfig,
+        prompt: PromptEmbedding,
+    ) -> Result<Self> {
+        let tf_cfg = transformer.model.config().clone();
+        cfg.validate(vae.config(), &tf_cfg)?;
+        let device = transformer.vs.device();
+        let kind = transformer
+            .vs
+            .variables()
+            .values()
+            .next()
+            .map(|t| t.kind())
+            .unwrap_or(Kind::Float);
+        let mut adapters = VarStore::new(device);
+        let controlnet =
+            ControlNet::new(&tf_cfg, &cfg.controlnet, &(adapters.root() / "controlnet"))?;
+        if let Some(lora) = cfg.lora {
+            transformer
+                .model
+                .attach_lora(&(adapters.root() / "transformer"), lora)?;
+        }
+        controlnet.copy_from_backbone(&transformer.vs, &adapters, "controlnet")?;
+        if kind != Kind::Float {
+            adapters.set_kind(kind);
+        }
+        transformer.vs.freeze();
+        vae_vs.freeze();
+        let prompt = prompt.embeds.to_device(device).to_kind(kind);
+        Ok(Self {
+            cfg,
+            vae_vs,
+            vae,
+            transformer,
+            adapters,
+            controlnet,
+            scheduler,
+            prompt,
+            device,
+            kind,
+        })
+    }
+
+    /// A model with random backbone weights (tests, and training a prior from scratch).
+    pub fn random(
+        cfg: BridgeV2WConfig,
+        vae_cfg: &VaeConfig,
+        tf_cfg: &TransformerConfig,
+        scheduler: SchedulerConfig,
+        device: ComputeDevice,
+        seed: i64,
+    ) -> Result<Self> {
+        tch::manual_seed(seed);
+        let vae_vs = VarStore::new(device.check_available()?.to_tch());
+        let vae = AutoencoderKLCogVideoX::new(vae_cfg, vae_vs.root())?;
+        let transformer = LoadedTransformer::random(tf_cfg, device, Precision::F32)?;
+        let prompt = PromptEmbedding::zeros(tf_cfg.max_text_seq_length, tf_cfg.text_embed_dim);
+        Self::assemble(cfg, vae_vs, vae, transformer, scheduler, prompt)
+    }
+
+    /// Loads a diffusers CogVideoX image-to-video folder, then BridgeV2W's weights
+    /// file when given (its config then overrides `cfg`), and the prompt embedding
+    /// (zeros of `[max_text_seq_length, text_embed_dim]` when absent).
+    pub fn load(
+        pipeline_dir: &Path,
+        weights: Option<&Path>,
+        prompt: Option<&Path>,
+        cfg: BridgeV2WConfig,
+        device: ComputeDevice,
+        precision: Precision,
+    ) -> Result<Self> {
+        let folder = PipelineFolder::open(pipeline_dir)?;
+        let device = device.check_available()?;
+        let vae_dir = folder.component_dir("vae");
+        let vae_cfg = VaeConfig::from_file(&vae_dir.join("config.json"))?;
+        let mut vae_vs = VarStore::new(device.to_tch());
+        let vae = AutoencoderKLCogVideoX::new(&vae_cfg, vae_vs.root())?;
+        crate::weights::load_component(&vae_vs, &vae_dir)?;
+        if precision == Precision::Bf16 && !vae_cfg.force_upcast {
+            vae_vs.bfloat16();
+        }
+        let transformer =
+            LoadedTransformer::load(&folder.component_dir("transformer"), device, precision)?;
+        let tf_cfg = transformer.model.config().clone();
+        let scheduler = SchedulerConfig::load(
+            &folder
+                .component_dir("scheduler")
+                .join("scheduler_config.json"),
+        )?;
+        let prompt = match prompt {
+            Some(p) => PromptEmbedding::load(p, tf_cfg.text_embed_dim)?,
+            None => PromptEmbedding::zeros(tf_cfg.max_text_seq_length, tf_cfg.text_embed_dim),
+        };
+        let cfg = match weights {
+            Some(w) => Self::weights_config(w)?.unwrap_or(cfg),
+            None => cfg,
+        };
+        let me = Self::assemble(cfg, vae_vs, vae, transformer, scheduler, prompt)?;
+        if let Some(w) = weights {
+            me.load_weights(w)?;
+        }
+        Ok(me)
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &BridgeV2WConfig {
+        &self.cfg
+    }
+
+    /// The tch device the model runs on.
+    pub fn device(&self) -> Device {
+        self.device
+    }
+
+    /// The BridgeV2W config stored in a weights file, if any.
+    pub fn weights_config(path: &Path) -> Result<Option<BridgeV2WConfig>> {
+        let meta = read_safetensors_metadata(path)?;
+        meta.get(CONFIG_METADATA_KEY)
+            .map(|s| {
+                serde_json::from_str(s).map_err(|e| {
+                    WorldModelError::config(
+                        path,
+                        CONFIG_METADATA_KEY,
+                        format!("not a BridgeV2W config: {e}"),
+                    )
+                })
+            })
+            .transpose()
+    }
+
+    /// Writes the ControlNet + LoRA weights and the config, atomically.
+    pub fn save_weights(&self, path: &Path) -> Result<()> {
+        let mut named: Vec<(String, Tensor)> = self.adapters.variables().into_iter().collect();
+        named.sort_by(|a, b| a.0.cmp(&b.0));
+        let mut meta = BTreeMap::new();
+        meta.insert(
+            CONFIG_METADATA_KEY.to_owned(),
+            serde_json::to_string(&self.cfg).map_err(|e| WorldModelError::Json {
+                path: path.to_path_buf(),
+                error: e,
+            })?,
+        );
+        meta.insert("format".to_owned(), "bridgev2w".to_owned());
+        save_safetensors_with_metadata(&named, &meta, path)
+    }
+
+    /// Loads ControlNet + LoRA weights (strict: every variable, no extras).
+    pub fn load_weights(&self, path: &Path) -> Result<()> {
+        load_weights(&self.adapters, &[path.to_path_buf()], |_| false, |_| false)?;
+        Ok(())
+    }
+
+    /// Writes the backbone as a diffusers pipeline folder (`model_index.json`,
+    /// `vae/`, `transformer/`, `scheduler/`), loadable by [`Self::load`] and by
+    /// diffusers' `CogVideoXImageToVideoPipeline` components.
+    pub fn save_backbone(&self, dir: &Path) -> Result<()> {
+        let write_json = |path: &Path, value: &serde_json::Value| -> Result<()> {
+            let text = serde_json::to_string_pretty(value).map_err(|e| WorldModelError::Json {
+                path: path.to_path_buf(),
+                error: e,
+            })?;
+            crate::error::write_atomic(path, text.as_bytes())
+        };
+        let with_class = |value: serde_json::Value, class: &str| {
+            let mut v = value;
+            if let Some(o) = v.as_object_mut() {
+                o.insert("_class_name".into(), class.into());
+                o.insert("_diffusers_version".into(), "0.42.1".into());
+            }
+            v
+        };
+        let to_value = |v: Result<serde_json::Value, serde_json::Error>, path: &Path| {
+            v.map_err(|e| WorldModelError::Json {
+                path: path.to_path_buf(),
+                error: e,
+            })
+        };
+        for sub in ["vae", "transformer", "scheduler"] {
+            std::fs::create_dir_all(dir.join(sub)).map_err(|e| WorldModelError::io(dir, e))?;
+        }
+        let p = dir.join("vae/config.json");
+        write_json(
+            &p,
+            &with_class(
+                to_value(serde_json::to_value(self.vae.config()), &p)?,
+                "AutoencoderKLCogVideoX",
+            ),
+        )?;
+        save_vars(&self.vae_vs, &dir.join("vae"))?;
+        let p = dir.join("transformer/config.json");
+        write_json(
+            &p,
+            &with_class(
+                to_value(serde_json::to_value(self.transformer.model.config()), &p)?,
+                "CogVideoXTransformer3DModel",
+            ),
+        )?;
+        save_vars(&self.transformer.vs, &dir.join("transformer"))?;
+        let p = dir.join("scheduler/scheduler_config.json");
+        write_json(&p, &to_value(serde_json::to_value(&self.scheduler), &p)?)?;
+        let sched_class = self
+            .scheduler
+            .class_name
+            .clone()
+            .unwrap_or_else(|| "CogVideoXDDIMScheduler".to_owned());
+        write_json(
+            &dir.join("model_index.json"),
+            &serde_json::json!({
+                "_class_name": "CogVideoXImageToVideoPipeline",
+                "_diffusers_version": "0.42.1",
+                "scheduler": ["diffusers", sched_class],
+                "transformer": ["diffusers", "CogVideoXTransformer3DModel"],
+                "vae": ["diffusers", "AutoencoderKLCogVideoX"],
+                "text_encoder": [null, null],
+                "tokenizer": [null, null],
+            }),
+        )
+    }
+
+    fn latent_geometry(&self) -> (i64, i64, i64) {
+        let s = self.vae.config().spatial_compression() as usize;
+        (
+            self.cfg.latent_frames(self.vae.config()) as i64,
+            (self.cfg.height / s) as i64,
+            (self.cfg.width / s) as i64,
+        )
+    }
+
+    /// Scaled VAE latents `[B, t, C, h, w]` of a video `[B, 3, T, H, W]` in
+    /// [-1, 1]: the posterior mean, or a sample with `seed`.
+    pub fn encode_latents(&self, video: &Tensor, seed: Option<u64>) -> Result<Tensor> {
+        let post = self.vae.encode(video)?;
+        let z = match seed {
+            Some(s) => post.sample(s)?,
+            None => post.mode(),
+        };
+        Ok(self
+            .vae
+            .scale_latents(&z)
+            .permute([0, 2, 1, 3, 4]) // [B, C, t, h, w] -> [B, t, C, h, w]
+            .to_device(self.device)
+            .to_kind(self.kind))
+    }
+
+    /// The pipeline's image latents `[B, t, C, h, w]`: the first frame's latents
+    /// (`first_frames` `[B, 3, H, W]` in [-1, 1]) followed by zeros.
+    pub fn image_latents(&self, first_frames: &Tensor, seed: Option<u64>) -> Result<Tensor> {
+        let z = self.encode_latents(&first_frames.unsqueeze(2), seed)?; // [B, 1, C, h, w]
+        let s = z.size();
+        let (t, _, _) = self.latent_geometry();
+        let pad = Tensor::zeros([s[0], t - 1, s[2], s[3], s[4]], (self.kind, self.device));
+        Ok(Tensor::cat(&[&z, &pad], 1)) // [B, t, C, h, w]
+    }
+
+    /// The branch input `[B, t, 2C, h, w]`: mask latents (`masks` `[B, 3, T, H, W]`
+    /// in {-1, 1}) ++ image latents.
+    pub fn control_latents(&self, masks: &Tensor, image_latents: &Tensor) -> Result<Tensor> {
+        let zm = self.encode_latents(masks, None)?;
+        if zm.size() != image_latents.size() {
+            return Err(WorldModelError::input(
+                "masks",
+                format!(
+                    "mask latents {:?} but image latents {:?} (same frames and size needed)",
+                    zm.size(),
+                    image_latents.size()
+                ),
+            ));
+        }
+        Ok(Tensor::cat(&[&zm, image_latents], 2))
+    }
+
+    /// The predicted velocity `[B, t, C, h, w]` for `latent_in` `[B, t, 2C, h, w]`
+    /// (noisy latents ++ image latents) at `timestep` `[B]`, with the mask branch
+    /// when `control` (`[B, t, 2C, h, w]`) is given. Differentiable in the
+    /// adapters' variables.
+    pub fn velocity_with(
+        &self,
+        latent_in: &Tensor,
+        timestep: &Tensor,
+        control: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let model = &self.transformer.model;
+        let latent_in = latent_in.to_device(self.device).to_kind(self.kind);
+        let b = latent_in.size()[0];
+        let l = self.prompt.size()[0];
+        let text = self
+            .prompt
+            .unsqueeze(0)
+            .expand([b, l, self.prompt.size()[1]], false); // [B, L, D_text]
+        let rotary = model.rotary_for(&latent_in)?;
+        let ofs = model
+            .config()
+            .ofs_embed_dim
+            .map(|_| Tensor::full([b], 2.0, (Kind::Float, self.device)));
+        let timestep = timestep.to_device(self.device);
+        let residuals = match control {
+            Some(c) => {
+                let temb = model.time_embed(&timestep, ofs.as_ref(), self.kind)?;
+                let c = c.to_device(self.device).to_kind(self.kind);
+                self.controlnet
+                    .residuals(&c, &text, &temb, rotary.as_ref())?
+            }
+            None => Vec::new(),
+        };
+        model.forward_with_residuals(
+            &latent_in,
+            &text,
+            &timestep,
+            rotary.as_ref(),
+            ofs.as_ref(),
+            &mut |i, _| residuals.get(i).map(|r| r.shallow_clone()),
+        )
+    }
+
+    /// Samples a clip's latents `[B, t, C, h, w]` from image latents and control latents.
+    pub fn sample(
+        &self,
+        image_latents: &Tensor,
+        control: &Tensor,
+        opts: &PredictOptions,
+    ) -> Result<Tensor> {
+        let mut scheduler = Scheduler::new(self.scheduler.clone())?;
+        let denoiser = Conditioned {
+            model: self,
+            control,
+        };
+        tch::no_grad(|| sample_latents(&denoiser, &mut scheduler, image_latents, &opts.sample))
+    }
+
+    /// Decodes scaled latents `[B, t, C, h, w]` into videos `[B, 3, T, H, W]` in [-1, 1].
+    pub fn decode_latents(&self, latents: &Tensor) -> Result<Tensor> {
+        let z = self.vae.unscale_latents(&latents.permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
+        self.vae.decode(&z.to_kind(Kind::Float))
+    }
+
+    fn check_inputs(&self, first_frame: &Image, masks: &MaskVideo) -> Result<()> {
+        let (h, w, t) = (self.cfg.height, self.cfg.width, self.cfg.frames);
+        if (first_frame.height, first_frame.width) != (h, w) {
+            return Err(WorldModelError::input(
+                "first_frame",
+                format!(
+                    "{}x{} (HxW): the model works at {h}x{w}",
+                    first_frame.height, first_frame.width
+                ),
+            ));
+        }
+        if (masks.frames, masks.height, masks.width) != (t, h, w) {
+            return Err(WorldModelError::input(
+                "masks",
+                format!(
+                    "[{}, {}, {}]: expected [{t}, {h}, {w}] (frames, height, width)",
+                    masks.frames, masks.height, masks.width
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+fn save_vars(vs: &VarStore, dir: &Path) -> Result<()> {
+    let mut named: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    save_safetensors(
+        &named,
+        &dir.join(format!("{DIFFUSERS_WEIGHTS_STEM}.safetensors")),
+    )
+}
+
+/// The model with a fixed branch input: conditional = branch on, unconditional
+/// = branch off (as training's condition dropout).
+struct Conditioned<'a> {
+    model: &'a BridgeV2W,
+    control: &'a Tensor,
+}
+
+impl Denoiser for Conditioned<'_> {
+    fn velocity(
+        &self,
+        latent_in: &Tensor,
+        timestep: &Tensor,
+        guidance: Guidance,
+    ) -> Result<Tensor> {
+        let control = match guidance {
+            Guidance::Conditional => Some(self.control),
+            Guidance::Unconditional => None,
+        };
+        self.model.velocity_with(latent_in, timestep, control)
+    }
+}
+
+impl WorldModel for BridgeV2W {
+    fn clip_frames(&self) -> usize {
+        self.cfg.frames
+    }
+
+    fn resolution(&self) -> (usize, usize) {
+        (self.cfg.height, self.cfg.width)
+    }
+
+    fn predict(
+        &self,
+        first_frame: &Image,
+        masks: &MaskVideo,
+        opts: &PredictOptions,
+    ) -> Result<Video> {
+        Ok(self
+            .predict_batch(
+                std::slice::from_ref(first_frame),
+                std::slice::from_ref(masks),
+                opts,
+            )?
+            .remove(0))
+    }
+
+    fn predict_batch(
+        &self,
+        first_frames: &[Image],
+        masks: &[MaskVideo],
+        opts: &PredictOptions,
+    ) -> Result<Vec<Video>> {
+        if first_frames.len() != masks.len() || first_frames.is_empty() {
+            return Err(WorldModelError::input(
+                "predict_batch",
+                format!(
+                    "{} frames and {} mask sequences: expected the same non-zero number",
+                    first_frames.len(),
+                    masks.len()
+                ),
+            ));
+        }
+        let _guard = tch::no_grad_guard();
+        let mut images = Vec::with_capacity(first_frames.len());
+        let mut mask_videos = Vec::with_capacity(masks.len());
+        for (f, m) in first_frames.iter().zip(masks) {
+            self.check_inputs(f, m)?;
+            images.push(f.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, H, W]
+            mask_videos.push(m.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, T, H, W]
+        }
+        let images = Tensor::cat(&images, 0); // [B, 3, H, W]
+        let mask_videos = Tensor::cat(&mask_videos, 0); // [B, 3, T, H, W]
+        let image_latents = self.image_latents(&images, Some(opts.sample.seed))?;
+        let control = self.control_latents(&mask_videos, &image_latents)?;
+        let latents = self.sample(&image_latents, &control, opts)?;
+        let videos = self.decode_latents(&latents)?; // [B, 3, T, H, W]
+        (0..videos.size()[0])
+            .map(|i| Video::from_tensor(&videos.get(i)))
+            .collect()
+    }
+
+    fn encode_image(&self, image: &Image) -> Result<Vec<f32>> {
+        let x = image.to_tensor(Device::Cpu, Kind::Float)?.unsqueeze(2); // [1, 3, 1, H, W]
+        let z = self.vae.encode(&x)?.mode();
+        Ok(Vec::<f32>::try_from(
+            &z.to_kind(Kind::Float).to_device(Device::Cpu).flatten(0, -1),
+        )?)
+    }
+}

@@ -1,0 +1,382 @@
+//! The BridgeV2W model: the ControlNet identity with zero projections, the branch
+//! initialised from the backbone, weights files, pipeline folders, gradients and
+//! the `WorldModel` contract.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::controlnet::ControlNetConfig;
+use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
+use bridgev2w_world_model::scheduler::SchedulerConfig;
+use bridgev2w_world_model::transformer::TransformerConfig;
+use bridgev2w_world_model::vae::VaeConfig;
+use bridgev2w_world_model::video::{Image, MaskVideo};
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use tch::{Device, Kind, Tensor};
+
+fn tiny(cfg: BridgeV2WConfig, seed: i64) -> BridgeV2W {
+    BridgeV2W::random(
+        cfg,
+        &VaeConfig::tiny(),
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        seed,
+    )
+    .unwrap()
+}
+
+/// Random `(latent_in [1, 3, 8, 8, 12], control [1, 3, 8, 8, 12], timestep [1])`.
+fn inputs(seed: i64) -> (Tensor, Tensor, Tensor) {
+    tch::manual_seed(seed);
+    let opts = (Kind::Float, Device::Cpu);
+    (
+        Tensor::randn([1, 3, 8, 8, 12], opts),
+        Tensor::randn([1, 3, 8, 8, 12], opts),
+        Tensor::from_slice(&[500i64]),
+    )
+}
+
+fn max_abs(a: &Tensor, b: &Tensor) -> f64 {
+    (a - b).abs().max().double_value(&[])
+}
+
+/// Fills every `out_projectors` variable with small random values.
+fn perturb_projections(m: &BridgeV2W) {
+    tch::no_grad(|| {
+        for (name, mut v) in m.adapters.variables() {
+            if name.contains("out_projectors") {
+                v.copy_(&(Tensor::randn_like(&v) * 0.05));
+            }
+        }
+    });
+}
+
+#[test]
+fn zero_projections_and_fresh_lora_leave_the_backbone_exactly() {
+    let m = tiny(BridgeV2WConfig::tiny(), 1);
+    let (x, c, t) = inputs(2);
+    let with_branch = m.velocity_with(&x, &t, Some(&c)).unwrap();
+    let without = m.velocity_with(&x, &t, None).unwrap();
+    assert_eq!(with_branch.size(), [1, 3, 4, 8, 12]);
+    assert_eq!(max_abs(&with_branch, &without), 0.0);
+    // And equal to a plain backbone without adapters (same seed, same init order).
+    let text = Tensor::zeros([1, 8, 24], (Kind::Float, Device::Cpu));
+    let plain = bridgev2w_world_model::transformer::LoadedTransformer::random(
+        &TransformerConfig::tiny(),
+        ComputeDevice::Cpu,
+        Precision::F32,
+    )
+    .unwrap();
+    tch::no_grad(|| {
+        let src = m.transformer.vs.variables();
+        for (name, mut v) in plain.vs.variables() {
+            v.copy_(&src[&name]);
+        }
+    });
+    let rotary = plain.model.rotary_for(&x).unwrap();
+    let base = plain
+        .model
+        .forward(&x, &text, &t, rotary.as_ref(), None)
+        .unwrap();
+    assert_eq!(max_abs(&with_branch, &base), 0.0);
+}
+
+#[test]
+fn branch_starts_as_a_copy_of_the_backbone_and_changes_the_output_when_trained() {
+    let m = tiny(BridgeV2WConfig::tiny(), 3);
+    let base = m.transformer.vs.variables();
+    let branch = m.adapters.variables();
+    let mut copied = 0;
+    for (name, v) in &branch {
+        let Some(rest) = name.strip_prefix("controlnet.") else {
+            continue;
+        };
+        if rest.starts_with("out_projectors") {
+            assert_eq!(v.abs().sum(Kind::Double).double_value(&[]), 0.0, "{name}");
+            continue;
+        }
+        assert_eq!(max_abs(v, &base[rest]), 0.0, "{name}");
+        copied += 1;
+    }
+    // patch_embed (proj w+b, text_proj w+b, pos_embedding) + one block's tensors.
+    assert!(copied > 10, "{copied}");
+    assert!(!branch
+        .keys()
+        .any(|k| k.starts_with("controlnet.transformer_blocks.1.")));
+    perturb_projections(&m);
+    let (x, c, t) = inputs(4);
+    let a = m.velocity_with(&x, &t, Some(&c)).unwrap();
+    let b = m.velocity_with(&x, &t, None).unwrap();
+    assert!(max_abs(&a, &b) > 1e-4);
+    // Another control input gives another prediction.
+    let c2 = Tensor::randn_like(&c);
+    let a2 = m.velocity_with(&x, &t, Some(&c2)).unwrap();
+    assert!(max_abs(&a, &a2) > 1e-5);
+}
+
+#[test]
+fn per_block_weights_scale_the_residuals() {
+    let mut cfg = BridgeV2WConfig::tiny();
+    cfg.controlnet = ControlNetConfig {
+        num_layers: 2,
+        conditioning_scale: vec![0.0, 0.0],
+        zero_init: true,
+    };
+    let m = tiny(cfg.clone(), 5);
+    perturb_projections(&m);
+    let (x, c, t) = inputs(6);
+    let off = m.velocity_with(&x, &t, Some(&c)).unwrap();
+    let base = m.velocity_with(&x, &t, None).unwrap();
+    assert_eq!(max_abs(&off, &base), 0.0, "weights 0 switch the branch off");
+    cfg.controlnet.conditioning_scale = vec![1.0, 0.0];
+    let bad = BridgeV2W::random(
+        BridgeV2WConfig {
+            controlnet: ControlNetConfig {
+                conditioning_scale: vec![1.0],
+                ..cfg.controlnet.clone()
+            },
+            ..cfg.clone()
+        },
+        &VaeConfig::tiny(),
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        0,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        bad.contains("conditioning_scale") && bad.contains("1 weights for 2 blocks"),
+        "{bad}"
+    );
+    let too_many = BridgeV2W::random(
+        BridgeV2WConfig {
+            controlnet: ControlNetConfig::with_layers(3),
+            ..cfg
+        },
+        &VaeConfig::tiny(),
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        0,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(too_many.contains("expected 1..=2"), "{too_many}");
+}
+
+#[test]
+fn non_zero_initialised_branch_is_the_ablation() {
+    let mut cfg = BridgeV2WConfig::tiny();
+    cfg.controlnet.zero_init = false;
+    let m = tiny(cfg, 7);
+    let (x, c, t) = inputs(8);
+    let a = m.velocity_with(&x, &t, Some(&c)).unwrap();
+    let b = m.velocity_with(&x, &t, None).unwrap();
+    assert!(max_abs(&a, &b) > 1e-4);
+}
+
+#[test]
+fn gradients_reach_the_branch_and_lora_only() {
+    let m = tiny(BridgeV2WConfig::tiny(), 9);
+    let (x, c, t) = inputs(10);
+    let v = m.velocity_with(&x, &t, Some(&c)).unwrap();
+    v.square().mean(Kind::Float).backward();
+    let vars = m.adapters.variables();
+    let grad_norm = |k: &str| vars[k].grad().abs().sum(Kind::Double).double_value(&[]);
+    // Zero projections get gradients (their inputs are non-zero) ...
+    assert!(grad_norm("controlnet.out_projectors.0.weight") > 0.0);
+    // ... and LoRA B does (A is random), while the frozen backbone has none.
+    assert!(grad_norm("transformer.transformer_blocks.0.attn1.to_q.lora_B.weight") > 0.0);
+    for (name, v) in m.transformer.vs.variables() {
+        assert!(!v.requires_grad(), "{name} should be frozen");
+    }
+}
+
+#[test]
+fn weights_file_round_trip_with_config_and_strict_loading() {
+    let mut cfg = BridgeV2WConfig::tiny();
+    cfg.controlnet.conditioning_scale = vec![0.5];
+    let m = tiny(cfg.clone(), 11);
+    perturb_projections(&m);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bridgev2w.safetensors");
+    m.save_weights(&path).unwrap();
+    assert_eq!(BridgeV2W::weights_config(&path).unwrap(), Some(cfg.clone()));
+    let other = tiny(cfg.clone(), 12);
+    other.load_weights(&path).unwrap();
+    for (name, v) in m.adapters.variables() {
+        assert_eq!(
+            max_abs(&v, &other.adapters.variables()[&name]),
+            0.0,
+            "{name}"
+        );
+    }
+    // A file from a model with another branch depth is rejected, naming a key.
+    let mut deeper = cfg;
+    deeper.controlnet = ControlNetConfig::with_layers(2);
+    let err = tiny(deeper, 13)
+        .load_weights(&path)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("missing weight `controlnet.") && err.contains(".1."),
+        "{err}"
+    );
+    // Not a safetensors file.
+    std::fs::write(dir.path().join("bad.safetensors"), b"\x05\0\0\0\0\0\0\0{").unwrap();
+    let err = BridgeV2W::weights_config(&dir.path().join("bad.safetensors"))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("bad.safetensors"), "{err}");
+}
+
+fn image(seed: u64) -> Image {
+    let (h, w) = (64, 96);
+    let data = (0..h * w * 3)
+        .map(|i| (((i as u64 * 2654435761 + seed) % 1000) as f32) / 1000.0)
+        .collect();
+    Image {
+        height: h,
+        width: w,
+        data,
+    }
+}
+
+fn masks(offset: usize) -> MaskVideo {
+    let (t, h, w) = (9, 64, 96);
+    let mut data = vec![0u8; t * h * w];
+    for f in 0..t {
+        for y in 20..40 {
+            for x in (10 + 4 * f + offset)..(30 + 4 * f + offset) {
+                data[(f * h + y) * w + x] = 1;
+            }
+        }
+    }
+    MaskVideo {
+        frames: t,
+        height: h,
+        width: w,
+        data,
+    }
+}
+
+fn opts(seed: u64, guidance_scale: f64) -> PredictOptions {
+    PredictOptions {
+        sample: SampleOptions {
+            steps: 3,
+            guidance_scale,
+            dynamic_cfg: false,
+            seed,
+        },
+    }
+}
+
+#[test]
+fn predict_follows_the_world_model_contract() {
+    let m = tiny(BridgeV2WConfig::tiny(), 14);
+    perturb_projections(&m);
+    assert_eq!(m.clip_frames(), 9);
+    assert_eq!(m.resolution(), (64, 96));
+    let v1 = m.predict(&image(1), &masks(0), &opts(3, 2.0)).unwrap();
+    assert_eq!((v1.frames, v1.height, v1.width), (9, 64, 96));
+    assert!(v1.data.iter().all(|v| (0.0..=1.0).contains(v)));
+    let again = m.predict(&image(1), &masks(0), &opts(3, 2.0)).unwrap();
+    assert!(v1 == again, "same seed, same video");
+    let moved = m.predict(&image(1), &masks(20), &opts(3, 2.0)).unwrap();
+    assert!(v1 != moved, "other masks, other video");
+    let spread = v1.data.iter().fold(0f32, |a, v| a.max((v - 0.5).abs()));
+    assert!(spread > 1e-3, "a random VAE decodes to non-constant frames");
+    let batch = m
+        .predict_batch(&[image(1), image(1)], &[masks(0), masks(20)], &opts(3, 2.0))
+        .unwrap();
+    let close = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max)
+    };
+    assert!(close(&batch[0].data, &v1.data) < 1e-4);
+    // Later batch items draw later noise (as diffusers with one generator).
+    assert!(close(&batch[1].data, &batch[0].data) > 1e-4);
+    let latent = m.encode_image(&image(1)).unwrap();
+    assert_eq!(latent.len(), 4 * 8 * 12);
+    // Bad input.
+    let small = Image {
+        height: 32,
+        width: 48,
+        data: vec![0.5; 32 * 48 * 3],
+    };
+    let e = m
+        .predict(&small, &masks(0), &opts(3, 1.0))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("32x48") && e.contains("64x96"), "{e}");
+    let mut short = masks(0);
+    short.frames = 5;
+    short.data.truncate(5 * 64 * 96);
+    let e = m
+        .predict(&image(1), &short, &opts(3, 1.0))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("[5, 64, 96]") && e.contains("[9, 64, 96]"),
+        "{e}"
+    );
+    let e = m
+        .predict(&image(1), &masks(0), &opts(3, 0.5))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("guidance_scale"), "{e}");
+}
+
+#[test]
+fn backbone_folder_round_trips_and_loads_in_diffusers() {
+    let m = tiny(BridgeV2WConfig::tiny(), 15);
+    perturb_projections(&m);
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("prior");
+    m.save_backbone(&folder).unwrap();
+    let weights = dir.path().join("bridgev2w.safetensors");
+    m.save_weights(&weights).unwrap();
+    let loaded = BridgeV2W::load(
+        &folder,
+        Some(&weights),
+        None,
+        BridgeV2WConfig::paper(), // overridden by the file's config
+        ComputeDevice::Cpu,
+        Precision::F32,
+    )
+    .unwrap();
+    assert_eq!(loaded.config(), m.config());
+    let (x, c, t) = inputs(16);
+    let a = m.velocity_with(&x, &t, Some(&c)).unwrap();
+    let b = loaded.velocity_with(&x, &t, Some(&c)).unwrap();
+    assert_eq!(max_abs(&a, &b), 0.0);
+    // diffusers reads the folder's configs and weights (strictly).
+    let script = r#"
+import sys, torch
+from diffusers import AutoencoderKLCogVideoX, CogVideoXTransformer3DModel, CogVideoXDDIMScheduler
+root = sys.argv[1]
+vae = AutoencoderKLCogVideoX.from_pretrained(root, subfolder="vae", low_cpu_mem_usage=False)
+tf = CogVideoXTransformer3DModel.from_pretrained(root, subfolder="transformer", low_cpu_mem_usage=False)
+sc = CogVideoXDDIMScheduler.from_pretrained(root, subfolder="scheduler")
+assert tf.config.num_layers == 2 and vae.config.latent_channels == 4, (tf.config, vae.config)
+assert sc.config.prediction_type == "v_prediction"
+print("ok")
+"#;
+    let out = std::process::Command::new(common::venv_python())
+        .arg("-c")
+        .arg(script)
+        .arg(&folder)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success() && String::from_utf8_lossy(&out.stdout).contains("ok"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
