@@ -22,6 +22,9 @@ pub enum BenchCommand {
     Kinematics(KinematicsBench),
     /// PSNR + SSIM frames/s: bridgev2w-eval vs scikit-image on the same frames.
     Metrics(MetricsBench),
+    /// One transformer forward and one VAE encode/decode: this crate vs diffusers
+    /// on the same configs, shapes, threads and precision (random weights).
+    Model(crate::bench_model::ModelBench),
 }
 
 #[derive(Debug, clap::Args)]
@@ -82,10 +85,11 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Masks(a) => masks(a),
         BenchCommand::Kinematics(a) => kinematics(a),
         BenchCommand::Metrics(a) => metrics(a),
+        BenchCommand::Model(a) => crate::bench_model::run(a),
     }
 }
 
-fn find_repo(explicit: Option<&Path>) -> Result<PathBuf> {
+pub(crate) fn find_repo(explicit: Option<&Path>) -> Result<PathBuf> {
     if let Some(r) = explicit {
         return Ok(r.to_path_buf());
     }

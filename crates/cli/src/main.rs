@@ -1,11 +1,13 @@
 //! `bridgev2w`: the command-line tool.
 
 mod bench;
+mod bench_model;
 mod demo;
 mod eval_cmd;
 mod masks_cmd;
 mod overlay;
 mod parity_cmd;
+mod predict_cmd;
 mod robot_info;
 
 use anyhow::Result;
@@ -34,6 +36,8 @@ enum Command {
     Parity(parity_cmd::ParityArgs),
     /// Video metrics (PSNR, SSIM, Mask-IoU, ...) between predicted and ground-truth videos.
     Eval(eval_cmd::EvalArgs),
+    /// Predict the video a mask sequence causes, from a first frame (the world model).
+    Predict(predict_cmd::PredictArgs),
     /// Policy-evaluation metrics (MMRV, Pearson r) between real and world-model success rates.
     EvalPolicy(eval_cmd::EvalPolicyArgs),
 }
@@ -48,6 +52,7 @@ fn main() -> Result<()> {
         Command::Parity(a) => parity_cmd::run(&a),
         Command::Eval(a) => eval_cmd::run_eval(&a),
         Command::EvalPolicy(a) => eval_cmd::run_eval_policy(&a),
+        Command::Predict(a) => predict_cmd::run(&a),
     }
 }
 

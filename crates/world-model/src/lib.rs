@@ -7,6 +7,7 @@
 //! The tensor engine is libtorch through `tch`; the public entry points take and
 //! return this crate's own types.
 
+pub mod bench;
 pub mod bridge;
 pub mod checkpoint;
 pub mod controlnet;

@@ -1,0 +1,191 @@
+//! `bridgev2w predict`: the video a mask sequence causes, from a first frame.
+
+use anyhow::{bail, Context, Result};
+use bridgev2w_embodiment::npy::{read_npy, write_atomic, write_npy};
+use bridgev2w_embodiment::png::encode_rgb8;
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
+use bridgev2w_world_model::scheduler::SchedulerConfig;
+use bridgev2w_world_model::transformer::TransformerConfig;
+use bridgev2w_world_model::vae::VaeConfig;
+use bridgev2w_world_model::video::{Image, MaskVideo};
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, clap::Args)]
+pub struct PredictArgs {
+    /// A CogVideoX image-to-video diffusers folder (model_index.json, vae/,
+    /// transformer/, scheduler/), or `random:tiny` (random tiny weights: a smoke test
+    /// whose output is noise).
+    #[arg(long)]
+    model: String,
+    /// BridgeV2W weights (ControlNet + LoRA safetensors written by `bridgev2w train`).
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// The fixed prompt's T5 embedding (scripts/encode_prompt.py); default: zeros.
+    #[arg(long)]
+    prompt_embeds: Option<PathBuf>,
+    /// The first frame (PNG/JPEG; resized to the model's resolution if needed).
+    #[arg(long)]
+    image: PathBuf,
+    /// Embodiment masks, uint8 `[T, H, W]` `.npy` (`bridgev2w masks` writes masks.npy)
+    /// at the model's frames and resolution.
+    #[arg(long)]
+    masks: PathBuf,
+    /// Output folder: frames/000000.png..., video.npy (uint8 [T, H, W, 3]).
+    #[arg(long)]
+    out: PathBuf,
+    /// Denoising steps.
+    #[arg(long, default_value_t = 50)]
+    steps: usize,
+    /// Classifier-free guidance scale (1 = off).
+    #[arg(long, default_value_t = 6.0)]
+    guidance: f64,
+    /// CogVideoX's dynamic guidance schedule.
+    #[arg(long)]
+    dynamic_cfg: bool,
+    #[arg(long, default_value_t = 42)]
+    seed: u64,
+    /// cpu, cuda, cuda:N or auto.
+    #[arg(long, default_value = "auto")]
+    device: String,
+    /// f32 or bf16.
+    #[arg(long, default_value = "f32")]
+    precision: Precision,
+}
+
+fn device(s: &str) -> Result<ComputeDevice> {
+    if s == "auto" {
+        return Ok(ComputeDevice::auto());
+    }
+    s.parse().map_err(|e| anyhow::anyhow!("--device {s}: {e}"))
+}
+
+fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
+    let dev = device(&a.device)?;
+    if a.model == "random:tiny" {
+        return Ok(BridgeV2W::random(
+            BridgeV2WConfig::tiny(),
+            &VaeConfig::tiny(),
+            &TransformerConfig::tiny(),
+            SchedulerConfig::cogvideox_5b_i2v(),
+            dev,
+            a.seed as i64,
+        )?);
+    }
+    let dir = Path::new(&a.model);
+    Ok(BridgeV2W::load(
+        dir,
+        a.weights.as_deref(),
+        a.prompt_embeds.as_deref(),
+        BridgeV2WConfig::paper(),
+        dev,
+        a.precision,
+    )
+    .with_context(|| format!("loading the model from {}", dir.display()))?)
+}
+
+fn read_image(path: &Path, (h, w): (usize, usize)) -> Result<Image> {
+    let img = image::open(path)
+        .with_context(|| format!("--image {}: not a readable image", path.display()))?
+        .to_rgb8();
+    let img = if img.dimensions() != (w as u32, h as u32) {
+        eprintln!(
+            "note: resizing {} from {}x{} to the model's {w}x{h} (WxH)",
+            path.display(),
+            img.width(),
+            img.height()
+        );
+        image::imageops::resize(
+            &img,
+            w as u32,
+            h as u32,
+            image::imageops::FilterType::Triangle,
+        )
+    } else {
+        img
+    };
+    Ok(Image {
+        height: h,
+        width: w,
+        data: img.as_raw().iter().map(|&v| v as f32 / 255.0).collect(),
+    })
+}
+
+fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<MaskVideo> {
+    let arr = read_npy(path)?;
+    let [t, mh, mw] = arr.shape[..] else {
+        bail!(
+            "--masks {}: shape {:?}, expected [T, H, W]",
+            path.display(),
+            arr.shape
+        );
+    };
+    if (t, mh, mw) != (frames, h, w) {
+        bail!(
+            "--masks {}: shape [{t}, {mh}, {mw}] but the model takes [{frames}, {h}, {w}] \
+             (render them with `bridgev2w masks ... --width {w} --height {h}` over {frames} frames)",
+            path.display()
+        );
+    }
+    Ok(MaskVideo {
+        frames,
+        height: h,
+        width: w,
+        data: arr.data.iter().map(|&v| u8::from(v != 0.0)).collect(),
+    })
+}
+
+pub fn run(a: &PredictArgs) -> Result<()> {
+    let model = load_model(a)?;
+    let res = model.resolution();
+    let image = read_image(&a.image, res)?;
+    let masks = read_masks(&a.masks, model.clip_frames(), res)?;
+    let opts = PredictOptions {
+        sample: SampleOptions {
+            steps: a.steps,
+            guidance_scale: a.guidance,
+            dynamic_cfg: a.dynamic_cfg,
+            seed: a.seed,
+        },
+    };
+    eprintln!(
+        "predicting {} frames at {}x{} (HxW), {} steps, guidance {}...",
+        model.clip_frames(),
+        res.0,
+        res.1,
+        a.steps,
+        a.guidance
+    );
+    let t0 = std::time::Instant::now();
+    let video = model.predict(&image, &masks, &opts)?;
+    let secs = t0.elapsed().as_secs_f64();
+    let bytes: Vec<u8> = video
+        .data
+        .iter()
+        .map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
+        .collect();
+    let frames_dir = a.out.join("frames");
+    std::fs::create_dir_all(&frames_dir)
+        .with_context(|| format!("creating {}", frames_dir.display()))?;
+    let frame_len = video.height * video.width * 3;
+    for (i, frame) in bytes.chunks(frame_len).enumerate() {
+        let path = frames_dir.join(format!("{i:06}.png"));
+        write_atomic(
+            &path,
+            &encode_rgb8(video.width as u32, video.height as u32, frame),
+        )
+        .with_context(|| format!("writing {}", path.display()))?;
+    }
+    write_npy(
+        &a.out.join("video.npy"),
+        &[video.frames, video.height, video.width, 3],
+        &bytes,
+    )?;
+    println!(
+        "wrote {} frames to {} ({secs:.1} s)",
+        video.frames,
+        a.out.display()
+    );
+    Ok(())
+}

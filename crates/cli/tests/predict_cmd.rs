@@ -1,0 +1,82 @@
+//! `bridgev2w predict` end to end on random tiny weights (shapes, files, determinism,
+//! and the errors a user meets first).
+
+use bridgev2w_embodiment::npy::{read_npy, write_npy};
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+        .env("RUST_BACKTRACE", "0")
+        .args(args)
+        .output()
+        .expect("run bridgev2w")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+#[test]
+fn predict_writes_frames_and_video_deterministically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let img = image::RgbImage::from_fn(96, 64, |x, y| image::Rgb([x as u8, y as u8, 128]));
+    img.save(d.join("first.png")).expect("png");
+    let mut masks = vec![0u8; 9 * 64 * 96];
+    for t in 0..9 {
+        for y in 20..40 {
+            for x in 10 + 3 * t..30 + 3 * t {
+                masks[(t * 64 + y) * 96 + x] = 1;
+            }
+        }
+    }
+    write_npy(&d.join("masks.npy"), &[9, 64, 96], &masks).expect("npy");
+    let args = |out: &str| {
+        vec![
+            "predict".to_owned(),
+            "--model".into(),
+            "random:tiny".into(),
+            "--image".into(),
+            s(&d.join("first.png")).into(),
+            "--masks".into(),
+            s(&d.join("masks.npy")).into(),
+            "--out".into(),
+            s(&d.join(out)).into(),
+            "--steps".into(),
+            "3".into(),
+            "--device".into(),
+            "cpu".into(),
+        ]
+    };
+    for out in ["a", "b"] {
+        let a = args(out);
+        let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let va = read_npy(&d.join("a/video.npy")).expect("video a");
+    let vb = read_npy(&d.join("b/video.npy")).expect("video b");
+    assert_eq!(va.shape, [9, 64, 96, 3]);
+    assert_eq!(va.data, vb.data, "same seed, same video");
+    for i in 0..9 {
+        assert!(d.join(format!("a/frames/{i:06}.png")).is_file());
+    }
+
+    // Masks at another resolution: the error says how to render them.
+    write_npy(&d.join("small.npy"), &[9, 32, 48], &vec![0u8; 9 * 32 * 48]).expect("npy");
+    let mut a = args("c");
+    a[6] = s(&d.join("small.npy")).into();
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("[9, 32, 48]") && err.contains("--width 96 --height 64"),
+        "{err}"
+    );
+    // A folder that is not a diffusers pipeline.
+    let mut a = args("d");
+    a[2] = s(d).into();
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("model_index.json"), "{err}");
+}

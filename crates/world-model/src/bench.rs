@@ -1,0 +1,120 @@
+//! Timing of the model's main operations on random weights, for `bridgev2w bench
+//! model` (which runs diffusers on the same configs and shapes in the same run).
+
+use crate::device::{ComputeDevice, Precision};
+use crate::error::{Result, WorldModelError};
+use crate::transformer::{LoadedTransformer, TransformerConfig};
+use crate::vae::{AutoencoderKLCogVideoX, VaeConfig};
+use std::time::Instant;
+use tch::nn::VarStore;
+use tch::{Kind, Tensor};
+
+/// What is timed: one clip of `frames` pixel frames at `height` x `width`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelBenchShape {
+    /// Pixel frames (`4k + 1`).
+    pub frames: i64,
+    /// Pixel height (a multiple of 8 x patch size).
+    pub height: i64,
+    /// Pixel width (a multiple of 8 x patch size).
+    pub width: i64,
+    /// Text tokens.
+    pub text_len: i64,
+}
+
+/// Seconds (best of `repeat`, after a warm-up) of each operation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelTimings {
+    /// One transformer forward (batch 1).
+    pub transformer_forward_s: f64,
+    /// VAE encode of the clip (posterior mean).
+    pub vae_encode_s: f64,
+    /// VAE decode of the clip's latents.
+    pub vae_decode_s: f64,
+}
+
+fn best_of(repeat: usize, device: tch::Device, f: &mut dyn FnMut() -> Result<()>) -> Result<f64> {
+    f()?; // warm-up
+    let mut best = f64::INFINITY;
+    for _ in 0..repeat.max(1) {
+        if let tch::Device::Cuda(i) = device {
+            tch::Cuda::synchronize(i as i64);
+        }
+        let t0 = Instant::now();
+        f()?;
+        if let tch::Device::Cuda(i) = device {
+            tch::Cuda::synchronize(i as i64);
+        }
+        best = best.min(t0.elapsed().as_secs_f64());
+    }
+    Ok(best)
+}
+
+/// Times a transformer forward and a VAE encode/decode with random weights.
+pub fn time_model(
+    tf_cfg: &TransformerConfig,
+    vae_cfg: &VaeConfig,
+    shape: &ModelBenchShape,
+    device: ComputeDevice,
+    precision: Precision,
+    repeat: usize,
+) -> Result<ModelTimings> {
+    let _guard = tch::no_grad_guard();
+    let dev = device.check_available()?.to_tch();
+    let kind = precision.kind();
+    let t = vae_cfg.temporal_compression_ratio as i64;
+    let s = vae_cfg.spatial_compression();
+    if (shape.frames - 1) % t != 0
+        || shape.height % (s * tf_cfg.patch_size) != 0
+        || shape.width % (s * tf_cfg.patch_size) != 0
+    {
+        return Err(WorldModelError::input(
+            "bench shape",
+            format!(
+                "{} frames at {}x{}: expected {t}k + 1 frames and sides divisible by {}",
+                shape.frames,
+                shape.height,
+                shape.width,
+                s * tf_cfg.patch_size
+            ),
+        ));
+    }
+    let (lf, lh, lw) = (
+        (shape.frames - 1) / t + 1,
+        shape.height / s,
+        shape.width / s,
+    );
+    tch::manual_seed(0);
+    let tf = LoadedTransformer::random(tf_cfg, device, precision)?;
+    let x = Tensor::randn([1, lf, tf_cfg.in_channels, lh, lw], (kind, dev));
+    let text = Tensor::randn([1, shape.text_len, tf_cfg.text_embed_dim], (kind, dev));
+    let ts = Tensor::from_slice(&[500i64]).to_device(dev);
+    let rotary = tf.model.rotary_for(&x)?;
+    let ofs = tf_cfg
+        .ofs_embed_dim
+        .map(|_| Tensor::full([1], 2.0, (Kind::Float, dev)));
+    let transformer_forward_s = best_of(repeat, dev, &mut || {
+        tf.model
+            .forward(&x, &text, &ts, rotary.as_ref(), ofs.as_ref())
+            .map(|_| ())
+    })?;
+    drop(tf);
+    let mut vs = VarStore::new(dev);
+    let vae = AutoencoderKLCogVideoX::new(vae_cfg, vs.root())?;
+    vs.set_kind(kind);
+    let video =
+        Tensor::rand([1, 3, shape.frames, shape.height, shape.width], (kind, dev)) * 2.0 - 1.0;
+    let latents = Tensor::randn([1, vae_cfg.latent_channels, lf, lh, lw], (kind, dev));
+    let vae_encode_s = best_of(repeat, dev, &mut || vae.encode(&video).map(|_| ()))?;
+    let vae_decode_s = best_of(repeat, dev, &mut || vae.decode(&latents).map(|_| ()))?;
+    Ok(ModelTimings {
+        transformer_forward_s,
+        vae_encode_s,
+        vae_decode_s,
+    })
+}
+
+/// libtorch's intra-op threads (what the peer should use too).
+pub fn torch_threads() -> usize {
+    tch::get_num_threads().max(1) as usize
+}
