@@ -130,6 +130,12 @@ fn arrow_err(path: &Path) -> impl Fn(ArrowError) -> DatasetError + '_ {
     }
 }
 
+/// Per video key: `(key, chunk_index, file_index, from_timestamp, to_timestamp)` columns.
+type VideoColumns = (String, Vec<i64>, Vec<i64>, Vec<f64>, Vec<f64>);
+
+/// A written episode: `(index, length, task, first global frame, split)`.
+type EpisodeRecord = (i64, usize, String, i64, Option<String>);
+
 /// One frame row of `data/*.parquet`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameRow {
@@ -669,7 +675,7 @@ impl LeRobotDataset {
             } else {
                 None
             };
-            let mut vids: Vec<(String, Vec<i64>, Vec<i64>, Vec<f64>, Vec<f64>)> = Vec::new();
+            let mut vids: Vec<VideoColumns> = Vec::new();
             for key in video_keys {
                 let col = |s: &str| format!("videos/{key}/{s}");
                 vids.push((
@@ -991,7 +997,7 @@ pub struct LeRobotV3Writer {
     video: crate::video::Mp4VideoWriter,
     rows: Vec<FrameRow>,
     tasks: Vec<String>,
-    episodes: Vec<(i64, usize, String, i64, Option<String>)>,
+    episodes: Vec<EpisodeRecord>,
 }
 
 const DATA_TPL: &str = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet";
@@ -1187,12 +1193,12 @@ impl LeRobotV3Writer {
             tasks_b.values().append_value(&e.2);
             tasks_b.append(true);
         }
-        let i64col = |f: &dyn Fn(&(i64, usize, String, i64, Option<String>)) -> i64| -> ArrayRef {
+        let i64col = |f: &dyn Fn(&EpisodeRecord) -> i64| -> ArrayRef {
             Arc::new(Int64Array::from(
                 self.episodes.iter().map(f).collect::<Vec<_>>(),
             ))
         };
-        let f64col = |f: &dyn Fn(&(i64, usize, String, i64, Option<String>)) -> f64| -> ArrayRef {
+        let f64col = |f: &dyn Fn(&EpisodeRecord) -> f64| -> ArrayRef {
             Arc::new(Float64Array::from(
                 self.episodes.iter().map(f).collect::<Vec<_>>(),
             ))

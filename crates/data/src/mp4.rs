@@ -96,18 +96,39 @@ fn boxed(kind: &[u8; 4], body: &[u8]) -> Vec<u8> {
 
 const UNITY_MATRIX: [u32; 9] = [0x0001_0000, 0, 0, 0, 0x0001_0000, 0, 0, 0, 0x4000_0000];
 
-/// Serialises an MP4 file: `samples` are length-prefixed (4-byte) NAL
-/// units, each `duration` timescale units long; `sync[i]` marks IDR samples.
-pub fn mux_h264(
-    width: u16,
-    height: u16,
-    timescale: u32,
-    duration: u32,
-    sps: &[u8],
-    pps: &[u8],
-    samples: &[Vec<u8>],
-    sync: &[bool],
-) -> Vec<u8> {
+/// An H.264 stream to mux.
+#[derive(Debug, Clone, Copy)]
+pub struct H264Stream<'a> {
+    /// Width (pixels).
+    pub width: u16,
+    /// Height (pixels).
+    pub height: u16,
+    /// Media timescale (units per second).
+    pub timescale: u32,
+    /// Duration of every sample (timescale units).
+    pub sample_duration: u32,
+    /// Sequence parameter set (NAL unit without start code).
+    pub sps: &'a [u8],
+    /// Picture parameter set.
+    pub pps: &'a [u8],
+    /// Samples: length-prefixed (4-byte) NAL units.
+    pub samples: &'a [Vec<u8>],
+    /// `sync[i]`: sample `i` is an IDR picture.
+    pub sync: &'a [bool],
+}
+
+/// Serialises an MP4 file holding `stream`.
+pub fn mux_h264(stream: &H264Stream<'_>) -> Vec<u8> {
+    let H264Stream {
+        width,
+        height,
+        timescale,
+        sample_duration: duration,
+        sps,
+        pps,
+        samples,
+        sync,
+    } = *stream;
     let n = samples.len() as u32;
     let total = u64::from(n) * u64::from(duration);
     let mut out = Vec::new();
@@ -119,17 +140,15 @@ pub fn mux_h264(
     }
     put_box(&mut out, b"ftyp", &ftyp);
     let data_len: u64 = samples.iter().map(|s| s.len() as u64).sum();
-    let data_offset: u64;
     if data_len + 8 <= u64::from(u32::MAX) {
         out.extend_from_slice(&((data_len + 8) as u32).to_be_bytes());
         out.extend_from_slice(b"mdat");
-        data_offset = out.len() as u64;
     } else {
         out.extend_from_slice(&1u32.to_be_bytes());
         out.extend_from_slice(b"mdat");
         out.extend_from_slice(&(data_len + 16).to_be_bytes());
-        data_offset = out.len() as u64;
     }
+    let data_offset = out.len() as u64;
     for s in samples {
         out.extend_from_slice(s);
     }
@@ -262,6 +281,9 @@ pub fn mux_h264(
 
 // ---------------------------------------------------------------- demuxer
 
+/// Boxes of a container: `(four-character code, body)`.
+type BoxList<'d> = Vec<([u8; 4], &'d [u8])>;
+
 struct Reader<'a> {
     path: &'a Path,
 }
@@ -275,7 +297,7 @@ impl Reader<'_> {
     }
 
     /// Splits `data` into `(kind, body)` boxes.
-    fn boxes<'d>(&self, data: &'d [u8], ctx: &str) -> Result<Vec<([u8; 4], &'d [u8])>, Mp4Error> {
+    fn boxes<'d>(&self, data: &'d [u8], ctx: &str) -> Result<BoxList<'d>, Mp4Error> {
         let mut out = Vec::new();
         let mut pos = 0usize;
         while pos < data.len() {

@@ -98,7 +98,7 @@ pub fn draw_mesh(
         }
         let mut n = (world[b] - world[a]).cross(&(world[c] - world[a]));
         let norm = n.norm();
-        if !(norm > 1e-18) {
+        if norm.is_nan() || norm <= 1e-18 {
             continue;
         }
         n /= norm;

@@ -1,7 +1,7 @@
 //! H.264 video in MP4: encoding RGB frames with openh264 (bundled source)
 //! and decoding them back.
 
-use crate::mp4::{demux, mux_h264, read_file, Mp4Error, VideoTrack};
+use crate::mp4::{demux, mux_h264, read_file, H264Stream, Mp4Error, VideoTrack};
 use openh264::decoder::Decoder;
 use openh264::encoder::{
     BitRate, Encoder, EncoderConfig, FrameRate, FrameType, QpRange, RateControlMode,
@@ -110,7 +110,7 @@ impl Mp4VideoWriter {
         let config = EncoderConfig::new()
             .max_frame_rate(FrameRate::from_hz(fps as f32))
             .bitrate(BitRate::from_bps(bits.min(f64::from(u32::MAX)) as u32))
-            .rate_control_mode(RateControlMode::Quality)
+            .rate_control_mode(RateControlMode::Off)
             .qp(QpRange::new(8, 24))
             .skip_frames(false)
             .num_threads(1);
@@ -206,16 +206,16 @@ impl Mp4VideoWriter {
                 message: "no frames were encoded".into(),
             });
         };
-        Ok(mux_h264(
-            self.width as u16,
-            self.height as u16,
-            self.fps * TICKS_PER_FRAME,
-            TICKS_PER_FRAME,
+        Ok(mux_h264(&H264Stream {
+            width: self.width as u16,
+            height: self.height as u16,
+            timescale: self.fps * TICKS_PER_FRAME,
+            sample_duration: TICKS_PER_FRAME,
             sps,
             pps,
-            &self.samples,
-            &self.sync,
-        ))
+            samples: &self.samples,
+            sync: &self.sync,
+        }))
     }
 }
 

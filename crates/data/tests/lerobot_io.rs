@@ -132,7 +132,11 @@ fn v3_round_trip_and_determinism() {
     }
 }
 
-fn write_v21(root: &Path, episodes: &[(Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<Vec<u8>>)], fps: u32) {
+/// `(states, actions, RGB frames)` of one v2.1 test episode.
+type V21Episode = (Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<Vec<u8>>);
+
+/// Writes a LeRobot v2.1 dataset (one parquet and one MP4 per episode).
+fn write_v21(root: &Path, episodes: &[V21Episode], fps: u32) {
     let key = "observation.images.top";
     std::fs::create_dir_all(root.join("meta")).unwrap();
     let info = serde_json::json!({
@@ -216,7 +220,7 @@ fn v21_reader() {
             let rgb = (0..n).map(|f| gradient(e * 5 + f as u8)).collect();
             (states, actions, rgb)
         })
-        .collect::<Vec<(Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<Vec<u8>>)>>();
+        .collect::<Vec<V21Episode>>();
     write_v21(dir.path(), &eps, 15);
     let ds = LeRobotDataset::open(dir.path()).unwrap();
     assert_eq!(ds.version, Version::V21);
