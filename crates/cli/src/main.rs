@@ -7,6 +7,7 @@ mod masks_cmd;
 mod overlay;
 mod parity_cmd;
 mod robot_info;
+mod synth_cmd;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -36,6 +37,8 @@ enum Command {
     Eval(eval_cmd::EvalArgs),
     /// Policy-evaluation metrics (MMRV, Pearson r) between real and world-model success rates.
     EvalPolicy(eval_cmd::EvalPolicyArgs),
+    /// Render a synthetic tabletop dataset (RGB clips, GT masks, actions, cameras) in the LeRobot v3.0 layout.
+    Synth(synth_cmd::SynthArgs),
 }
 
 fn main() -> Result<()> {
@@ -48,6 +51,7 @@ fn main() -> Result<()> {
         Command::Parity(a) => parity_cmd::run(&a),
         Command::Eval(a) => eval_cmd::run_eval(&a),
         Command::EvalPolicy(a) => eval_cmd::run_eval_policy(&a),
+        Command::Synth(a) => synth_cmd::run(&a),
     }
 }
 

@@ -164,7 +164,7 @@ pub struct SynthConfig {
     pub fps: u32,
     /// Dataset seed.
     pub seed: u64,
-    /// Tasks, assigned round-robin by episode index.
+    /// Tasks, assigned round-robin over the dataset's episodes.
     pub tasks: Vec<Task>,
     /// Episodes per split, in [`Split::ALL`] order.
     pub episodes_per_split: [usize; 4],
@@ -369,7 +369,7 @@ fn training_camera() -> CameraRegion {
     CameraRegion {
         azimuth_deg: vec![[-75.0, 35.0]],
         elevation_deg: [25.0, 50.0],
-        distance_m: [0.85, 1.15],
+        distance_m: [1.0, 1.35],
         focal_over_width: [0.85, 1.1],
         target_jitter_m: 0.04,
     }
@@ -644,7 +644,9 @@ pub fn plan(config: &SynthConfig) -> Vec<(Split, usize, Task)> {
     let mut out = Vec::new();
     for (s, split) in Split::ALL.into_iter().enumerate() {
         for i in 0..config.episodes_per_split[s] {
-            out.push((split, i, config.tasks[i % config.tasks.len()]));
+            // Round-robin over the dataset, so small splits get every task too.
+            let task = config.tasks[out.len() % config.tasks.len()];
+            out.push((split, i, task));
         }
     }
     out
@@ -842,7 +844,7 @@ impl World {
         let target = Point3::new(
             c.x + rng.gen_range(-j..=j),
             c.y + rng.gen_range(-j..=j),
-            c.z + 0.1 + rng.gen_range(-j..=j),
+            c.z + 0.2 + rng.gen_range(-j..=j),
         );
         let (azr, elr) = (az.to_radians(), el.to_radians());
         let eye =
