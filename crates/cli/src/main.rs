@@ -9,6 +9,7 @@ mod overlay;
 mod parity_cmd;
 mod predict_cmd;
 mod robot_info;
+mod synth_cmd;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -40,6 +41,8 @@ enum Command {
     Predict(predict_cmd::PredictArgs),
     /// Policy-evaluation metrics (MMRV, Pearson r) between real and world-model success rates.
     EvalPolicy(eval_cmd::EvalPolicyArgs),
+    /// Render a synthetic tabletop dataset (RGB clips, GT masks, actions, cameras) in the LeRobot v3.0 layout.
+    Synth(synth_cmd::SynthArgs),
 }
 
 fn main() -> Result<()> {
@@ -53,6 +56,7 @@ fn main() -> Result<()> {
         Command::Eval(a) => eval_cmd::run_eval(&a),
         Command::EvalPolicy(a) => eval_cmd::run_eval_policy(&a),
         Command::Predict(a) => predict_cmd::run(&a),
+        Command::Synth(a) => synth_cmd::run(&a),
     }
 }
 

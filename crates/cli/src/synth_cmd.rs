@@ -1,0 +1,106 @@
+//! `bridgev2w synth`: the synthetic tabletop dataset (LeRobot v3.0).
+
+use crate::masks_cmd::progress_bar;
+use anyhow::{bail, Result};
+use bridgev2w_data::synth::{plan, write_dataset, SynthConfig, Task};
+use std::path::PathBuf;
+
+/// Arguments of `synth`.
+#[derive(Debug, clap::Args)]
+pub struct SynthArgs {
+    /// Output dataset directory (must not exist; written to DIR.tmp, then renamed).
+    #[arg(long)]
+    out: PathBuf,
+    /// Built-in robot: franka or agibot-g1.
+    #[arg(long, default_value = "franka")]
+    robot: String,
+    /// Episodes per split: one number for all four splits, or four
+    /// comma-separated numbers for train,test,unseen_camera,unseen_scene.
+    #[arg(long, default_value = "8,2,2,2")]
+    episodes_per_split: String,
+    /// Frames per clip.
+    #[arg(long, default_value_t = 25)]
+    frames: usize,
+    /// Image width (pixels, even).
+    #[arg(long, default_value_t = 96)]
+    width: u32,
+    /// Image height (pixels, even).
+    #[arg(long, default_value_t = 64)]
+    height: u32,
+    /// Frames per second of the videos.
+    #[arg(long, default_value_t = 10)]
+    fps: u32,
+    /// Dataset seed (same seed, same bytes).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Comma-separated tasks (reach, push, pick_place), assigned round-robin.
+    #[arg(long, default_value = "reach,push,pick_place")]
+    tasks: String,
+}
+
+fn parse_counts(s: &str) -> Result<[usize; 4]> {
+    let v: Vec<usize> = s
+        .split(',')
+        .map(|x| x.trim().parse::<usize>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--episodes-per-split {s:?}: {e}"))?;
+    match v.as_slice() {
+        [n] => Ok([*n; 4]),
+        [a, b, c, d] => Ok([*a, *b, *c, *d]),
+        _ => bail!("--episodes-per-split {s:?}: give 1 or 4 comma-separated numbers (train,test,unseen_camera,unseen_scene)"),
+    }
+}
+
+pub fn run(args: &SynthArgs) -> Result<()> {
+    let tasks = args
+        .tasks
+        .split(',')
+        .map(|t| {
+            Task::parse(t.trim()).ok_or_else(|| {
+                anyhow::anyhow!("--tasks: unknown task {t:?} (reach, push, pick_place)")
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let config = SynthConfig {
+        robot: args.robot.clone(),
+        frames: args.frames,
+        width: args.width,
+        height: args.height,
+        fps: args.fps,
+        seed: args.seed,
+        tasks,
+        episodes_per_split: parse_counts(&args.episodes_per_split)?,
+    };
+    config.validate()?;
+    let n = plan(&config).len();
+    if n == 0 {
+        bail!(
+            "--episodes-per-split {}: no episodes to generate",
+            args.episodes_per_split
+        );
+    }
+    let pb = progress_bar(n, "rendering episodes");
+    let summary = write_dataset(&config, &args.out, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    let mut text = format!(
+        "wrote {} (LeRobot v3.0): {} episodes, {} frames of {}x{} at {} fps, robot {}\n",
+        summary.out.display(),
+        n,
+        summary.total_frames,
+        args.width,
+        args.height,
+        args.fps,
+        args.robot
+    );
+    for (split, k) in &summary.episodes_per_split {
+        text.push_str(&format!("  split {split}: {k} episodes\n"));
+    }
+    for (task, k) in &summary.episodes_per_task {
+        text.push_str(&format!("  task {task}: {k} episodes\n"));
+    }
+    text.push_str(&format!(
+        "  object contacts (push/grasp frames): {}\n",
+        summary.contact_events
+    ));
+    crate::print_stdout(&text)
+}

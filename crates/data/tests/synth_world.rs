@@ -1,0 +1,219 @@
+//! The synthetic world: determinism, split separation, GT masks, contacts.
+#![allow(clippy::unwrap_used)]
+
+use bridgev2w_data::synth::{Contact, Split, SynthConfig, Task, World};
+use bridgev2w_embodiment::masks::render_trajectory;
+
+fn config(robot: &str) -> SynthConfig {
+    SynthConfig {
+        robot: robot.into(),
+        frames: 12,
+        width: 48,
+        height: 32,
+        seed: 7,
+        episodes_per_split: [3, 1, 1, 1],
+        ..SynthConfig::default()
+    }
+}
+
+#[test]
+fn same_seed_same_episode_other_seed_differs() {
+    let w = World::new(&config("franka")).unwrap();
+    let a = w.generate(Split::Train, 1, Task::Push).unwrap();
+    let b = w.generate(Split::Train, 1, Task::Push).unwrap();
+    assert_eq!(a.rgb, b.rgb);
+    assert_eq!(a.masks, b.masks);
+    assert_eq!(a.actions, b.actions);
+    assert_eq!(a.joints, b.joints);
+    let c = w.generate(Split::Train, 2, Task::Push).unwrap();
+    assert_ne!(a.actions, c.actions);
+    assert_ne!(a.rgb, c.rgb);
+    let w2 = World::new(&SynthConfig {
+        seed: 8,
+        ..config("franka")
+    })
+    .unwrap();
+    let d = w2.generate(Split::Train, 1, Task::Push).unwrap();
+    assert_ne!(a.actions, d.actions);
+}
+
+#[test]
+fn thread_count_does_not_change_output() {
+    let w = World::new(&config("franka")).unwrap();
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| w.generate_all(&|| {}).unwrap());
+    let many = rayon::ThreadPoolBuilder::new()
+        .num_threads(4)
+        .build()
+        .unwrap()
+        .install(|| w.generate_all(&|| {}).unwrap());
+    assert_eq!(one.len(), 6);
+    for (a, b) in one.iter().zip(&many) {
+        assert_eq!(a.rgb, b.rgb);
+        assert_eq!(a.masks, b.masks);
+        assert_eq!(a.joints, b.joints);
+    }
+}
+
+#[test]
+fn splits_are_separated() {
+    let w = World::new(&config("franka")).unwrap();
+    let train = w.spec(Split::Train);
+    let test = w.spec(Split::Test);
+    let cam = w.spec(Split::UnseenCamera);
+    let scene = w.spec(Split::UnseenScene);
+    assert_eq!(
+        train,
+        &bridgev2w_data::synth::SplitSpec {
+            split: Split::Train,
+            ..test.clone()
+        }
+    );
+    // Camera regions disjoint.
+    for r in &cam.camera.azimuth_deg {
+        for t in &train.camera.azimuth_deg {
+            assert!(r[0] > t[1] || r[1] < t[0], "{r:?} overlaps {t:?}");
+        }
+    }
+    // Palettes disjoint: colours, patterns, layout regions.
+    let (a, b) = (&train.scene, &scene.scene);
+    for c in &b.table_colors {
+        assert!(!a.table_colors.contains(c));
+    }
+    for c in &b.background_colors {
+        assert!(!a.background_colors.contains(c));
+    }
+    for c in &b.object_colors {
+        assert!(!a.object_colors.contains(c));
+    }
+    for p in &b.table_patterns {
+        assert!(!a.table_patterns.contains(p), "table pattern {p} shared");
+    }
+    for p in &b.background_patterns {
+        assert!(
+            !a.background_patterns.contains(p),
+            "background pattern {p} shared"
+        );
+    }
+    assert!(b.layout_dy_m[0] > a.layout_dy_m[1] || b.layout_dy_m[1] < a.layout_dy_m[0]);
+    // Generated episodes respect them.
+    let center = w.frame.workspace_center_m;
+    for i in 0..4 {
+        let e = w.generate(Split::UnseenCamera, i, Task::Reach).unwrap();
+        assert!(!train.camera.contains_azimuth(e.meta.camera_azimuth_deg));
+        assert!(cam.camera.contains_azimuth(e.meta.camera_azimuth_deg));
+        let t = w.generate(Split::Train, i, Task::Reach).unwrap();
+        assert!(train.camera.contains_azimuth(t.meta.camera_azimuth_deg));
+        let s = w.generate(Split::UnseenScene, i, Task::Reach).unwrap();
+        for o in &s.meta.objects {
+            let dy = o.initial.position_m[1] - center[1];
+            assert!(dy >= b.layout_dy_m[0] - 1e-9 && dy <= b.layout_dy_m[1] + 1e-9);
+            assert!(!(a.layout_dy_m[0]..=a.layout_dy_m[1]).contains(&dy));
+        }
+        for o in &t.meta.objects {
+            let dy = o.initial.position_m[1] - center[1];
+            assert!((a.layout_dy_m[0]..=a.layout_dy_m[1]).contains(&dy));
+        }
+        assert!(!s.meta.look.table_pattern.family().is_empty());
+        assert!(b
+            .table_patterns
+            .iter()
+            .any(|p| p == s.meta.look.table_pattern.family()));
+        assert!(a
+            .table_patterns
+            .iter()
+            .any(|p| p == t.meta.look.table_pattern.family()));
+    }
+}
+
+#[test]
+fn gt_masks_equal_the_masks_renderer() {
+    for robot in ["franka", "agibot-g1"] {
+        let w = World::new(&config(robot)).unwrap();
+        let e = w.generate(Split::Test, 0, Task::PickPlace).unwrap();
+        let frames = render_trajectory(&w.embodiment.robot, &e.camera, &e.joints, &|| {});
+        assert_eq!(frames.len(), e.masks.len());
+        let mut covered = 0;
+        for (f, m) in frames.iter().zip(&e.masks) {
+            assert_eq!(&f.mask(), m);
+            covered += f.coverage();
+        }
+        assert!(covered > 0, "{robot}: the robot is never visible");
+    }
+}
+
+fn moved(a: &bridgev2w_data::synth::ObjectPose, b: &bridgev2w_data::synth::ObjectPose) -> f64 {
+    let d: f64 = (0..3)
+        .map(|k| (a.position_m[k] - b.position_m[k]).powi(2))
+        .sum();
+    d.sqrt() + (a.yaw_rad - b.yaw_rad).abs()
+}
+
+#[test]
+fn objects_move_only_when_contacted_and_tasks_move_them() {
+    let w = World::new(&SynthConfig {
+        frames: 25,
+        ..config("franka")
+    })
+    .unwrap();
+    for task in [Task::Push, Task::PickPlace, Task::Reach] {
+        let mut displaced_episodes = 0;
+        for i in 0..4 {
+            let e = w.generate(Split::Train, i, task).unwrap();
+            for f in 1..e.object_poses.len() {
+                for (k, (a, b)) in e.object_poses[f - 1]
+                    .iter()
+                    .zip(&e.object_poses[f])
+                    .enumerate()
+                {
+                    if moved(a, b) > 1e-12 {
+                        assert_ne!(
+                            e.contacts[f][k],
+                            Contact::None,
+                            "{task:?} ep {i}: object {k} moved at frame {f} without contact"
+                        );
+                    }
+                }
+            }
+            let first = &e.object_poses[0][0];
+            let last = e.object_poses.last().unwrap();
+            let d = ((first.position_m[0] - last[0].position_m[0]).powi(2)
+                + (first.position_m[1] - last[0].position_m[1]).powi(2))
+            .sqrt();
+            if d > 0.03 {
+                displaced_episodes += 1;
+            }
+            if task == Task::PickPlace && d > 0.03 {
+                assert!(e.contacts.iter().any(|c| c[0] == Contact::Grasped));
+                assert!(e.contacts.iter().any(|c| c[0] == Contact::Released));
+                // Released onto the table.
+                assert!((last[0].position_m[2] - w.frame.table_z_m).abs() < 1e-9);
+            }
+            if task == Task::Push && d > 0.03 {
+                assert!(e.contacts.iter().any(|c| c[0] == Contact::Pushed));
+            }
+        }
+        match task {
+            Task::Push | Task::PickPlace => {
+                assert!(
+                    displaced_episodes >= 3,
+                    "{task:?}: only {displaced_episodes}/4 episodes moved the object"
+                )
+            }
+            Task::Reach => {}
+        }
+    }
+}
+
+#[test]
+fn agibot_generates_all_tasks() {
+    let w = World::new(&config("agibot-g1")).unwrap();
+    for task in Task::ALL {
+        let e = w.generate(Split::Train, 0, task).unwrap();
+        assert_eq!(e.actions[0].len(), 14);
+        assert_eq!(e.rgb[0].len(), 48 * 32 * 3);
+    }
+}
