@@ -74,7 +74,7 @@ fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
         )?);
     }
     let dir = Path::new(&a.model);
-    Ok(BridgeV2W::load(
+    BridgeV2W::load(
         dir,
         a.weights.as_deref(),
         a.prompt_embeds.as_deref(),
@@ -82,7 +82,7 @@ fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
         dev,
         a.precision,
     )
-    .with_context(|| format!("loading the model from {}", dir.display()))?)
+    .with_context(|| format!("loading the model from {}", dir.display()))
 }
 
 fn read_image(path: &Path, (h, w): (usize, usize)) -> Result<Image> {
