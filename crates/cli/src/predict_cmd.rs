@@ -7,7 +7,7 @@ use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
 use bridgev2w_world_model::transformer::TransformerConfig;
-use bridgev2w_world_model::vae::VaeConfig;
+use bridgev2w_world_model::vae::{TilingOptions, VaeConfig};
 use bridgev2w_world_model::video::{Image, MaskVideo};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::{Path, PathBuf};
@@ -52,6 +52,11 @@ pub struct PredictArgs {
     /// f32 or bf16.
     #[arg(long, default_value = "f32")]
     precision: Precision,
+    /// Run the VAE without spatial tiling (tiling, as diffusers'
+    /// `vae.enable_tiling()`, bounds memory at 720x480; it is on by default
+    /// for frames above 256x256 pixels).
+    #[arg(long)]
+    no_vae_tiling: bool,
 }
 
 fn device(s: &str) -> Result<ComputeDevice> {
@@ -136,9 +141,16 @@ fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<Mask
     })
 }
 
+/// Frames with more pixels than this use VAE tiling unless `--no-vae-tiling`.
+const TILING_MIN_PIXELS: usize = 256 * 256;
+
 pub fn run(a: &PredictArgs) -> Result<()> {
-    let model = load_model(a)?;
+    let mut model = load_model(a)?;
     let res = model.resolution();
+    // Memory-motivated, as diffusers' CogVideoX examples: tile frames above 256x256.
+    if !a.no_vae_tiling && res.0 * res.1 > TILING_MIN_PIXELS {
+        model.vae.enable_tiling(TilingOptions::default())?;
+    }
     let image = read_image(&a.image, res)?;
     let masks = read_masks(&a.masks, model.clip_frames(), res)?;
     let opts = PredictOptions {

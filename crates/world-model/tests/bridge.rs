@@ -380,3 +380,33 @@ print("ok")
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+#[test]
+fn bf16_model_predicts_close_to_f32() {
+    let m = tiny(BridgeV2WConfig::tiny(), 17);
+    perturb_projections(&m);
+    let dir = tempfile::tempdir().unwrap();
+    m.save_backbone(&dir.path().join("prior")).unwrap();
+    let w = dir.path().join("w.safetensors");
+    m.save_weights(&w).unwrap();
+    let load = |p| {
+        BridgeV2W::load(
+            &dir.path().join("prior"),
+            Some(&w),
+            None,
+            BridgeV2WConfig::tiny(),
+            ComputeDevice::Cpu,
+            p,
+        )
+        .unwrap()
+    };
+    let (f32m, bf16m) = (load(Precision::F32), load(Precision::Bf16));
+    let (x, c, t) = inputs(18);
+    let a = f32m.velocity_with(&x, &t, Some(&c)).unwrap();
+    let b = bf16m.velocity_with(&x, &t, Some(&c)).unwrap();
+    assert_eq!(b.kind(), Kind::BFloat16);
+    let rel = max_abs(&a, &b.to_kind(Kind::Float)) / a.abs().max().double_value(&[]);
+    assert!(rel < 0.05, "bf16 vs f32 relative error {rel}");
+    let v = bf16m.predict(&image(2), &masks(0), &opts(1, 2.0)).unwrap();
+    assert!(v.data.iter().all(|x| x.is_finite()));
+}
