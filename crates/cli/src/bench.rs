@@ -100,6 +100,24 @@ pub(crate) fn find_repo(explicit: Option<&Path>) -> Result<PathBuf> {
         .context("cannot find scripts/bench/pybullet_masks.py above the current directory: run from the repository or pass --repo")
 }
 
+/// Runs a peer script and returns the last JSON object it printed on stdout,
+/// with errors naming the script (its stderr on failure).
+pub(crate) fn run_peer_json(cmd: &mut Command, script: &str) -> Result<serde_json::Value> {
+    let out = cmd
+        .output()
+        .with_context(|| format!("running scripts/bench/{script}"))?;
+    if !out.status.success() {
+        bail!("{script} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout
+        .lines()
+        .rev()
+        .find(|l| l.trim_start().starts_with('{'))
+        .with_context(|| format!("{script} printed no JSON result"))?;
+    Ok(serde_json::from_str(line)?)
+}
+
 fn bench_python(repo: &Path) -> Result<PathBuf> {
     let python = repo.join(".venv-bench/bin/python");
     let status = Command::new("bash")
@@ -235,39 +253,27 @@ fn masks(a: &MasksBench) -> Result<()> {
     eprintln!(
         "running pybullet getCameraImage (TinyRenderer) with {workers} worker process(es)..."
     );
-    let out = Command::new(&python)
-        .arg(repo.join("scripts/bench/pybullet_masks.py"))
-        .arg("--urdf")
-        .arg(&urdf)
-        .arg("--joints")
-        .arg(&joints_path)
-        .arg("--joint-names")
-        .arg(&names_path)
-        .arg("--camera")
-        .arg(&cam_path)
-        .args([
-            "--workers",
-            &workers.to_string(),
-            "--repeat",
-            &a.repeat.to_string(),
-        ])
-        .arg("--out")
-        .arg(&masks_path)
-        .output()
-        .context("running scripts/bench/pybullet_masks.py")?;
-    if !out.status.success() {
-        bail!(
-            "pybullet_masks.py failed:\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout
-        .lines()
-        .rev()
-        .find(|l| l.trim_start().starts_with('{'))
-        .context("pybullet_masks.py printed no JSON result")?;
-    let v: serde_json::Value = serde_json::from_str(line)?;
+    let v = run_peer_json(
+        Command::new(&python)
+            .arg(repo.join("scripts/bench/pybullet_masks.py"))
+            .arg("--urdf")
+            .arg(&urdf)
+            .arg("--joints")
+            .arg(&joints_path)
+            .arg("--joint-names")
+            .arg(&names_path)
+            .arg("--camera")
+            .arg(&cam_path)
+            .args([
+                "--workers",
+                &workers.to_string(),
+                "--repeat",
+                &a.repeat.to_string(),
+            ])
+            .arg("--out")
+            .arg(&masks_path),
+        "pybullet_masks.py",
+    )?;
     let py_rate = v["masks_per_s"]
         .as_f64()
         .context("pybullet result has no masks_per_s")?;
@@ -419,30 +425,18 @@ fn metrics(a: &MetricsBench) -> Result<()> {
     write_npy(&pred_path, &[n, h, w, 3], &pred)?;
     write_npy(&gt_path, &[n, h, w, 3], &gt)?;
     eprintln!("running scikit-image with {workers} worker process(es)...");
-    let out = Command::new(&python)
-        .arg(repo.join("scripts/bench/skimage_metrics.py"))
-        // One core per worker process, like one rayon thread per core.
-        .envs([("OMP_NUM_THREADS", "1"), ("OPENBLAS_NUM_THREADS", "1")])
-        .arg("--pred")
-        .arg(&pred_path)
-        .arg("--gt")
-        .arg(&gt_path)
-        .args(["--workers", &workers.to_string()])
-        .output()
-        .context("running scripts/bench/skimage_metrics.py")?;
-    if !out.status.success() {
-        bail!(
-            "skimage_metrics.py failed:\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout
-        .lines()
-        .rev()
-        .find(|l| l.trim_start().starts_with('{'))
-        .context("skimage_metrics.py printed no JSON result")?;
-    let v: serde_json::Value = serde_json::from_str(line)?;
+    let v = run_peer_json(
+        Command::new(&python)
+            .arg(repo.join("scripts/bench/skimage_metrics.py"))
+            // One core per worker process, like one rayon thread per core.
+            .envs([("OMP_NUM_THREADS", "1"), ("OPENBLAS_NUM_THREADS", "1")])
+            .arg("--pred")
+            .arg(&pred_path)
+            .arg("--gt")
+            .arg(&gt_path)
+            .args(["--workers", &workers.to_string()]),
+        "skimage_metrics.py",
+    )?;
     let seconds = v["seconds"]
         .as_f64()
         .context("scikit-image result has no seconds")?;

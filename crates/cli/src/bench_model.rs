@@ -104,34 +104,22 @@ fn diffusers(a: &ModelBench, tf: &TransformerConfig, vae: &VaeConfig) -> Result<
         Precision::F32 => "f32",
         Precision::Bf16 => "bf16",
     };
-    let out = Command::new(&python)
-        .arg(repo.join("scripts/bench/diffusers_model.py"))
-        .arg("--transformer-config")
-        .arg(&tf_path)
-        .arg("--vae-config")
-        .arg(&vae_path)
-        .args(["--frames", &a.frames.to_string()])
-        .args(["--height", &a.height.to_string()])
-        .args(["--width", &a.width.to_string()])
-        .args(["--text-len", &tf.max_text_seq_length.to_string()])
-        .args(["--repeat", &a.repeat.to_string()])
-        .args(["--threads", &tch_threads().to_string()])
-        .args(["--dtype", dtype, "--device", &device])
-        .output()
-        .context("running scripts/bench/diffusers_model.py")?;
-    if !out.status.success() {
-        bail!(
-            "diffusers_model.py failed:\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout
-        .lines()
-        .rev()
-        .find(|l| l.trim_start().starts_with('{'))
-        .context("diffusers_model.py printed no JSON result")?;
-    let v: serde_json::Value = serde_json::from_str(line)?;
+    let v = crate::bench::run_peer_json(
+        Command::new(&python)
+            .arg(repo.join("scripts/bench/diffusers_model.py"))
+            .arg("--transformer-config")
+            .arg(&tf_path)
+            .arg("--vae-config")
+            .arg(&vae_path)
+            .args(["--frames", &a.frames.to_string()])
+            .args(["--height", &a.height.to_string()])
+            .args(["--width", &a.width.to_string()])
+            .args(["--text-len", &tf.max_text_seq_length.to_string()])
+            .args(["--repeat", &a.repeat.to_string()])
+            .args(["--threads", &tch_threads().to_string()])
+            .args(["--dtype", dtype, "--device", &device]),
+        "diffusers_model.py",
+    )?;
     let get = |k: &str| {
         v[k].as_f64()
             .with_context(|| format!("diffusers result lacks {k}"))
