@@ -356,11 +356,18 @@ impl Trainer {
     /// One optimizer step on the next batch; the NaN/inf guard runs before
     /// any parameter changes.
     pub fn train_step(&mut self) -> Result<StepMetrics> {
-        let start = Instant::now();
         let step = self.step;
         let batch = self.batch(step)?;
+        self.update(&batch, step)
+    }
+
+    /// One optimizer update on `batch` with the random draws (and learning
+    /// rate, epoch) of step `step`; counts as a completed step. Tests use it
+    /// to overfit one fixed batch.
+    pub fn update(&mut self, batch: &Batch, step: usize) -> Result<StepMetrics> {
+        let start = Instant::now();
         self.opt.zero_grad();
-        let l = self.losses(&batch, step)?;
+        let l = self.losses(batch, step)?;
         let loss = l.total.double_value(&[]);
         check_finite(step, "total", loss)?;
         l.total.backward();
