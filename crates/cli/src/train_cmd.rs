@@ -78,7 +78,12 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     eprintln!(
         "done: {} steps; weights in {}",
         trainer.step,
-        trainer.cfg.train.out.join("final/weights.safetensors").display()
+        trainer
+            .cfg
+            .train
+            .out
+            .join("final/weights.safetensors")
+            .display()
     );
     Ok(())
 }

@@ -77,7 +77,15 @@ lr = 1e-4
     assert_eq!(lines.len(), 3);
     for (i, l) in lines.iter().enumerate() {
         assert_eq!(l["step"].as_u64(), Some(i as u64));
-        for key in ["loss", "diffusion", "dynamics", "flow", "lr", "grad_norm", "secs"] {
+        for key in [
+            "loss",
+            "diffusion",
+            "dynamics",
+            "flow",
+            "lr",
+            "grad_norm",
+            "secs",
+        ] {
             assert!(l[key].as_f64().is_some_and(f64::is_finite), "{key} in {l}");
         }
     }

@@ -94,13 +94,14 @@ impl ActionEncoder {
         let (b, t) = (s[0], s[1]);
         let latent_frames = (t - 1) / self.group + 1;
         let a = (actions.to_kind(Kind::Float) - &self.mean) / &self.std; // [B, T, A]
-        let first = a
-            .narrow(1, 0, 1)
-            .repeat([1, self.group, 1])
-            .reshape([b, 1, self.group * self.action_dim]);
-        let rest = a
-            .narrow(1, 1, t - 1)
-            .reshape([b, latent_frames - 1, self.group * self.action_dim]);
+        let first = a.narrow(1, 0, 1).repeat([1, self.group, 1]).reshape([
+            b,
+            1,
+            self.group * self.action_dim,
+        ]);
+        let rest =
+            a.narrow(1, 1, t - 1)
+                .reshape([b, latent_frames - 1, self.group * self.action_dim]);
         let grouped = Tensor::cat(&[first, rest], 1); // [B, t, group * A]
         let emb = self.fc2.forward(&self.fc1.forward(&grouped).silu()); // [B, t, D]
         let d = emb.size()[2];
@@ -145,7 +146,10 @@ mod tests {
         });
         let r = enc.residuals(&actions, 6).unwrap();
         let f0 = r[0].narrow(1, 0, 6);
-        assert!(f0.narrow(1, 0, 1).expand([2, 6, 8], false).allclose(&f0, 1e-6, 1e-6, false));
+        assert!(f0
+            .narrow(1, 0, 1)
+            .expand([2, 6, 8], false)
+            .allclose(&f0, 1e-6, 1e-6, false));
         let moved = actions.copy();
         let _ = moved.narrow(1, 5, 4).fill_(3.0);
         let r2 = enc.residuals(&moved, 6).unwrap();

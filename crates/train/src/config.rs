@@ -230,16 +230,16 @@ impl Default for AblationSection {
 impl TrainConfig {
     /// Parses a TOML file.
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| {
-            TrainError::input(format!("config {}", path.display()), e.to_string())
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| TrainError::input(format!("config {}", path.display()), e.to_string()))?;
         Self::from_toml(&text)
             .map_err(|e| TrainError::input(format!("config {}", path.display()), e.to_string()))
     }
 
     /// Parses TOML text and validates it.
     pub fn from_toml(text: &str) -> Result<Self> {
-        let cfg: Self = toml::from_str(text).map_err(|e| TrainError::input("config", e.to_string()))?;
+        let cfg: Self =
+            toml::from_str(text).map_err(|e| TrainError::input("config", e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
     }

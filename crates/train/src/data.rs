@@ -252,10 +252,20 @@ impl ClipDataset {
 
     /// The batch of step `step` on `device`: episodes from [`Self::batch_episodes`],
     /// clip starts from `(seed, step)`.
-    pub fn batch(&self, seed: u64, step: usize, batch_size: usize, device: Device) -> Result<Batch> {
+    pub fn batch(
+        &self,
+        seed: u64,
+        step: usize,
+        batch_size: usize,
+        device: Device,
+    ) -> Result<Batch> {
         let eps = self.batch_episodes(seed, step, batch_size);
         let mut rng = rng_for(seed, step as u64, 2);
-        let (tf, h, w) = (self.clip_frames as i64, self.height as i64, self.width as i64);
+        let (tf, h, w) = (
+            self.clip_frames as i64,
+            self.height as i64,
+            self.width as i64,
+        );
         let mut videos = Vec::new();
         let mut masks = Vec::new();
         let mut actions = Vec::new();
@@ -264,7 +274,8 @@ impl ClipDataset {
             let start = rng.gen_range(0..=e.frames - self.clip_frames);
             let (eh, ew) = (e.height as i64, e.width as i64);
             let px = eh * ew;
-            let rgb = &e.rgb[start * (px as usize) * 3..(start + self.clip_frames) * (px as usize) * 3];
+            let rgb =
+                &e.rgb[start * (px as usize) * 3..(start + self.clip_frames) * (px as usize) * 3];
             let v = Tensor::from_slice(rgb)
                 .reshape([tf, eh, ew, 3])
                 .permute([0, 3, 1, 2]) // [T, 3, H, W]
@@ -316,7 +327,12 @@ impl ClipDataset {
 }
 
 fn video_shape(ds: &LeRobotDataset, key: &str) -> Option<(usize, usize)> {
-    let shape = ds.info.get("features")?.get(key)?.get("shape")?.as_array()?;
+    let shape = ds
+        .info
+        .get("features")?
+        .get(key)?
+        .get("shape")?
+        .as_array()?;
     let dims: Vec<usize> = shape
         .iter()
         .filter_map(|v| v.as_u64().map(|x| x as usize))

@@ -68,7 +68,11 @@ impl AdamW {
         for (_, p) in &self.params {
             let g = p.grad();
             if g.defined() {
-                sq += g.to_kind(Kind::Double).square().sum(Kind::Double).double_value(&[]);
+                sq += g
+                    .to_kind(Kind::Double)
+                    .square()
+                    .sum(Kind::Double)
+                    .double_value(&[]);
             }
         }
         sq.sqrt()
@@ -159,7 +163,9 @@ impl AdamW {
                         p.size()
                     )));
                 }
-                *buf = t.to_kind(Kind::Float).to_device(device.unwrap_or(p.device()));
+                *buf = t
+                    .to_kind(Kind::Float)
+                    .to_device(device.unwrap_or(p.device()));
             }
         }
         if let Some(k) = map.keys().next() {
@@ -235,7 +241,10 @@ mod tests {
         let a = Tensor::zeros([2], (Kind::Float, tch::Device::Cpu)).set_requires_grad(true);
         let b = Tensor::zeros([1], (Kind::Float, tch::Device::Cpu)).set_requires_grad(true);
         let mut opt = AdamW::new(
-            vec![("a".into(), a.shallow_clone()), ("b".into(), b.shallow_clone())],
+            vec![
+                ("a".into(), a.shallow_clone()),
+                ("b".into(), b.shallow_clone()),
+            ],
             cfg(),
         );
         let loss = (&a * Tensor::from_slice(&[3.0f32, 0.0])).sum(Kind::Float)
@@ -247,7 +256,10 @@ mod tests {
         opt.step(0.1);
         let state = opt.state();
         let mut other = AdamW::new(
-            vec![("a".into(), a.shallow_clone()), ("b".into(), b.shallow_clone())],
+            vec![
+                ("a".into(), a.shallow_clone()),
+                ("b".into(), b.shallow_clone()),
+            ],
             cfg(),
         );
         other.load_state(state).unwrap();

@@ -102,7 +102,7 @@ pub struct Trainer {
     /// The action MLP's variables (`mask_action = false`).
     pub action_vs: Option<VarStore>,
     action: Option<ActionEncoder>,
-    estimator: Box<dyn FlowEstimatorDebug>,
+    estimator: Box<dyn FlowEstimator>,
     flow_cfg: FlowLossConfig,
     scheduler: Scheduler,
     /// The optimizer over the trainable variables.
@@ -111,17 +111,9 @@ pub struct Trainer {
     pub step: usize,
 }
 
-/// A flow estimator that can be printed.
-pub trait FlowEstimatorDebug: FlowEstimator + std::fmt::Debug {}
-impl<T: FlowEstimator + std::fmt::Debug> FlowEstimatorDebug for T {}
-
 fn parse_device(s: &str) -> Result<ComputeDevice> {
-    match s {
-        "auto" => Ok(ComputeDevice::auto()),
-        other => other
-            .parse::<ComputeDevice>()
-            .map_err(|e| TrainError::input("config model.device", e.to_string())),
-    }
+    s.parse::<ComputeDevice>()
+        .map_err(|e| TrainError::input("config model.device", e.to_string()))
 }
 
 impl Trainer {
@@ -132,7 +124,11 @@ impl Trainer {
         let random_tiny = cfg.model.backbone == "random:tiny";
         let (frames, height, width) = {
             let d = &cfg.data;
-            let (f, h, w) = if random_tiny { (9, 64, 96) } else { (25, 480, 720) };
+            let (f, h, w) = if random_tiny {
+                (9, 64, 96)
+            } else {
+                (25, 480, 720)
+            };
             (
                 if d.frames == 0 { f } else { d.frames },
                 if d.height == 0 { h } else { d.height },
@@ -207,7 +203,7 @@ impl Trainer {
                 weight_decay: cfg.train.weight_decay,
             },
         );
-        let estimator: Box<dyn FlowEstimatorDebug> = match &cfg.train.raft_weights {
+        let estimator: Box<dyn FlowEstimator> = match &cfg.train.raft_weights {
             Some(path) => {
                 use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
                 let raft = Raft::load(
@@ -281,8 +277,7 @@ impl Trainer {
             if t.image_noise {
                 let sig: Vec<f32> = (0..b)
                     .map(|_| {
-                        normal(&mut rng, t.image_noise_log_mean, t.image_noise_log_std).exp()
-                            as f32
+                        normal(&mut rng, t.image_noise_log_mean, t.image_noise_log_std).exp() as f32
                     })
                     .collect();
                 let sig = Tensor::from_slice(&sig)
@@ -427,7 +422,10 @@ impl Trainer {
         std::fs::create_dir_all(&fin).map_err(|e| io_err(&fin, e))?;
         self.model.save_weights(&fin.join("weights.safetensors"))?;
         if let Some(vs) = &self.action_vs {
-            save_named(vs.variables().into_iter().collect(), &fin.join("action_encoder.safetensors"))?;
+            save_named(
+                vs.variables().into_iter().collect(),
+                &fin.join("action_encoder.safetensors"),
+            )?;
         }
         Ok(all)
     }
@@ -579,7 +577,9 @@ pub fn resolve_checkpoint(dir: &Path) -> Result<PathBuf> {
     let name = std::fs::read_to_string(&latest).map_err(|e| {
         TrainError::input(
             format!("--resume {}", dir.display()),
-            format!("neither a checkpoint (state.json) nor a run folder with checkpoints/latest: {e}"),
+            format!(
+                "neither a checkpoint (state.json) nor a run folder with checkpoints/latest: {e}"
+            ),
         )
     })?;
     Ok(dir.join("checkpoints").join(name.trim()))
@@ -634,7 +634,8 @@ fn build_model(
         } else {
             // Random transformer with the folder's shapes; the pretrained VAE.
             let vae_cfg = VaeConfig::from_file(&dir.join("vae").join("config.json"))?;
-            let sched = SchedulerConfig::load(&dir.join("scheduler").join("scheduler_config.json"))?;
+            let sched =
+                SchedulerConfig::load(&dir.join("scheduler").join("scheduler_config.json"))?;
             let m = BridgeV2W::random(make_cfg(&tf), &vae_cfg, &tf, sched, device, seed)?;
             bridgev2w_world_model::weights::load_component(&m.vae_vs, &dir.join("vae"))?;
             m

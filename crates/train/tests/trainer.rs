@@ -66,9 +66,7 @@ fn overfits_a_fixed_batch() {
     let mut t = Trainer::new(c).unwrap();
     let batch = t.batch(0).unwrap();
     // Same batch, same timestep and noise (the draws of step 0) every update.
-    let losses: Vec<f64> = (0..30)
-        .map(|_| t.update(&batch, 0).unwrap().loss)
-        .collect();
+    let losses: Vec<f64> = (0..30).map(|_| t.update(&batch, 0).unwrap().loss).collect();
     let (first, last) = (losses[0], losses[29]);
     assert!(
         last < 0.7 * first,
