@@ -10,6 +10,7 @@ mod parity_cmd;
 mod predict_cmd;
 mod robot_info;
 mod synth_cmd;
+mod train_cmd;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -43,6 +44,8 @@ enum Command {
     EvalPolicy(eval_cmd::EvalPolicyArgs),
     /// Render a synthetic tabletop dataset (RGB clips, GT masks, actions, cameras) in the LeRobot v3.0 layout.
     Synth(synth_cmd::SynthArgs),
+    /// Train BridgeV2W (ControlNet + LoRA) on a dataset with the paper's losses (CONFIG.toml).
+    Train(train_cmd::TrainArgs),
 }
 
 fn main() -> Result<()> {
@@ -57,6 +60,7 @@ fn main() -> Result<()> {
         Command::EvalPolicy(a) => eval_cmd::run_eval_policy(&a),
         Command::Predict(a) => predict_cmd::run(&a),
         Command::Synth(a) => synth_cmd::run(&a),
+        Command::Train(a) => train_cmd::run(&a),
     }
 }
 

@@ -15,7 +15,7 @@ use tch::{Kind, Tensor};
 
 /// A frozen optical-flow estimator, differentiable with respect to its input
 /// frames.
-pub trait FlowEstimator {
+pub trait FlowEstimator: std::fmt::Debug {
     /// Flow from `from` to `to` (`[N, 3, H, W]` in `[-1, 1]`): `[N, 2, H, W]`
     /// in pixels (x then y).
     fn flow(&self, from: &Tensor, to: &Tensor) -> Result<Tensor>;

@@ -1,4 +1,4 @@
-//! Training BridgeV2W: the paper's losses and (later) the trainer.
+//! Training BridgeV2W: the paper's losses and the trainer (`bridgev2w train`).
 //!
 //! * [`losses::diffusion_loss`]: the v-prediction objective in `x0` space.
 //! * [`losses::dynamics_loss`]: latent dynamics consistency over offsets `1..=K`.
@@ -6,8 +6,13 @@
 //!   with a frozen, differentiable [`flow::FlowEstimator`] (RAFT, or a light
 //!   Lucas-Kanade stand-in for CPU runs).
 
+pub mod action;
+pub mod config;
+pub mod data;
 pub mod flow;
 pub mod losses;
+pub mod optim;
+pub mod trainer;
 
 /// Errors of the training code.
 #[derive(Debug, thiserror::Error)]
@@ -19,6 +24,24 @@ pub enum TrainError {
         what: String,
         /// Why, with the value and what was expected.
         message: String,
+    },
+    /// A loss term or the gradient norm became NaN or infinite.
+    #[error("step {step}: non-finite {term} ({value}); training stopped, the checkpoints written before this step are kept")]
+    NonFinite {
+        /// The 0-based step.
+        step: usize,
+        /// Which term ("diffusion", "dynamics", "flow", "total", "gradient norm").
+        term: String,
+        /// Its value.
+        value: f64,
+    },
+    /// A file could not be read or written.
+    #[error("{}: {error}", path.display())]
+    Io {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The error.
+        error: std::io::Error,
     },
     /// From the world model.
     #[error(transparent)]

@@ -428,6 +428,30 @@ impl BridgeV2W {
         timestep: &Tensor,
         control: Option<&Tensor>,
     ) -> Result<Tensor> {
+        self.velocity_with_extra(latent_in, timestep, control, &[])
+    }
+
+    /// [`Self::velocity_with`] plus `extra` residuals: `extra[i]` (`[B, N_tokens, D]`
+    /// or broadcastable to it) is added to the backbone's video tokens after block
+    /// `i`, on top of the branch's residual (training's action-MLP ablation injects
+    /// its action tokens this way). Blocks beyond `extra.len()` get none.
+    pub fn velocity_with_extra(
+        &self,
+        latent_in: &Tensor,
+        timestep: &Tensor,
+        control: Option<&Tensor>,
+        extra: &[Tensor],
+    ) -> Result<Tensor> {
+        if extra.len() > self.transformer.model.config().num_layers as usize {
+            return Err(WorldModelError::input(
+                "extra residuals",
+                format!(
+                    "{} residuals for {} backbone blocks",
+                    extra.len(),
+                    self.transformer.model.config().num_layers
+                ),
+            ));
+        }
         let model = &self.transformer.model;
         let latent_in = latent_in.to_device(self.device).to_kind(self.kind);
         let b = latent_in.size()[0];
@@ -457,7 +481,12 @@ impl BridgeV2W {
             &timestep,
             rotary.as_ref(),
             ofs.as_ref(),
-            &mut |i, _| residuals.get(i).map(|r| r.shallow_clone()),
+            &mut |i, _| match (residuals.get(i), extra.get(i)) {
+                (Some(r), Some(e)) => Some(r + e.to_kind(self.kind)),
+                (Some(r), None) => Some(r.shallow_clone()),
+                (None, Some(e)) => Some(e.to_kind(self.kind)),
+                (None, None) => None,
+            },
         )
     }
 
@@ -480,6 +509,18 @@ impl BridgeV2W {
     pub fn decode_latents(&self, latents: &Tensor) -> Result<Tensor> {
         let z = self.vae.unscale_latents(&latents.permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
         self.vae.decode(&z.to_kind(Kind::Float))
+    }
+
+    /// [`Self::decode_latents`] with autograd on (gradients reach `latents`):
+    /// the flow loss's decoder.
+    pub fn decode_latents_with_grad(&self, latents: &Tensor) -> Result<Tensor> {
+        let z = self.vae.unscale_latents(&latents.permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
+        self.vae.decode_with_grad(&z.to_kind(Kind::Float))
+    }
+
+    /// The compute dtype of the backbone.
+    pub fn kind(&self) -> Kind {
+        self.kind
     }
 
     fn check_inputs(&self, first_frame: &Image, masks: &MaskVideo) -> Result<()> {

@@ -655,6 +655,13 @@ impl AutoencoderKLCogVideoX {
     /// `[B, out_channels, T, 8h, 8w]` (values roughly in `[-1, 1]`, not clamped).
     pub fn decode(&self, latents: &Tensor) -> Result<Tensor> {
         let _guard = tch::no_grad_guard();
+        self.decode_with_grad(latents)
+    }
+
+    /// [`Self::decode`] with autograd on: gradients flow from the decoded
+    /// video back into `latents` (the VAE's own parameters stay frozen).
+    /// Training's flow loss decodes predicted latents through this.
+    pub fn decode_with_grad(&self, latents: &Tensor) -> Result<Tensor> {
         check_rank5(
             latents,
             "latents",

@@ -1,0 +1,115 @@
+//! `bridgev2w train` end to end: `bridgev2w synth` a tiny dataset, train three
+//! steps on the `random:tiny` backbone, resume to five, and the errors a user meets first.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+        .env("RUST_BACKTRACE", "0")
+        .args(args)
+        .output()
+        .expect("run bridgev2w")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+fn ok(o: &Output) {
+    assert!(
+        o.status.success(),
+        "failed: {}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+#[test]
+fn synth_then_train_three_steps_then_resume() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let data = d.join("data");
+    ok(&run(&[
+        "synth",
+        "--out",
+        s(&data),
+        "--episodes-per-split",
+        "2",
+        "--frames",
+        "9",
+        "--width",
+        "96",
+        "--height",
+        "64",
+    ]));
+    let run_dir = d.join("run");
+    let cfg = format!(
+        r#"
+[model]
+backbone = "random:tiny"
+lora_rank = 4
+lora_alpha = 4.0
+controlnet_layers = 1
+
+[data]
+dataset = "{}"
+split = "train"
+
+[train]
+out = "{}"
+max_steps = 3
+checkpoint_every = 2
+warmup_steps = 2
+lr = 1e-4
+"#,
+        s(&data),
+        s(&run_dir)
+    );
+    let cfg_path = d.join("train.toml");
+    std::fs::write(&cfg_path, cfg).expect("write config");
+    ok(&run(&["train", s(&cfg_path), "--quiet"]));
+    let metrics = std::fs::read_to_string(run_dir.join("metrics.jsonl")).expect("metrics");
+    let lines: Vec<serde_json::Value> = metrics
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json line"))
+        .collect();
+    assert_eq!(lines.len(), 3);
+    for (i, l) in lines.iter().enumerate() {
+        assert_eq!(l["step"].as_u64(), Some(i as u64));
+        for key in [
+            "loss",
+            "diffusion",
+            "dynamics",
+            "flow",
+            "lr",
+            "grad_norm",
+            "secs",
+        ] {
+            assert!(l[key].as_f64().is_some_and(f64::is_finite), "{key} in {l}");
+        }
+    }
+    assert!(run_dir.join("final/weights.safetensors").is_file());
+    assert_eq!(
+        std::fs::read_to_string(run_dir.join("checkpoints/latest")).expect("latest"),
+        "step-00000003"
+    );
+    // Resume to 5 steps.
+    ok(&run(&[
+        "train",
+        s(&cfg_path),
+        "--quiet",
+        "--max-steps",
+        "5",
+        "--resume",
+        s(&run_dir),
+    ]));
+    let metrics = std::fs::read_to_string(run_dir.join("metrics.jsonl")).expect("metrics");
+    assert_eq!(metrics.lines().count(), 5);
+    // Errors name the problem.
+    std::fs::write(d.join("bad.toml"), "[train]\nlearning_rate = 1\n").expect("write");
+    let o = run(&["train", s(&d.join("bad.toml"))]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("learning_rate"), "{err}");
+}

@@ -1,0 +1,367 @@
+//! The training configuration (`bridgev2w train CONFIG.toml`), with the
+//! paper's hyper-parameters as defaults (appendix table).
+//!
+//! ```toml
+//! [model]
+//! backbone = "random:tiny"          # or a diffusers CogVideoX I2V folder
+//! [data]
+//! dataset = "synth-data"            # `bridgev2w synth` / LeRobot v3.0 folder
+//! split = "train"
+//! [train]
+//! out = "runs/tiny"
+//! max_steps = 100
+//! ```
+
+use crate::{Result, TrainError};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The whole configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainConfig {
+    /// The model to train.
+    pub model: ModelSection,
+    /// The clips it is trained on.
+    pub data: DataSection,
+    /// Optimisation and losses.
+    pub train: TrainSection,
+    /// The paper's ablation switches.
+    pub ablation: AblationSection,
+}
+
+/// `[model]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelSection {
+    /// A diffusers CogVideoX image-to-video folder, or `random:tiny` (the tiny
+    /// VAE/transformer presets with random weights, 9 frames at 64x96).
+    pub backbone: String,
+    /// The fixed prompt's embedding (safetensors, see `bridgev2w predict`); zeros when absent.
+    pub prompt_embeds: Option<PathBuf>,
+    /// BridgeV2W weights (ControlNet + LoRA) to start from instead of a fresh branch.
+    pub init_weights: Option<PathBuf>,
+    /// LoRA rank on the backbone's attention (paper: 64; 0 = no LoRA).
+    pub lora_rank: usize,
+    /// LoRA alpha (paper: 64).
+    pub lora_alpha: f64,
+    /// ControlNet branch blocks (copies of the backbone's first N; paper: 8).
+    /// Clamped to the backbone's block count.
+    pub controlnet_layers: usize,
+    /// Also train the backbone transformer's own weights (training a video
+    /// prior from scratch; implied by `ablation.pretrained = false`).
+    pub train_backbone: bool,
+    /// `cpu`, `cuda` or `auto`.
+    pub device: String,
+    /// Hidden width of the action MLP (`ablation.mask_action = false`).
+    pub action_hidden: i64,
+}
+
+impl Default for ModelSection {
+    fn default() -> Self {
+        Self {
+            backbone: "random:tiny".into(),
+            prompt_embeds: None,
+            init_weights: None,
+            lora_rank: 64,
+            lora_alpha: 64.0,
+            controlnet_layers: 8,
+            train_backbone: false,
+            device: "cpu".into(),
+            action_hidden: 256,
+        }
+    }
+}
+
+/// `[data]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DataSection {
+    /// A `bridgev2w synth` (LeRobot v3.0 + `masks/`) dataset folder.
+    pub dataset: PathBuf,
+    /// The split to train on (episodes whose `split` column matches; all
+    /// episodes when the dataset has no split column).
+    pub split: String,
+    /// The video key (default: the dataset's first).
+    pub video_key: Option<String>,
+    /// Frames per clip (`4k + 1`); 0 = the backbone's default (9 for `random:tiny`, else 25).
+    pub frames: usize,
+    /// Clip width, pixels; 0 = the backbone's default. Frames of another size are resized.
+    pub width: usize,
+    /// Clip height, pixels; 0 = the backbone's default.
+    pub height: usize,
+}
+
+impl Default for DataSection {
+    fn default() -> Self {
+        Self {
+            dataset: PathBuf::new(),
+            split: "train".into(),
+            video_key: None,
+            frames: 0,
+            width: 0,
+            height: 0,
+        }
+    }
+}
+
+/// `[train]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainSection {
+    /// Output folder: `checkpoints/`, `metrics.jsonl`, `config.toml`, `final/`.
+    pub out: PathBuf,
+    /// Seed of everything (model init, data order, noise, dropout).
+    pub seed: u64,
+    /// Clips per step.
+    pub batch_size: usize,
+    /// Optimizer steps; 0 = `epochs` x steps per epoch.
+    pub max_steps: usize,
+    /// Epochs (passes over the split's episodes) when `max_steps` is 0.
+    pub epochs: usize,
+    /// AdamW learning rate (paper: 2e-5).
+    pub lr: f64,
+    /// AdamW beta1 (paper: 0.9).
+    pub beta1: f64,
+    /// AdamW beta2 (paper: 0.95).
+    pub beta2: f64,
+    /// AdamW epsilon (paper: 1e-8).
+    pub eps: f64,
+    /// AdamW decoupled weight decay (paper: 1e-4).
+    pub weight_decay: f64,
+    /// Global gradient-norm clip (paper: 1.0; 0 = off).
+    pub grad_clip: f64,
+    /// Linear warm-up steps of the otherwise constant learning rate (paper: 100).
+    pub warmup_steps: usize,
+    /// Weight of the dynamics-consistency loss (paper: 0.1).
+    pub lambda_dyn: f64,
+    /// Offsets of the dynamics loss (paper: K = 4).
+    pub dyn_k: usize,
+    /// Weight of the flow loss once on (paper: 0.05).
+    pub lambda_flow: f64,
+    /// Epoch from which the flow loss is on (paper: 5).
+    pub e_switch: usize,
+    /// RAFT weights (safetensors, torchvision key names) for the flow loss;
+    /// absent: the differentiable Lucas-Kanade stand-in.
+    pub raft_weights: Option<PathBuf>,
+    /// `raft_large` or `raft_small` (with `raft_weights`).
+    pub raft_model: String,
+    /// RAFT refinement iterations.
+    pub raft_iterations: usize,
+    /// Image-noise augmentation of the first frame (CogVideoX I2V): sigma =
+    /// exp(N(mean, std)) per clip; off when false.
+    pub image_noise: bool,
+    /// Mean of log sigma (CogVideoX: -3.0).
+    pub image_noise_log_mean: f64,
+    /// Std of log sigma (CogVideoX: 0.5).
+    pub image_noise_log_std: f64,
+    /// Probability of dropping the mask branch for a step (unconditional
+    /// training for classifier-free guidance).
+    pub condition_dropout: f64,
+    /// Checkpoint every N steps (0 = only at the end).
+    pub checkpoint_every: usize,
+    /// Checkpoints kept (older ones deleted; 0 = keep all).
+    pub keep_checkpoints: usize,
+    /// Testing aid: from this step on, the diffusion loss is multiplied by NaN
+    /// (exercises the NaN/inf guard).
+    pub inject_nan_at_step: Option<usize>,
+}
+
+impl Default for TrainSection {
+    fn default() -> Self {
+        Self {
+            out: PathBuf::from("runs/bridgev2w"),
+            seed: 0,
+            batch_size: 1,
+            max_steps: 0,
+            epochs: 10,
+            lr: 2e-5,
+            beta1: 0.9,
+            beta2: 0.95,
+            eps: 1e-8,
+            weight_decay: 1e-4,
+            grad_clip: 1.0,
+            warmup_steps: 100,
+            lambda_dyn: 0.1,
+            dyn_k: 4,
+            lambda_flow: 0.05,
+            e_switch: 5,
+            raft_weights: None,
+            raft_model: "raft_large".into(),
+            raft_iterations: 12,
+            image_noise: true,
+            image_noise_log_mean: -3.0,
+            image_noise_log_std: 0.5,
+            condition_dropout: 0.1,
+            checkpoint_every: 100,
+            keep_checkpoints: 3,
+            inject_nan_at_step: None,
+        }
+    }
+}
+
+/// `[ablation]`: the paper's switches (all `true` = full BridgeV2W).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AblationSection {
+    /// Condition on embodiment masks through the ControlNet (false: the
+    /// end-effector actions through an MLP instead).
+    pub mask_action: bool,
+    /// Zero-initialised ControlNet projections (false: default-initialised branch).
+    pub controlnet: bool,
+    /// Use the flow loss (after `e_switch`).
+    pub flow_loss: bool,
+    /// Start from the pretrained backbone (false: random transformer weights,
+    /// trained with the adapters; the VAE is still loaded).
+    pub pretrained: bool,
+}
+
+impl Default for AblationSection {
+    fn default() -> Self {
+        Self {
+            mask_action: true,
+            controlnet: true,
+            flow_loss: true,
+            pretrained: true,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Parses a TOML file.
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| TrainError::input(format!("config {}", path.display()), e.to_string()))?;
+        Self::from_toml(&text)
+            .map_err(|e| TrainError::input(format!("config {}", path.display()), e.to_string()))
+    }
+
+    /// Parses TOML text and validates it.
+    pub fn from_toml(text: &str) -> Result<Self> {
+        let cfg: Self =
+            toml::from_str(text).map_err(|e| TrainError::input("config", e.to_string()))?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// The configuration as TOML.
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string_pretty(self).map_err(|e| TrainError::input("config", e.to_string()))
+    }
+
+    /// Checks value ranges.
+    pub fn validate(&self) -> Result<()> {
+        let t = &self.train;
+        let bad = |what: &str, msg: String| Err(TrainError::input(format!("config {what}"), msg));
+        if t.batch_size == 0 {
+            return bad("train.batch_size", "0: expected at least 1".into());
+        }
+        if t.max_steps == 0 && t.epochs == 0 {
+            return bad(
+                "train.max_steps/epochs",
+                "both 0: give a number of steps or epochs".into(),
+            );
+        }
+        for (name, v) in [
+            ("train.lr", t.lr),
+            ("train.eps", t.eps),
+            ("train.weight_decay", t.weight_decay),
+            ("train.grad_clip", t.grad_clip),
+            ("train.lambda_dyn", t.lambda_dyn),
+            ("train.lambda_flow", t.lambda_flow),
+        ] {
+            if !v.is_finite() || v < 0.0 {
+                return bad(name, format!("{v}: expected a finite value >= 0"));
+            }
+        }
+        for (name, v) in [("train.beta1", t.beta1), ("train.beta2", t.beta2)] {
+            if !(0.0..1.0).contains(&v) {
+                return bad(name, format!("{v}: expected [0, 1)"));
+            }
+        }
+        if !(0.0..=1.0).contains(&t.condition_dropout) {
+            return bad(
+                "train.condition_dropout",
+                format!("{}: expected a probability", t.condition_dropout),
+            );
+        }
+        if t.dyn_k == 0 {
+            return bad("train.dyn_k", "0: expected K >= 1".into());
+        }
+        if self.model.lora_rank > 0 && self.model.lora_alpha <= 0.0 {
+            return bad(
+                "model.lora_alpha",
+                format!("{}: expected > 0", self.model.lora_alpha),
+            );
+        }
+        if self.model.controlnet_layers == 0 {
+            return bad("model.controlnet_layers", "0: expected at least 1".into());
+        }
+        if self.model.action_hidden <= 0 {
+            return bad(
+                "model.action_hidden",
+                format!("{}: expected > 0", self.model.action_hidden),
+            );
+        }
+        if !matches!(t.raft_model.as_str(), "raft_large" | "raft_small") {
+            return bad(
+                "train.raft_model",
+                format!("{:?}: expected raft_large or raft_small", t.raft_model),
+            );
+        }
+        Ok(())
+    }
+
+    /// The learning rate at `step` (0-based): linear warm-up over
+    /// `warmup_steps` (`lr * (step + 1) / warmup`), then constant.
+    pub fn lr_at(&self, step: usize) -> f64 {
+        let w = self.train.warmup_steps;
+        if w == 0 || step + 1 >= w {
+            self.train.lr
+        } else {
+            self.train.lr * (step + 1) as f64 / w as f64
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paper_defaults_and_parsing() {
+        let c = TrainConfig::from_toml("[data]\ndataset = \"d\"\n").unwrap();
+        assert_eq!(c.train.lr, 2e-5);
+        assert_eq!((c.train.beta1, c.train.beta2), (0.9, 0.95));
+        assert_eq!(c.train.eps, 1e-8);
+        assert_eq!(c.train.weight_decay, 1e-4);
+        assert_eq!(c.train.grad_clip, 1.0);
+        assert_eq!(c.train.warmup_steps, 100);
+        assert_eq!((c.model.lora_rank, c.model.lora_alpha), (64, 64.0));
+        assert_eq!((c.train.lambda_dyn, c.train.dyn_k), (0.1, 4));
+        assert_eq!((c.train.lambda_flow, c.train.e_switch), (0.05, 5));
+        assert!(c.ablation.mask_action && c.ablation.controlnet);
+        // Round trip.
+        let back = TrainConfig::from_toml(&c.to_toml().unwrap()).unwrap();
+        assert_eq!(back, c);
+        // Unknown keys and bad values are errors naming the field.
+        let e = TrainConfig::from_toml("[train]\nlearning_rate = 1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("learning_rate"), "{e}");
+        let e = TrainConfig::from_toml("[train]\nbeta2 = 1.5\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("beta2"), "{e}");
+    }
+
+    #[test]
+    fn warmup_then_constant() {
+        let mut c = TrainConfig::default();
+        c.train.warmup_steps = 4;
+        c.train.lr = 1.0;
+        let lrs: Vec<f64> = (0..6).map(|s| c.lr_at(s)).collect();
+        assert_eq!(lrs, vec![0.25, 0.5, 0.75, 1.0, 1.0, 1.0]);
+    }
+}

@@ -1,0 +1,397 @@
+//! Training clips from a `bridgev2w synth` / LeRobot dataset: one split held
+//! in memory (RGB frames, ground-truth masks, actions), batches drawn
+//! deterministically from `(seed, step)` so a resumed run sees the same data.
+
+use crate::{Result, TrainError};
+use bridgev2w_data::lerobot::LeRobotDataset;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::path::Path;
+use tch::{Device, Kind, Tensor};
+
+/// One episode in memory.
+#[derive(Debug, Clone)]
+pub struct Episode {
+    /// Episode index in the dataset.
+    pub index: i64,
+    /// Frames.
+    pub frames: usize,
+    /// Frame height.
+    pub height: usize,
+    /// Frame width.
+    pub width: usize,
+    /// RGB8 `[T, H, W, 3]`.
+    pub rgb: Vec<u8>,
+    /// Masks `[T, H, W]` 0/1, when the dataset has them.
+    pub masks: Option<Vec<u8>>,
+    /// Actions `[T, A]`.
+    pub actions: Vec<f32>,
+}
+
+/// A batch of clips.
+#[derive(Debug)]
+pub struct Batch {
+    /// First frames `[B, 3, H, W]` in [-1, 1].
+    pub first_frames: Tensor,
+    /// Videos `[B, 3, T, H, W]` in [-1, 1].
+    pub video: Tensor,
+    /// Mask videos `[B, 3, T, H, W]` in {-1, 1} (zeros when the dataset has no masks).
+    pub masks: Tensor,
+    /// Actions `[B, T, A]`.
+    pub actions: Tensor,
+    /// The episodes the clips come from.
+    pub episodes: Vec<i64>,
+}
+
+/// The episodes of one split, cut into clips of a fixed length and size.
+#[derive(Debug, Clone)]
+pub struct ClipDataset {
+    /// The episodes.
+    pub episodes: Vec<Episode>,
+    /// Action dimension (7 per arm).
+    pub action_dim: usize,
+    /// Frames per clip.
+    pub clip_frames: usize,
+    /// Clip height (frames of another size are resized).
+    pub height: usize,
+    /// Clip width.
+    pub width: usize,
+}
+
+fn seed_of(parts: &[u64]) -> u64 {
+    // SplitMix64 over the parts: a well-mixed seed per (seed, epoch/step, purpose).
+    let mut h: u64 = 0x9E37_79B9_7F4A_7C15;
+    for &p in parts {
+        h ^= p.wrapping_add(0x9E37_79B9_7F4A_7C15).wrapping_add(h << 6);
+        h = h.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = h;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        h = z ^ (z >> 31);
+    }
+    h
+}
+
+/// A deterministic RNG for `(seed, step, purpose)`.
+pub fn rng_for(seed: u64, step: u64, purpose: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed_of(&[seed, step, purpose]))
+}
+
+/// A deterministic 63-bit seed for `(seed, step, purpose)` (torch's generators).
+pub fn seed_for(seed: u64, step: u64, purpose: u64) -> u64 {
+    seed_of(&[seed, step, purpose]) >> 1
+}
+
+impl ClipDataset {
+    /// Reads the episodes of `split` (all episodes when the dataset records no
+    /// splits) with video `video_key` (default: the first).
+    pub fn open(
+        root: &Path,
+        split: &str,
+        video_key: Option<&str>,
+        clip_frames: usize,
+        height: usize,
+        width: usize,
+    ) -> Result<Self> {
+        let ds = LeRobotDataset::open(root)
+            .map_err(|e| TrainError::input(format!("dataset {}", root.display()), e.to_string()))?;
+        let key = match video_key {
+            Some(k) => k.to_owned(),
+            None => ds.video_keys.first().cloned().ok_or_else(|| {
+                TrainError::input(format!("dataset {}", root.display()), "no video keys")
+            })?,
+        };
+        let has_splits = ds.episodes.iter().any(|e| e.split.is_some());
+        let chosen: Vec<i64> = ds
+            .episodes
+            .iter()
+            .filter(|e| !has_splits || e.split.as_deref() == Some(split))
+            .map(|e| e.episode_index)
+            .collect();
+        if chosen.is_empty() {
+            return Err(TrainError::input(
+                format!("dataset {}", root.display()),
+                format!("no episodes in split {split:?}"),
+            ));
+        }
+        let derr = |e: bridgev2w_data::lerobot::DatasetError| {
+            TrainError::input(format!("dataset {}", root.display()), e.to_string())
+        };
+        let mut episodes = Vec::with_capacity(chosen.len());
+        let mut action_dim = None;
+        for idx in chosen {
+            let rows = ds.read_episode(idx).map_err(derr)?.frames;
+            let frames = ds.read_video(idx, &key).map_err(derr)?;
+            let t = frames.len();
+            if t < clip_frames {
+                return Err(TrainError::input(
+                    format!("dataset {} episode {idx}", root.display()),
+                    format!("{t} frames, shorter than a clip of {clip_frames}"),
+                ));
+            }
+            let masks = if root.join(format!("masks/episode_{idx:06}.npy")).is_file() {
+                Some(ds.read_masks(idx).map_err(derr)?)
+            } else {
+                None
+            };
+            let (h, w) = match (&masks, video_shape(&ds, &key)) {
+                (_, Some(hw)) => hw,
+                (Some((shape, _)), None) => (shape[1], shape[2]),
+                (None, None) => {
+                    return Err(TrainError::input(
+                        format!("dataset {}", root.display()),
+                        format!("no shape for video {key:?} in meta/info.json and no masks"),
+                    ))
+                }
+            };
+            let mut rgb = Vec::with_capacity(t * h * w * 3);
+            for (i, f) in frames.iter().enumerate() {
+                if f.len() != h * w * 3 {
+                    return Err(TrainError::input(
+                        format!("dataset {} episode {idx} frame {i}", root.display()),
+                        format!("{} bytes, expected {h}x{w}x3", f.len()),
+                    ));
+                }
+                rgb.extend_from_slice(f);
+            }
+            let masks = match masks {
+                Some((shape, data)) => {
+                    if shape != [t, h, w] {
+                        return Err(TrainError::input(
+                            format!("dataset {} episode {idx} masks", root.display()),
+                            format!("shape {shape:?}, expected [{t}, {h}, {w}]"),
+                        ));
+                    }
+                    Some(data)
+                }
+                None => None,
+            };
+            let a = rows.first().map(|r| r.action.len()).unwrap_or(0);
+            if a == 0 || rows.len() != t || rows.iter().any(|r| r.action.len() != a) {
+                return Err(TrainError::input(
+                    format!("dataset {} episode {idx}", root.display()),
+                    format!(
+                        "{} action rows for {t} frames (expected one non-empty action per frame, one size)",
+                        rows.len()
+                    ),
+                ));
+            }
+            if *action_dim.get_or_insert(a) != a {
+                return Err(TrainError::input(
+                    format!("dataset {} episode {idx}", root.display()),
+                    format!("action size {a} differs from other episodes'"),
+                ));
+            }
+            episodes.push(Episode {
+                index: idx,
+                frames: t,
+                height: h,
+                width: w,
+                rgb,
+                masks,
+                actions: rows.iter().flat_map(|r| r.action.iter().copied()).collect(),
+            });
+        }
+        Ok(Self {
+            episodes,
+            action_dim: action_dim.unwrap_or(0),
+            clip_frames,
+            height,
+            width,
+        })
+    }
+
+    /// Whether every episode has masks.
+    pub fn has_masks(&self) -> bool {
+        self.episodes.iter().all(|e| e.masks.is_some())
+    }
+
+    /// Steps per epoch at `batch_size` (one pass over the episodes).
+    pub fn steps_per_epoch(&self, batch_size: usize) -> usize {
+        self.episodes.len().div_ceil(batch_size.max(1)).max(1)
+    }
+
+    /// Per-dimension mean and standard deviation of the actions (std floored at 1e-3).
+    pub fn action_stats(&self) -> (Vec<f32>, Vec<f32>) {
+        let a = self.action_dim;
+        let mut sum = vec![0f64; a];
+        let mut sq = vec![0f64; a];
+        let mut n = 0f64;
+        for e in &self.episodes {
+            for row in e.actions.chunks(a) {
+                for (i, &v) in row.iter().enumerate() {
+                    sum[i] += v as f64;
+                    sq[i] += (v as f64) * (v as f64);
+                }
+                n += 1.0;
+            }
+        }
+        let n = n.max(1.0);
+        let mean: Vec<f32> = sum.iter().map(|s| (s / n) as f32).collect();
+        let std: Vec<f32> = sum
+            .iter()
+            .zip(&sq)
+            .map(|(s, q)| ((q / n - (s / n).powi(2)).max(0.0).sqrt().max(1e-3)) as f32)
+            .collect();
+        (mean, std)
+    }
+
+    /// The episodes of step `step`: a permutation per epoch from `(seed, epoch)`,
+    /// consecutive `batch_size` slices of it (wrapping).
+    pub fn batch_episodes(&self, seed: u64, step: usize, batch_size: usize) -> Vec<usize> {
+        let n = self.episodes.len();
+        let spe = self.steps_per_epoch(batch_size);
+        let (epoch, within) = (step / spe, step % spe);
+        let mut order: Vec<usize> = (0..n).collect();
+        order.shuffle(&mut rng_for(seed, epoch as u64, 1));
+        (0..batch_size)
+            .map(|j| order[(within * batch_size + j) % n])
+            .collect()
+    }
+
+    /// The batch of step `step` on `device`: episodes from [`Self::batch_episodes`],
+    /// clip starts from `(seed, step)`.
+    pub fn batch(
+        &self,
+        seed: u64,
+        step: usize,
+        batch_size: usize,
+        device: Device,
+    ) -> Result<Batch> {
+        let eps = self.batch_episodes(seed, step, batch_size);
+        let mut rng = rng_for(seed, step as u64, 2);
+        let (tf, h, w) = (
+            self.clip_frames as i64,
+            self.height as i64,
+            self.width as i64,
+        );
+        let mut videos = Vec::new();
+        let mut masks = Vec::new();
+        let mut actions = Vec::new();
+        for &i in &eps {
+            let e = &self.episodes[i];
+            let start = rng.gen_range(0..=e.frames - self.clip_frames);
+            let (eh, ew) = (e.height as i64, e.width as i64);
+            let px = eh * ew;
+            let rgb =
+                &e.rgb[start * (px as usize) * 3..(start + self.clip_frames) * (px as usize) * 3];
+            let v = Tensor::from_slice(rgb)
+                .reshape([tf, eh, ew, 3])
+                .permute([0, 3, 1, 2]) // [T, 3, H, W]
+                .to_kind(Kind::Float)
+                / 127.5
+                - 1.0;
+            let v = if (eh, ew) != (h, w) {
+                v.upsample_bilinear2d([h, w], false, None, None)
+            } else {
+                v
+            };
+            videos.push(v.permute([1, 0, 2, 3])); // [3, T, H, W]
+            let m = match &e.masks {
+                Some(data) => {
+                    let m = Tensor::from_slice(
+                        &data[start * px as usize..(start + self.clip_frames) * px as usize],
+                    )
+                    .reshape([tf, 1, eh, ew])
+                    .to_kind(Kind::Float);
+                    let m = if (eh, ew) != (h, w) {
+                        m.upsample_nearest2d([h, w], None, None)
+                    } else {
+                        m
+                    };
+                    // robot = 1, background = -1, on 3 channels: [3, T, H, W]
+                    (m.gt(0.5).to_kind(Kind::Float) * 2.0 - 1.0)
+                        .permute([1, 0, 2, 3])
+                        .expand([3, tf, h, w], false)
+                        .contiguous()
+                }
+                None => Tensor::zeros([3, tf, h, w], (Kind::Float, Device::Cpu)),
+            };
+            masks.push(m);
+            let a = self.action_dim;
+            actions.push(
+                Tensor::from_slice(&e.actions[start * a..(start + self.clip_frames) * a])
+                    .reshape([tf, a as i64]),
+            );
+        }
+        let video = Tensor::stack(&videos, 0).to_device(device); // [B, 3, T, H, W]
+        Ok(Batch {
+            first_frames: video.select(2, 0),
+            video,
+            masks: Tensor::stack(&masks, 0).to_device(device),
+            actions: Tensor::stack(&actions, 0).to_device(device),
+            episodes: eps.iter().map(|&i| self.episodes[i].index).collect(),
+        })
+    }
+}
+
+fn video_shape(ds: &LeRobotDataset, key: &str) -> Option<(usize, usize)> {
+    let shape = ds
+        .info
+        .get("features")?
+        .get(key)?
+        .get("shape")?
+        .as_array()?;
+    let dims: Vec<usize> = shape
+        .iter()
+        .filter_map(|v| v.as_u64().map(|x| x as usize))
+        .collect();
+    let names = ds.info["features"][key]
+        .get("names")
+        .and_then(|n| n.as_array())
+        .map(|n| n.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>());
+    match (dims.as_slice(), names.as_deref()) {
+        ([c, h, w], Some(["channels", ..])) if *c == 3 => Some((*h, *w)),
+        ([h, w, 3], _) => Some((*h, *w)),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fake(n: usize) -> ClipDataset {
+        let (t, h, w) = (6usize, 4usize, 6usize);
+        let episodes = (0..n)
+            .map(|i| Episode {
+                index: i as i64,
+                frames: t,
+                height: h,
+                width: w,
+                rgb: (0..t * h * w * 3).map(|k| (k % 251) as u8).collect(),
+                masks: Some((0..t * h * w).map(|k| (k % 2) as u8).collect()),
+                actions: (0..t * 7).map(|k| k as f32).collect(),
+            })
+            .collect();
+        ClipDataset {
+            episodes,
+            action_dim: 7,
+            clip_frames: 5,
+            height: 8,
+            width: 12,
+        }
+    }
+
+    #[test]
+    fn batches_are_deterministic_and_cover_each_epoch() {
+        let d = fake(5);
+        // 5 episodes, batch 2: 3 steps per epoch, every episode in each epoch.
+        assert_eq!(d.steps_per_epoch(2), 3);
+        let mut seen: Vec<usize> = (0..3).flat_map(|s| d.batch_episodes(7, s, 2)).collect();
+        seen.truncate(5);
+        seen.sort();
+        assert_eq!(seen, vec![0, 1, 2, 3, 4]);
+        assert_eq!(d.batch_episodes(7, 4, 2), d.batch_episodes(7, 4, 2));
+        let a = d.batch(7, 4, 2, Device::Cpu).ok();
+        let b = d.batch(7, 4, 2, Device::Cpu).ok();
+        let (a, b) = (a.expect("batch"), b.expect("batch"));
+        assert!(a.video.equal(&b.video) && a.masks.equal(&b.masks));
+        assert_eq!(a.video.size(), [2, 3, 5, 8, 12]); // resized 4x6 -> 8x12
+        assert_eq!(a.actions.size(), [2, 5, 7]);
+        assert_eq!(a.first_frames.size(), [2, 3, 8, 12]);
+        let mx = a.masks.abs().min().double_value(&[]);
+        assert_eq!(mx, 1.0); // masks are exactly +-1
+    }
+}

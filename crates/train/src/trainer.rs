@@ -1,0 +1,709 @@
+//! The trainer: builds the model and data from a [`TrainConfig`], runs the
+//! paper's objective (v-prediction diffusion + `lambda_dyn` dynamics
+//! consistency + `lambda_flow` flow loss after `e_switch` epochs) with AdamW
+//! over the adapters, and writes atomic, exactly resumable checkpoints.
+//!
+//! Determinism: every random draw of step `s` (data order, clip starts,
+//! timesteps, noise, VAE posterior samples, image-noise sigma, condition
+//! dropout) comes from `(seed, s)`, so the RNG state of a checkpoint is its
+//! step, and a resumed run repeats an uninterrupted run's loss curve.
+//!
+//! Not implemented (yet): bf16 autocast and per-block gradient
+//! checkpointing (training runs in the backbone's dtype, F32 here), and
+//! data-parallel training (see the README for the intended NCCL layout).
+
+use crate::action::ActionEncoder;
+use crate::config::TrainConfig;
+use crate::data::{rng_for, seed_for, Batch, ClipDataset};
+use crate::flow::{flow_loss, flow_weight, FlowEstimator, FlowLossConfig, LucasKanade, RaftFlow};
+use crate::losses::{diffusion_loss, dynamics_loss, predicted_x0};
+use crate::optim::{AdamW, AdamWConfig};
+use crate::{Result, TrainError};
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::controlnet::ControlNetConfig;
+use bridgev2w_world_model::device::{ComputeDevice, Precision};
+use bridgev2w_world_model::lora::LoraConfig;
+use bridgev2w_world_model::scheduler::{Scheduler, SchedulerConfig};
+use bridgev2w_world_model::transformer::TransformerConfig;
+use bridgev2w_world_model::vae::VaeConfig;
+use rand::Rng;
+use rand_distr_free::normal;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tch::nn::VarStore;
+use tch::{Kind, Tensor};
+
+/// Box-Muller normal draws from a `rand` RNG (no extra dependency).
+mod rand_distr_free {
+    use rand::Rng;
+
+    /// One draw of `N(mean, std^2)`.
+    pub fn normal(rng: &mut impl Rng, mean: f64, std: f64) -> f64 {
+        let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
+        let u2: f64 = rng.gen();
+        mean + std * (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+    }
+}
+
+/// What one step measured.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StepMetrics {
+    /// Step index (0-based; the update it made is the `step + 1`-th).
+    pub step: usize,
+    /// Epoch of the step.
+    pub epoch: usize,
+    /// The total loss.
+    pub loss: f64,
+    /// The diffusion loss.
+    pub diffusion: f64,
+    /// The dynamics-consistency loss (unweighted).
+    pub dynamics: f64,
+    /// The flow loss (unweighted; 0 when off).
+    pub flow: f64,
+    /// The flow weight of this step (0 before `e_switch`).
+    pub flow_weight: f64,
+    /// Learning rate.
+    pub lr: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Whether the condition was dropped (unconditional step).
+    pub dropped: bool,
+    /// Wall time of the step, seconds.
+    pub secs: f64,
+}
+
+/// The losses of one forward pass.
+#[derive(Debug)]
+pub struct Losses {
+    /// The weighted total (differentiable).
+    pub total: Tensor,
+    /// Diffusion loss value.
+    pub diffusion: f64,
+    /// Dynamics loss value.
+    pub dynamics: f64,
+    /// Flow loss value (0 when off).
+    pub flow: f64,
+    /// Flow weight used.
+    pub flow_weight: f64,
+    /// Whether the condition was dropped.
+    pub dropped: bool,
+}
+
+/// The trainer.
+#[derive(Debug)]
+pub struct Trainer {
+    /// The configuration.
+    pub cfg: TrainConfig,
+    /// The model.
+    pub model: BridgeV2W,
+    /// The training clips.
+    pub data: ClipDataset,
+    /// The action MLP's variables (`mask_action = false`).
+    pub action_vs: Option<VarStore>,
+    action: Option<ActionEncoder>,
+    estimator: Box<dyn FlowEstimator>,
+    flow_cfg: FlowLossConfig,
+    scheduler: Scheduler,
+    /// The optimizer over the trainable variables.
+    pub opt: AdamW,
+    /// Completed optimizer steps.
+    pub step: usize,
+}
+
+fn parse_device(s: &str) -> Result<ComputeDevice> {
+    s.parse::<ComputeDevice>()
+        .map_err(|e| TrainError::input("config model.device", e.to_string()))
+}
+
+impl Trainer {
+    /// Builds the model, reads the data, creates the optimizer (step 0).
+    pub fn new(cfg: TrainConfig) -> Result<Self> {
+        cfg.validate()?;
+        let device = parse_device(&cfg.model.device)?;
+        let random_tiny = cfg.model.backbone == "random:tiny";
+        let (frames, height, width) = {
+            let d = &cfg.data;
+            let (f, h, w) = if random_tiny {
+                (9, 64, 96)
+            } else {
+                (25, 480, 720)
+            };
+            (
+                if d.frames == 0 { f } else { d.frames },
+                if d.height == 0 { h } else { d.height },
+                if d.width == 0 { w } else { d.width },
+            )
+        };
+        let data = ClipDataset::open(
+            &cfg.data.dataset,
+            &cfg.data.split,
+            cfg.data.video_key.as_deref(),
+            frames,
+            height,
+            width,
+        )?;
+        if cfg.ablation.mask_action && !data.has_masks() {
+            return Err(TrainError::input(
+                format!("dataset {}", cfg.data.dataset.display()),
+                "mask conditioning needs masks/episode_*.npy for every episode",
+            ));
+        }
+        let mut model = build_model(&cfg, device, frames, height, width)?;
+        let tf_cfg = model.transformer.model.config().clone();
+        let train_backbone = cfg.model.train_backbone || !cfg.ablation.pretrained;
+        let (action_vs, action) = if cfg.ablation.mask_action {
+            (None, None)
+        } else {
+            tch::manual_seed(seed_for(cfg.train.seed, u64::MAX, 7) as i64);
+            let vs = VarStore::new(model.device());
+            let enc = ActionEncoder::new(
+                &(vs.root() / "action_encoder"),
+                data.action_dim as i64,
+                model.vae.config().temporal_compression_ratio as i64,
+                cfg.model.action_hidden,
+                tf_cfg.inner_dim(),
+                cfg.model.controlnet_layers.min(tf_cfg.num_layers as usize),
+            );
+            let (mean, std) = data.action_stats();
+            enc.set_stats(&mean, &std)?;
+            (Some(vs), Some(enc))
+        };
+        // Trainable: LoRA (+ the ControlNet when masks condition), the action
+        // MLP, the backbone when trained from scratch.
+        let mut params: Vec<(String, Tensor)> = Vec::new();
+        for (name, t) in model.adapters.variables() {
+            if !t.requires_grad() {
+                continue;
+            }
+            if !cfg.ablation.mask_action && name.starts_with("controlnet.") {
+                continue;
+            }
+            params.push((format!("adapters.{name}"), t));
+        }
+        if let Some(vs) = &action_vs {
+            for (name, t) in vs.variables() {
+                if t.requires_grad() {
+                    params.push((format!("action.{name}"), t));
+                }
+            }
+        }
+        if train_backbone {
+            model.transformer.vs.unfreeze();
+            for (name, t) in model.transformer.vs.variables() {
+                params.push((format!("backbone.{name}"), t));
+            }
+        }
+        let opt = AdamW::new(
+            params,
+            AdamWConfig {
+                beta1: cfg.train.beta1,
+                beta2: cfg.train.beta2,
+                eps: cfg.train.eps,
+                weight_decay: cfg.train.weight_decay,
+            },
+        );
+        let estimator: Box<dyn FlowEstimator> = match &cfg.train.raft_weights {
+            Some(path) => {
+                use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
+                let raft = Raft::load(
+                    RaftConfig::by_name(&cfg.train.raft_model)?,
+                    std::slice::from_ref(path),
+                    device,
+                )?;
+                Box::new(RaftFlow {
+                    raft,
+                    iterations: cfg.train.raft_iterations,
+                })
+            }
+            None => Box::new(LucasKanade::default()),
+        };
+        let scheduler = Scheduler::new(model.scheduler.clone())?;
+        Ok(Self {
+            cfg,
+            model,
+            data,
+            action_vs,
+            action,
+            estimator,
+            flow_cfg: FlowLossConfig::default(),
+            scheduler,
+            opt,
+            step: 0,
+        })
+    }
+
+    /// The flow estimator's name (for reports).
+    pub fn flow_estimator_name(&self) -> String {
+        self.estimator.name()
+    }
+
+    /// Steps per epoch.
+    pub fn steps_per_epoch(&self) -> usize {
+        self.data.steps_per_epoch(self.cfg.train.batch_size)
+    }
+
+    /// The total number of steps of the run.
+    pub fn total_steps(&self) -> usize {
+        if self.cfg.train.max_steps > 0 {
+            self.cfg.train.max_steps
+        } else {
+            self.cfg.train.epochs * self.steps_per_epoch()
+        }
+    }
+
+    /// The batch of step `step`.
+    pub fn batch(&self, step: usize) -> Result<Batch> {
+        self.data.batch(
+            self.cfg.train.seed,
+            step,
+            self.cfg.train.batch_size,
+            self.model.device(),
+        )
+    }
+
+    /// The objective on `batch` with the random draws of step `step`.
+    pub fn losses(&self, batch: &Batch, step: usize) -> Result<Losses> {
+        let t = &self.cfg.train;
+        let seed = t.seed;
+        let s = step as u64;
+        tch::manual_seed(seed_for(seed, s, 3) as i64);
+        let mut rng = rng_for(seed, s, 4);
+        let b = batch.video.size()[0];
+        let model = &self.model;
+        let (z0, image_latents, control) = tch::no_grad(|| -> Result<_> {
+            let z0 = model.encode_latents(&batch.video, Some(seed_for(seed, s, 5)))?;
+            let mut first = batch.first_frames.shallow_clone();
+            if t.image_noise {
+                let sig: Vec<f32> = (0..b)
+                    .map(|_| {
+                        normal(&mut rng, t.image_noise_log_mean, t.image_noise_log_std).exp() as f32
+                    })
+                    .collect();
+                let sig = Tensor::from_slice(&sig)
+                    .view([b, 1, 1, 1])
+                    .to_device(first.device());
+                first = (&first + first.randn_like() * sig).clamp(-1.0, 1.0);
+            }
+            let img = model.image_latents(&first, Some(seed_for(seed, s, 6)))?;
+            let control = if self.cfg.ablation.mask_action {
+                Some(model.control_latents(&batch.masks, &img)?)
+            } else {
+                None
+            };
+            Ok((z0, img, control))
+        })?;
+        let dropped = rng.gen::<f64>() < t.condition_dropout;
+        let n_train = model.scheduler.num_train_timesteps as i64;
+        let ts: Vec<i64> = (0..b).map(|_| rng.gen_range(0..n_train)).collect();
+        let timesteps = Tensor::from_slice(&ts).to_device(model.device());
+        let noise = z0.randn_like();
+        let x_t = self.scheduler.add_noise(&z0, &noise, &timesteps)?;
+        let latent_in = Tensor::cat(&[&x_t, &image_latents], 2);
+        let extra = match (&self.action, dropped) {
+            (Some(enc), false) => {
+                let zs = z0.size(); // [B, t, C, h, w]
+                let p = model.transformer.model.config().patch_size;
+                enc.residuals(&batch.actions, (zs[3] / p) * (zs[4] / p))?
+            }
+            _ => Vec::new(),
+        };
+        let ctrl = if dropped { None } else { control.as_ref() };
+        let v = model.velocity_with_extra(&latent_in, &timesteps, ctrl, &extra)?;
+        let v = v.to_kind(Kind::Float);
+        let alpha = self.scheduler.alpha_bar_like(&timesteps, &z0)?;
+        let mut diff = diffusion_loss(&z0, &x_t, &v, &alpha)?;
+        if t.inject_nan_at_step.is_some_and(|n| step >= n) {
+            diff = diff * f64::NAN;
+        }
+        let diffusion = diff.double_value(&[]);
+        check_finite(step, "diffusion", diffusion)?;
+        let x0 = predicted_x0(&x_t, &v, &alpha);
+        let dynl = dynamics_loss(&x0, &z0, t.dyn_k)?;
+        let dynamics = dynl.double_value(&[]);
+        check_finite(step, "dynamics", dynamics)?;
+        let mut total = diff + &dynl * t.lambda_dyn;
+        let epoch = step / self.steps_per_epoch();
+        let fw = if self.cfg.ablation.flow_loss {
+            flow_weight(epoch, t.e_switch, t.lambda_flow)
+        } else {
+            0.0
+        };
+        let mut flow = 0.0;
+        if fw > 0.0 {
+            let decoded = model.decode_latents_with_grad(&x0)?.clamp(-1.0, 1.0);
+            let gt = batch.video.to_device(decoded.device());
+            let fl = flow_loss(self.estimator.as_ref(), &decoded, &gt, &self.flow_cfg)?;
+            flow = fl.double_value(&[]);
+            check_finite(step, "flow", flow)?;
+            total = total + fl * fw;
+        }
+        Ok(Losses {
+            total,
+            diffusion,
+            dynamics,
+            flow,
+            flow_weight: fw,
+            dropped,
+        })
+    }
+
+    /// One optimizer step on the next batch; the NaN/inf guard runs before
+    /// any parameter changes.
+    pub fn train_step(&mut self) -> Result<StepMetrics> {
+        let step = self.step;
+        let batch = self.batch(step)?;
+        self.update(&batch, step)
+    }
+
+    /// One optimizer update on `batch` with the random draws (and learning
+    /// rate, epoch) of step `step`; counts as a completed step. Tests use it
+    /// to overfit one fixed batch.
+    pub fn update(&mut self, batch: &Batch, step: usize) -> Result<StepMetrics> {
+        let start = Instant::now();
+        self.opt.zero_grad();
+        let l = self.losses(batch, step)?;
+        let loss = l.total.double_value(&[]);
+        check_finite(step, "total", loss)?;
+        l.total.backward();
+        let grad_norm = self.opt.clip_grad_norm(self.cfg.train.grad_clip);
+        check_finite(step, "gradient norm", grad_norm)?;
+        let lr = self.cfg.lr_at(step);
+        self.opt.step(lr);
+        self.step += 1;
+        Ok(StepMetrics {
+            step,
+            epoch: step / self.steps_per_epoch(),
+            loss,
+            diffusion: l.diffusion,
+            dynamics: l.dynamics,
+            flow: l.flow,
+            flow_weight: l.flow_weight,
+            lr,
+            grad_norm,
+            dropped: l.dropped,
+            secs: start.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Trains to [`Self::total_steps`], appending to `OUT/metrics.jsonl`,
+    /// checkpointing every `checkpoint_every` steps and at the end
+    /// (`OUT/checkpoints/step-NNNNNNNN`, `OUT/checkpoints/latest`), and
+    /// writing `OUT/final/weights.safetensors`. `on_step` sees every step's metrics.
+    /// A non-finite loss or gradient stops the run with an error naming the
+    /// step and the term; the checkpoints written before stay as they were.
+    pub fn run(&mut self, on_step: &mut dyn FnMut(&StepMetrics)) -> Result<Vec<StepMetrics>> {
+        let out = self.cfg.train.out.clone();
+        std::fs::create_dir_all(&out).map_err(|e| io_err(&out, e))?;
+        let cfg_text = self.cfg.to_toml()?;
+        write_atomic(&out.join("config.toml"), cfg_text.as_bytes())?;
+        let metrics_path = out.join("metrics.jsonl");
+        truncate_metrics(&metrics_path, self.step)?;
+        let mut metrics_file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&metrics_path)
+            .map_err(|e| io_err(&metrics_path, e))?;
+        let total = self.total_steps();
+        let every = self.cfg.train.checkpoint_every;
+        let mut all = Vec::new();
+        while self.step < total {
+            let m = self.train_step()?;
+            let line = serde_json::to_string(&m)
+                .map_err(|e| TrainError::input("metrics", e.to_string()))?;
+            writeln!(metrics_file, "{line}").map_err(|e| io_err(&metrics_path, e))?;
+            on_step(&m);
+            all.push(m);
+            if (every > 0 && self.step % every == 0) || self.step == total {
+                self.save_checkpoint()?;
+            }
+        }
+        let fin = out.join("final");
+        std::fs::create_dir_all(&fin).map_err(|e| io_err(&fin, e))?;
+        self.model.save_weights(&fin.join("weights.safetensors"))?;
+        if let Some(vs) = &self.action_vs {
+            save_named(
+                vs.variables().into_iter().collect(),
+                &fin.join("action_encoder.safetensors"),
+            )?;
+        }
+        Ok(all)
+    }
+
+    /// The checkpoint folder of `step` under the run's output.
+    pub fn checkpoint_dir(&self, step: usize) -> PathBuf {
+        self.cfg
+            .train
+            .out
+            .join("checkpoints")
+            .join(format!("step-{step:08}"))
+    }
+
+    /// Writes `checkpoints/step-NNNNNNNN/` (weights, trainable state, optimizer,
+    /// `state.json`) into a temporary folder, renames it into place, then
+    /// updates `checkpoints/latest`; prunes old checkpoints.
+    pub fn save_checkpoint(&self) -> Result<PathBuf> {
+        let root = self.cfg.train.out.join("checkpoints");
+        std::fs::create_dir_all(&root).map_err(|e| io_err(&root, e))?;
+        let name = format!("step-{:08}", self.step);
+        let final_dir = root.join(&name);
+        let tmp = root.join(format!(".{name}.tmp"));
+        if tmp.exists() {
+            std::fs::remove_dir_all(&tmp).map_err(|e| io_err(&tmp, e))?;
+        }
+        std::fs::create_dir_all(&tmp).map_err(|e| io_err(&tmp, e))?;
+        self.model.save_weights(&tmp.join("weights.safetensors"))?;
+        save_named(self.trainable_state(), &tmp.join("trainable.safetensors"))?;
+        save_named(self.opt.state(), &tmp.join("optimizer.safetensors"))?;
+        let state = serde_json::json!({
+            "step": self.step,
+            "seed": self.cfg.train.seed,
+            "epoch": self.step / self.steps_per_epoch(),
+            "rng": "derived from (seed, step): no generator state to store",
+            "flow_estimator": self.estimator.name(),
+        });
+        write_atomic(&tmp.join("state.json"), state.to_string().as_bytes())?;
+        if final_dir.exists() {
+            std::fs::remove_dir_all(&final_dir).map_err(|e| io_err(&final_dir, e))?;
+        }
+        std::fs::rename(&tmp, &final_dir).map_err(|e| io_err(&final_dir, e))?;
+        write_atomic(&root.join("latest"), name.as_bytes())?;
+        self.prune_checkpoints(&root)?;
+        Ok(final_dir)
+    }
+
+    fn prune_checkpoints(&self, root: &Path) -> Result<()> {
+        let keep = self.cfg.train.keep_checkpoints;
+        if keep == 0 {
+            return Ok(());
+        }
+        let mut dirs: Vec<PathBuf> = std::fs::read_dir(root)
+            .map_err(|e| io_err(root, e))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.is_dir()
+                    && p.file_name()
+                        .and_then(|n| n.to_str())
+                        .is_some_and(|n| n.starts_with("step-"))
+            })
+            .collect();
+        dirs.sort();
+        while dirs.len() > keep {
+            let d = dirs.remove(0);
+            std::fs::remove_dir_all(&d).map_err(|e| io_err(&d, e))?;
+        }
+        Ok(())
+    }
+
+    /// Everything the run changes: trainable parameters and the action
+    /// MLP's normalisation, by prefixed name.
+    fn trainable_state(&self) -> Vec<(String, Tensor)> {
+        let mut named: Vec<(String, Tensor)> = self
+            .opt
+            .params()
+            .iter()
+            .map(|(n, t)| (n.clone(), t.shallow_clone()))
+            .collect();
+        if let Some(vs) = &self.action_vs {
+            for (name, t) in vs.variables() {
+                if !t.requires_grad() {
+                    named.push((format!("action.{name}"), t));
+                }
+            }
+        }
+        named
+    }
+
+    /// Resumes from a checkpoint folder, or from a run folder's latest checkpoint.
+    pub fn resume(&mut self, dir: &Path) -> Result<()> {
+        let dir = resolve_checkpoint(dir)?;
+        let state_path = dir.join("state.json");
+        let text = std::fs::read_to_string(&state_path).map_err(|e| io_err(&state_path, e))?;
+        let state: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| TrainError::input(state_path.display().to_string(), e.to_string()))?;
+        let step = state["step"].as_u64().ok_or_else(|| {
+            TrainError::input(state_path.display().to_string(), "no integer `step`")
+        })? as usize;
+        if state["seed"].as_u64() != Some(self.cfg.train.seed) {
+            return Err(TrainError::input(
+                state_path.display().to_string(),
+                format!(
+                    "seed {} but the config says {}: resuming would not repeat the run",
+                    state["seed"], self.cfg.train.seed
+                ),
+            ));
+        }
+        let path = dir.join("trainable.safetensors");
+        let saved = Tensor::read_safetensors(&path)?;
+        let mut map: std::collections::BTreeMap<String, Tensor> = saved.into_iter().collect();
+        for (name, t) in self.trainable_state() {
+            let src = map.remove(&name).ok_or_else(|| {
+                TrainError::input(
+                    path.display().to_string(),
+                    format!("no `{name}` (a checkpoint of another configuration?)"),
+                )
+            })?;
+            if src.size() != t.size() {
+                return Err(TrainError::input(
+                    path.display().to_string(),
+                    format!("`{name}` {:?} but the model has {:?}", src.size(), t.size()),
+                ));
+            }
+            tch::no_grad(|| t.shallow_clone().copy_(&src.to_device(t.device())));
+        }
+        if let Some(extra) = map.keys().next() {
+            return Err(TrainError::input(
+                path.display().to_string(),
+                format!("unexpected `{extra}` (a checkpoint of another configuration?)"),
+            ));
+        }
+        // The adapters' untrained variables (e.g. the unused branch of the
+        // action ablation) come from the weights file.
+        self.model.load_weights(&dir.join("weights.safetensors"))?;
+        let opt_path = dir.join("optimizer.safetensors");
+        self.opt.load_state(Tensor::read_safetensors(&opt_path)?)?;
+        self.step = step;
+        Ok(())
+    }
+}
+
+/// A checkpoint folder (holding `state.json`), or a run folder whose
+/// `checkpoints/latest` names one.
+pub fn resolve_checkpoint(dir: &Path) -> Result<PathBuf> {
+    if dir.join("state.json").is_file() {
+        return Ok(dir.to_path_buf());
+    }
+    let latest = dir.join("checkpoints").join("latest");
+    let name = std::fs::read_to_string(&latest).map_err(|e| {
+        TrainError::input(
+            format!("--resume {}", dir.display()),
+            format!(
+                "neither a checkpoint (state.json) nor a run folder with checkpoints/latest: {e}"
+            ),
+        )
+    })?;
+    Ok(dir.join("checkpoints").join(name.trim()))
+}
+
+fn build_model(
+    cfg: &TrainConfig,
+    device: ComputeDevice,
+    frames: usize,
+    height: usize,
+    width: usize,
+) -> Result<BridgeV2W> {
+    let lora = (cfg.model.lora_rank > 0).then_some(LoraConfig {
+        rank: cfg.model.lora_rank as i64,
+        alpha: cfg.model.lora_alpha,
+    });
+    let seed = seed_for(cfg.train.seed, u64::MAX, 8) as i64;
+    let make_cfg = |tf: &TransformerConfig| BridgeV2WConfig {
+        frames,
+        height,
+        width,
+        controlnet: ControlNetConfig {
+            num_layers: cfg.model.controlnet_layers.min(tf.num_layers as usize),
+            conditioning_scale: Vec::new(),
+            zero_init: cfg.ablation.controlnet,
+        },
+        lora,
+    };
+    let model = if cfg.model.backbone == "random:tiny" {
+        let tf = TransformerConfig::tiny();
+        BridgeV2W::random(
+            make_cfg(&tf),
+            &VaeConfig::tiny(),
+            &tf,
+            SchedulerConfig::cogvideox_5b_i2v(),
+            device,
+            seed,
+        )?
+    } else {
+        let dir = PathBuf::from(&cfg.model.backbone);
+        let tf = TransformerConfig::from_file(&dir.join("transformer").join("config.json"))?;
+        if cfg.ablation.pretrained {
+            tch::manual_seed(seed);
+            BridgeV2W::load(
+                &dir,
+                None,
+                cfg.model.prompt_embeds.as_deref(),
+                make_cfg(&tf),
+                device,
+                Precision::F32,
+            )?
+        } else {
+            // Random transformer with the folder's shapes; the pretrained VAE.
+            let vae_cfg = VaeConfig::from_file(&dir.join("vae").join("config.json"))?;
+            let sched =
+                SchedulerConfig::load(&dir.join("scheduler").join("scheduler_config.json"))?;
+            let m = BridgeV2W::random(make_cfg(&tf), &vae_cfg, &tf, sched, device, seed)?;
+            bridgev2w_world_model::weights::load_component(&m.vae_vs, &dir.join("vae"))?;
+            m
+        }
+    };
+    if let Some(w) = &cfg.model.init_weights {
+        model.load_weights(w)?;
+    }
+    Ok(model)
+}
+
+fn check_finite(step: usize, term: &str, value: f64) -> Result<()> {
+    if value.is_finite() {
+        Ok(())
+    } else {
+        Err(TrainError::NonFinite {
+            step,
+            term: term.into(),
+            value,
+        })
+    }
+}
+
+fn io_err(path: &Path, e: std::io::Error) -> TrainError {
+    TrainError::Io {
+        path: path.to_path_buf(),
+        error: e,
+    }
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    let tmp = PathBuf::from(tmp);
+    {
+        let mut f = std::fs::File::create(&tmp).map_err(|e| io_err(&tmp, e))?;
+        f.write_all(bytes).map_err(|e| io_err(&tmp, e))?;
+        f.sync_all().map_err(|e| io_err(&tmp, e))?;
+    }
+    std::fs::rename(&tmp, path).map_err(|e| io_err(path, e))
+}
+
+fn save_named(mut named: Vec<(String, Tensor)>, path: &Path) -> Result<()> {
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    let named: Vec<(String, Tensor)> = named
+        .into_iter()
+        .map(|(n, t)| (n, t.detach().to_device(tch::Device::Cpu).contiguous()))
+        .collect();
+    Tensor::write_safetensors(&named, path)?;
+    Ok(())
+}
+
+/// Keeps the metrics lines of steps before `step` (a resumed run rewrites the rest).
+fn truncate_metrics(path: &Path, step: usize) -> Result<()> {
+    if !path.is_file() {
+        return Ok(());
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| io_err(path, e))?;
+    let kept: String = text
+        .lines()
+        .filter(|l| {
+            serde_json::from_str::<serde_json::Value>(l)
+                .ok()
+                .and_then(|v| v["step"].as_u64())
+                .is_some_and(|s| (s as usize) < step)
+        })
+        .map(|l| format!("{l}\n"))
+        .collect();
+    write_atomic(path, kept.as_bytes())
+}

@@ -1,0 +1,265 @@
+//! Trainer tests on a tiny synthetic dataset (`random:tiny` backbone, 9
+//! frames at 64x96). libtorch's generator is process-global, so the tests
+//! that train run one at a time (`LOCK`).
+
+#![allow(clippy::unwrap_used)]
+
+use bridgev2w_data::synth::{write_dataset, SynthConfig};
+use bridgev2w_train::config::TrainConfig;
+use bridgev2w_train::trainer::{resolve_checkpoint, Trainer};
+use bridgev2w_train::TrainError;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard, OnceLock};
+use tch::Kind;
+
+static LOCK: Mutex<()> = Mutex::new(());
+
+fn lock() -> MutexGuard<'static, ()> {
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A 2-episode train split (plus one per held-out split), written once.
+fn dataset() -> &'static Path {
+    static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    &DIR.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("synth");
+        let cfg = SynthConfig {
+            frames: 12,
+            width: 96,
+            height: 64,
+            episodes_per_split: [2, 1, 1, 1],
+            ..SynthConfig::default()
+        };
+        write_dataset(&cfg, &out, &|| {}).unwrap();
+        (tmp, out)
+    })
+    .1
+}
+
+fn config(out: &Path) -> TrainConfig {
+    let mut c = TrainConfig::default();
+    c.model.backbone = "random:tiny".into();
+    c.model.lora_rank = 4;
+    c.model.lora_alpha = 4.0;
+    c.model.controlnet_layers = 1;
+    c.model.action_hidden = 32;
+    c.data.dataset = dataset().to_path_buf();
+    c.train.out = out.to_path_buf();
+    c.train.max_steps = 6;
+    c.train.warmup_steps = 2;
+    c.train.lr = 1e-3;
+    c.train.condition_dropout = 0.2;
+    c.train.checkpoint_every = 3;
+    c.train.e_switch = 100;
+    c
+}
+
+#[test]
+fn overfits_a_fixed_batch() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.condition_dropout = 0.0;
+    c.train.warmup_steps = 0;
+    c.train.lr = 3e-3;
+    let mut t = Trainer::new(c).unwrap();
+    let batch = t.batch(0).unwrap();
+    // Same batch, same timestep and noise (the draws of step 0) every update.
+    let losses: Vec<f64> = (0..30).map(|_| t.update(&batch, 0).unwrap().loss).collect();
+    let (first, last) = (losses[0], losses[29]);
+    assert!(
+        last < 0.7 * first,
+        "loss did not decrease enough: {first} -> {last} ({losses:?})"
+    );
+}
+
+#[test]
+fn resume_repeats_the_uninterrupted_run() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let full: Vec<f64> = {
+        let mut t = Trainer::new(config(&tmp.path().join("full"))).unwrap();
+        t.run(&mut |_| {}).unwrap().iter().map(|m| m.loss).collect()
+    };
+    assert_eq!(full.len(), 6);
+    let part = tmp.path().join("part");
+    let mut c = config(&part);
+    c.train.max_steps = 3;
+    let first: Vec<f64> = {
+        let mut t = Trainer::new(c).unwrap();
+        t.run(&mut |_| {}).unwrap().iter().map(|m| m.loss).collect()
+    };
+    // A fresh process-like start: new trainer, resumed from the run folder.
+    let mut t = Trainer::new(config(&part)).unwrap();
+    t.resume(&part).unwrap();
+    assert_eq!(t.step, 3);
+    let rest: Vec<f64> = t.run(&mut |_| {}).unwrap().iter().map(|m| m.loss).collect();
+    let resumed: Vec<f64> = first.into_iter().chain(rest).collect();
+    for (i, (a, b)) in full.iter().zip(&resumed).enumerate() {
+        assert!(
+            (a - b).abs() <= 1e-6 * a.abs().max(1.0),
+            "step {i}: uninterrupted {a} vs resumed {b}"
+        );
+    }
+    // The metrics file holds each step once.
+    let lines = std::fs::read_to_string(part.join("metrics.jsonl")).unwrap();
+    assert_eq!(lines.lines().count(), 6);
+    assert!(part.join("final/weights.safetensors").is_file());
+}
+
+#[test]
+fn nan_guard_stops_and_keeps_the_last_good_checkpoint() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.checkpoint_every = 2;
+    c.train.inject_nan_at_step = Some(3);
+    let mut t = Trainer::new(c.clone()).unwrap();
+    let err = t.run(&mut |_| {}).unwrap_err();
+    match &err {
+        TrainError::NonFinite { step, term, .. } => {
+            assert_eq!((*step, term.as_str()), (3, "diffusion"));
+        }
+        other => panic!("expected NonFinite, got {other}"),
+    }
+    let msg = err.to_string();
+    assert!(msg.contains("step 3") && msg.contains("diffusion"), "{msg}");
+    // Parameters were not touched by the bad step.
+    for (name, p) in t.opt.params() {
+        let finite = p.isfinite().all().int64_value(&[]) != 0;
+        assert!(finite, "{name} is not finite");
+    }
+    let ck = resolve_checkpoint(tmp.path()).unwrap();
+    assert!(ck.ends_with("step-00000002"), "{}", ck.display());
+    c.train.inject_nan_at_step = None;
+    let mut t2 = Trainer::new(c).unwrap();
+    t2.resume(tmp.path()).unwrap();
+    assert_eq!(t2.step, 2);
+    for (name, p) in t2.opt.params() {
+        assert!(p.isfinite().all().int64_value(&[]) != 0, "{name}");
+    }
+    // Training goes on from the kept checkpoint (taken after 2 steps).
+    let m = t2.train_step().unwrap();
+    assert!(m.loss.is_finite());
+}
+
+fn controlnet_grad_sum(t: &Trainer) -> f64 {
+    t.opt
+        .params()
+        .iter()
+        .filter(|(n, _)| n.starts_with("adapters.controlnet."))
+        .map(|(_, p)| {
+            let g = p.grad();
+            if g.defined() {
+                g.abs().sum(Kind::Double).double_value(&[])
+            } else {
+                0.0
+            }
+        })
+        .sum()
+}
+
+#[test]
+fn condition_dropout_one_gives_the_controlnet_no_gradient() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    for (p, expect_zero) in [(1.0, true), (0.0, false)] {
+        let mut c = config(tmp.path());
+        c.train.condition_dropout = p;
+        let mut t = Trainer::new(c).unwrap();
+        let batch = t.batch(0).unwrap();
+        t.opt.zero_grad();
+        let l = t.losses(&batch, 0).unwrap();
+        assert_eq!(l.dropped, expect_zero);
+        l.total.backward();
+        let g = controlnet_grad_sum(&t);
+        if expect_zero {
+            assert_eq!(g, 0.0, "p = 1: ControlNet gradient {g}");
+        } else {
+            assert!(g > 0.0, "p = 0: the ControlNet gets no gradient");
+        }
+    }
+}
+
+#[test]
+fn flow_loss_switches_on_at_e_switch() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.e_switch = 1; // 2 episodes, batch 1: epoch 1 starts at step 2
+    let t = Trainer::new(c.clone()).unwrap();
+    assert_eq!(t.steps_per_epoch(), 2);
+    for step in 0..2 {
+        let l = t.losses(&t.batch(step).unwrap(), step).unwrap();
+        assert_eq!((l.flow_weight, l.flow), (0.0, 0.0), "step {step}");
+    }
+    let b = t.batch(2).unwrap();
+    let l = t.losses(&b, 2).unwrap();
+    assert_eq!(l.flow_weight, 0.05);
+    assert!(l.flow.is_finite() && l.flow > 0.0, "flow {}", l.flow);
+    // The flow term carries gradients into the adapters through the decoder.
+    l.total.backward();
+    // Ablation: flow_loss = false keeps it off.
+    c.ablation.flow_loss = false;
+    let t = Trainer::new(c).unwrap();
+    let l = t.losses(&b, 2).unwrap();
+    assert_eq!((l.flow_weight, l.flow), (0.0, 0.0));
+}
+
+#[test]
+fn action_mlp_ablation_trains_the_action_encoder() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.ablation.mask_action = false;
+    c.train.condition_dropout = 0.0;
+    let mut t = Trainer::new(c).unwrap();
+    assert!(t
+        .opt
+        .params()
+        .iter()
+        .all(|(n, _)| !n.starts_with("adapters.controlnet.")));
+    let batch = t.batch(0).unwrap();
+    t.opt.zero_grad();
+    let l = t.losses(&batch, 0).unwrap();
+    l.total.backward();
+    let g: f64 = t
+        .opt
+        .params()
+        .iter()
+        .filter(|(n, _)| n.starts_with("action."))
+        .map(|(_, p)| {
+            let g = p.grad();
+            if g.defined() {
+                g.abs().sum(Kind::Double).double_value(&[])
+            } else {
+                0.0
+            }
+        })
+        .sum();
+    assert!(g > 0.0, "the action MLP gets no gradient");
+    let m = t.train_step().unwrap();
+    assert!(m.loss.is_finite());
+}
+
+#[test]
+fn non_zero_init_branch_changes_the_output_at_start() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.condition_dropout = 0.0;
+    let zero = Trainer::new(c.clone()).unwrap();
+    c.ablation.controlnet = false;
+    let nonzero = Trainer::new(c).unwrap();
+    let named = |t: &Trainer| -> f64 {
+        t.opt
+            .params()
+            .iter()
+            .filter(|(n, _)| n.contains("out_projectors"))
+            .map(|(_, p)| p.abs().sum(Kind::Double).double_value(&[]))
+            .sum()
+    };
+    assert_eq!(named(&zero), 0.0);
+    assert!(named(&nonzero) > 0.0);
+}
