@@ -33,6 +33,25 @@ pub trait ActionWorldModel: Sync {
     fn encode(&self, image: &Image) -> Result<Vec<f32>>;
 }
 
+impl<T: ActionWorldModel + ?Sized> ActionWorldModel for &T {
+    fn clip_frames(&self) -> usize {
+        (**self).clip_frames()
+    }
+    fn resolution(&self) -> (usize, usize) {
+        (**self).resolution()
+    }
+    fn rollout_batch(
+        &self,
+        start: &Observation,
+        sequences: &[Vec<EeAction>],
+    ) -> Result<Vec<Observation>> {
+        (**self).rollout_batch(start, sequences)
+    }
+    fn encode(&self, image: &Image) -> Result<Vec<f32>> {
+        (**self).encode(image)
+    }
+}
+
 /// Pads `actions` to the `clip_frames - 1` action frames of a clip by
 /// repeating the last action (the paper pads shorter VLA chunks this way).
 pub fn pad_to_clip(actions: &[EeAction], clip_frames: usize) -> Result<Vec<EeAction>> {
@@ -136,9 +155,9 @@ pub fn full_rows(actions: &[EeAction], arm: usize, hold: &[f64]) -> Vec<Vec<f64>
 /// Any [`WorldModel`] as an [`ActionWorldModel`]: actions -> IK (warm-started
 /// from the start joints) -> embodiment masks from the model's camera ->
 /// one `predict_batch` call for all sequences.
-pub struct MaskConditioned<M> {
+pub struct MaskConditioned<'m, M: ?Sized> {
     /// The world model.
-    pub model: M,
+    pub model: &'m M,
     /// The robot.
     pub embodiment: Embodiment,
     /// The acting arm.
@@ -153,7 +172,7 @@ pub struct MaskConditioned<M> {
     pub ik: IkOptions,
 }
 
-impl<M> std::fmt::Debug for MaskConditioned<M> {
+impl<M: ?Sized> std::fmt::Debug for MaskConditioned<'_, M> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("MaskConditioned")
             .field("arm", &self.arm)
@@ -162,10 +181,10 @@ impl<M> std::fmt::Debug for MaskConditioned<M> {
     }
 }
 
-impl<M: WorldModel> MaskConditioned<M> {
+impl<'m, M: WorldModel + ?Sized> MaskConditioned<'m, M> {
     /// Wraps `model`; the camera must be at the model's resolution.
     pub fn new(
-        model: M,
+        model: &'m M,
         embodiment: Embodiment,
         arm: usize,
         camera: Camera,
@@ -235,7 +254,7 @@ impl<M: WorldModel> MaskConditioned<M> {
     }
 }
 
-impl<M: WorldModel + Sync> ActionWorldModel for MaskConditioned<M> {
+impl<M: WorldModel + Sync + ?Sized> ActionWorldModel for MaskConditioned<'_, M> {
     fn clip_frames(&self) -> usize {
         self.model.clip_frames()
     }

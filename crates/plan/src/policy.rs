@@ -317,14 +317,47 @@ impl PolicyEvalReport {
     }
 }
 
-/// Evaluates policies on task instances: each policy, each instance is one
-/// trial, rolled out both in the model (judged by `judge` on the images)
-/// and in the synthetic world (judged by the task's state check). `model_for`
-/// gives the world model of an instance.
-pub fn evaluate_policies<'w, M: ActionWorldModel>(
-    world: &'w bridgev2w_data::synth::World,
+/// One trial of one policy on one task instance: rolled out in the model
+/// (judged by `judge` on the images, against the instance's final goal
+/// image) and executed in the synthetic world (judged by the task's state
+/// check). Returns `(model success, real success)`.
+pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
+    world: &bridgev2w_data::synth::World,
+    instance: &TaskInstance,
+    trial: usize,
+    policy: &mut dyn Policy,
+    model: &M,
+    judge: &dyn SuccessJudge,
+    horizon: usize,
+) -> Result<(bool, bool)> {
+    let name = policy.name();
+    let goal = instance
+        .goal_images()
+        .pop()
+        .ok_or_else(|| PlanError::Invalid("a task instance without a goal image".into()))?;
+    let mut env = SyntheticEnv::new(world, instance.clone());
+    let start = env.observe();
+    policy.reset(trial);
+    let r = rollout_in_model(model, policy, start.clone(), horizon)?;
+    let predicted = judge.judge(&JudgeInput {
+        policy: &name,
+        trial,
+        start: &start.image,
+        last: &r.last.image,
+        goal: &goal,
+    })?;
+    policy.reset(trial);
+    rollout_in_world(&mut env, policy, horizon, model.clip_frames().saturating_sub(1))?;
+    Ok((predicted, env.success()))
+}
+
+/// Evaluates policies on task instances (instance `i` is trial `i`) with
+/// the model `model_for` gives for each instance; success rates and the
+/// agreement metrics.
+pub fn evaluate_policies<M: ActionWorldModel>(
+    world: &bridgev2w_data::synth::World,
     instances: &[TaskInstance],
-    policies: &mut [Box<dyn Policy + 'w>],
+    policies: &mut [Box<dyn Policy + '_>],
     model_for: &dyn Fn(&TaskInstance) -> Result<M>,
     judge: &dyn SuccessJudge,
     horizon: usize,
@@ -333,29 +366,15 @@ pub fn evaluate_policies<'w, M: ActionWorldModel>(
     let mut predicted = Vec::new();
     let mut real = Vec::new();
     for p in policies.iter_mut() {
-        let name = p.name();
         let (mut wins_model, mut wins_real) = (0usize, 0usize);
         for (trial, inst) in instances.iter().enumerate() {
             let model = model_for(inst)?;
-            let goal = inst.goal_images().pop().ok_or_else(|| PlanError::Invalid("no goal".into()))?;
-            let mut env = SyntheticEnv::new(world, inst.clone());
-            let start = env.observe();
-            p.reset(trial);
-            let r = rollout_in_model(&model, p.as_mut(), start.clone(), horizon)?;
-            let ok = judge.judge(&JudgeInput {
-                policy: &name,
-                trial,
-                start: &start.image,
-                last: &r.last.image,
-                goal: &goal,
-            })?;
-            wins_model += usize::from(ok);
-            p.reset(trial);
-            rollout_in_world(&mut env, p.as_mut(), horizon, model.clip_frames() - 1)?;
-            wins_real += usize::from(env.success());
+            let (m, r) = evaluate_trial(world, inst, trial, p.as_mut(), &model, judge, horizon)?;
+            wins_model += usize::from(m);
+            wins_real += usize::from(r);
         }
         let n = instances.len().max(1) as f64;
-        names.push(name);
+        names.push(p.name());
         predicted.push(wins_model as f64 / n);
         real.push(wins_real as f64 / n);
     }

@@ -170,7 +170,7 @@ impl WorldModel for CountingModel {
     }
 }
 
-fn franka_model() -> (MaskConditioned<CountingModel>, Observation) {
+fn franka_model(counting: &CountingModel) -> (MaskConditioned<'_, CountingModel>, Observation) {
     let e = Embodiment::builtin("franka").unwrap();
     let cam = Camera::look_at(
         Intrinsics::centered(30.0, 32, 24),
@@ -196,9 +196,7 @@ fn franka_model() -> (MaskConditioned<CountingModel>, Observation) {
         sample: SampleOptions::default(),
     };
     let m = MaskConditioned::new(
-        CountingModel {
-            calls: Mutex::new(vec![]),
-        },
+        counting,
         e,
         0,
         cam,
@@ -211,7 +209,10 @@ fn franka_model() -> (MaskConditioned<CountingModel>, Observation) {
 
 #[test]
 fn each_cem_iteration_is_one_predict_batch_of_s_candidates() {
-    let (m, obs) = franka_model();
+    let counting = CountingModel {
+        calls: Mutex::new(vec![]),
+    };
+    let (m, obs) = franka_model(&counting);
     let cfg = MpcConfig {
         cem: CemConfig {
             samples: 5,
@@ -226,7 +227,7 @@ fn each_cem_iteration_is_one_predict_batch_of_s_candidates() {
     let goal = m.encode(&obs.image).unwrap();
     let r = plan_once(&m, &obs, &goal, &cfg, GripperMode::Fixed(0.0), &mut ChaCha8Rng::seed_from_u64(1))
         .unwrap();
-    assert_eq!(*m.calls.lock().unwrap(), vec![5, 5, 5]);
+    assert_eq!(*counting.calls.lock().unwrap(), vec![5, 5, 5]);
     assert_eq!(r.waypoints.len(), 2);
     assert_eq!(r.best_cost_per_iteration.len(), 3);
     // The masks cover the robot: a rendered arm is visible from this camera.
