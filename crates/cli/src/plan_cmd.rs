@@ -319,7 +319,13 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
         let seed = a.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
         let mut env = SyntheticEnv::new(&world, inst.clone());
         let out = loaded.with_model(&a.model, &world, &inst, &mut |m| {
-            Ok(run_mpc(m, &mut env, &goals, &cfg, &mut ChaCha8Rng::seed_from_u64(seed))?)
+            Ok(run_mpc(
+                m,
+                &mut env,
+                &goals,
+                &cfg,
+                &mut ChaCha8Rng::seed_from_u64(seed),
+            )?)
         })?;
         let ok = env.success();
         let err = inst.error_m(&world, &env.state);
@@ -462,7 +468,15 @@ pub fn eval_rollout_report(a: &EvalRolloutArgs) -> Result<PolicyEvalReport> {
                     Some(l) => l,
                     None => &goal_judge,
                 };
-                Ok(evaluate_trial(&world, inst, trial, &mut policy, m, judge, horizon)?)
+                Ok(evaluate_trial(
+                    &world,
+                    inst,
+                    trial,
+                    &mut policy,
+                    m,
+                    judge,
+                    horizon,
+                )?)
             })?;
             wins_model += f64::from(u8::from(m));
             wins_real += f64::from(u8::from(r));
@@ -487,11 +501,15 @@ pub fn run_eval_rollout(a: &EvalRolloutArgs) -> Result<()> {
 }
 
 fn eval_table(r: &PolicyEvalReport) -> String {
-    let mut s = String::from("| policy | world-model success | synthetic-world success |\n|---|---|---|\n");
+    let mut s =
+        String::from("| policy | world-model success | synthetic-world success |\n|---|---|---|\n");
     for ((p, w), g) in r.policies.iter().zip(&r.predicted).zip(&r.real) {
         s += &format!("| {p} | {w:.2} | {g:.2} |\n");
     }
-    s += &format!("\nMMRV {:.3} (lower is better), Pearson r {:.3}\n", r.mmrv, r.pearson);
+    s += &format!(
+        "\nMMRV {:.3} (lower is better), Pearson r {:.3}\n",
+        r.mmrv, r.pearson
+    );
     s
 }
 
@@ -547,7 +565,9 @@ fn model_args(model: &str) -> ModelArgs {
 /// evaluation, and writes the tables with the command that produced them.
 pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
     let command: Vec<String> = std::env::args().collect();
-    let mut md = String::from("# Results: goal-image planning and policy evaluation in the synthetic world\n\n");
+    let mut md = String::from(
+        "# Results: goal-image planning and policy evaluation in the synthetic world\n\n",
+    );
     md += &format!(
         "Produced by `{}` (CPU). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; the planner uses the world model named in each table.\n\n",
         command.join(" "),

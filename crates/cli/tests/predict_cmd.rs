@@ -78,5 +78,8 @@ fn predict_writes_frames_and_video_deterministically() {
     a[2] = s(d).into();
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("model_index.json"), "{err}");
+    assert!(
+        !o.status.success() && err.contains("model_index.json"),
+        "{err}"
+    );
 }

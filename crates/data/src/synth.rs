@@ -1183,7 +1183,13 @@ impl World {
 
     /// One frame of the kinematic contact rules: the robot is at joints `q`
     /// with gripper command `g`; updates `state` (objects, grasp, joints).
-    fn contact_step(&self, meta: &EpisodeMeta, state: &mut SceneState, q: &[f64], g: f64) -> Vec<Contact> {
+    fn contact_step(
+        &self,
+        meta: &EpisodeMeta,
+        state: &mut SceneState,
+        q: &[f64],
+        g: f64,
+    ) -> Vec<Contact> {
         let robot = &self.embodiment.robot;
         let ee = &self.embodiment.end_effectors[meta.arm];
         let tz = self.frame.table_z_m;
@@ -1301,7 +1307,11 @@ impl World {
             .first()
             .map_or(0.0, |row| row[7 * episode.meta.arm + 6]);
         SceneState {
-            joints: episode.joints.first().cloned().unwrap_or_else(|| self.embodiment.home.clone()),
+            joints: episode
+                .joints
+                .first()
+                .cloned()
+                .unwrap_or_else(|| self.embodiment.home.clone()),
             object_poses: episode.meta.objects.iter().map(|o| o.initial).collect(),
             held: None,
             prev_points: None,

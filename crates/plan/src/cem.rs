@@ -102,7 +102,9 @@ impl CemConfig {
             });
         }
         if self.iterations == 0 {
-            return Err(PlanError::Invalid("CEM iterations must be at least 1".into()));
+            return Err(PlanError::Invalid(
+                "CEM iterations must be at least 1".into(),
+            ));
         }
         let stds = [self.init_translation_std_m, self.init_rotation_std_rad];
         if stds.iter().any(|s| !(s.is_finite() && *s >= 0.0)) {
@@ -242,7 +244,9 @@ pub fn sample_candidate(
         }
         increments.push(inc);
         grip.push(match gripper {
-            GripperMode::Search => f64::from(u8::from(rng.gen_bool(d.gripper_prob.clamp(0.0, 1.0)))),
+            GripperMode::Search => {
+                f64::from(u8::from(rng.gen_bool(d.gripper_prob.clamp(0.0, 1.0))))
+            }
             GripperMode::Fixed(g) => g,
         });
     }
@@ -282,10 +286,9 @@ pub fn refit(
             .map(|c| Vector6::from_column_slice(&c.increments[h]))
             .collect();
         let mean = xs.iter().fold(Vector6::zeros(), |a, x| a + x) / k;
-        let cov = xs
-            .iter()
-            .fold(Matrix6::zeros(), |a, x| a + (x - mean) * (x - mean).transpose())
-            / k;
+        let cov = xs.iter().fold(Matrix6::zeros(), |a, x| {
+            a + (x - mean) * (x - mean).transpose()
+        }) / k;
         for i in 0..6 {
             if !active[i] {
                 continue;
@@ -375,7 +378,11 @@ pub fn optimize(
 }
 
 /// `A*_h = [mu_h(1:3), mu_h(4:6), 1{pi_h >= 0.5}]` (or the fixed gripper).
-pub fn extract_plan(dists: &[StepDistribution], cfg: &CemConfig, gripper: GripperMode) -> Candidate {
+pub fn extract_plan(
+    dists: &[StepDistribution],
+    cfg: &CemConfig,
+    gripper: GripperMode,
+) -> Candidate {
     let mut increments = Vec::with_capacity(dists.len());
     let mut grip = Vec::with_capacity(dists.len());
     for d in dists {
@@ -426,7 +433,12 @@ mod tests {
         assert_eq!(d[0].gripper_prob, 0.5);
         // Inactive dimensions keep theirs.
         let mut e = vec![StepDistribution::initial(&cfg)];
-        refit(&mut e, &[&a, &b], &[false, true, false, false, false, false], false);
+        refit(
+            &mut e,
+            &[&a, &b],
+            &[false, true, false, false, false, false],
+            false,
+        );
         assert_eq!(e[0].mean[0], 0.0);
         assert_eq!(e[0].cov[(0, 0)], cfg.init_translation_std_m.powi(2));
         assert_eq!(e[0].mean[1], 1.0);
@@ -488,7 +500,11 @@ mod tests {
             let c = sample_candidate(&d, &[true; 6], &cfg, GripperMode::Fixed(1.0), &mut rng);
             for x in &c.increments {
                 for (i, v) in x.iter().enumerate() {
-                    let s = if i < 3 { TRANSLATION_STEP_M } else { ROTATION_STEP_RAD };
+                    let s = if i < 3 {
+                        TRANSLATION_STEP_M
+                    } else {
+                        ROTATION_STEP_RAD
+                    };
                     assert!(((v / s) - (v / s).round()).abs() < 1e-9);
                 }
             }

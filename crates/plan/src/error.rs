@@ -29,7 +29,9 @@ pub enum PlanError {
         samples: usize,
     },
     /// An action (proposed, planned or from a policy) is not finite.
-    #[error("{source_name}: action {index}, value {value} at column {column} is not a finite number")]
+    #[error(
+        "{source_name}: action {index}, value {value} at column {column} is not a finite number"
+    )]
     NonFinite {
         /// Where it came from.
         source_name: String,

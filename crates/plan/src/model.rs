@@ -26,8 +26,11 @@ pub trait ActionWorldModel: Sync {
     /// the first, at most `clip_frames - 1`; shorter ones are padded by
     /// repeating the last action), the predicted observation at the clip's
     /// last frame. All sequences go through the model as one batch.
-    fn rollout_batch(&self, start: &Observation, sequences: &[Vec<EeAction>])
-        -> Result<Vec<Observation>>;
+    fn rollout_batch(
+        &self,
+        start: &Observation,
+        sequences: &[Vec<EeAction>],
+    ) -> Result<Vec<Observation>>;
 
     /// A latent code of an image for goal distances.
     fn encode(&self, image: &Image) -> Result<Vec<f32>>;
@@ -225,7 +228,11 @@ impl<'m, M: WorldModel + ?Sized> MaskConditioned<'m, M> {
 
     /// The masks `[T, H, W]` of an action sequence from `start_joints` (frame
     /// 0 at the start joints), and the joints of the last frame.
-    pub fn masks(&self, start_joints: &[f64], actions: &[EeAction]) -> Result<(MaskVideo, Vec<f64>)> {
+    pub fn masks(
+        &self,
+        start_joints: &[f64],
+        actions: &[EeAction],
+    ) -> Result<(MaskVideo, Vec<f64>)> {
         let traj = Trajectory::new("planned actions", full_rows(actions, self.arm, &self.hold))?;
         let (joints, _) = actions_to_joints(
             &self.embodiment.robot,
@@ -314,7 +321,10 @@ mod tests {
         let p = pad_to_clip(&a, 5).unwrap();
         assert_eq!(p, vec![[1.0; 7], [2.0; 7], [2.0; 7], [2.0; 7]]);
         assert_eq!(pad_to_clip(&a, 3).unwrap(), a.to_vec());
-        assert!(matches!(pad_to_clip(&a, 2), Err(PlanError::ClipTooShort { .. })));
+        assert!(matches!(
+            pad_to_clip(&a, 2),
+            Err(PlanError::ClipTooShort { .. })
+        ));
         assert!(pad_to_clip(&[], 5).is_err());
     }
 
@@ -323,10 +333,8 @@ mod tests {
         let a = [0.5, 0.0, 0.3, std::f64::consts::PI, 0.0, 0.0, 0.0];
         let b = apply_increment(&a, &[0.1, -0.2, 0.0, 0.0, 0.0, 0.5], 1.0);
         assert!((b[0] - 0.6).abs() < 1e-12 && (b[1] + 0.2).abs() < 1e-12);
-        let (_, rot) = bridgev2w_embodiment::kinematics::pose_error(
-            &world_from_tcp(&a),
-            &world_from_tcp(&b),
-        );
+        let (_, rot) =
+            bridgev2w_embodiment::kinematics::pose_error(&world_from_tcp(&a), &world_from_tcp(&b));
         assert!((rot - 0.5).abs() < 1e-9, "{rot}");
         assert_eq!(b[6], 1.0);
         let f = expand_waypoints(&a, &[b], 2);

@@ -5,7 +5,9 @@
 
 use crate::cem::{optimize, CemConfig, GripperMode};
 use crate::error::{check_finite, PlanError, Result};
-use crate::model::{apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel};
+use crate::model::{
+    apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel,
+};
 use crate::{EeAction, Observation};
 use bridgev2w_world_model::video::Image;
 use rand_chacha::ChaCha8Rng;
@@ -187,12 +189,17 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
 ) -> Result<MpcOutcome> {
     cfg.validate(model.clip_frames())?;
     if goals.is_empty() {
-        return Err(PlanError::Invalid("at least one goal image is needed".into()));
+        return Err(PlanError::Invalid(
+            "at least one goal image is needed".into(),
+        ));
     }
     for g in goals {
         check_image_size(g, model.resolution())?;
     }
-    let latents: Vec<Vec<f32>> = goals.iter().map(|g| model.encode(g)).collect::<Result<_>>()?;
+    let latents: Vec<Vec<f32>> = goals
+        .iter()
+        .map(|g| model.encode(g))
+        .collect::<Result<_>>()?;
     let mut obs = env.observe()?;
     let mut stage = 0;
     let mut prev_dist = latent_l1(&model.encode(&obs.image)?, &latents[stage])?;
@@ -282,7 +289,11 @@ pub fn select_proposal<M: ActionWorldModel + ?Sized>(
 /// drawn from CEM's initial distribution (translation only if the config
 /// says so), gripper as the config's policy would set it on approach (or a
 /// fair coin when searched).
-pub fn run_random<E: Environment>(env: &mut E, cfg: &MpcConfig, rng: &mut ChaCha8Rng) -> Result<MpcOutcome> {
+pub fn run_random<E: Environment>(
+    env: &mut E,
+    cfg: &MpcConfig,
+    rng: &mut ChaCha8Rng,
+) -> Result<MpcOutcome> {
     cfg.cem.validate()?;
     let dist = vec![crate::cem::StepDistribution::initial(&cfg.cem)];
     let active = if cfg.cem.translation_only {

@@ -55,7 +55,10 @@ pub fn rollout_in_model<M: ActionWorldModel + ?Sized>(
         let mut chunk = policy.act(&obs)?;
         check_finite(&format!("policy {}", policy.name()), &chunk)?;
         if chunk.is_empty() {
-            return Err(PlanError::Invalid(format!("policy {} returned no actions", policy.name())));
+            return Err(PlanError::Invalid(format!(
+                "policy {} returned no actions",
+                policy.name()
+            )));
         }
         chunk.truncate(max_chunk.min(horizon - done));
         done += chunk.len();
@@ -90,7 +93,10 @@ pub fn rollout_in_world(
         let mut chunk = policy.act(&obs)?;
         check_finite(&format!("policy {}", policy.name()), &chunk)?;
         if chunk.is_empty() {
-            return Err(PlanError::Invalid(format!("policy {} returned no actions", policy.name())));
+            return Err(PlanError::Invalid(format!(
+                "policy {} returned no actions",
+                policy.name()
+            )));
         }
         chunk.truncate(max_chunk.max(1).min(horizon - done));
         done += chunk.len();
@@ -171,13 +177,21 @@ impl LabelJudge {
             let [policy, trial, success] = f[..] else {
                 return Err(err(n + 1, "expected policy,trial,success"));
             };
-            let trial: usize = trial
-                .parse()
-                .map_err(|_| err(n + 1, &format!("trial {trial:?} is not a non-negative integer")))?;
+            let trial: usize = trial.parse().map_err(|_| {
+                err(
+                    n + 1,
+                    &format!("trial {trial:?} is not a non-negative integer"),
+                )
+            })?;
             let success = match success {
                 "1" | "true" => true,
                 "0" | "false" => false,
-                s => return Err(err(n + 1, &format!("success {s:?}: expected 1/0/true/false"))),
+                s => {
+                    return Err(err(
+                        n + 1,
+                        &format!("success {s:?}: expected 1/0/true/false"),
+                    ))
+                }
             };
             labels.insert((policy.to_string(), trial), success);
         }
@@ -228,7 +242,13 @@ pub struct ScriptedPolicy {
 
 impl ScriptedPolicy {
     /// A policy replaying `expert` (from its second action on).
-    pub fn new(expert: Vec<EeAction>, chunk: usize, offset_std_m: f64, jitter_m: f64, seed: u64) -> Self {
+    pub fn new(
+        expert: Vec<EeAction>,
+        chunk: usize,
+        offset_std_m: f64,
+        jitter_m: f64,
+        seed: u64,
+    ) -> Self {
         Self {
             expert,
             chunk: chunk.max(1),
@@ -254,7 +274,9 @@ impl Policy for ScriptedPolicy {
     }
 
     fn reset(&mut self, trial: usize) {
-        self.rng = ChaCha8Rng::seed_from_u64(self.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        self.rng = ChaCha8Rng::seed_from_u64(
+            self.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
         self.cursor = 1;
         let s = self.offset_std_m;
         self.offset_m = [
@@ -270,7 +292,9 @@ impl Policy for ScriptedPolicy {
         for _ in 0..self.chunk {
             let i = self.cursor.min(n.saturating_sub(1));
             let Some(mut a) = self.expert.get(i).copied() else {
-                return Err(PlanError::Invalid("a scripted policy without actions".into()));
+                return Err(PlanError::Invalid(
+                    "a scripted policy without actions".into(),
+                ));
             };
             for (k, v) in a.iter_mut().take(3).enumerate() {
                 let j = if self.jitter_m > 0.0 {
@@ -347,7 +371,12 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
         goal: &goal,
     })?;
     policy.reset(trial);
-    rollout_in_world(&mut env, policy, horizon, model.clip_frames().saturating_sub(1))?;
+    rollout_in_world(
+        &mut env,
+        policy,
+        horizon,
+        model.clip_frames().saturating_sub(1),
+    )?;
     Ok((predicted, env.success()))
 }
 
@@ -404,7 +433,10 @@ mod tests {
         assert!(j.judge(&inp(0)).unwrap());
         assert!(!j.judge(&inp(1)).unwrap());
         assert!(j.judge(&inp(2)).is_err());
-        assert!(LabelJudge::parse("a,x,1", "f").unwrap_err().to_string().contains("line 1"));
+        assert!(LabelJudge::parse("a,x,1", "f")
+            .unwrap_err()
+            .to_string()
+            .contains("line 1"));
         assert!(LabelJudge::parse("a,0,maybe", "f").is_err());
     }
 

@@ -103,7 +103,8 @@ impl TaskInstance {
         let meta = &self.expert.meta;
         match self.task {
             Task::Reach => {
-                let want = world.world_from_tcp(meta, self.expert.joints.last().unwrap_or(&state.joints));
+                let want =
+                    world.world_from_tcp(meta, self.expert.joints.last().unwrap_or(&state.joints));
                 let got = world.world_from_tcp(meta, &state.joints);
                 (want.translation.vector - got.translation.vector).norm()
             }
@@ -162,9 +163,11 @@ impl<'w> SyntheticEnv<'w> {
 
     /// The current observation.
     pub fn observe(&self) -> Observation {
-        let rgb = self
-            .world
-            .render_state(&self.instance.expert.meta, &self.instance.expert.camera, &self.state);
+        let rgb = self.world.render_state(
+            &self.instance.expert.meta,
+            &self.instance.expert.camera,
+            &self.state,
+        );
         observe(self.world, &self.instance, &self.state, &rgb)
     }
 
@@ -173,9 +176,9 @@ impl<'w> SyntheticEnv<'w> {
         crate::error::check_finite("executed actions", actions)?;
         let e = &self.instance.expert;
         let rows = full_rows(actions, e.meta.arm, &e.actions[0]);
-        let (out, next) = self
-            .world
-            .step(&e.meta, &e.camera, &self.state, &rows, RenderFrames::Last)?;
+        let (out, next) =
+            self.world
+                .step(&e.meta, &e.camera, &self.state, &rows, RenderFrames::Last)?;
         self.state = next;
         self.frames_executed += actions.len();
         let rgb = out
