@@ -14,7 +14,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use rayon::prelude::*;
 
 /// An action-conditioned model as planners and policy evaluation use it.
-pub trait ActionWorldModel: Sync {
+pub trait ActionWorldModel {
     /// Frames per predicted clip (frame 0 is the start frame, so a clip
     /// holds `clip_frames - 1` actions).
     fn clip_frames(&self) -> usize;
@@ -225,7 +225,9 @@ impl<'m, M: WorldModel + ?Sized> MaskConditioned<'m, M> {
             },
         })
     }
+}
 
+impl<M: ?Sized> MaskConditioned<'_, M> {
     /// The masks `[T, H, W]` of an action sequence from `start_joints` (frame
     /// 0 at the start joints), and the joints of the last frame.
     pub fn masks(
@@ -246,7 +248,10 @@ impl<'m, M: WorldModel + ?Sized> MaskConditioned<'m, M> {
         all.push(start_joints.to_vec());
         all.extend(joints);
         let labels = render_trajectory_labels(&self.embodiment.robot, &self.camera, &all, &|| {});
-        let (h, w) = self.model.resolution();
+        let (h, w) = (
+            self.camera.intrinsics.height as usize,
+            self.camera.intrinsics.width as usize,
+        );
         let data: Vec<u8> = labels.iter().flatten().map(|&l| u8::from(l != 0)).collect();
         let last = all.pop().unwrap_or_default();
         Ok((
@@ -261,7 +266,7 @@ impl<'m, M: WorldModel + ?Sized> MaskConditioned<'m, M> {
     }
 }
 
-impl<M: WorldModel + Sync + ?Sized> ActionWorldModel for MaskConditioned<'_, M> {
+impl<M: WorldModel + ?Sized> ActionWorldModel for MaskConditioned<'_, M> {
     fn clip_frames(&self) -> usize {
         self.model.clip_frames()
     }
@@ -276,12 +281,23 @@ impl<M: WorldModel + Sync + ?Sized> ActionWorldModel for MaskConditioned<'_, M> 
         sequences: &[Vec<EeAction>],
     ) -> Result<Vec<Observation>> {
         check_image_size(&start.image, self.resolution())?;
+        let clip = self.clip_frames();
+        // Mask rendering in parallel; the model itself need not be Sync.
+        let renderer = MaskConditioned::<()> {
+            model: &(),
+            embodiment: self.embodiment.clone(),
+            arm: self.arm,
+            camera: self.camera.clone(),
+            hold: self.hold.clone(),
+            predict: self.predict.clone(),
+            ik: self.ik.clone(),
+        };
         let prepared: Vec<(Vec<EeAction>, MaskVideo, Vec<f64>)> = sequences
             .par_iter()
             .map(|seq| {
                 check_finite("action sequence", seq)?;
-                let padded = pad_to_clip(seq, self.clip_frames())?;
-                let (masks, last) = self.masks(&start.joints, &padded)?;
+                let padded = pad_to_clip(seq, clip)?;
+                let (masks, last) = renderer.masks(&start.joints, &padded)?;
                 Ok((padded, masks, last))
             })
             .collect::<Result<_>>()?;

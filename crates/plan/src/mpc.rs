@@ -11,7 +11,6 @@ use crate::model::{
 use crate::{EeAction, Observation};
 use bridgev2w_world_model::video::Image;
 use rand_chacha::ChaCha8Rng;
-use rayon::prelude::*;
 
 /// How the gripper is commanded.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -125,7 +124,7 @@ pub fn score_sequences<M: ActionWorldModel + ?Sized>(
 ) -> Result<Vec<f64>> {
     let predicted = model.rollout_batch(start, sequences)?;
     predicted
-        .par_iter()
+        .iter()
         .map(|o| latent_l1(&model.encode(&o.image)?, goal_latent))
         .collect()
 }

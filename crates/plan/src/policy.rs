@@ -130,7 +130,7 @@ pub trait SuccessJudge {
 /// `d(last, goal) <= ratio * d(start, goal)` with `d` the latent mean L1.
 pub struct GoalDistanceJudge<'m> {
     /// The latent encoder.
-    pub encode: &'m (dyn Fn(&Image) -> Result<Vec<f32>> + Sync),
+    pub encode: &'m dyn Fn(&Image) -> Result<Vec<f32>>,
     /// The ratio.
     pub ratio: f64,
 }
