@@ -7,6 +7,7 @@ mod eval_cmd;
 mod masks_cmd;
 mod overlay;
 mod parity_cmd;
+mod plan_cmd;
 mod predict_cmd;
 mod robot_info;
 mod synth_cmd;
@@ -46,6 +47,12 @@ enum Command {
     Synth(synth_cmd::SynthArgs),
     /// Train BridgeV2W (ControlNet + LoRA) on a dataset with the paper's losses (CONFIG.toml).
     Train(train_cmd::TrainArgs),
+    /// Goal-image CEM-MPC planning executed in the synthetic world, vs random actions.
+    Plan(plan_cmd::PlanArgs),
+    /// Policy evaluation by autoregressive world-model rollouts vs synthetic-world success.
+    EvalPolicyRollout(plan_cmd::EvalRolloutArgs),
+    /// Run planning on all tasks and the policy evaluation; write docs/results.md.
+    PlanReport(plan_cmd::PlanReportArgs),
 }
 
 fn main() -> Result<()> {
@@ -61,6 +68,9 @@ fn main() -> Result<()> {
         Command::Predict(a) => predict_cmd::run(&a),
         Command::Synth(a) => synth_cmd::run(&a),
         Command::Train(a) => train_cmd::run(&a),
+        Command::Plan(a) => plan_cmd::run_plan(&a),
+        Command::EvalPolicyRollout(a) => plan_cmd::run_eval_rollout(&a),
+        Command::PlanReport(a) => plan_cmd::run_plan_report(&a),
     }
 }
 

@@ -715,6 +715,53 @@ fn pick_pattern(rng: &mut ChaCha8Rng, families: &[String], scale: f64) -> Patter
     }
 }
 
+/// The dynamic state of a scene between frames: what [`World::step`]
+/// continues from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SceneState {
+    /// Robot joints (URDF actuated order).
+    pub joints: Vec<f64>,
+    /// Per object: pose.
+    pub object_poses: Vec<ObjectPose>,
+    /// Held object: `(index, tcp_from_object_center)`.
+    held: Option<(usize, Isometry3<f64>)>,
+    /// Contact points (fingertips, hand) of the previous frame (world frame).
+    prev_points: Option<[Point3<f64>; 3]>,
+    /// Gripper command of the previous frame (0 open, 1 closed).
+    pub prev_gripper: f64,
+}
+
+impl SceneState {
+    /// The index of the object held in the gripper, if any.
+    pub fn held_object(&self) -> Option<usize> {
+        self.held.map(|(i, _)| i)
+    }
+}
+
+/// Which frames [`World::step`] renders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RenderFrames {
+    /// None (state only).
+    None,
+    /// The last frame only.
+    Last,
+    /// Every frame.
+    All,
+}
+
+/// The frames of one [`World::step`].
+#[derive(Debug, Clone)]
+pub struct StepOutput {
+    /// Rendered frames (interleaved RGB8), as [`RenderFrames`] asked.
+    pub rgb: Vec<Vec<u8>>,
+    /// Per frame: achieved joints.
+    pub joints: Vec<Vec<f64>>,
+    /// Per frame, per object: pose.
+    pub object_poses: Vec<Vec<ObjectPose>>,
+    /// Per frame, per object: contact event.
+    pub contacts: Vec<Vec<Contact>>,
+}
+
 /// The synthetic world of one robot.
 #[derive(Debug)]
 pub struct World {
@@ -1116,19 +1163,42 @@ impl World {
         actions: &[Vec<f64>],
         joints: &[Vec<f64>],
     ) -> (Vec<Vec<ObjectPose>>, Vec<Vec<Contact>>) {
-        let robot = &self.embodiment.robot;
-        let ee = &self.embodiment.end_effectors[meta.arm];
-        let tz = self.frame.table_z_m;
-        let mut poses: Vec<ObjectPose> = meta.objects.iter().map(|o| o.initial).collect();
-        // Held object: (index, tcp_from_object_center).
-        let mut held: Option<(usize, Isometry3<f64>)> = None;
-        let mut prev_points: Option<[Point3<f64>; 3]> = None;
-        let mut prev_g = 0.0;
+        let mut state = SceneState {
+            joints: joints.first().cloned().unwrap_or_default(),
+            object_poses: meta.objects.iter().map(|o| o.initial).collect(),
+            held: None,
+            prev_points: None,
+            prev_gripper: 0.0,
+        };
         let mut all_poses = Vec::with_capacity(joints.len());
         let mut all_contacts = Vec::with_capacity(joints.len());
         for (f, q) in joints.iter().enumerate() {
-            let tcp = robot.link_pose(ee.link, q);
             let g = actions[f][7 * meta.arm + 6];
+            let contacts = self.contact_step(meta, &mut state, q, g);
+            all_poses.push(state.object_poses.clone());
+            all_contacts.push(contacts);
+        }
+        (all_poses, all_contacts)
+    }
+
+    /// One frame of the kinematic contact rules: the robot is at joints `q`
+    /// with gripper command `g`; updates `state` (objects, grasp, joints).
+    fn contact_step(
+        &self,
+        meta: &EpisodeMeta,
+        state: &mut SceneState,
+        q: &[f64],
+        g: f64,
+    ) -> Vec<Contact> {
+        let robot = &self.embodiment.robot;
+        let ee = &self.embodiment.end_effectors[meta.arm];
+        let tz = self.frame.table_z_m;
+        let poses = &mut state.object_poses;
+        let held = &mut state.held;
+        let prev_g = state.prev_gripper;
+        let prev_points = state.prev_points;
+        {
+            let tcp = robot.link_pose(ee.link, q);
             let mut contacts = vec![Contact::None; poses.len()];
             // Contact points: the two fingertips (either side of the TCP
             // along its y axis, at the finger opening) and the hand centre
@@ -1149,15 +1219,15 @@ impl World {
                     && tcp_point.z < p.position_m[2] + h + 0.01
             };
             // Release.
-            if let Some((i, _)) = held {
+            if let Some((i, _)) = *held {
                 if g < 0.5 {
-                    held = None;
+                    *held = None;
                     poses[i].position_m[2] = tz;
                     contacts[i] = Contact::Released;
                 }
             }
             // Carry.
-            if let Some((i, tcp_from_obj)) = held {
+            if let Some((i, tcp_from_obj)) = *held {
                 let w = tcp * tcp_from_obj;
                 let h = meta.objects[i].shape.height_m();
                 let (_, _, yaw) = w.rotation.euler_angles();
@@ -1175,7 +1245,7 @@ impl World {
                     let h = o.shape.height_m();
                     if between_fingers(p, h) {
                         let w = p.world_from_object_center(h);
-                        held = Some((i, tcp.inverse() * w));
+                        *held = Some((i, tcp.inverse() * w));
                         contacts[i] = Contact::Grasped;
                         break;
                     }
@@ -1222,12 +1292,94 @@ impl World {
                     }
                 }
             }
-            prev_points = Some(points);
-            prev_g = g;
-            all_poses.push(poses.clone());
-            all_contacts.push(contacts);
+            state.prev_points = Some(points);
+            state.prev_gripper = g;
+            state.joints = q.to_vec();
+            contacts
         }
-        (all_poses, all_contacts)
+    }
+
+    /// The state of an episode's scene at its first frame: the robot at the
+    /// episode's first joints, the objects at their initial poses.
+    pub fn initial_state(&self, episode: &Episode) -> SceneState {
+        let g0 = episode
+            .actions
+            .first()
+            .map_or(0.0, |row| row[7 * episode.meta.arm + 6]);
+        SceneState {
+            joints: episode
+                .joints
+                .first()
+                .cloned()
+                .unwrap_or_else(|| self.embodiment.home.clone()),
+            object_poses: episode.meta.objects.iter().map(|o| o.initial).collect(),
+            held: None,
+            prev_points: None,
+            prev_gripper: g0,
+        }
+    }
+
+    /// The end-effector pose of the acting arm at joints `q` (world frame).
+    pub fn world_from_tcp(&self, meta: &EpisodeMeta, q: &[f64]) -> Isometry3<f64> {
+        let ee = &self.embodiment.end_effectors[meta.arm];
+        self.embodiment.robot.link_pose(ee.link, q)
+    }
+
+    /// Steps a scene from `state` through end-effector `actions` (one row
+    /// per frame, 7 values per arm as in [`Episode::actions`]): IK warm-started
+    /// from the state's joints (targets out of reach leave a residual rather
+    /// than an error), the contact rules per frame, and RGB frames as
+    /// `render` asks. Returns the step's frames and the state after the
+    /// last action.
+    pub fn step(
+        &self,
+        meta: &EpisodeMeta,
+        camera: &Camera,
+        state: &SceneState,
+        actions: &[Vec<f64>],
+        render: RenderFrames,
+    ) -> Result<(StepOutput, SceneState), SynthError> {
+        let traj = Trajectory::new("scene step", actions.to_vec())?;
+        let opts = IkOptions {
+            restarts: 2,
+            seed: meta.seed,
+            ..IkOptions::default()
+        };
+        let (joints, _) = actions_to_joints(
+            &self.embodiment.robot,
+            &self.embodiment.end_effectors,
+            &traj,
+            &state.joints,
+            &opts,
+            true,
+        )?;
+        let mut next = state.clone();
+        let meshes: Vec<TriMesh> = meta.objects.iter().map(|o| o.shape.mesh()).collect();
+        let mut out = StepOutput {
+            rgb: Vec::new(),
+            joints: Vec::with_capacity(joints.len()),
+            object_poses: Vec::with_capacity(joints.len()),
+            contacts: Vec::with_capacity(joints.len()),
+        };
+        let last = joints.len().saturating_sub(1);
+        for (f, q) in joints.iter().enumerate() {
+            let g = actions[f][7 * meta.arm + 6];
+            let contacts = self.contact_step(meta, &mut next, q, g);
+            if render == RenderFrames::All || (render == RenderFrames::Last && f == last) {
+                out.rgb
+                    .push(self.render_rgb(meta, camera, &meshes, q, &next.object_poses));
+            }
+            out.joints.push(q.clone());
+            out.object_poses.push(next.object_poses.clone());
+            out.contacts.push(contacts);
+        }
+        Ok((out, next))
+    }
+
+    /// Renders the scene in `state` (interleaved RGB8).
+    pub fn render_state(&self, meta: &EpisodeMeta, camera: &Camera, state: &SceneState) -> Vec<u8> {
+        let meshes: Vec<TriMesh> = meta.objects.iter().map(|o| o.shape.mesh()).collect();
+        self.render_rgb(meta, camera, &meshes, &state.joints, &state.object_poses)
     }
 
     fn render_rgb(

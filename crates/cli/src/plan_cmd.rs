@@ -1,0 +1,647 @@
+//! `bridgev2w plan`, `bridgev2w eval-policy-rollout` and `bridgev2w plan-report`:
+//! goal-image CEM-MPC and world-model policy evaluation, executed in the
+//! synthetic tabletop world.
+
+use anyhow::{bail, Context, Result};
+use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
+use bridgev2w_plan::cem::{CemConfig, RotationSearch};
+use bridgev2w_plan::model::{ActionWorldModel, MaskConditioned};
+use bridgev2w_plan::mpc::{run_mpc, run_random, GripperPolicy, MpcConfig};
+use bridgev2w_plan::policy::{
+    evaluate_trial, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport, ScriptedPolicy,
+    SuccessJudge,
+};
+use bridgev2w_plan::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance};
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions};
+use bridgev2w_world_model::scheduler::SchedulerConfig;
+use bridgev2w_world_model::transformer::TransformerConfig;
+use bridgev2w_world_model::vae::VaeConfig;
+use bridgev2w_world_model::video::Image;
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+fn parse_task(s: &str) -> Result<Task, String> {
+    Task::parse(s).ok_or_else(|| format!("unknown task {s:?}: expected reach, push or pick_place"))
+}
+
+fn parse_split(s: &str) -> Result<Split, String> {
+    Split::parse(s).ok_or_else(|| {
+        format!("unknown split {s:?}: expected train, test, unseen_camera or unseen_scene")
+    })
+}
+
+/// Which world model to plan or evaluate with.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ModelArgs {
+    /// `perfect` (the synthetic world's own renderer), `random` (BridgeV2W
+    /// with random tiny weights at 64x96, 9 frames: a smoke test), or a
+    /// CogVideoX image-to-video diffusers folder (with --weights).
+    #[arg(long, default_value = "perfect")]
+    pub model: String,
+    /// BridgeV2W weights (ControlNet + LoRA safetensors) for a model folder.
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// The fixed prompt's T5 embedding for a model folder.
+    #[arg(long)]
+    pub prompt_embeds: Option<PathBuf>,
+    /// Denoising steps of a diffusion model.
+    #[arg(long, default_value_t = 4)]
+    pub denoise_steps: usize,
+    /// cpu, cuda, cuda:N or auto.
+    #[arg(long, default_value = "auto")]
+    pub device: String,
+    /// Image width of the synthetic world with the perfect model (pixels, even).
+    #[arg(long, default_value_t = 96)]
+    pub width: u32,
+    /// Image height of the synthetic world with the perfect model (pixels, even).
+    #[arg(long, default_value_t = 64)]
+    pub height: u32,
+    /// Clip frames of the perfect model.
+    #[arg(long, default_value_t = 9)]
+    pub clip_frames: usize,
+}
+
+/// A loaded model.
+enum Loaded {
+    Perfect,
+    Diffusion(Box<BridgeV2W>),
+}
+
+fn load(a: &ModelArgs) -> Result<Loaded> {
+    let dev = || -> Result<ComputeDevice> {
+        if a.device == "auto" {
+            return Ok(ComputeDevice::auto());
+        }
+        a.device
+            .parse()
+            .map_err(|e| anyhow::anyhow!("--device {}: {e}", a.device))
+    };
+    Ok(match a.model.as_str() {
+        "perfect" => Loaded::Perfect,
+        "random" => Loaded::Diffusion(Box::new(BridgeV2W::random(
+            BridgeV2WConfig::tiny(),
+            &VaeConfig::tiny(),
+            &TransformerConfig::tiny(),
+            SchedulerConfig::cogvideox_5b_i2v(),
+            dev()?,
+            0,
+        )?)),
+        path => {
+            let dir = Path::new(path);
+            if !dir.is_dir() {
+                bail!("--model {path}: expected perfect, random or a model folder");
+            }
+            Loaded::Diffusion(Box::new(
+                BridgeV2W::load(
+                    dir,
+                    a.weights.as_deref(),
+                    a.prompt_embeds.as_deref(),
+                    BridgeV2WConfig::paper(),
+                    dev()?,
+                    Precision::F32,
+                )
+                .with_context(|| format!("loading the model from {}", dir.display()))?,
+            ))
+        }
+    })
+}
+
+impl Loaded {
+    /// `(height, width)` the synthetic world must render at.
+    fn resolution(&self, a: &ModelArgs) -> (u32, u32) {
+        match self {
+            Loaded::Perfect => (a.height, a.width),
+            Loaded::Diffusion(m) => (m.config().height as u32, m.config().width as u32),
+        }
+    }
+
+    /// Runs `f` with the world model of a task instance.
+    fn with_model<T>(
+        &self,
+        a: &ModelArgs,
+        world: &World,
+        inst: &TaskInstance,
+        f: &mut dyn FnMut(&dyn ActionWorldModel) -> Result<T>,
+    ) -> Result<T> {
+        match self {
+            Loaded::Perfect => f(&PerfectWorldModel {
+                world,
+                instance: inst.clone(),
+                clip_frames: a.clip_frames,
+            }),
+            Loaded::Diffusion(m) => {
+                let predict = PredictOptions {
+                    sample: SampleOptions {
+                        steps: a.denoise_steps,
+                        guidance_scale: 1.0,
+                        ..SampleOptions::default()
+                    },
+                };
+                let wrapped = MaskConditioned::new(
+                    m.as_ref(),
+                    world.embodiment.clone(),
+                    inst.expert.meta.arm,
+                    inst.expert.camera.clone(),
+                    inst.expert.actions[0].clone(),
+                    predict,
+                )?;
+                f(&wrapped)
+            }
+        }
+    }
+}
+
+fn world_for(loaded: &Loaded, a: &ModelArgs, episode_frames: usize, seed: u64) -> Result<World> {
+    let (h, w) = loaded.resolution(a);
+    Ok(World::new(&SynthConfig {
+        frames: episode_frames,
+        width: w,
+        height: h,
+        seed,
+        ..SynthConfig::default()
+    })?)
+}
+
+/// `bridgev2w plan`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PlanArgs {
+    /// reach, push or pick_place.
+    #[arg(long, value_parser = parse_task)]
+    pub task: Task,
+    /// Trials (task instances of the split).
+    #[arg(long, default_value_t = 20)]
+    pub trials: usize,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// CEM samples S per iteration.
+    #[arg(long, default_value_t = 16)]
+    pub samples: usize,
+    /// CEM elites k.
+    #[arg(long, default_value_t = 4)]
+    pub elites: usize,
+    /// CEM iterations T.
+    #[arg(long, default_value_t = 2)]
+    pub iters: usize,
+    /// Planning horizon H (actions).
+    #[arg(long, default_value_t = 2)]
+    pub horizon: usize,
+    /// Clip frames per planned action.
+    #[arg(long, default_value_t = 2)]
+    pub frames_per_action: usize,
+    /// Executed actions at most.
+    #[arg(long, default_value_t = 12)]
+    pub max_steps: usize,
+    /// Initial translational standard deviation per step (metres).
+    #[arg(long, default_value_t = 0.05)]
+    pub translation_std_m: f64,
+    /// Search rotation too (default: translation only, as the paper for pick-and-place).
+    #[arg(long)]
+    pub search_rotation: bool,
+    /// Rotation refinement: joint, rotation-first or axis-wise.
+    #[arg(long, default_value = "joint")]
+    pub rotation: String,
+    /// Sample reallocation: fraction of samples that perturb rotation only.
+    #[arg(long, default_value_t = 0.0)]
+    pub rotation_sample_fraction: f64,
+    /// Discretise increments (0.05 m, 20 degrees).
+    #[arg(long)]
+    pub discretize: bool,
+    /// Gripper: auto (heuristic for push/pick_place, searched for reach), search, heuristic.
+    #[arg(long, default_value = "auto")]
+    pub gripper: String,
+    /// Plan toward the final goal image only (no subgoal).
+    #[arg(long)]
+    pub single_goal: bool,
+    /// Split of the task instances.
+    #[arg(long, default_value = "test", value_parser = parse_split)]
+    pub split: Split,
+    /// Frames of the scripted expert episodes (start, goals).
+    #[arg(long, default_value_t = 25)]
+    pub episode_frames: usize,
+    /// Seed of the world and the planner.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// Success counts of the planner and the random baseline on one task.
+#[derive(Debug, Clone)]
+pub struct PlanSummary {
+    /// Task.
+    pub task: Task,
+    /// Trials.
+    pub trials: usize,
+    /// Planner successes.
+    pub planned: usize,
+    /// Random-action successes.
+    pub random: usize,
+    /// Mean final task error of the planner (metres).
+    pub planned_error_m: f64,
+    /// Mean final task error of the random baseline (metres).
+    pub random_error_m: f64,
+    /// Mean executed actions of the planner.
+    pub planned_steps: f64,
+    /// Wall time (seconds).
+    pub seconds: f64,
+}
+
+fn mpc_config(a: &PlanArgs) -> Result<MpcConfig> {
+    let rotation_search = match a.rotation.as_str() {
+        "joint" => RotationSearch::Joint,
+        "rotation-first" => RotationSearch::RotationFirst,
+        "axis-wise" => RotationSearch::AxisWise,
+        r => bail!("--rotation {r}: expected joint, rotation-first or axis-wise"),
+    };
+    let heuristic = match a.task {
+        Task::Reach => GripperPolicy::Heuristic {
+            approach: 0.0,
+            after_switch: 0.0,
+            release_at_end: false,
+        },
+        Task::Push => GripperPolicy::Heuristic {
+            approach: 1.0,
+            after_switch: 1.0,
+            release_at_end: false,
+        },
+        Task::PickPlace => GripperPolicy::Heuristic {
+            approach: 0.0,
+            after_switch: 1.0,
+            release_at_end: true,
+        },
+    };
+    let gripper = match (a.gripper.as_str(), a.task) {
+        ("auto", Task::Reach) | ("search", _) => GripperPolicy::Search,
+        ("auto", _) | ("heuristic", _) => heuristic,
+        (g, _) => bail!("--gripper {g}: expected auto, search or heuristic"),
+    };
+    let cfg = MpcConfig {
+        cem: CemConfig {
+            samples: a.samples,
+            elites: a.elites,
+            iterations: a.iters,
+            horizon: a.horizon,
+            init_translation_std_m: a.translation_std_m,
+            translation_only: !a.search_rotation,
+            discretize: a.discretize,
+            rotation_search,
+            rotation_sample_fraction: a.rotation_sample_fraction,
+            ..CemConfig::default()
+        },
+        frames_per_action: a.frames_per_action,
+        max_steps: a.max_steps,
+        gripper,
+        ..MpcConfig::default()
+    };
+    cfg.cem.validate()?;
+    Ok(cfg)
+}
+
+/// Plans every trial of `a.task` and runs the random baseline on the same instances.
+pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
+    if a.trials == 0 {
+        bail!("--trials must be at least 1");
+    }
+    let cfg = mpc_config(a)?;
+    let loaded = load(&a.model)?;
+    let world = world_for(&loaded, &a.model, a.episode_frames, a.seed)?;
+    let t0 = Instant::now();
+    let (mut planned, mut random) = (0, 0);
+    let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);
+    for trial in 0..a.trials {
+        let inst = TaskInstance::new(&world, a.split, trial, a.task)?;
+        let mut goals: Vec<Image> = inst.goal_images();
+        if a.single_goal {
+            goals.drain(..goals.len() - 1);
+        }
+        let seed = a.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let mut env = SyntheticEnv::new(&world, inst.clone());
+        let out = loaded.with_model(&a.model, &world, &inst, &mut |m| {
+            Ok(run_mpc(
+                m,
+                &mut env,
+                &goals,
+                &cfg,
+                &mut ChaCha8Rng::seed_from_u64(seed),
+            )?)
+        })?;
+        let ok = env.success();
+        let err = inst.error_m(&world, &env.state);
+        let mut base = SyntheticEnv::new(&world, inst.clone());
+        run_random(&mut base, &cfg, &mut ChaCha8Rng::seed_from_u64(seed))?;
+        let rok = base.success();
+        let rerr = inst.error_m(&world, &base.state);
+        eprintln!(
+            "{} trial {trial}: planner {} ({:.1} cm, {} steps), random {} ({:.1} cm)",
+            a.task.name(),
+            if ok { "success" } else { "failure" },
+            err * 100.0,
+            out.steps,
+            if rok { "success" } else { "failure" },
+            rerr * 100.0
+        );
+        planned += usize::from(ok);
+        random += usize::from(rok);
+        planned_err += err;
+        random_err += rerr;
+        steps += out.steps as f64;
+    }
+    let n = a.trials as f64;
+    Ok(PlanSummary {
+        task: a.task,
+        trials: a.trials,
+        planned,
+        random,
+        planned_error_m: planned_err / n,
+        random_error_m: random_err / n,
+        planned_steps: steps / n,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+/// `bridgev2w plan`.
+pub fn run_plan(a: &PlanArgs) -> Result<()> {
+    let s = plan_summary(a)?;
+    crate::print_stdout(&format!(
+        "{}: planner ({}) {}/{} successes (mean error {:.1} cm, {:.1} actions), random actions {}/{} (mean error {:.1} cm); {:.0} s\n",
+        s.task.name(),
+        a.model.model,
+        s.planned,
+        s.trials,
+        s.planned_error_m * 100.0,
+        s.planned_steps,
+        s.random,
+        s.trials,
+        s.random_error_m * 100.0,
+        s.seconds
+    ))
+}
+
+/// `bridgev2w eval-policy-rollout`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EvalRolloutArgs {
+    /// reach, push or pick_place.
+    #[arg(long, value_parser = parse_task)]
+    pub task: Task,
+    /// Trials per policy (task instances of the split).
+    #[arg(long, default_value_t = 10)]
+    pub trials: usize,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Offset standard deviations of the scripted policies (mm, comma-separated).
+    #[arg(long, default_value = "0,10,20,30,50")]
+    pub offsets_mm: String,
+    /// Per-action jitter of the scripted policies (mm).
+    #[arg(long, default_value_t = 2.0)]
+    pub jitter_mm: f64,
+    /// Actions per policy chunk (at most the model's clip frames - 1).
+    #[arg(long, default_value_t = 8)]
+    pub chunk: usize,
+    /// Goal-distance judge: success when d(last, goal) <= ratio * d(start, goal).
+    #[arg(long, default_value_t = 0.5)]
+    pub ratio: f64,
+    /// Judge by labels instead (CSV policy,trial,success).
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Split of the task instances.
+    #[arg(long, default_value = "test", value_parser = parse_split)]
+    pub split: Split,
+    /// Frames of the scripted expert episodes (the rollout horizon is this minus one).
+    #[arg(long, default_value_t = 25)]
+    pub episode_frames: usize,
+    /// Seed of the world and the policies.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// Runs the policy evaluation.
+pub fn eval_rollout_report(a: &EvalRolloutArgs) -> Result<PolicyEvalReport> {
+    if a.trials == 0 {
+        bail!("--trials must be at least 1");
+    }
+    let offsets: Vec<f64> = a
+        .offsets_mm
+        .split(',')
+        .map(|s| {
+            s.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite() && *v >= 0.0)
+                .with_context(|| format!("--offsets-mm: {s:?} is not a non-negative number"))
+        })
+        .collect::<Result<_>>()?;
+    if offsets.len() < 2 {
+        bail!("--offsets-mm: at least two policies are needed for a correlation");
+    }
+    let loaded = load(&a.model)?;
+    let world = world_for(&loaded, &a.model, a.episode_frames, a.seed)?;
+    let instances: Vec<TaskInstance> = (0..a.trials)
+        .map(|i| TaskInstance::new(&world, a.split, i, a.task))
+        .collect::<std::result::Result<_, _>>()?;
+    let labels = a.labels.as_deref().map(LabelJudge::read).transpose()?;
+    let horizon = a.episode_frames - 1;
+    let mut names = Vec::new();
+    let mut predicted = Vec::new();
+    let mut real = Vec::new();
+    // One instance at a time so each gets its own model (camera, scene).
+    for (pi, off) in offsets.iter().enumerate() {
+        let mut policy = ScriptedPolicy::new(
+            Vec::new(),
+            a.chunk,
+            off / 1e3,
+            a.jitter_mm / 1e3,
+            a.seed ^ (pi as u64 + 1).wrapping_mul(0xA076_1D64_78BD_642F),
+        );
+        let name = policy.name();
+        let (mut wins_model, mut wins_real) = (0.0, 0.0);
+        for (trial, inst) in instances.iter().enumerate() {
+            policy.expert = inst.expert_actions();
+            let (m, r) = loaded.with_model(&a.model, &world, inst, &mut |m| {
+                let encode = |img: &Image| m.encode(img);
+                let goal_judge = GoalDistanceJudge {
+                    encode: &encode,
+                    ratio: a.ratio,
+                };
+                let judge: &dyn SuccessJudge = match &labels {
+                    Some(l) => l,
+                    None => &goal_judge,
+                };
+                Ok(evaluate_trial(
+                    &world,
+                    inst,
+                    trial,
+                    &mut policy,
+                    m,
+                    judge,
+                    horizon,
+                )?)
+            })?;
+            wins_model += f64::from(u8::from(m));
+            wins_real += f64::from(u8::from(r));
+        }
+        let n = instances.len() as f64;
+        eprintln!(
+            "{name}: world model {:.2}, synthetic world {:.2}",
+            wins_model / n,
+            wins_real / n
+        );
+        names.push(name);
+        predicted.push(wins_model / n);
+        real.push(wins_real / n);
+    }
+    Ok(PolicyEvalReport::new(names, predicted, real)?)
+}
+
+/// `bridgev2w eval-policy-rollout`.
+pub fn run_eval_rollout(a: &EvalRolloutArgs) -> Result<()> {
+    let r = eval_rollout_report(a)?;
+    crate::print_stdout(&eval_table(&r))
+}
+
+fn eval_table(r: &PolicyEvalReport) -> String {
+    let mut s =
+        String::from("| policy | world-model success | synthetic-world success |\n|---|---|---|\n");
+    for ((p, w), g) in r.policies.iter().zip(&r.predicted).zip(&r.real) {
+        s += &format!("| {p} | {w:.2} | {g:.2} |\n");
+    }
+    s += &format!(
+        "\nMMRV {:.3} (lower is better), Pearson r {:.3}\n",
+        r.mmrv, r.pearson
+    );
+    s
+}
+
+/// `bridgev2w plan-report`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PlanReportArgs {
+    /// Output markdown file.
+    #[arg(long, default_value = "docs/results.md")]
+    pub out: PathBuf,
+    /// Planning trials per task.
+    #[arg(long, default_value_t = 20)]
+    pub trials: usize,
+    /// Policy-evaluation trials per policy.
+    #[arg(long, default_value_t = 10)]
+    pub eval_trials: usize,
+    /// CEM samples S.
+    #[arg(long, default_value_t = 16)]
+    pub samples: usize,
+    /// CEM elites k.
+    #[arg(long, default_value_t = 4)]
+    pub elites: usize,
+    /// CEM iterations T.
+    #[arg(long, default_value_t = 2)]
+    pub iters: usize,
+    /// Horizon H.
+    #[arg(long, default_value_t = 2)]
+    pub horizon: usize,
+    /// Executed actions at most.
+    #[arg(long, default_value_t = 12)]
+    pub max_steps: usize,
+    /// Also evaluate policies with the random-weight BridgeV2W (slow on CPU).
+    #[arg(long)]
+    pub with_random_model: bool,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+fn model_args(model: &str) -> ModelArgs {
+    ModelArgs {
+        model: model.into(),
+        weights: None,
+        prompt_embeds: None,
+        denoise_steps: 4,
+        device: "cpu".into(),
+        width: 96,
+        height: 64,
+        clip_frames: 9,
+    }
+}
+
+/// `bridgev2w plan-report`: runs planning on all tasks and the policy
+/// evaluation, and writes the tables with the command that produced them.
+pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
+    let command: Vec<String> = std::env::args().collect();
+    let mut md = String::from(
+        "# Results: goal-image planning and policy evaluation in the synthetic world\n\n",
+    );
+    md += &format!(
+        "Produced by `{}` (CPU). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; the planner uses the world model named in each table.\n\n",
+        command.join(" "),
+        96,
+        64
+    );
+    md += &format!(
+        "## Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, 2 clip frames per action, at most {} actions, translation-only search; gripper searched for reach, heuristic for push/pick_place; two goal images (subgoal, final) for push and pick_place. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
+        a.trials, a.samples, a.elites, a.iters, a.horizon, a.max_steps
+    );
+    for task in Task::ALL {
+        let pa = PlanArgs {
+            task,
+            trials: a.trials,
+            model: model_args("perfect"),
+            samples: a.samples,
+            elites: a.elites,
+            iters: a.iters,
+            horizon: a.horizon,
+            frames_per_action: 2,
+            max_steps: a.max_steps,
+            translation_std_m: 0.05,
+            search_rotation: false,
+            rotation: "joint".into(),
+            rotation_sample_fraction: 0.0,
+            discretize: false,
+            gripper: "auto".into(),
+            single_goal: false,
+            split: Split::Test,
+            episode_frames: 25,
+            seed: a.seed,
+        };
+        let s = plan_summary(&pa)?;
+        md += &format!(
+            "| {} | perfect | {}/{} | {}/{} | {:.1} | {:.1} | {:.1} | {:.0} |\n",
+            task.name(),
+            s.planned,
+            s.trials,
+            s.random,
+            s.trials,
+            s.planned_error_m * 100.0,
+            s.random_error_m * 100.0,
+            s.planned_steps,
+            s.seconds
+        );
+    }
+    let mut models = vec!["perfect"];
+    if a.with_random_model {
+        models.push("random");
+    }
+    md += &format!(
+        "\n## Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). Synthetic-world success: the task's state check.\n",
+        a.eval_trials
+    );
+    for model in models {
+        let ea = EvalRolloutArgs {
+            task: Task::PickPlace,
+            trials: a.eval_trials,
+            model: model_args(model),
+            offsets_mm: "0,10,20,30,50".into(),
+            jitter_mm: 2.0,
+            chunk: 8,
+            ratio: 0.5,
+            labels: None,
+            split: Split::Test,
+            episode_frames: 25,
+            seed: a.seed,
+        };
+        let r = eval_rollout_report(&ea)?;
+        md += &format!("\n### Model: {model}\n\n{}", eval_table(&r));
+    }
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(&a.out, &md).with_context(|| format!("writing {}", a.out.display()))?;
+    crate::print_stdout(&md)
+}

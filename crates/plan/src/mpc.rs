@@ -1,0 +1,320 @@
+//! Receding-horizon planning: CEM over the world model's predictions toward
+//! a goal image, execute the first action, observe, re-plan; two goal images
+//! (subgoal, then final) with the gripper heuristic; and VLA-proposal
+//! selection.
+
+use crate::cem::{optimize, CemConfig, GripperMode};
+use crate::error::{check_finite, PlanError, Result};
+use crate::model::{
+    apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel,
+};
+use crate::{EeAction, Observation};
+use bridgev2w_world_model::video::Image;
+use rand_chacha::ChaCha8Rng;
+
+/// How the gripper is commanded.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum GripperPolicy {
+    /// Searched by CEM (the Bernoulli of the algorithm).
+    Search,
+    /// The paper's heuristic: `approach` while pursuing the first goal;
+    /// with two goals, close (grasp) on switching to the final goal and
+    /// keep it closed; with `release_at_end`, open once the final goal is
+    /// pursued to its end.
+    Heuristic {
+        /// Command while approaching (0 open, 1 closed).
+        approach: f64,
+        /// Command after the switch to the final goal.
+        after_switch: f64,
+        /// Open the gripper at the end (release at the target).
+        release_at_end: bool,
+    },
+}
+
+/// MPC settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MpcConfig {
+    /// CEM settings.
+    pub cem: CemConfig,
+    /// Clip frames per planned action (the action's motion is interpolated).
+    pub frames_per_action: usize,
+    /// Executed actions at most (the time limit).
+    pub max_steps: usize,
+    /// Gripper.
+    pub gripper: GripperPolicy,
+    /// A step stalls when the observed latent distance to the current goal
+    /// does not improve by this fraction.
+    pub stall_fraction: f64,
+    /// After this many consecutive stalled steps the goal counts as reached
+    /// as far as the model can tell: switch to the next goal, or stop.
+    pub patience: usize,
+}
+
+impl Default for MpcConfig {
+    fn default() -> Self {
+        Self {
+            cem: CemConfig::default(),
+            frames_per_action: 2,
+            max_steps: 12,
+            gripper: GripperPolicy::Search,
+            stall_fraction: 0.01,
+            patience: 2,
+        }
+    }
+}
+
+impl MpcConfig {
+    /// Checks the settings against a model's clip length.
+    pub fn validate(&self, clip_frames: usize) -> Result<()> {
+        self.cem.validate()?;
+        if self.frames_per_action == 0 || self.max_steps == 0 {
+            return Err(PlanError::Invalid(
+                "frames per action and max steps must be at least 1".into(),
+            ));
+        }
+        if self.cem.horizon * self.frames_per_action > clip_frames.saturating_sub(1) {
+            return Err(PlanError::ClipTooShort {
+                actions: self.cem.horizon,
+                frames_per_action: self.frames_per_action,
+                clip_frames,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The "real world" the plan is executed in.
+pub trait Environment {
+    /// The current observation.
+    fn observe(&self) -> Result<Observation>;
+    /// Executes end-effector actions (one per frame) and observes.
+    fn execute(&mut self, actions: &[EeAction]) -> Result<Observation>;
+    /// Whether the goal is reached (ends the episode early).
+    fn goal_reached(&self) -> bool;
+}
+
+impl Environment for crate::synthetic::SyntheticEnv<'_> {
+    fn observe(&self) -> Result<Observation> {
+        Ok(crate::synthetic::SyntheticEnv::observe(self))
+    }
+    fn execute(&mut self, actions: &[EeAction]) -> Result<Observation> {
+        crate::synthetic::SyntheticEnv::execute(self, actions)
+    }
+    fn goal_reached(&self) -> bool {
+        self.success()
+    }
+}
+
+/// One planning cycle's result.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlanStep {
+    /// The planned waypoints `A*_{1..H}` (absolute end-effector actions).
+    pub waypoints: Vec<EeAction>,
+    /// Best predicted cost per CEM iteration.
+    pub best_cost_per_iteration: Vec<f64>,
+}
+
+/// Scores action sequences: the latent mean L1 distance of each predicted
+/// terminal frame to `goal_latent` (one batched model call).
+pub fn score_sequences<M: ActionWorldModel + ?Sized>(
+    model: &M,
+    start: &Observation,
+    sequences: &[Vec<EeAction>],
+    goal_latent: &[f32],
+) -> Result<Vec<f64>> {
+    let predicted = model.rollout_batch(start, sequences)?;
+    predicted
+        .iter()
+        .map(|o| latent_l1(&model.encode(&o.image)?, goal_latent))
+        .collect()
+}
+
+/// One CEM planning cycle from `obs` toward `goal_latent`.
+pub fn plan_once<M: ActionWorldModel + ?Sized>(
+    model: &M,
+    obs: &Observation,
+    goal_latent: &[f32],
+    cfg: &MpcConfig,
+    gripper: GripperMode,
+    rng: &mut ChaCha8Rng,
+) -> Result<PlanStep> {
+    cfg.validate(model.clip_frames())?;
+    let to_waypoints = |c: &crate::cem::Candidate| {
+        let mut cur = obs.ee;
+        c.increments
+            .iter()
+            .zip(&c.gripper)
+            .map(|(inc, &g)| {
+                cur = apply_increment(&cur, inc, g);
+                cur
+            })
+            .collect::<Vec<_>>()
+    };
+    let mut evaluate = |cands: &[crate::cem::Candidate]| {
+        let seqs: Vec<Vec<EeAction>> = cands
+            .iter()
+            .map(|c| expand_waypoints(&obs.ee, &to_waypoints(c), cfg.frames_per_action))
+            .collect();
+        score_sequences(model, obs, &seqs, goal_latent)
+    };
+    let r = optimize(&cfg.cem, gripper, rng, &mut evaluate)?;
+    Ok(PlanStep {
+        waypoints: to_waypoints(&r.plan),
+        best_cost_per_iteration: r.best_cost_per_iteration,
+    })
+}
+
+/// What one MPC episode did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MpcOutcome {
+    /// Actions executed.
+    pub steps: usize,
+    /// The environment reported the goal reached.
+    pub reached: bool,
+    /// Observed latent distance to the final goal after each step.
+    pub final_goal_distance: Vec<f64>,
+}
+
+/// Runs CEM-MPC: per cycle plan toward the current goal, execute the first
+/// action, observe; switch from the subgoal to the final goal when progress
+/// toward the subgoal stalls; stop when the environment reports the goal
+/// reached, the final goal stalls, or at `max_steps`.
+pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
+    model: &M,
+    env: &mut E,
+    goals: &[Image],
+    cfg: &MpcConfig,
+    rng: &mut ChaCha8Rng,
+) -> Result<MpcOutcome> {
+    cfg.validate(model.clip_frames())?;
+    if goals.is_empty() {
+        return Err(PlanError::Invalid(
+            "at least one goal image is needed".into(),
+        ));
+    }
+    for g in goals {
+        check_image_size(g, model.resolution())?;
+    }
+    let latents: Vec<Vec<f32>> = goals
+        .iter()
+        .map(|g| model.encode(g))
+        .collect::<Result<_>>()?;
+    let mut obs = env.observe()?;
+    let mut stage = 0;
+    let mut prev_dist = latent_l1(&model.encode(&obs.image)?, &latents[stage])?;
+    let mut final_goal_distance = Vec::new();
+    let mut steps = 0;
+    let mut stalls = 0;
+    let last = latents.len() - 1;
+    let gripper_for = |stage: usize| match cfg.gripper {
+        GripperPolicy::Search => GripperMode::Search,
+        GripperPolicy::Heuristic {
+            approach,
+            after_switch,
+            ..
+        } => GripperMode::Fixed(if stage == 0 { approach } else { after_switch }),
+    };
+    while steps < cfg.max_steps && !env.goal_reached() {
+        let plan = plan_once(model, &obs, &latents[stage], cfg, gripper_for(stage), rng)?;
+        let first = plan.waypoints[0];
+        let frames = expand_waypoints(&obs.ee, &[first], cfg.frames_per_action);
+        obs = env.execute(&frames)?;
+        steps += 1;
+        let z = model.encode(&obs.image)?;
+        let dist = latent_l1(&z, &latents[stage])?;
+        final_goal_distance.push(latent_l1(&z, &latents[last])?);
+        if dist > prev_dist * (1.0 - cfg.stall_fraction) {
+            stalls += 1;
+        } else {
+            stalls = 0;
+        }
+        prev_dist = prev_dist.min(dist);
+        let stalled = stalls >= cfg.patience.max(1);
+        if stalled && stage < last {
+            stage += 1;
+            // Grasp in place before pursuing the final goal.
+            if let GripperPolicy::Heuristic { after_switch, .. } = cfg.gripper {
+                let mut close = obs.ee;
+                close[6] = after_switch;
+                obs = env.execute(&vec![close; cfg.frames_per_action])?;
+            }
+            prev_dist = latent_l1(&model.encode(&obs.image)?, &latents[stage])?;
+            stalls = 0;
+        } else if stalled && stage == last {
+            break;
+        }
+    }
+    if let GripperPolicy::Heuristic {
+        release_at_end: true,
+        ..
+    } = cfg.gripper
+    {
+        let mut open = obs.ee;
+        open[6] = 0.0;
+        obs = env.execute(&vec![open; cfg.frames_per_action])?;
+        final_goal_distance.push(latent_l1(&model.encode(&obs.image)?, &latents[last])?);
+    }
+    Ok(MpcOutcome {
+        steps,
+        reached: env.goal_reached(),
+        final_goal_distance,
+    })
+}
+
+/// VLA-proposal mode: rolls out each proposed action chunk (absolute
+/// end-effector actions) with the model from `obs` in one batch and returns
+/// the index of the one whose predicted outcome is nearest the goal, with
+/// all costs.
+pub fn select_proposal<M: ActionWorldModel + ?Sized>(
+    model: &M,
+    obs: &Observation,
+    goal: &Image,
+    proposals: &[Vec<EeAction>],
+) -> Result<(usize, Vec<f64>)> {
+    check_image_size(goal, model.resolution())?;
+    if proposals.is_empty() {
+        return Err(PlanError::Invalid("no proposals to choose from".into()));
+    }
+    for (i, p) in proposals.iter().enumerate() {
+        check_finite(&format!("proposal {i}"), p)?;
+    }
+    let goal_latent = model.encode(goal)?;
+    let costs = score_sequences(model, obs, proposals, &goal_latent)?;
+    let best = crate::cem::elite_indices(&costs, 1)[0];
+    Ok((best, costs))
+}
+
+/// The random-action baseline: `max_steps` actions whose increments are
+/// drawn from CEM's initial distribution (translation only if the config
+/// says so), gripper as the config's policy would set it on approach (or a
+/// fair coin when searched).
+pub fn run_random<E: Environment>(
+    env: &mut E,
+    cfg: &MpcConfig,
+    rng: &mut ChaCha8Rng,
+) -> Result<MpcOutcome> {
+    cfg.cem.validate()?;
+    let dist = vec![crate::cem::StepDistribution::initial(&cfg.cem)];
+    let active = if cfg.cem.translation_only {
+        [true, true, true, false, false, false]
+    } else {
+        [true; 6]
+    };
+    let gripper = match cfg.gripper {
+        GripperPolicy::Search => GripperMode::Search,
+        GripperPolicy::Heuristic { approach, .. } => GripperMode::Fixed(approach),
+    };
+    let mut obs = env.observe()?;
+    let mut steps = 0;
+    while steps < cfg.max_steps && !env.goal_reached() {
+        let c = crate::cem::sample_candidate(&dist, &active, &cfg.cem, gripper, rng);
+        let next = apply_increment(&obs.ee, &c.increments[0], c.gripper[0]);
+        obs = env.execute(&expand_waypoints(&obs.ee, &[next], cfg.frames_per_action))?;
+        steps += 1;
+    }
+    Ok(MpcOutcome {
+        steps,
+        reached: env.goal_reached(),
+        final_goal_distance: Vec::new(),
+    })
+}

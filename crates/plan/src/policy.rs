@@ -1,0 +1,463 @@
+//! Policy evaluation with world-model rollouts (the paper's appendix
+//! "Policy Evaluation"): query the policy on the current image, pad its
+//! action chunk to the model's clip, predict, feed the last predicted frame
+//! back, until the horizon; judge success; compare success rates with the
+//! real ones (MMRV, Pearson r).
+
+use crate::error::{check_finite, PlanError, Result};
+use crate::model::{latent_l1, ActionWorldModel};
+use crate::synthetic::{SyntheticEnv, TaskInstance};
+use crate::{EeAction, Observation};
+use bridgev2w_world_model::video::Image;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::collections::HashMap;
+
+/// A policy: observation (image, proprioception) -> action chunk.
+pub trait Policy {
+    /// The policy's name in reports.
+    fn name(&self) -> String;
+    /// Starts a new trial.
+    fn reset(&mut self, trial: usize);
+    /// The next action chunk (absolute end-effector actions, one per frame).
+    fn act(&mut self, obs: &Observation) -> Result<Vec<EeAction>>;
+}
+
+/// An autoregressive world-model rollout.
+#[derive(Debug, Clone)]
+pub struct RolloutResult {
+    /// The last predicted frame of every chunk.
+    pub chunk_last_frames: Vec<Image>,
+    /// The final observation.
+    pub last: Observation,
+    /// Policy actions executed (without padding).
+    pub actions: usize,
+}
+
+/// Rolls a policy out in the world model: each chunk (at most
+/// `clip_frames - 1` actions are used) is padded to the clip by repeating
+/// its last action, predicted from the current frame, and the clip's last
+/// frame becomes the next policy input, until `horizon` actions are done.
+pub fn rollout_in_model<M: ActionWorldModel + ?Sized>(
+    model: &M,
+    policy: &mut dyn Policy,
+    start: Observation,
+    horizon: usize,
+) -> Result<RolloutResult> {
+    if horizon == 0 {
+        return Err(PlanError::ZeroHorizon);
+    }
+    let max_chunk = model.clip_frames().saturating_sub(1).max(1);
+    let mut obs = start;
+    let mut done = 0;
+    let mut chunk_last_frames = Vec::new();
+    while done < horizon {
+        let mut chunk = policy.act(&obs)?;
+        check_finite(&format!("policy {}", policy.name()), &chunk)?;
+        if chunk.is_empty() {
+            return Err(PlanError::Invalid(format!(
+                "policy {} returned no actions",
+                policy.name()
+            )));
+        }
+        chunk.truncate(max_chunk.min(horizon - done));
+        done += chunk.len();
+        // The model pads the chunk by repeating its last action.
+        obs = model
+            .rollout_batch(&obs, std::slice::from_ref(&chunk))?
+            .pop()
+            .ok_or_else(|| PlanError::Invalid("the model returned no rollout".into()))?;
+        chunk_last_frames.push(obs.image.clone());
+    }
+    Ok(RolloutResult {
+        chunk_last_frames,
+        last: obs,
+        actions: done,
+    })
+}
+
+/// Executes a policy in the synthetic world for `horizon` actions (chunks
+/// of at most `max_chunk` actions); returns the final observation.
+pub fn rollout_in_world(
+    env: &mut SyntheticEnv<'_>,
+    policy: &mut dyn Policy,
+    horizon: usize,
+    max_chunk: usize,
+) -> Result<Observation> {
+    if horizon == 0 {
+        return Err(PlanError::ZeroHorizon);
+    }
+    let mut obs = env.observe();
+    let mut done = 0;
+    while done < horizon {
+        let mut chunk = policy.act(&obs)?;
+        check_finite(&format!("policy {}", policy.name()), &chunk)?;
+        if chunk.is_empty() {
+            return Err(PlanError::Invalid(format!(
+                "policy {} returned no actions",
+                policy.name()
+            )));
+        }
+        chunk.truncate(max_chunk.max(1).min(horizon - done));
+        done += chunk.len();
+        obs = env.execute(&chunk)?;
+    }
+    Ok(obs)
+}
+
+/// What a judge sees of one rollout.
+#[derive(Debug, Clone)]
+pub struct JudgeInput<'a> {
+    /// Policy name.
+    pub policy: &'a str,
+    /// Trial index.
+    pub trial: usize,
+    /// The start image.
+    pub start: &'a Image,
+    /// The rollout's final image.
+    pub last: &'a Image,
+    /// The task's goal image.
+    pub goal: &'a Image,
+}
+
+/// Decides whether a rollout succeeded.
+pub trait SuccessJudge {
+    /// True for success.
+    fn judge(&self, input: &JudgeInput<'_>) -> Result<bool>;
+}
+
+/// Success when the final frame is much nearer the goal than the start was:
+/// `d(last, goal) <= ratio * d(start, goal)` with `d` the latent mean L1.
+pub struct GoalDistanceJudge<'m> {
+    /// The latent encoder.
+    pub encode: &'m dyn Fn(&Image) -> Result<Vec<f32>>,
+    /// The ratio.
+    pub ratio: f64,
+}
+
+impl std::fmt::Debug for GoalDistanceJudge<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GoalDistanceJudge")
+            .field("ratio", &self.ratio)
+            .finish_non_exhaustive()
+    }
+}
+
+impl SuccessJudge for GoalDistanceJudge<'_> {
+    fn judge(&self, i: &JudgeInput<'_>) -> Result<bool> {
+        let g = (self.encode)(i.goal)?;
+        let d_last = latent_l1(&(self.encode)(i.last)?, &g)?;
+        let d_start = latent_l1(&(self.encode)(i.start)?, &g)?;
+        Ok(d_last <= self.ratio * d_start)
+    }
+}
+
+/// Success labels from a file (human raters): CSV lines
+/// `policy,trial,success` with success `1`/`0` (or `true`/`false`); `#`
+/// starts a comment.
+#[derive(Debug, Clone, Default)]
+pub struct LabelJudge {
+    labels: HashMap<(String, usize), bool>,
+}
+
+impl LabelJudge {
+    /// Parses label text (`path` names it in errors).
+    pub fn parse(text: &str, path: &str) -> Result<Self> {
+        let err = |line: usize, m: &str| PlanError::Labels {
+            path: path.to_string(),
+            message: format!("line {line}: {m}"),
+        };
+        let mut labels = HashMap::new();
+        for (n, line) in text.lines().enumerate() {
+            let line = line.trim();
+            if line.is_empty() || line.starts_with('#') || line.starts_with("policy,") {
+                continue;
+            }
+            let f: Vec<&str> = line.split(',').map(str::trim).collect();
+            let [policy, trial, success] = f[..] else {
+                return Err(err(n + 1, "expected policy,trial,success"));
+            };
+            let trial: usize = trial.parse().map_err(|_| {
+                err(
+                    n + 1,
+                    &format!("trial {trial:?} is not a non-negative integer"),
+                )
+            })?;
+            let success = match success {
+                "1" | "true" => true,
+                "0" | "false" => false,
+                s => {
+                    return Err(err(
+                        n + 1,
+                        &format!("success {s:?}: expected 1/0/true/false"),
+                    ))
+                }
+            };
+            labels.insert((policy.to_string(), trial), success);
+        }
+        Ok(Self { labels })
+    }
+
+    /// Reads a label file.
+    pub fn read(path: &std::path::Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| PlanError::Labels {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })?;
+        Self::parse(&text, &path.display().to_string())
+    }
+}
+
+impl SuccessJudge for LabelJudge {
+    fn judge(&self, i: &JudgeInput<'_>) -> Result<bool> {
+        self.labels
+            .get(&(i.policy.to_string(), i.trial))
+            .copied()
+            .ok_or_else(|| PlanError::Labels {
+                path: "labels".into(),
+                message: format!("no label for policy {} trial {}", i.policy, i.trial),
+            })
+    }
+}
+
+/// A scripted policy with graded noise: it replays the expert's actions in
+/// chunks, displaced by a per-trial offset drawn with standard deviation
+/// `offset_std_m` per axis (half on z) plus per-action jitter.
+#[derive(Debug, Clone)]
+pub struct ScriptedPolicy {
+    /// The expert actions.
+    pub expert: Vec<EeAction>,
+    /// Actions per chunk.
+    pub chunk: usize,
+    /// Offset standard deviation (metres).
+    pub offset_std_m: f64,
+    /// Per-action jitter (metres, uniform +-).
+    pub jitter_m: f64,
+    /// Seed.
+    pub seed: u64,
+    cursor: usize,
+    offset_m: [f64; 3],
+    rng: ChaCha8Rng,
+}
+
+impl ScriptedPolicy {
+    /// A policy replaying `expert` (from its second action on).
+    pub fn new(
+        expert: Vec<EeAction>,
+        chunk: usize,
+        offset_std_m: f64,
+        jitter_m: f64,
+        seed: u64,
+    ) -> Self {
+        Self {
+            expert,
+            chunk: chunk.max(1),
+            offset_std_m,
+            jitter_m,
+            seed,
+            cursor: 1,
+            offset_m: [0.0; 3],
+            rng: ChaCha8Rng::seed_from_u64(seed),
+        }
+    }
+}
+
+fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+    let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
+    let u2: f64 = rng.gen_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+impl Policy for ScriptedPolicy {
+    fn name(&self) -> String {
+        format!("scripted(offset {:.0} mm)", self.offset_std_m * 1e3)
+    }
+
+    fn reset(&mut self, trial: usize) {
+        self.rng = ChaCha8Rng::seed_from_u64(
+            self.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        self.cursor = 1;
+        let s = self.offset_std_m;
+        self.offset_m = [
+            s * gauss(&mut self.rng),
+            s * gauss(&mut self.rng),
+            0.5 * s * gauss(&mut self.rng),
+        ];
+    }
+
+    fn act(&mut self, _obs: &Observation) -> Result<Vec<EeAction>> {
+        let n = self.expert.len();
+        let mut out = Vec::with_capacity(self.chunk);
+        for _ in 0..self.chunk {
+            let i = self.cursor.min(n.saturating_sub(1));
+            let Some(mut a) = self.expert.get(i).copied() else {
+                return Err(PlanError::Invalid(
+                    "a scripted policy without actions".into(),
+                ));
+            };
+            for (k, v) in a.iter_mut().take(3).enumerate() {
+                let j = if self.jitter_m > 0.0 {
+                    self.rng.gen_range(-self.jitter_m..=self.jitter_m)
+                } else {
+                    0.0
+                };
+                *v += self.offset_m[k] + j;
+            }
+            out.push(a);
+            self.cursor += 1;
+        }
+        Ok(out)
+    }
+}
+
+/// Success rates per policy, world model vs real, and the agreement metrics.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PolicyEvalReport {
+    /// Policy names.
+    pub policies: Vec<String>,
+    /// World-model success rate per policy.
+    pub predicted: Vec<f64>,
+    /// Real (synthetic-world) success rate per policy.
+    pub real: Vec<f64>,
+    /// MMRV (lower is better).
+    pub mmrv: f64,
+    /// Pearson r.
+    pub pearson: f64,
+}
+
+impl PolicyEvalReport {
+    /// From success rates.
+    pub fn new(policies: Vec<String>, predicted: Vec<f64>, real: Vec<f64>) -> Result<Self> {
+        let mmrv = bridgev2w_eval::ranking::mmrv(&predicted, &real)?;
+        let pearson = bridgev2w_eval::ranking::pearson(&predicted, &real)?;
+        Ok(Self {
+            policies,
+            predicted,
+            real,
+            mmrv,
+            pearson,
+        })
+    }
+}
+
+/// One trial of one policy on one task instance: rolled out in the model
+/// (judged by `judge` on the images, against the instance's final goal
+/// image) and executed in the synthetic world (judged by the task's state
+/// check). Returns `(model success, real success)`.
+pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
+    world: &bridgev2w_data::synth::World,
+    instance: &TaskInstance,
+    trial: usize,
+    policy: &mut dyn Policy,
+    model: &M,
+    judge: &dyn SuccessJudge,
+    horizon: usize,
+) -> Result<(bool, bool)> {
+    let name = policy.name();
+    let goal = instance
+        .goal_images()
+        .pop()
+        .ok_or_else(|| PlanError::Invalid("a task instance without a goal image".into()))?;
+    let mut env = SyntheticEnv::new(world, instance.clone());
+    let start = env.observe();
+    policy.reset(trial);
+    let r = rollout_in_model(model, policy, start.clone(), horizon)?;
+    let predicted = judge.judge(&JudgeInput {
+        policy: &name,
+        trial,
+        start: &start.image,
+        last: &r.last.image,
+        goal: &goal,
+    })?;
+    policy.reset(trial);
+    rollout_in_world(
+        &mut env,
+        policy,
+        horizon,
+        model.clip_frames().saturating_sub(1),
+    )?;
+    Ok((predicted, env.success()))
+}
+
+/// Evaluates policies on task instances (instance `i` is trial `i`) with
+/// the model `model_for` gives for each instance; success rates and the
+/// agreement metrics.
+pub fn evaluate_policies<M: ActionWorldModel>(
+    world: &bridgev2w_data::synth::World,
+    instances: &[TaskInstance],
+    policies: &mut [Box<dyn Policy + '_>],
+    model_for: &dyn Fn(&TaskInstance) -> Result<M>,
+    judge: &dyn SuccessJudge,
+    horizon: usize,
+) -> Result<PolicyEvalReport> {
+    let mut names = Vec::new();
+    let mut predicted = Vec::new();
+    let mut real = Vec::new();
+    for p in policies.iter_mut() {
+        let (mut wins_model, mut wins_real) = (0usize, 0usize);
+        for (trial, inst) in instances.iter().enumerate() {
+            let model = model_for(inst)?;
+            let (m, r) = evaluate_trial(world, inst, trial, p.as_mut(), &model, judge, horizon)?;
+            wins_model += usize::from(m);
+            wins_real += usize::from(r);
+        }
+        let n = instances.len().max(1) as f64;
+        names.push(p.name());
+        predicted.push(wins_model as f64 / n);
+        real.push(wins_real as f64 / n);
+    }
+    PolicyEvalReport::new(names, predicted, real)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_parse_and_bad_lines_are_errors() {
+        let j = LabelJudge::parse("policy,trial,success\n# c\na,0,1\na,1,false\n", "x").unwrap();
+        let img = Image {
+            height: 1,
+            width: 1,
+            data: vec![0.0; 3],
+        };
+        let inp = |trial| JudgeInput {
+            policy: "a",
+            trial,
+            start: &img,
+            last: &img,
+            goal: &img,
+        };
+        assert!(j.judge(&inp(0)).unwrap());
+        assert!(!j.judge(&inp(1)).unwrap());
+        assert!(j.judge(&inp(2)).is_err());
+        assert!(LabelJudge::parse("a,x,1", "f")
+            .unwrap_err()
+            .to_string()
+            .contains("line 1"));
+        assert!(LabelJudge::parse("a,0,maybe", "f").is_err());
+    }
+
+    #[test]
+    fn report_wires_mmrv_and_pearson() {
+        let r = PolicyEvalReport::new(
+            vec!["a".into(), "b".into(), "c".into()],
+            vec![0.9, 0.5, 0.1],
+            vec![0.8, 0.6, 0.2],
+        )
+        .unwrap();
+        assert_eq!(r.mmrv, 0.0);
+        assert!(r.pearson > 0.95);
+        // Swapped order: a rank violation of |0.8 - 0.6| for a and b.
+        let s = PolicyEvalReport::new(
+            vec!["a".into(), "b".into(), "c".into()],
+            vec![0.5, 0.9, 0.1],
+            vec![0.8, 0.6, 0.2],
+        )
+        .unwrap();
+        assert!((s.mmrv - (0.2 + 0.2) / 3.0).abs() < 1e-12, "{}", s.mmrv);
+        assert!(PolicyEvalReport::new(vec![], vec![0.1], vec![]).is_err());
+    }
+}
