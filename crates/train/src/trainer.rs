@@ -312,17 +312,19 @@ impl Trainer {
         let v = model.velocity_with_extra(&latent_in, &timesteps, ctrl, &extra)?;
         let v = v.to_kind(Kind::Float);
         let alpha = self.scheduler.alpha_bar_like(&timesteps, &z0)?;
-        let mut diff = diffusion_loss(&z0, &x_t, &v, &alpha)?;
-        if t.inject_nan_at_step.is_some_and(|n| step >= n) {
-            diff = diff * f64::NAN;
-        }
+        let diff = diffusion_loss(&z0, &x_t, &v, &alpha)?;
+        let diff = if t.inject_nan_at_step.is_some_and(|n| step >= n) {
+            diff * f64::NAN
+        } else {
+            diff
+        };
         let diffusion = diff.double_value(&[]);
         check_finite(step, "diffusion", diffusion)?;
         let x0 = predicted_x0(&x_t, &v, &alpha);
         let dynl = dynamics_loss(&x0, &z0, t.dyn_k)?;
         let dynamics = dynl.double_value(&[]);
         check_finite(step, "dynamics", dynamics)?;
-        let mut total = diff + &dynl * t.lambda_dyn;
+        let total = diff + &dynl * t.lambda_dyn;
         let epoch = step / self.steps_per_epoch();
         let fw = if self.cfg.ablation.flow_loss {
             flow_weight(epoch, t.e_switch, t.lambda_flow)
@@ -330,14 +332,16 @@ impl Trainer {
             0.0
         };
         let mut flow = 0.0;
-        if fw > 0.0 {
+        let total = if fw > 0.0 {
             let decoded = model.decode_latents_with_grad(&x0)?.clamp(-1.0, 1.0);
             let gt = batch.video.to_device(decoded.device());
             let fl = flow_loss(self.estimator.as_ref(), &decoded, &gt, &self.flow_cfg)?;
             flow = fl.double_value(&[]);
             check_finite(step, "flow", flow)?;
-            total = total + fl * fw;
-        }
+            total + fl * fw
+        } else {
+            total
+        };
         Ok(Losses {
             total,
             diffusion,
