@@ -202,6 +202,7 @@ impl BridgeV2W {
         tch::manual_seed(seed);
         let vae_vs = VarStore::new(device.check_available()?.to_tch());
         let vae = AutoencoderKLCogVideoX::new(vae_cfg, vae_vs.root())?;
+        crate::vae::init_like_pytorch(&vae_vs);
         let transformer = LoadedTransformer::random(tf_cfg, device, Precision::F32)?;
         let prompt = PromptEmbedding::zeros(tf_cfg.max_text_seq_length, tf_cfg.text_embed_dim);
         Self::assemble(cfg, vae_vs, vae, transformer, scheduler, prompt)

@@ -253,24 +253,8 @@ fn errors_name_the_problem() {
     assert!(e.contains("proj_out.bias"), "{e}");
 }
 
-/// diffusers' parameter count for `cfg` (meta device).
 fn diffusers_count(cfg: &TransformerConfig) -> i64 {
-    let tmp = tempfile::tempdir().unwrap();
-    let path = tmp.path().join("config.json");
-    std::fs::write(&path, serde_json::to_string(cfg).unwrap()).unwrap();
-    let out = std::process::Command::new(common::venv_python())
-        .arg(common::repo_root().join("scripts/parity/param_count.py"))
-        .args(["--component", "transformer", "--config"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    v["parameters"].as_i64().unwrap()
+    common::diffusers_param_count("transformer", cfg)
 }
 
 fn rust_count(cfg: &TransformerConfig) -> i64 {

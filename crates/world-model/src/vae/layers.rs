@@ -5,9 +5,9 @@
 //! loads unchanged.
 //!
 //! Videos are `[batch, channels, frames, height, width]` throughout. Parameters are
-//! created as PyTorch initialises them (convolutions uniform in `±1/sqrt(fan_in)`,
-//! norms at scale 1 and shift 0), so an unloaded VAE is a valid random model to
-//! train from scratch.
+//! created with constant values (zeros, ones for norm scales) without touching the
+//! global RNG: the model is meant to be loaded from weights, or randomised with
+//! [`crate::vae::init_like_pytorch`] to train from scratch.
 //!
 //! Causal temporal convolutions carry a *conv cache* between the frame batches that
 //! the autoencoder feeds through the encoder/decoder one after another: the last
@@ -19,16 +19,6 @@
 use crate::error::{Result, WorldModelError};
 use tch::nn::{self, Init};
 use tch::Tensor;
-
-/// PyTorch's default convolution initialisation (`kaiming_uniform_(a=sqrt(5))` for
-/// weights and the same bound for biases): uniform in `±1/sqrt(fan_in)`.
-fn torch_default_init(fan_in: i64) -> Init {
-    let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
-    Init::Uniform {
-        lo: -bound,
-        up: bound,
-    }
-}
 
 /// The resnets' nonlinearity (`act_fn` in the config, diffusers' `get_activation`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -88,13 +78,12 @@ impl SafeConv3d {
         stride: [i64; 3],
         padding: [i64; 3],
     ) -> Self {
-        let init = torch_default_init(in_channels * kernel.iter().product::<i64>());
         let weight = p.var(
             "weight",
             &[out_channels, in_channels, kernel[0], kernel[1], kernel[2]],
-            init,
+            Init::Const(0.),
         );
-        let bias = p.var("bias", &[out_channels], init);
+        let bias = p.var("bias", &[out_channels], Init::Const(0.));
         Self {
             weight,
             bias,
@@ -442,10 +431,13 @@ struct FrameConv2d {
 
 impl FrameConv2d {
     fn new(p: nn::Path, in_channels: i64, out_channels: i64, stride: i64, padding: i64) -> Self {
-        let init = torch_default_init(in_channels * 9);
         Self {
-            weight: p.var("weight", &[out_channels, in_channels, 3, 3], init),
-            bias: p.var("bias", &[out_channels], init),
+            weight: p.var(
+                "weight",
+                &[out_channels, in_channels, 3, 3],
+                Init::Const(0.),
+            ),
+            bias: p.var("bias", &[out_channels], Init::Const(0.)),
             stride,
             padding,
         }

@@ -63,3 +63,24 @@ pub fn fixture(name: &str, args: &[&str]) -> PathBuf {
     std::fs::write(&stamp, digest).unwrap();
     out
 }
+
+/// diffusers' parameter count (meta device, `scripts/parity/param_count.py`) of a
+/// `component` (`transformer` or `vae`) built from `config`.
+pub fn diffusers_param_count(component: &str, config: &impl serde::Serialize) -> i64 {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("config.json");
+    std::fs::write(&path, serde_json::to_string(config).unwrap()).unwrap();
+    let out = Command::new(venv_python())
+        .arg(repo_root().join("scripts/parity/param_count.py"))
+        .args(["--component", component, "--config"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    v["parameters"].as_i64().unwrap()
+}
