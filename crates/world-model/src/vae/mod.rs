@@ -1017,6 +1017,29 @@ pub(crate) fn parity_outputs(
     Ok(out)
 }
 
+/// Re-initialises a VAE's convolutions as PyTorch does (`kaiming_uniform_(a=sqrt(5))`
+/// for weights and the same bound for biases: uniform in `±1/sqrt(fan_in)`), from the
+/// global seed; norm scales and shifts keep 1 and 0. For training from scratch.
+pub fn init_like_pytorch(vs: &VarStore) {
+    let vars = vs.variables();
+    tch::no_grad(|| {
+        let mut names: Vec<&String> = vars.keys().collect();
+        names.sort();
+        for name in names {
+            let w = &vars[name];
+            if w.dim() < 4 || !name.ends_with(".weight") {
+                continue;
+            }
+            let fan_in: i64 = w.size()[1..].iter().product();
+            let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
+            let _ = w.shallow_clone().uniform_(-bound, bound);
+            if let Some(b) = vars.get(&format!("{}.bias", name.trim_end_matches(".weight"))) {
+                let _ = b.shallow_clone().uniform_(-bound, bound);
+            }
+        }
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1068,27 +1091,4 @@ mod tests {
         let cfg: VaeConfig = serde_json::from_str(json).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(cfg, VaeConfig::cogvideox_5b_i2v());
     }
-}
-
-/// Re-initialises a VAE's convolutions as PyTorch does (`kaiming_uniform_(a=sqrt(5))`
-/// for weights and the same bound for biases: uniform in `±1/sqrt(fan_in)`), from the
-/// global seed; norm scales and shifts keep 1 and 0. For training from scratch.
-pub fn init_like_pytorch(vs: &VarStore) {
-    let vars = vs.variables();
-    tch::no_grad(|| {
-        let mut names: Vec<&String> = vars.keys().collect();
-        names.sort();
-        for name in names {
-            let w = &vars[name];
-            if w.dim() < 4 || !name.ends_with(".weight") {
-                continue;
-            }
-            let fan_in: i64 = w.size()[1..].iter().product();
-            let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
-            let _ = w.shallow_clone().uniform_(-bound, bound);
-            if let Some(b) = vars.get(&format!("{}.bias", name.trim_end_matches(".weight"))) {
-                let _ = b.shallow_clone().uniform_(-bound, bound);
-            }
-        }
-    });
 }
