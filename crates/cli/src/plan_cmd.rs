@@ -167,16 +167,9 @@ fn world_for(loaded: &Loaded, a: &ModelArgs, episode_frames: usize, seed: u64) -
 }
 
 /// `bridgev2w plan`.
+/// The CEM sizes shared by `plan` and `plan-report`.
 #[derive(Debug, Clone, clap::Args)]
-pub struct PlanArgs {
-    /// reach, push or pick_place.
-    #[arg(long, value_parser = parse_task)]
-    pub task: Task,
-    /// Trials (task instances of the split).
-    #[arg(long, default_value_t = 20)]
-    pub trials: usize,
-    #[command(flatten)]
-    pub model: ModelArgs,
+pub struct CemArgs {
     /// CEM samples S per iteration.
     #[arg(long, default_value_t = 16)]
     pub samples: usize,
@@ -189,6 +182,20 @@ pub struct PlanArgs {
     /// Planning horizon H (actions).
     #[arg(long, default_value_t = 2)]
     pub horizon: usize,
+}
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct PlanArgs {
+    /// reach, push or pick_place.
+    #[arg(long, value_parser = parse_task)]
+    pub task: Task,
+    /// Trials (task instances of the split).
+    #[arg(long, default_value_t = 20)]
+    pub trials: usize,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    #[command(flatten)]
+    pub cem: CemArgs,
     /// Clip frames per planned action.
     #[arg(long, default_value_t = 2)]
     pub frames_per_action: usize,
@@ -279,10 +286,10 @@ fn mpc_config(a: &PlanArgs) -> Result<MpcConfig> {
     };
     let cfg = MpcConfig {
         cem: CemConfig {
-            samples: a.samples,
-            elites: a.elites,
-            iterations: a.iters,
-            horizon: a.horizon,
+            samples: a.cem.samples,
+            elites: a.cem.elites,
+            iterations: a.cem.iters,
+            horizon: a.cem.horizon,
             init_translation_std_m: a.translation_std_m,
             translation_only: !a.search_rotation,
             discretize: a.discretize,
@@ -525,18 +532,8 @@ pub struct PlanReportArgs {
     /// Policy-evaluation trials per policy.
     #[arg(long, default_value_t = 10)]
     pub eval_trials: usize,
-    /// CEM samples S.
-    #[arg(long, default_value_t = 16)]
-    pub samples: usize,
-    /// CEM elites k.
-    #[arg(long, default_value_t = 4)]
-    pub elites: usize,
-    /// CEM iterations T.
-    #[arg(long, default_value_t = 2)]
-    pub iters: usize,
-    /// Horizon H.
-    #[arg(long, default_value_t = 2)]
-    pub horizon: usize,
+    #[command(flatten)]
+    pub cem: CemArgs,
     /// Executed actions at most.
     #[arg(long, default_value_t = 12)]
     pub max_steps: usize,
@@ -576,17 +573,14 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
     );
     md += &format!(
         "## Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, 2 clip frames per action, at most {} actions, translation-only search; gripper searched for reach, heuristic for push/pick_place; two goal images (subgoal, final) for push and pick_place. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
-        a.trials, a.samples, a.elites, a.iters, a.horizon, a.max_steps
+        a.trials, a.cem.samples, a.cem.elites, a.cem.iters, a.cem.horizon, a.max_steps
     );
     for task in Task::ALL {
         let pa = PlanArgs {
             task,
             trials: a.trials,
             model: model_args("perfect"),
-            samples: a.samples,
-            elites: a.elites,
-            iters: a.iters,
-            horizon: a.horizon,
+            cem: a.cem.clone(),
             frames_per_action: 2,
             max_steps: a.max_steps,
             translation_std_m: 0.05,
