@@ -15,7 +15,8 @@ const METRICS: [&str; 5] = ["psnr", "ssim", "lpips", "fvd", "mask_iou"];
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// Predicted videos: one folder of PNG frames (000000.png, ...) per video.
+    /// Predicted videos: one folder of PNG frames (000000.png, ...) or one H.264
+    /// `NAME.mp4` per video.
     #[arg(long)]
     pub pred: PathBuf,
     /// Ground-truth videos, matched to --pred by name.
@@ -59,7 +60,8 @@ pub struct EvalPolicyArgs {
     pub json: Option<PathBuf>,
 }
 
-/// The video names (sub-folders) of a directory, sorted.
+/// The video names of a directory, sorted: sub-folders of PNG frames, and
+/// `NAME.mp4` files (H.264) named by their stem.
 fn video_names(dir: &Path, what: &str) -> Result<Vec<String>> {
     let entries =
         std::fs::read_dir(dir).with_context(|| format!("{what} directory {}", dir.display()))?;
@@ -73,24 +75,56 @@ fn video_names(dir: &Path, what: &str) -> Result<Vec<String>> {
         }
         if path.is_dir() {
             names.push(name);
-        } else if path
-            .extension()
-            .is_some_and(|x| x.eq_ignore_ascii_case("mp4"))
-        {
-            bail!(
-                "{}: MP4 videos are not read by `bridgev2w eval` yet; extract the frames into a folder of PNGs (000000.png, ...)",
-                path.display()
-            );
+        } else if is_mp4(&path) {
+            let stem = path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            if dir.join(&stem).is_dir() {
+                bail!(
+                    "{what} directory {}: video \"{stem}\" is both a folder and {name}: keep one",
+                    dir.display()
+                );
+            }
+            names.push(stem);
         }
     }
     if names.is_empty() {
         bail!(
-            "{what} directory {} holds no videos (expected one folder of PNG frames per video)",
+            "{what} directory {} holds no videos (expected one folder of PNG frames or one .mp4 per video)",
             dir.display()
         );
     }
     names.sort();
     Ok(names)
+}
+
+fn is_mp4(path: &Path) -> bool {
+    path.is_file()
+        && path
+            .extension()
+            .is_some_and(|x| x.eq_ignore_ascii_case("mp4"))
+}
+
+/// The frames of video `name` under `dir`: `dir/name/*.png` or `dir/name.mp4`.
+fn load_frames(dir: &Path, name: &str) -> Result<Vec<Frame>> {
+    let mp4 = dir.join(format!("{name}.mp4"));
+    if is_mp4(&mp4) {
+        let video = bridgev2w_data::video::decode_mp4(&mp4)?;
+        return video
+            .frames
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                Frame::from_rgb8(video.width, video.height, f)
+                    .with_context(|| format!("{}: frame {i}", mp4.display()))
+            })
+            .collect();
+    }
+    frame_files(&dir.join(name))?
+        .iter()
+        .map(|f| read_frame(f))
+        .collect()
 }
 
 /// The PNG files of one video folder, sorted by name.
@@ -145,24 +179,28 @@ fn check_frames(name: &str, what: &str, pred: &[PathBuf], gt: &[PathBuf]) -> Res
 fn score_video(a: &EvalArgs, name: &str, want: &BTreeMap<&str, bool>) -> Result<VideoScores> {
     let mut s = VideoScores::default();
     if want["psnr"] || want["ssim"] {
-        let pred = frame_files(&a.pred.join(name))?;
-        let gt = frame_files(&a.gt.join(name))?;
-        check_frames(name, "frames", &pred, &gt)?;
+        let pred = load_frames(&a.pred, name)?;
+        let gt = load_frames(&a.gt, name)?;
+        if pred.len() != gt.len() {
+            bail!(
+                "video \"{name}\": {} predicted frames vs {} ground-truth frames: frame counts must match",
+                pred.len(),
+                gt.len()
+            );
+        }
         let (mut sum_psnr, mut sum_ssim) = (0.0, 0.0);
-        for (i, (p, g)) in pred.iter().zip(&gt).enumerate() {
-            let (fp, fg) = (read_frame(p)?, read_frame(g)?);
+        for (i, (fp, fg)) in pred.iter().zip(&gt).enumerate() {
             if (fp.width, fp.height) != (fg.width, fg.height) {
                 bail!(
-                    "video \"{name}\", frame {i}: predicted {}x{} ({}) vs ground truth {}x{} ({}): resolutions must match",
-                    fp.width, fp.height, p.display(), fg.width, fg.height, g.display()
+                    "video \"{name}\", frame {i}: predicted {}x{} vs ground truth {}x{}: resolutions must match",
+                    fp.width, fp.height, fg.width, fg.height
                 );
             }
             if want["psnr"] {
-                sum_psnr += psnr(&fp, &fg)?;
+                sum_psnr += psnr(fp, fg)?;
             }
             if want["ssim"] {
-                sum_ssim +=
-                    ssim(&fp, &fg).with_context(|| format!("video \"{name}\", frame {i}"))?;
+                sum_ssim += ssim(fp, fg).with_context(|| format!("video \"{name}\", frame {i}"))?;
             }
         }
         let n = pred.len() as f64;
@@ -300,16 +338,15 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
     Ok(())
 }
 
-fn read_video(dir: &Path) -> Result<bridgev2w_world_model::video::Video> {
-    let files = frame_files(dir)?;
+fn read_video(dir: &Path, name: &str) -> Result<bridgev2w_world_model::video::Video> {
+    let frames = load_frames(dir, name)?;
     let mut data = Vec::new();
     let mut size = None;
-    for (i, f) in files.iter().enumerate() {
-        let frame = read_frame(f)?;
+    for (i, frame) in frames.iter().enumerate() {
         let s = (frame.width, frame.height);
         if *size.get_or_insert(s) != s {
             bail!(
-                "{}: frame {i} is {}x{}, earlier frames {}x{}",
+                "video \"{name}\" in {}: frame {i} is {}x{}, earlier frames {}x{}",
                 dir.display(),
                 s.0,
                 s.1,
@@ -321,7 +358,7 @@ fn read_video(dir: &Path) -> Result<bridgev2w_world_model::video::Video> {
     }
     let (width, height) = size.unwrap_or((0, 0));
     Ok(bridgev2w_world_model::video::Video {
-        frames: files.len(),
+        frames: frames.len(),
         height,
         width,
         data,
@@ -338,10 +375,7 @@ fn lpips_scores(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<Vec<f6
     pb.set_message("LPIPS");
     let mut out = Vec::with_capacity(names.len());
     for name in names {
-        let (p, g) = (
-            read_video(&a.pred.join(name))?,
-            read_video(&a.gt.join(name))?,
-        );
+        let (p, g) = (read_video(&a.pred, name)?, read_video(&a.gt, name)?);
         if (p.frames, p.height, p.width) != (g.frames, g.height, g.width) {
             bail!(
                 "video \"{name}\": predicted {} frames of {}x{} vs ground truth {} frames of {}x{}",

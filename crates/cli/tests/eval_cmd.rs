@@ -330,3 +330,55 @@ fn eval_lpips_with_weights_file() {
     assert!(b > 0.0);
     assert!((got - b / 2.0).abs() < 1e-5 * b, "{got} vs {}", b / 2.0);
 }
+
+#[test]
+fn eval_reads_h264_mp4_videos() {
+    use bridgev2w_data::video::Mp4VideoWriter;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let (w, h) = (48u32, 32u32);
+    let mp4_path = d.join("pred/clip.mp4");
+    std::fs::create_dir_all(d.join("pred")).expect("mkdir");
+    let mut writer = Mp4VideoWriter::new(&mp4_path, w as usize, h as usize, 10).expect("writer");
+    for t in 0..4u32 {
+        let f = |x: u32, y: u32, c: u32| (30 + x + 2 * y + c * 30 + t * 5) as u8;
+        write_png(&d.join("gt/clip").join(format!("{t:06}.png")), w, h, f);
+        let rgb: Vec<u8> = (0..h)
+            .flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| f(x, y, c))))
+            .collect();
+        writer.push(&rgb, t == 0).expect("encode");
+    }
+    std::fs::write(&mp4_path, writer.to_bytes().expect("mux")).expect("write mp4");
+    let p = |s: &str| d.join(s).to_string_lossy().into_owned();
+    let json = p("out.json");
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--metrics",
+        "psnr,ssim",
+        "--json",
+        &json,
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&json).expect("json")).expect("parse");
+    assert_eq!(v["num_videos"], 1);
+    let psnr = v["psnr"].as_f64().expect("psnr");
+    assert!(
+        psnr > 30.0 && psnr < 100.0,
+        "lossy H.264 round trip: {psnr} dB"
+    );
+    assert!(v["ssim"].as_f64().expect("ssim") > 0.9);
+    // The same name as a folder and an .mp4 is ambiguous.
+    write_png(&d.join("pred/clip/000000.png"), w, h, |_, _, _| 0);
+    let o = run(&["eval", "--pred", &p("pred"), "--gt", &p("gt")]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("both a folder and clip.mp4"),
+        "{}",
+        stderr(&o)
+    );
+}
