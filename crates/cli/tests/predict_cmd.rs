@@ -2,20 +2,10 @@
 //! and the errors a user meets first).
 
 use bridgev2w_embodiment::npy::{read_npy, write_npy};
-use std::path::Path;
-use std::process::{Command, Output};
 
-fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
-        .env("RUST_BACKTRACE", "0")
-        .args(args)
-        .output()
-        .expect("run bridgev2w")
-}
+mod common;
 
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
+use common::{run, s};
 
 #[test]
 fn predict_writes_frames_and_video_deterministically() {

@@ -1,20 +1,11 @@
 //! `bridgev2w train` end to end: `bridgev2w synth` a tiny dataset, train three
 //! steps on the `random:tiny` backbone, resume to five, and the errors a user meets first.
 
-use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
-fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
-        .env("RUST_BACKTRACE", "0")
-        .args(args)
-        .output()
-        .expect("run bridgev2w")
-}
+mod common;
 
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
+use common::{run, s};
 
 fn ok(o: &Output) {
     assert!(

@@ -23,6 +23,19 @@ pub trait Policy {
     fn act(&mut self, obs: &Observation) -> Result<Vec<EeAction>>;
 }
 
+/// The policy's next chunk, checked: finite and non-empty.
+fn next_chunk(policy: &mut dyn Policy, obs: &Observation) -> Result<Vec<EeAction>> {
+    let chunk = policy.act(obs)?;
+    check_finite(&format!("policy {}", policy.name()), &chunk)?;
+    if chunk.is_empty() {
+        return Err(PlanError::Invalid(format!(
+            "policy {} returned no actions",
+            policy.name()
+        )));
+    }
+    Ok(chunk)
+}
+
 /// An autoregressive world-model rollout.
 #[derive(Debug, Clone)]
 pub struct RolloutResult {
@@ -52,14 +65,7 @@ pub fn rollout_in_model<M: ActionWorldModel + ?Sized>(
     let mut done = 0;
     let mut chunk_last_frames = Vec::new();
     while done < horizon {
-        let mut chunk = policy.act(&obs)?;
-        check_finite(&format!("policy {}", policy.name()), &chunk)?;
-        if chunk.is_empty() {
-            return Err(PlanError::Invalid(format!(
-                "policy {} returned no actions",
-                policy.name()
-            )));
-        }
+        let mut chunk = next_chunk(policy, &obs)?;
         chunk.truncate(max_chunk.min(horizon - done));
         done += chunk.len();
         // The model pads the chunk by repeating its last action.
@@ -90,14 +96,7 @@ pub fn rollout_in_world(
     let mut obs = env.observe();
     let mut done = 0;
     while done < horizon {
-        let mut chunk = policy.act(&obs)?;
-        check_finite(&format!("policy {}", policy.name()), &chunk)?;
-        if chunk.is_empty() {
-            return Err(PlanError::Invalid(format!(
-                "policy {} returned no actions",
-                policy.name()
-            )));
-        }
+        let mut chunk = next_chunk(policy, &obs)?;
         chunk.truncate(max_chunk.max(1).min(horizon - done));
         done += chunk.len();
         obs = env.execute(&chunk)?;

@@ -12,7 +12,9 @@ use crate::controlnet::{ControlNet, ControlNetConfig};
 use crate::device::{ComputeDevice, Precision};
 use crate::error::{Result, WorldModelError};
 use crate::lora::LoraConfig;
-use crate::pipeline::{sample_latents, Denoiser, Guidance, PredictOptions, WorldModel};
+use crate::pipeline::{
+    check_batch, sample_latents, Denoiser, Guidance, PredictOptions, WorldModel,
+};
 use crate::scheduler::{Scheduler, SchedulerConfig};
 use crate::transformer::{LoadedTransformer, TransformerConfig};
 use crate::vae::{AutoencoderKLCogVideoX, VaeConfig};
@@ -609,14 +611,11 @@ impl WorldModel for BridgeV2W {
         masks: &[MaskVideo],
         opts: &PredictOptions,
     ) -> Result<Vec<Video>> {
-        if first_frames.len() != masks.len() || first_frames.is_empty() {
+        check_batch(first_frames, masks)?;
+        if first_frames.is_empty() {
             return Err(WorldModelError::input(
                 "predict_batch",
-                format!(
-                    "{} frames and {} mask sequences: expected the same non-zero number",
-                    first_frames.len(),
-                    masks.len()
-                ),
+                "no frames: expected at least one (frame, masks) pair",
             ));
         }
         let _guard = tch::no_grad_guard();

@@ -118,6 +118,21 @@ pub fn sample_latents(
     Ok(latents)
 }
 
+/// Checks that a batch pairs every first frame with one mask sequence.
+pub fn check_batch(first_frames: &[Image], masks: &[MaskVideo]) -> Result<()> {
+    if first_frames.len() != masks.len() {
+        return Err(WorldModelError::input(
+            "predict_batch",
+            format!(
+                "{} frames but {} mask sequences",
+                first_frames.len(),
+                masks.len()
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Options of one prediction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PredictOptions {
@@ -151,16 +166,7 @@ pub trait WorldModel {
         masks: &[MaskVideo],
         opts: &PredictOptions,
     ) -> Result<Vec<Video>> {
-        if first_frames.len() != masks.len() {
-            return Err(WorldModelError::input(
-                "predict_batch",
-                format!(
-                    "{} frames but {} mask sequences",
-                    first_frames.len(),
-                    masks.len()
-                ),
-            ));
-        }
+        check_batch(first_frames, masks)?;
         first_frames
             .iter()
             .zip(masks)

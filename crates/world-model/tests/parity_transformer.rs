@@ -233,20 +233,7 @@ fn errors_name_the_problem() {
         &["transformer", "--style", "5b-i2v", "--shape", "2,3,8,8,12"],
     )
     .join("model");
-    let tmp = tempfile::tempdir().unwrap();
-    std::fs::copy(dir.join("config.json"), tmp.path().join("config.json")).unwrap();
-    let named: Vec<(String, Tensor)> = bridgev2w_world_model::weights::read_safetensors(
-        &dir.join("diffusion_pytorch_model.safetensors"),
-    )
-    .unwrap()
-    .into_iter()
-    .filter(|(k, _)| k != "proj_out.bias")
-    .collect();
-    bridgev2w_world_model::weights::save_safetensors(
-        &named,
-        &tmp.path().join("diffusion_pytorch_model.safetensors"),
-    )
-    .unwrap();
+    let tmp = common::component_without(&dir, "proj_out.bias");
     let e = LoadedTransformer::load(tmp.path(), ComputeDevice::Cpu, Precision::F32)
         .unwrap_err()
         .to_string();

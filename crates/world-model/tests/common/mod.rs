@@ -84,3 +84,23 @@ pub fn diffusers_param_count(component: &str, config: &impl serde::Serialize) ->
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     v["parameters"].as_i64().unwrap()
 }
+
+/// A copy of the component folder `dir` (config.json + single-file weights) in a
+/// temporary directory, without the tensor `key`: for missing-weight errors.
+pub fn component_without(dir: &Path, key: &str) -> tempfile::TempDir {
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::copy(dir.join("config.json"), tmp.path().join("config.json")).unwrap();
+    let named: Vec<(String, tch::Tensor)> = bridgev2w_world_model::weights::read_safetensors(
+        &dir.join("diffusion_pytorch_model.safetensors"),
+    )
+    .unwrap()
+    .into_iter()
+    .filter(|(k, _)| k != key)
+    .collect();
+    bridgev2w_world_model::weights::save_safetensors(
+        &named,
+        &tmp.path().join("diffusion_pytorch_model.safetensors"),
+    )
+    .unwrap();
+    tmp
+}
