@@ -326,6 +326,35 @@ pub struct ResnetBlock3D {
 }
 
 impl ResnetBlock3D {
+    /// `num_layers` blocks under `p/resnets/{i}`: the first from `in_channels`,
+    /// the others from `out_channels`, all to `out_channels`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn stack(
+        p: &nn::Path,
+        in_channels: i64,
+        out_channels: i64,
+        num_layers: i64,
+        groups: i64,
+        eps: f64,
+        act: Activation,
+        spatial_norm_dim: Option<i64>,
+    ) -> Vec<Self> {
+        (0..num_layers)
+            .map(|i| {
+                let cin = if i == 0 { in_channels } else { out_channels };
+                Self::new(
+                    p / "resnets" / i,
+                    cin,
+                    out_channels,
+                    groups,
+                    eps,
+                    act,
+                    spatial_norm_dim,
+                )
+            })
+            .collect()
+    }
+
     /// A block from `in_channels` to `out_channels`; `spatial_norm_dim` is the latent's
     /// channel count for decoder blocks, `None` for group-normalized encoder blocks.
     pub fn new(
@@ -572,20 +601,16 @@ impl DownBlock3D {
         add_downsample: bool,
         compress_time: bool,
     ) -> Self {
-        let resnets = (0..num_layers)
-            .map(|i| {
-                let cin = if i == 0 { in_channels } else { out_channels };
-                ResnetBlock3D::new(
-                    &p / "resnets" / i,
-                    cin,
-                    out_channels,
-                    groups,
-                    eps,
-                    act,
-                    None,
-                )
-            })
-            .collect();
+        let resnets = ResnetBlock3D::stack(
+            &p,
+            in_channels,
+            out_channels,
+            num_layers,
+            groups,
+            eps,
+            act,
+            None,
+        );
         let downsampler = add_downsample
             .then(|| Downsample3D::new(&p / "downsamplers" / 0, out_channels, compress_time));
         Self {
@@ -675,20 +700,16 @@ impl UpBlock3D {
         add_upsample: bool,
         compress_time: bool,
     ) -> Self {
-        let resnets = (0..num_layers)
-            .map(|i| {
-                let cin = if i == 0 { in_channels } else { out_channels };
-                ResnetBlock3D::new(
-                    &p / "resnets" / i,
-                    cin,
-                    out_channels,
-                    groups,
-                    eps,
-                    act,
-                    Some(spatial_norm_dim),
-                )
-            })
-            .collect();
+        let resnets = ResnetBlock3D::stack(
+            &p,
+            in_channels,
+            out_channels,
+            num_layers,
+            groups,
+            eps,
+            act,
+            Some(spatial_norm_dim),
+        );
         let upsampler = add_upsample
             .then(|| Upsample3D::new(&p / "upsamplers" / 0, out_channels, compress_time));
         Self { resnets, upsampler }
