@@ -182,6 +182,14 @@ pub struct CemArgs {
     /// Planning horizon H (actions).
     #[arg(long, default_value_t = 2)]
     pub horizon: usize,
+    /// Carry each CEM iteration's elites into the next selection (iCEM; off
+    /// in the paper's algorithm).
+    #[arg(long)]
+    pub keep_elites: bool,
+    /// Execute the best evaluated candidate's first action instead of the
+    /// refined mean's (the paper executes the mean).
+    #[arg(long)]
+    pub execute_best: bool,
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -223,6 +231,10 @@ pub struct PlanArgs {
     /// Plan toward the final goal image only (no subgoal).
     #[arg(long)]
     pub single_goal: bool,
+    /// Do not keep planned positions inside the table's workspace box
+    /// (above the table, inside its edges, at most 5 cm above the start).
+    #[arg(long)]
+    pub no_workspace: bool,
     /// Split of the task instances.
     #[arg(long, default_value = "test", value_parser = parse_split)]
     pub split: Split,
@@ -295,11 +307,13 @@ fn mpc_config(a: &PlanArgs) -> Result<MpcConfig> {
             discretize: a.discretize,
             rotation_search,
             rotation_sample_fraction: a.rotation_sample_fraction,
+            keep_elites: a.cem.keep_elites,
             ..CemConfig::default()
         },
         frames_per_action: a.frames_per_action,
         max_steps: a.max_steps,
         gripper,
+        execute_best: a.cem.execute_best,
         ..MpcConfig::default()
     };
     cfg.cem.validate()?;
@@ -324,6 +338,10 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
             goals.drain(..goals.len() - 1);
         }
         let seed = a.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let mut cfg = cfg.clone();
+        if !a.no_workspace {
+            cfg.workspace = Some(inst.workspace(&world));
+        }
         let mut env = SyntheticEnv::new(&world, inst.clone());
         let out = loaded.with_model(&a.model, &world, &inst, &mut |m| {
             Ok(run_mpc(
@@ -590,6 +608,7 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             discretize: false,
             gripper: "auto".into(),
             single_goal: false,
+            no_workspace: false,
             split: Split::Test,
             episode_frames: 25,
             seed: a.seed,

@@ -69,6 +69,11 @@ pub struct CemConfig {
     /// Sample reallocation: this fraction of the `S` samples perturbs only
     /// the rotational dimensions (translation at its mean); 0 = off.
     pub rotation_sample_fraction: f64,
+    /// Carry each iteration's elites (with their costs) into the next
+    /// iteration's elite selection (iCEM's "keep elites"; off in the
+    /// paper's algorithm). A good rare sample then cannot be lost when the
+    /// next iteration's samples are all worse.
+    pub keep_elites: bool,
 }
 
 impl Default for CemConfig {
@@ -85,6 +90,7 @@ impl Default for CemConfig {
             discretize: false,
             rotation_search: RotationSearch::Joint,
             rotation_sample_fraction: 0.0,
+            keep_elites: false,
         }
     }
 }
@@ -332,6 +338,7 @@ pub fn optimize(
     let mut trace = Vec::new();
     let mut best: Option<(Candidate, f64)> = None;
     let search_gripper = gripper == GripperMode::Search;
+    let mut carried: Vec<(Candidate, f64)> = Vec::new();
     for (active, iterations) in cfg.phases() {
         let has_rotation = active[3..].iter().any(|&a| a);
         let has_translation = active[..3].iter().any(|&a| a);
@@ -356,15 +363,23 @@ pub fn optimize(
                     candidates.len()
                 )));
             }
-            let elite = elite_indices(&costs, cfg.elites);
+            // The selection pool: this iteration's samples, then the
+            // carried elites of the previous iteration.
+            let mut pool: Vec<(Candidate, f64)> = candidates.into_iter().zip(costs).collect();
+            pool.append(&mut carried);
+            let pool_costs: Vec<f64> = pool.iter().map(|(_, c)| *c).collect();
+            let elite = elite_indices(&pool_costs, cfg.elites);
             if let Some(&b) = elite.first() {
-                trace.push(costs[b]);
-                if best.as_ref().is_none_or(|(_, c)| costs[b] < *c) {
-                    best = Some((candidates[b].clone(), costs[b]));
+                trace.push(pool_costs[b]);
+                if best.as_ref().is_none_or(|(_, c)| pool_costs[b] < *c) {
+                    best = Some(pool[b].clone());
                 }
             }
-            let elites: Vec<&Candidate> = elite.iter().map(|&i| &candidates[i]).collect();
+            let elites: Vec<&Candidate> = elite.iter().map(|&i| &pool[i].0).collect();
             refit(&mut dists, &elites, &active, search_gripper);
+            if cfg.keep_elites {
+                carried = elite.iter().map(|&i| pool[i].clone()).collect();
+            }
         }
     }
     let plan = extract_plan(&dists, cfg, gripper);
@@ -485,6 +500,54 @@ mod tests {
         assert_eq!(r.plan.gripper[1], 1.0);
         // Translation only: rotations stay exactly zero.
         assert!(r.plan.increments.iter().all(|x| x[3..] == [0.0; 3]));
+    }
+
+    #[test]
+    fn kept_elites_make_the_best_cost_monotone() {
+        // A needle: one narrow well far from the initial mean, a gentle slope
+        // elsewhere. Without carry-over a lucky sample in the well can be
+        // outvoted and lost; with it the trace never gets worse.
+        let cost = |c: &Candidate| {
+            let x = c.increments[0][0];
+            if (x - 0.15).abs() < 0.01 {
+                -1.0
+            } else {
+                x.abs()
+            }
+        };
+        let run = |keep: bool, seed: u64| {
+            let cfg = CemConfig {
+                horizon: 1,
+                samples: 16,
+                elites: 4,
+                iterations: 6,
+                init_translation_std_m: 0.1,
+                keep_elites: keep,
+                ..CemConfig::default()
+            };
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            optimize(&cfg, GripperMode::Fixed(0.0), &mut rng, &mut |cs| {
+                Ok(cs.iter().map(cost).collect())
+            })
+            .unwrap()
+        };
+        let mut lost_without = 0;
+        for seed in 0..20 {
+            let kept = run(true, seed);
+            let t = &kept.best_cost_per_iteration;
+            assert!(t.windows(2).all(|w| w[1] <= w[0]), "seed {seed}: {t:?}");
+            let plain = run(false, seed);
+            let p = &plain.best_cost_per_iteration;
+            if p.windows(2).any(|w| w[1] > w[0]) {
+                lost_without += 1;
+            }
+            // The best candidate seen is reported either way.
+            assert_eq!(
+                kept.best.1,
+                *t.iter().min_by(|a, b| a.total_cmp(b)).unwrap()
+            );
+        }
+        assert!(lost_without > 0, "plain CEM never lost its best sample");
     }
 
     #[test]

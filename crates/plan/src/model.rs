@@ -117,6 +117,47 @@ pub fn apply_increment(a: &EeAction, inc: &[f64; 6], gripper: f64) -> EeAction {
     [v[0], v[1], v[2], v[3], v[4], v[5], gripper]
 }
 
+/// An axis-aligned box (world frame) that planned end-effector positions
+/// are kept in: the robot's safe workspace (above the table, inside its
+/// edges, no higher than a ceiling). Without it, pixel-space objectives
+/// have a degenerate optimum that a real planner must exclude: moving the
+/// arm out of the camera's view removes its pixels from the difference to
+/// the goal image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Workspace {
+    /// Lower corner `[x, y, z]` (metres).
+    pub min_m: [f64; 3],
+    /// Upper corner `[x, y, z]` (metres).
+    pub max_m: [f64; 3],
+}
+
+impl Workspace {
+    /// Checks that the corners are finite and ordered.
+    pub fn validate(&self) -> Result<()> {
+        let ok = (0..3).all(|i| {
+            self.min_m[i].is_finite() && self.max_m[i].is_finite() && self.min_m[i] <= self.max_m[i]
+        });
+        if ok {
+            Ok(())
+        } else {
+            Err(PlanError::Invalid(format!(
+                "workspace min {:?} / max {:?}: expected finite corners with min <= max",
+                self.min_m, self.max_m
+            )))
+        }
+    }
+
+    /// The action with its position clamped into the box (orientation and
+    /// gripper unchanged).
+    pub fn clamp(&self, a: &EeAction) -> EeAction {
+        let mut out = *a;
+        for (i, v) in out.iter_mut().take(3).enumerate() {
+            *v = v.clamp(self.min_m[i], self.max_m[i]);
+        }
+        out
+    }
+}
+
 /// Expands waypoints into clip frames: `frames_per_action` frames per
 /// waypoint, interpolating the pose (linear translation, slerp rotation)
 /// from the previous waypoint (the first from `start`), the gripper at the
@@ -342,6 +383,29 @@ mod tests {
             Err(PlanError::ClipTooShort { .. })
         ));
         assert!(pad_to_clip(&[], 5).is_err());
+    }
+
+    #[test]
+    fn workspace_clamps_positions_only_and_rejects_bad_boxes() {
+        let w = Workspace {
+            min_m: [0.0, -0.5, 0.02],
+            max_m: [0.8, 0.5, 0.5],
+        };
+        w.validate().unwrap();
+        let a = [1.2, -0.7, 0.3, 0.1, 0.2, 0.3, 1.0];
+        assert_eq!(w.clamp(&a), [0.8, -0.5, 0.3, 0.1, 0.2, 0.3, 1.0]);
+        let inside = [0.4, 0.0, 0.1, 3.0, 0.0, 0.0, 0.0];
+        assert_eq!(w.clamp(&inside), inside);
+        let flipped = Workspace {
+            min_m: [0.0, 0.6, 0.0],
+            ..w
+        };
+        assert!(flipped.validate().is_err());
+        let nan = Workspace {
+            max_m: [f64::NAN, 0.5, 0.5],
+            ..w
+        };
+        assert!(nan.validate().is_err());
     }
 
     #[test]

@@ -6,7 +6,7 @@
 use crate::cem::{optimize, CemConfig, GripperMode};
 use crate::error::{check_finite, PlanError, Result};
 use crate::model::{
-    apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel,
+    apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel, Workspace,
 };
 use crate::{EeAction, Observation};
 use bridgev2w_world_model::video::Image;
@@ -48,6 +48,12 @@ pub struct MpcConfig {
     /// After this many consecutive stalled steps the goal counts as reached
     /// as far as the model can tell: switch to the next goal, or stop.
     pub patience: usize,
+    /// Planned (and random-baseline) positions are clamped into this box.
+    pub workspace: Option<Workspace>,
+    /// Execute the best evaluated candidate instead of the refined mean
+    /// (the paper executes the mean). Near the goal the mean of spread
+    /// elites can step away from a goal the best sample already holds.
+    pub execute_best: bool,
 }
 
 impl Default for MpcConfig {
@@ -59,6 +65,8 @@ impl Default for MpcConfig {
             gripper: GripperPolicy::Search,
             stall_fraction: 0.01,
             patience: 2,
+            workspace: None,
+            execute_best: false,
         }
     }
 }
@@ -67,6 +75,9 @@ impl MpcConfig {
     /// Checks the settings against a model's clip length.
     pub fn validate(&self, clip_frames: usize) -> Result<()> {
         self.cem.validate()?;
+        if let Some(w) = &self.workspace {
+            w.validate()?;
+        }
         if self.frames_per_action == 0 || self.max_steps == 0 {
             return Err(PlanError::Invalid(
                 "frames per action and max steps must be at least 1".into(),
@@ -80,6 +91,11 @@ impl MpcConfig {
             });
         }
         Ok(())
+    }
+
+    /// `a` clamped into the workspace, if one is set.
+    pub fn clamp(&self, a: &EeAction) -> EeAction {
+        self.workspace.as_ref().map_or(*a, |w| w.clamp(a))
     }
 }
 
@@ -145,7 +161,7 @@ pub fn plan_once<M: ActionWorldModel + ?Sized>(
             .iter()
             .zip(&c.gripper)
             .map(|(inc, &g)| {
-                cur = apply_increment(&cur, inc, g);
+                cur = cfg.clamp(&apply_increment(&cur, inc, g));
                 cur
             })
             .collect::<Vec<_>>()
@@ -158,8 +174,9 @@ pub fn plan_once<M: ActionWorldModel + ?Sized>(
         score_sequences(model, obs, &seqs, goal_latent)
     };
     let r = optimize(&cfg.cem, gripper, rng, &mut evaluate)?;
+    let chosen = if cfg.execute_best { &r.best.0 } else { &r.plan };
     Ok(PlanStep {
-        waypoints: to_waypoints(&r.plan),
+        waypoints: to_waypoints(chosen),
         best_cost_per_iteration: r.best_cost_per_iteration,
     })
 }
@@ -294,6 +311,9 @@ pub fn run_random<E: Environment>(
     rng: &mut ChaCha8Rng,
 ) -> Result<MpcOutcome> {
     cfg.cem.validate()?;
+    if let Some(w) = &cfg.workspace {
+        w.validate()?;
+    }
     let dist = vec![crate::cem::StepDistribution::initial(&cfg.cem)];
     let active = if cfg.cem.translation_only {
         [true, true, true, false, false, false]
@@ -308,7 +328,7 @@ pub fn run_random<E: Environment>(
     let mut steps = 0;
     while steps < cfg.max_steps && !env.goal_reached() {
         let c = crate::cem::sample_candidate(&dist, &active, &cfg.cem, gripper, rng);
-        let next = apply_increment(&obs.ee, &c.increments[0], c.gripper[0]);
+        let next = cfg.clamp(&apply_increment(&obs.ee, &c.increments[0], c.gripper[0]));
         obs = env.execute(&expand_waypoints(&obs.ee, &[next], cfg.frames_per_action))?;
         steps += 1;
     }
