@@ -5,11 +5,15 @@ safetensors files the Rust code loads (key names unchanged).
     convert_reference_weights.py lpips --alexnet alexnet-owt-7be5be79.pth \
         [--lin .venv/lib/python3.*/site-packages/lpips/weights/v0.1/alex.pth] --out lpips_alex.safetensors
     convert_reference_weights.py raft --pth raft_large_C_T_SKHT_V2-ff5fadd5.pth --out raft_large.safetensors
+    convert_reference_weights.py i3d --pth rgb_imagenet.pt --out i3d.safetensors
 
 lpips: torchvision AlexNet `features.*` (the classifier is dropped) plus the
 `lpips` package's v0.1 heads `lin{0..4}.model.1.weight` (default: the copy
 shipped inside the installed `lpips` package).
 raft: torchvision RAFT state dicts (raft_small / raft_large), keys as-is.
+i3d: a Kinetics-400 `InceptionI3d` state dict of the common PyTorch port
+(Conv3d_1a_7x7.conv3d.weight ... logits.conv3d.bias); BatchNorm
+`num_batches_tracked` counters are dropped.
 Run with the project venv: .venv/bin/python (scripts/setup-venv.sh creates it).
 """
 import argparse
@@ -38,6 +42,9 @@ def main():
     rf = sub.add_parser("raft")
     rf.add_argument("--pth", required=True, help="torchvision raft_small/raft_large weights")
     rf.add_argument("--out", required=True)
+    i3 = sub.add_parser("i3d")
+    i3.add_argument("--pth", required=True, help="InceptionI3d Kinetics-400 weights (e.g. rgb_imagenet.pt)")
+    i3.add_argument("--out", required=True)
     args = ap.parse_args()
     from safetensors.torch import save_file
 
@@ -57,6 +64,16 @@ def main():
         if not heads <= lin.keys():
             raise SystemExit(f"{lin_path}: missing LPIPS heads {sorted(heads - lin.keys())}")
         state = {k: trunk[k] for k in sorted(want)} | {k: lin[k] for k in sorted(heads)}
+    elif args.net == "i3d":
+        state = {k: v for k, v in load(args.pth).items() if not k.endswith("num_batches_tracked")}
+        need = {"Conv3d_1a_7x7.conv3d.weight", "Mixed_5c.b3b.bn.running_var", "logits.conv3d.weight"}
+        if not need <= state.keys():
+            raise SystemExit(f"{args.pth}: not an InceptionI3d state dict, missing {sorted(need - state.keys())}")
+        if tuple(state["logits.conv3d.weight"].shape[:2]) != (400, 1024):
+            raise SystemExit(
+                f"{args.pth}: logits.conv3d.weight has shape {tuple(state['logits.conv3d.weight'].shape)}, "
+                "expected [400, 1024, 1, 1, 1] (Kinetics-400)"
+            )
     else:
         state = load(args.pth)
     state = {k: v.contiguous() for k, v in state.items()}

@@ -26,6 +26,7 @@ KINDS = {
     "scheduler": "fixture_scheduler",
     "lpips": "fixture_lpips",
     "raft": "fixture_raft",
+    "i3d": "fixture_i3d",
 }
 
 

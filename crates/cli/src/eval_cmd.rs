@@ -42,7 +42,12 @@ pub struct EvalArgs {
     /// scripts/convert_reference_weights.py). Without them LPIPS is reported unavailable.
     #[arg(long)]
     pub lpips_weights: Option<PathBuf>,
-    /// Device for the LPIPS network: cpu, cuda, cuda:N or auto.
+    /// I3D (Kinetics-400) weights for FVD (safetensors with the PyTorch
+    /// `InceptionI3d` key names; see scripts/convert_reference_weights.py).
+    /// Without them FVD is reported unavailable.
+    #[arg(long)]
+    pub i3d_weights: Option<PathBuf>,
+    /// Device for the LPIPS and I3D networks: cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     pub device: String,
 }
@@ -254,16 +259,23 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
             "needs robot masks of both videos: --masks-pred DIR --masks-gt DIR".into(),
         );
     }
-    for m in ["lpips", "fvd"] {
-        if want[m] {
-            unavailable.insert(
-                m,
-                format!(
-                    "the {} network is not part of this build yet",
-                    m.to_uppercase()
-                ),
-            );
-        }
+    if want["lpips"] && a.lpips_weights.is_none() {
+        unavailable.insert(
+            "lpips",
+            "needs AlexNet + LPIPS v0.1 weights: --lpips-weights FILE".into(),
+        );
+    }
+    if want["fvd"] && a.i3d_weights.is_none() {
+        unavailable.insert("fvd", "needs I3D weights: --i3d-weights FILE".into());
+    }
+    if want["fvd"] && a.i3d_weights.is_some() && names.len() < 2 {
+        unavailable.insert(
+            "fvd",
+            format!(
+                "needs at least 2 videos per side to fit the feature Gaussians, got {}",
+                names.len()
+            ),
+        );
     }
     let pb = indicatif::ProgressBar::new(names.len() as u64).with_style(
         indicatif::ProgressStyle::with_template(
@@ -285,6 +297,10 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
         (Some(weights), true) => Some(lpips_scores(a, weights, &names)?),
         _ => None,
     };
+    let fvd = match (&a.i3d_weights, want["fvd"] && names.len() >= 2) {
+        (Some(weights), true) => Some(fvd_score(a, weights, &names)?),
+        _ => None,
+    };
     let mean = |f: fn(&VideoScores) -> Option<f64>| -> Option<f64> {
         let v: Vec<f64> = scores.iter().filter_map(f).collect();
         (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
@@ -296,7 +312,7 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
             "lpips",
             lpips.map(|v| v.iter().sum::<f64>() / v.len() as f64),
         ),
-        ("fvd", None),
+        ("fvd", fvd),
         ("mask_iou", mean(|s| s.mask_iou)),
     ]
     .into_iter()
@@ -395,6 +411,35 @@ fn lpips_scores(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<Vec<f6
     }
     pb.finish_and_clear();
     Ok(out)
+}
+
+/// FVD between the predicted and ground-truth videos: I3D logits of each
+/// video's first 16 frames at 224x224, Gaussians fitted per side, Frechet
+/// distance. FVD depends on the number of videos and on the implementation;
+/// compare numbers computed the same way only.
+fn fvd_score(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<f64> {
+    use bridgev2w_eval::frechet::{frechet_distance, Gaussian};
+    use bridgev2w_world_model::nets::i3d::I3d;
+    let device: bridgev2w_world_model::ComputeDevice = a.device.parse()?;
+    let net = I3d::load(&[weights.to_path_buf()], device)
+        .with_context(|| format!("loading I3D weights {}", weights.display()))?;
+    let pb = indicatif::ProgressBar::new(2 * names.len() as u64);
+    pb.set_message("FVD");
+    let (mut pred, mut gt) = (Vec::new(), Vec::new());
+    for name in names {
+        for (dir, out) in [(&a.pred, &mut pred), (&a.gt, &mut gt)] {
+            let v = read_video(dir, name)?;
+            out.push(net.fvd_features(&v).with_context(|| {
+                format!("FVD features of video \"{name}\" in {}", dir.display())
+            })?);
+            pb.inc(1);
+        }
+    }
+    pb.finish_and_clear();
+    Ok(frechet_distance(
+        &Gaussian::fit(&pred)?,
+        &Gaussian::fit(&gt)?,
+    )?)
 }
 
 /// Success rates per task and policy.

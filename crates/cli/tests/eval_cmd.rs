@@ -382,3 +382,106 @@ fn eval_reads_h264_mp4_videos() {
         stderr(&o)
     );
 }
+
+#[test]
+fn eval_fvd_with_i3d_weights() {
+    use bridgev2w_world_model::nets::i3d::I3d;
+    use bridgev2w_world_model::ComputeDevice;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    // Random (untrained) I3D: convolutions ~ N(0, 0.05^2), BatchNorm identity-like.
+    tch::manual_seed(4);
+    let net = I3d::new(ComputeDevice::Cpu).expect("i3d");
+    let mut named: Vec<(String, tch::Tensor)> = net.var_store().variables().into_iter().collect();
+    for (k, t) in &mut named {
+        *t = if k.ends_with("running_var") || k.ends_with("bn.weight") {
+            t.ones_like()
+        } else if k.ends_with("conv3d.weight") {
+            t.randn_like() * 0.05
+        } else {
+            t.zeros_like()
+        };
+    }
+    let weights = d.join("i3d.safetensors");
+    bridgev2w_world_model::weights::save_safetensors(&named, &weights).expect("save");
+    for v in 0..3u32 {
+        for t in 0..16u32 {
+            let name = format!("{t:06}.png");
+            let f = move |x: u32, y: u32, c: u32| pattern(x + v * 5, y, c, t);
+            write_png(&d.join(format!("gt/v{v}")).join(&name), 32, 24, f);
+            write_png(&d.join(format!("same/v{v}")).join(&name), 32, 24, f);
+            write_png(
+                &d.join(format!("pred/v{v}")).join(&name),
+                32,
+                24,
+                move |x, y, c| pattern(y * 2, x, c, 3 * t + v),
+            );
+        }
+    }
+    let p = |s: &str| d.join(s).to_string_lossy().into_owned();
+    let fvd = |pred: &str| {
+        let json = p(&format!("{pred}.json"));
+        let o = run(&[
+            "eval",
+            "--pred",
+            &p(pred),
+            "--gt",
+            &p("gt"),
+            "--metrics",
+            "fvd",
+            "--i3d-weights",
+            &p("i3d.safetensors"),
+            "--device",
+            "cpu",
+            "--json",
+            &json,
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+        assert!(
+            v["unavailable"].as_object().is_some_and(|m| m.is_empty()),
+            "{v}"
+        );
+        v["fvd"].as_f64().expect("fvd")
+    };
+    let same = fvd("same");
+    let differ = fvd("pred");
+    assert!(
+        same.abs() < 1e-6 * differ.max(1e-12),
+        "same {same}, different {differ}"
+    );
+    assert!(differ > 0.0, "{differ}");
+    // Too short for the protocol: the error names the video.
+    for t in 0..4u32 {
+        let name = format!("{t:06}.png");
+        write_png(&d.join("sgt/s").join(&name), 32, 24, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("spred/s").join(&name), 32, 24, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("sgt/s2").join(&name), 32, 24, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join("spred/s2").join(&name), 32, 24, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+    }
+    let o = run(&[
+        "eval",
+        "--pred",
+        &p("spred"),
+        "--gt",
+        &p("sgt"),
+        "--metrics",
+        "fvd",
+        "--i3d-weights",
+        &p("i3d.safetensors"),
+        "--device",
+        "cpu",
+    ]);
+    assert!(!o.status.success());
+    let e = stderr(&o);
+    assert!(e.contains("\"s\"") && e.contains("16"), "{e}");
+}

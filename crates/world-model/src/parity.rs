@@ -136,12 +136,13 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
             "scheduler" => crate::scheduler::fixture_outputs(&model_dir, &io),
             "lpips" => crate::nets::lpips::fixture_outputs(&model_dir, &io),
             "raft" => crate::nets::raft::fixture_outputs(&model_dir, &meta, &io),
+            "i3d" => crate::nets::i3d::fixture_outputs(&model_dir, &io),
             "transformer" => crate::transformer::fixture_outputs(&model_dir, &io),
             "vae" => crate::vae::parity_outputs(&model_dir, &meta, &meta_path, &io),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",
-                format!("`{other}`: expected transformer, vae, scheduler, lpips or raft"),
+                format!("`{other}`: expected transformer, vae, scheduler, lpips, raft or i3d"),
             )),
         }
     })?;
