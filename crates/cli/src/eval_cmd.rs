@@ -267,8 +267,7 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
     }
     if want["fvd"] && a.i3d_weights.is_none() {
         unavailable.insert("fvd", "needs I3D weights: --i3d-weights FILE".into());
-    }
-    if want["fvd"] && a.i3d_weights.is_some() && names.len() < 2 {
+    } else if want["fvd"] && names.len() < 2 {
         unavailable.insert(
             "fvd",
             format!(
@@ -297,8 +296,11 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
         (Some(weights), true) => Some(lpips_scores(a, weights, &names)?),
         _ => None,
     };
-    let fvd = match (&a.i3d_weights, want["fvd"] && names.len() >= 2) {
-        (Some(weights), true) => Some(fvd_score(a, weights, &names)?),
+    // FVD is computed exactly when it was asked for and not ruled unavailable.
+    let fvd = match &a.i3d_weights {
+        Some(weights) if want["fvd"] && !unavailable.contains_key("fvd") => {
+            Some(fvd_score(a, weights, &names)?)
+        }
         _ => None,
     };
     let mean = |f: fn(&VideoScores) -> Option<f64>| -> Option<f64> {
