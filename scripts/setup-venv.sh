@@ -18,7 +18,7 @@ if [[ -x "$venv/bin/python" && -f "$stamp" ]] && cmp -s "$req" "$stamp"; then
   exit 0
 fi
 python3 -m venv "$venv"
-"$venv/bin/python" -m pip install --disable-pip-version-check -q -r "$req"
+"$venv/bin/python" -m pip install --disable-pip-version-check --no-cache-dir -q -r "$req"
 "$venv/bin/python" -c "import torch, diffusers; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
 link_libtorch
 cp "$req" "$stamp"
