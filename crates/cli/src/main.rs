@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_model;
+mod convert_cmd;
 mod demo;
 mod eval_cmd;
 mod masks_cmd;
@@ -45,6 +46,8 @@ enum Command {
     EvalPolicy(eval_cmd::EvalPolicyArgs),
     /// Render a synthetic tabletop dataset (RGB clips, GT masks, actions, cameras) in the LeRobot v3.0 layout.
     Synth(synth_cmd::SynthArgs),
+    /// Convert raw DROID / AgiBot World episodes to a training dataset with calc masks (LeRobot v3.0).
+    Convert(convert_cmd::ConvertArgs),
     /// Train BridgeV2W (ControlNet + LoRA) on a dataset with the paper's losses (CONFIG.toml).
     Train(train_cmd::TrainArgs),
     /// Goal-image CEM-MPC planning executed in the synthetic world, vs random actions.
@@ -67,6 +70,7 @@ fn main() -> Result<()> {
         Command::EvalPolicy(a) => eval_cmd::run_eval_policy(&a),
         Command::Predict(a) => predict_cmd::run(&a),
         Command::Synth(a) => synth_cmd::run(&a),
+        Command::Convert(a) => convert_cmd::run(&a),
         Command::Train(a) => train_cmd::run(&a),
         Command::Plan(a) => plan_cmd::run_plan(&a),
         Command::EvalPolicyRollout(a) => plan_cmd::run_eval_rollout(&a),

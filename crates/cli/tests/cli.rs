@@ -303,3 +303,129 @@ fn robot_info_prints_joint_order() {
     assert_eq!(v["joints"][0]["name"], "left_arm_joint1");
     assert_eq!(v["end_effectors"][1]["arm"], "right");
 }
+
+/// The raw-episode fixtures of `scripts/fixtures/write_raw_episodes.py`
+/// (HDF5 through h5py in the project venv) with their videos written here.
+fn raw_fixtures(dir: &Path) -> serde_json::Value {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let status = Command::new(root.join(".venv/bin/python"))
+        .arg(root.join("scripts/fixtures/write_raw_episodes.py"))
+        .arg(dir)
+        .status()
+        .expect("run the venv python (scripts/setup-venv.sh)");
+    assert!(status.success());
+    let expected: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("expected.json")).expect("expected"),
+    )
+    .expect("json");
+    for v in expected["videos"].as_array().expect("videos") {
+        bridgev2w_data::video::write_test_pattern(
+            Path::new(v.as_str().expect("path")),
+            (64, 48),
+            6,
+            15,
+        )
+        .expect("mp4");
+    }
+    expected
+}
+
+#[test]
+fn convert_droid_and_agibot_with_skip_report() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let d = tmp.path();
+    raw_fixtures(d);
+    // Good and bad DROID episodes together: the bad one is skipped and reported.
+    let droid_root = d.join("all_droid");
+    std::fs::create_dir_all(&droid_root).expect("mkdir");
+    std::fs::rename(d.join("droid"), droid_root.join("good")).expect("mv");
+    std::fs::rename(d.join("droid_bad"), droid_root.join("bad")).expect("mv");
+    let out = d.join("droid_ds");
+    let intrinsics = d.join("droid_intrinsics.json");
+    let args = [
+        "convert",
+        "--format",
+        "droid",
+        droid_root.to_str().expect("utf8"),
+        "--out",
+        out.to_str().expect("utf8"),
+        "--intrinsics",
+        intrinsics.to_str().expect("utf8"),
+        "--width",
+        "32",
+        "--height",
+        "24",
+    ];
+    let o = run(&args);
+    assert!(
+        !o.status.success(),
+        "without --skip-bad the bad episode stops it"
+    );
+    let err = stderr(&o);
+    assert!(
+        err.contains("trajectory_length") || err.contains("NaN"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing half-written at --out");
+    let mut skip = args.to_vec();
+    skip.push("--skip-bad");
+    let o = run(&skip);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        text.contains("1 episodes read, 2 camera episodes of 32x24")
+            && text.contains("skipped 2 item(s)"),
+        "{text}"
+    );
+    assert!(out.join("meta/info.json").is_file() && out.join("skipped.json").is_file());
+    assert!(out.join("masks/episode_000001.npy").is_file());
+    // Refuses to overwrite.
+    let o = run(&skip);
+    assert!(stderr(&o).contains("already exists"), "{}", stderr(&o));
+    // DROID needs intrinsics.
+    let o = run(&[
+        "convert",
+        "--format",
+        "droid",
+        droid_root.to_str().expect("utf8"),
+        "--out",
+        d.join("x").to_str().expect("utf8"),
+    ]);
+    assert!(
+        stderr(&o).contains("--intrinsics FILE is required"),
+        "{}",
+        stderr(&o)
+    );
+
+    // AgiBot World onto the built-in dual-arm robot.
+    let out = d.join("agibot_ds");
+    let o = run(&[
+        "convert",
+        "--format",
+        "agibot",
+        d.join("agibot").to_str().expect("utf8"),
+        "--out",
+        out.to_str().expect("utf8"),
+        "--width",
+        "32",
+        "--height",
+        "24",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("robot agibot-g1"));
+    let o = run(&[
+        "convert",
+        "--format",
+        "agibot",
+        d.join("agibot").to_str().expect("utf8"),
+        "--out",
+        d.join("y").to_str().expect("utf8"),
+        "--gripper-range",
+        "abc",
+    ]);
+    assert!(
+        stderr(&o).contains("--gripper-range \"abc\""),
+        "{}",
+        stderr(&o)
+    );
+}

@@ -1,7 +1,8 @@
 //! Data for BridgeV2W: a synthetic tabletop world with held-out cameras and
 //! scenes ([`synth`]), its software RGB renderer ([`render`]), and the
 //! LeRobot v3.0 (writer and reader) and v2.1 (reader) dataset layouts
-//! ([`lerobot`]) with H.264 video in MP4 ([`video`], [`mp4`]).
+//! ([`lerobot`]) with H.264 video in MP4 ([`video`], [`mp4`]), and readers for
+//! the raw DROID and AgiBot World layouts ([`raw`]).
 //!
 //! Frames and units: transforms are named `a_from_b`, lengths are metres and
 //! angles radians unless a name says otherwise; the world frame of the
@@ -9,6 +10,7 @@
 
 pub mod lerobot;
 pub mod mp4;
+pub mod raw;
 pub mod render;
 pub mod synth;
 pub mod video;

@@ -219,6 +219,29 @@ impl Mp4VideoWriter {
     }
 }
 
+/// Writes a `frames`-frame H.264 MP4 test pattern (a horizontal gradient
+/// that brightens by 10 levels per frame) of `width` x `height` at `fps`, for
+/// tests and fixtures that need a real video file.
+pub fn write_test_pattern(
+    path: &Path,
+    (width, height): (usize, usize),
+    frames: usize,
+    fps: u32,
+) -> Result<(), VideoError> {
+    let mut writer = Mp4VideoWriter::new(path, width, height, fps)?;
+    for f in 0..frames {
+        let rgb: Vec<u8> = (0..width * height * 3)
+            .map(|i| ((i / 3 % width) * 4 + f * 10) as u8)
+            .collect();
+        writer.push(&rgb, f == 0)?;
+    }
+    let bytes = writer.to_bytes()?;
+    bridgev2w_embodiment::npy::write_atomic(path, &bytes).map_err(|e| VideoError::Frame {
+        path: path.to_path_buf(),
+        message: format!("cannot write: {e}"),
+    })
+}
+
 /// A decoded video: interleaved RGB8 frames and their timestamps.
 #[derive(Debug, Clone)]
 pub struct DecodedVideo {

@@ -1,0 +1,217 @@
+//! `bridgev2w convert`: raw DROID / AgiBot World episodes to a LeRobot v3.0
+//! training dataset with `calc` embodiment masks (one episode per camera).
+
+use crate::masks_cmd::progress_bar;
+use anyhow::{bail, Context, Result};
+use bridgev2w_data::raw::agibot::{self, AgibotOptions};
+use bridgev2w_data::raw::convert::{convert, ConvertOptions};
+use bridgev2w_data::raw::droid::{self, DroidOptions};
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::robot::LoadOptions;
+use std::path::PathBuf;
+
+/// Source layouts.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum Format {
+    /// DROID raw episodes (metadata_*.json, trajectory.h5, recordings/MP4).
+    Droid,
+    /// AgiBot World (proprio_stats, parameters, observations).
+    Agibot,
+}
+
+/// Arguments of `convert`.
+#[derive(Debug, clap::Args)]
+pub struct ConvertArgs {
+    /// Source layout.
+    #[arg(long, value_enum)]
+    format: Format,
+    /// Source: a DROID directory (searched for episodes) or an AgiBot World root.
+    src: PathBuf,
+    /// Output dataset directory (must not exist; written to DIR.tmp, then renamed).
+    #[arg(long)]
+    out: PathBuf,
+    /// Robot: built-in name or URDF file (default: franka for DROID, agibot-g1 for AgiBot World).
+    #[arg(long)]
+    robot: Option<String>,
+    /// End-effector link per arm (URDF robots only).
+    #[arg(long = "ee-link")]
+    ee_links: Vec<String>,
+    /// Gripper joint per arm (URDF robots only).
+    #[arg(long = "gripper-joint")]
+    gripper_joints: Vec<String>,
+    /// The robot's names for the recorded joint columns, comma-separated
+    /// (default: the dataset's names, which the built-in robots use).
+    #[arg(long)]
+    joint_names: Option<String>,
+    /// Output width (pixels, even).
+    #[arg(long, default_value_t = 96)]
+    width: usize,
+    /// Output height (pixels, even).
+    #[arg(long, default_value_t = 64)]
+    height: usize,
+    /// Frame rate recorded in the dataset (DROID: 15, AgiBot World: 30).
+    #[arg(long)]
+    fps: Option<u32>,
+    /// DROID: camera intrinsics JSON keyed by serial ({"<serial>": {"fx","fy","cx","cy","width","height"}}).
+    #[arg(long)]
+    intrinsics: Option<PathBuf>,
+    /// DROID: extrinsics overrides ({"<uuid>": {"<serial>_left": [x,y,z,rx,ry,rz]}}).
+    #[arg(long)]
+    calibration: Option<PathBuf>,
+    /// Cameras, comma-separated (DROID roles ext1,ext2,wrist; AgiBot names head,hand_left,hand_right).
+    #[arg(long)]
+    cameras: Option<String>,
+    /// AgiBot World: gripper readings when open and closed, "OPEN,CLOSED".
+    #[arg(long, default_value = "0,120")]
+    gripper_range: String,
+    /// Split recorded for every episode.
+    #[arg(long, default_value = "train")]
+    split: String,
+    /// Skip episodes/cameras that fail (listed in OUT/skipped.json) instead of stopping.
+    #[arg(long)]
+    skip_bad: bool,
+    /// Convert at most this many episodes.
+    #[arg(long)]
+    limit: Option<usize>,
+}
+
+fn list(s: &Option<String>) -> Option<Vec<String>> {
+    s.as_ref().map(|s| {
+        s.split(',')
+            .map(|x| x.trim().to_string())
+            .filter(|x| !x.is_empty())
+            .collect()
+    })
+}
+
+pub fn run(args: &ConvertArgs) -> Result<()> {
+    if args.out.exists() {
+        bail!(
+            "--out {}: already exists (choose a new directory)",
+            args.out.display()
+        );
+    }
+    let tmp = PathBuf::from(format!("{}.tmp", args.out.display()));
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp)
+            .with_context(|| format!("removing stale {}", tmp.display()))?;
+    }
+    let robot = args.robot.clone().unwrap_or_else(|| {
+        match args.format {
+            Format::Droid => "franka",
+            Format::Agibot => "agibot-g1",
+        }
+        .to_string()
+    });
+    let embodiment = Embodiment::load(
+        &robot,
+        &LoadOptions::default(),
+        &args.ee_links,
+        &args.gripper_joints,
+    )?;
+    let options = ConvertOptions {
+        width: args.width,
+        height: args.height,
+        fps: args.fps.unwrap_or(match args.format {
+            Format::Droid => 15,
+            Format::Agibot => 30,
+        }),
+        joint_names: list(&args.joint_names),
+        skip_bad: args.skip_bad,
+        split: Some(args.split.clone()),
+        source_format: format!("{:?}", args.format).to_lowercase(),
+    };
+    let limit = args.limit.unwrap_or(usize::MAX);
+    let report = match args.format {
+        Format::Droid => {
+            let intrinsics = args.intrinsics.as_deref().ok_or_else(|| {
+                anyhow::anyhow!("--intrinsics FILE is required for DROID: neither the raw episodes nor RLDS record camera intrinsics")
+            })?;
+            let mut opts = DroidOptions::from_files(intrinsics, args.calibration.as_deref())?;
+            if let Some(c) = list(&args.cameras) {
+                opts.roles = c;
+            }
+            let dirs: Vec<PathBuf> = droid::find_episodes(&args.src)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if dirs.is_empty() {
+                bail!(
+                    "{}: no DROID episodes (directories with trajectory.h5) found",
+                    args.src.display()
+                );
+            }
+            let pb = progress_bar(dirs.len(), "converting episodes");
+            let items = dirs
+                .iter()
+                .map(|d| (d.display().to_string(), droid::read_episode(d, &opts)));
+            let r = convert(items, &embodiment, &tmp, &options, &|_| pb.inc(1));
+            pb.finish_and_clear();
+            r?
+        }
+        Format::Agibot => {
+            if args.intrinsics.is_some() || args.calibration.is_some() {
+                bail!("--intrinsics/--calibration apply to DROID; AgiBot World episodes carry their camera parameters");
+            }
+            let (open, closed) = args
+                .gripper_range
+                .split_once(',')
+                .and_then(|(a, b)| {
+                    Some((a.trim().parse::<f64>().ok()?, b.trim().parse::<f64>().ok()?))
+                })
+                .ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "--gripper-range {:?}: expected OPEN,CLOSED (two numbers)",
+                        args.gripper_range
+                    )
+                })?;
+            let mut opts = AgibotOptions {
+                gripper_open: open,
+                gripper_closed: closed,
+                ..AgibotOptions::default()
+            };
+            if let Some(c) = list(&args.cameras) {
+                opts.cameras = c;
+            }
+            let keys: Vec<_> = agibot::find_episodes(&args.src)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if keys.is_empty() {
+                bail!("{}: no AgiBot World episodes (proprio_stats/<task>/<episode>/proprio_stats.h5) found", args.src.display());
+            }
+            let pb = progress_bar(keys.len(), "converting episodes");
+            let items = keys
+                .iter()
+                .map(|k| (k.to_string(), agibot::read_episode(&args.src, k, &opts)));
+            let r = convert(items, &embodiment, &tmp, &options, &|_| pb.inc(1));
+            pb.finish_and_clear();
+            r?
+        }
+    };
+    std::fs::rename(&tmp, &args.out)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), args.out.display()))?;
+    let mut text = format!(
+        "wrote {} (LeRobot v3.0): {} episodes read, {} camera episodes of {}x{} with calc masks, robot {}\n",
+        args.out.display(),
+        report.episodes,
+        report.views_written,
+        args.width,
+        args.height,
+        robot
+    );
+    if !report.skipped.is_empty() {
+        text.push_str(&format!(
+            "  skipped {} item(s), listed in {}:\n",
+            report.skipped.len(),
+            args.out.join("skipped.json").display()
+        ));
+        for s in &report.skipped {
+            text.push_str(&format!("    {}: {}\n", s.item, s.error));
+        }
+    }
+    for v in &report.empty_mask_views {
+        text.push_str(&format!("  warning: {v}: the robot is outside the image in every frame (check the calibration)\n"));
+    }
+    crate::print_stdout(&text)
+}

@@ -1,0 +1,357 @@
+//! Raw episodes to a training dataset: every camera of every episode becomes
+//! one LeRobot v3.0 episode (one view-trajectory pair) with frames resized to
+//! the model resolution, `calc` embodiment masks rendered from the recorded
+//! joints and the calibration, the recorded states and the end-effector
+//! actions. With `skip_bad`, an episode or view that fails is recorded in the
+//! report (and `skipped.json`) and the conversion goes on; nothing is dropped
+//! silently.
+
+use super::{RawEpisode, RawError, RawView};
+use crate::lerobot::{DatasetError, LeRobotV3Writer, WriterEpisode};
+use crate::video::{decode_mp4, VideoError};
+use bridgev2w_embodiment::camera::Camera;
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::masks::render_items;
+use bridgev2w_embodiment::npy::write_atomic;
+use bridgev2w_embodiment::raster::Rasterizer;
+use rayon::prelude::*;
+use serde_json::json;
+use std::path::{Path, PathBuf};
+
+/// Conversion settings.
+#[derive(Debug, Clone)]
+pub struct ConvertOptions {
+    /// Output width (pixels, even).
+    pub width: usize,
+    /// Output height (pixels, even).
+    pub height: usize,
+    /// Frame rate written to the dataset.
+    pub fps: u32,
+    /// Robot-specific names for the recorded joint columns (default: the
+    /// dataset's own names, which are the built-in robots' names).
+    pub joint_names: Option<Vec<String>>,
+    /// Record failing episodes/views and go on instead of stopping.
+    pub skip_bad: bool,
+    /// Split recorded for every written episode (e.g. `train`).
+    pub split: Option<String>,
+    /// The source format's name (recorded in `meta/info.json`).
+    pub source_format: String,
+}
+
+/// One item that was skipped, and why.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Skipped {
+    /// Episode id or path, and camera when the failure is one view's.
+    pub item: String,
+    /// The error.
+    pub error: String,
+}
+
+/// What a conversion did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct ConvertReport {
+    /// Episodes read successfully.
+    pub episodes: usize,
+    /// LeRobot episodes written (one per view).
+    pub views_written: usize,
+    /// Items skipped with `skip_bad`.
+    pub skipped: Vec<Skipped>,
+    /// Views whose masks are empty in every frame (robot never in view):
+    /// written, but listed because it usually means bad calibration.
+    pub empty_mask_views: Vec<String>,
+}
+
+/// Conversion errors.
+#[derive(Debug, thiserror::Error)]
+pub enum ConvertError {
+    /// Reading a raw episode failed.
+    #[error(transparent)]
+    Raw(#[from] RawError),
+    /// Writing the dataset failed.
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    /// A video could not be decoded.
+    #[error("episode {episode}, camera \"{camera}\": {source}")]
+    Video {
+        /// Episode id.
+        episode: String,
+        /// Camera name.
+        camera: String,
+        /// Cause (names the file).
+        source: VideoError,
+    },
+    /// Options are invalid.
+    #[error("{0}")]
+    Options(String),
+}
+
+/// Area-weighted resampling of an RGB8 image `sw x sh` to `dw x dh`: each
+/// output pixel is the average of the source pixels under its footprint
+/// (exact box filter; anti-aliased when shrinking).
+pub fn resize_rgb(src: &[u8], (sw, sh): (usize, usize), (dw, dh): (usize, usize)) -> Vec<u8> {
+    if (sw, sh) == (dw, dh) {
+        return src.to_vec();
+    }
+    // Per output coordinate: (first source index, weights) covering
+    // [o * s / d, (o + 1) * s / d).
+    let taps = |s: usize, d: usize| -> Vec<(usize, Vec<f32>)> {
+        (0..d)
+            .map(|o| {
+                let a = o as f64 * s as f64 / d as f64;
+                let b = (o + 1) as f64 * s as f64 / d as f64;
+                let first = a.floor() as usize;
+                let last = (b.ceil() as usize).min(s);
+                let w: Vec<f32> = (first..last)
+                    .map(|i| ((b.min(i as f64 + 1.0) - a.max(i as f64)) / (b - a)) as f32)
+                    .collect();
+                (first, w)
+            })
+            .collect()
+    };
+    let (tx, ty) = (taps(sw, dw), taps(sh, dh));
+    // Horizontal pass: [sh, dw, 3] floats.
+    let mut mid = vec![0f32; sh * dw * 3];
+    for y in 0..sh {
+        for (x, (first, w)) in tx.iter().enumerate() {
+            for c in 0..3 {
+                mid[(y * dw + x) * 3 + c] = w
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &wk)| wk * f32::from(src[(y * sw + first + k) * 3 + c]))
+                    .sum();
+            }
+        }
+    }
+    let mut out = vec![0u8; dh * dw * 3];
+    for (y, (first, w)) in ty.iter().enumerate() {
+        for x in 0..dw {
+            for c in 0..3 {
+                let v: f32 = w
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &wk)| wk * mid[((first + k) * dw + x) * 3 + c])
+                    .sum();
+                out[(y * dw + x) * 3 + c] = v.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    out
+}
+
+/// One view of an episode at the output size: frames, masks and the first
+/// frame's camera (at the output size).
+#[derive(Debug, Clone)]
+pub struct ViewClip {
+    /// RGB8 frames `width * height * 3`.
+    pub rgb: Vec<Vec<u8>>,
+    /// 0/1 masks `width * height`.
+    pub masks: Vec<Vec<u8>>,
+    /// Cameras per frame at the output size.
+    pub cameras: Vec<Camera>,
+}
+
+/// Decodes `view`'s video, checks it against the episode, resizes it and
+/// renders the `calc` masks of `q` (one configuration per frame).
+pub fn render_view(
+    episode: &RawEpisode,
+    view: &RawView,
+    embodiment: &Embodiment,
+    q: &[Vec<f64>],
+    (width, height): (usize, usize),
+) -> Result<ViewClip, ConvertError> {
+    let video = decode_mp4(&view.video).map_err(|source| ConvertError::Video {
+        episode: episode.id.clone(),
+        camera: view.name.clone(),
+        source,
+    })?;
+    let inconsistent = |message: String| {
+        ConvertError::Raw(RawError::Inconsistent {
+            episode: episode.id.clone(),
+            message,
+        })
+    };
+    if video.frames.len() != episode.frames {
+        return Err(inconsistent(format!(
+            "video {} has {} frames but the states have {}",
+            view.video.display(),
+            video.frames.len(),
+            episode.frames
+        )));
+    }
+    let k = &view.intrinsics;
+    let aspect_video = video.width as f64 / video.height as f64;
+    let aspect_k = f64::from(k.width) / f64::from(k.height);
+    if (aspect_video / aspect_k - 1.0).abs() > 0.01 {
+        return Err(inconsistent(format!(
+            "camera \"{}\": intrinsics are for {}x{} but video {} is {}x{} (different aspect ratio)",
+            view.name,
+            k.width,
+            k.height,
+            view.video.display(),
+            video.width,
+            video.height
+        )));
+    }
+    let cameras: Vec<Camera> = (0..episode.frames)
+        .map(|t| view.camera(t).rescaled(width as u32, height as u32))
+        .collect();
+    let robot = &embodiment.robot;
+    let masks: Vec<Vec<u8>> = q
+        .par_iter()
+        .zip(&cameras)
+        .map(|(q, cam)| {
+            let poses = robot.link_poses(q);
+            Rasterizer::new(cam)
+                .render_labels(&render_items(robot, &poses, true))
+                .iter()
+                .map(|&l| u8::from(l > 0))
+                .collect()
+        })
+        .collect();
+    let rgb = video
+        .frames
+        .par_iter()
+        .map(|f| resize_rgb(f, (video.width, video.height), (width, height)))
+        .collect();
+    Ok(ViewClip {
+        rgb,
+        masks,
+        cameras,
+    })
+}
+
+/// Converts `episodes` (id, read result) into a LeRobot v3.0 dataset at `out`.
+/// `on_item` is called after each episode (for progress bars).
+pub fn convert(
+    episodes: impl IntoIterator<Item = (String, Result<RawEpisode, RawError>)>,
+    embodiment: &Embodiment,
+    out: &Path,
+    options: &ConvertOptions,
+    on_item: &dyn Fn(&str),
+) -> Result<ConvertReport, ConvertError> {
+    if options.width == 0
+        || options.height == 0
+        || options.width % 2 != 0
+        || options.height % 2 != 0
+    {
+        return Err(ConvertError::Options(format!(
+            "output size {}x{}: expected even, non-zero width and height (H.264)",
+            options.width, options.height
+        )));
+    }
+    let arms = embodiment.end_effectors.len();
+    let names = |prefix: &str, n: usize| (0..n).map(|i| format!("{prefix}{i}")).collect();
+    let state_dim = embodiment.robot.dof();
+    let mut writer = LeRobotV3Writer::new(
+        out,
+        &embodiment.robot.name,
+        options.fps,
+        "observation.images.main",
+        (options.width, options.height),
+        embodiment
+            .robot
+            .dof_names()
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
+        names("ee_", 7 * arms),
+    )?;
+    let mut report = ConvertReport::default();
+    for (item, result) in episodes {
+        let outcome = (|| -> Result<Vec<(String, ConvertError)>, ConvertError> {
+            let ep = result?;
+            if ep.arms() != arms {
+                return Err(ConvertError::Raw(RawError::Embodiment {
+                    episode: ep.id.clone(),
+                    message: format!(
+                        "{} arm(s) recorded but robot \"{}\" has {arms}",
+                        ep.arms(),
+                        embodiment.robot.name
+                    ),
+                }));
+            }
+            let q = ep.joint_trajectory(embodiment, options.joint_names.as_deref())?;
+            report.episodes += 1;
+            let mut view_errors = Vec::new();
+            for view in &ep.views {
+                let clip =
+                    match render_view(&ep, view, embodiment, &q, (options.width, options.height)) {
+                        Ok(c) => c,
+                        Err(e) if options.skip_bad => {
+                            view_errors.push((format!("{} camera {}", ep.id, view.name), e));
+                            continue;
+                        }
+                        Err(e) => return Err(e),
+                    };
+                if clip.masks.iter().all(|m| m.iter().all(|&v| v == 0)) {
+                    report
+                        .empty_mask_views
+                        .push(format!("{} camera {}", ep.id, view.name));
+                }
+                let states: Vec<Vec<f32>> = q
+                    .iter()
+                    .map(|r| r.iter().map(|&v| v as f32).collect())
+                    .collect();
+                debug_assert!(states.iter().all(|s| s.len() == state_dim));
+                let actions = ep
+                    .ee_actions
+                    .iter()
+                    .map(|r| r.iter().map(|&v| v as f32).collect())
+                    .collect();
+                let task = ep.task.clone().unwrap_or_default();
+                writer.add_episode(WriterEpisode {
+                    task: &task,
+                    split: options.split.as_deref(),
+                    states,
+                    actions,
+                    rgb: &clip.rgb,
+                    masks: Some(&clip.masks),
+                    camera: view.is_static().then_some(&clip.cameras[0]),
+                })?;
+                report.views_written += 1;
+            }
+            Ok(view_errors)
+        })();
+        match outcome {
+            Ok(view_errors) => report
+                .skipped
+                .extend(view_errors.into_iter().map(|(item, e)| Skipped {
+                    item,
+                    error: e.to_string(),
+                })),
+            Err(e) if options.skip_bad => report.skipped.push(Skipped {
+                item: item.clone(),
+                error: e.to_string(),
+            }),
+            Err(e) => return Err(e),
+        }
+        on_item(&item);
+    }
+    if report.views_written == 0 {
+        return Err(ConvertError::Options(format!(
+            "no episode could be converted ({} skipped){}",
+            report.skipped.len(),
+            report.skipped.first().map_or(String::new(), |s| format!(
+                "; first: {}: {}",
+                s.item, s.error
+            ))
+        )));
+    }
+    writer.finish(json!({
+        "bridgev2w_source": {
+            "format": options.source_format,
+            "episodes": report.episodes,
+            "skipped": report.skipped.len(),
+        }
+    }))?;
+    let path: PathBuf = out.join("skipped.json");
+    let text =
+        serde_json::to_string_pretty(&report).map_err(|e| ConvertError::Options(e.to_string()))?;
+    write_atomic(&path, text.as_bytes()).map_err(|source| {
+        ConvertError::Dataset(DatasetError::Io {
+            path: path.clone(),
+            source,
+        })
+    })?;
+    Ok(report)
+}

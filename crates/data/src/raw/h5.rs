@@ -1,0 +1,209 @@
+//! Numeric datasets from HDF5 files (pure Rust, `hdf5-reader`): whatever the
+//! stored type (f32, f64, integers), values come back as `f64` with their
+//! shape, and every failure names the file and the dataset path.
+
+use super::RawError;
+use hdf5_reader::{Dataset, Datatype, Hdf5File};
+use std::path::{Path, PathBuf};
+
+/// An open HDF5 file that remembers its path for error messages.
+pub struct H5 {
+    path: PathBuf,
+    file: Hdf5File,
+}
+
+impl std::fmt::Debug for H5 {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("H5").field("path", &self.path).finish()
+    }
+}
+
+/// A numeric dataset read as `f64`, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Array {
+    /// Dimensions.
+    pub shape: Vec<usize>,
+    /// Values, row-major.
+    pub values: Vec<f64>,
+}
+
+impl Array {
+    /// The rows of a dataset whose first axis is time: `[T, ...]` flattened to
+    /// `T` rows of `prod(shape[1..])` values.
+    pub fn rows(&self) -> Vec<Vec<f64>> {
+        let t = self.shape.first().copied().unwrap_or(0);
+        let width = self.shape.iter().skip(1).product::<usize>();
+        if t == 0 {
+            return Vec::new();
+        }
+        self.values
+            .chunks(width.max(1))
+            .map(<[f64]>::to_vec)
+            .collect()
+    }
+}
+
+impl H5 {
+    /// Opens `path`; a missing, truncated or non-HDF5 file is an error naming it.
+    pub fn open(path: &Path) -> Result<Self, RawError> {
+        if !path.is_file() {
+            return Err(RawError::Missing {
+                path: path.to_path_buf(),
+                what: "HDF5 file".into(),
+            });
+        }
+        let file = Hdf5File::open(path).map_err(|e| RawError::Hdf5 {
+            path: path.to_path_buf(),
+            field: String::new(),
+            message: format!("not a readable HDF5 file (corrupt or truncated?): {e}"),
+        })?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+        })
+    }
+
+    /// The file's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn err(&self, field: &str, message: String) -> RawError {
+        RawError::Hdf5 {
+            path: self.path.clone(),
+            field: field.to_string(),
+            message,
+        }
+    }
+
+    /// Whether dataset `name` (a `/`-separated path) exists.
+    pub fn has(&self, name: &str) -> bool {
+        self.file.dataset(name).is_ok()
+    }
+
+    /// The member names of group `group` (`""` or `"/"` for the root):
+    /// `(groups, datasets)`.
+    pub fn members(&self, group: &str) -> Result<(Vec<String>, Vec<String>), RawError> {
+        let g = if group.is_empty() || group == "/" {
+            self.file.root_group()
+        } else {
+            self.file.group(group)
+        }
+        .map_err(|e| self.err(group, format!("no such group: {e}")))?;
+        g.member_names()
+            .map_err(|e| self.err(group, format!("cannot list the group: {e}")))
+    }
+
+    fn dataset(&self, name: &str) -> Result<Dataset, RawError> {
+        self.file
+            .dataset(name)
+            .map_err(|e| self.err(name, format!("missing dataset ({e})")))
+    }
+
+    /// Reads numeric dataset `name` as `f64` and checks that every value is
+    /// finite (a NaN or infinite state is an error naming the element).
+    pub fn read(&self, name: &str) -> Result<Array, RawError> {
+        let ds = self.dataset(name)?;
+        let shape: Vec<usize> = ds.shape().iter().map(|&d| d as usize).collect();
+        let values = self.read_values(&ds, name)?;
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(self.err(
+                name,
+                format!(
+                    "element {} (flat index {i}) is {}: expected finite values",
+                    unravel(i, &shape),
+                    values[i]
+                ),
+            ));
+        }
+        Ok(Array { shape, values })
+    }
+
+    /// [`H5::read`] and a check that the shape is `[frames?, dims...]`:
+    /// `expected[i] = None` accepts any size on axis `i`.
+    pub fn read_shaped(&self, name: &str, expected: &[Option<usize>]) -> Result<Array, RawError> {
+        let a = self.read(name)?;
+        let ok = a.shape.len() == expected.len()
+            && a.shape
+                .iter()
+                .zip(expected)
+                .all(|(&s, e)| e.is_none_or(|e| e == s));
+        if !ok {
+            let want: Vec<String> = expected
+                .iter()
+                .map(|e| e.map_or("T".to_string(), |d| d.to_string()))
+                .collect();
+            return Err(self.err(
+                name,
+                format!("shape {:?}, expected [{}]", a.shape, want.join(", ")),
+            ));
+        }
+        Ok(a)
+    }
+
+    fn read_values(&self, ds: &Dataset, name: &str) -> Result<Vec<f64>, RawError> {
+        let wrap =
+            |e: hdf5_reader::error::Error| self.err(name, format!("cannot read the values: {e}"));
+        Ok(match ds.dtype() {
+            Datatype::FloatingPoint { size: 8, .. } => ds
+                .read_array::<f64>()
+                .map_err(wrap)?
+                .iter()
+                .copied()
+                .collect(),
+            Datatype::FloatingPoint { size: 4, .. } => ds
+                .read_array::<f32>()
+                .map_err(wrap)?
+                .iter()
+                .map(|&v| f64::from(v))
+                .collect(),
+            Datatype::FixedPoint { size, signed, .. } => match (size, signed) {
+                (1, false) => collect_f64(ds.read_array::<u8>().map_err(wrap)?.iter().copied()),
+                (1, true) => collect_f64(ds.read_array::<i8>().map_err(wrap)?.iter().copied()),
+                (2, false) => collect_f64(ds.read_array::<u16>().map_err(wrap)?.iter().copied()),
+                (2, true) => collect_f64(ds.read_array::<i16>().map_err(wrap)?.iter().copied()),
+                (4, false) => collect_f64(ds.read_array::<u32>().map_err(wrap)?.iter().copied()),
+                (4, true) => collect_f64(ds.read_array::<i32>().map_err(wrap)?.iter().copied()),
+                (8, true) => ds
+                    .read_array::<i64>()
+                    .map_err(wrap)?
+                    .iter()
+                    .map(|&v| v as f64)
+                    .collect(),
+                (8, false) => ds
+                    .read_array::<u64>()
+                    .map_err(wrap)?
+                    .iter()
+                    .map(|&v| v as f64)
+                    .collect(),
+                _ => {
+                    return Err(self.err(
+                        name,
+                        format!("integer of {size} bytes: expected 1, 2, 4 or 8 bytes"),
+                    ))
+                }
+            },
+            other => {
+                return Err(self.err(
+                    name,
+                    format!("datatype {other:?}: expected a numeric (float or integer) dataset"),
+                ))
+            }
+        })
+    }
+}
+
+fn collect_f64<T: Into<f64>>(it: impl Iterator<Item = T>) -> Vec<f64> {
+    it.map(Into::into).collect()
+}
+
+fn unravel(mut i: usize, shape: &[usize]) -> String {
+    let mut idx = vec![0usize; shape.len()];
+    for (k, &d) in shape.iter().enumerate().rev() {
+        if d > 0 {
+            idx[k] = i % d;
+            i /= d;
+        }
+    }
+    format!("{idx:?}")
+}

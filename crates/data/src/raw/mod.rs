@@ -1,0 +1,340 @@
+//! Readers for real robot datasets in their published raw layouts, into one
+//! in-memory form ([`RawEpisode`]): recorded joint positions, gripper
+//! closures, end-effector actions and, per camera, the video file with its
+//! intrinsics and per-frame `world_from_camera` (world = robot base).
+//!
+//! - [`droid`]: DROID raw episodes (`metadata_*.json`, `trajectory.h5`,
+//!   `recordings/MP4/<serial>.mp4`).
+//! - [`agibot`]: AgiBot World (`proprio_stats.h5`, camera parameter JSON,
+//!   `videos/<cam>_color.mp4`).
+//!
+//! Masks for these episodes are rendered from the *recorded joint positions*
+//! (no IK): [`RawEpisode::joint_trajectory`] maps them onto an
+//! [`Embodiment`]'s degrees of freedom by joint name, grippers included.
+
+pub mod agibot;
+pub mod convert;
+pub mod droid;
+pub mod h5;
+
+use bridgev2w_embodiment::actions::gripper_to_joint;
+use bridgev2w_embodiment::camera::{Camera, Intrinsics};
+use bridgev2w_embodiment::embodiment::Embodiment;
+use nalgebra::Isometry3;
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+
+/// Errors reading raw episodes; each names the file and, where known, the
+/// episode and field.
+#[derive(Debug, thiserror::Error)]
+pub enum RawError {
+    /// I/O failure.
+    #[error("{path}: {source}")]
+    Io {
+        /// File.
+        path: PathBuf,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// A required file or directory does not exist.
+    #[error("{path}: missing {what}")]
+    Missing {
+        /// The path that should exist.
+        path: PathBuf,
+        /// What it should be.
+        what: String,
+    },
+    /// An HDF5 file or dataset is unreadable or has the wrong shape/values.
+    #[error("{path}{}: {message}", if field.is_empty() { String::new() } else { format!(", dataset \"{field}\"") })]
+    Hdf5 {
+        /// File.
+        path: PathBuf,
+        /// Dataset path inside the file (empty for the file itself).
+        field: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A JSON file is unreadable or a field has the wrong type or value.
+    #[error("{path}{}: {message}", if field.is_empty() { String::new() } else { format!(", field \"{field}\"") })]
+    Json {
+        /// File.
+        path: PathBuf,
+        /// Field (JSON path), empty for the whole file.
+        field: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// The episode's parts disagree (frame counts, cameras).
+    #[error("episode {episode}: {message}")]
+    Inconsistent {
+        /// Episode id.
+        episode: String,
+        /// What disagrees.
+        message: String,
+    },
+    /// The episode does not fit the embodiment it is rendered with.
+    #[error("episode {episode}: {message}")]
+    Embodiment {
+        /// Episode id.
+        episode: String,
+        /// What does not fit.
+        message: String,
+    },
+}
+
+pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RawError + '_ {
+    move |source| RawError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+pub(crate) fn json_err(path: &Path, field: &str, message: impl Into<String>) -> RawError {
+    RawError::Json {
+        path: path.to_path_buf(),
+        field: field.to_string(),
+        message: message.into(),
+    }
+}
+
+/// Reads and parses a JSON file.
+pub(crate) fn read_json(path: &Path) -> Result<Value, RawError> {
+    if !path.is_file() {
+        return Err(RawError::Missing {
+            path: path.to_path_buf(),
+            what: "JSON file".into(),
+        });
+    }
+    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
+    serde_json::from_str(&text).map_err(|e| json_err(path, "", format!("invalid JSON: {e}")))
+}
+
+/// A finite number at `value[field]`.
+pub(crate) fn json_f64(path: &Path, value: &Value, field: &str) -> Result<f64, RawError> {
+    let v = value
+        .get(field)
+        .ok_or_else(|| json_err(path, field, "missing: expected a number"))?;
+    v.as_f64()
+        .filter(|x| x.is_finite())
+        .ok_or_else(|| json_err(path, field, format!("{v}: expected a finite number")))
+}
+
+/// `n` finite numbers from a JSON array.
+pub(crate) fn json_vec(
+    path: &Path,
+    v: &Value,
+    field: &str,
+    n: usize,
+) -> Result<Vec<f64>, RawError> {
+    let arr = v.as_array().filter(|a| a.len() == n).ok_or_else(|| {
+        json_err(
+            path,
+            field,
+            format!("{v}: expected an array of {n} numbers"),
+        )
+    })?;
+    arr.iter()
+        .enumerate()
+        .map(|(i, x)| {
+            x.as_f64().filter(|x| x.is_finite()).ok_or_else(|| {
+                json_err(
+                    path,
+                    &format!("{field}[{i}]"),
+                    format!("{x}: expected a finite number"),
+                )
+            })
+        })
+        .collect()
+}
+
+/// One camera of an episode.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RawView {
+    /// Camera name (DROID: serial number; AgiBot: `head`, `hand_left`, ...).
+    pub name: String,
+    /// The MP4 file.
+    pub video: PathBuf,
+    /// Intrinsics at the video's resolution.
+    pub intrinsics: Intrinsics,
+    /// `world_from_camera` per frame (OpenCV camera axes; world = robot base).
+    pub world_from_camera: Vec<Isometry3<f64>>,
+}
+
+impl RawView {
+    /// The calibrated camera of frame `t`.
+    pub fn camera(&self, t: usize) -> Camera {
+        Camera {
+            intrinsics: self.intrinsics,
+            world_from_camera: self.world_from_camera[t.min(self.world_from_camera.len() - 1)],
+        }
+    }
+
+    /// Whether the camera does not move over the episode (within 1e-9).
+    pub fn is_static(&self) -> bool {
+        let first = self.world_from_camera[0];
+        self.world_from_camera.iter().all(|p| {
+            (p.translation.vector - first.translation.vector).norm() < 1e-9
+                && p.rotation.angle_to(&first.rotation) < 1e-9
+        })
+    }
+}
+
+/// One episode of a real dataset, in robot-base coordinates.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RawEpisode {
+    /// Episode id (DROID: metadata `uuid`; AgiBot: `<task>/<episode>`).
+    pub id: String,
+    /// The episode's directory or main file.
+    pub source: PathBuf,
+    /// Language instruction, when the dataset records one.
+    pub task: Option<String>,
+    /// Frames (states, actions and every video).
+    pub frames: usize,
+    /// Recorded arm joint positions per frame (radians), in the order of
+    /// [`RawEpisode::joint_names`].
+    pub joints: Vec<Vec<f64>>,
+    /// The dataset's names for the joint columns (for the built-in robots,
+    /// their URDF joint names).
+    pub joint_names: Vec<String>,
+    /// Gripper closure per frame and arm: 0 open, 1 closed.
+    pub grippers: Vec<Vec<f64>>,
+    /// End-effector actions per frame: `[x, y, z, roll, pitch, yaw, gripper]`
+    /// per arm (extrinsic XYZ Euler angles, like `bridgev2w masks` input).
+    pub ee_actions: Vec<Vec<f64>>,
+    /// Cameras.
+    pub views: Vec<RawView>,
+}
+
+impl RawEpisode {
+    /// Number of arms.
+    pub fn arms(&self) -> usize {
+        self.grippers.first().map_or(0, Vec::len)
+    }
+
+    /// Checks that every per-frame series has `frames` entries of equal width.
+    pub fn validate(&self) -> Result<(), RawError> {
+        let bad = |message: String| RawError::Inconsistent {
+            episode: self.id.clone(),
+            message,
+        };
+        if self.frames == 0 {
+            return Err(bad("no frames".into()));
+        }
+        for (what, rows, width) in [
+            ("joint positions", &self.joints, self.joint_names.len()),
+            ("gripper values", &self.grippers, self.arms()),
+            ("end-effector actions", &self.ee_actions, 7 * self.arms()),
+        ] {
+            if rows.len() != self.frames {
+                return Err(bad(format!(
+                    "{} frames of {what}, expected {} (the state count)",
+                    rows.len(),
+                    self.frames
+                )));
+            }
+            if let Some(t) = rows.iter().position(|r| r.len() != width) {
+                return Err(bad(format!(
+                    "frame {t} has {} {what}, expected {width}",
+                    rows[t].len()
+                )));
+            }
+        }
+        for v in &self.views {
+            if v.world_from_camera.len() != self.frames {
+                return Err(bad(format!(
+                    "camera \"{}\" has {} extrinsics, expected {} (one per frame)",
+                    v.name,
+                    v.world_from_camera.len(),
+                    self.frames
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The view named `name`.
+    pub fn view(&self, name: &str) -> Option<&RawView> {
+        self.views.iter().find(|v| v.name == name)
+    }
+
+    /// The recorded joints as full configurations of `embodiment`, frame by
+    /// frame: each joint column goes to the actuated joint of the same name
+    /// (or, with `rename`, of `rename[i]`), each arm's gripper closure to its
+    /// gripper joint through [`gripper_to_joint`]; joints the dataset does not
+    /// record stay at the embodiment's home. Values outside a joint's limits
+    /// are clamped (recorded states sit on the limits within sensor noise).
+    pub fn joint_trajectory(
+        &self,
+        embodiment: &Embodiment,
+        rename: Option<&[String]>,
+    ) -> Result<Vec<Vec<f64>>, RawError> {
+        let robot = &embodiment.robot;
+        let names = rename.unwrap_or(&self.joint_names);
+        let bad = |message: String| RawError::Embodiment {
+            episode: self.id.clone(),
+            message,
+        };
+        if names.len() != self.joint_names.len() {
+            return Err(bad(format!(
+                "{} joint names given for {} recorded joint columns",
+                names.len(),
+                self.joint_names.len()
+            )));
+        }
+        let dofs: Vec<usize> = names
+            .iter()
+            .map(|n| {
+                robot.dof_index(n).ok_or_else(|| {
+                    bad(format!(
+                        "recorded joint \"{n}\" is not an actuated joint of robot \"{}\" (pass the robot's names for the {} columns)",
+                        robot.name,
+                        names.len()
+                    ))
+                })
+            })
+            .collect::<Result<_, _>>()?;
+        if self.arms() > embodiment.end_effectors.len() {
+            return Err(bad(format!(
+                "{} grippers recorded but robot \"{}\" has {} end effectors",
+                self.arms(),
+                robot.name,
+                embodiment.end_effectors.len()
+            )));
+        }
+        let limits = robot.dof_limits();
+        let clamp = |d: usize, v: f64| {
+            let (lo, hi) = limits[d];
+            v.clamp(lo, hi)
+        };
+        Ok(self
+            .joints
+            .iter()
+            .zip(&self.grippers)
+            .map(|(row, grips)| {
+                let mut q = embodiment.home.clone();
+                for (&d, &v) in dofs.iter().zip(row) {
+                    q[d] = clamp(d, v);
+                }
+                for (ee, &g) in embodiment.end_effectors.iter().zip(grips) {
+                    if let Some(d) = ee.gripper_dof {
+                        q[d] = gripper_to_joint(g, limits[d]);
+                    }
+                }
+                q
+            })
+            .collect())
+    }
+}
+
+/// Roll, pitch, yaw (extrinsic XYZ) of a unit quaternion given as
+/// `[x, y, z, w]`; errors on a non-finite or zero-norm quaternion.
+pub fn rpy_from_xyzw(q: [f64; 4]) -> Option<[f64; 3]> {
+    let [x, y, z, w] = q;
+    let n = (x * x + y * y + z * z + w * w).sqrt();
+    if !(n.is_finite() && n > 1e-9) {
+        return None;
+    }
+    let uq = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+    let (r, p, yaw) = uq.euler_angles();
+    Some([r, p, yaw])
+}
