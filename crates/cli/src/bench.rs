@@ -25,6 +25,35 @@ pub enum BenchCommand {
     /// One transformer forward and one VAE encode/decode: this crate vs diffusers
     /// on the same configs, shapes, threads and precision (random weights).
     Model(crate::bench_model::ModelBench),
+    /// Clip loader throughput (clips/s): decoding + masks (stored, rendered calc,
+    /// cached calc) and batch assembly, on a dataset or a generated synthetic one.
+    Loader(LoaderBench),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct LoaderBench {
+    /// Dataset (LeRobot with masks/ or calibration); default: a synthetic one generated here.
+    #[arg(long)]
+    dataset: Option<PathBuf>,
+    /// Robot for rendering calc masks (when the dataset has calibration and joint states).
+    #[arg(long, default_value = "franka")]
+    robot: String,
+    /// Episodes of the generated dataset.
+    #[arg(long, default_value_t = 8)]
+    episodes: usize,
+    /// Clip frames.
+    #[arg(long, default_value_t = 25)]
+    frames: usize,
+    /// Clip width and height.
+    #[arg(long, default_value_t = 96)]
+    width: usize,
+    #[arg(long, default_value_t = 64)]
+    height: usize,
+    /// Batch size and number of batches assembled.
+    #[arg(long, default_value_t = 4)]
+    batch: usize,
+    #[arg(long, default_value_t = 50)]
+    steps: usize,
 }
 
 #[derive(Debug, clap::Args)]
@@ -86,7 +115,91 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Kinematics(a) => kinematics(a),
         BenchCommand::Metrics(a) => metrics(a),
         BenchCommand::Model(a) => crate::bench_model::run(a),
+        BenchCommand::Loader(a) => loader(a),
     }
+}
+
+fn loader(a: &LoaderBench) -> Result<()> {
+    use bridgev2w_train::data::{ClipDataset, MaskKind, SourceSpec};
+    let tmp = tempfile::tempdir()?;
+    let root = match &a.dataset {
+        Some(d) => d.clone(),
+        None => {
+            let out = tmp.path().join("synth");
+            let cfg = bridgev2w_data::synth::SynthConfig {
+                frames: a.frames,
+                width: a.width as u32,
+                height: a.height as u32,
+                episodes_per_split: [a.episodes, 0, 0, 0],
+                ..Default::default()
+            };
+            cfg.validate()?;
+            let pb = progress_bar(a.episodes, "generating a synthetic dataset");
+            bridgev2w_data::synth::write_dataset(&cfg, &out, &|| pb.inc(1))?;
+            pb.finish_and_clear();
+            out
+        }
+    };
+    let spec = |masks: MaskKind| SourceSpec {
+        root: root.clone(),
+        split: "train".into(),
+        video_key: None,
+        masks,
+        weight: 1.0,
+    };
+    let cache = tmp.path().join("mask-cache");
+    let mut text = format!(
+        "clip loader on {} ({} threads)\n",
+        root.display(),
+        rayon::current_num_threads()
+    );
+    let mut open = |label: &str, masks: MaskKind| -> Result<ClipDataset> {
+        let t0 = Instant::now();
+        let d = ClipDataset::open_sources(&[spec(masks)], a.frames, a.height, a.width, 20)?;
+        let s = t0.elapsed().as_secs_f64();
+        text.push_str(&format!(
+            "  open ({label}): {} videos in {s:.2} s = {:.1} videos/s\n",
+            d.episodes.len(),
+            d.episodes.len() as f64 / s
+        ));
+        Ok(d)
+    };
+    let stored = open(
+        "decode + stored masks",
+        MaskKind::Calc {
+            robot: None,
+            cache: cache.clone(),
+        },
+    )?;
+    if a.dataset.is_none() {
+        // The same dataset without masks/: calc masks rendered, then read from the cache.
+        std::fs::rename(root.join("masks"), tmp.path().join("masks.off"))?;
+        let calc = MaskKind::Calc {
+            robot: Some(a.robot.clone()),
+            cache: cache.clone(),
+        };
+        open("decode + render calc masks", calc.clone())?;
+        open("decode + cached calc masks", calc)?;
+    }
+    let t0 = Instant::now();
+    for step in 0..a.steps {
+        stored.batch(
+            0,
+            step,
+            a.batch,
+            bridgev2w_world_model::ComputeDevice::Cpu.to_tch(),
+        )?;
+    }
+    let s = t0.elapsed().as_secs_f64();
+    let clips = a.steps * a.batch;
+    text.push_str(&format!(
+        "  batches: {clips} clips of {}x{}x{} in {s:.2} s = {:.1} clips/s\n",
+        a.frames,
+        a.height,
+        a.width,
+        clips as f64 / s
+    ));
+    crate::print_stdout(&text)
 }
 
 pub(crate) fn find_repo(explicit: Option<&Path>) -> Result<PathBuf> {

@@ -335,6 +335,38 @@ fn droid_and_agibot_read_convert_and_fail_clearly() {
         convert(items, &franka, &dir.path().join("strict"), &strict, &|_| {}).expect_err("strict");
     assert!(err.to_string().contains("joint_positions"), "{err}");
 
+    // A video one frame short: that camera is skipped with the counts named, the other kept.
+    let short = dir.path().join("short");
+    copy_tree(&found[0], &short);
+    let ext2_video = short.join(format!("recordings/MP4/{}.mp4", serials[1]));
+    write_test_pattern(&ext2_video, (64, 48), 5, 15).expect("short video");
+    let items = vec![(
+        short.display().to_string(),
+        droid::read_episode(&short, &droid_options(dir.path(), false)),
+    )];
+    let report = convert(
+        items,
+        &franka,
+        &dir.path().join("short_out"),
+        &ConvertOptions {
+            skip_bad: true,
+            ..strict.clone()
+        },
+        &|_| {},
+    )
+    .expect("convert short");
+    assert_eq!(report.views_written, 1);
+    assert_eq!(report.skipped.len(), 1);
+    assert!(
+        report.skipped[0]
+            .item
+            .ends_with(&format!("camera {}", serials[1]))
+            && report.skipped[0]
+                .error
+                .contains("has 5 frames but the states have 6"),
+        "{report:?}"
+    );
+
     // AgiBot onto the built-in dual-arm robot.
     let g1 = Embodiment::builtin("agibot-g1").expect("g1");
     let out = dir.path().join("converted_g1");
@@ -354,6 +386,18 @@ fn droid_and_agibot_read_convert_and_fail_clearly() {
     let ds = LeRobotDataset::open(&out).expect("open g1");
     let (_, masks) = ds.read_masks(0).expect("masks");
     assert!(masks.contains(&1));
+}
+
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("mkdir");
+    for e in std::fs::read_dir(from).expect("ls").flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            copy_tree(&p, &to.join(e.file_name()));
+        } else {
+            std::fs::copy(&p, to.join(e.file_name())).expect("copy");
+        }
+    }
 }
 
 fn f64s_str(v: &Value) -> Vec<String> {

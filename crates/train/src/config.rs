@@ -12,6 +12,7 @@
 //! max_steps = 100
 //! ```
 
+use crate::data::{MaskKind, SourceSpec};
 use crate::{Result, TrainError};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -90,6 +91,24 @@ pub struct DataSection {
     pub width: usize,
     /// Clip height, pixels; 0 = the backbone's default.
     pub height: usize,
+    /// Random clips per video and epoch (the paper: 20).
+    pub clips_per_video: usize,
+    /// Mask source: `calc` (rendered from URDF + calibration: the dataset's
+    /// `masks/`, else rendered for `robot` and cached) or `seg` (PNG folders
+    /// under `seg_masks`).
+    pub masks: String,
+    /// `seg` masks: root of `episode_XXXXXX/*.png` folders (default
+    /// `<dataset>/seg_masks`).
+    pub seg_masks: Option<PathBuf>,
+    /// `calc` masks for datasets without `masks/`: the robot (built-in name
+    /// or URDF) whose joint states `observation.state` holds.
+    pub robot: Option<String>,
+    /// Cache of rendered `calc` masks (default `<dataset>/.bridgev2w-mask-cache`).
+    pub mask_cache: Option<PathBuf>,
+    /// Mixing weight of this dataset against the `[[data.mix]]` sources.
+    pub weight: f64,
+    /// More datasets mixed in (paper Table "segmix": calc and seg sources).
+    pub mix: Vec<MixSource>,
 }
 
 impl Default for DataSection {
@@ -101,7 +120,106 @@ impl Default for DataSection {
             frames: 0,
             width: 0,
             height: 0,
+            clips_per_video: 20,
+            masks: "calc".into(),
+            seg_masks: None,
+            robot: None,
+            mask_cache: None,
+            weight: 1.0,
+            mix: Vec::new(),
         }
+    }
+}
+
+/// `[[data.mix]]`: another dataset of the mixture (fields as in `[data]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MixSource {
+    /// Dataset folder.
+    pub dataset: PathBuf,
+    /// Split.
+    pub split: String,
+    /// Video key (default: the dataset's first).
+    pub video_key: Option<String>,
+    /// `calc` or `seg`.
+    pub masks: String,
+    /// `seg` masks root (default `<dataset>/seg_masks`).
+    pub seg_masks: Option<PathBuf>,
+    /// Robot for rendering `calc` masks.
+    pub robot: Option<String>,
+    /// Mask cache (default `<dataset>/.bridgev2w-mask-cache`).
+    pub mask_cache: Option<PathBuf>,
+    /// Mixing weight.
+    pub weight: f64,
+}
+
+impl Default for MixSource {
+    fn default() -> Self {
+        Self {
+            dataset: PathBuf::new(),
+            split: "train".into(),
+            video_key: None,
+            masks: "calc".into(),
+            seg_masks: None,
+            robot: None,
+            mask_cache: None,
+            weight: 1.0,
+        }
+    }
+}
+
+impl DataSection {
+    /// Every source of the mixture: `[data]` itself, then `[[data.mix]]`.
+    pub fn sources(&self) -> Result<Vec<SourceSpec>> {
+        let primary = MixSource {
+            dataset: self.dataset.clone(),
+            split: self.split.clone(),
+            video_key: self.video_key.clone(),
+            masks: self.masks.clone(),
+            seg_masks: self.seg_masks.clone(),
+            robot: self.robot.clone(),
+            mask_cache: self.mask_cache.clone(),
+            weight: self.weight,
+        };
+        std::iter::once(&primary)
+            .chain(&self.mix)
+            .enumerate()
+            .map(|(i, m)| {
+                let what = if i == 0 {
+                    "data".to_string()
+                } else {
+                    format!("data.mix[{}]", i - 1)
+                };
+                let masks = match m.masks.as_str() {
+                    "calc" => MaskKind::Calc {
+                        robot: m.robot.clone(),
+                        cache: m
+                            .mask_cache
+                            .clone()
+                            .unwrap_or_else(|| m.dataset.join(".bridgev2w-mask-cache")),
+                    },
+                    "seg" => MaskKind::Seg {
+                        dir: m
+                            .seg_masks
+                            .clone()
+                            .unwrap_or_else(|| m.dataset.join("seg_masks")),
+                    },
+                    other => {
+                        return Err(TrainError::input(
+                            format!("config {what}.masks"),
+                            format!("{other:?}: expected \"calc\" or \"seg\""),
+                        ))
+                    }
+                };
+                Ok(SourceSpec {
+                    root: m.dataset.clone(),
+                    split: m.split.clone(),
+                    video_key: m.video_key.clone(),
+                    masks,
+                    weight: m.weight,
+                })
+            })
+            .collect()
     }
 }
 
@@ -117,7 +235,7 @@ pub struct TrainSection {
     pub batch_size: usize,
     /// Optimizer steps; 0 = `epochs` x steps per epoch.
     pub max_steps: usize,
-    /// Epochs (passes over the split's episodes) when `max_steps` is 0.
+    /// Epochs (`data.clips_per_video` clips of every video each) when `max_steps` is 0.
     pub epochs: usize,
     /// AdamW learning rate (paper: 2e-5).
     pub lr: f64,
@@ -285,6 +403,10 @@ impl TrainConfig {
                 format!("{}: expected a probability", t.condition_dropout),
             );
         }
+        if self.data.clips_per_video == 0 {
+            return bad("data.clips_per_video", "0: expected at least 1".into());
+        }
+        self.data.sources()?;
         if t.dyn_k == 0 {
             return bad("train.dyn_k", "0: expected K >= 1".into());
         }

@@ -1,14 +1,56 @@
-//! Training clips from a `bridgev2w synth` / LeRobot dataset: one split held
-//! in memory (RGB frames, ground-truth masks, actions), batches drawn
-//! deterministically from `(seed, step)` so a resumed run sees the same data.
+//! The clip pipeline: one or more LeRobot datasets (`bridgev2w synth`,
+//! `bridgev2w convert`, or any v2.1/v3.0 dataset with joint states and
+//! calibration) held in memory (RGB frames, masks, actions), each paired with
+//! its mask source (`calc` or `seg`, [`MaskKind`]) and a mixing weight.
+//! An epoch is `clips_per_video` random clips of every video (the paper
+//! samples 20); batches are drawn deterministically from `(seed, step)` so a
+//! resumed run sees the same data.
 
 use crate::{Result, TrainError};
+use bridgev2w_data::clip_masks::{calc_masks, seg_masks, EpisodeMasks};
 use bridgev2w_data::lerobot::LeRobotDataset;
+use bridgev2w_embodiment::embodiment::Embodiment;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use tch::{Device, Kind, Tensor};
+
+/// Where a source's masks come from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MaskKind {
+    /// `calc`: rendered from the URDF, joint states and calibration: the
+    /// dataset's `masks/episode_*.npy`, else rendered for `robot` (a built-in
+    /// name or URDF path) and cached under `cache`; without either, the
+    /// episodes have no masks (fine for the `mask_action = false` ablation).
+    Calc {
+        /// Robot to render with when the dataset carries no masks.
+        robot: Option<String>,
+        /// Mask cache directory.
+        cache: PathBuf,
+    },
+    /// `seg`: PNG folders `dir/episode_XXXXXX/*.png` from a segmentation tool.
+    Seg {
+        /// Root of the per-episode folders.
+        dir: PathBuf,
+    },
+}
+
+/// One dataset of the mixture.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SourceSpec {
+    /// Dataset root.
+    pub root: PathBuf,
+    /// Split (all episodes when the dataset has no split column).
+    pub split: String,
+    /// Video key (default: the first).
+    pub video_key: Option<String>,
+    /// Mask source.
+    pub masks: MaskKind,
+    /// Mixing weight (> 0): the share of clips drawn from this source is
+    /// `weight / sum(weights)`.
+    pub weight: f64,
+}
 
 /// One episode in memory.
 #[derive(Debug, Clone)]
@@ -27,6 +69,8 @@ pub struct Episode {
     pub masks: Option<Vec<u8>>,
     /// Actions `[T, A]`.
     pub actions: Vec<f32>,
+    /// Index of the source (in [`ClipDataset::sources`]) it comes from.
+    pub source: usize,
 }
 
 /// A batch of clips.
@@ -57,6 +101,10 @@ pub struct ClipDataset {
     pub height: usize,
     /// Clip width.
     pub width: usize,
+    /// Random clips per video and epoch.
+    pub clips_per_video: usize,
+    /// `(name, weight)` per source.
+    pub sources: Vec<(String, f64)>,
 }
 
 fn seed_of(parts: &[u64]) -> u64 {
@@ -84,8 +132,8 @@ pub fn seed_for(seed: u64, step: u64, purpose: u64) -> u64 {
 }
 
 impl ClipDataset {
-    /// Reads the episodes of `split` (all episodes when the dataset records no
-    /// splits) with video `video_key` (default: the first).
+    /// A single source with `calc` masks (stored ones only) and one clip per
+    /// video and epoch.
     pub fn open(
         root: &Path,
         split: &str,
@@ -94,6 +142,91 @@ impl ClipDataset {
         height: usize,
         width: usize,
     ) -> Result<Self> {
+        let spec = SourceSpec {
+            root: root.to_path_buf(),
+            split: split.to_string(),
+            video_key: video_key.map(str::to_string),
+            masks: MaskKind::Calc {
+                robot: None,
+                cache: root.join(".bridgev2w-mask-cache"),
+            },
+            weight: 1.0,
+        };
+        Self::open_sources(&[spec], clip_frames, height, width, 1)
+    }
+
+    /// Reads every source's episodes (see [`SourceSpec`]); all sources must
+    /// share one action size.
+    pub fn open_sources(
+        specs: &[SourceSpec],
+        clip_frames: usize,
+        height: usize,
+        width: usize,
+        clips_per_video: usize,
+    ) -> Result<Self> {
+        if specs.is_empty() {
+            return Err(TrainError::input("data", "no dataset given"));
+        }
+        if clips_per_video == 0 {
+            return Err(TrainError::input(
+                "data.clips_per_video",
+                "0: expected >= 1",
+            ));
+        }
+        let mut episodes = Vec::new();
+        let mut sources = Vec::new();
+        let mut action_dim: Option<(usize, String)> = None;
+        for (s, spec) in specs.iter().enumerate() {
+            if !(spec.weight.is_finite() && spec.weight > 0.0) {
+                return Err(TrainError::input(
+                    format!("dataset {}", spec.root.display()),
+                    format!("weight {}: expected a positive number", spec.weight),
+                ));
+            }
+            let (eps, a) = Self::read_source(spec, s, clip_frames)?;
+            let name = spec.root.display().to_string();
+            match &action_dim {
+                Some((d, first)) if *d != a => {
+                    return Err(TrainError::input(
+                        format!("dataset {name}"),
+                        format!("action size {a} differs from {first}'s {d}: mixed sources need one action layout"),
+                    ))
+                }
+                Some(_) => {}
+                None => action_dim = Some((a, name.clone())),
+            }
+            episodes.extend(eps);
+            sources.push((name, spec.weight));
+        }
+        Ok(Self {
+            episodes,
+            action_dim: action_dim.map_or(0, |(a, _)| a),
+            clip_frames,
+            height,
+            width,
+            clips_per_video,
+            sources,
+        })
+    }
+
+    /// The episodes of one source and their action size.
+    fn read_source(
+        spec: &SourceSpec,
+        source: usize,
+        clip_frames: usize,
+    ) -> Result<(Vec<Episode>, usize)> {
+        let (root, split, video_key) = (
+            spec.root.as_path(),
+            spec.split.as_str(),
+            spec.video_key.as_deref(),
+        );
+        let embodiment = match &spec.masks {
+            MaskKind::Calc { robot: Some(r), .. } => Some(
+                Embodiment::load(r, &Default::default(), &[], &[])
+                    .map_err(|e| TrainError::input("data.robot", e.to_string()))?,
+            ),
+            _ => None,
+        };
         let ds = LeRobotDataset::open(root)
             .map_err(|e| TrainError::input(format!("dataset {}", root.display()), e.to_string()))?;
         let key = match video_key {
@@ -130,20 +263,28 @@ impl ClipDataset {
                     format!("{t} frames, shorter than a clip of {clip_frames}"),
                 ));
             }
-            let masks = if root.join(format!("masks/episode_{idx:06}.npy")).is_file() {
-                Some(ds.read_masks(idx).map_err(derr)?)
-            } else {
-                None
-            };
-            let (h, w) = match (&masks, video_shape(&ds, &key)) {
-                (_, Some(hw)) => hw,
-                (Some((shape, _)), None) => (shape[1], shape[2]),
-                (None, None) => {
+            let (h, w) = match video_shape(&ds, &key) {
+                Some(hw) => hw,
+                None => {
                     return Err(TrainError::input(
                         format!("dataset {}", root.display()),
-                        format!("no shape for video {key:?} in meta/info.json and no masks"),
+                        format!("no shape for video {key:?} in meta/info.json"),
                     ))
                 }
+            };
+            let masks: Option<EpisodeMasks> = match &spec.masks {
+                MaskKind::Calc { robot, cache } => {
+                    let stored = root.join(format!("masks/episode_{idx:06}.npy")).is_file();
+                    if stored || robot.is_some() {
+                        Some(
+                            calc_masks(&ds, idx, &key, (t, w, h), embodiment.as_ref(), cache)
+                                .map_err(derr)?,
+                        )
+                    } else {
+                        None
+                    }
+                }
+                MaskKind::Seg { dir } => Some(seg_masks(dir, idx, t).map_err(derr)?),
             };
             let mut rgb = Vec::with_capacity(t * h * w * 3);
             for (i, f) in frames.iter().enumerate() {
@@ -156,14 +297,14 @@ impl ClipDataset {
                 rgb.extend_from_slice(f);
             }
             let masks = match masks {
-                Some((shape, data)) => {
-                    if shape != [t, h, w] {
+                Some(m) => {
+                    if m.frames != t {
                         return Err(TrainError::input(
                             format!("dataset {} episode {idx} masks", root.display()),
-                            format!("shape {shape:?}, expected [{t}, {h}, {w}]"),
+                            format!("{} mask frames for {t} video frames", m.frames),
                         ));
                     }
-                    Some(data)
+                    Some(resize_masks_nearest(&m, (h, w)))
                 }
                 None => None,
             };
@@ -191,15 +332,10 @@ impl ClipDataset {
                 rgb,
                 masks,
                 actions: rows.iter().flat_map(|r| r.action.iter().copied()).collect(),
+                source,
             });
         }
-        Ok(Self {
-            episodes,
-            action_dim: action_dim.unwrap_or(0),
-            clip_frames,
-            height,
-            width,
-        })
+        Ok((episodes, action_dim.unwrap_or(0)))
     }
 
     /// Whether every episode has masks.
@@ -207,9 +343,49 @@ impl ClipDataset {
         self.episodes.iter().all(|e| e.masks.is_some())
     }
 
-    /// Steps per epoch at `batch_size` (one pass over the episodes).
+    /// Steps per epoch at `batch_size`: `clips_per_video` clips of every video.
     pub fn steps_per_epoch(&self, batch_size: usize) -> usize {
-        self.episodes.len().div_ceil(batch_size.max(1)).max(1)
+        (self.episodes.len() * self.clips_per_video)
+            .div_ceil(batch_size.max(1))
+            .max(1)
+    }
+
+    /// The episode of every clip slot of `epoch`. One source: each episode
+    /// `clips_per_video` times, shuffled. Several: each slot draws a source
+    /// by weight, then the next episode of that source's own shuffled cycle
+    /// (so every source is covered evenly within its share).
+    pub fn epoch_slots(&self, seed: u64, epoch: u64, slots: usize) -> Vec<usize> {
+        let mut rng = rng_for(seed, epoch, 1);
+        let mut cycles: Vec<Vec<usize>> = vec![Vec::new(); self.sources.len()];
+        for (i, e) in self.episodes.iter().enumerate() {
+            for _ in 0..self.clips_per_video {
+                cycles[e.source].push(i);
+            }
+        }
+        for c in &mut cycles {
+            c.shuffle(&mut rng);
+        }
+        if self.sources.len() == 1 {
+            let c = &cycles[0];
+            return (0..slots).map(|k| c[k % c.len()]).collect();
+        }
+        let total: f64 = self.sources.iter().map(|s| s.1).sum();
+        let mut next = vec![0usize; cycles.len()];
+        (0..slots)
+            .map(|_| {
+                let mut u = rng.gen::<f64>() * total;
+                let mut s = 0;
+                while s + 1 < self.sources.len() && (u >= self.sources[s].1 || cycles[s].is_empty())
+                {
+                    u -= self.sources[s].1;
+                    s += 1;
+                }
+                let c = &cycles[s];
+                let e = c[next[s] % c.len()];
+                next[s] += 1;
+                e
+            })
+            .collect()
     }
 
     /// Per-dimension mean and standard deviation of the actions (std floored at 1e-3).
@@ -240,13 +416,11 @@ impl ClipDataset {
     /// The episodes of step `step`: a permutation per epoch from `(seed, epoch)`,
     /// consecutive `batch_size` slices of it (wrapping).
     pub fn batch_episodes(&self, seed: u64, step: usize, batch_size: usize) -> Vec<usize> {
-        let n = self.episodes.len();
         let spe = self.steps_per_epoch(batch_size);
         let (epoch, within) = (step / spe, step % spe);
-        let mut order: Vec<usize> = (0..n).collect();
-        order.shuffle(&mut rng_for(seed, epoch as u64, 1));
+        let order = self.epoch_slots(seed, epoch as u64, spe * batch_size);
         (0..batch_size)
-            .map(|j| order[(within * batch_size + j) % n])
+            .map(|j| order[within * batch_size + j])
             .collect()
     }
 
@@ -326,6 +500,26 @@ impl ClipDataset {
     }
 }
 
+/// Nearest-neighbour resize of every mask frame to `(h, w)` (masks from a
+/// segmentation tool may come at another resolution than the video).
+fn resize_masks_nearest(m: &EpisodeMasks, (h, w): (usize, usize)) -> Vec<u8> {
+    if (m.height, m.width) == (h, w) {
+        return m.data.clone();
+    }
+    let mut out = Vec::with_capacity(m.frames * h * w);
+    for f in 0..m.frames {
+        let frame = &m.data[f * m.height * m.width..(f + 1) * m.height * m.width];
+        for y in 0..h {
+            let sy = ((y as f64 + 0.5) * m.height as f64 / h as f64) as usize;
+            for x in 0..w {
+                let sx = ((x as f64 + 0.5) * m.width as f64 / w as f64) as usize;
+                out.push(frame[sy.min(m.height - 1) * m.width + sx.min(m.width - 1)]);
+            }
+        }
+    }
+    out
+}
+
 fn video_shape(ds: &LeRobotDataset, key: &str) -> Option<(usize, usize)> {
     let shape = ds
         .info
@@ -363,6 +557,7 @@ mod tests {
                 rgb: (0..t * h * w * 3).map(|k| (k % 251) as u8).collect(),
                 masks: Some((0..t * h * w).map(|k| (k % 2) as u8).collect()),
                 actions: (0..t * 7).map(|k| k as f32).collect(),
+                source: 0,
             })
             .collect();
         ClipDataset {
@@ -371,6 +566,8 @@ mod tests {
             clip_frames: 5,
             height: 8,
             width: 12,
+            clips_per_video: 1,
+            sources: vec![("fake".into(), 1.0)],
         }
     }
 
@@ -393,5 +590,20 @@ mod tests {
         assert_eq!(a.first_frames.size(), [2, 3, 8, 12]);
         let mx = a.masks.abs().min().double_value(&[]);
         assert_eq!(mx, 1.0); // masks are exactly +-1
+    }
+
+    #[test]
+    fn an_epoch_holds_clips_per_video_clips_of_every_video() {
+        let mut d = fake(5);
+        d.clips_per_video = 3;
+        assert_eq!(d.steps_per_epoch(2), 8); // 15 clips
+        let slots = d.epoch_slots(1, 0, 15);
+        for e in 0..5 {
+            assert_eq!(slots.iter().filter(|&&s| s == e).count(), 3);
+        }
+        assert_ne!(slots, d.epoch_slots(1, 1, 15), "a new order every epoch");
+        // The batches of one epoch are consecutive slices of its slots.
+        let b: Vec<usize> = (0..7).flat_map(|s| d.batch_episodes(1, s, 2)).collect();
+        assert_eq!(b, slots[..14].to_vec());
     }
 }

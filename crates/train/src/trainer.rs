@@ -135,18 +135,17 @@ impl Trainer {
                 if d.width == 0 { w } else { d.width },
             )
         };
-        let data = ClipDataset::open(
-            &cfg.data.dataset,
-            &cfg.data.split,
-            cfg.data.video_key.as_deref(),
+        let data = ClipDataset::open_sources(
+            &cfg.data.sources()?,
             frames,
             height,
             width,
+            cfg.data.clips_per_video,
         )?;
         if cfg.ablation.mask_action && !data.has_masks() {
             return Err(TrainError::input(
                 format!("dataset {}", cfg.data.dataset.display()),
-                "mask conditioning needs masks/episode_*.npy for every episode",
+                "mask conditioning needs masks for every episode: masks/episode_*.npy, data.robot to render calc masks, or data.masks = \"seg\"",
             ));
         }
         let mut model = build_model(&cfg, device, frames, height, width)?;
