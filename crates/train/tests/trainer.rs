@@ -310,6 +310,32 @@ fn calc_and_seg_mask_sources_and_mixing() {
         .file_name()
         .to_string_lossy()
         .ends_with("_96x64.npy"));
+    // Rendering needs the calibration: its absence is an error naming the file and episode.
+    let nocal = tmp.path().join("nocal");
+    copy_dir(&copy, &nocal);
+    std::fs::remove_dir_all(nocal.join("meta/calibration")).unwrap();
+    let err = ClipDataset::open_sources(
+        &[SourceSpec {
+            root: nocal.clone(),
+            ..spec(
+                MaskKind::Calc {
+                    robot: Some("franka".into()),
+                    cache: tmp.path().join("c3"),
+                },
+                1.0,
+            )
+        }],
+        9,
+        64,
+        96,
+        1,
+    )
+    .unwrap_err();
+    assert!(
+        err.to_string()
+            .contains("missing camera calibration of episode"),
+        "{err}"
+    );
     // Without a robot and without masks/, calc gives no masks (the ablation's case).
     let none = ClipDataset::open_sources(
         &[spec(
