@@ -103,4 +103,75 @@ lr = 1e-4
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("learning_rate"), "{err}");
+
+    // A run killed (SIGKILL) mid-way and resumed gives the same loss curve as
+    // an uninterrupted run, with every step logged once.
+    let cfg_kill = std::fs::read_to_string(&cfg_path)
+        .expect("config")
+        .replace("max_steps = 3", "max_steps = 10");
+    let kill_cfg = d.join("kill.toml");
+    std::fs::write(&kill_cfg, cfg_kill).expect("write");
+    let full_dir = d.join("full");
+    ok(&run(&[
+        "train",
+        s(&kill_cfg),
+        "--quiet",
+        "--out",
+        s(&full_dir),
+    ]));
+    let killed_dir = d.join("killed");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+        .args(["train", s(&kill_cfg), "--quiet", "--out", s(&killed_dir)])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("spawn");
+    let latest = killed_dir.join("checkpoints/latest");
+    let t0 = std::time::Instant::now();
+    while std::fs::read_to_string(&latest).map_or(true, |l| l.trim() != "step-00000004") {
+        assert!(t0.elapsed().as_secs() < 300, "no step-4 checkpoint");
+        assert!(
+            child.try_wait().expect("wait").is_none(),
+            "the run ended before it was killed"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().expect("kill");
+    child.wait().expect("reap");
+    assert!(!killed_dir.join("final").exists(), "killed before the end");
+    ok(&run(&[
+        "train",
+        s(&kill_cfg),
+        "--quiet",
+        "--out",
+        s(&killed_dir),
+        "--resume",
+        s(&killed_dir),
+    ]));
+    let losses = |dir: &std::path::Path| -> Vec<(u64, f64)> {
+        std::fs::read_to_string(dir.join("metrics.jsonl"))
+            .expect("metrics")
+            .lines()
+            .map(|l| {
+                let v: serde_json::Value = serde_json::from_str(l).expect("json");
+                (
+                    v["step"].as_u64().expect("step"),
+                    v["loss"].as_f64().expect("loss"),
+                )
+            })
+            .collect()
+    };
+    let (a, b) = (losses(&full_dir), losses(&killed_dir));
+    assert_eq!(a.len(), 10);
+    assert_eq!(
+        b.iter().map(|x| x.0).collect::<Vec<_>>(),
+        (0..10).collect::<Vec<u64>>(),
+        "each step once"
+    );
+    for ((step, x), (_, y)) in a.iter().zip(&b) {
+        assert!(
+            (x - y).abs() <= 1e-6 * x.abs().max(1.0),
+            "step {step}: uninterrupted {x} vs killed+resumed {y}"
+        );
+    }
 }

@@ -32,9 +32,39 @@ pub struct RaftFlow {
     pub iterations: usize,
 }
 
+/// The size RAFT runs at for `(h, w)` frames: sides multiples of 8 and at
+/// least 128 (RAFT's 1/8-resolution correlation pyramid needs that), aspect
+/// ratio kept; `(h, w)` itself when it already qualifies.
+pub fn raft_size(h: i64, w: i64) -> (i64, i64) {
+    let ok = |x: i64| x >= 128 && x % 8 == 0;
+    if ok(h) && ok(w) {
+        return (h, w);
+    }
+    let scale = (128.0 / h.min(w) as f64).max(1.0);
+    let up8 = |x: f64| ((x / 8.0).ceil() as i64 * 8).max(128);
+    (up8(h as f64 * scale), up8(w as f64 * scale))
+}
+
 impl FlowEstimator for RaftFlow {
+    /// Frames smaller than RAFT accepts (the tiny CPU configs) are upsampled
+    /// bilinearly to [`raft_size`], and the flow is resized back with its
+    /// vectors rescaled to the input's pixels.
     fn flow(&self, from: &Tensor, to: &Tensor) -> Result<Tensor> {
-        Ok(self.raft.forward(from, to, self.iterations)?)
+        check_pair(from, to)?;
+        let s = from.size(); // [B, 3, H, W]
+        let (h, w) = (s[2], s[3]);
+        let (rh, rw) = raft_size(h, w);
+        if (rh, rw) == (h, w) {
+            return Ok(self.raft.forward(from, to, self.iterations)?);
+        }
+        let up = |x: &Tensor| x.upsample_bilinear2d([rh, rw], false, None, None);
+        let f = self.raft.forward(&up(from), &up(to), self.iterations)?; // [B, 2, rh, rw]
+        let f = f.upsample_bilinear2d([h, w], false, None, None); // [B, 2, H, W]
+        let scale = Tensor::from_slice(&[w as f32 / rw as f32, h as f32 / rh as f32])
+            .to_device(f.device())
+            .to_kind(f.kind())
+            .view([1, 2, 1, 1]);
+        Ok(f * scale)
     }
 
     fn name(&self) -> String {
@@ -220,6 +250,14 @@ pub fn flow_weight(epoch: usize, e_switch: usize, lambda: f64) -> f64 {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn raft_size_keeps_aspect_and_meets_raft_limits() {
+        assert_eq!(raft_size(480, 720), (480, 720));
+        assert_eq!(raft_size(64, 96), (128, 192));
+        assert_eq!(raft_size(100, 200), (128, 256));
+        assert_eq!(raft_size(130, 130), (136, 136));
+    }
     use tch::Device;
 
     fn field(n: i64, h: i64, w: i64, f: impl Fn(i64, i64) -> (f32, f32)) -> Tensor {
