@@ -283,6 +283,16 @@ pub struct TrainSection {
     /// Testing aid: from this step on, the diffusion loss is multiplied by NaN
     /// (exercises the NaN/inf guard).
     pub inject_nan_at_step: Option<usize>,
+    /// What the run trains: `bridgev2w` (ControlNet + LoRA on a video prior,
+    /// the paper's fine-tuning), `vae` (the backbone's VAE as an autoencoder:
+    /// L1 reconstruction + `kl_weight` KL), or `prior` (the backbone
+    /// transformer as an action-free image-to-video model: the diffusion and
+    /// dynamics losses, no condition). `vae` and `prior` write the trained
+    /// backbone as a diffusers folder to `OUT/final/backbone`, the next stage's
+    /// `model.backbone`.
+    pub stage: String,
+    /// KL weight of the `vae` stage.
+    pub kl_weight: f64,
 }
 
 impl Default for TrainSection {
@@ -314,6 +324,8 @@ impl Default for TrainSection {
             checkpoint_every: 100,
             keep_checkpoints: 3,
             inject_nan_at_step: None,
+            stage: "bridgev2w".into(),
+            kl_weight: 1e-4,
         }
     }
 }
@@ -401,6 +413,21 @@ impl TrainConfig {
             return bad(
                 "train.condition_dropout",
                 format!("{}: expected a probability", t.condition_dropout),
+            );
+        }
+        if !["bridgev2w", "vae", "prior"].contains(&t.stage.as_str()) {
+            return bad(
+                "train.stage",
+                format!(
+                    "{:?}: expected \"bridgev2w\", \"vae\" or \"prior\"",
+                    t.stage
+                ),
+            );
+        }
+        if !(t.kl_weight.is_finite() && t.kl_weight >= 0.0) {
+            return bad(
+                "train.kl_weight",
+                format!("{}: expected a finite value >= 0", t.kl_weight),
             );
         }
         if self.data.clips_per_video == 0 {

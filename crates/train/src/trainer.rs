@@ -8,6 +8,9 @@
 //! dropout) comes from `(seed, s)`, so the RNG state of a checkpoint is its
 //! step, and a resumed run repeats an uninterrupted run's loss curve.
 //!
+//! Stages (`train.stage`): `bridgev2w` (the above), `vae` and `prior` (a
+//! video prior trained here, see [`Trainer::save_trained_backbone`]).
+//!
 //! Not implemented (yet): bf16 autocast and per-block gradient
 //! checkpointing (training runs in the backbone's dtype, F32 here), and
 //! data-parallel training (see the README for the intended NCCL layout).
@@ -71,6 +74,12 @@ pub struct StepMetrics {
     pub dropped: bool,
     /// Wall time of the step, seconds.
     pub secs: f64,
+    /// `vae` stage: L1 reconstruction loss (0 in other stages).
+    #[serde(default)]
+    pub recon: f64,
+    /// `vae` stage: KL divergence of the posterior from N(0, I), per element.
+    #[serde(default)]
+    pub kl: f64,
 }
 
 /// The losses of one forward pass.
@@ -88,6 +97,10 @@ pub struct Losses {
     pub flow_weight: f64,
     /// Whether the condition was dropped.
     pub dropped: bool,
+    /// `vae` stage: reconstruction loss.
+    pub recon: f64,
+    /// `vae` stage: KL term.
+    pub kl: f64,
 }
 
 /// The trainer.
@@ -142,7 +155,7 @@ impl Trainer {
             width,
             cfg.data.clips_per_video,
         )?;
-        if cfg.ablation.mask_action && !data.has_masks() {
+        if cfg.ablation.mask_action && cfg.train.stage == "bridgev2w" && !data.has_masks() {
             return Err(TrainError::input(
                 format!("dataset {}", cfg.data.dataset.display()),
                 "mask conditioning needs masks for every episode: masks/episode_*.npy, data.robot to render calc masks, or data.masks = \"seg\"",
@@ -151,7 +164,7 @@ impl Trainer {
         let mut model = build_model(&cfg, device, frames, height, width)?;
         let tf_cfg = model.transformer.model.config().clone();
         let train_backbone = cfg.model.train_backbone || !cfg.ablation.pretrained;
-        let (action_vs, action) = if cfg.ablation.mask_action {
+        let (action_vs, action) = if cfg.ablation.mask_action || cfg.train.stage != "bridgev2w" {
             (None, None)
         } else {
             tch::manual_seed(seed_for(cfg.train.seed, u64::MAX, 7) as i64);
@@ -170,15 +183,22 @@ impl Trainer {
         };
         // Trainable: LoRA (+ the ControlNet when masks condition), the action
         // MLP, the backbone when trained from scratch.
+        let stage = cfg.train.stage.as_str();
         let mut params: Vec<(String, Tensor)> = Vec::new();
         for (name, t) in model.adapters.variables() {
-            if !t.requires_grad() {
+            if stage != "bridgev2w" || !t.requires_grad() {
                 continue;
             }
             if !cfg.ablation.mask_action && name.starts_with("controlnet.") {
                 continue;
             }
             params.push((format!("adapters.{name}"), t));
+        }
+        if stage == "vae" {
+            model.vae_vs.unfreeze();
+            for (name, t) in model.vae_vs.variables() {
+                params.push((format!("vae.{name}"), t));
+            }
         }
         if let Some(vs) = &action_vs {
             for (name, t) in vs.variables() {
@@ -187,7 +207,7 @@ impl Trainer {
                 }
             }
         }
-        if train_backbone {
+        if (train_backbone && stage == "bridgev2w") || stage == "prior" {
             model.transformer.vs.unfreeze();
             for (name, t) in model.transformer.vs.variables() {
                 params.push((format!("backbone.{name}"), t));
@@ -261,8 +281,45 @@ impl Trainer {
         )
     }
 
+    /// The `vae` stage's objective: L1 reconstruction of the clip through a
+    /// posterior sample plus `kl_weight` times the per-element KL from N(0, I).
+    fn vae_losses(&self, batch: &Batch, step: usize) -> Result<Losses> {
+        let t = &self.cfg.train;
+        let vae = &self.model.vae;
+        let post = vae.encode_with_grad(&batch.video)?;
+        let z = post.sample(seed_for(t.seed, step as u64, 5))?;
+        let recon = vae.decode_with_grad(&z)?;
+        let l1 = (recon - batch.video.to_device(z.device()))
+            .abs()
+            .mean(Kind::Float);
+        let (mean, logvar) = (post.mean(), post.logvar());
+        let kl = ((mean * mean) + logvar.exp() - 1.0 - logvar).mean(Kind::Float) * 0.5;
+        let l1 = if t.inject_nan_at_step.is_some_and(|n| step >= n) {
+            l1 * f64::NAN
+        } else {
+            l1
+        };
+        let (rv, kv) = (l1.double_value(&[]), kl.double_value(&[]));
+        check_finite(step, "reconstruction", rv)?;
+        check_finite(step, "kl", kv)?;
+        Ok(Losses {
+            total: l1 + kl * t.kl_weight,
+            diffusion: 0.0,
+            dynamics: 0.0,
+            flow: 0.0,
+            flow_weight: 0.0,
+            dropped: false,
+            recon: rv,
+            kl: kv,
+        })
+    }
+
     /// The objective on `batch` with the random draws of step `step`.
     pub fn losses(&self, batch: &Batch, step: usize) -> Result<Losses> {
+        if self.cfg.train.stage == "vae" {
+            return self.vae_losses(batch, step);
+        }
+        let prior = self.cfg.train.stage == "prior";
         let t = &self.cfg.train;
         let seed = t.seed;
         let s = step as u64;
@@ -285,14 +342,15 @@ impl Trainer {
                 first = (&first + first.randn_like() * sig).clamp(-1.0, 1.0);
             }
             let img = model.image_latents(&first, Some(seed_for(seed, s, 6)))?;
-            let control = if self.cfg.ablation.mask_action {
+            let control = if self.cfg.ablation.mask_action && !prior {
                 Some(model.control_latents(&batch.masks, &img)?)
             } else {
                 None
             };
             Ok((z0, img, control))
         })?;
-        let dropped = rng.gen::<f64>() < t.condition_dropout;
+        // The prior is action-free: never conditioned.
+        let dropped = rng.gen::<f64>() < t.condition_dropout || prior;
         let n_train = model.scheduler.num_train_timesteps as i64;
         let ts: Vec<i64> = (0..b).map(|_| rng.gen_range(0..n_train)).collect();
         let timesteps = Tensor::from_slice(&ts).to_device(model.device());
@@ -325,7 +383,7 @@ impl Trainer {
         check_finite(step, "dynamics", dynamics)?;
         let total = diff + &dynl * t.lambda_dyn;
         let epoch = step / self.steps_per_epoch();
-        let fw = if self.cfg.ablation.flow_loss {
+        let fw = if self.cfg.ablation.flow_loss && !prior {
             flow_weight(epoch, t.e_switch, t.lambda_flow)
         } else {
             0.0
@@ -348,6 +406,8 @@ impl Trainer {
             flow,
             flow_weight: fw,
             dropped,
+            recon: 0.0,
+            kl: 0.0,
         })
     }
 
@@ -386,6 +446,8 @@ impl Trainer {
             grad_norm,
             dropped: l.dropped,
             secs: start.elapsed().as_secs_f64(),
+            recon: l.recon,
+            kl: l.kl,
         })
     }
 
@@ -424,6 +486,9 @@ impl Trainer {
         let fin = out.join("final");
         std::fs::create_dir_all(&fin).map_err(|e| io_err(&fin, e))?;
         self.model.save_weights(&fin.join("weights.safetensors"))?;
+        if self.cfg.train.stage != "bridgev2w" {
+            self.save_trained_backbone(&fin.join("backbone"))?;
+        }
         if let Some(vs) = &self.action_vs {
             save_named(
                 vs.variables().into_iter().collect(),
@@ -431,6 +496,44 @@ impl Trainer {
             )?;
         }
         Ok(all)
+    }
+
+    /// Writes the backbone (diffusers folder) after a `vae` or `prior` stage.
+    /// After `vae`, the latent `scaling_factor` is re-estimated as
+    /// `1 / std` of posterior means over up to 8 training batches, so the
+    /// diffusion stages see latents of unit scale (as Stable Diffusion and
+    /// CogVideoX set it). Written to a temporary folder, then renamed.
+    pub fn save_trained_backbone(&self, dir: &Path) -> Result<()> {
+        let tmp = PathBuf::from(format!("{}.tmp", dir.display()));
+        if tmp.exists() {
+            std::fs::remove_dir_all(&tmp).map_err(|e| io_err(&tmp, e))?;
+        }
+        self.model.save_backbone(&tmp)?;
+        if self.cfg.train.stage == "vae" {
+            let mut sum = 0f64;
+            let mut sq = 0f64;
+            let mut n = 0f64;
+            for step in 0..self.steps_per_epoch().min(8) {
+                let b = self.batch(step)?;
+                let z = tch::no_grad(|| self.model.vae.encode(&b.video))?
+                    .mode()
+                    .to_kind(Kind::Double);
+                sum += z.sum(Kind::Double).double_value(&[]);
+                sq += (&z * &z).sum(Kind::Double).double_value(&[]);
+                n += z.numel() as f64;
+            }
+            let std = (sq / n - (sum / n).powi(2)).max(1e-12).sqrt();
+            let path = tmp.join("vae/config.json");
+            let text = std::fs::read_to_string(&path).map_err(|e| io_err(&path, e))?;
+            let mut v: serde_json::Value = serde_json::from_str(&text)
+                .map_err(|e| TrainError::input(path.display().to_string(), e.to_string()))?;
+            v["scaling_factor"] = serde_json::json!(1.0 / std);
+            write_atomic(&path, v.to_string().as_bytes())?;
+        }
+        if dir.exists() {
+            std::fs::remove_dir_all(dir).map_err(|e| io_err(dir, e))?;
+        }
+        std::fs::rename(&tmp, dir).map_err(|e| io_err(dir, e))
     }
 
     /// The checkpoint folder of `step` under the run's output.

@@ -477,3 +477,69 @@ fn raft_flow_loss_trains_through_the_decoder() {
         "the RAFT flow term adds gradient to the branch: {with_flow} vs {without_flow}"
     );
 }
+
+/// The video-prior stages: `vae` trains the autoencoder (reconstruction
+/// falls, the latent scale is re-estimated) and writes a diffusers backbone;
+/// `prior` trains that backbone's transformer action-free (no branch, no
+/// adapters) and writes it again; the paper's fine-tuning then starts from it.
+#[test]
+fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(&tmp.path().join("vae"));
+    c.train.stage = "vae".into();
+    c.train.max_steps = 24;
+    c.train.lr = 2e-3;
+    c.train.warmup_steps = 0;
+    c.train.checkpoint_every = 0;
+    let mut t = Trainer::new(c).unwrap();
+    assert!(t.opt.params().iter().all(|(n, _)| n.starts_with("vae.")));
+    let m = t.run(&mut |_| {}).unwrap();
+    let first: f64 = m[..4].iter().map(|x| x.recon).sum::<f64>() / 4.0;
+    let last: f64 = m[20..].iter().map(|x| x.recon).sum::<f64>() / 4.0;
+    assert!(m
+        .iter()
+        .all(|x| x.recon > 0.0 && x.kl >= 0.0 && x.diffusion == 0.0));
+    assert!(last < 0.8 * first, "reconstruction L1 {first} -> {last}");
+    let backbone = tmp.path().join("vae/final/backbone");
+    let vcfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(backbone.join("vae/config.json")).unwrap())
+            .unwrap();
+    let scale = vcfg["scaling_factor"].as_f64().unwrap();
+    assert!(
+        scale.is_finite() && scale > 0.0 && (scale - 0.7).abs() > 1e-6,
+        "re-estimated scale {scale}"
+    );
+
+    let mut c = config(&tmp.path().join("prior"));
+    c.model.backbone = backbone.display().to_string();
+    (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
+    c.train.stage = "prior".into();
+    c.train.max_steps = 2;
+    c.train.checkpoint_every = 0;
+    let mut t = Trainer::new(c).unwrap();
+    assert!(t
+        .opt
+        .params()
+        .iter()
+        .all(|(n, _)| n.starts_with("backbone.")));
+    let m = t.run(&mut |_| {}).unwrap();
+    assert!(m
+        .iter()
+        .all(|x| x.dropped && x.flow == 0.0 && x.diffusion > 0.0));
+    let prior = tmp.path().join("prior/final/backbone");
+    assert!(prior.join("transformer/config.json").is_file());
+
+    // Fine-tuning from the prior loads it (the paper's pipeline).
+    let mut c = config(&tmp.path().join("ft"));
+    c.model.backbone = prior.display().to_string();
+    (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
+    c.train.max_steps = 1;
+    let mut t = Trainer::new(c).unwrap();
+    assert!(t
+        .opt
+        .params()
+        .iter()
+        .all(|(n, _)| n.starts_with("adapters.")));
+    t.run(&mut |_| {}).unwrap();
+}

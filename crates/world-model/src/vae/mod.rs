@@ -635,6 +635,12 @@ impl AutoencoderKLCogVideoX {
     /// posterior over unscaled latents `[B, latent_channels, t, h, w]`.
     pub fn encode(&self, video: &Tensor) -> Result<Posterior> {
         let _guard = tch::no_grad_guard();
+        self.encode_with_grad(video)
+    }
+
+    /// [`Self::encode`] with autograd on: gradients reach the encoder's
+    /// parameters when they are trainable (training the VAE itself).
+    pub fn encode_with_grad(&self, video: &Tensor) -> Result<Posterior> {
         self.check_video(video)?;
         let x = self.to_model(video);
         let b = x.size()[0];
@@ -659,7 +665,8 @@ impl AutoencoderKLCogVideoX {
     }
 
     /// [`Self::decode`] with autograd on: gradients flow from the decoded
-    /// video back into `latents` (the VAE's own parameters stay frozen).
+    /// video back into `latents` (and into the decoder's parameters when they
+    /// are trainable; frozen otherwise).
     /// Training's flow loss decodes predicted latents through this.
     pub fn decode_with_grad(&self, latents: &Tensor) -> Result<Tensor> {
         check_rank5(
