@@ -23,7 +23,8 @@
 
 use super::h5::H5;
 use super::{
-    io_err, json_err, json_f64, json_vec, read_json, rpy_from_xyzw, RawEpisode, RawError, RawView,
+    io_err, json_err, json_intrinsics, json_vec, read_json, rpy_from_xyzw, RawEpisode, RawError,
+    RawView,
 };
 use bridgev2w_embodiment::camera::Intrinsics;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
@@ -133,40 +134,13 @@ fn read_intrinsics(path: &Path, default_size: (u32, u32)) -> Result<Intrinsics, 
             "missing: expected {\"fx\", \"fy\", \"ppx\", \"ppy\"}",
         )
     })?;
-    let f = |name: &str| {
-        json_f64(path, k, name).map_err(|e| match e {
-            RawError::Json { message, .. } => json_err(path, &format!("intrinsic.{name}"), message),
-            other => other,
-        })
-    };
-    let size = |name: &str, default: u32| -> Result<u32, RawError> {
-        match k.get(name) {
-            None => Ok(default),
-            Some(x) => x
-                .as_u64()
-                .and_then(|x| u32::try_from(x).ok())
-                .filter(|&x| x > 0)
-                .ok_or_else(|| {
-                    json_err(
-                        path,
-                        &format!("intrinsic.{name}"),
-                        format!("{x}: expected a positive integer"),
-                    )
-                }),
-        }
-    };
-    let intr = Intrinsics {
-        fx: f("fx")?,
-        fy: f("fy")?,
-        cx: f("ppx")?,
-        cy: f("ppy")?,
-        width: size("width", default_size.0)?,
-        height: size("height", default_size.1)?,
-        distortion: None,
-    };
-    intr.validate()
-        .map_err(|e| json_err(path, "intrinsic", e.to_string()))?;
-    Ok(intr)
+    json_intrinsics(
+        path,
+        k,
+        "intrinsic",
+        ["fx", "fy", "ppx", "ppy"],
+        Some(default_size),
+    )
 }
 
 fn pose_from_json(path: &Path, field: &str, e: &Value) -> Result<Isometry3<f64>, RawError> {

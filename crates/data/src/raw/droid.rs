@@ -24,7 +24,9 @@
 //! i.e. an opening of [`ROBOTIQ_2F85_STROKE_M`]` * (1 - g)`.
 
 use super::h5::H5;
-use super::{io_err, json_err, json_f64, json_vec, read_json, RawEpisode, RawError, RawView};
+use super::{
+    io_err, json_err, json_intrinsics, json_vec, read_json, RawEpisode, RawError, RawView,
+};
 use bridgev2w_embodiment::camera::{world_from_camera_from_xyz_rpy, Intrinsics};
 use nalgebra::Isometry3;
 use serde_json::Value;
@@ -92,41 +94,7 @@ pub fn read_intrinsics(path: &Path) -> Result<BTreeMap<String, Intrinsics>, RawE
         .ok_or_else(|| json_err(path, "", "expected an object keyed by camera serial"))?;
     let mut out = BTreeMap::new();
     for (serial, k) in map {
-        let f = |name: &str| {
-            json_f64(path, k, name).map_err(|e| match e {
-                RawError::Json { message, .. } => {
-                    json_err(path, &format!("{serial}.{name}"), message)
-                }
-                other => other,
-            })
-        };
-        let size = |name: &str| -> Result<u32, RawError> {
-            k.get(name)
-                .and_then(Value::as_u64)
-                .and_then(|x| u32::try_from(x).ok())
-                .filter(|&x| x > 0)
-                .ok_or_else(|| {
-                    json_err(
-                        path,
-                        &format!("{serial}.{name}"),
-                        format!(
-                            "{}: expected a positive integer (pixels)",
-                            k.get(name).map_or("missing".to_string(), Value::to_string)
-                        ),
-                    )
-                })
-        };
-        let intr = Intrinsics {
-            fx: f("fx")?,
-            fy: f("fy")?,
-            cx: f("cx")?,
-            cy: f("cy")?,
-            width: size("width")?,
-            height: size("height")?,
-            distortion: None,
-        };
-        intr.validate()
-            .map_err(|e| json_err(path, serial, e.to_string()))?;
+        let intr = json_intrinsics(path, k, serial, ["fx", "fy", "cx", "cy"], None)?;
         out.insert(serial.clone(), intr);
     }
     Ok(out)

@@ -147,6 +147,57 @@ pub(crate) fn json_vec(
         .collect()
 }
 
+/// Pinhole intrinsics from a JSON object `k` whose focal lengths and principal
+/// point are under `keys` (`[fx, fy, cx, cy]` names) and whose image size is
+/// `width`/`height` (or `default_size` when absent). Errors name
+/// `prefix.<key>`.
+pub(crate) fn json_intrinsics(
+    path: &Path,
+    k: &Value,
+    prefix: &str,
+    keys: [&str; 4],
+    default_size: Option<(u32, u32)>,
+) -> Result<Intrinsics, RawError> {
+    let field = |name: &str| format!("{prefix}.{name}");
+    let f = |name: &str| {
+        json_f64(path, k, name).map_err(|e| match e {
+            RawError::Json { message, .. } => json_err(path, &field(name), message),
+            other => other,
+        })
+    };
+    let size = |name: &str, default: Option<u32>| -> Result<u32, RawError> {
+        match (k.get(name), default) {
+            (None, Some(d)) => Ok(d),
+            (x, _) => x
+                .and_then(Value::as_u64)
+                .and_then(|x| u32::try_from(x).ok())
+                .filter(|&x| x > 0)
+                .ok_or_else(|| {
+                    json_err(
+                        path,
+                        &field(name),
+                        format!(
+                            "{}: expected a positive integer (pixels)",
+                            x.map_or("missing".to_string(), Value::to_string)
+                        ),
+                    )
+                }),
+        }
+    };
+    let intr = Intrinsics {
+        fx: f(keys[0])?,
+        fy: f(keys[1])?,
+        cx: f(keys[2])?,
+        cy: f(keys[3])?,
+        width: size("width", default_size.map(|s| s.0))?,
+        height: size("height", default_size.map(|s| s.1))?,
+        distortion: None,
+    };
+    intr.validate()
+        .map_err(|e| json_err(path, prefix, e.to_string()))?;
+    Ok(intr)
+}
+
 /// One camera of an episode.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RawView {
