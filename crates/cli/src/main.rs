@@ -50,6 +50,8 @@ enum Command {
     Convert(convert_cmd::ConvertArgs),
     /// Train BridgeV2W (ControlNet + LoRA) on a dataset with the paper's losses (CONFIG.toml).
     Train(train_cmd::TrainArgs),
+    /// Score a trained run's predictions per split (PSNR, SSIM) against copying the first frame.
+    EvalRun(train_cmd::EvalRunArgs),
     /// Goal-image CEM-MPC planning executed in the synthetic world, vs random actions.
     Plan(plan_cmd::PlanArgs),
     /// Policy evaluation by autoregressive world-model rollouts vs synthetic-world success.
@@ -72,6 +74,7 @@ fn main() -> Result<()> {
         Command::Synth(a) => synth_cmd::run(&a),
         Command::Convert(a) => convert_cmd::run(&a),
         Command::Train(a) => train_cmd::run(&a),
+        Command::EvalRun(a) => train_cmd::run_eval_run(&a),
         Command::Plan(a) => plan_cmd::run_plan(&a),
         Command::EvalPolicyRollout(a) => plan_cmd::run_eval_rollout(&a),
         Command::PlanReport(a) => plan_cmd::run_plan_report(&a),

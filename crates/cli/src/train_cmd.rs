@@ -87,3 +87,84 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     );
     Ok(())
 }
+
+/// Arguments of `eval-run`.
+#[derive(Debug, clap::Args)]
+pub struct EvalRunArgs {
+    /// The run's training configuration (TOML).
+    config: PathBuf,
+    /// The run folder (its latest checkpoint) or a checkpoint folder.
+    #[arg(long)]
+    run: PathBuf,
+    /// Splits of the run's dataset to score, comma-separated.
+    #[arg(long, default_value = "test,unseen_camera,unseen_scene")]
+    splits: String,
+    /// Denoising steps.
+    #[arg(long, default_value_t = 20)]
+    steps: usize,
+    /// Classifier-free guidance scale (1 = off).
+    #[arg(long, default_value_t = 1.0)]
+    guidance: f64,
+    /// At most this many videos per split (0 = all).
+    #[arg(long, default_value_t = 0)]
+    max_videos: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Also write the scores as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+/// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
+/// next to the copy-the-first-frame baseline.
+pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
+    use bridgev2w_train::evaluate::{evaluate_split, EvalOptions};
+    let cfg = TrainConfig::from_file(&args.config)?;
+    let mut trainer = Trainer::new(cfg).context("setting up the run's model")?;
+    trainer
+        .resume(&args.run)
+        .with_context(|| format!("loading the run {}", args.run.display()))?;
+    let opts = EvalOptions {
+        steps: args.steps,
+        guidance: args.guidance,
+        seed: args.seed,
+        max_videos: args.max_videos,
+    };
+    let mut rows = Vec::new();
+    for split in args
+        .splits
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+    {
+        let pb = ProgressBar::new_spinner().with_message(format!("scoring {split}"));
+        let scores = evaluate_split(&trainer, split, &opts, &|| pb.tick())
+            .with_context(|| format!("split {split}"))?;
+        pb.finish_and_clear();
+        rows.push(scores);
+    }
+    let mut text = format!(
+        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | SSIM | copy-first-frame PSNR | copy-first-frame SSIM |\n|---|---|---|---|---|---|\n",
+        args.run.display(),
+        trainer.step,
+        trainer.cfg.train.stage,
+        args.steps,
+        args.guidance
+    );
+    for r in &rows {
+        text.push_str(&format!(
+            "| {} | {} | {:.2} | {:.4} | {:.2} | {:.4} |\n",
+            r.split, r.videos, r.psnr, r.ssim, r.baseline_psnr, r.baseline_ssim
+        ));
+    }
+    if let Some(path) = &args.json {
+        let body = serde_json::to_string_pretty(&serde_json::json!({
+            "run": args.run,
+            "step": trainer.step,
+            "splits": rows,
+        }))?;
+        bridgev2w_embodiment::npy::write_atomic(path, body.as_bytes())
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    crate::print_stdout(&text)
+}

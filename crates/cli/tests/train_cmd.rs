@@ -97,6 +97,33 @@ lr = 1e-4
     ]));
     let metrics = std::fs::read_to_string(run_dir.join("metrics.jsonl")).expect("metrics");
     assert_eq!(metrics.lines().count(), 5);
+    // Score the run per split next to the copy-the-first-frame baseline.
+    let json = d.join("scores.json");
+    let o = run(&[
+        "eval-run",
+        s(&cfg_path),
+        "--run",
+        s(&run_dir),
+        "--splits",
+        "test,unseen_scene",
+        "--steps",
+        "2",
+        "--max-videos",
+        "1",
+        "--json",
+        s(&json),
+    ]);
+    ok(&o);
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        table.contains("| split | videos | PSNR | SSIM | copy-first-frame PSNR")
+            && table.contains("| unseen_scene | 1 |"),
+        "{table}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    assert_eq!(v["step"].as_u64(), Some(5));
+    assert!(v["splits"][0]["psnr"].as_f64().is_some_and(f64::is_finite));
     // Errors name the problem.
     std::fs::write(d.join("bad.toml"), "[train]\nlearning_rate = 1\n").expect("write");
     let o = run(&["train", s(&d.join("bad.toml"))]);

@@ -435,6 +435,20 @@ impl ClipDataset {
     ) -> Result<Batch> {
         let eps = self.batch_episodes(seed, step, batch_size);
         let mut rng = rng_for(seed, step as u64, 2);
+        let clips: Vec<(usize, usize)> = eps
+            .iter()
+            .map(|&i| {
+                (
+                    i,
+                    rng.gen_range(0..=self.episodes[i].frames - self.clip_frames),
+                )
+            })
+            .collect();
+        self.clips(&clips, device)
+    }
+
+    /// A batch of the clips `(episode, start frame)` on `device`.
+    pub fn clips(&self, clips: &[(usize, usize)], device: Device) -> Result<Batch> {
         let (tf, h, w) = (
             self.clip_frames as i64,
             self.height as i64,
@@ -443,9 +457,19 @@ impl ClipDataset {
         let mut videos = Vec::new();
         let mut masks = Vec::new();
         let mut actions = Vec::new();
-        for &i in &eps {
-            let e = &self.episodes[i];
-            let start = rng.gen_range(0..=e.frames - self.clip_frames);
+        for &(i, start) in clips {
+            let e = self.episodes.get(i).ok_or_else(|| {
+                TrainError::input("clip", format!("episode {i} of {}", self.episodes.len()))
+            })?;
+            if start + self.clip_frames > e.frames {
+                return Err(TrainError::input(
+                    format!("episode {} clip", e.index),
+                    format!(
+                        "start {start} + {} frames past its {} frames",
+                        self.clip_frames, e.frames
+                    ),
+                ));
+            }
             let (eh, ew) = (e.height as i64, e.width as i64);
             let px = eh * ew;
             let rgb =
@@ -495,7 +519,7 @@ impl ClipDataset {
             video,
             masks: Tensor::stack(&masks, 0).to_device(device),
             actions: Tensor::stack(&actions, 0).to_device(device),
-            episodes: eps.iter().map(|&i| self.episodes[i].index).collect(),
+            episodes: clips.iter().map(|&(i, _)| self.episodes[i].index).collect(),
         })
     }
 }

@@ -1,0 +1,117 @@
+//! Video-prediction quality of a trained run on a split (paper Tables
+//! droid/ablation, in the synthetic world): for the first clip of every
+//! episode, the run's model predicts the video from the first frame and the
+//! condition (masks, or actions for the `mask_action = false` ablation, or
+//! nothing for an action-free prior); PSNR and SSIM against the ground truth,
+//! next to the copy-the-first-frame baseline on the same clips.
+
+use crate::data::ClipDataset;
+use crate::trainer::Trainer;
+use crate::{Result, TrainError};
+use bridgev2w_eval::video::{mean_over_videos, video_psnr, video_ssim, Frame};
+use tch::{Kind, Tensor};
+
+/// Sampling settings of [`evaluate_split`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct EvalOptions {
+    /// Denoising steps.
+    pub steps: usize,
+    /// Classifier-free guidance scale (1 = off).
+    pub guidance: f64,
+    /// Sampling seed.
+    pub seed: u64,
+    /// At most this many videos (0 = all).
+    pub max_videos: usize,
+}
+
+impl Default for EvalOptions {
+    fn default() -> Self {
+        Self {
+            steps: 20,
+            guidance: 1.0,
+            seed: 0,
+            max_videos: 0,
+        }
+    }
+}
+
+/// Scores of one split.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SplitScores {
+    /// Split name.
+    pub split: String,
+    /// Videos scored.
+    pub videos: usize,
+    /// Mean PSNR (dB) of the predictions.
+    pub psnr: f64,
+    /// Mean SSIM of the predictions.
+    pub ssim: f64,
+    /// Mean PSNR of the copy-the-first-frame baseline.
+    pub baseline_psnr: f64,
+    /// Mean SSIM of the baseline.
+    pub baseline_ssim: f64,
+}
+
+/// `[1, 3, T, H, W]` in [-1, 1] to metric frames in [0, 1].
+fn frames(video: &Tensor) -> Result<Vec<Frame>> {
+    let v = ((video.to_kind(Kind::Float).clamp(-1.0, 1.0) + 1.0) / 2.0)
+        .squeeze_dim(0)
+        .permute([1, 2, 3, 0]) // [3, T, H, W] -> [T, H, W, 3]
+        .contiguous();
+    let s = v.size();
+    let (t, h, w) = (s[0] as usize, s[1] as usize, s[2] as usize);
+    let data: Vec<f32> = Vec::<f32>::try_from(v.flatten(0, -1))?;
+    data.chunks(h * w * 3)
+        .take(t)
+        .map(|c| {
+            Frame::new(w, h, c.to_vec()).map_err(|e| TrainError::input("prediction", e.to_string()))
+        })
+        .collect()
+}
+
+/// Scores `trainer`'s model (as loaded or resumed) on `split` of the run's
+/// primary dataset.
+pub fn evaluate_split(
+    trainer: &Trainer,
+    split: &str,
+    opts: &EvalOptions,
+    on_video: &dyn Fn(),
+) -> Result<SplitScores> {
+    let mut spec = trainer
+        .cfg
+        .data
+        .sources()?
+        .into_iter()
+        .next()
+        .ok_or_else(|| TrainError::input("data", "no dataset"))?;
+    spec.split = split.to_string();
+    let d = &trainer.data;
+    let data = ClipDataset::open_sources(&[spec], d.clip_frames, d.height, d.width, 1)?;
+    let n = match opts.max_videos {
+        0 => data.episodes.len(),
+        m => m.min(data.episodes.len()),
+    };
+    let metric = |e: bridgev2w_eval::MetricError| TrainError::input("metrics", e.to_string());
+    let (mut p, mut s, mut bp, mut bs) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for i in 0..n {
+        let batch = data.clips(&[(i, 0)], trainer.model.device())?;
+        let pred = trainer.predict(&batch, opts.steps, opts.guidance, opts.seed)?;
+        let gt = frames(&batch.video)?;
+        let pf = frames(&pred)?;
+        let copy = frames(&batch.first_frames.unsqueeze(2).expand_as(&batch.video))?;
+        p.push(video_psnr(&pf, &gt).map_err(metric)?);
+        s.push(video_ssim(&pf, &gt).map_err(metric)?);
+        bp.push(video_psnr(&copy, &gt).map_err(metric)?);
+        bs.push(video_ssim(&copy, &gt).map_err(metric)?);
+        on_video();
+    }
+    let mean = |v: &[f64]| mean_over_videos(v).map_err(metric);
+    Ok(SplitScores {
+        split: split.to_string(),
+        videos: n,
+        psnr: mean(&p)?,
+        ssim: mean(&s)?,
+        baseline_psnr: mean(&bp)?,
+        baseline_ssim: mean(&bs)?,
+    })
+}
