@@ -13,7 +13,7 @@
 
 use crate::lerobot::{DatasetError, LeRobotDataset};
 use bridgev2w_embodiment::embodiment::Embodiment;
-use bridgev2w_embodiment::masks::render_items;
+use bridgev2w_embodiment::masks::render_frame_mask;
 use bridgev2w_embodiment::npy::{read_npy, write_npy};
 use bridgev2w_embodiment::raster::Rasterizer;
 use rayon::prelude::*;
@@ -141,12 +141,7 @@ pub fn calc_masks(
         .par_iter()
         .map(|r| {
             let q: Vec<f64> = r.state.iter().map(|&v| f64::from(v)).collect();
-            let poses = robot.link_poses(&q);
-            rasterizer
-                .render_labels(&render_items(robot, &poses, true))
-                .iter()
-                .map(|&l| u8::from(l > 0))
-                .collect()
+            render_frame_mask(robot, &rasterizer, &q)
         })
         .collect();
     let data: Vec<u8> = per_frame.concat();

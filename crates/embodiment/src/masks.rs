@@ -65,6 +65,27 @@ pub fn render_frame(robot: &Robot, rasterizer: &Rasterizer, q: &[f64], out: &mut
     rasterizer.render_into(&render_items(robot, &poses, true), out);
 }
 
+/// The label map (row-major, 0 = background) of the robot at `q` seen by
+/// the rasterizer's camera, without depth.
+///
+/// # Panics
+/// If `q.len() != robot.dof()`.
+pub fn render_frame_labels(robot: &Robot, rasterizer: &Rasterizer, q: &[f64]) -> Vec<u16> {
+    let poses = robot.link_poses(q);
+    rasterizer.render_labels(&render_items(robot, &poses, true))
+}
+
+/// The 0/1 robot mask (row-major) of [`render_frame_labels`].
+///
+/// # Panics
+/// If `q.len() != robot.dof()`.
+pub fn render_frame_mask(robot: &Robot, rasterizer: &Rasterizer, q: &[f64]) -> Vec<u8> {
+    render_frame_labels(robot, rasterizer, q)
+        .iter()
+        .map(|&l| u8::from(l > 0))
+        .collect()
+}
+
 /// Renders every frame of a joint trajectory in parallel. `on_frame` is
 /// called once per finished frame (for progress bars), from any thread.
 ///
@@ -111,8 +132,7 @@ pub fn render_trajectory_labels(
     joints
         .par_iter()
         .map(|q| {
-            let poses = robot.link_poses(q);
-            let labels = rasterizer.render_labels(&render_items(robot, &poses, true));
+            let labels = render_frame_labels(robot, &rasterizer, q);
             on_frame();
             labels
         })

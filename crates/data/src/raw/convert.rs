@@ -11,7 +11,7 @@ use crate::lerobot::{DatasetError, LeRobotV3Writer, WriterEpisode};
 use crate::video::{decode_mp4, VideoError};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_embodiment::embodiment::Embodiment;
-use bridgev2w_embodiment::masks::render_items;
+use bridgev2w_embodiment::masks::render_frame_mask;
 use bridgev2w_embodiment::npy::write_atomic;
 use bridgev2w_embodiment::raster::Rasterizer;
 use rayon::prelude::*;
@@ -199,14 +199,7 @@ pub fn render_view(
     let masks: Vec<Vec<u8>> = q
         .par_iter()
         .zip(&cameras)
-        .map(|(q, cam)| {
-            let poses = robot.link_poses(q);
-            Rasterizer::new(cam)
-                .render_labels(&render_items(robot, &poses, true))
-                .iter()
-                .map(|&l| u8::from(l > 0))
-                .collect()
-        })
+        .map(|(q, cam)| render_frame_mask(robot, &Rasterizer::new(cam), q))
         .collect();
     let rgb = video
         .frames
@@ -272,6 +265,14 @@ pub fn convert(
             }
             let q = ep.joint_trajectory(embodiment, options.joint_names.as_deref())?;
             report.episodes += 1;
+            let to_f32 = |rows: &[Vec<f64>]| -> Vec<Vec<f32>> {
+                rows.iter()
+                    .map(|r| r.iter().map(|&v| v as f32).collect())
+                    .collect()
+            };
+            let (states, actions) = (to_f32(&q), to_f32(&ep.ee_actions));
+            debug_assert!(states.iter().all(|s| s.len() == state_dim));
+            let task = ep.task.clone().unwrap_or_default();
             let mut view_errors = Vec::new();
             for view in &ep.views {
                 let clip =
@@ -288,22 +289,11 @@ pub fn convert(
                         .empty_mask_views
                         .push(format!("{} camera {}", ep.id, view.name));
                 }
-                let states: Vec<Vec<f32>> = q
-                    .iter()
-                    .map(|r| r.iter().map(|&v| v as f32).collect())
-                    .collect();
-                debug_assert!(states.iter().all(|s| s.len() == state_dim));
-                let actions = ep
-                    .ee_actions
-                    .iter()
-                    .map(|r| r.iter().map(|&v| v as f32).collect())
-                    .collect();
-                let task = ep.task.clone().unwrap_or_default();
                 writer.add_episode(WriterEpisode {
                     task: &task,
                     split: options.split.as_deref(),
-                    states,
-                    actions,
+                    states: states.clone(),
+                    actions: actions.clone(),
                     rgb: &clip.rgb,
                     masks: Some(&clip.masks),
                     camera: view.is_static().then_some(&clip.cameras[0]),
