@@ -10,6 +10,7 @@ mod overlay;
 mod parity_cmd;
 mod plan_cmd;
 mod predict_cmd;
+mod report;
 mod robot_info;
 mod synth_cmd;
 mod train_cmd;
@@ -50,8 +51,10 @@ enum Command {
     Convert(convert_cmd::ConvertArgs),
     /// Train BridgeV2W (ControlNet + LoRA) on a dataset with the paper's losses (CONFIG.toml).
     Train(train_cmd::TrainArgs),
-    /// Score a trained run's predictions per split (PSNR, SSIM) against copying the first frame.
+    /// Score a trained run's predictions per split (PSNR, SSIM, Mask-IoU) against copying the first frame.
     EvalRun(train_cmd::EvalRunArgs),
+    /// Write the video-prediction table (paper layout) of several eval-run --json files to docs/results.md.
+    EvalReport(report::EvalReportArgs),
     /// Goal-image CEM-MPC planning executed in the synthetic world, vs random actions.
     Plan(plan_cmd::PlanArgs),
     /// Policy evaluation by autoregressive world-model rollouts vs synthetic-world success.
@@ -75,6 +78,7 @@ fn main() -> Result<()> {
         Command::Convert(a) => convert_cmd::run(&a),
         Command::Train(a) => train_cmd::run(&a),
         Command::EvalRun(a) => train_cmd::run_eval_run(&a),
+        Command::EvalReport(a) => report::run_eval_report(&a),
         Command::Plan(a) => plan_cmd::run_plan(&a),
         Command::EvalPolicyRollout(a) => plan_cmd::run_eval_rollout(&a),
         Command::PlanReport(a) => plan_cmd::run_plan_report(&a),

@@ -580,9 +580,8 @@ fn model_args(model: &str) -> ModelArgs {
 /// evaluation, and writes the tables with the command that produced them.
 pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
     let command: Vec<String> = std::env::args().collect();
-    let mut md = String::from(
-        "# Results: goal-image planning and policy evaluation in the synthetic world\n\n",
-    );
+    let mut md =
+        String::from("## Goal-image planning and policy evaluation in the synthetic world\n\n");
     md += &format!(
         "Produced by `{}` (CPU). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; the planner uses the world model named in each table.\n\n",
         command.join(" "),
@@ -590,7 +589,7 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         64
     );
     md += &format!(
-        "## Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, 2 clip frames per action, at most {} actions, translation-only search; gripper searched for reach, heuristic for push/pick_place; two goal images (subgoal, final) for push and pick_place. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
+        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, 2 clip frames per action, at most {} actions, translation-only search; gripper searched for reach, heuristic for push/pick_place; two goal images (subgoal, final) for push and pick_place. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         a.trials, a.cem.samples, a.cem.elites, a.cem.iters, a.cem.horizon, a.max_steps
     );
     for task in Task::ALL {
@@ -632,7 +631,7 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         models.push("random");
     }
     md += &format!(
-        "\n## Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). Synthetic-world success: the task's state check.\n",
+        "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). Synthetic-world success: the task's state check.\n",
         a.eval_trials
     );
     for model in models {
@@ -650,11 +649,8 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             seed: a.seed,
         };
         let r = eval_rollout_report(&ea)?;
-        md += &format!("\n### Model: {model}\n\n{}", eval_table(&r));
+        md += &format!("\n#### Model: {model}\n\n{}", eval_table(&r));
     }
-    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    std::fs::write(&a.out, &md).with_context(|| format!("writing {}", a.out.display()))?;
+    crate::report::write_section(&a.out, "planning", &md)?;
     crate::print_stdout(&md)
 }

@@ -63,10 +63,17 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     };
     let quiet = args.quiet;
     let result = trainer.run(&mut |m| {
-        let msg = format!(
-            "loss {:.4} (diff {:.4} dyn {:.4} flow {:.4}) lr {:.2e} |g| {:.3}",
-            m.loss, m.diffusion, m.dynamics, m.flow, m.lr, m.grad_norm
-        );
+        let msg = if m.diffusion == 0.0 && (m.recon > 0.0 || m.kl > 0.0) {
+            format!(
+                "loss {:.4} (L1 {:.4} KL {:.3}) lr {:.2e} |g| {:.3}",
+                m.loss, m.recon, m.kl, m.lr, m.grad_norm
+            )
+        } else {
+            format!(
+                "loss {:.4} (diff {:.4} dyn {:.4} flow {:.4}) lr {:.2e} |g| {:.3}",
+                m.loss, m.diffusion, m.dynamics, m.flow, m.lr, m.grad_norm
+            )
+        };
         if quiet {
             eprintln!("step {} {msg} {:.2} it/s", m.step, 1.0 / m.secs.max(1e-9));
         }
@@ -118,7 +125,7 @@ pub struct EvalRunArgs {
 /// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
 /// next to the copy-the-first-frame baseline.
 pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
-    use bridgev2w_train::evaluate::{evaluate_split, EvalOptions};
+    use bridgev2w_train::evaluate::{evaluate_split, robot_segmenter, EvalOptions};
     let cfg = TrainConfig::from_file(&args.config)?;
     let mut trainer = Trainer::new(cfg).context("setting up the run's model")?;
     trainer
@@ -130,6 +137,10 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         seed: args.seed,
         max_videos: args.max_videos,
     };
+    let segmenter = robot_segmenter(&trainer.data).context("fitting the robot segmenter")?;
+    if segmenter.is_none() {
+        eprintln!("note: the training split has no masks; Mask-IoU is not measured");
+    }
     let mut rows = Vec::new();
     for split in args
         .splits
@@ -138,13 +149,13 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         .filter(|s| !s.is_empty())
     {
         let pb = ProgressBar::new_spinner().with_message(format!("scoring {split}"));
-        let scores = evaluate_split(&trainer, split, &opts, &|| pb.tick())
+        let scores = evaluate_split(&trainer, split, &opts, segmenter.as_ref(), &|| pb.tick())
             .with_context(|| format!("split {split}"))?;
         pb.finish_and_clear();
         rows.push(scores);
     }
     let mut text = format!(
-        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | SSIM | copy-first-frame PSNR | copy-first-frame SSIM |\n|---|---|---|---|---|---|\n",
+        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling |\n|---|---|---|---|---|---|---|---|---|\n",
         args.run.display(),
         trainer.step,
         trainer.cfg.train.stage,
@@ -152,15 +163,29 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         args.guidance
     );
     for r in &rows {
+        let iou = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{:.1}", 100.0 * x));
         text.push_str(&format!(
-            "| {} | {} | {:.2} | {:.4} | {:.2} | {:.4} |\n",
-            r.split, r.videos, r.psnr, r.ssim, r.baseline_psnr, r.baseline_ssim
+            "| {} | {} | {:.2} | {:.4} | {} | {:.2} | {:.4} | {} | {} |\n",
+            r.split,
+            r.videos,
+            r.psnr,
+            r.ssim,
+            iou(r.mask_iou),
+            r.baseline_psnr,
+            r.baseline_ssim,
+            iou(r.baseline_mask_iou),
+            iou(r.segmenter_mask_iou)
         ));
     }
     if let Some(path) = &args.json {
         let body = serde_json::to_string_pretty(&serde_json::json!({
             "run": args.run,
             "step": trainer.step,
+            "stage": trainer.cfg.train.stage,
+            "mask_action": trainer.cfg.ablation.mask_action,
+            "sampling_steps": args.steps,
+            "guidance": args.guidance,
+            "seed": args.seed,
             "splits": rows,
         }))?;
         bridgev2w_embodiment::npy::write_atomic(path, body.as_bytes())

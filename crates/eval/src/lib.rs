@@ -10,6 +10,7 @@
 
 pub mod frechet;
 pub mod ranking;
+pub mod segment;
 pub mod video;
 
 /// Errors of the metric functions: inputs that do not fit together.

@@ -35,8 +35,9 @@ pub struct TrainConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ModelSection {
-    /// A diffusers CogVideoX image-to-video folder, or `random:tiny` (the tiny
-    /// VAE/transformer presets with random weights, 9 frames at 64x96).
+    /// A diffusers CogVideoX image-to-video folder, or `random:tiny` /
+    /// `random:small` (the tiny or small VAE/transformer presets with random
+    /// weights, 9 frames at 64x96).
     pub backbone: String,
     /// The fixed prompt's embedding (safetensors, see `bridgev2w predict`); zeros when absent.
     pub prompt_embeds: Option<PathBuf>,
@@ -85,7 +86,7 @@ pub struct DataSection {
     pub split: String,
     /// The video key (default: the dataset's first).
     pub video_key: Option<String>,
-    /// Frames per clip (`4k + 1`); 0 = the backbone's default (9 for `random:tiny`, else 25).
+    /// Frames per clip (`4k + 1`); 0 = the backbone's default (9 for `random:*`, else 25).
     pub frames: usize,
     /// Clip width, pixels; 0 = the backbone's default. Frames of another size are resized.
     pub width: usize,

@@ -3,12 +3,17 @@
 //! episode, the run's model predicts the video from the first frame and the
 //! condition (masks, or actions for the `mask_action = false` ablation, or
 //! nothing for an action-free prior); PSNR and SSIM against the ground truth,
-//! next to the copy-the-first-frame baseline on the same clips.
+//! next to the copy-the-first-frame baseline on the same clips; with a robot
+//! segmenter ([`robot_segmenter`], fitted on the training split's frames and
+//! masks), Mask-IoU of the robot segmented in the predicted frames against
+//! the ground-truth masks, and the segmenter's ceiling (its Mask-IoU on the
+//! ground-truth frames).
 
 use crate::data::ClipDataset;
 use crate::trainer::Trainer;
 use crate::{Result, TrainError};
-use bridgev2w_eval::video::{mean_over_videos, video_psnr, video_ssim, Frame};
+use bridgev2w_eval::segment::ColorSegmenter;
+use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, video_psnr, video_ssim, Frame};
 use tch::{Kind, Tensor};
 
 /// Sampling settings of [`evaluate_split`].
@@ -50,6 +55,51 @@ pub struct SplitScores {
     pub baseline_psnr: f64,
     /// Mean SSIM of the baseline.
     pub baseline_ssim: f64,
+    /// Mean Mask-IoU (robot segmented in the predictions vs. ground-truth
+    /// masks), when a segmenter was given and the split has masks.
+    pub mask_iou: Option<f64>,
+    /// Mask-IoU of the baseline (the first frame's robot, held still).
+    pub baseline_mask_iou: Option<f64>,
+    /// Mask-IoU of the segmenter on the ground-truth frames: the ceiling.
+    pub segmenter_mask_iou: Option<f64>,
+}
+
+/// Bits per channel of the colour segmenter (32 levels).
+const SEGMENTER_BITS: u32 = 5;
+
+/// A colour segmenter fitted on every frame and mask of `data` (resized to
+/// its clip size); `None` when no episode has masks.
+pub fn robot_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
+    let metric = |e: bridgev2w_eval::MetricError| TrainError::input("segmenter", e.to_string());
+    let mut seg = ColorSegmenter::new(SEGMENTER_BITS).map_err(metric)?;
+    let mut any = false;
+    for e in &data.episodes {
+        let Some(masks) = &e.masks else { continue };
+        let px = e.width * e.height;
+        for t in 0..e.frames {
+            let frame = Frame::from_rgb8(e.width, e.height, &e.rgb[t * px * 3..(t + 1) * px * 3])
+                .map_err(metric)?;
+            seg.observe(&frame, &masks[t * px..(t + 1) * px])
+                .map_err(metric)?;
+            any = true;
+        }
+    }
+    Ok(any.then_some(seg))
+}
+
+/// `[1, 3, T, H, W]` masks in {-1, 1} to per-frame 0/1 masks.
+fn mask_frames(masks: &Tensor) -> Result<Vec<Vec<u8>>> {
+    // [1, 3, T, H, W] -> [T, H, W] (channel 0: robot)
+    let m = masks
+        .get(0)
+        .get(0)
+        .gt(0.0)
+        .to_kind(Kind::Uint8)
+        .contiguous();
+    let t = m.size()[0];
+    (0..t)
+        .map(|i| Ok(Vec::<u8>::try_from(m.get(i).flatten(0, -1))?))
+        .collect()
 }
 
 /// `[1, 3, T, H, W]` in [-1, 1] to metric frames in [0, 1].
@@ -75,6 +125,7 @@ pub fn evaluate_split(
     trainer: &Trainer,
     split: &str,
     opts: &EvalOptions,
+    segmenter: Option<&ColorSegmenter>,
     on_video: &dyn Fn(),
 ) -> Result<SplitScores> {
     let mut spec = trainer
@@ -93,6 +144,8 @@ pub fn evaluate_split(
     };
     let metric = |e: bridgev2w_eval::MetricError| TrainError::input("metrics", e.to_string());
     let (mut p, mut s, mut bp, mut bs) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut iou, mut biou, mut ceil) = (Vec::new(), Vec::new(), Vec::new());
+    let with_masks = segmenter.filter(|_| data.has_masks());
     for i in 0..n {
         let batch = data.clips(&[(i, 0)], trainer.model.device())?;
         let pred = trainer.predict(&batch, opts.steps, opts.guidance, opts.seed)?;
@@ -103,9 +156,23 @@ pub fn evaluate_split(
         s.push(video_ssim(&pf, &gt).map_err(metric)?);
         bp.push(video_psnr(&copy, &gt).map_err(metric)?);
         bs.push(video_ssim(&copy, &gt).map_err(metric)?);
+        if let Some(seg) = with_masks {
+            let gt_masks = mask_frames(&batch.masks)?;
+            let segment = |v: &[Frame]| v.iter().map(|f| seg.segment(f)).collect::<Vec<_>>();
+            iou.push(video_mask_iou(&segment(&pf), &gt_masks).map_err(metric)?);
+            biou.push(video_mask_iou(&segment(&copy), &gt_masks).map_err(metric)?);
+            ceil.push(video_mask_iou(&segment(&gt), &gt_masks).map_err(metric)?);
+        }
         on_video();
     }
     let mean = |v: &[f64]| mean_over_videos(v).map_err(metric);
+    let opt_mean = |v: &[f64]| -> Result<Option<f64>> {
+        if v.is_empty() {
+            Ok(None)
+        } else {
+            mean(v).map(Some)
+        }
+    };
     Ok(SplitScores {
         split: split.to_string(),
         videos: n,
@@ -113,5 +180,8 @@ pub fn evaluate_split(
         ssim: mean(&s)?,
         baseline_psnr: mean(&bp)?,
         baseline_ssim: mean(&bs)?,
+        mask_iou: opt_mean(&iou)?,
+        baseline_mask_iou: opt_mean(&biou)?,
+        segmenter_mask_iou: opt_mean(&ceil)?,
     })
 }

@@ -125,6 +125,20 @@ pub struct Trainer {
     pub step: usize,
 }
 
+/// `random:tiny` / `random:small`: the presets of a randomly initialised
+/// backbone; `None` for a diffusers folder.
+fn random_preset(backbone: &str) -> Result<Option<(VaeConfig, TransformerConfig)>> {
+    match backbone.strip_prefix("random:") {
+        None => Ok(None),
+        Some("tiny") => Ok(Some((VaeConfig::tiny(), TransformerConfig::tiny()))),
+        Some("small") => Ok(Some((VaeConfig::small(), TransformerConfig::small()))),
+        Some(other) => Err(TrainError::input(
+            "config model.backbone",
+            format!("`random:{other}`: expected random:tiny, random:small or a diffusers folder"),
+        )),
+    }
+}
+
 fn parse_device(s: &str) -> Result<ComputeDevice> {
     s.parse::<ComputeDevice>()
         .map_err(|e| TrainError::input("config model.device", e.to_string()))
@@ -135,10 +149,10 @@ impl Trainer {
     pub fn new(cfg: TrainConfig) -> Result<Self> {
         cfg.validate()?;
         let device = parse_device(&cfg.model.device)?;
-        let random_tiny = cfg.model.backbone == "random:tiny";
+        let random = random_preset(&cfg.model.backbone)?;
         let (frames, height, width) = {
             let d = &cfg.data;
-            let (f, h, w) = if random_tiny {
+            let (f, h, w) = if random.is_some() {
                 (9, 64, 96)
             } else {
                 (25, 480, 720)
@@ -761,11 +775,10 @@ fn build_model(
         },
         lora,
     };
-    let model = if cfg.model.backbone == "random:tiny" {
-        let tf = TransformerConfig::tiny();
+    let model = if let Some((vae, tf)) = random_preset(&cfg.model.backbone)? {
         BridgeV2W::random(
             make_cfg(&tf),
-            &VaeConfig::tiny(),
+            &vae,
             &tf,
             SchedulerConfig::cogvideox_5b_i2v(),
             device,

@@ -549,7 +549,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
 /// predictions are deterministic for a seed.
 #[test]
 fn evaluation_scores_mask_and_action_models_against_the_baseline() {
-    use bridgev2w_train::evaluate::{evaluate_split, EvalOptions};
+    use bridgev2w_train::evaluate::{evaluate_split, robot_segmenter, EvalOptions};
     let _g = lock();
     let tmp = tempfile::tempdir().unwrap();
     let opts = EvalOptions {
@@ -562,8 +562,22 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
         let mut c = config(tmp.path());
         c.ablation.mask_action = mask_action;
         let t = Trainer::new(c).unwrap();
-        let s = evaluate_split(&t, "unseen_camera", &opts, &|| {}).unwrap();
+        let seg = robot_segmenter(&t.data).unwrap().unwrap();
+        let s = evaluate_split(&t, "unseen_camera", &opts, Some(&seg), &|| {}).unwrap();
         assert_eq!((s.split.as_str(), s.videos), ("unseen_camera", 1));
+        // The segmenter reads the robot off real frames well; the copied
+        // first frame's robot overlaps the moving robot less.
+        let (iou, base, ceiling) = (
+            s.mask_iou.unwrap(),
+            s.baseline_mask_iou.unwrap(),
+            s.segmenter_mask_iou.unwrap(),
+        );
+        eprintln!("Mask-IoU {iou} baseline {base} ceiling {ceiling}");
+        assert!((0.0..=1.0).contains(&iou), "{s:?}");
+        assert!(ceiling > 0.4 && ceiling > base, "{s:?}");
+        let no_seg = evaluate_split(&t, "unseen_camera", &opts, None, &|| {}).unwrap();
+        assert_eq!(no_seg.mask_iou, None);
+        assert_eq!((no_seg.psnr, no_seg.ssim), (s.psnr, s.ssim));
         for v in [s.psnr, s.baseline_psnr] {
             assert!(v.is_finite() && v > 0.0 && v < 100.0, "{s:?}");
         }
@@ -585,6 +599,7 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
         &Trainer::new(config(tmp.path())).unwrap(),
         "nope",
         &opts,
+        None,
         &|| {},
     )
     .unwrap_err();

@@ -166,6 +166,22 @@ fn per_block_weights_scale_the_residuals() {
     .unwrap_err()
     .to_string();
     assert!(too_many.contains("expected 1..=2"), "{too_many}");
+    // 5 frames = 2 latent frames: the causal VAE would decode 8.
+    for (frames, ok) in [(5, false), (13, false), (9, true), (17, true), (6, false)] {
+        let r = BridgeV2WConfig {
+            frames,
+            ..cfg.clone()
+        }
+        .validate(&VaeConfig::tiny(), &TransformerConfig::tiny());
+        assert_eq!(r.is_ok(), ok, "{frames} frames: {r:?}");
+        if frames == 5 {
+            let e = r.unwrap_err().to_string();
+            assert!(
+                e.contains("decodes to 8 frames") && e.contains("8k + 1"),
+                "{e}"
+            );
+        }
+    }
 }
 
 #[test]

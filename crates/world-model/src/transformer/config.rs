@@ -142,16 +142,39 @@ impl TransformerConfig {
         }
     }
 
-    /// A preset by name: `cogvideox-5b-i2v`, `cogvideox-2b` or `tiny`.
+    /// The CPU-trainable model of the synthetic proof run (`VaeConfig::small`
+    /// latents: 8 channels, 4x spatial compression): 4 layers of 4 heads x 32
+    /// on 64x96 clips of 9 frames (latents 3x16x24, 288 tokens).
+    pub fn small() -> Self {
+        Self {
+            num_attention_heads: 4,
+            attention_head_dim: 32,
+            in_channels: 16,
+            out_channels: Some(8),
+            time_embed_dim: 128,
+            text_embed_dim: 24,
+            num_layers: 4,
+            sample_width: 24,
+            sample_height: 16,
+            sample_frames: 9,
+            max_text_seq_length: 8,
+            use_rotary_positional_embeddings: true,
+            use_learned_positional_embeddings: true,
+            ..Self::cogvideox_2b()
+        }
+    }
+
+    /// A preset by name: `cogvideox-5b-i2v`, `cogvideox-2b`, `small` or `tiny`.
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "cogvideox-5b-i2v" | "cogvideox_5b_i2v" => Ok(Self::cogvideox_5b_i2v()),
             "cogvideox-2b" | "cogvideox_2b" => Ok(Self::cogvideox_2b()),
             "tiny" => Ok(Self::tiny()),
+            "small" => Ok(Self::small()),
             other => Err(WorldModelError::config(
                 PathBuf::from("<preset>"),
                 "name",
-                format!("unknown transformer preset `{other}`: expected cogvideox-5b-i2v, cogvideox-2b or tiny"),
+                format!("unknown transformer preset `{other}`: expected cogvideox-5b-i2v, cogvideox-2b, small or tiny"),
             )),
         }
     }

@@ -144,6 +144,23 @@ impl VaeConfig {
         }
     }
 
+    /// The CPU-trainable autoencoder of the synthetic proof run: 3 blocks
+    /// (4x space, 4x time), 8 latent channels.
+    pub fn small() -> Self {
+        Self {
+            down_block_types: vec![DOWN_BLOCK_TYPE.to_owned(); 3],
+            up_block_types: vec![UP_BLOCK_TYPE.to_owned(); 3],
+            block_out_channels: vec![16, 32, 64],
+            latent_channels: 8,
+            layers_per_block: 1,
+            norm_num_groups: 8,
+            sample_height: 64,
+            sample_width: 96,
+            scaling_factor: 1.0,
+            ..Self::default()
+        }
+    }
+
     /// Reads `path` (a diffusers `config.json`) and validates it.
     pub fn from_file(path: &Path) -> Result<Self> {
         let cfg: Self = read_json(path)?;
@@ -1080,6 +1097,12 @@ mod tests {
             assert_eq!(cfg.spatial_compression(), 8);
             assert_eq!(cfg.temporal_compress_level(), 2);
         }
+        let small = VaeConfig::small();
+        small.validate(Path::new("small")).unwrap();
+        assert_eq!(
+            (small.spatial_compression(), small.temporal_compress_level()),
+            (4, 2)
+        );
         let t = Tiling::for_config(&VaeConfig::cogvideox_5b_i2v());
         assert_eq!(
             (t.tile_sample_min_height, t.tile_sample_min_width),

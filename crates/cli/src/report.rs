@@ -1,0 +1,284 @@
+//! `docs/results.md`: one file, several commands. Each report command owns one
+//! section (between `<!-- section: NAME -->` and `<!-- end section: NAME -->`)
+//! and replaces only that section, so `eval-report` (video prediction) and
+//! `plan-report` (planning, policy evaluation) can be rerun independently.
+//!
+//! `bridgev2w eval-report`: the video-prediction table in the paper's layout
+//! from `eval-run --json` files.
+
+use anyhow::{bail, Context, Result};
+use bridgev2w_embodiment::npy::write_atomic;
+use std::path::{Path, PathBuf};
+
+const HEADER: &str = "# Results\n\nEach section below is written by the command it names; rerunning a command replaces only its own section.\n";
+
+/// Replaces (or appends) section `name` of the markdown file `path` with
+/// `body`, keeping the rest of the file; written atomically.
+pub fn write_section(path: &Path, name: &str, body: &str) -> Result<()> {
+    let begin = format!("<!-- section: {name} -->");
+    let end = format!("<!-- end section: {name} -->");
+    let old = match std::fs::read_to_string(path) {
+        Ok(s) => s,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => HEADER.to_string(),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let block = format!("{begin}\n{}\n{end}", body.trim_end());
+    let new = match (old.find(&begin), old.find(&end)) {
+        (Some(b), Some(e)) if e > b => {
+            format!("{}{block}{}", &old[..b], &old[e + end.len()..])
+        }
+        (None, None) => format!("{}\n{block}\n", old.trim_end()),
+        _ => bail!(
+            "{}: section `{name}` has a broken marker pair ({begin} ... {end}); fix or delete the file",
+            path.display()
+        ),
+    };
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    write_atomic(path, new.as_bytes()).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Arguments of `eval-report`.
+#[derive(Debug, clap::Args)]
+pub struct EvalReportArgs {
+    /// `NAME=FILE`: a method's `eval-run --json` scores (repeat; rows in this order).
+    /// The copy-the-first-frame baseline row comes from the first file.
+    #[arg(long = "entry", required = true)]
+    entries: Vec<String>,
+    /// Markdown prepended to the tables (setup, timings), e.g. written by the
+    /// reproduction script.
+    #[arg(long)]
+    preamble: Option<PathBuf>,
+    /// The results file; only its `video` section is replaced.
+    #[arg(long, default_value = "docs/results.md")]
+    out: PathBuf,
+}
+
+#[derive(Debug, serde::Deserialize)]
+struct Scores {
+    split: String,
+    videos: usize,
+    psnr: f64,
+    ssim: f64,
+    baseline_psnr: f64,
+    baseline_ssim: f64,
+    mask_iou: Option<f64>,
+    baseline_mask_iou: Option<f64>,
+    segmenter_mask_iou: Option<f64>,
+}
+
+#[derive(Debug, serde::Deserialize)]
+struct RunScores {
+    step: usize,
+    sampling_steps: Option<usize>,
+    splits: Vec<Scores>,
+}
+
+const SPLIT_TITLES: [(&str, &str); 4] = [
+    ("test", "In-Domain"),
+    ("unseen_camera", "Unseen Camera Viewpoint"),
+    ("unseen_scene", "Unseen Scene"),
+    ("train", "Training split"),
+];
+
+struct Row {
+    name: String,
+    psnr: f64,
+    ssim: f64,
+    iou: Option<f64>,
+}
+
+/// The markdown of the video-prediction tables (paper Table "droid" layout:
+/// one block per split, a row per method).
+fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
+    let Some((_, first)) = entries.first() else {
+        bail!("eval-report: no --entry given");
+    };
+    let mut md = String::from(
+        "| Methods | PSNR ↑ | SSIM ↑ | LPIPS ↓ | FVD ↓ | Mask-IoU ↑ |\n|---|---|---|---|---|---|\n",
+    );
+    let mut order: Vec<&str> = first.splits.iter().map(|s| s.split.as_str()).collect();
+    order.sort_by_key(|s| {
+        SPLIT_TITLES
+            .iter()
+            .position(|(k, _)| k == s)
+            .unwrap_or(SPLIT_TITLES.len())
+    });
+    for split in order {
+        let title = SPLIT_TITLES
+            .iter()
+            .find(|(k, _)| *k == split)
+            .map_or(split, |(_, t)| t);
+        let base = first
+            .splits
+            .iter()
+            .find(|s| s.split == split)
+            .context("split vanished")?;
+        let mut rows = vec![Row {
+            name: "Copy first frame".into(),
+            psnr: base.baseline_psnr,
+            ssim: base.baseline_ssim,
+            iou: base.baseline_mask_iou,
+        }];
+        for (name, run) in entries {
+            let s = run.splits.iter().find(|s| s.split == split).with_context(|| {
+                format!("entry `{name}` has no scores for split `{split}`; run eval-run with the same --splits for every entry")
+            })?;
+            if s.videos != base.videos {
+                bail!(
+                    "entry `{name}`, split `{split}`: {} videos, but the first entry has {}; score every method on the same clips",
+                    s.videos,
+                    base.videos
+                );
+            }
+            rows.push(Row {
+                name: format!("{name} (step {})", run.step),
+                psnr: s.psnr,
+                ssim: s.ssim,
+                iou: s.mask_iou,
+            });
+        }
+        let best = |f: &dyn Fn(&Row) -> Option<f64>| {
+            rows.iter().filter_map(f).fold(f64::NEG_INFINITY, f64::max)
+        };
+        let (bp, bs, bi) = (
+            best(&|r| Some(r.psnr)),
+            best(&|r| Some(r.ssim)),
+            best(&|r| r.iou),
+        );
+        let mark = |v: f64, best: f64, text: String| {
+            if v == best {
+                format!("**{text}**")
+            } else {
+                text
+            }
+        };
+        md += &format!(
+            "| ***{title}*** ({} videos; segmenter ceiling Mask-IoU {}) | | | | | |\n",
+            base.videos,
+            base.segmenter_mask_iou
+                .map_or("-".into(), |v| format!("{:.1}", 100.0 * v))
+        );
+        for r in &rows {
+            md += &format!(
+                "| {} | {} | {} | - | - | {} |\n",
+                r.name,
+                mark(r.psnr, bp, format!("{:.2}", r.psnr)),
+                mark(r.ssim, bs, format!("{:.3}", r.ssim)),
+                r.iou
+                    .map_or("-".into(), |v| mark(v, bi, format!("{:.1}", 100.0 * v))),
+            );
+        }
+    }
+    if let Some(steps) = first.sampling_steps {
+        md += &format!("\nSampling: {steps} denoising steps per prediction.\n");
+    }
+    Ok(md)
+}
+
+fn parse_entry(s: &str) -> Result<(String, RunScores)> {
+    let (name, file) = s
+        .split_once('=')
+        .with_context(|| format!("--entry {s:?}: expected NAME=FILE (an eval-run --json file)"))?;
+    let text = std::fs::read_to_string(file).with_context(|| format!("reading {file}"))?;
+    let run: RunScores = serde_json::from_str(&text)
+        .with_context(|| format!("{file}: not an eval-run --json file"))?;
+    Ok((name.trim().to_string(), run))
+}
+
+/// `bridgev2w eval-report`.
+pub fn run_eval_report(a: &EvalReportArgs) -> Result<()> {
+    let entries = a
+        .entries
+        .iter()
+        .map(|e| parse_entry(e))
+        .collect::<Result<Vec<_>>>()?;
+    let mut md = String::from("## Video prediction in the synthetic world\n\n");
+    if let Some(p) = &a.preamble {
+        md += &std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+        md += "\n\n";
+    }
+    md += &video_tables(&entries)?;
+    md += "\nPSNR and SSIM per frame on [0, 1] RGB, averaged over frames, then videos. Mask-IoU (x100): the robot segmented in each frame by a colour classifier fitted on the training split's frames and ground-truth masks, against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames. LPIPS and FVD need the pretrained AlexNet and I3D weights, which cannot be downloaded here (`bridgev2w eval` computes them from user-supplied weights).\n";
+    write_section(&a.out, "video", &md)?;
+    crate::print_stdout(&md)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sections_are_replaced_in_place_and_others_kept() {
+        let tmp = tempfile::tempdir().unwrap();
+        let p = tmp.path().join("docs/results.md");
+        write_section(&p, "video", "video v1").unwrap();
+        write_section(&p, "planning", "plan v1").unwrap();
+        write_section(&p, "video", "video v2\nline 2").unwrap();
+        let s = std::fs::read_to_string(&p).unwrap();
+        assert!(s.starts_with("# Results"), "{s}");
+        assert!(
+            s.contains("video v2\nline 2") && !s.contains("video v1"),
+            "{s}"
+        );
+        assert!(s.contains("plan v1"), "{s}");
+        assert!(s.find("video v2").unwrap() < s.find("plan v1").unwrap());
+        std::fs::write(&p, "<!-- end section: video --> <!-- section: video -->").unwrap();
+        let e = write_section(&p, "video", "x").unwrap_err().to_string();
+        assert!(e.contains("broken marker pair"), "{e}");
+    }
+
+    fn run(psnr: f64, iou: f64, videos: usize) -> RunScores {
+        RunScores {
+            step: 10,
+            sampling_steps: Some(20),
+            splits: ["unseen_camera", "test"]
+                .iter()
+                .map(|s| Scores {
+                    split: (*s).into(),
+                    videos,
+                    psnr,
+                    ssim: 0.5,
+                    baseline_psnr: 20.0,
+                    baseline_ssim: 0.6,
+                    mask_iou: Some(iou),
+                    baseline_mask_iou: Some(0.3),
+                    segmenter_mask_iou: Some(0.9),
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn tables_follow_the_paper_layout_and_mark_the_best() {
+        let md = video_tables(&[
+            ("A".into(), run(25.0, 0.5, 3)),
+            ("B".into(), run(22.0, 0.6, 3)),
+        ])
+        .unwrap();
+        // Splits in the paper's order, whatever the files' order.
+        assert!(md.find("In-Domain").unwrap() < md.find("Unseen Camera").unwrap());
+        assert!(
+            md.contains("| Copy first frame | 20.00 | **0.600** | - | - | 30.0 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| A (step 10) | **25.00** | 0.500 | - | - | 50.0 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| B (step 10) | 22.00 | 0.500 | - | - | **60.0** |"),
+            "{md}"
+        );
+        assert!(md.contains("segmenter ceiling Mask-IoU 90.0"), "{md}");
+        let e = video_tables(&[
+            ("A".into(), run(25.0, 0.5, 3)),
+            ("B".into(), run(22.0, 0.6, 2)),
+        ])
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("2 videos, but the first entry has 3"), "{e}");
+    }
+}
