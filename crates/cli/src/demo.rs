@@ -1,18 +1,28 @@
 //! `bridgev2w demo`: the built-in Franka doing a pick-and-place, seen from a
 //! built-in camera; writes masks, labels, PNGs and an animated GIF overlay.
+//! Then the world model: the shipped small BridgeV2W (trained on the
+//! synthetic world by `scripts/reproduce-synthetic.sh`) predicts the video of
+//! a built-in synthetic pick-and-place from its first frame and the masks of
+//! its actions: `prediction.mp4` and a side-by-side GIF.
 
 use crate::masks_cmd::{render_with_progress, report_empty, write_ik_report};
 use crate::overlay::{floor_background, overlay, write_gif};
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
+use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
+use bridgev2w_data::video::Mp4VideoWriter;
 use bridgev2w_embodiment::actions::{actions_to_joints, Trajectory};
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::{xyz_rpy_from_pose, IkOptions};
 use bridgev2w_embodiment::masks::{write_outputs, WriteOptions};
 use bridgev2w_embodiment::npy::write_atomic;
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
+use bridgev2w_world_model::video::{Image, MaskVideo};
+use bridgev2w_world_model::{ComputeDevice, Precision};
 use nalgebra::{Point3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Arguments of `demo`.
@@ -24,6 +34,163 @@ pub struct DemoArgs {
     /// Frames in the trajectory (CogVideoX clips are 49 frames).
     #[arg(long, default_value_t = 49)]
     pub frames: usize,
+    /// The world model for the prediction: a folder with `backbone/` (a
+    /// diffusers CogVideoX I2V folder) and `bridgev2w.safetensors`; default:
+    /// the shipped demo model (assets/demo-model).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Skip the world-model prediction (masks and overlay only).
+    #[arg(long)]
+    pub no_predict: bool,
+    /// Denoising steps of the prediction.
+    #[arg(long, default_value_t = 20)]
+    pub steps: usize,
+    /// Sampling seed of the prediction.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// The shipped demo model: `assets/demo-model` under the working directory,
+/// else in the source tree the binary was built from.
+fn default_model_dir() -> PathBuf {
+    let local = PathBuf::from("assets/demo-model");
+    if local.is_dir() {
+        local
+    } else {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo-model")
+    }
+}
+
+/// Nearest-neighbour upscaling of an RGB8 image by `k`.
+fn upscale(rgb: &[u8], w: usize, h: usize, k: usize) -> Vec<u8> {
+    let mut out = Vec::with_capacity(rgb.len() * k * k);
+    for y in 0..h * k {
+        for x in 0..w * k {
+            let i = ((y / k) * w + x / k) * 3;
+            out.extend_from_slice(&rgb[i..i + 3]);
+        }
+    }
+    out
+}
+
+/// Panels of equal size side by side: `[H, W * n, 3]`.
+fn side_by_side(panels: &[&[u8]], w: usize, h: usize) -> Vec<u8> {
+    let mut out = Vec::with_capacity(panels.len() * w * h * 3);
+    for y in 0..h {
+        for p in panels {
+            out.extend_from_slice(&p[y * w * 3..(y + 1) * w * 3]);
+        }
+    }
+    out
+}
+
+/// The world-model half of the demo: predicts the video of a built-in
+/// synthetic pick-and-place (unseen camera) from its first frame and masks.
+fn predict(args: &DemoArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let dir = args.model.clone().unwrap_or_else(default_model_dir);
+    let (backbone, weights) = (dir.join("backbone"), dir.join("bridgev2w.safetensors"));
+    if !backbone.is_dir() || !weights.is_file() {
+        bail!(
+            "demo model {}: expected backbone/ (a diffusers CogVideoX I2V folder) and bridgev2w.safetensors; \
+             pass --model DIR, or --no-predict for masks only",
+            dir.display()
+        );
+    }
+    let model = BridgeV2W::load(
+        &backbone,
+        Some(&weights),
+        None,
+        BridgeV2WConfig::paper(),
+        ComputeDevice::auto(),
+        Precision::F32,
+    )
+    .with_context(|| format!("loading the demo model from {}", dir.display()))?;
+    let (h, w) = model.resolution();
+    let frames = model.clip_frames();
+    // The built-in scene: a pick-and-place of the synthetic world, seen from
+    // a camera region the model never trained on.
+    let world = World::new(&SynthConfig {
+        frames: 2 * frames - 1,
+        width: w as u32,
+        height: h as u32,
+        seed: 2026,
+        tasks: vec![Task::PickPlace],
+        episodes_per_split: [0, 0, 1, 0],
+        ..SynthConfig::default()
+    })?;
+    let episode = world.generate(Split::UnseenCamera, 0, Task::PickPlace)?;
+    let image = Image {
+        height: h,
+        width: w,
+        data: episode.rgb[0]
+            .iter()
+            .map(|&v| f32::from(v) / 255.0)
+            .collect(),
+    };
+    let masks = MaskVideo {
+        frames,
+        height: h,
+        width: w,
+        data: episode.masks[..frames].concat(),
+    };
+    let opts = PredictOptions {
+        sample: SampleOptions {
+            steps: args.steps,
+            guidance_scale: 1.0,
+            dynamic_cfg: false,
+            seed: args.seed,
+        },
+    };
+    let video = model.predict(&image, &masks, &opts)?;
+    let px = h * w * 3;
+    let pred: Vec<Vec<u8>> = video
+        .data
+        .chunks(px)
+        .map(|f| {
+            f.iter()
+                .map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
+                .collect()
+        })
+        .collect();
+    let out = &args.out;
+    let mut writer = Mp4VideoWriter::new(&out.join("prediction.mp4"), w, h, 10)?;
+    for (i, f) in pred.iter().enumerate() {
+        writer.push(f, i == 0)?;
+    }
+    write_atomic(&out.join("prediction.mp4"), &writer.to_bytes()?)?;
+    // first frame | masks | prediction | ground truth, 3x upscaled
+    let k = 3;
+    let first = upscale(&episode.rgb[0], w, h, k);
+    let gif: Vec<Vec<u8>> = (0..frames)
+        .map(|t| {
+            let mask: Vec<u8> = episode.masks[t]
+                .iter()
+                .flat_map(|&m| if m != 0 { [255, 255, 255] } else { [0, 0, 0] })
+                .collect();
+            let mask = upscale(&mask, w, h, k);
+            let p = upscale(&pred[t], w, h, k);
+            let g = upscale(&episode.rgb[t], w, h, k);
+            side_by_side(&[&first, &mask, &p, &g], w * k, h * k)
+        })
+        .collect();
+    let gif_path = out.join("prediction.gif");
+    write_gif(&gif_path, (4 * w * k) as u32, (h * k) as u32, &gif, 5)?;
+    write_atomic(
+        &out.join("prediction-actions.json"),
+        serde_json::to_string(&episode.actions[..frames])?.as_bytes(),
+    )?;
+    println!(
+        "  world model ({}): {frames} frames at {w}x{h} predicted from the first frame and the masks of a built-in pick-and-place (unseen camera), {} steps, in {:.1} s",
+        dir.display(),
+        args.steps,
+        t0.elapsed().as_secs_f64()
+    );
+    println!(
+        "  {0}/prediction.mp4, {0}/prediction.gif (first frame | masks | prediction | ground truth), prediction-actions.json",
+        out.display()
+    );
+    Ok(())
 }
 
 /// The built-in demo camera: 720x480, looking at the Franka's workspace
@@ -162,5 +329,8 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         "  bridgev2w masks --robot franka --camera {0}/camera.json --actions {0}/actions.json --out OUT",
         out.display()
     );
+    if !args.no_predict {
+        predict(args)?;
+    }
     Ok(())
 }

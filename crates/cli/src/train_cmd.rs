@@ -120,12 +120,18 @@ pub struct EvalRunArgs {
     /// Also write the scores as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// The robot segmenter of Mask-IoU, trained on the run's training split:
+    /// `cnn` (a small dilated CNN, shape-aware) or `color` (a colour classifier).
+    #[arg(long, default_value = "cnn")]
+    segmenter: String,
 }
 
 /// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
 /// next to the copy-the-first-frame baseline.
 pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
-    use bridgev2w_train::evaluate::{evaluate_split, robot_segmenter, EvalOptions};
+    use bridgev2w_eval::segment::RobotSegmenter;
+    use bridgev2w_train::evaluate::{color_segmenter, evaluate_split, EvalOptions};
+    use bridgev2w_train::segmenter::{CnnSegmenter, SegmenterOptions};
     let cfg = TrainConfig::from_file(&args.config)?;
     let mut trainer = Trainer::new(cfg).context("setting up the run's model")?;
     trainer
@@ -137,7 +143,23 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         seed: args.seed,
         max_videos: args.max_videos,
     };
-    let segmenter = robot_segmenter(&trainer.data).context("fitting the robot segmenter")?;
+    let segmenter: Option<Box<dyn RobotSegmenter>> = match args.segmenter.as_str() {
+        "cnn" => {
+            let pb = ProgressBar::new_spinner().with_message("training the robot segmenter");
+            pb.enable_steady_tick(std::time::Duration::from_millis(200));
+            let s = CnnSegmenter::fit(&trainer.data, &SegmenterOptions::default())
+                .context("training the robot segmenter")?;
+            pb.finish_and_clear();
+            if let Some(s) = &s {
+                eprintln!("robot segmenter: CNN, final BCE {:.4}", s.final_loss);
+            }
+            s.map(|s| Box::new(s) as Box<dyn RobotSegmenter>)
+        }
+        "color" => color_segmenter(&trainer.data)
+            .context("fitting the robot segmenter")?
+            .map(|s| Box::new(s) as Box<dyn RobotSegmenter>),
+        other => anyhow::bail!("--segmenter {other:?}: expected cnn or color"),
+    };
     if segmenter.is_none() {
         eprintln!("note: the training split has no masks; Mask-IoU is not measured");
     }
@@ -149,7 +171,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         .filter(|s| !s.is_empty())
     {
         let pb = ProgressBar::new_spinner().with_message(format!("scoring {split}"));
-        let scores = evaluate_split(&trainer, split, &opts, segmenter.as_ref(), &|| pb.tick())
+        let scores = evaluate_split(&trainer, split, &opts, segmenter.as_deref(), &|| pb.tick())
             .with_context(|| format!("split {split}"))?;
         pb.finish_and_clear();
         rows.push(scores);
@@ -186,6 +208,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
             "sampling_steps": args.steps,
             "guidance": args.guidance,
             "seed": args.seed,
+            "segmenter": args.segmenter,
             "splits": rows,
         }))?;
         bridgev2w_embodiment::npy::write_atomic(path, body.as_bytes())

@@ -429,3 +429,53 @@ fn convert_droid_and_agibot_with_skip_report() {
         stderr(&o)
     );
 }
+
+/// `bridgev2w demo` on built-in defaults: masks and overlay, then the shipped
+/// world model predicts a clip: an MP4 the project's decoder reads back at
+/// the model's size, a side-by-side GIF of four panels.
+#[test]
+fn demo_predicts_with_the_shipped_model() {
+    let tmp = tempfile::tempdir().expect("demo test");
+    let out = tmp.path().join("demo-out");
+    let o = run(&[
+        "demo",
+        "--frames",
+        "9",
+        "--steps",
+        "4",
+        "--out",
+        out.to_str().expect("demo test"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("world model"), "{stdout}");
+    assert_eq!(npy_shape(&out.join("masks.npy")).1, vec![9, 480, 720]);
+    let v = bridgev2w_data::video::decode_mp4(&out.join("prediction.mp4")).expect("demo test");
+    assert_eq!((v.frames.len(), v.width, v.height), (9, 96, 64));
+    // Not a blank video: the prediction has structure.
+    let f = &v.frames[4];
+    let mean = f.iter().map(|&x| f64::from(x)).sum::<f64>() / f.len() as f64;
+    let var = f
+        .iter()
+        .map(|&x| (f64::from(x) - mean).powi(2))
+        .sum::<f64>()
+        / f.len() as f64;
+    assert!(var > 25.0, "flat prediction frame: variance {var}");
+    let gif = image::open(out.join("prediction.gif")).expect("demo test");
+    assert_eq!((gif.width(), gif.height()), (4 * 96 * 3, 64 * 3));
+    let actions: Vec<Vec<f64>> = serde_json::from_str(
+        &std::fs::read_to_string(out.join("prediction-actions.json")).expect("demo test"),
+    )
+    .expect("demo test");
+    assert_eq!((actions.len(), actions[0].len()), (9, 7));
+
+    let o = run(&[
+        "demo",
+        "--model",
+        tmp.path().to_str().expect("demo test"),
+        "--out",
+        out.to_str().expect("demo test"),
+    ]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("expected backbone/"), "{}", stderr(&o));
+}

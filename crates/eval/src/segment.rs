@@ -14,6 +14,19 @@
 use crate::video::Frame;
 use crate::{MetricError, Result};
 
+/// Anything that labels the robot's pixels in a frame (1 = robot, one value
+/// per pixel, row-major).
+pub trait RobotSegmenter {
+    /// The robot mask of `frame`.
+    fn segment(&self, frame: &Frame) -> Result<Vec<u8>>;
+}
+
+impl RobotSegmenter for ColorSegmenter {
+    fn segment(&self, frame: &Frame) -> Result<Vec<u8>> {
+        Ok(ColorSegmenter::segment(self, frame))
+    }
+}
+
 /// Colour-bin statistics of robot vs. other pixels.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ColorSegmenter {

@@ -12,7 +12,7 @@
 use crate::data::ClipDataset;
 use crate::trainer::Trainer;
 use crate::{Result, TrainError};
-use bridgev2w_eval::segment::ColorSegmenter;
+use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
 use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, video_psnr, video_ssim, Frame};
 use tch::{Kind, Tensor};
 
@@ -68,8 +68,9 @@ pub struct SplitScores {
 const SEGMENTER_BITS: u32 = 5;
 
 /// A colour segmenter fitted on every frame and mask of `data` (resized to
-/// its clip size); `None` when no episode has masks.
-pub fn robot_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
+/// its clip size); `None` when no episode has masks. See also
+/// [`crate::segmenter::CnnSegmenter`], the learned one.
+pub fn color_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
     let metric = |e: bridgev2w_eval::MetricError| TrainError::input("segmenter", e.to_string());
     let mut seg = ColorSegmenter::new(SEGMENTER_BITS).map_err(metric)?;
     let mut any = false;
@@ -125,7 +126,7 @@ pub fn evaluate_split(
     trainer: &Trainer,
     split: &str,
     opts: &EvalOptions,
-    segmenter: Option<&ColorSegmenter>,
+    segmenter: Option<&dyn RobotSegmenter>,
     on_video: &dyn Fn(),
 ) -> Result<SplitScores> {
     let mut spec = trainer
@@ -158,10 +159,15 @@ pub fn evaluate_split(
         bs.push(video_ssim(&copy, &gt).map_err(metric)?);
         if let Some(seg) = with_masks {
             let gt_masks = mask_frames(&batch.masks)?;
-            let segment = |v: &[Frame]| v.iter().map(|f| seg.segment(f)).collect::<Vec<_>>();
-            iou.push(video_mask_iou(&segment(&pf), &gt_masks).map_err(metric)?);
-            biou.push(video_mask_iou(&segment(&copy), &gt_masks).map_err(metric)?);
-            ceil.push(video_mask_iou(&segment(&gt), &gt_masks).map_err(metric)?);
+            let segment = |v: &[Frame]| {
+                v.iter()
+                    .map(|f| seg.segment(f))
+                    .collect::<std::result::Result<Vec<_>, _>>()
+                    .map_err(metric)
+            };
+            iou.push(video_mask_iou(&segment(&pf)?, &gt_masks).map_err(metric)?);
+            biou.push(video_mask_iou(&segment(&copy)?, &gt_masks).map_err(metric)?);
+            ceil.push(video_mask_iou(&segment(&gt)?, &gt_masks).map_err(metric)?);
         }
         on_video();
     }

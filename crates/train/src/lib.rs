@@ -13,6 +13,7 @@ pub mod evaluate;
 pub mod flow;
 pub mod losses;
 pub mod optim;
+pub mod segmenter;
 pub mod trainer;
 
 /// Errors of the training code.

@@ -549,7 +549,8 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
 /// predictions are deterministic for a seed.
 #[test]
 fn evaluation_scores_mask_and_action_models_against_the_baseline() {
-    use bridgev2w_train::evaluate::{evaluate_split, robot_segmenter, EvalOptions};
+    use bridgev2w_train::evaluate::{color_segmenter, evaluate_split, EvalOptions};
+    use bridgev2w_train::segmenter::{CnnSegmenter, SegmenterOptions};
     let _g = lock();
     let tmp = tempfile::tempdir().unwrap();
     let opts = EvalOptions {
@@ -562,7 +563,7 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
         let mut c = config(tmp.path());
         c.ablation.mask_action = mask_action;
         let t = Trainer::new(c).unwrap();
-        let seg = robot_segmenter(&t.data).unwrap().unwrap();
+        let seg = color_segmenter(&t.data).unwrap().unwrap();
         let s = evaluate_split(&t, "unseen_camera", &opts, Some(&seg), &|| {}).unwrap();
         assert_eq!((s.split.as_str(), s.videos), ("unseen_camera", 1));
         // The segmenter reads the robot off real frames well; the copied
@@ -578,6 +579,20 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
         let no_seg = evaluate_split(&t, "unseen_camera", &opts, None, &|| {}).unwrap();
         assert_eq!(no_seg.mask_iou, None);
         assert_eq!((no_seg.psnr, no_seg.ssim), (s.psnr, s.ssim));
+        if mask_action {
+            // The learned segmenter plugs in the same way (its advantage over
+            // colour is tested in the segmenter's unit test).
+            let cnn = CnnSegmenter::fit(&t.data, &SegmenterOptions::default())
+                .unwrap()
+                .unwrap();
+            let c = evaluate_split(&t, "unseen_camera", &opts, Some(&cnn), &|| {}).unwrap();
+            let cnn_ceiling = c.segmenter_mask_iou.unwrap();
+            eprintln!(
+                "CNN segmenter ceiling {cnn_ceiling} (BCE {})",
+                cnn.final_loss
+            );
+            assert!(cnn_ceiling > 0.3 && cnn_ceiling <= 1.0, "{c:?}");
+        }
         for v in [s.psnr, s.baseline_psnr] {
             assert!(v.is_finite() && v > 0.0 && v < 100.0, "{s:?}");
         }

@@ -1098,7 +1098,9 @@ mod tests {
             assert_eq!(cfg.temporal_compress_level(), 2);
         }
         let small = VaeConfig::small();
-        small.validate(Path::new("small")).unwrap();
+        small
+            .validate(Path::new("small"))
+            .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(
             (small.spatial_compression(), small.temporal_compress_level()),
             (4, 2)
