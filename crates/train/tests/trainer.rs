@@ -583,7 +583,7 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
             // The learned segmenter plugs in the same way (its advantage over
             // colour is tested in the segmenter's unit test).
             let quick = SegmenterOptions {
-                steps: 40,
+                steps: 100,
                 batch: 4,
                 ..SegmenterOptions::default()
             };
