@@ -112,11 +112,13 @@ lr = 1e-4
         "1",
         "--json",
         s(&json),
+        "--segmenter",
+        "color",
     ]);
     ok(&o);
     let table = String::from_utf8_lossy(&o.stdout);
     assert!(
-        table.contains("| split | videos | PSNR | SSIM | copy-first-frame PSNR")
+        table.contains("| split | videos | PSNR | SSIM | Mask-IoU | copy-first-frame PSNR")
             && table.contains("| unseen_scene | 1 |"),
         "{table}"
     );
@@ -124,6 +126,34 @@ lr = 1e-4
         serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
     assert_eq!(v["step"].as_u64(), Some(5));
     assert!(v["splits"][0]["psnr"].as_f64().is_some_and(f64::is_finite));
+    let iou = v["splits"][0]["segmenter_mask_iou"]
+        .as_f64()
+        .expect("ceiling");
+    assert!(iou > 0.0 && iou <= 1.0, "{v}");
+    // The paper-layout table from the JSON, into a section of results.md
+    // that keeps the rest of the file.
+    let results = d.join("docs/results.md");
+    std::fs::create_dir_all(d.join("docs")).expect("mkdir");
+    std::fs::write(&results, "# Results\n\nhand-written notes\n").expect("write");
+    let entry = format!("BridgeV2W={}", s(&json));
+    ok(&run(&[
+        "eval-report",
+        "--entry",
+        &entry,
+        "--out",
+        s(&results),
+    ]));
+    let md = std::fs::read_to_string(&results).expect("results");
+    assert!(
+        md.contains("hand-written notes")
+            && md.contains("<!-- section: video -->")
+            && md.contains("***In-Domain*** (1 videos")
+            && md.contains("| BridgeV2W (step 5) |"),
+        "{md}"
+    );
+    let o = run(&["eval-report", "--entry", "nofile", "--out", s(&results)]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("expected NAME=FILE"));
     // Errors name the problem.
     std::fs::write(d.join("bad.toml"), "[train]\nlearning_rate = 1\n").expect("write");
     let o = run(&["train", s(&d.join("bad.toml"))]);
