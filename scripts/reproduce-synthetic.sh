@@ -21,7 +21,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 OUT=${1:-runs/reproduce}
-VAE_STEPS=${VAE_STEPS:-600}
+VAE_STEPS=${VAE_STEPS:-400}
 PRIOR_STEPS=${PRIOR_STEPS:-1500}
 FT_STEPS=${FT_STEPS:-1000}
 EVAL_VIDEOS=${EVAL_VIDEOS:-12}

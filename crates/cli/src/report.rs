@@ -72,6 +72,7 @@ struct Scores {
 struct RunScores {
     step: usize,
     sampling_steps: Option<usize>,
+    segmenter: Option<String>,
     splits: Vec<Scores>,
 }
 
@@ -200,7 +201,12 @@ pub fn run_eval_report(a: &EvalReportArgs) -> Result<()> {
         md += "\n\n";
     }
     md += &video_tables(&entries)?;
-    md += "\nPSNR and SSIM per frame on [0, 1] RGB, averaged over frames, then videos. Mask-IoU (x100): the robot segmented in each frame by a colour classifier fitted on the training split's frames and ground-truth masks, against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames. LPIPS and FVD need the pretrained AlexNet and I3D weights, which cannot be downloaded here (`bridgev2w eval` computes them from user-supplied weights).\n";
+    let segmenter = match entries[0].1.segmenter.as_deref() {
+        Some("color") => "a colour classifier",
+        _ => "a small dilated CNN",
+    };
+    md += &format!("\nPSNR and SSIM per frame on [0, 1] RGB, averaged over frames, then videos. Mask-IoU (x100): the robot segmented in each frame by {segmenter} trained on the training split's frames and ground-truth masks (the paper uses Grounded SAM), against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames.");
+    md += " LPIPS and FVD need the pretrained AlexNet and I3D weights, which cannot be downloaded here (`bridgev2w eval` computes them from user-supplied weights).\n";
     write_section(&a.out, "video", &md)?;
     crate::print_stdout(&md)
 }
@@ -234,6 +240,7 @@ mod tests {
         RunScores {
             step: 10,
             sampling_steps: Some(20),
+            segmenter: Some("cnn".into()),
             splits: ["unseen_camera", "test"]
                 .iter()
                 .map(|s| Scores {
