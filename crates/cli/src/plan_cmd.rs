@@ -171,16 +171,18 @@ fn world_for(loaded: &Loaded, a: &ModelArgs, episode_frames: usize, seed: u64) -
 #[derive(Debug, Clone, clap::Args)]
 pub struct CemArgs {
     /// CEM samples S per iteration.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = 64)]
     pub samples: usize,
     /// CEM elites k.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 8)]
     pub elites: usize,
     /// CEM iterations T.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 3)]
     pub iters: usize,
-    /// Planning horizon H (actions).
-    #[arg(long, default_value_t = 2)]
+    /// Planning horizon H (actions). With H > 1 only the terminal frame is
+    /// scored, so the executed first action of the best sequence is
+    /// unconstrained; H = 1 scores exactly the executed action's outcome.
+    #[arg(long, default_value_t = 1)]
     pub horizon: usize,
     /// Carry each CEM iteration's elites into the next selection (iCEM; off
     /// in the paper's algorithm).
@@ -208,10 +210,10 @@ pub struct PlanArgs {
     #[arg(long, default_value_t = 2)]
     pub frames_per_action: usize,
     /// Executed actions at most.
-    #[arg(long, default_value_t = 12)]
+    #[arg(long, default_value_t = 25)]
     pub max_steps: usize,
     /// Initial translational standard deviation per step (metres).
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, default_value_t = 0.1)]
     pub translation_std_m: f64,
     /// Search rotation too (default: translation only, as the paper for pick-and-place).
     #[arg(long)]
@@ -228,9 +230,20 @@ pub struct PlanArgs {
     /// Gripper: auto (heuristic for push/pick_place, searched for reach), search, heuristic.
     #[arg(long, default_value = "auto")]
     pub gripper: String,
-    /// Plan toward the final goal image only (no subgoal).
+    /// Plan toward the final goal image only (no subgoal, no waypoints).
     #[arg(long)]
     pub single_goal: bool,
+    /// Waypoint goals: expert frames inserted evenly before each key goal
+    /// image (a goal image says little about a gripper far from it).
+    #[arg(long, default_value_t = 2)]
+    pub waypoints: usize,
+    /// Stalled steps (no 1% progress) after which the final goal counts as
+    /// reached as far as the model can tell.
+    #[arg(long, default_value_t = 4)]
+    pub patience: usize,
+    /// The same for subgoals and waypoints: then switch to the next goal.
+    #[arg(long, default_value_t = 1)]
+    pub subgoal_patience: usize,
     /// Do not keep planned positions inside the table's workspace box
     /// (above the table, inside its edges, at most 5 cm above the start).
     #[arg(long)]
@@ -314,6 +327,8 @@ fn mpc_config(a: &PlanArgs) -> Result<MpcConfig> {
         max_steps: a.max_steps,
         gripper,
         execute_best: a.cem.execute_best,
+        patience: a.patience,
+        subgoal_patience: a.subgoal_patience,
         ..MpcConfig::default()
     };
     cfg.cem.validate()?;
@@ -332,13 +347,21 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
     let (mut planned, mut random) = (0, 0);
     let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);
     for trial in 0..a.trials {
-        let inst = TaskInstance::new(&world, a.split, trial, a.task)?;
+        let mut inst = TaskInstance::new(&world, a.split, trial, a.task)?;
+        if !a.single_goal {
+            inst = inst.with_waypoints(a.waypoints);
+        }
         let mut goals: Vec<Image> = inst.goal_images();
         if a.single_goal {
             goals.drain(..goals.len() - 1);
         }
         let seed = a.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
         let mut cfg = cfg.clone();
+        cfg.switch_after_goal = if a.single_goal {
+            0
+        } else {
+            inst.first_key_goal
+        };
         if !a.no_workspace {
             cfg.workspace = Some(inst.workspace(&world));
         }
@@ -553,8 +576,23 @@ pub struct PlanReportArgs {
     #[command(flatten)]
     pub cem: CemArgs,
     /// Executed actions at most.
-    #[arg(long, default_value_t = 12)]
+    #[arg(long, default_value_t = 25)]
     pub max_steps: usize,
+    /// Initial translational standard deviation per step (metres).
+    #[arg(long, default_value_t = 0.1)]
+    pub translation_std_m: f64,
+    /// Waypoint goals inserted before each key goal image.
+    #[arg(long, default_value_t = 2)]
+    pub waypoints: usize,
+    /// Stalled steps that end the final goal.
+    #[arg(long, default_value_t = 4)]
+    pub patience: usize,
+    /// Stalled steps that end a subgoal or waypoint.
+    #[arg(long, default_value_t = 1)]
+    pub subgoal_patience: usize,
+    /// Tasks to plan (comma-separated).
+    #[arg(long, default_value = "reach,push,pick_place")]
+    pub tasks: String,
     /// Also evaluate policies with the random-weight BridgeV2W (slow on CPU).
     #[arg(long)]
     pub with_random_model: bool,
@@ -589,10 +627,26 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         64
     );
     md += &format!(
-        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, 2 clip frames per action, at most {} actions, translation-only search; gripper searched for reach, heuristic for push/pick_place; two goal images (subgoal, final) for push and pick_place. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
-        a.trials, a.cem.samples, a.cem.elites, a.cem.iters, a.cem.horizon, a.max_steps
+        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
+        a.trials,
+        a.cem.samples,
+        a.cem.elites,
+        a.cem.iters,
+        a.cem.horizon,
+        a.translation_std_m,
+        a.max_steps,
+        if a.cem.keep_elites { ", elites carried over (iCEM)" } else { "" },
+        if a.cem.execute_best { ", the best candidate executed" } else { ", the refined mean executed" },
+        a.waypoints,
+        a.subgoal_patience,
+        a.patience
     );
-    for task in Task::ALL {
+    let tasks = a
+        .tasks
+        .split(',')
+        .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
+        .collect::<Result<Vec<Task>>>()?;
+    for task in tasks {
         let pa = PlanArgs {
             task,
             trials: a.trials,
@@ -600,13 +654,16 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             cem: a.cem.clone(),
             frames_per_action: 2,
             max_steps: a.max_steps,
-            translation_std_m: 0.05,
+            translation_std_m: a.translation_std_m,
             search_rotation: false,
             rotation: "joint".into(),
             rotation_sample_fraction: 0.0,
             discretize: false,
             gripper: "auto".into(),
             single_goal: false,
+            waypoints: a.waypoints,
+            patience: a.patience,
+            subgoal_patience: a.subgoal_patience,
             no_workspace: false,
             split: Split::Test,
             episode_frames: 25,

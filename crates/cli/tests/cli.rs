@@ -479,3 +479,55 @@ fn demo_predicts_with_the_shipped_model() {
     assert!(!o.status.success());
     assert!(stderr(&o).contains("expected backbone/"), "{}", stderr(&o));
 }
+
+#[test]
+fn plan_with_the_perfect_model_and_bad_plan_options() {
+    // A tiny run: 1 trial, 8 samples, 1 iteration, 2 actions.
+    let out = run(&[
+        "plan",
+        "--task",
+        "reach",
+        "--model",
+        "perfect",
+        "--trials",
+        "1",
+        "--samples",
+        "8",
+        "--elites",
+        "2",
+        "--iters",
+        "1",
+        "--max-steps",
+        "2",
+        "--waypoints",
+        "1",
+        "--episode-frames",
+        "9",
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stdout.contains("reach: planner (perfect)") && stdout.contains("random actions"),
+        "{stdout}"
+    );
+    assert!(stderr.contains("reach trial 0: planner"), "{stderr}");
+    // k > S.
+    let out = run(&[
+        "plan",
+        "--task",
+        "reach",
+        "--model",
+        "perfect",
+        "--samples",
+        "4",
+        "--elites",
+        "8",
+    ]);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && e.contains("elite"), "{e}");
+    // Unknown task in plan-report.
+    let out = run(&["plan-report", "--tasks", "reach,fly", "--trials", "1"]);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && e.contains("fly"), "{e}");
+}

@@ -45,15 +45,21 @@ pub struct MpcConfig {
     /// A step stalls when the observed latent distance to the current goal
     /// does not improve by this fraction.
     pub stall_fraction: f64,
-    /// After this many consecutive stalled steps the goal counts as reached
-    /// as far as the model can tell: switch to the next goal, or stop.
+    /// After this many consecutive stalled steps the final goal counts as
+    /// reached as far as the model can tell: stop.
     pub patience: usize,
+    /// The same for the goals before the final one: switch to the next.
+    pub subgoal_patience: usize,
     /// Planned (and random-baseline) positions are clamped into this box.
     pub workspace: Option<Workspace>,
     /// Execute the best evaluated candidate instead of the refined mean
     /// (the paper executes the mean). Near the goal the mean of spread
     /// elites can step away from a goal the best sample already holds.
     pub execute_best: bool,
+    /// Index of the goal whose end triggers the gripper heuristic's
+    /// switch (the grasp): goals up to it are pursued with `approach`,
+    /// later ones with `after_switch`. 0 without waypoint goals.
+    pub switch_after_goal: usize,
 }
 
 impl Default for MpcConfig {
@@ -65,8 +71,10 @@ impl Default for MpcConfig {
             gripper: GripperPolicy::Search,
             stall_fraction: 0.01,
             patience: 2,
+            subgoal_patience: 2,
             workspace: None,
             execute_best: false,
+            switch_after_goal: 0,
         }
     }
 }
@@ -212,6 +220,13 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
     for g in goals {
         check_image_size(g, model.resolution())?;
     }
+    if cfg.switch_after_goal >= goals.len() {
+        return Err(PlanError::Invalid(format!(
+            "the gripper switch after goal {} needs more than {} goal images",
+            cfg.switch_after_goal,
+            goals.len()
+        )));
+    }
     let latents: Vec<Vec<f32>> = goals
         .iter()
         .map(|g| model.encode(g))
@@ -229,7 +244,11 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
             approach,
             after_switch,
             ..
-        } => GripperMode::Fixed(if stage == 0 { approach } else { after_switch }),
+        } => GripperMode::Fixed(if stage <= cfg.switch_after_goal {
+            approach
+        } else {
+            after_switch
+        }),
     };
     while steps < cfg.max_steps && !env.goal_reached() {
         let plan = plan_once(model, &obs, &latents[stage], cfg, gripper_for(stage), rng)?;
@@ -246,11 +265,18 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
             stalls = 0;
         }
         prev_dist = prev_dist.min(dist);
-        let stalled = stalls >= cfg.patience.max(1);
+        let patience = if stage < last {
+            cfg.subgoal_patience
+        } else {
+            cfg.patience
+        };
+        let stalled = stalls >= patience.max(1);
         if stalled && stage < last {
             stage += 1;
-            // Grasp in place before pursuing the final goal.
-            if let GripperPolicy::Heuristic { after_switch, .. } = cfg.gripper {
+            // Grasp in place before pursuing the goals after the switch.
+            if let (GripperPolicy::Heuristic { after_switch, .. }, true) =
+                (cfg.gripper, stage == cfg.switch_after_goal + 1)
+            {
                 let mut close = obs.ee;
                 close[6] = after_switch;
                 obs = env.execute(&vec![close; cfg.frames_per_action])?;

@@ -44,6 +44,10 @@ pub struct TaskInstance {
     pub expert: Episode,
     /// Expert frame indices of the goal images, in order (subgoal first).
     pub goal_frames: Vec<usize>,
+    /// Index into `goal_frames` of the task's first key goal (the grasp of
+    /// pick-and-place, the end of the push, the half-way pose of reach);
+    /// goals before it are waypoints ([`TaskInstance::with_waypoints`]).
+    pub first_key_goal: usize,
 }
 
 impl TaskInstance {
@@ -61,7 +65,35 @@ impl TaskInstance {
             task,
             expert,
             goal_frames,
+            first_key_goal: 0,
         })
+    }
+
+    /// Inserts `per_segment` evenly spaced expert frames as waypoint goals
+    /// before every key goal (between the start, or the previous key goal,
+    /// and it). A goal image says little about a gripper far from it (out
+    /// of view, or no overlap with its goal pose even at coarse blur), so a
+    /// long motion is planned through nearer waypoints. Idempotent only on
+    /// a fresh instance: the key goals are the current `goal_frames`.
+    pub fn with_waypoints(mut self, per_segment: usize) -> Self {
+        let mut frames = Vec::new();
+        let mut first_key = None;
+        let mut prev = 0usize;
+        for &key in &self.goal_frames {
+            let span = key.saturating_sub(prev);
+            for j in 1..=per_segment {
+                let f = prev + (span * j + per_segment.div_ceil(2)) / (per_segment + 1);
+                if f > prev && f < key && frames.last() != Some(&f) {
+                    frames.push(f);
+                }
+            }
+            first_key.get_or_insert(frames.len());
+            frames.push(key);
+            prev = key;
+        }
+        self.first_key_goal = first_key.unwrap_or(0);
+        self.goal_frames = frames;
+        self
     }
 
     /// `(height, width)` of the episode's images.
@@ -277,8 +309,16 @@ impl ActionWorldModel for PerfectWorldModel<'_> {
 }
 
 /// Blur scales of [`pyramid_latent`], as fractions of the image width
-/// (1, 2, 4 and 8 pixels at 96 wide).
-pub const PYRAMID_SIGMAS: [f64; 4] = [1.0 / 96.0, 2.0 / 96.0, 4.0 / 96.0, 8.0 / 96.0];
+/// (1, 2, 4, 8, 16 and 32 pixels at 96 wide; the two coarsest widen the
+/// basin for a gripper far from its goal pose).
+pub const PYRAMID_SIGMAS: [f64; 6] = [
+    1.0 / 96.0,
+    2.0 / 96.0,
+    4.0 / 96.0,
+    8.0 / 96.0,
+    16.0 / 96.0,
+    32.0 / 96.0,
+];
 
 /// The perfect model's latent: a Gaussian pyramid of the image. Level `l`
 /// is the image blurred with `sigma_l = PYRAMID_SIGMAS[l] * width` pixels
