@@ -294,6 +294,12 @@ pub struct TrainSection {
     pub stage: String,
     /// KL weight of the `vae` stage.
     pub kl_weight: f64,
+    /// Per-block gradient checkpointing of the backbone transformer
+    /// (`bridgev2w` and `prior` stages): blocks run without autograd graphs
+    /// and are recomputed one at a time in the backward pass. Same
+    /// gradients, less activation memory, about one more forward pass of
+    /// compute.
+    pub gradient_checkpointing: bool,
 }
 
 impl Default for TrainSection {
@@ -327,6 +333,7 @@ impl Default for TrainSection {
             inject_nan_at_step: None,
             stage: "bridgev2w".into(),
             kl_weight: 1e-4,
+            gradient_checkpointing: false,
         }
     }
 }

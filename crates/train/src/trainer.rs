@@ -11,9 +11,11 @@
 //! Stages (`train.stage`): `bridgev2w` (the above), `vae` and `prior` (a
 //! video prior trained here, see [`Trainer::save_trained_backbone`]).
 //!
-//! Not implemented (yet): bf16 autocast and per-block gradient
-//! checkpointing (training runs in the backbone's dtype, F32 here), and
-//! data-parallel training (see the README for the intended NCCL layout).
+//! Per-block gradient checkpointing of the backbone: `train.gradient_checkpointing`.
+//!
+//! Not implemented (yet): bf16 autocast (training runs in the backbone's
+//! dtype, F32 here), and data-parallel training (see the README for the
+//! intended NCCL layout).
 
 use crate::action::ActionEncoder;
 use crate::config::TrainConfig;
@@ -28,7 +30,7 @@ use bridgev2w_world_model::device::{ComputeDevice, Precision};
 use bridgev2w_world_model::lora::LoraConfig;
 use bridgev2w_world_model::pipeline::{sample_latents, Denoiser, Guidance, SampleOptions};
 use bridgev2w_world_model::scheduler::{Scheduler, SchedulerConfig};
-use bridgev2w_world_model::transformer::TransformerConfig;
+use bridgev2w_world_model::transformer::{CheckpointedForward, TransformerConfig};
 use bridgev2w_world_model::vae::VaeConfig;
 use rand::Rng;
 use rand_distr_free::normal;
@@ -102,6 +104,9 @@ pub struct Losses {
     pub recon: f64,
     /// `vae` stage: KL term.
     pub kl: f64,
+    /// With gradient checkpointing: the record whose
+    /// [`CheckpointedForward::backward`] must follow `total.backward()`.
+    pub checkpointed: Option<CheckpointedForward>,
 }
 
 /// The trainer.
@@ -372,6 +377,7 @@ impl Trainer {
             dropped: false,
             recon: rv,
             kl: kv,
+            checkpointed: None,
         })
     }
 
@@ -427,7 +433,15 @@ impl Trainer {
             _ => Vec::new(),
         };
         let ctrl = if dropped { None } else { control.as_ref() };
-        let v = model.velocity_with_extra(&latent_in, &timesteps, ctrl, &extra)?;
+        let (v, checkpointed) = if t.gradient_checkpointing {
+            let (v, record) = model.velocity_checkpointed(&latent_in, &timesteps, ctrl, &extra)?;
+            (v, Some(record))
+        } else {
+            (
+                model.velocity_with_extra(&latent_in, &timesteps, ctrl, &extra)?,
+                None,
+            )
+        };
         let v = v.to_kind(Kind::Float);
         let alpha = self.scheduler.alpha_bar_like(&timesteps, &z0)?;
         let diff = diffusion_loss(&z0, &x_t, &v, &alpha)?;
@@ -469,6 +483,7 @@ impl Trainer {
             dropped,
             recon: 0.0,
             kl: 0.0,
+            checkpointed,
         })
     }
 
@@ -490,6 +505,9 @@ impl Trainer {
         let loss = l.total.double_value(&[]);
         check_finite(step, "total", loss)?;
         l.total.backward();
+        if let Some(record) = l.checkpointed {
+            record.backward(&self.model.transformer.model)?;
+        }
         let grad_norm = self.opt.clip_grad_norm(self.cfg.train.grad_clip);
         check_finite(step, "gradient norm", grad_norm)?;
         let lr = self.cfg.lr_at(step);

@@ -16,7 +16,7 @@ use crate::pipeline::{
     check_batch, sample_latents, Denoiser, Guidance, PredictOptions, WorldModel,
 };
 use crate::scheduler::{Scheduler, SchedulerConfig};
-use crate::transformer::{LoadedTransformer, TransformerConfig};
+use crate::transformer::{CheckpointedForward, LoadedTransformer, Rotary, TransformerConfig};
 use crate::vae::{AutoencoderKLCogVideoX, VaeConfig};
 use crate::video::{Image, MaskVideo, Video};
 use crate::weights::{
@@ -467,6 +467,57 @@ impl BridgeV2W {
                 ),
             ));
         }
+        let p = self.prepare(latent_in, timestep, control, extra)?;
+        let residuals = p.residuals;
+        self.transformer.model.forward_with_residuals(
+            &p.latent_in,
+            &p.text,
+            &p.timestep,
+            p.rotary.as_ref(),
+            p.ofs.as_ref(),
+            &mut |i, _| {
+                residuals
+                    .get(i)
+                    .and_then(|r| r.as_ref().map(Tensor::shallow_clone))
+            },
+        )
+    }
+
+    /// [`Self::velocity_with_extra`] with per-block gradient checkpointing
+    /// of the backbone: the velocity comes back as a leaf that requires
+    /// grad; after the loss's `backward()`, call
+    /// [`CheckpointedForward::backward`] with the backbone
+    /// (`&self.transformer.model`) to recompute each block and carry the
+    /// gradients into the adapters, the ControlNet branch and `extra`'s
+    /// sources. Memory: one `(video, text)` token pair per block instead of
+    /// every block's activations.
+    pub fn velocity_checkpointed(
+        &self,
+        latent_in: &Tensor,
+        timestep: &Tensor,
+        control: Option<&Tensor>,
+        extra: &[Tensor],
+    ) -> Result<(Tensor, CheckpointedForward)> {
+        let p = self.prepare(latent_in, timestep, control, extra)?;
+        self.transformer.model.forward_checkpointed(
+            &p.latent_in,
+            &p.text,
+            &p.timestep,
+            p.rotary.as_ref(),
+            p.ofs.as_ref(),
+            p.residuals,
+        )
+    }
+
+    /// The transformer inputs of a velocity call and the per-block
+    /// residuals (branch + `extra`).
+    fn prepare(
+        &self,
+        latent_in: &Tensor,
+        timestep: &Tensor,
+        control: Option<&Tensor>,
+        extra: &[Tensor],
+    ) -> Result<Prepared> {
         let model = &self.transformer.model;
         let latent_in = latent_in.to_device(self.device).to_kind(self.kind);
         let b = latent_in.size()[0];
@@ -481,7 +532,7 @@ impl BridgeV2W {
             .ofs_embed_dim
             .map(|_| Tensor::full([b], 2.0, (Kind::Float, self.device)));
         let timestep = timestep.to_device(self.device);
-        let residuals = match control {
+        let branch = match control {
             Some(c) => {
                 let temb = model.time_embed(&timestep, ofs.as_ref(), self.kind)?;
                 let c = c.to_device(self.device).to_kind(self.kind);
@@ -490,19 +541,23 @@ impl BridgeV2W {
             }
             None => Vec::new(),
         };
-        model.forward_with_residuals(
-            &latent_in,
-            &text,
-            &timestep,
-            rotary.as_ref(),
-            ofs.as_ref(),
-            &mut |i, _| match (residuals.get(i), extra.get(i)) {
+        let n = branch.len().max(extra.len());
+        let residuals = (0..n)
+            .map(|i| match (branch.get(i), extra.get(i)) {
                 (Some(r), Some(e)) => Some(r + e.to_kind(self.kind)),
                 (Some(r), None) => Some(r.shallow_clone()),
                 (None, Some(e)) => Some(e.to_kind(self.kind)),
                 (None, None) => None,
-            },
-        )
+            })
+            .collect();
+        Ok(Prepared {
+            latent_in,
+            text,
+            timestep,
+            rotary,
+            ofs,
+            residuals,
+        })
     }
 
     /// Samples a clip's latents `[B, t, C, h, w]` from image latents and control latents.
@@ -560,6 +615,16 @@ impl BridgeV2W {
         }
         Ok(())
     }
+}
+
+/// Inputs of one transformer call (see [`BridgeV2W::velocity_with_extra`]).
+struct Prepared {
+    latent_in: Tensor,
+    text: Tensor,
+    timestep: Tensor,
+    rotary: Option<Rotary>,
+    ofs: Option<Tensor>,
+    residuals: Vec<Option<Tensor>>,
 }
 
 fn save_vars(vs: &VarStore, dir: &Path) -> Result<()> {

@@ -426,3 +426,83 @@ fn bf16_model_predicts_close_to_f32() {
     let v = bf16m.predict(&image(2), &masks(0), &opts(1, 2.0)).unwrap();
     assert!(v.data.iter().all(|x| x.is_finite()));
 }
+
+#[test]
+fn per_block_gradient_checkpointing_gives_the_same_gradients() {
+    let m = tiny(BridgeV2WConfig::tiny(), 21);
+    // Non-zero projections and LoRA B, so every path carries gradient.
+    tch::no_grad(|| {
+        for (name, mut v) in m.adapters.variables() {
+            if name.contains("out_projectors") || name.contains("lora_B") {
+                v.copy_(&(Tensor::randn_like(&v) * 0.05));
+            }
+        }
+    });
+    let (x, c, t) = inputs(22);
+    let d = TransformerConfig::tiny().inner_dim();
+    let extra = Tensor::randn([1, 1, d], (Kind::Float, Device::Cpu)) * 0.1;
+    let weight = Tensor::randn([1, 3, 4, 8, 12], (Kind::Float, Device::Cpu));
+    let loss = |v: &Tensor| (v * &weight).square().mean(Kind::Float);
+    let vars = m.adapters.variables();
+    let copy = |g: Tensor| g.defined().then(|| g.copy());
+    let grads = |e: &Tensor| -> Vec<(String, Option<Tensor>)> {
+        let mut g: Vec<(String, Option<Tensor>)> = vars
+            .iter()
+            .map(|(k, v)| (k.clone(), copy(v.grad())))
+            .collect();
+        g.push(("extra".into(), copy(e.grad())));
+        g
+    };
+    let zero = || {
+        tch::no_grad(|| {
+            for v in vars.values() {
+                let mut g = v.grad();
+                if g.defined() {
+                    let _ = g.zero_();
+                }
+            }
+        })
+    };
+    // Plain backward.
+    zero();
+    let e1 = extra.detach().set_requires_grad(true);
+    let v1 = m
+        .velocity_with_extra(&x, &t, Some(&c), std::slice::from_ref(&e1))
+        .unwrap();
+    loss(&v1).backward();
+    let plain = grads(&e1);
+    // Checkpointed.
+    zero();
+    let e2 = extra.detach().set_requires_grad(true);
+    let (v2, record) = m
+        .velocity_checkpointed(&x, &t, Some(&c), std::slice::from_ref(&e2))
+        .unwrap();
+    assert!(max_abs(&v1, &v2) < 1e-6, "outputs differ");
+    assert!(v2.requires_grad() && v2.is_leaf());
+    loss(&v2).backward();
+    record.backward(&m.transformer.model).unwrap();
+    let checkpointed = grads(&e2);
+    let mut nonzero = 0;
+    for ((name, a), (_, b)) in plain.iter().zip(&checkpointed) {
+        let (a, b) = match (a, b) {
+            (Some(a), Some(b)) => (a, b),
+            (None, None) => continue,
+            _ => panic!("{name}: gradient defined in one run only"),
+        };
+        let scale = a.abs().max().double_value(&[]);
+        nonzero += usize::from(scale > 0.0);
+        let diff = max_abs(a, b);
+        assert!(
+            diff <= 1e-5 * (1.0 + scale),
+            "{name}: {diff} (scale {scale})"
+        );
+    }
+    // Branch, LoRA A and B of every block, and the extra residual.
+    assert!(nonzero >= 4, "{nonzero} non-zero gradients");
+    assert!(checkpointed.iter().any(|(n, g)| n.contains("lora_A")
+        && g.as_ref()
+            .is_some_and(|g| g.abs().max().double_value(&[]) > 0.0)));
+    assert!(checkpointed
+        .iter()
+        .any(|(n, g)| n == "extra" && g.is_some()));
+}

@@ -267,6 +267,65 @@ impl CogVideoXTransformer3DModel {
         Ok(self.finish(&emb, &video))
     }
 
+    /// Per-block gradient checkpointing: [`Self::forward_with_residuals`]
+    /// with `residuals[i]` (when `Some`) added after block `i`, but the
+    /// blocks run without recording autograd graphs; only each block's
+    /// inputs are kept. Returns the output `[B, F, C_out, H, W]` as a leaf
+    /// that requires grad, and the record that
+    /// [`CheckpointedForward::backward`] replays block by block (from the
+    /// last) once the loss's backward pass has filled that leaf's gradient.
+    /// Gradients reach the same variables as with the plain forward: the
+    /// blocks' (LoRA adapters), the embeddings', the head's, and through
+    /// `residuals` whatever produced them (the ControlNet branch).
+    pub fn forward_checkpointed(
+        &self,
+        hidden_states: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep: &Tensor,
+        rotary: Option<&Rotary>,
+        ofs: Option<&Tensor>,
+        residuals: Vec<Option<Tensor>>,
+    ) -> Result<(Tensor, CheckpointedForward)> {
+        if residuals.len() > self.blocks.len() {
+            return Err(WorldModelError::input(
+                "residuals",
+                format!(
+                    "{} residuals for {} blocks",
+                    residuals.len(),
+                    self.blocks.len()
+                ),
+            ));
+        }
+        let mut block_inputs = Vec::with_capacity(self.blocks.len());
+        let (output, final_video) = tch::no_grad(|| -> Result<(Tensor, Tensor)> {
+            let emb = self.embed(hidden_states, encoder_hidden_states, timestep, ofs)?;
+            let (mut video, mut text) = (emb.video.shallow_clone(), emb.text.shallow_clone());
+            for (i, block) in self.blocks.iter().enumerate() {
+                let (v, t) = block.forward(&video, &text, &emb.temb, rotary);
+                block_inputs.push((video, text));
+                video = match residuals.get(i) {
+                    Some(Some(r)) => v + r.detach(),
+                    _ => v,
+                };
+                text = t;
+            }
+            Ok((self.finish(&emb, &video), video))
+        })?;
+        let output = output.detach().set_requires_grad(true);
+        let record = CheckpointedForward {
+            hidden_states: hidden_states.shallow_clone(),
+            encoder_hidden_states: encoder_hidden_states.shallow_clone(),
+            timestep: timestep.shallow_clone(),
+            ofs: ofs.map(Tensor::shallow_clone),
+            rotary: rotary.map(Rotary::shallow_clone),
+            block_inputs,
+            final_video,
+            residuals,
+            output: output.shallow_clone(),
+        };
+        Ok((output, record))
+    }
+
     /// Attaches LoRA adapters (rank, alpha) to every block's attention
     /// projections, their variables under `p` with PEFT key names
     /// (`transformer_blocks.{i}.attn1.to_q.lora_A.weight`, ...).
@@ -360,4 +419,114 @@ pub fn fixture_outputs(
         out.push(("rope_sin".into(), r.sin.shallow_clone()));
     }
     Ok(out)
+}
+
+/// What [`CogVideoXTransformer3DModel::forward_checkpointed`] keeps for the
+/// backward pass: the inputs, every block's `(video, text)` input and the
+/// residuals (with their autograd graphs).
+#[derive(Debug)]
+pub struct CheckpointedForward {
+    hidden_states: Tensor,
+    encoder_hidden_states: Tensor,
+    timestep: Tensor,
+    ofs: Option<Tensor>,
+    rotary: Option<Rotary>,
+    block_inputs: Vec<(Tensor, Tensor)>,
+    final_video: Tensor,
+    residuals: Vec<Option<Tensor>>,
+    output: Tensor,
+}
+
+/// `sum(a * g)`: the scalar whose gradient pushes `g` back through `a`.
+fn dot(a: &Tensor, g: &Tensor) -> Tensor {
+    (a * g.to_kind(a.kind())).sum(Kind::Float)
+}
+
+/// A leaf copy of `t` that requires grad.
+fn leaf(t: &Tensor) -> Tensor {
+    t.detach().set_requires_grad(true)
+}
+
+impl CheckpointedForward {
+    /// Back-propagates the gradient the loss left on the output leaf:
+    /// the head, then each block from the last (recomputed with autograd
+    /// on, one at a time), then the embeddings and the residuals' sources.
+    /// Gradients accumulate into the variables as `backward()` would have.
+    /// Nothing happens when the output received no gradient.
+    pub fn backward(self, model: &CogVideoXTransformer3DModel) -> Result<()> {
+        let grad_output = self.output.grad();
+        if !grad_output.defined() {
+            return Ok(());
+        }
+        // The embeddings, recomputed with autograd on (cheap); the blocks
+        // see a leaf of the timestep embedding whose gradient sums over
+        // all blocks and the head.
+        let emb = model.embed(
+            &self.hidden_states,
+            &self.encoder_hidden_states,
+            &self.timestep,
+            self.ofs.as_ref(),
+        )?;
+        let temb = leaf(&emb.temb);
+        let emb_leaf = Embedded {
+            video: emb.video.shallow_clone(),
+            text: emb.text.shallow_clone(),
+            temb: temb.shallow_clone(),
+            latent_shape: emb.latent_shape,
+        };
+        let video = leaf(&self.final_video);
+        dot(&model.finish(&emb_leaf, &video), &grad_output).backward();
+        let mut grad_video = video.grad();
+        let mut grad_text: Option<Tensor> = None;
+        let mut residual_terms = Vec::new();
+        for (i, (block, (video_in, text_in))) in model
+            .blocks
+            .iter()
+            .zip(&self.block_inputs)
+            .enumerate()
+            .rev()
+        {
+            // After block i: video_{i+1} = v + r_i, text_{i+1} = t.
+            if let Some(Some(r)) = self.residuals.get(i) {
+                if r.requires_grad() {
+                    residual_terms.push(dot(r, &grad_video));
+                }
+            }
+            let (v_in, t_in) = (leaf(video_in), leaf(text_in));
+            let (v, t) = block.forward(&v_in, &t_in, &temb, self.rotary.as_ref());
+            let mut scalar = dot(&v, &grad_video);
+            if let Some(g) = &grad_text {
+                scalar += dot(&t, g);
+            }
+            scalar.backward();
+            grad_video = v_in.grad();
+            let g = t_in.grad();
+            grad_text = g.defined().then_some(g);
+        }
+        // Into the embeddings (trainable only in some setups).
+        let mut scalar: Option<Tensor> = None;
+        let mut add = |term: Tensor| {
+            scalar = Some(match scalar.take() {
+                Some(s) => s + term,
+                None => term,
+            });
+        };
+        if emb.video.requires_grad() && grad_video.defined() {
+            add(dot(&emb.video, &grad_video));
+        }
+        if let (true, Some(g)) = (emb.text.requires_grad(), &grad_text) {
+            add(dot(&emb.text, g));
+        }
+        let grad_temb = temb.grad();
+        if emb.temb.requires_grad() && grad_temb.defined() {
+            add(dot(&emb.temb, &grad_temb));
+        }
+        for term in residual_terms {
+            add(term);
+        }
+        if let Some(s) = scalar {
+            s.backward();
+        }
+        Ok(())
+    }
 }

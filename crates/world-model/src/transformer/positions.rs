@@ -126,6 +126,14 @@ impl Rotary {
         self.cos.size()[0]
     }
 
+    /// The same tables (shared storage).
+    pub fn shallow_clone(&self) -> Self {
+        Self {
+            cos: self.cos.shallow_clone(),
+            sin: self.sin.shallow_clone(),
+        }
+    }
+
     /// On another device / dtype.
     pub fn to(&self, device: Device, kind: Kind) -> Self {
         Self {
