@@ -166,7 +166,22 @@ fn world_for(loaded: &Loaded, a: &ModelArgs, episode_frames: usize, seed: u64) -
     })?)
 }
 
-/// `bridgev2w plan`.
+/// The goal sequence and its switching, shared by `plan` and `plan-report`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct GoalArgs {
+    /// Waypoint goals: expert frames inserted evenly before each key goal
+    /// image (a goal image says little about a gripper far from it).
+    #[arg(long, default_value_t = 2)]
+    pub waypoints: usize,
+    /// Stalled steps (no 1% progress) after which the final goal counts as
+    /// reached as far as the model can tell.
+    #[arg(long, default_value_t = 4)]
+    pub patience: usize,
+    /// The same for subgoals and waypoints: then switch to the next goal.
+    #[arg(long, default_value_t = 1)]
+    pub subgoal_patience: usize,
+}
+
 /// The CEM sizes shared by `plan` and `plan-report`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct CemArgs {
@@ -233,17 +248,8 @@ pub struct PlanArgs {
     /// Plan toward the final goal image only (no subgoal, no waypoints).
     #[arg(long)]
     pub single_goal: bool,
-    /// Waypoint goals: expert frames inserted evenly before each key goal
-    /// image (a goal image says little about a gripper far from it).
-    #[arg(long, default_value_t = 2)]
-    pub waypoints: usize,
-    /// Stalled steps (no 1% progress) after which the final goal counts as
-    /// reached as far as the model can tell.
-    #[arg(long, default_value_t = 4)]
-    pub patience: usize,
-    /// The same for subgoals and waypoints: then switch to the next goal.
-    #[arg(long, default_value_t = 1)]
-    pub subgoal_patience: usize,
+    #[command(flatten)]
+    pub goals: GoalArgs,
     /// Do not keep planned positions inside the table's workspace box
     /// (above the table, inside its edges, at most 5 cm above the start).
     #[arg(long)]
@@ -327,8 +333,8 @@ fn mpc_config(a: &PlanArgs) -> Result<MpcConfig> {
         max_steps: a.max_steps,
         gripper,
         execute_best: a.cem.execute_best,
-        patience: a.patience,
-        subgoal_patience: a.subgoal_patience,
+        patience: a.goals.patience,
+        subgoal_patience: a.goals.subgoal_patience,
         ..MpcConfig::default()
     };
     cfg.cem.validate()?;
@@ -349,7 +355,7 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
     for trial in 0..a.trials {
         let mut inst = TaskInstance::new(&world, a.split, trial, a.task)?;
         if !a.single_goal {
-            inst = inst.with_waypoints(a.waypoints);
+            inst = inst.with_waypoints(a.goals.waypoints);
         }
         let mut goals: Vec<Image> = inst.goal_images();
         if a.single_goal {
@@ -581,15 +587,8 @@ pub struct PlanReportArgs {
     /// Initial translational standard deviation per step (metres).
     #[arg(long, default_value_t = 0.1)]
     pub translation_std_m: f64,
-    /// Waypoint goals inserted before each key goal image.
-    #[arg(long, default_value_t = 2)]
-    pub waypoints: usize,
-    /// Stalled steps that end the final goal.
-    #[arg(long, default_value_t = 4)]
-    pub patience: usize,
-    /// Stalled steps that end a subgoal or waypoint.
-    #[arg(long, default_value_t = 1)]
-    pub subgoal_patience: usize,
+    #[command(flatten)]
+    pub goals: GoalArgs,
     /// Tasks to plan (comma-separated).
     #[arg(long, default_value = "reach,push,pick_place")]
     pub tasks: String,
@@ -637,9 +636,9 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         a.max_steps,
         if a.cem.keep_elites { ", elites carried over (iCEM)" } else { "" },
         if a.cem.execute_best { ", the best candidate executed" } else { ", the refined mean executed" },
-        a.waypoints,
-        a.subgoal_patience,
-        a.patience
+        a.goals.waypoints,
+        a.goals.subgoal_patience,
+        a.goals.patience
     );
     let tasks = a
         .tasks
@@ -661,9 +660,7 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             discretize: false,
             gripper: "auto".into(),
             single_goal: false,
-            waypoints: a.waypoints,
-            patience: a.patience,
-            subgoal_patience: a.subgoal_patience,
+            goals: a.goals.clone(),
             no_workspace: false,
             split: Split::Test,
             episode_frames: 25,

@@ -482,28 +482,12 @@ fn demo_predicts_with_the_shipped_model() {
 
 #[test]
 fn plan_with_the_perfect_model_and_bad_plan_options() {
+    let words = |line: &str| run(&line.split_whitespace().collect::<Vec<_>>());
     // A tiny run: 1 trial, 8 samples, 1 iteration, 2 actions.
-    let out = run(&[
-        "plan",
-        "--task",
-        "reach",
-        "--model",
-        "perfect",
-        "--trials",
-        "1",
-        "--samples",
-        "8",
-        "--elites",
-        "2",
-        "--iters",
-        "1",
-        "--max-steps",
-        "2",
-        "--waypoints",
-        "1",
-        "--episode-frames",
-        "9",
-    ]);
+    let out = words(
+        "plan --task reach --model perfect --trials 1 --samples 8 --elites 2 --iters 1 \
+         --max-steps 2 --waypoints 1 --episode-frames 9",
+    );
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
@@ -513,21 +497,11 @@ fn plan_with_the_perfect_model_and_bad_plan_options() {
     );
     assert!(stderr.contains("reach trial 0: planner"), "{stderr}");
     // k > S.
-    let out = run(&[
-        "plan",
-        "--task",
-        "reach",
-        "--model",
-        "perfect",
-        "--samples",
-        "4",
-        "--elites",
-        "8",
-    ]);
+    let out = words("plan --task reach --model perfect --samples 4 --elites 8");
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && e.contains("elite"), "{e}");
     // Unknown task in plan-report.
-    let out = run(&["plan-report", "--tasks", "reach,fly", "--trials", "1"]);
+    let out = words("plan-report --tasks reach,fly --trials 1");
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && e.contains("fly"), "{e}");
 }
