@@ -131,7 +131,40 @@ pub fn seed_for(seed: u64, step: u64, purpose: u64) -> u64 {
     seed_of(&[seed, step, purpose]) >> 1
 }
 
+/// One frame of an episode that has robot masks: `(rgb8 [H, W, 3], mask
+/// [H, W])` and its size.
+#[derive(Debug, Clone, Copy)]
+pub struct MaskedFrame<'a> {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// Interleaved RGB.
+    pub rgb: &'a [u8],
+    /// Robot mask (non-zero = robot).
+    pub mask: &'a [u8],
+}
+
 impl ClipDataset {
+    /// Every frame of the episodes that carry robot masks, with its mask
+    /// (training data for segmenters).
+    pub fn masked_frames(&self) -> Vec<MaskedFrame<'_>> {
+        let mut out = Vec::new();
+        for e in &self.episodes {
+            let Some(masks) = &e.masks else { continue };
+            let px = e.width * e.height;
+            for t in 0..e.frames {
+                out.push(MaskedFrame {
+                    width: e.width,
+                    height: e.height,
+                    rgb: &e.rgb[t * px * 3..(t + 1) * px * 3],
+                    mask: &masks[t * px..(t + 1) * px],
+                });
+            }
+        }
+        out
+    }
+
     /// A single source with `calc` masks (stored ones only) and one clip per
     /// video and epoch.
     pub fn open(

@@ -73,19 +73,12 @@ const SEGMENTER_BITS: u32 = 5;
 pub fn color_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
     let metric = |e: bridgev2w_eval::MetricError| TrainError::input("segmenter", e.to_string());
     let mut seg = ColorSegmenter::new(SEGMENTER_BITS).map_err(metric)?;
-    let mut any = false;
-    for e in &data.episodes {
-        let Some(masks) = &e.masks else { continue };
-        let px = e.width * e.height;
-        for t in 0..e.frames {
-            let frame = Frame::from_rgb8(e.width, e.height, &e.rgb[t * px * 3..(t + 1) * px * 3])
-                .map_err(metric)?;
-            seg.observe(&frame, &masks[t * px..(t + 1) * px])
-                .map_err(metric)?;
-            any = true;
-        }
+    let frames = data.masked_frames();
+    for f in &frames {
+        let frame = Frame::from_rgb8(f.width, f.height, f.rgb).map_err(metric)?;
+        seg.observe(&frame, f.mask).map_err(metric)?;
     }
-    Ok(any.then_some(seg))
+    Ok((!frames.is_empty()).then_some(seg))
 }
 
 /// `[1, 3, T, H, W]` masks in {-1, 1} to per-frame 0/1 masks.

@@ -80,23 +80,11 @@ impl CnnSegmenter {
     /// Trains on every frame of `data`'s episodes with masks; `None` when no
     /// episode has masks.
     pub fn fit(data: &ClipDataset, opts: &SegmenterOptions) -> Result<Option<Self>> {
-        let mut frames: Vec<(&[u8], &[u8])> = Vec::new();
-        for e in &data.episodes {
-            let Some(m) = &e.masks else { continue };
-            let px = e.height * e.width;
-            for t in 0..e.frames {
-                frames.push((
-                    &e.rgb[t * px * 3..(t + 1) * px * 3],
-                    &m[t * px..(t + 1) * px],
-                ));
-            }
-        }
-        let Some(first) = data.episodes.first() else {
+        let masked = data.masked_frames();
+        let Some(first) = masked.first() else {
             return Ok(None);
         };
-        if frames.is_empty() {
-            return Ok(None);
-        }
+        let frames: Vec<(&[u8], &[u8])> = masked.iter().map(|f| (f.rgb, f.mask)).collect();
         Self::fit_frames(&frames, first.height, first.width, opts).map(Some)
     }
 
