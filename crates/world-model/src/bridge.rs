@@ -457,16 +457,6 @@ impl BridgeV2W {
         control: Option<&Tensor>,
         extra: &[Tensor],
     ) -> Result<Tensor> {
-        if extra.len() > self.transformer.model.config().num_layers as usize {
-            return Err(WorldModelError::input(
-                "extra residuals",
-                format!(
-                    "{} residuals for {} backbone blocks",
-                    extra.len(),
-                    self.transformer.model.config().num_layers
-                ),
-            ));
-        }
         let p = self.prepare(latent_in, timestep, control, extra)?;
         let residuals = p.residuals;
         self.transformer.model.forward_with_residuals(
@@ -518,6 +508,16 @@ impl BridgeV2W {
         control: Option<&Tensor>,
         extra: &[Tensor],
     ) -> Result<Prepared> {
+        if extra.len() > self.transformer.model.config().num_layers as usize {
+            return Err(WorldModelError::input(
+                "extra residuals",
+                format!(
+                    "{} residuals for {} backbone blocks",
+                    extra.len(),
+                    self.transformer.model.config().num_layers
+                ),
+            ));
+        }
         let model = &self.transformer.model;
         let latent_in = latent_in.to_device(self.device).to_kind(self.kind);
         let b = latent_in.size()[0];

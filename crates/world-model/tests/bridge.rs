@@ -505,4 +505,23 @@ fn per_block_gradient_checkpointing_gives_the_same_gradients() {
     assert!(checkpointed
         .iter()
         .any(|(n, g)| n == "extra" && g.is_some()));
+    // More extra residuals than backbone blocks: the same clear error on both paths.
+    let layers = TransformerConfig::tiny().num_layers as usize;
+    let too_many: Vec<Tensor> = (0..=layers).map(|_| extra.shallow_clone()).collect();
+    let e = m
+        .velocity_with_extra(&x, &t, Some(&c), &too_many)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&format!(
+            "{} residuals for {layers} backbone blocks",
+            layers + 1
+        )),
+        "{e}"
+    );
+    let e = m
+        .velocity_checkpointed(&x, &t, Some(&c), &too_many)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("backbone blocks"), "{e}");
 }
