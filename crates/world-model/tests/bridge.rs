@@ -524,4 +524,17 @@ fn per_block_gradient_checkpointing_gives_the_same_gradients() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("backbone blocks"), "{e}");
+    // A RoPE backbone without its rotary table: the same error as the plain forward.
+    let text = Tensor::zeros([1, 3, 24], (Kind::Float, Device::Cpu));
+    let tf = &m.transformer.model;
+    let e = tf
+        .forward_checkpointed(&x, &text, &t, None, None, vec![])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("rotary embeddings"), "{e}");
+    let plain = tf
+        .forward(&x, &text, &t, None, None)
+        .unwrap_err()
+        .to_string();
+    assert_eq!(e, plain);
 }

@@ -236,6 +236,30 @@ impl CogVideoXTransformer3DModel {
         ofs: Option<&Tensor>,
         residual: &mut dyn FnMut(usize, &Tensor) -> Option<Tensor>,
     ) -> Result<Tensor> {
+        let emb =
+            self.embed_checked(hidden_states, encoder_hidden_states, timestep, rotary, ofs)?;
+        let (mut video, mut text) = (emb.video.shallow_clone(), emb.text.shallow_clone());
+        for (i, block) in self.blocks.iter().enumerate() {
+            let (v, t) = block.forward(&video, &text, &emb.temb, rotary);
+            video = match residual(i, &v) {
+                Some(r) => v + r,
+                None => v,
+            };
+            text = t;
+        }
+        Ok(self.finish(&emb, &video))
+    }
+
+    /// [`Self::embed`] after checking the rotary embedding: required for
+    /// RoPE models, one position per video token.
+    fn embed_checked(
+        &self,
+        hidden_states: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep: &Tensor,
+        rotary: Option<&Rotary>,
+        ofs: Option<&Tensor>,
+    ) -> Result<Embedded> {
         if self.cfg.use_rotary_positional_embeddings && rotary.is_none() {
             return Err(WorldModelError::input(
                 "image_rotary_emb",
@@ -255,16 +279,7 @@ impl CogVideoXTransformer3DModel {
                 ));
             }
         }
-        let (mut video, mut text) = (emb.video.shallow_clone(), emb.text.shallow_clone());
-        for (i, block) in self.blocks.iter().enumerate() {
-            let (v, t) = block.forward(&video, &text, &emb.temb, rotary);
-            video = match residual(i, &v) {
-                Some(r) => v + r,
-                None => v,
-            };
-            text = t;
-        }
-        Ok(self.finish(&emb, &video))
+        Ok(emb)
     }
 
     /// Per-block gradient checkpointing: [`Self::forward_with_residuals`]
@@ -298,7 +313,8 @@ impl CogVideoXTransformer3DModel {
         }
         let mut block_inputs = Vec::with_capacity(self.blocks.len());
         let (output, final_video) = tch::no_grad(|| -> Result<(Tensor, Tensor)> {
-            let emb = self.embed(hidden_states, encoder_hidden_states, timestep, ofs)?;
+            let emb =
+                self.embed_checked(hidden_states, encoder_hidden_states, timestep, rotary, ofs)?;
             let (mut video, mut text) = (emb.video.shallow_clone(), emb.text.shallow_clone());
             for (i, block) in self.blocks.iter().enumerate() {
                 let (v, t) = block.forward(&video, &text, &emb.temb, rotary);
