@@ -39,6 +39,12 @@
 //!   use the same integer values and floating-point operations on every
 //!   path, so the output is bit-identical to drawing each triangle with the
 //!   general path (tested).
+//! - The per-frame drawing ([`Rasterizer::draw_items_with`]) is compiled twice,
+//!   for the baseline x86-64 instruction set and for AVX2 (x86-64-v3,
+//!   chosen at run time with `pulp`): every function it calls is inlined
+//!   into it, so the SIMD code uses the wider instruction set. Both give
+//!   identical bits: only IEEE-exact operations are used and Rust never
+//!   fuses multiplies and adds.
 //! - Performance (720x480, one thread, release, minimum over runs on a
 //!   shared machine): about 1.3 ms per frame for 8 capsules/spheres of ~2k
 //!   triangles each (`benches/raster.rs`) and about 2.5 ms per label map
@@ -510,7 +516,7 @@ impl Target<'_> {
     /// coordinates relative to the first pixel centre are below 2^13, edge
     /// values below 2^26; and the same floating-point depth operations), a
     /// row of up to four pixels at a time in SIMD lanes.
-    #[inline(never)]
+    #[inline(always)]
     fn draw_medium(&mut self, v: [&ScreenVertex; 3], label: u16) {
         let one = 1i32 << SUBPIXEL_BITS;
         let min_x = v[0].x().min(v[1].x()).min(v[2].x());
@@ -581,7 +587,7 @@ impl Target<'_> {
     /// 1, 2, 4, four at a time (the last group padded by repeating a
     /// triangle, which draws nothing new), with [`Target::draw_medium`] for
     /// `N` = [`MEDIUM`] and with [`Target::draw_triangle`] for `N` = 0.
-    #[inline(never)]
+    #[inline(always)]
     fn draw_list<const N: usize>(
         &mut self,
         list: &[u32],
@@ -618,7 +624,7 @@ impl Target<'_> {
     }
 
     /// Rasterizes one triangle (any winding) with the top-left fill rule.
-    #[inline(never)]
+    #[inline(always)]
     fn draw_triangle(&mut self, v: [&ScreenVertex; 3], label: u16) {
         let wide = |s: &ScreenVertex| Vertex64 {
             x: i64::from(s.x()),
@@ -863,7 +869,7 @@ fn gather_x4(tris: [[u32; 3]; 4], screen: &[ScreenVertex]) -> [[i32x4; 4]; 3] {
 /// triangles: their fixed-point coordinates lie in the guard band, below
 /// 2^23 in magnitude, so coordinate differences (i32) are below 2^24 and
 /// the products below 2^48 (lanes of clipped triangles are ignored).
-#[inline(never)]
+#[inline(always)]
 fn classify_x4(
     tris: [[u32; 3]; 4],
     screen: &[ScreenVertex],
@@ -936,7 +942,7 @@ fn classify_x4(
 
 /// Appends to `list` the indices of the entries of `classes` equal to
 /// `class` (`classes.len()` a multiple of 64), in increasing order.
-#[inline(never)]
+#[inline(always)]
 fn collect_class(classes: &[u8], class: u8, list: &mut Vec<u32>) {
     use wide::u8x16;
     list.clear();
@@ -1189,6 +1195,47 @@ impl Rasterizer {
         target: &mut Target,
         scratch: &mut Scratch,
     ) {
+        /// [`Rasterizer::draw_items_inline`] as a `pulp` kernel.
+        struct Kernel<'a, 'b, 'c> {
+            rasterizer: &'a Rasterizer,
+            items: &'a [RenderItem<'b>],
+            k: &'a Pinhole,
+            target: &'a mut Target<'c>,
+            scratch: &'a mut Scratch,
+        }
+        impl pulp::WithSimd for Kernel<'_, '_, '_> {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: pulp::Simd>(self, _simd: S) {
+                let Self {
+                    rasterizer,
+                    items,
+                    k,
+                    target,
+                    scratch,
+                } = self;
+                rasterizer.draw_items_inline(items, k, target, scratch);
+            }
+        }
+        pulp::Arch::new().dispatch(Kernel {
+            rasterizer: self,
+            items,
+            k,
+            target,
+            scratch,
+        });
+    }
+
+    /// The body of [`Rasterizer::draw_items_with`], inlined into its
+    /// instruction-set-specific copies (as is everything it calls).
+    #[inline(always)]
+    fn draw_items_inline(
+        &self,
+        items: &[RenderItem],
+        k: &Pinhole,
+        target: &mut Target,
+        scratch: &mut Scratch,
+    ) {
         let planes = Planes::new(k);
         let last_x = k.width as i32 - 1;
         let last_y = k.height as i32 - 1;
@@ -1372,7 +1419,7 @@ fn transform(r: &[[f32; 4]; 3], x: f32, y: f32, z: f32) -> [f32; 3] {
 /// results); position and 1/z of a vertex with a non-zero outcode are
 /// unspecified (never read), which lets rounding use a plain truncating
 /// conversion (exact here: guard-band coordinates are far below 2^31).
-#[inline(never)]
+#[inline(always)]
 fn transform_vertices(
     vertices: &[nalgebra::Point3<f32>],
     r: &[[f32; 4]; 3],
