@@ -31,6 +31,7 @@ def main() -> int:
     ap.add_argument("--width", type=int, required=True)
     ap.add_argument("--text-len", type=int, default=226)
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--batch", type=int, default=1, help="transformer batch (2: one CFG denoising step)")
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--device", default="cpu")
@@ -53,9 +54,10 @@ def main() -> int:
     lat_f = (args.frames - 1) // 4 + 1
     lat_h, lat_w = args.height // 8, args.width // 8
     transformer = CogVideoXTransformer3DModel(**tcfg).to(dev, dtype).eval()
-    x = torch.randn(1, lat_f, tcfg.get("in_channels", 16), lat_h, lat_w, device=dev, dtype=dtype)
-    text = torch.randn(1, args.text_len, tcfg.get("text_embed_dim", 4096), device=dev, dtype=dtype)
-    ts = torch.tensor([500], device=dev)
+    b = args.batch
+    x = torch.randn(b, lat_f, tcfg.get("in_channels", 16), lat_h, lat_w, device=dev, dtype=dtype)
+    text = torch.randn(b, args.text_len, tcfg.get("text_embed_dim", 4096), device=dev, dtype=dtype)
+    ts = torch.full((b,), 500, device=dev, dtype=torch.int64)
     rope = None
     if tcfg.get("use_rotary_positional_embeddings"):
         from diffusers.models.embeddings import get_3d_rotary_pos_embed
@@ -73,6 +75,11 @@ def main() -> int:
                 torch.cuda.synchronize()
         fwd()  # warm-up
         out["transformer_forward_s"] = best_of(fwd, args.repeat)
+    if dev.type == "cuda":
+        # The caching allocator's peaks (the Rust side reads nvidia-smi, like this run's
+        # probe on the Rust side of `bench model`; these are extra detail).
+        out["transformer_peak_allocated_mib"] = torch.cuda.max_memory_allocated(dev) / 2**20
+        torch.cuda.reset_peak_memory_stats(dev)
     del transformer
 
     vae = AutoencoderKLCogVideoX(**vcfg).to(dev, dtype).eval()
@@ -90,6 +97,8 @@ def main() -> int:
                 torch.cuda.synchronize()
         out["vae_encode_s"] = best_of(enc, args.repeat)
         out["vae_decode_s"] = best_of(dec, args.repeat)
+    if dev.type == "cuda":
+        out["vae_peak_allocated_mib"] = torch.cuda.max_memory_allocated(dev) / 2**20
     print(json.dumps(out))
     return 0
 

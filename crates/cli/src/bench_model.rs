@@ -9,6 +9,9 @@ use bridgev2w_world_model::vae::VaeConfig;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
 
 #[derive(Debug, clap::Args)]
 pub struct ModelBench {
@@ -27,6 +30,10 @@ pub struct ModelBench {
     height: i64,
     #[arg(long, default_value_t = 192)]
     width: i64,
+    /// Transformer batch: 2 times one denoising step with classifier-free
+    /// guidance (the pipeline's conditional and unconditional halves).
+    #[arg(long, default_value_t = 1)]
+    batch: i64,
     /// Timed runs per operation (best is reported), after one warm-up.
     #[arg(long, default_value_t = 1)]
     repeat: usize,
@@ -116,6 +123,7 @@ fn diffusers(a: &ModelBench, tf: &TransformerConfig, vae: &VaeConfig) -> Result<
             .args(["--width", &a.width.to_string()])
             .args(["--text-len", &tf.max_text_seq_length.to_string()])
             .args(["--repeat", &a.repeat.to_string()])
+            .args(["--batch", &a.batch.to_string()])
             .args(["--threads", &tch_threads().to_string()])
             .args(["--dtype", dtype, "--device", &device]),
         "diffusers_model.py",
@@ -142,6 +150,7 @@ pub fn run(a: &ModelBench) -> Result<()> {
         height: a.height,
         width: a.width,
         text_len: tf.max_text_seq_length,
+        batch: a.batch,
     };
     println!(
         "model: {} style, {} layers ({} heads x {}), VAE {:?}; {} frames at {}x{}, {:?} on {:?}, {} threads",
@@ -157,20 +166,35 @@ pub fn run(a: &ModelBench) -> Result<()> {
         a.device,
         tch_threads()
     );
-    let ours = time_model(&tf, &vae, &shape, a.device, a.precision, a.repeat)?;
-    let theirs = if a.no_diffusers {
-        None
+    let gpu = match a.device {
+        ComputeDevice::Cuda(i) => Some(i),
+        ComputeDevice::Cpu => None,
+    };
+    let (ours, our_peak) = with_gpu_peak(NVIDIA_SMI, gpu, || {
+        Ok(time_model(
+            &tf,
+            &vae,
+            &shape,
+            a.device,
+            a.precision,
+            a.repeat,
+        )?)
+    })?;
+    let (theirs, their_peak) = if a.no_diffusers {
+        (None, None)
     } else {
         eprintln!("running diffusers on the same configs...");
-        Some(diffusers(a, &tf, &vae)?)
+        let (t, p) = with_gpu_peak(NVIDIA_SMI, gpu, || diffusers(a, &tf, &vae))?;
+        (Some(t), p)
     };
     println!(
         "{:<24} {:>12} {:>12} {:>10}",
         "operation", "bridgev2w s", "diffusers s", "speed-up"
     );
+    let forward = format!("transformer forward (b{})", a.batch);
     let rows = [
         (
-            "transformer forward",
+            forward.as_str(),
             ours.transformer_forward_s,
             theirs.as_ref().map(|t| t.transformer_forward_s),
         ),
@@ -191,5 +215,132 @@ pub fn run(a: &ModelBench) -> Result<()> {
             None => println!("{name:<24} {o:>12.3} {:>12} {:>10}", "-", "-"),
         }
     }
+    if gpu.is_some() {
+        let show = |p: Option<u64>| p.map_or("n/a".to_owned(), |m| format!("{m} MiB"));
+        println!(
+            "peak GPU memory above idle (nvidia-smi, whole run): bridgev2w {}, diffusers {}",
+            show(our_peak),
+            if a.no_diffusers {
+                "-".to_owned()
+            } else {
+                show(their_peak)
+            }
+        );
+        if our_peak.is_none() {
+            println!("  (n/a: `{NVIDIA_SMI}` could not be queried on this machine)");
+        }
+    }
     Ok(())
+}
+
+/// The tool that reports the GPU's used memory.
+const NVIDIA_SMI: &str = "nvidia-smi";
+
+/// Used memory of GPU `gpu` in MiB, from `nvidia-smi --query-gpu=memory.used`;
+/// `None` when the tool is missing or prints something else.
+fn gpu_used_mib(program: &str, gpu: usize) -> Option<u64> {
+    let out = Command::new(program)
+        .args([
+            "--query-gpu=memory.used",
+            "--format=csv,noheader,nounits",
+            "-i",
+            &gpu.to_string(),
+        ])
+        .output()
+        .ok()?;
+    if !out.status.success() {
+        return None;
+    }
+    parse_used_mib(&String::from_utf8_lossy(&out.stdout))
+}
+
+/// The first line of `nvidia-smi --format=csv,noheader,nounits` as MiB.
+fn parse_used_mib(text: &str) -> Option<u64> {
+    text.lines().next()?.trim().parse().ok()
+}
+
+/// Runs `f` while a thread polls the used memory of `gpu` every 20 ms; returns
+/// `f`'s result and the peak above the memory used before it started (`None`
+/// on CPU, or when the GPU cannot be queried). Both sides of the bench are
+/// measured this way (the same libtorch caching allocator on each), so the
+/// figures compare; the process's CUDA context is included in both.
+fn with_gpu_peak<T>(
+    program: &str,
+    gpu: Option<usize>,
+    f: impl FnOnce() -> Result<T>,
+) -> Result<(T, Option<u64>)> {
+    let Some(gpu) = gpu else {
+        return Ok((f()?, None));
+    };
+    let Some(idle) = gpu_used_mib(program, gpu) else {
+        return Ok((f()?, None));
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let poller = {
+        let (stop, program) = (Arc::clone(&stop), program.to_owned());
+        std::thread::spawn(move || {
+            let mut peak = idle;
+            loop {
+                if let Some(m) = gpu_used_mib(&program, gpu) {
+                    peak = peak.max(m);
+                }
+                if stop.load(Ordering::Relaxed) {
+                    return peak;
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        })
+    };
+    let result = f();
+    stop.store(true, Ordering::Relaxed);
+    let peak = poller.join().ok();
+    Ok((result?, peak.map(|p| p.saturating_sub(idle))))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_nvidia_smi_memory_lines() {
+        assert_eq!(parse_used_mib("81234\n"), Some(81234));
+        assert_eq!(parse_used_mib(" 17 \n4\n"), Some(17));
+        assert_eq!(parse_used_mib("[N/A]\n"), None);
+        assert_eq!(parse_used_mib(""), None);
+    }
+
+    #[test]
+    fn peak_probe_reports_the_rise_above_idle_and_passes_errors_on() {
+        // A stand-in for nvidia-smi whose reading rises by 100 MiB per call.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let counter = dir.path().join("n");
+        let fake = dir.path().join("fake-smi");
+        std::fs::write(
+            &fake,
+            format!(
+                "#!/bin/sh\nn=$(cat {c} 2>/dev/null || echo 0)\necho $((n + 1)) > {c}\necho $((1000 + 100 * n))\n",
+                c = counter.display()
+            ),
+        )
+        .expect("write");
+        let status = Command::new("chmod").arg("+x").arg(&fake).status();
+        assert!(status.is_ok_and(|s| s.success()));
+        let prog = fake.to_str().expect("utf-8 path");
+        let (v, peak) = with_gpu_peak(prog, Some(0), || {
+            std::thread::sleep(Duration::from_millis(200));
+            Ok(7)
+        })
+        .expect("probe");
+        assert_eq!(v, 7);
+        let peak = peak.expect("a peak");
+        assert!(peak >= 100, "peak {peak}: the readings rose above idle");
+        // CPU: no probe; a missing tool: no figure, the closure still runs.
+        assert_eq!(with_gpu_peak(prog, None, || Ok(1)).expect("cpu").1, None);
+        let missing = dir.path().join("absent");
+        let r = with_gpu_peak(missing.to_str().expect("utf-8"), Some(0), || Ok(2));
+        assert_eq!(r.expect("missing tool").1, None);
+        // The closure's error comes back (and the poller is stopped).
+        let e = with_gpu_peak(prog, Some(0), || -> Result<()> { bail!("boom") });
+        assert!(e.is_err_and(|e| e.to_string().contains("boom")));
+    }
 }

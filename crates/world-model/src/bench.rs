@@ -20,12 +20,15 @@ pub struct ModelBenchShape {
     pub width: i64,
     /// Text tokens.
     pub text_len: i64,
+    /// Transformer batch: 2 is one denoising step with classifier-free
+    /// guidance (conditional and unconditional halves in one forward).
+    pub batch: i64,
 }
 
 /// Seconds (best of `repeat`, after a warm-up) of each operation.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelTimings {
-    /// One transformer forward (batch 1).
+    /// One transformer forward at the shape's batch.
     pub transformer_forward_s: f64,
     /// VAE encode of the clip (posterior mean).
     pub vae_encode_s: f64,
@@ -79,6 +82,12 @@ pub fn time_model(
             ),
         ));
     }
+    if shape.batch < 1 {
+        return Err(WorldModelError::input(
+            "bench batch",
+            format!("{}: expected >= 1", shape.batch),
+        ));
+    }
     let (lf, lh, lw) = (
         (shape.frames - 1) / t + 1,
         shape.height / s,
@@ -86,13 +95,15 @@ pub fn time_model(
     );
     tch::manual_seed(0);
     let tf = LoadedTransformer::random(tf_cfg, device, precision)?;
-    let x = Tensor::randn([1, lf, tf_cfg.in_channels, lh, lw], (kind, dev));
-    let text = Tensor::randn([1, shape.text_len, tf_cfg.text_embed_dim], (kind, dev));
-    let ts = Tensor::from_slice(&[500i64]).to_device(dev);
+    let b = shape.batch;
+    // [B, F, C, H, W] latents, [B, L, D] text, [B] timesteps.
+    let x = Tensor::randn([b, lf, tf_cfg.in_channels, lh, lw], (kind, dev));
+    let text = Tensor::randn([b, shape.text_len, tf_cfg.text_embed_dim], (kind, dev));
+    let ts = Tensor::full([b], 500i64, (Kind::Int64, dev));
     let rotary = tf.model.rotary_for(&x)?;
     let ofs = tf_cfg
         .ofs_embed_dim
-        .map(|_| Tensor::full([1], 2.0, (Kind::Float, dev)));
+        .map(|_| Tensor::full([b], 2.0, (Kind::Float, dev)));
     let transformer_forward_s = best_of(repeat, dev, &mut || {
         tf.model
             .forward(&x, &text, &ts, rotary.as_ref(), ofs.as_ref())
