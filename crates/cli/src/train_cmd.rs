@@ -43,10 +43,14 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     }
     let total = trainer.total_steps();
     eprintln!(
-        "training {} step(s) ({} per epoch), flow estimator {}, output {}",
+        "training {} step(s) ({} per epoch), flow estimator {}, {}, output {}",
         total,
         trainer.steps_per_epoch(),
         trainer.flow_estimator_name(),
+        match trainer.autocast_dtype() {
+            Some(d) => format!("{:?} autocast", d.kind()),
+            None => "f32".to_string(),
+        },
         trainer.cfg.train.out.display()
     );
     let pb = if args.quiet {

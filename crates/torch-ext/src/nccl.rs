@@ -86,6 +86,27 @@ fn dlerror_text() -> String {
     }
 }
 
+/// The symbol `name` of the library `handle` as a function pointer `F`.
+///
+/// # Safety
+/// `handle` must be a live `dlopen` handle and `F` the function-pointer type
+/// of the symbol's C declaration.
+unsafe fn symbol<F: Copy>(handle: *mut c_void, name: &CStr) -> Result<F> {
+    debug_assert_eq!(std::mem::size_of::<F>(), std::mem::size_of::<*mut c_void>());
+    // SAFETY: the caller's contract; `name` is NUL-terminated.
+    let p = unsafe { libc::dlsym(handle, name.as_ptr()) };
+    if p.is_null() {
+        return Err(TorchExtError::Nccl(format!(
+            "libnccl.so.2 has no {} ({})",
+            name.to_string_lossy(),
+            dlerror_text()
+        )));
+    }
+    // SAFETY: a non-null symbol address reinterpreted as the function pointer
+    // type the caller vouches for (same size, checked above in debug builds).
+    Ok(unsafe { std::mem::transmute_copy::<*mut c_void, F>(&p) })
+}
+
 /// The loaded NCCL library.
 #[derive(Clone)]
 pub struct Nccl {
@@ -112,41 +133,26 @@ impl Nccl {
                 dlerror_text()
             )));
         }
-        let sym = |name: &CStr| -> Result<*mut c_void> {
-            // SAFETY: `handle` is a live dlopen handle, `name` NUL-terminated.
-            let p = unsafe { libc::dlsym(handle, name.as_ptr()) };
-            if p.is_null() {
-                Err(TorchExtError::Nccl(format!(
-                    "libnccl.so.2 has no {} ({})",
-                    name.to_string_lossy(),
-                    dlerror_text()
-                )))
-            } else {
-                Ok(p)
-            }
-        };
         let load = || -> Result<Lib> {
-            // SAFETY (all five): the symbols are NCCL's documented C entry
-            // points (nccl.h, NCCL >= 2.x) with exactly these signatures.
+            // SAFETY: `handle` is a live dlopen handle, and the type is the
+            // signature nccl.h (NCCL 2.x) declares for the symbol.
+            let get_unique_id = unsafe { symbol::<GetUniqueIdFn>(handle, c"ncclGetUniqueId")? };
+            // SAFETY: as above.
+            let comm_init_rank = unsafe { symbol::<CommInitRankFn>(handle, c"ncclCommInitRank")? };
+            // SAFETY: as above.
+            let all_reduce = unsafe { symbol::<AllReduceFn>(handle, c"ncclAllReduce")? };
+            // SAFETY: as above.
+            let comm_destroy = unsafe { symbol::<CommDestroyFn>(handle, c"ncclCommDestroy")? };
+            // SAFETY: as above.
+            let get_error_string =
+                unsafe { symbol::<GetErrorStringFn>(handle, c"ncclGetErrorString")? };
             Ok(Lib {
                 handle,
-                get_unique_id: unsafe {
-                    std::mem::transmute::<*mut c_void, GetUniqueIdFn>(sym(c"ncclGetUniqueId")?)
-                },
-                comm_init_rank: unsafe {
-                    std::mem::transmute::<*mut c_void, CommInitRankFn>(sym(c"ncclCommInitRank")?)
-                },
-                all_reduce: unsafe {
-                    std::mem::transmute::<*mut c_void, AllReduceFn>(sym(c"ncclAllReduce")?)
-                },
-                comm_destroy: unsafe {
-                    std::mem::transmute::<*mut c_void, CommDestroyFn>(sym(c"ncclCommDestroy")?)
-                },
-                get_error_string: unsafe {
-                    std::mem::transmute::<*mut c_void, GetErrorStringFn>(sym(
-                        c"ncclGetErrorString",
-                    )?)
-                },
+                get_unique_id,
+                comm_init_rank,
+                all_reduce,
+                comm_destroy,
+                get_error_string,
             })
         };
         match load() {

@@ -300,6 +300,14 @@ pub struct TrainSection {
     /// gradients, less activation memory, about one more forward pass of
     /// compute.
     pub gradient_checkpointing: bool,
+    /// Mixed precision of the loss's forward passes: `bf16` (libtorch
+    /// autocast in bfloat16: matmuls, linears and convolutions run in bf16,
+    /// reductions, norms and the losses in f32; parameters, gradients and
+    /// the AdamW state stay f32; the backward and the optimizer run outside
+    /// the region), `off` (f32), or `auto` (the default: `bf16` on CUDA,
+    /// `off` on the CPU, where bf16 matmuls are slower than f32 on most
+    /// processors).
+    pub autocast: String,
 }
 
 impl Default for TrainSection {
@@ -334,6 +342,7 @@ impl Default for TrainSection {
             stage: "bridgev2w".into(),
             kl_weight: 1e-4,
             gradient_checkpointing: false,
+            autocast: "auto".into(),
         }
     }
 }
@@ -460,6 +469,12 @@ impl TrainConfig {
                 format!("{}: expected > 0", self.model.action_hidden),
             );
         }
+        if !matches!(t.autocast.as_str(), "auto" | "bf16" | "off") {
+            return bad(
+                "train.autocast",
+                format!("{:?}: expected \"auto\", \"bf16\" or \"off\"", t.autocast),
+            );
+        }
         if !matches!(t.raft_model.as_str(), "raft_large" | "raft_small") {
             return bad(
                 "train.raft_model",
@@ -511,6 +526,11 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("beta2"), "{e}");
+        assert_eq!(c.train.autocast, "auto");
+        let e = TrainConfig::from_toml("[train]\nautocast = \"fp16\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("train.autocast") && e.contains("fp16"), "{e}");
     }
 
     #[test]

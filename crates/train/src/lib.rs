@@ -48,6 +48,9 @@ pub enum TrainError {
     /// From the world model.
     #[error(transparent)]
     WorldModel(#[from] bridgev2w_world_model::error::WorldModelError),
+    /// From the autocast / NCCL extensions.
+    #[error(transparent)]
+    TorchExt(#[from] bridgev2w_torch_ext::TorchExtError),
     /// From libtorch.
     #[error("torch: {0}")]
     Torch(#[from] tch::TchError),

@@ -13,8 +13,10 @@
 //!
 //! Per-block gradient checkpointing of the backbone: `train.gradient_checkpointing`.
 //!
-//! Not implemented (yet): bf16 autocast (training runs in the backbone's
-//! dtype, F32 here), and data-parallel training (see the README for the
+//! Mixed precision: `train.autocast` (bf16 autocast around the loss's
+//! forward passes, by default on CUDA only; see [`Trainer::autocast_dtype`]).
+//!
+//! Not implemented (yet): data-parallel training (see the README for the
 //! intended NCCL layout).
 
 use crate::action::ActionEncoder;
@@ -24,6 +26,7 @@ use crate::flow::{flow_loss, flow_weight, FlowEstimator, FlowLossConfig, LucasKa
 use crate::losses::{diffusion_loss, dynamics_loss, predicted_x0};
 use crate::optim::{AdamW, AdamWConfig};
 use crate::{Result, TrainError};
+use bridgev2w_torch_ext::{autocast, AutocastDevice, AutocastDtype, AutocastGuard};
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::controlnet::ControlNetConfig;
 use bridgev2w_world_model::device::{ComputeDevice, Precision};
@@ -128,6 +131,8 @@ pub struct Trainer {
     pub opt: AdamW,
     /// Completed optimizer steps.
     pub step: usize,
+    /// The autocast dtype of the loss's forward passes (`None`: f32).
+    autocast: Option<AutocastDtype>,
 }
 
 /// `random:tiny` / `random:small`: the presets of a randomly initialised
@@ -144,6 +149,22 @@ fn random_preset(backbone: &str) -> Result<Option<(VaeConfig, TransformerConfig)
     }
 }
 
+/// `train.autocast` on `device`: `auto` is bf16 on CUDA, off on the CPU.
+fn resolve_autocast(setting: &str, device: ComputeDevice) -> Result<Option<AutocastDtype>> {
+    match setting {
+        "bf16" => Ok(Some(AutocastDtype::BFloat16)),
+        "off" => Ok(None),
+        "auto" => Ok(match device {
+            ComputeDevice::Cuda(_) => Some(AutocastDtype::BFloat16),
+            ComputeDevice::Cpu => None,
+        }),
+        other => Err(TrainError::input(
+            "config train.autocast",
+            format!("{other:?}: expected \"auto\", \"bf16\" or \"off\""),
+        )),
+    }
+}
+
 fn parse_device(s: &str) -> Result<ComputeDevice> {
     s.parse::<ComputeDevice>()
         .map_err(|e| TrainError::input("config model.device", e.to_string()))
@@ -154,6 +175,7 @@ impl Trainer {
     pub fn new(cfg: TrainConfig) -> Result<Self> {
         cfg.validate()?;
         let device = parse_device(&cfg.model.device)?;
+        let autocast = resolve_autocast(&cfg.train.autocast, device)?;
         let random = random_preset(&cfg.model.backbone)?;
         let (frames, height, width) = {
             let d = &cfg.data;
@@ -269,7 +291,14 @@ impl Trainer {
             scheduler,
             opt,
             step: 0,
+            autocast,
         })
+    }
+
+    /// The dtype the loss's forward passes autocast to (`None`: f32), from
+    /// `train.autocast` and the device.
+    pub fn autocast_dtype(&self) -> Option<AutocastDtype> {
+        self.autocast
     }
 
     /// The flow estimator's name (for reports).
@@ -394,6 +423,13 @@ impl Trainer {
         let mut rng = rng_for(seed, s, 4);
         let b = batch.video.size()[0];
         let model = &self.model;
+        // The frozen encoders make the targets and conditions: in f32 even
+        // inside an autocast region (a guard with autocast off), so mixed
+        // precision changes only the trained networks' forward passes.
+        let f32_island = match (self.autocast, AutocastDevice::of(model.device())) {
+            (Some(dtype), Some(dev)) => Some(AutocastGuard::new(dev, dtype, false)?),
+            _ => None,
+        };
         let (z0, image_latents, control) = tch::no_grad(|| -> Result<_> {
             let z0 = model.encode_latents(&batch.video, Some(seed_for(seed, s, 5)))?;
             let mut first = batch.first_frames.shallow_clone();
@@ -416,6 +452,7 @@ impl Trainer {
             };
             Ok((z0, img, control))
         })?;
+        drop(f32_island);
         // The prior is action-free: never conditioned.
         let dropped = rng.gen::<f64>() < t.condition_dropout || prior;
         let n_train = model.scheduler.num_train_timesteps as i64;
@@ -501,12 +538,17 @@ impl Trainer {
     pub fn update(&mut self, batch: &Batch, step: usize) -> Result<StepMetrics> {
         let start = Instant::now();
         self.opt.zero_grad();
-        let l = self.losses(batch, step)?;
+        let device = self.model.device();
+        // The forward passes under autocast; the backward outside it (as
+        // PyTorch recommends), except the checkpointed blocks' replay, which
+        // must recompute them in the forward's precision.
+        let l = autocast(device, self.autocast, || self.losses(batch, step))??;
         let loss = l.total.double_value(&[]);
         check_finite(step, "total", loss)?;
         l.total.backward();
         if let Some(record) = l.checkpointed {
-            record.backward(&self.model.transformer.model)?;
+            let model = &self.model.transformer.model;
+            autocast(device, self.autocast, || record.backward(model))??;
         }
         let grad_norm = self.opt.clip_grad_norm(self.cfg.train.grad_clip);
         check_finite(step, "gradient norm", grad_norm)?;

@@ -681,3 +681,93 @@ fn gradient_checkpointing_trains_exactly_like_the_plain_backward() {
         }
     }
 }
+
+#[test]
+fn bf16_autocast_on_cpu_trains_close_to_f32_and_keeps_f32_state() {
+    use bridgev2w_torch_ext::autocast::{is_enabled, AutocastDevice};
+    use bridgev2w_torch_ext::AutocastDtype;
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(&tmp.path().join("f32"));
+    c.train.condition_dropout = 0.0;
+    c.train.max_steps = 3;
+    // `auto` on the CPU is off.
+    assert_eq!(c.train.autocast, "auto");
+    let mut f32_run = Trainer::new(c.clone()).unwrap();
+    assert_eq!(f32_run.autocast_dtype(), None);
+    c.train.autocast = "bf16".into();
+    c.train.out = tmp.path().join("bf16");
+    let mut bf16_run = Trainer::new(c.clone()).unwrap();
+    assert_eq!(bf16_run.autocast_dtype(), Some(AutocastDtype::BFloat16));
+    c.train.gradient_checkpointing = true;
+    c.train.out = tmp.path().join("bf16-ckpt");
+    let mut ckpt_run = Trainer::new(c).unwrap();
+    for step in 0..3 {
+        let a = f32_run.train_step().unwrap();
+        let b = bf16_run.train_step().unwrap();
+        let k = ckpt_run.train_step().unwrap();
+        let rel = (b.loss - a.loss).abs() / a.loss.abs();
+        eprintln!(
+            "step {step}: f32 {:.6} bf16 {:.6} ({:.3}%) bf16+ckpt {:.6}",
+            a.loss,
+            b.loss,
+            100.0 * rel,
+            k.loss
+        );
+        assert!(
+            b.loss.is_finite() && rel < 0.01,
+            "step {step}: bf16 loss {} vs f32 {} ({:.2}%)",
+            b.loss,
+            a.loss,
+            100.0 * rel
+        );
+        // Autocast was really on: bf16 rounding changes the loss.
+        assert_ne!(a.loss, b.loss, "step {step}: bf16 loss equals the f32 loss");
+        // Gradient checkpointing replays the blocks in bf16 too: the same
+        // forward, the same (up to summation order) gradients.
+        let relk = (k.loss - b.loss).abs() / b.loss.abs();
+        assert!(
+            relk < 1e-3,
+            "step {step}: checkpointed bf16 loss {} vs {}",
+            k.loss,
+            b.loss
+        );
+        assert!(
+            (k.grad_norm - b.grad_norm).abs() < 1e-2 * b.grad_norm,
+            "step {step}: checkpointed bf16 grad norm {} vs {}",
+            k.grad_norm,
+            b.grad_norm
+        );
+    }
+    // The state outside the step is untouched, and the parameters, their
+    // gradients and the AdamW moments stay f32.
+    assert!(!is_enabled(AutocastDevice::Cpu).unwrap());
+    for (name, p) in bf16_run.opt.params() {
+        assert_eq!(p.kind(), Kind::Float, "{name}");
+        let g = p.grad();
+        assert!(!g.defined() || g.kind() == Kind::Float, "grad of {name}");
+    }
+    for (name, t) in bf16_run.opt.state() {
+        if name != "steps" {
+            assert_eq!(t.kind(), Kind::Float, "{name}");
+        }
+    }
+    // And the updates follow the f32 run's closely.
+    let mut num = 0.0;
+    let mut den = 0.0;
+    for ((name, p), (_, q)) in bf16_run.opt.params().iter().zip(f32_run.opt.params()) {
+        let d = (p - q).to_kind(Kind::Double).square().sum(Kind::Double);
+        num += d.double_value(&[]);
+        den += q
+            .to_kind(Kind::Double)
+            .square()
+            .sum(Kind::Double)
+            .double_value(&[]);
+        assert!(num.is_finite(), "{name}");
+    }
+    assert!(
+        (num / den).sqrt() < 0.05,
+        "bf16 parameters differ from f32 by {:.3} (relative)",
+        (num / den).sqrt()
+    );
+}
