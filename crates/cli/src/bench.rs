@@ -5,7 +5,7 @@ use anyhow::{bail, Context, Result};
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::{random_q, IkOptions, IkSolver, SplitMix64};
-use bridgev2w_embodiment::masks::render_trajectory_labels;
+use bridgev2w_embodiment::masks::render_trajectory_label_array;
 use bridgev2w_embodiment::npy::{read_npy, write_atomic, write_npy};
 use bridgev2w_embodiment::robot::{LoadOptions, Robot};
 use nalgebra::{Point3, Vector3};
@@ -333,15 +333,16 @@ fn masks(a: &MasksBench) -> Result<()> {
     );
 
     // This renderer: warm-up pass, then timed passes. Like pybullet's
-    // segmentation output, per-pixel link labels (no depth maps).
-    let mut ours = render_trajectory_labels(&robot, &camera, &joints, &|| {});
+    // segmentation output, per-pixel link labels (no depth maps), into one
+    // [T, H, W] array (as pybullet_masks.py's).
+    let mut ours = render_trajectory_label_array(&robot, &camera, &joints, &|| {});
     let pb = progress_bar(a.frames * a.repeat, "bridgev2w renderer");
     let mut ours_s = 0.0;
     for _ in 0..a.repeat {
         // Freeing the previous pass's masks is not rendering: untimed.
         drop(std::mem::take(&mut ours));
         let t0 = Instant::now();
-        ours = render_trajectory_labels(&robot, &camera, &joints, &|| pb.inc(1));
+        ours = render_trajectory_label_array(&robot, &camera, &joints, &|| pb.inc(1));
         ours_s += t0.elapsed().as_secs_f64();
     }
     pb.finish_and_clear();
@@ -397,9 +398,10 @@ fn masks(a: &MasksBench) -> Result<()> {
     let theirs = read_npy(&masks_path)?;
     let hw = (a.width * a.height) as usize;
     // pybullet saves every repeat; the first pass is compared.
-    if theirs.data.len() >= hw * ours.len() {
+    let frames = ours.len() / hw.max(1);
+    if theirs.data.len() >= ours.len() {
         let mut iou_sum = 0.0;
-        for (t, f) in ours.iter().enumerate() {
+        for (t, f) in ours.chunks(hw.max(1)).enumerate() {
             let (mut inter, mut uni) = (0usize, 0usize);
             for (i, &l) in f.iter().enumerate() {
                 let a = l != 0;
@@ -415,13 +417,13 @@ fn masks(a: &MasksBench) -> Result<()> {
         }
         println!(
             "mask agreement (mean IoU) {:>10.4}",
-            iou_sum / ours.len() as f64
+            iou_sum / frames as f64
         );
     } else {
         eprintln!(
             "warning: pybullet masks have {} values, expected {}",
             theirs.data.len(),
-            hw * ours.len()
+            ours.len()
         );
     }
     ours.clear();

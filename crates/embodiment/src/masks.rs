@@ -75,6 +75,22 @@ pub fn render_frame_labels(robot: &Robot, rasterizer: &Rasterizer, q: &[f64]) ->
     rasterizer.render_labels(&render_items(robot, &poses, true))
 }
 
+/// [`render_frame_labels`] drawn into `labels` (see
+/// [`Rasterizer::render_labels_into`]: covered pixels get their link's
+/// label, the others keep their value, so `labels` should be all 0).
+///
+/// # Panics
+/// If `q.len() != robot.dof()` or `labels` is not the camera's size.
+pub fn render_frame_labels_into(
+    robot: &Robot,
+    rasterizer: &Rasterizer,
+    q: &[f64],
+    labels: &mut [u16],
+) {
+    let poses = robot.link_poses(q);
+    rasterizer.render_labels_into(&render_items(robot, &poses, true), labels);
+}
+
 /// The 0/1 robot mask (row-major) of [`render_frame_labels`].
 ///
 /// # Panics
@@ -137,6 +153,36 @@ pub fn render_trajectory_labels(
             labels
         })
         .collect()
+}
+
+/// The label maps of [`render_trajectory_labels`] as one row-major array
+/// `[T, H, W]` (the layout of `labels.npy`), rendered in parallel into a
+/// single zeroed allocation: only pages where the robot is drawn are ever
+/// written, which for a large trajectory saves most of the cost of fresh
+/// memory (the operating system's page zeroing, or `calloc`'s memset).
+/// Same values as [`render_trajectory_labels`], for any number of threads.
+/// `on_frame` as for [`render_trajectory`].
+///
+/// # Panics
+/// If a frame has the wrong number of joint values.
+pub fn render_trajectory_label_array(
+    robot: &Robot,
+    camera: &Camera,
+    joints: &[Vec<f64>],
+    on_frame: &(dyn Fn() + Sync),
+) -> Vec<u16> {
+    let rasterizer = Rasterizer::new(camera);
+    let n = camera.intrinsics.width as usize * camera.intrinsics.height as usize;
+    let mut labels = vec![0u16; n * joints.len()];
+    if n == 0 {
+        joints.iter().for_each(|_| on_frame());
+        return labels;
+    }
+    labels.par_chunks_mut(n).zip(joints).for_each(|(frame, q)| {
+        render_frame_labels_into(robot, &rasterizer, q, frame);
+        on_frame();
+    });
+    labels
 }
 
 /// Errors writing mask outputs.

@@ -805,8 +805,35 @@ struct Scratch {
 
 thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
-    /// Depth map of [`Rasterizer::render_labels`].
-    static DEPTH: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
+    /// Frame buffers of [`Rasterizer::render_labels_into`].
+    static LABEL_FRAME: RefCell<LabelFrame> = const { RefCell::new(LabelFrame::new()) };
+}
+
+/// The per-thread frame of [`Rasterizer::render_labels_into`]: drawn into,
+/// then its covered pixels are copied to the caller's label map, so that
+/// map is only ever written (never read) and only where something is drawn:
+/// for a freshly zeroed allocation, pages of background are never touched,
+/// and none is first read (mapping the shared zero page) and then written
+/// (a copy-on-write fault with a TLB flush on every core the process runs
+/// on). Between frames every pixel is background (label 0, depth
+/// infinity), restored block by block where something was drawn, so there
+/// is no full clear per frame.
+#[derive(Debug)]
+struct LabelFrame {
+    labels: Vec<u16>,
+    depth_m: Vec<f32>,
+    /// Set while drawing: a frame left dirty (by a panic) is cleared in full.
+    dirty: bool,
+}
+
+impl LabelFrame {
+    const fn new() -> Self {
+        Self {
+            labels: Vec::new(),
+            depth_m: Vec::new(),
+            dirty: false,
+        }
+    }
 }
 
 /// Stands in for the vertex of an out-of-range index (and for the padding
@@ -1133,24 +1160,73 @@ impl Rasterizer {
     /// than a full render: the depth map is a reused per-thread buffer and
     /// the label map is written only where something is drawn.
     pub fn render_labels(&self, items: &[RenderItem]) -> Vec<u16> {
-        if self.remap.is_some() {
-            return self.render(items).labels;
-        }
-        let n = self.width as usize * self.height as usize;
         // Zeroed allocation: untouched (background) pages are never written.
-        let mut labels = vec![0u16; n];
-        DEPTH.with(|depth| {
-            let mut fresh = Vec::new();
-            let mut guard = depth.try_borrow_mut();
-            let depth = match &mut guard {
-                Ok(depth) => &mut **depth,
-                Err(_) => &mut fresh,
-            };
-            depth.clear();
-            depth.resize(n, f32::INFINITY);
-            self.draw_items(items, &self.pinhole, &mut labels, depth);
-        });
+        let mut labels = vec![0u16; self.width as usize * self.height as usize];
+        self.render_labels_into(items, &mut labels);
         labels
+    }
+
+    /// Draws the label map of `items` into `labels` (row-major, camera
+    /// size): pixels that an item covers get the label of the nearest
+    /// surface, the others keep their value. With `labels` all background
+    /// (0) on entry this is [`Rasterizer::render_labels`]; only covered
+    /// pixels are written, so the untouched pages of a freshly zeroed
+    /// allocation are never written (see
+    /// [`crate::masks::render_trajectory_label_array`]).
+    ///
+    /// # Panics
+    /// If `labels.len()` is not the camera's pixel count.
+    pub fn render_labels_into(&self, items: &[RenderItem], labels: &mut [u16]) {
+        let n = self.width as usize * self.height as usize;
+        assert_eq!(labels.len(), n, "label map size");
+        if self.remap.is_some() {
+            let full = self.render(items);
+            for (l, &f) in labels.iter_mut().zip(&full.labels) {
+                if f != 0 {
+                    *l = f;
+                }
+            }
+            return;
+        }
+        LABEL_FRAME.with(|frame| match frame.try_borrow_mut() {
+            Ok(mut frame) => self.draw_labels(items, &mut frame, labels),
+            Err(_) => self.draw_labels(items, &mut LabelFrame::new(), labels),
+        });
+    }
+
+    /// [`Rasterizer::render_labels_into`] without distortion, drawing into
+    /// the per-thread `frame` and then copying its covered pixels.
+    fn draw_labels(&self, items: &[RenderItem], frame: &mut LabelFrame, labels: &mut [u16]) {
+        let n = labels.len();
+        if frame.dirty || frame.labels.len() != n {
+            frame.labels.clear();
+            frame.labels.resize(n, 0);
+            frame.depth_m.clear();
+            frame.depth_m.resize(n, f32::INFINITY);
+        }
+        frame.dirty = true;
+        self.draw_items(items, &self.pinhole, &mut frame.labels, &mut frame.depth_m);
+        // Covered pixels are those with a label (items labelled 0 are not
+        // drawn): copy them and reset their blocks to background.
+        const BLOCK: usize = 16;
+        for ((src, depth), dst) in frame
+            .labels
+            .chunks_mut(BLOCK)
+            .zip(frame.depth_m.chunks_mut(BLOCK))
+            .zip(labels.chunks_mut(BLOCK))
+        {
+            if src.iter().fold(0, |acc, &l| acc | l) == 0 {
+                continue;
+            }
+            for (s, d) in src.iter().zip(dst.iter_mut()) {
+                if *s != 0 {
+                    *d = *s;
+                }
+            }
+            src.fill(0);
+            depth.fill(f32::INFINITY);
+        }
+        frame.dirty = false;
     }
 
     /// Renders one frame per entry of `frames`, in parallel with rayon. The

@@ -213,3 +213,61 @@ fn labels_only_trajectory_matches_full_render() {
         }
     }
 }
+
+/// The `[T, H, W]` label array equals the per-frame label maps, for one and
+/// several threads, with and without lens distortion; drawing into a
+/// non-zero map writes exactly the covered pixels.
+#[test]
+fn label_array_matches_per_frame_labels_for_any_threads() {
+    use bridgev2w_embodiment::camera::Distortion;
+    use bridgev2w_embodiment::kinematics::{random_q, SplitMix64};
+    use bridgev2w_embodiment::masks::{
+        render_frame_labels_into, render_trajectory_label_array, render_trajectory_labels,
+    };
+    use bridgev2w_embodiment::raster::Rasterizer;
+    let e = Embodiment::builtin("franka").expect("franka");
+    let mut rng = SplitMix64::new(9);
+    let joints: Vec<Vec<f64>> = (0..7).map(|_| random_q(&e.robot, &mut rng)).collect();
+    let mut distorted = Intrinsics::centered(280.0, 200, 150);
+    distorted.distortion = Some(Distortion {
+        k1: -0.15,
+        k2: 0.02,
+        p1: 0.001,
+        p2: 0.0,
+        k3: 0.0,
+    });
+    for intr in [Intrinsics::centered(280.0, 200, 150), distorted] {
+        let cam = Camera::look_at(
+            intr,
+            Point3::new(1.6, 0.7, 1.0),
+            Point3::new(0.3, 0.0, 0.4),
+            Vector3::z(),
+        )
+        .expect("cam");
+        let frames = render_trajectory_labels(&e.robot, &cam, &joints, &|| {});
+        let expected: Vec<u16> = frames.concat();
+        assert!(expected.iter().filter(|&&l| l != 0).count() > 2000);
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            let count = std::sync::atomic::AtomicUsize::new(0);
+            let array = pool.install(|| {
+                render_trajectory_label_array(&e.robot, &cam, &joints, &|| {
+                    count.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                })
+            });
+            assert_eq!(array, expected, "{threads} threads");
+            assert_eq!(count.into_inner(), joints.len());
+        }
+        // Over a non-zero map: covered pixels get their labels, the rest
+        // keep the old value.
+        let rasterizer = Rasterizer::new(&cam);
+        let mut over = vec![u16::MAX; frames[0].len()];
+        render_frame_labels_into(&e.robot, &rasterizer, &joints[0], &mut over);
+        for (o, &l) in over.iter().zip(&frames[0]) {
+            assert_eq!(*o, if l != 0 { l } else { u16::MAX });
+        }
+    }
+}
