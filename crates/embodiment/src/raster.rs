@@ -1342,20 +1342,31 @@ impl Rasterizer {
             let triangles = &item.mesh.triangles[..];
             classes.clear();
             classes.resize(triangles.len().div_ceil(64) * 64, CLASS_SKIP);
-            for (chunk, (tris, out)) in triangles
-                .chunks(4)
-                .zip(classes.chunks_exact_mut(4))
-                .enumerate()
-            {
-                // Padding lanes: out-of-range indices, skipped.
-                let tri = |i: usize| tris.get(i).copied().unwrap_or([u32::MAX; 3]);
-                let tris = [tri(0), tri(1), tri(2), tri(3)];
+            let n = i32::try_from(n_cull).unwrap_or(i32::MAX);
+            let classify = |chunk: usize, tris: [[u32; 3]; 4]| {
                 // Lane i culls when triangle 4 * chunk + i < n_cull.
                 let first = i32::try_from(chunk * 4).unwrap_or(i32::MAX);
-                let n = i32::try_from(n_cull).unwrap_or(i32::MAX);
                 let cull = (i32x4::splat(first) + LANE_INDEX).cmp_lt(i32x4::splat(n));
-                let c = classify_x4(tris, screen, cull, last_x, last_y);
-                out.copy_from_slice(&c);
+                classify_x4(tris, screen, cull, last_x, last_y)
+            };
+            let mut groups = triangles.chunks_exact(4);
+            for (chunk, (tris, out)) in (&mut groups).zip(classes.chunks_exact_mut(4)).enumerate() {
+                if let (Ok(tris), Ok(out)) = (
+                    <[[u32; 3]; 4]>::try_from(tris),
+                    <&mut [u8; 4]>::try_from(out),
+                ) {
+                    *out = classify(chunk, tris);
+                }
+            }
+            let rest = groups.remainder();
+            if !rest.is_empty() {
+                // Padding lanes: out-of-range indices, skipped.
+                let tri = |i: usize| rest.get(i).copied().unwrap_or([u32::MAX; 3]);
+                let chunk = triangles.len() / 4;
+                let c = classify(chunk, [tri(0), tri(1), tri(2), tri(3)]);
+                if let Some(out) = classes.get_mut(chunk * 4..chunk * 4 + 4) {
+                    out.copy_from_slice(&c);
+                }
             }
             for (class, list) in lists.iter_mut().enumerate().skip(1) {
                 if class == usize::from(CLASS_CLIP) && outcodes_any == 0 {
