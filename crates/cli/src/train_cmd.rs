@@ -3,6 +3,7 @@
 
 use anyhow::{Context, Result};
 use bridgev2w_train::config::TrainConfig;
+use bridgev2w_train::distributed::DistEnv;
 use bridgev2w_train::trainer::Trainer;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -34,7 +35,17 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     if let Some(o) = &args.out {
         cfg.train.out = o.clone();
     }
-    let mut trainer = Trainer::new(cfg).context("setting up training")?;
+    // torchrun-style data parallelism: RANK / WORLD_SIZE / MASTER_ADDR / MASTER_PORT.
+    let dist = DistEnv::from_env()?;
+    if let Some(d) = &dist {
+        eprintln!(
+            "data-parallel: rank {} of {}, rank 0 at {}",
+            d.rank,
+            d.world,
+            d.master()
+        );
+    }
+    let mut trainer = Trainer::new_distributed(cfg, dist).context("setting up training")?;
     if let Some(r) = &args.resume {
         trainer
             .resume(r)
@@ -53,7 +64,21 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         },
         trainer.cfg.train.out.display()
     );
-    let pb = if args.quiet {
+    let primary = trainer.is_primary();
+    if let Some(name) = trainer.collective_name() {
+        let (rank, world) = trainer.rank_and_world();
+        eprintln!(
+            "rank {rank} of {world}: {} of {} batch items per step, {name} all-reduce{}",
+            trainer.cfg.train.batch_size / world,
+            trainer.cfg.train.batch_size,
+            if primary {
+                ""
+            } else {
+                " (rank 0 writes the outputs)"
+            }
+        );
+    }
+    let pb = if args.quiet || !primary {
         ProgressBar::hidden()
     } else {
         let pb = ProgressBar::new(total as u64);
@@ -65,7 +90,7 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         pb.set_position(trainer.step as u64);
         pb
     };
-    let quiet = args.quiet;
+    let quiet = args.quiet && primary;
     let result = trainer.run(&mut |m| {
         let msg = if m.diffusion == 0.0 && (m.recon > 0.0 || m.kl > 0.0) {
             format!(
@@ -86,6 +111,14 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     });
     pb.finish();
     result?;
+    if !primary {
+        eprintln!(
+            "done: {} steps (rank {})",
+            trainer.step,
+            trainer.rank_and_world().0
+        );
+        return Ok(());
+    }
     eprintln!(
         "done: {} steps; weights in {}",
         trainer.step,

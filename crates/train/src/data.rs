@@ -466,18 +466,21 @@ impl ClipDataset {
         batch_size: usize,
         device: Device,
     ) -> Result<Batch> {
+        self.clips(&self.batch_clips(seed, step, batch_size), device)
+    }
+
+    /// The clips `(episode, start frame)` of step `step`'s batch.
+    pub fn batch_clips(&self, seed: u64, step: usize, batch_size: usize) -> Vec<(usize, usize)> {
         let eps = self.batch_episodes(seed, step, batch_size);
         let mut rng = rng_for(seed, step as u64, 2);
-        let clips: Vec<(usize, usize)> = eps
-            .iter()
+        eps.iter()
             .map(|&i| {
                 (
                     i,
                     rng.gen_range(0..=self.episodes[i].frames - self.clip_frames),
                 )
             })
-            .collect();
-        self.clips(&clips, device)
+            .collect()
     }
 
     /// A batch of the clips `(episode, start frame)` on `device`.

@@ -9,6 +9,7 @@
 pub mod action;
 pub mod config;
 pub mod data;
+pub mod distributed;
 pub mod evaluate;
 pub mod flow;
 pub mod losses;

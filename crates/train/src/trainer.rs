@@ -16,12 +16,18 @@
 //! Mixed precision: `train.autocast` (bf16 autocast around the loss's
 //! forward passes, by default on CUDA only; see [`Trainer::autocast_dtype`]).
 //!
-//! Not implemented (yet): data-parallel training (see the README for the
-//! intended NCCL layout).
+//! Data-parallel training: [`Trainer::new_distributed`] with a
+//! [`DistEnv`] (torchrun-style environment, see [`crate::distributed`]):
+//! each rank trains on the items `rank, rank + world, ...` of every step's
+//! global batch, with the random draws of the whole batch (so the ranks
+//! together compute what one process computes on the whole batch), and the
+//! gradients are averaged over the ranks before clipping and AdamW. Rank 0
+//! writes the metrics and checkpoints.
 
 use crate::action::ActionEncoder;
 use crate::config::TrainConfig;
 use crate::data::{rng_for, seed_for, Batch, ClipDataset};
+use crate::distributed::{Collective, DistEnv};
 use crate::flow::{flow_loss, flow_weight, FlowEstimator, FlowLossConfig, LucasKanade, RaftFlow};
 use crate::losses::{diffusion_loss, dynamics_loss, predicted_x0};
 use crate::optim::{AdamW, AdamWConfig};
@@ -133,6 +139,8 @@ pub struct Trainer {
     pub step: usize,
     /// The autocast dtype of the loss's forward passes (`None`: f32).
     autocast: Option<AutocastDtype>,
+    /// Data-parallel training: the gradient all-reduce (`None`: one process).
+    collective: Option<Box<dyn Collective>>,
 }
 
 /// `random:tiny` / `random:small`: the presets of a randomly initialised
@@ -165,6 +173,19 @@ fn resolve_autocast(setting: &str, device: ComputeDevice) -> Result<Option<Autoc
     }
 }
 
+/// A hash of the configuration as every rank must share it (the output
+/// folder aside), compared at the data-parallel rendezvous.
+fn config_fingerprint(cfg: &TrainConfig) -> Result<u64> {
+    use std::hash::{Hash, Hasher};
+    let mut c = cfg.clone();
+    c.train.out = PathBuf::new();
+    let text = c.to_toml()?;
+    // SipHash with fixed keys: the same value in every process of this build.
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    text.hash(&mut h);
+    Ok(h.finish())
+}
+
 fn parse_device(s: &str) -> Result<ComputeDevice> {
     s.parse::<ComputeDevice>()
         .map_err(|e| TrainError::input("config model.device", e.to_string()))
@@ -173,8 +194,42 @@ fn parse_device(s: &str) -> Result<ComputeDevice> {
 impl Trainer {
     /// Builds the model, reads the data, creates the optimizer (step 0).
     pub fn new(cfg: TrainConfig) -> Result<Self> {
+        Self::new_distributed(cfg, None)
+    }
+
+    /// [`Self::new`] as one rank of a data-parallel run (`env`; `None`: a
+    /// single process): checks that `train.batch_size` divides among the
+    /// ranks, on CUDA uses device `LOCAL_RANK` (default `RANK`), and meets
+    /// the other ranks (rank 0 at `MASTER_ADDR:MASTER_PORT`) before building
+    /// the model: NCCL on CUDA, the TCP backend on the CPU.
+    pub fn new_distributed(cfg: TrainConfig, env: Option<DistEnv>) -> Result<Self> {
         cfg.validate()?;
-        let device = parse_device(&cfg.model.device)?;
+        let mut device = parse_device(&cfg.model.device)?;
+        let collective = match &env {
+            None => None,
+            Some(env) => {
+                if cfg.train.batch_size % env.world != 0 {
+                    return Err(TrainError::input(
+                        "config train.batch_size",
+                        format!(
+                            "{} is not divisible by WORLD_SIZE={}: every rank takes batch_size / WORLD_SIZE items of a step",
+                            cfg.train.batch_size, env.world
+                        ),
+                    ));
+                }
+                if let ComputeDevice::Cuda(_) = device {
+                    device = ComputeDevice::Cuda(env.local_rank.unwrap_or(env.rank));
+                }
+                device = device
+                    .check_available()
+                    .map_err(|e| TrainError::input("LOCAL_RANK / model.device", e.to_string()))?;
+                Some(crate::distributed::connect(
+                    env,
+                    device.to_tch(),
+                    config_fingerprint(&cfg)?,
+                )?)
+            }
+        };
         let autocast = resolve_autocast(&cfg.train.autocast, device)?;
         let random = random_preset(&cfg.model.backbone)?;
         let (frames, height, width) = {
@@ -292,7 +347,135 @@ impl Trainer {
             opt,
             step: 0,
             autocast,
+            collective,
         })
+    }
+
+    /// [`Self::new`] with a ready data-parallel backend (e.g. a custom
+    /// [`Collective`]); `train.batch_size` must divide by its world size.
+    pub fn with_collective(cfg: TrainConfig, collective: Box<dyn Collective>) -> Result<Self> {
+        let world = collective.world();
+        if world == 0 || collective.rank() >= world || cfg.train.batch_size % world != 0 {
+            return Err(TrainError::input(
+                "config train.batch_size",
+                format!(
+                    "{} with rank {} of world size {world}: expected rank < world and a batch size divisible by it",
+                    cfg.train.batch_size,
+                    collective.rank()
+                ),
+            ));
+        }
+        let mut t = Self::new(cfg)?;
+        t.collective = Some(collective);
+        Ok(t)
+    }
+
+    /// `(rank, world size)` of a data-parallel run; `(0, 1)` for one process.
+    pub fn rank_and_world(&self) -> (usize, usize) {
+        self.collective
+            .as_ref()
+            .map_or((0, 1), |c| (c.rank(), c.world()))
+    }
+
+    /// The data-parallel backend's name (`None`: one process).
+    pub fn collective_name(&self) -> Option<&'static str> {
+        self.collective.as_ref().map(|c| c.name())
+    }
+
+    /// Whether this process writes metrics and checkpoints (rank 0).
+    pub fn is_primary(&self) -> bool {
+        self.rank_and_world().0 == 0
+    }
+
+    /// This rank's items of a global batch (`rank, rank + world, ...`) as an
+    /// index tensor; `None` for one process.
+    fn shard_index(&self, global: i64, device: tch::Device) -> Option<Tensor> {
+        let (rank, world) = self.rank_and_world();
+        (world > 1).then(|| {
+            let idx: Vec<i64> = (rank as i64..global).step_by(world).collect();
+            Tensor::from_slice(&idx).to_device(device)
+        })
+    }
+
+    /// Standard normal noise for this rank's rows `local` `[b, ...]`: the
+    /// rows of the global batch's draw (`[b * world, ...]` from libtorch's
+    /// generator), so the ranks together use the single process's noise.
+    fn shard_randn(&self, local: &Tensor) -> Tensor {
+        let mut size = local.size();
+        let (_, world) = self.rank_and_world();
+        size[0] *= world as i64;
+        match self.shard_index(size[0], local.device()) {
+            None => local.randn_like(),
+            Some(idx) => {
+                // `randn_like` is `empty_like` (which keeps the strides of a
+                // permuted tensor such as the latents) then `normal_`, whose
+                // CPU kernel differs for contiguous and strided tensors: make
+                // the global tensor with the same layout and fill it the same way.
+                let strides = local.stride();
+                let mut order: Vec<usize> = (0..size.len()).collect();
+                order.sort_by(|&a, &b| strides[b].cmp(&strides[a]));
+                let mem_size: Vec<i64> = order.iter().map(|&d| size[d]).collect();
+                let mut inverse = vec![0i64; order.len()];
+                for (pos, &d) in order.iter().enumerate() {
+                    inverse[d] = pos as i64;
+                }
+                let mut global = Tensor::empty(mem_size.as_slice(), (local.kind(), local.device()))
+                    .permute(inverse.as_slice());
+                let _ = global.normal_(0.0, 1.0);
+                global.index_select(0, &idx)
+            }
+        }
+    }
+
+    /// `post.sample(seed)` for this rank's rows of the global batch.
+    fn shard_sample(
+        &self,
+        post: &bridgev2w_world_model::vae::Posterior,
+        seed: u64,
+    ) -> Result<Tensor> {
+        let mean = post.mean();
+        let mut size = mean.size();
+        let (_, world) = self.rank_and_world();
+        size[0] *= world as i64;
+        match self.shard_index(size[0], tch::Device::Cpu) {
+            None => Ok(post.sample(seed)?),
+            Some(idx) => {
+                // As `sample`: the generators seeded with `seed`, CPU noise.
+                tch::manual_seed(seed as i64);
+                let noise = Tensor::f_randn(size.as_slice(), (mean.kind(), tch::Device::Cpu))?
+                    .index_select(0, &idx);
+                Ok(post.sample_with_noise(&noise)?)
+            }
+        }
+    }
+
+    /// `model.encode_latents(video, Some(seed))` with this rank's rows of
+    /// the global batch's posterior noise.
+    fn encode_sampled(&self, video: &Tensor, seed: u64) -> Result<Tensor> {
+        let model = &self.model;
+        if self.collective.is_none() {
+            return Ok(model.encode_latents(video, Some(seed))?);
+        }
+        let post = model.vae.encode(video)?;
+        let z = self.shard_sample(&post, seed)?;
+        Ok(model
+            .vae
+            .scale_latents(&z)
+            .permute([0, 2, 1, 3, 4])
+            .to_device(model.device())
+            .to_kind(model.kind()))
+    }
+
+    /// `model.image_latents(first, Some(seed))` with this rank's noise rows.
+    fn image_latents_sampled(&self, first: &Tensor, seed: u64, frames: i64) -> Result<Tensor> {
+        let model = &self.model;
+        if self.collective.is_none() {
+            return Ok(model.image_latents(first, Some(seed))?);
+        }
+        let z = self.encode_sampled(&first.unsqueeze(2), seed)?; // [B, 1, C, h, w]
+        let s = z.size();
+        let pad = Tensor::zeros([s[0], frames - 1, s[2], s[3], s[4]], (z.kind(), z.device()));
+        Ok(Tensor::cat(&[&z, &pad], 1))
     }
 
     /// The dtype the loss's forward passes autocast to (`None`: f32), from
@@ -320,8 +503,19 @@ impl Trainer {
         }
     }
 
-    /// The batch of step `step`.
+    /// This process's batch of step `step`: the whole batch, or in a
+    /// data-parallel run this rank's items (`rank, rank + world, ...`).
     pub fn batch(&self, step: usize) -> Result<Batch> {
+        let clips = self
+            .data
+            .batch_clips(self.cfg.train.seed, step, self.cfg.train.batch_size);
+        let (rank, world) = self.rank_and_world();
+        let mine: Vec<(usize, usize)> = clips.into_iter().skip(rank).step_by(world).collect();
+        self.data.clips(&mine, self.model.device())
+    }
+
+    /// The whole batch of step `step` (every rank's items).
+    pub fn global_batch(&self, step: usize) -> Result<Batch> {
         self.data.batch(
             self.cfg.train.seed,
             step,
@@ -382,7 +576,7 @@ impl Trainer {
         let t = &self.cfg.train;
         let vae = &self.model.vae;
         let post = vae.encode_with_grad(&batch.video)?;
-        let z = post.sample(seed_for(t.seed, step as u64, 5))?;
+        let z = self.shard_sample(&post, seed_for(t.seed, step as u64, 5))?;
         let recon = vae.decode_with_grad(&z)?;
         let l1 = (recon - batch.video.to_device(z.device()))
             .abs()
@@ -422,6 +616,10 @@ impl Trainer {
         tch::manual_seed(seed_for(seed, s, 3) as i64);
         let mut rng = rng_for(seed, s, 4);
         let b = batch.video.size()[0];
+        let (rank, world) = self.rank_and_world();
+        // Per-item draws are made for the whole batch; this rank keeps its own.
+        let global_b = b * world as i64;
+        let mine = |i: i64| i as usize % world == rank;
         let model = &self.model;
         // The frozen encoders make the targets and conditions: in f32 even
         // inside an autocast region (a guard with autocast off), so mixed
@@ -431,20 +629,24 @@ impl Trainer {
             _ => None,
         };
         let (z0, image_latents, control) = tch::no_grad(|| -> Result<_> {
-            let z0 = model.encode_latents(&batch.video, Some(seed_for(seed, s, 5)))?;
+            let z0 = self.encode_sampled(&batch.video, seed_for(seed, s, 5))?;
             let mut first = batch.first_frames.shallow_clone();
             if t.image_noise {
-                let sig: Vec<f32> = (0..b)
+                let sig: Vec<f32> = (0..global_b)
                     .map(|_| {
                         normal(&mut rng, t.image_noise_log_mean, t.image_noise_log_std).exp() as f32
                     })
                     .collect();
+                let sig: Vec<f32> = (0..global_b)
+                    .filter(|&i| mine(i))
+                    .map(|i| sig[i as usize])
+                    .collect();
                 let sig = Tensor::from_slice(&sig)
                     .view([b, 1, 1, 1])
                     .to_device(first.device());
-                first = (&first + first.randn_like() * sig).clamp(-1.0, 1.0);
+                first = (&first + self.shard_randn(&first) * sig).clamp(-1.0, 1.0);
             }
-            let img = model.image_latents(&first, Some(seed_for(seed, s, 6)))?;
+            let img = self.image_latents_sampled(&first, seed_for(seed, s, 6), z0.size()[1])?;
             let control = if self.cfg.ablation.mask_action && !prior {
                 Some(model.control_latents(&batch.masks, &img)?)
             } else {
@@ -456,9 +658,13 @@ impl Trainer {
         // The prior is action-free: never conditioned.
         let dropped = rng.gen::<f64>() < t.condition_dropout || prior;
         let n_train = model.scheduler.num_train_timesteps as i64;
-        let ts: Vec<i64> = (0..b).map(|_| rng.gen_range(0..n_train)).collect();
+        let ts: Vec<i64> = (0..global_b).map(|_| rng.gen_range(0..n_train)).collect();
+        let ts: Vec<i64> = (0..global_b)
+            .filter(|&i| mine(i))
+            .map(|i| ts[i as usize])
+            .collect();
         let timesteps = Tensor::from_slice(&ts).to_device(model.device());
-        let noise = z0.randn_like();
+        let noise = self.shard_randn(&z0);
         let x_t = self.scheduler.add_noise(&z0, &noise, &timesteps)?;
         let latent_in = Tensor::cat(&[&x_t, &image_latents], 2);
         let extra = match (&self.action, dropped) {
@@ -550,6 +756,10 @@ impl Trainer {
             let model = &self.model.transformer.model;
             autocast(device, self.autocast, || record.backward(model))??;
         }
+        let mut scalars = [loss, l.diffusion, l.dynamics, l.flow, l.recon, l.kl];
+        self.average_gradients(&mut scalars)?;
+        let [loss, diffusion, dynamics, flow, recon, kl] = scalars;
+        check_finite(step, "total (all ranks)", loss)?;
         let grad_norm = self.opt.clip_grad_norm(self.cfg.train.grad_clip);
         check_finite(step, "gradient norm", grad_norm)?;
         let lr = self.cfg.lr_at(step);
@@ -559,16 +769,62 @@ impl Trainer {
             step,
             epoch: step / self.steps_per_epoch(),
             loss,
-            diffusion: l.diffusion,
-            dynamics: l.dynamics,
-            flow: l.flow,
+            diffusion,
+            dynamics,
+            flow,
             flow_weight: l.flow_weight,
             lr,
             grad_norm,
             dropped: l.dropped,
             secs: start.elapsed().as_secs_f64(),
-            recon: l.recon,
-            kl: l.kl,
+            recon,
+            kl,
+        })
+    }
+
+    /// Data-parallel runs: replaces every gradient (and the loss values in
+    /// `scalars`) by its mean over the ranks: one flattened f32 buffer,
+    /// scaled by `1 / world` and sum-all-reduced. Every rank holds
+    /// `batch_size / world` items, so this is the gradient of the global
+    /// batch's mean loss. A no-op for one process.
+    fn average_gradients(&mut self, scalars: &mut [f64]) -> Result<()> {
+        let Some(collective) = self.collective.as_mut() else {
+            return Ok(());
+        };
+        let world = collective.world() as f64;
+        let grads: Vec<Tensor> = self
+            .opt
+            .params()
+            .iter()
+            .map(|(_, p)| p.grad())
+            .filter(|g| g.defined())
+            .collect();
+        let device = self.model.device();
+        let mut parts: Vec<Tensor> = grads
+            .iter()
+            .map(|g| g.to_kind(Kind::Float).reshape(-1).to_device(device))
+            .collect();
+        let sc: Vec<f32> = scalars.iter().map(|&v| v as f32).collect();
+        parts.push(Tensor::from_slice(&sc).to_device(device));
+        let mut flat = tch::no_grad(|| Tensor::cat(&parts, 0) * (1.0 / world)).contiguous();
+        collective.all_reduce_sum(&mut flat)?;
+        tch::no_grad(|| {
+            let mut offset = 0i64;
+            for g in &grads {
+                let n = g.numel() as i64;
+                let chunk = flat.narrow(0, offset, n).view(g.size().as_slice());
+                g.shallow_clone().copy_(&chunk.to_kind(g.kind()));
+                offset += n;
+            }
+            let tail = Vec::<f32>::try_from(
+                &flat
+                    .narrow(0, offset, sc.len() as i64)
+                    .to_device(tch::Device::Cpu),
+            )?;
+            for (v, t) in scalars.iter_mut().zip(tail) {
+                *v = f64::from(t);
+            }
+            Ok::<(), TrainError>(())
         })
     }
 
@@ -579,6 +835,17 @@ impl Trainer {
     /// A non-finite loss or gradient stops the run with an error naming the
     /// step and the term; the checkpoints written before stay as they were.
     pub fn run(&mut self, on_step: &mut dyn FnMut(&StepMetrics)) -> Result<Vec<StepMetrics>> {
+        if !self.is_primary() {
+            // Other ranks: the same steps (their all-reduce is rank 0's), no files.
+            let total = self.total_steps();
+            let mut all = Vec::new();
+            while self.step < total {
+                let m = self.train_step()?;
+                on_step(&m);
+                all.push(m);
+            }
+            return Ok(all);
+        }
         let out = self.cfg.train.out.clone();
         std::fs::create_dir_all(&out).map_err(|e| io_err(&out, e))?;
         let cfg_text = self.cfg.to_toml()?;
@@ -635,7 +902,7 @@ impl Trainer {
             let mut sq = 0f64;
             let mut n = 0f64;
             for step in 0..self.steps_per_epoch().min(8) {
-                let b = self.batch(step)?;
+                let b = self.global_batch(step)?;
                 let z = tch::no_grad(|| self.model.vae.encode(&b.video))?
                     .mode()
                     .to_kind(Kind::Double);

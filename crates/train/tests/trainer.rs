@@ -771,3 +771,78 @@ fn bf16_autocast_on_cpu_trains_close_to_f32_and_keeps_f32_state() {
         (num / den).sqrt()
     );
 }
+
+/// A stand-in backend: the rank and world size of a data-parallel run, and
+/// an all-reduce that assumes every rank holds the same buffer.
+#[derive(Debug)]
+struct AloneCollective {
+    rank: usize,
+    world: usize,
+}
+
+impl bridgev2w_train::distributed::Collective for AloneCollective {
+    fn rank(&self) -> usize {
+        self.rank
+    }
+    fn world(&self) -> usize {
+        self.world
+    }
+    fn name(&self) -> &'static str {
+        "alone"
+    }
+    fn all_reduce_sum(&mut self, buf: &mut tch::Tensor) -> bridgev2w_train::Result<()> {
+        let _ = buf.g_mul_scalar_(self.world as f64);
+        Ok(())
+    }
+}
+
+#[test]
+fn data_parallel_shards_see_the_global_batch_draws() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.batch_size = 4;
+    c.data.clips_per_video = 4;
+    c.train.condition_dropout = 0.0;
+    let whole = Trainer::new(c.clone()).unwrap();
+    let shards: Vec<Trainer> = (0..2)
+        .map(|rank| {
+            Trainer::with_collective(c.clone(), Box::new(AloneCollective { rank, world: 2 }))
+                .unwrap()
+        })
+        .collect();
+    for step in [0, 1, 5] {
+        let b = whole.batch(step).unwrap();
+        let l = whole.losses(&b, step).unwrap();
+        let mut diff = 0.0;
+        let mut dynm = 0.0;
+        for t in &shards {
+            let sb = t.batch(step).unwrap();
+            assert_eq!(sb.video.size()[0], 2);
+            // The shard's clips are the whole batch's items rank, rank + 2.
+            let rows = tch::Tensor::from_slice(&[
+                t.rank_and_world().0 as i64,
+                t.rank_and_world().0 as i64 + 2,
+            ]);
+            let expect = b.video.index_select(0, &rows);
+            assert_eq!(
+                (sb.video - expect).abs().max().double_value(&[]),
+                0.0,
+                "step {step}: shard clips"
+            );
+            let sl = t.losses(&t.batch(step).unwrap(), step).unwrap();
+            diff += sl.diffusion / 2.0;
+            dynm += sl.dynamics / 2.0;
+        }
+        assert!(
+            (diff - l.diffusion).abs() < 1e-5 * l.diffusion,
+            "step {step}: diffusion {} (whole) vs {diff} (mean of shards)",
+            l.diffusion
+        );
+        assert!(
+            (dynm - l.dynamics).abs() < 1e-5 * l.dynamics.max(1e-6),
+            "step {step}: dynamics {} (whole) vs {dynm} (mean of shards)",
+            l.dynamics
+        );
+    }
+}

@@ -1,0 +1,207 @@
+//! Data-parallel `bridgev2w train`: two processes (RANK 0/1, WORLD_SIZE 2,
+//! the TCP all-reduce on the CPU) train exactly like one process on the same
+//! global batch; and the environment errors a user meets first.
+
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+mod common;
+
+use common::{run, s};
+
+fn ok(o: &Output) {
+    assert!(
+        o.status.success(),
+        "failed: {}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .expect("bind")
+        .local_addr()
+        .expect("addr")
+        .port()
+}
+
+fn train_cmd(cfg: &Path, out: &Path, env: &[(&str, String)]) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_bridgev2w"));
+    c.env("RUST_BACKTRACE", "0")
+        .env_remove("RANK")
+        .env_remove("WORLD_SIZE")
+        .env_remove("LOCAL_RANK")
+        .args(["train", s(cfg), "--quiet", "--out", s(out)]);
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c
+}
+
+fn setup(d: &Path, batch_size: usize) -> std::path::PathBuf {
+    let data = d.join("data");
+    if !data.exists() {
+        ok(&run(&[
+            "synth",
+            "--out",
+            s(&data),
+            "--episodes-per-split",
+            "2",
+            "--frames",
+            "9",
+            "--width",
+            "96",
+            "--height",
+            "64",
+        ]));
+    }
+    let cfg = format!(
+        r#"
+[model]
+backbone = "random:tiny"
+lora_rank = 4
+lora_alpha = 4.0
+controlnet_layers = 1
+
+[data]
+dataset = "{}"
+split = "train"
+
+[train]
+batch_size = {batch_size}
+max_steps = 3
+checkpoint_every = 0
+warmup_steps = 2
+lr = 1e-4
+"#,
+        s(&data)
+    );
+    let path = d.join(format!("train-b{batch_size}.toml"));
+    std::fs::write(&path, cfg).expect("write config");
+    path
+}
+
+fn metrics(dir: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(dir.join("metrics.jsonl"))
+        .expect("metrics")
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json line"))
+        .collect()
+}
+
+fn dist_env(rank: usize, world: usize, port: u16) -> Vec<(&'static str, String)> {
+    vec![
+        ("RANK", rank.to_string()),
+        ("WORLD_SIZE", world.to_string()),
+        ("MASTER_ADDR", "127.0.0.1".into()),
+        ("MASTER_PORT", port.to_string()),
+        ("BRIDGEV2W_DIST_TIMEOUT", "120".into()),
+    ]
+}
+
+#[test]
+fn two_processes_train_like_one_on_the_global_batch() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let cfg = setup(d, 2);
+    let single = d.join("single");
+    ok(&train_cmd(&cfg, &single, &[]).output().expect("run"));
+    let port = free_port();
+    let (dp0, dp1) = (d.join("dp"), d.join("dp-rank1"));
+    let r0 = train_cmd(&cfg, &dp0, &dist_env(0, 2, port))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn rank 0");
+    let r1 = train_cmd(&cfg, &dp1, &dist_env(1, 2, port))
+        .output()
+        .expect("run rank 1");
+    let r0 = r0.wait_with_output().expect("rank 0");
+    ok(&r1);
+    ok(&r0);
+    // Rank 1 writes nothing; rank 0 writes what a single process writes.
+    assert!(!dp1.exists(), "rank 1 wrote {}", dp1.display());
+    let (a, b) = (metrics(&single), metrics(&dp0));
+    assert_eq!(a.len(), 3);
+    assert_eq!(b.len(), 3);
+    let secs = |m: &[serde_json::Value]| -> f64 {
+        m.iter().filter_map(|l| l["secs"].as_f64()).sum::<f64>() / m.len() as f64
+    };
+    eprintln!(
+        "mean step time: 1 process {:.3} s, 2 processes {:.3} s",
+        secs(&a),
+        secs(&b)
+    );
+    for (x, y) in a.iter().zip(&b) {
+        for key in ["loss", "diffusion", "dynamics", "grad_norm", "lr"] {
+            let (u, v) = (x[key].as_f64().expect(key), y[key].as_f64().expect(key));
+            assert!(
+                (u - v).abs() <= 1e-5 * u.abs().max(1e-3),
+                "step {}: {key} {u} (1 process) vs {v} (2 processes)",
+                x["step"]
+            );
+        }
+        assert_eq!(x["dropped"], y["dropped"]);
+    }
+    // The same parameters after the 3 updates.
+    let read = |p: &Path| -> Vec<(String, tch::Tensor)> {
+        let mut v =
+            tch::Tensor::read_safetensors(p.join("final/weights.safetensors")).expect("weights");
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    };
+    let (wa, wb) = (read(&single), read(&dp0));
+    assert_eq!(wa.len(), wb.len());
+    assert!(!wa.is_empty());
+    let mut max_diff = 0f64;
+    for ((na, ta), (nb, tb)) in wa.iter().zip(&wb) {
+        assert_eq!(na, nb);
+        let d = (ta - tb).abs().max().double_value(&[]);
+        max_diff = max_diff.max(d);
+    }
+    assert!(max_diff < 1e-5, "parameters differ by {max_diff}");
+    // The updates were not trivially zero: the weights moved from the start.
+    let moved = wa
+        .iter()
+        .any(|(n, t)| n.contains("lora") && t.abs().max().double_value(&[]) > 0.0);
+    assert!(moved, "no LoRA weight moved");
+}
+
+#[test]
+fn environment_errors_name_the_variable_and_value() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let cfg = setup(d, 2);
+    let out = d.join("out");
+    let err = |env: &[(&str, String)], c: &Path| -> String {
+        let o = train_cmd(c, &out, env).output().expect("run");
+        assert!(!o.status.success(), "succeeded with {env:?}");
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let e = err(&[("WORLD_SIZE", "2".into())], &cfg);
+    assert!(e.contains("RANK") && e.contains("WORLD_SIZE=2"), "{e}");
+    let e = err(&[("RANK", "1".into())], &cfg);
+    assert!(e.contains("WORLD_SIZE") && e.contains("RANK=1"), "{e}");
+    let e = err(&[("WORLD_SIZE", "2".into()), ("RANK", "2".into())], &cfg);
+    assert!(e.contains("RANK=2") && e.contains("0..2"), "{e}");
+    let e = err(&dist_env(0, 2, free_port()), &setup(d, 3));
+    assert!(
+        e.contains("train.batch_size") && e.contains('3') && e.contains("WORLD_SIZE=2"),
+        "{e}"
+    );
+    // Nobody listens: a clear error after the timeout, not a hang.
+    let port = free_port();
+    let mut env = dist_env(1, 2, port);
+    env.retain(|(k, _)| *k != "BRIDGEV2W_DIST_TIMEOUT");
+    env.push(("BRIDGEV2W_DIST_TIMEOUT", "1".into()));
+    let start = Instant::now();
+    let e = err(&env, &cfg);
+    assert!(start.elapsed() < Duration::from_secs(60));
+    assert!(
+        e.contains("MASTER_ADDR=127.0.0.1") && e.contains(&format!("MASTER_PORT={port}")),
+        "{e}"
+    );
+    assert!(!out.exists(), "a failed rank wrote {}", out.display());
+}
