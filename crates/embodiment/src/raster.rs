@@ -461,11 +461,10 @@ impl Target<'_> {
         if N == 1 {
             let covered =
                 (e[0].cmp_ge(fzero) & e[1].cmp_ge(fzero) & e[2].cmp_ge(fzero)).move_mask();
-            let w = (iz_origin * inv_area).to_array();
+            let z = (f32x4::splat(1.0) / f64x4_to_f32x4(iz_origin * inv_area)).to_array();
             for i in 0..4 {
-                let z = 1.0 / (w[i] as f32);
                 let idx = py[i] as usize * width + px[i] as usize;
-                self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
+                self.depth_test(idx, z[i], label, (covered >> i) & 1 != 0);
             }
             return;
         }
@@ -476,7 +475,7 @@ impl Target<'_> {
             iz_dy += int_f64(step_y[i]) * p[i].2;
         }
         let iz_origin = iz_origin * inv_area;
-        let iz_dx = (iz_dx * inv_area).to_array();
+        let iz_dx = f64x4_to_f32x4(iz_dx * inv_area);
         let iz_dy = iz_dy * inv_area;
         // Pixel offsets (cx, cy) from the first centre: for two pixels the
         // box's far centre, for four the 2x2 block.
@@ -498,11 +497,11 @@ impl Target<'_> {
             let ej = |i: usize| e[i] + cx * step_x[i] + cy * step_y[i];
             let covered =
                 (ej(0).cmp_ge(fzero) & ej(1).cmp_ge(fzero) & ej(2).cmp_ge(fzero)).move_mask();
-            let row = (iz_origin + int_f64(cy) * iz_dy).to_array();
+            let row = f64x4_to_f32x4(iz_origin + int_f64(cy) * iz_dy);
+            let z = (f32x4::splat(1.0) / (row + cx * iz_dx)).to_array();
             let (cx, cy) = (cx.to_array(), cy.to_array());
             for i in 0..4 {
-                let w = row[i] as f32 + cx[i] * iz_dx[i] as f32;
-                let z = 1.0 / w;
+                let z = z[i];
                 let idx = (py[i] + cy[i] as i32) as usize * width + (px[i] + cx[i] as i32) as usize;
                 self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
             }
@@ -860,6 +859,13 @@ const LANE_MASKS: [wide::i32x4; 16] = {
     }
     m
 };
+
+/// Rounds f64 lanes to f32 (as `as f32`: to nearest).
+#[inline(always)]
+fn f64x4_to_f32x4(v: f64x4) -> f32x4 {
+    let v = v.to_array();
+    f32x4::from([v[0] as f32, v[1] as f32, v[2] as f32, v[3] as f32])
+}
 
 /// Converts integer-valued lanes below 2^31 in magnitude to f64 (exact).
 #[inline(always)]
