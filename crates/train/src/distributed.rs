@@ -551,13 +551,28 @@ impl NcclCollective {
         } else {
             tcp.broadcast_bytes(&[])?
         };
+        // ncclCommInitRank waits for every rank: all must be ready first, or
+        // a rank that failed would leave the others waiting forever.
+        let id: Option<[u8; UNIQUE_ID_BYTES]> = id.as_slice().try_into().ok();
+        let mut failed = [f32::from(u8::from(loaded.is_err() || id.is_none()))];
+        tcp.all_reduce_host(&mut failed)?;
         let nccl = loaded?;
-        let id: [u8; UNIQUE_ID_BYTES] = id.as_slice().try_into().map_err(|_| {
+        let id = id.ok_or_else(|| {
             TrainError::input(
                 "data-parallel NCCL",
                 "rank 0 could not create an NCCL unique id (see rank 0's error)",
             )
         })?;
+        if failed[0] > 0.0 {
+            return Err(TrainError::input(
+                "data-parallel NCCL",
+                format!(
+                    "{} rank(s) could not load NCCL (see their errors); rank {} stops too",
+                    failed[0],
+                    tcp.rank()
+                ),
+            ));
+        }
         let comm = nccl.init_rank(&id, tcp.world(), tcp.rank(), device)?;
         Ok(Self { tcp, comm })
     }
@@ -696,6 +711,32 @@ mod tests {
             assert_eq!(got, vec![3.0, 3.0, -6.0]);
             assert_eq!(b, vec![0u8; 3]);
             assert_eq!(size, vec![3, 1]);
+        }
+    }
+
+    #[test]
+    fn nccl_without_a_gpu_fails_clearly_on_every_rank() {
+        // No GPU here: NCCL either cannot be loaded or cannot use cuda:0;
+        // both ranks must get an error (none may wait for the other forever).
+        let port = free_port();
+        let handles: Vec<_> = (0..2)
+            .map(|rank| {
+                std::thread::spawn(move || {
+                    let tcp = TcpCollective::connect(&env(rank, 2, port, 20.0), 3).unwrap();
+                    NcclCollective::new(tcp, 0)
+                        .map(|_| ())
+                        .unwrap_err()
+                        .to_string()
+                })
+            })
+            .collect();
+        for h in handles {
+            let e = h.join().unwrap();
+            eprintln!("{e}");
+            assert!(
+                e.contains("libnccl") || e.contains("NCCL") || e.contains("cuda:0"),
+                "{e}"
+            );
         }
     }
 
