@@ -246,6 +246,11 @@ pub struct NcclComm {
     device: c_int,
 }
 
+// SAFETY: an NCCL communicator may be used from any thread as long as calls
+// on it do not overlap; `NcclComm` is not `Sync` and its methods take `&self`
+// only through one owner at a time, so moving it to another thread is sound.
+unsafe impl Send for NcclComm {}
+
 impl std::fmt::Debug for NcclComm {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "NcclComm(cuda:{})", self.device)

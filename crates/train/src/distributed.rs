@@ -154,7 +154,7 @@ impl DistEnv {
 }
 
 /// The collective operations data-parallel training needs.
-pub trait Collective: std::fmt::Debug {
+pub trait Collective: std::fmt::Debug + Send {
     /// This process's rank.
     fn rank(&self) -> usize;
     /// The number of processes.
