@@ -808,6 +808,61 @@ thread_local! {
     static LABEL_FRAME: RefCell<LabelFrame> = const { RefCell::new(LabelFrame::new()) };
 }
 
+/// An inclusive rectangle of pixels (empty when `x0 > x1` or `y0 > y1`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PixelRect {
+    x0: i64,
+    x1: i64,
+    y0: i64,
+    y1: i64,
+}
+
+impl PixelRect {
+    const EMPTY: Self = Self {
+        x0: 0,
+        x1: -1,
+        y0: 0,
+        y1: -1,
+    };
+
+    /// The whole image whose last pixel is `(last_x, last_y)`.
+    fn full(last_x: i32, last_y: i32) -> Self {
+        Self {
+            x0: 0,
+            x1: i64::from(last_x),
+            y0: 0,
+            y1: i64::from(last_y),
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.x0 > self.x1 || self.y0 > self.y1
+    }
+
+    /// The smallest rectangle holding both.
+    fn union(&self, other: &Self) -> Self {
+        match (self.is_empty(), other.is_empty()) {
+            (true, _) => *other,
+            (_, true) => *self,
+            _ => Self {
+                x0: self.x0.min(other.x0),
+                x1: self.x1.max(other.x1),
+                y0: self.y0.min(other.y0),
+                y1: self.y1.max(other.y1),
+            },
+        }
+    }
+
+    /// Its rows (none when empty).
+    fn rows(&self) -> std::ops::Range<usize> {
+        if self.is_empty() {
+            0..0
+        } else {
+            self.y0.max(0) as usize..self.y1.max(0) as usize + 1
+        }
+    }
+}
+
 /// The per-thread frame of [`Rasterizer::render_labels_into`]: drawn into,
 /// then its covered pixels are copied to the caller's label map, so that
 /// map is only ever written (never read) and only where something is drawn:
@@ -1135,7 +1190,9 @@ impl Rasterizer {
     pub fn render_into(&self, items: &[RenderItem], out: &mut RenderOutput) {
         out.reset(self.width, self.height);
         match &self.remap {
-            None => self.draw_items(items, &self.pinhole, &mut out.labels, &mut out.depth_m),
+            None => {
+                self.draw_items(items, &self.pinhole, &mut out.labels, &mut out.depth_m);
+            }
             Some(remap) => {
                 let mut buffer = RenderOutput::new(remap.pinhole.width, remap.pinhole.height);
                 self.draw_items(
@@ -1211,27 +1268,43 @@ impl Rasterizer {
             frame.depth_m.resize(n, f32::INFINITY);
         }
         frame.dirty = true;
-        self.draw_items(items, &self.pinhole, &mut frame.labels, &mut frame.depth_m);
+        let drawn = self.draw_items(items, &self.pinhole, &mut frame.labels, &mut frame.depth_m);
         // Covered pixels are those with a label (items labelled 0 are not
-        // drawn): copy them and reset their blocks to background.
+        // drawn), all inside `drawn`: copy them and reset their blocks of
+        // each row to background.
         const BLOCK: usize = 16;
-        for ((src, depth), dst) in frame
-            .labels
-            .chunks_mut(BLOCK)
-            .zip(frame.depth_m.chunks_mut(BLOCK))
-            .zip(labels.chunks_mut(BLOCK))
-        {
-            if src.iter().fold(0, |acc, &l| acc | l) == 0 {
+        let width = self.width as usize;
+        for y in drawn.rows() {
+            let row = y * width;
+            let span = row + drawn.x0 as usize..row + drawn.x1 as usize + 1;
+            let (Some(src), Some(depth), Some(dst)) = (
+                frame.labels.get_mut(span.clone()),
+                frame.depth_m.get_mut(span.clone()),
+                labels.get_mut(span),
+            ) else {
                 continue;
-            }
-            for (s, d) in src.iter().zip(dst.iter_mut()) {
-                if *s != 0 {
-                    *d = *s;
+            };
+            for ((src, depth), dst) in src
+                .chunks_mut(BLOCK)
+                .zip(depth.chunks_mut(BLOCK))
+                .zip(dst.chunks_mut(BLOCK))
+            {
+                if src.iter().fold(0, |acc, &l| acc | l) == 0 {
+                    continue;
                 }
+                for (s, d) in src.iter().zip(dst.iter_mut()) {
+                    if *s != 0 {
+                        *d = *s;
+                    }
+                }
+                src.fill(0);
+                depth.fill(f32::INFINITY);
             }
-            src.fill(0);
-            depth.fill(f32::INFINITY);
         }
+        debug_assert!(
+            frame.labels.iter().all(|&l| l == 0),
+            "drawn outside {drawn:?}"
+        );
         frame.dirty = false;
     }
 
@@ -1242,14 +1315,15 @@ impl Rasterizer {
     }
 
     /// Draws all items into `labels` and `depth_m`, row-major buffers of
-    /// the size of `k` (background-initialized by the caller).
+    /// the size of `k` (background-initialized by the caller). Returns a
+    /// rectangle of pixels outside which nothing was drawn.
     fn draw_items(
         &self,
         items: &[RenderItem],
         k: &Pinhole,
         labels: &mut [u16],
         depth_m: &mut [f32],
-    ) {
+    ) -> PixelRect {
         let mut target = Target {
             width: k.width as usize,
             height: k.height as usize,
@@ -1259,7 +1333,7 @@ impl Rasterizer {
         SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
             Ok(mut scratch) => self.draw_items_with(items, k, &mut target, &mut scratch),
             Err(_) => self.draw_items_with(items, k, &mut target, &mut Scratch::default()),
-        });
+        })
     }
 
     /// [`Rasterizer::draw_items`] with explicit scratch buffers.
@@ -1276,7 +1350,7 @@ impl Rasterizer {
         k: &Pinhole,
         target: &mut Target,
         scratch: &mut Scratch,
-    ) {
+    ) -> PixelRect {
         /// [`Rasterizer::draw_items_inline`] as a `pulp` kernel.
         struct Kernel<'a, 'b, 'c> {
             rasterizer: &'a Rasterizer,
@@ -1286,9 +1360,9 @@ impl Rasterizer {
             scratch: &'a mut Scratch,
         }
         impl pulp::WithSimd for Kernel<'_, '_, '_> {
-            type Output = ();
+            type Output = PixelRect;
             #[inline(always)]
-            fn with_simd<S: pulp::Simd>(self, _simd: S) {
+            fn with_simd<S: pulp::Simd>(self, _simd: S) -> PixelRect {
                 let Self {
                     rasterizer,
                     items,
@@ -1296,7 +1370,7 @@ impl Rasterizer {
                     target,
                     scratch,
                 } = self;
-                rasterizer.draw_items_inline(items, k, target, scratch);
+                rasterizer.draw_items_inline(items, k, target, scratch)
             }
         }
         pulp::Arch::new().dispatch(Kernel {
@@ -1305,7 +1379,7 @@ impl Rasterizer {
             k,
             target,
             scratch,
-        });
+        })
     }
 
     /// The body of [`Rasterizer::draw_items_with`], inlined into its
@@ -1317,7 +1391,7 @@ impl Rasterizer {
         k: &Pinhole,
         target: &mut Target,
         scratch: &mut Scratch,
-    ) {
+    ) -> PixelRect {
         let planes = Planes::new(k);
         let last_x = k.width as i32 - 1;
         let last_y = k.height as i32 - 1;
@@ -1326,6 +1400,7 @@ impl Rasterizer {
             classes,
             lists,
         } = scratch;
+        let mut drawn = PixelRect::EMPTY;
         for item in items {
             if item.label == 0 {
                 continue;
@@ -1337,7 +1412,22 @@ impl Rasterizer {
             }
             let r: [[f32; 4]; 3] =
                 std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)] as f32));
-            let outcodes_any = transform_vertices(&item.mesh.vertices, &r, k, &planes, screen);
+            let (outcodes_any, [min_x, max_x, min_y, max_y]) =
+                transform_vertices(&item.mesh.vertices, &r, k, &planes, screen);
+            // Pixels drawn lie in the vertices' bounding box unless some
+            // triangle is clipped (then anywhere).
+            let item_rect = if outcodes_any == 0 {
+                let shift = SUBPIXEL_BITS;
+                PixelRect {
+                    x0: (-((-i64::from(min_x)) >> shift)).max(0),
+                    x1: (i64::from(max_x) >> shift).min(i64::from(last_x)),
+                    y0: (-((-i64::from(min_y)) >> shift)).max(0),
+                    y1: (i64::from(max_y) >> shift).min(i64::from(last_y)),
+                }
+            } else {
+                PixelRect::full(last_x, last_y)
+            };
+            drawn = drawn.union(&item_rect);
             // Back faces are hidden only when the camera is outside the
             // mesh, which holds when no vertex is behind the near plane.
             let n_cull = if outcodes_any & 1 == 0 {
@@ -1420,6 +1510,7 @@ impl Rasterizer {
                 }
             }
         }
+        drawn
     }
 
     /// The straightforward version of [`Rasterizer::draw_items`]: every
@@ -1511,7 +1602,9 @@ fn transform(r: &[[f32; 4]; 3], x: f32, y: f32, z: f32) -> [f32; 3] {
 /// [`transform`], [`Planes::outcode`] and [`project`] (so bit-identical
 /// results); position and 1/z of a vertex with a non-zero outcode are
 /// unspecified (never read), which lets rounding use a plain truncating
-/// conversion (exact here: guard-band coordinates are far below 2^31).
+/// conversion (exact here: guard-band coordinates are far below 2^31). Also
+/// returns `[min x, max x, min y, max y]` of the fixed-point positions of
+/// the vertices with outcode 0 (`i32::MAX`/`i32::MIN` when there are none).
 #[inline(always)]
 fn transform_vertices(
     vertices: &[nalgebra::Point3<f32>],
@@ -1519,8 +1612,8 @@ fn transform_vertices(
     k: &Pinhole,
     planes: &Planes,
     screen: &mut Vec<ScreenVertex>,
-) -> u8 {
-    use wide::{f32x4, i32x4, CmpGe};
+) -> (u8, [i32; 4]) {
+    use wide::{f32x4, i32x4, CmpEq, CmpGe};
     const LANES: usize = 4;
     screen.clear();
     let m: [[f32x4; 4]; 3] = r.map(|row| row.map(f32x4::splat));
@@ -1557,17 +1650,28 @@ fn transform_vertices(
         let sx = round((fx * px * inv_z + cx) * subpixel);
         let sy = round((fy * py * inv_z + cy) * subpixel);
         let lanes = i32x4::transpose([sx, sy, bytemuck::cast::<_, i32x4>(inv_z), code]);
-        (lanes.map(ScreenVertex), code)
+        (lanes.map(ScreenVertex), code, sx, sy)
     };
     let mut any = i32x4::splat(0);
+    // Bounds of the vertices inside every clip plane.
+    let (mut min_x, mut max_x) = (i32x4::splat(i32::MAX), i32x4::splat(i32::MIN));
+    let (mut min_y, mut max_y) = (min_x, max_x);
+    let mut bound = |code: i32x4, sx: i32x4, sy: i32x4| {
+        let inside = code.cmp_eq(i32x4::splat(0));
+        min_x = min_x.min(inside.blend(sx, i32x4::splat(i32::MAX)));
+        max_x = max_x.max(inside.blend(sx, i32x4::splat(i32::MIN)));
+        min_y = min_y.min(inside.blend(sy, i32x4::splat(i32::MAX)));
+        max_y = max_y.max(inside.blend(sy, i32x4::splat(i32::MIN)));
+    };
     let mut chunks = vertices.chunks_exact(LANES);
     for vs in &mut chunks {
         let Ok(vs) = <&[_; LANES]>::try_from(vs) else {
             continue;
         };
-        let (out, code) = four(vs);
+        let (out, code, sx, sy) = four(vs);
         screen.extend_from_slice(&out);
         any |= code;
+        bound(code, sx, sy);
     }
     let rest = chunks.remainder();
     if !rest.is_empty() {
@@ -1575,13 +1679,16 @@ fn transform_vertices(
         // outcodes' union nor the screen vertices kept.
         let mut vs = [rest[0]; LANES];
         vs[..rest.len()].copy_from_slice(rest);
-        let (out, code) = four(&vs);
+        let (out, code, sx, sy) = four(&vs);
         screen.extend_from_slice(&out[..rest.len()]);
         any |= code;
+        bound(code, sx, sy);
     }
     let any = any.to_array();
     let any = any[0] | any[1] | any[2] | any[3];
-    any as u8
+    let min = |v: i32x4| v.to_array().into_iter().fold(i32::MAX, i32::min);
+    let max = |v: i32x4| v.to_array().into_iter().fold(i32::MIN, i32::max);
+    (any as u8, [min(min_x), max(max_x), min(min_y), max(max_y)])
 }
 
 /// Projects a camera-frame point with z >= near to fixed-point pixels.
@@ -1804,6 +1911,53 @@ mod tests {
                 assert_eq!(a.to_bits(), b.to_bits(), "case {case}");
             }
         }
+    }
+
+    /// Label maps rendered one after another on one thread (reusing its
+    /// frame buffers, which are reset only where something was drawn) equal
+    /// fresh full renders: meshes crossing the near plane and the image
+    /// border, in a corner, none at all, and drawn over a non-zero map.
+    #[test]
+    fn label_frames_reused_across_frames_match_full_renders() {
+        use crate::camera::Intrinsics;
+        let camera = Camera::look_at(
+            Intrinsics::centered(120.0, 96, 64),
+            nalgebra::Point3::new(0.0, 0.0, 0.0),
+            nalgebra::Point3::new(0.0, 0.0, 1.0),
+            nalgebra::Vector3::y(),
+        )
+        .expect("camera");
+        let rasterizer = Rasterizer::new(&camera);
+        let sphere = TriMesh::sphere(0.3, 24);
+        let cube = TriMesh::cuboid([0.2, 0.2, 0.2]);
+        let at = |mesh, x: f64, y: f64, z: f64, label| RenderItem {
+            mesh,
+            world_from_mesh: Isometry3::translation(x, y, z),
+            label,
+            closed_triangles: 0,
+        };
+        let scenes: Vec<Vec<RenderItem>> = vec![
+            vec![at(&sphere, 0.0, 0.0, 1.5, 1), at(&cube, 0.1, 0.0, 1.2, 2)],
+            // Crosses the near plane: clipped.
+            vec![at(&sphere, 0.1, 0.05, 0.1, 3)],
+            vec![at(&cube, 0.55, 0.35, 1.3, 1)],
+            vec![],
+            // Partly outside the image.
+            vec![at(&sphere, -0.7, 0.0, 1.0, 2), at(&cube, 0.0, 0.4, 1.0, 5)],
+            vec![at(&cube, -0.3, -0.2, 2.0, 4)],
+        ];
+        for round in 0..2 {
+            for (i, items) in scenes.iter().enumerate() {
+                let expected = rasterizer.render(items).labels;
+                assert_eq!(rasterizer.render_labels(items), expected, "scene {i}");
+                let mut over = vec![9u16; expected.len()];
+                rasterizer.render_labels_into(items, &mut over);
+                for (o, &e) in over.iter().zip(&expected) {
+                    assert_eq!(*o, if e != 0 { e } else { 9 }, "scene {i} round {round}");
+                }
+            }
+        }
+        assert!(rasterizer.render(&scenes[1]).coverage() > 1000);
     }
 
     #[test]
