@@ -351,6 +351,15 @@ struct Target<'a> {
 }
 
 impl Target<'_> {
+    /// Whether every pixel index of the image fits in an i32 (so that
+    /// indices may be computed in i32 SIMD lanes).
+    #[inline(always)]
+    fn len_fits_i32(&self) -> bool {
+        self.width
+            .checked_mul(self.height)
+            .is_some_and(|n| n <= i32::MAX as usize)
+    }
+
     /// Depth test of one candidate fragment, without branches: pixel `idx`
     /// takes depth `z` and `label` when `covered` and nearer (or as near
     /// with a lower label).
@@ -458,14 +467,23 @@ impl Target<'_> {
             step_y[i] = dx * one;
             iz_origin += int_f64(unbiased) * p[i].2;
         }
-        let (px, py) = (px.to_array(), py.to_array());
         let width = self.width;
+        // Pixel indices in i32 lanes when every index of the image fits
+        // (always, in practice); otherwise per lane in usize.
+        let lane_index = self.len_fits_i32();
+        let first = px + py * i32x4::splat(width as i32);
+        let (px, py) = (px.to_array(), py.to_array());
         if N == 1 {
             let covered =
                 (e[0].cmp_ge(fzero) & e[1].cmp_ge(fzero) & e[2].cmp_ge(fzero)).move_mask();
             let z = (f32x4::splat(1.0) / f64x4_to_f32x4(iz_origin * inv_area)).to_array();
+            let first = first.to_array();
             for i in 0..4 {
-                let idx = py[i] as usize * width + px[i] as usize;
+                let idx = if lane_index {
+                    first[i] as usize
+                } else {
+                    py[i] as usize * width + px[i] as usize
+                };
                 self.depth_test(idx, z[i], label, (covered >> i) & 1 != 0);
             }
             return;
@@ -481,13 +499,15 @@ impl Target<'_> {
         let iz_dy = iz_dy * inv_area;
         // Pixel offsets (cx, cy) from the first centre: for two pixels the
         // box's far centre, for four the 2x2 block.
-        let (far_x, far_y) = if N == 2 {
+        let (far_x, far_y, far_index) = if N == 2 {
             let sx = (x0.max(x1).max(x2) >> shift) - i32x4::from(px);
             let sy = (y0.max(y1).max(y2) >> shift) - i32x4::from(py);
-            (sx.round_float(), sy.round_float())
+            let far = first + sx + sy * i32x4::splat(width as i32);
+            (sx.round_float(), sy.round_float(), far.to_array())
         } else {
-            (f32x4::splat(1.0), f32x4::splat(1.0))
+            (f32x4::splat(1.0), f32x4::splat(1.0), [0; 4])
         };
+        let first = first.to_array();
         for j in 0..N {
             let (cx, cy) = match (N, j) {
                 (2, 0) | (4, 0) => (fzero, fzero),
@@ -504,7 +524,16 @@ impl Target<'_> {
             let (cx, cy) = (cx.to_array(), cy.to_array());
             for i in 0..4 {
                 let z = z[i];
-                let idx = (py[i] + cy[i] as i32) as usize * width + (px[i] + cx[i] as i32) as usize;
+                let idx = match (lane_index, N, j) {
+                    (true, 2, 0) | (true, 4, 0) => first[i] as usize,
+                    (true, 2, _) => far_index[i] as usize,
+                    (true, _, 1) => first[i] as usize + 1,
+                    (true, _, 2) => first[i] as usize + width,
+                    (true, _, _) => first[i] as usize + width + 1,
+                    (false, _, _) => {
+                        (py[i] + cy[i] as i32) as usize * width + (px[i] + cx[i] as i32) as usize
+                    }
+                };
                 self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
             }
         }
