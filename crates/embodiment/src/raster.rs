@@ -39,6 +39,10 @@
 //!   use the same integer values and floating-point operations on every
 //!   path, so the output is bit-identical to drawing each triangle with the
 //!   general path (tested).
+//! - Label maps alone ([`Rasterizer::render_labels`]) are drawn into one
+//!   64-bit key per pixel (depth bits mapped to their order, then the
+//!   label), so the depth test is a minimum; same result as separate depth
+//!   and label buffers (tested).
 //! - The per-frame drawing ([`Rasterizer::draw_items_with`]) is compiled twice,
 //!   for the baseline x86-64 instruction set and for AVX2 (x86-64-v3,
 //!   chosen at run time with `pulp`): every function it calls is inlined
@@ -342,27 +346,49 @@ struct Vertex64 {
     inv_z: f64,
 }
 
-/// The depth and label buffers drawn into, row-major, `width` x `height`.
-struct Target<'a> {
-    width: usize,
-    height: usize,
+/// Per-pixel storage of the nearest surface: a depth test per fragment.
+trait Pixels {
+    /// Depth test of one candidate fragment, without branches: pixel `idx`
+    /// takes depth `z` and `label` when `covered` and nearer (or as near
+    /// with a lower label). Out-of-range pixels are ignored.
+    fn depth_test(&mut self, idx: usize, z: f32, label: u16, covered: bool);
+
+    /// [`Pixels::depth_test`] of the four pixels from `idx` on, in SIMD
+    /// lanes (`covered`: lane masks). Uncovered pixels keep their values,
+    /// so the four may extend past the end of an image row (not past the
+    /// buffer: the last pixels of the buffer are tested one by one).
+    fn depth_test_x4(&mut self, idx: usize, z: f32x4, label: u16, covered: i32x4);
+
+    /// [`Pixels::depth_test`] of the pixels `idx` (lane `i`: pixel
+    /// `idx[i]`, depth lane `i` of `z`, covered when bit `i` of `covered`
+    /// is set), one after another.
+    #[inline(always)]
+    fn depth_test_lanes(&mut self, idx: [usize; 4], z: f32x4, label: u16, covered: i32) {
+        let z = z.to_array();
+        for i in 0..4 {
+            self.depth_test(idx[i], z[i], label, (covered >> i) & 1 != 0);
+        }
+    }
+
+    /// [`Pixels::depth_test`] of the pixels `start..=end` (covered when
+    /// `z_at`, called once per pixel in order, gives a depth); false (and
+    /// nothing drawn) when the span is out of range.
+    fn depth_test_span(
+        &mut self,
+        start: usize,
+        end: usize,
+        label: u16,
+        z_at: impl FnMut() -> Option<f32>,
+    ) -> bool;
+}
+
+/// Separate depth and label buffers, row-major.
+struct LabelDepth<'a> {
     labels: &'a mut [u16],
     depth_m: &'a mut [f32],
 }
 
-impl Target<'_> {
-    /// Whether every pixel index of the image fits in an i32 (so that
-    /// indices may be computed in i32 SIMD lanes).
-    #[inline(always)]
-    fn len_fits_i32(&self) -> bool {
-        self.width
-            .checked_mul(self.height)
-            .is_some_and(|n| n <= i32::MAX as usize)
-    }
-
-    /// Depth test of one candidate fragment, without branches: pixel `idx`
-    /// takes depth `z` and `label` when `covered` and nearer (or as near
-    /// with a lower label).
+impl Pixels for LabelDepth<'_> {
     #[inline(always)]
     fn depth_test(&mut self, idx: usize, z: f32, label: u16, covered: bool) {
         if let (Some(d), Some(l)) = (self.depth_m.get_mut(idx), self.labels.get_mut(idx)) {
@@ -372,10 +398,6 @@ impl Target<'_> {
         }
     }
 
-    /// [`Target::depth_test`] of the four pixels from `idx` on, in SIMD
-    /// lanes (`covered`: lane masks). Uncovered pixels keep their values,
-    /// so the four may extend past the end of an image row (not past the
-    /// buffer: the last pixels of the buffer are tested one by one).
     #[inline(always)]
     fn depth_test_x4(&mut self, idx: usize, z: f32x4, label: u16, covered: i32x4) {
         let (Some(d), Some(l)) = (
@@ -402,6 +424,148 @@ impl Target<'_> {
         for (l, n) in l.iter_mut().zip(new_l) {
             *l = n as u16;
         }
+    }
+
+    #[inline(always)]
+    fn depth_test_span(
+        &mut self,
+        start: usize,
+        end: usize,
+        label: u16,
+        mut z_at: impl FnMut() -> Option<f32>,
+    ) -> bool {
+        let (Some(depths), Some(labels)) = (
+            self.depth_m.get_mut(start..=end),
+            self.labels.get_mut(start..=end),
+        ) else {
+            return false;
+        };
+        for (d, l) in depths.iter_mut().zip(labels.iter_mut()) {
+            if let Some(z) = z_at() {
+                if z < *d || (z == *d && label < *l) {
+                    *d = z;
+                    *l = label;
+                }
+            }
+        }
+        true
+    }
+}
+
+/// The depth and label of a fragment packed into one integer whose order
+/// is that of the depth test: smaller wins (nearer, or as near with a
+/// lower label). The high 32 bits are the bits of `z` mapped so that they
+/// order as the values (negative values' bits flipped, the sign bit of the
+/// others set), the low 16 bits the label. Orders as [`LabelDepth`]'s
+/// comparisons for all depths except NaN and zeros (of either sign), which
+/// never occur: depths are `1 / iz` with `iz` finite and not NaN
+/// (interpolated from finite 1/z of unclipped vertices).
+#[inline(always)]
+fn depth_key(z: f32, label: u16) -> u64 {
+    let bits = z.to_bits();
+    let ordered = bits ^ ((((bits as i32) >> 31) as u32) | 0x8000_0000);
+    (u64::from(ordered) << 32) | u64::from(label)
+}
+
+/// [`depth_key`] of the background (depth infinity, label 0).
+const BACKGROUND_KEY: u64 = (((0x7f80_0000u32) | 0x8000_0000) as u64) << 32;
+
+/// Depth and label packed per pixel ([`depth_key`]), row-major: the depth
+/// test is a minimum.
+struct Keys<'a> {
+    keys: &'a mut [u64],
+}
+
+impl Pixels for Keys<'_> {
+    #[inline(always)]
+    fn depth_test(&mut self, idx: usize, z: f32, label: u16, covered: bool) {
+        if let Some(k) = self.keys.get_mut(idx) {
+            let key = if covered {
+                depth_key(z, label)
+            } else {
+                u64::MAX
+            };
+            *k = (*k).min(key);
+        }
+    }
+
+    #[inline(always)]
+    fn depth_test_x4(&mut self, idx: usize, z: f32x4, label: u16, covered: i32x4) {
+        let (z, covered) = (z.to_array(), covered.move_mask());
+        if let Some(k) = self.keys.get_mut(idx..idx + 4) {
+            for (c, (k, &z)) in k.iter_mut().zip(z.iter()).enumerate() {
+                let key = if (covered >> c) & 1 != 0 {
+                    depth_key(z, label)
+                } else {
+                    u64::MAX
+                };
+                *k = (*k).min(key);
+            }
+        } else {
+            for (c, &z) in z.iter().enumerate() {
+                self.depth_test(idx + c, z, label, (covered >> c) & 1 != 0);
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn depth_test_lanes(&mut self, idx: [usize; 4], z: f32x4, label: u16, covered: i32) {
+        // depth_key's bit mapping in SIMD lanes.
+        let bits = bytemuck::cast::<f32x4, i32x4>(z);
+        let sign: i32x4 = bits >> 31_i32;
+        let ordered = (bits ^ (sign | i32x4::splat(i32::MIN))).to_array();
+        for i in 0..4 {
+            let key = if (covered >> i) & 1 != 0 {
+                (u64::from(ordered[i] as u32) << 32) | u64::from(label)
+            } else {
+                u64::MAX
+            };
+            if let Some(k) = self.keys.get_mut(idx[i]) {
+                *k = (*k).min(key);
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn depth_test_span(
+        &mut self,
+        start: usize,
+        end: usize,
+        label: u16,
+        mut z_at: impl FnMut() -> Option<f32>,
+    ) -> bool {
+        let Some(keys) = self.keys.get_mut(start..=end) else {
+            return false;
+        };
+        for k in keys {
+            if let Some(z) = z_at() {
+                *k = (*k).min(depth_key(z, label));
+            }
+        }
+        true
+    }
+}
+
+/// The pixels drawn into, row-major, `width` x `height`.
+struct Target<P> {
+    width: usize,
+    height: usize,
+    pixels: P,
+}
+
+impl<P: Pixels> Target<P> {
+    /// Whether every pixel index of the image fits in an i32 (so that
+    /// indices may be computed in i32 SIMD lanes).
+    #[inline(always)]
+    fn len_fits_i32(&self) -> bool {
+        self.width
+            .checked_mul(self.height)
+            .is_some_and(|n| n <= i32::MAX as usize)
+    }
+
+    #[inline(always)]
+    fn depth_test_x4(&mut self, idx: usize, z: f32x4, label: u16, covered: i32x4) {
+        self.pixels.depth_test_x4(idx, z, label, covered);
     }
 
     /// Draws four triangles (SIMD lanes of `g`, see [`gather_x4`]) whose
@@ -476,16 +640,16 @@ impl Target<'_> {
         if N == 1 {
             let covered =
                 (e[0].cmp_ge(fzero) & e[1].cmp_ge(fzero) & e[2].cmp_ge(fzero)).move_mask();
-            let z = (f32x4::splat(1.0) / f64x4_to_f32x4(iz_origin * inv_area)).to_array();
+            let z = f32x4::splat(1.0) / f64x4_to_f32x4(iz_origin * inv_area);
             let first = first.to_array();
-            for i in 0..4 {
-                let idx = if lane_index {
+            let idx: [usize; 4] = std::array::from_fn(|i| {
+                if lane_index {
                     first[i] as usize
                 } else {
                     py[i] as usize * width + px[i] as usize
-                };
-                self.depth_test(idx, z[i], label, (covered >> i) & 1 != 0);
-            }
+                }
+            });
+            self.pixels.depth_test_lanes(idx, z, label, covered);
             return;
         }
         let mut iz_dx = f64x4::splat(0.0);
@@ -520,22 +684,19 @@ impl Target<'_> {
             let covered =
                 (ej(0).cmp_ge(fzero) & ej(1).cmp_ge(fzero) & ej(2).cmp_ge(fzero)).move_mask();
             let row = f64x4_to_f32x4(iz_origin + int_f64(cy) * iz_dy);
-            let z = (f32x4::splat(1.0) / (row + cx * iz_dx)).to_array();
+            let z = f32x4::splat(1.0) / (row + cx * iz_dx);
             let (cx, cy) = (cx.to_array(), cy.to_array());
-            for i in 0..4 {
-                let z = z[i];
-                let idx = match (lane_index, N, j) {
-                    (true, 2, 0) | (true, 4, 0) => first[i] as usize,
-                    (true, 2, _) => far_index[i] as usize,
-                    (true, _, 1) => first[i] as usize + 1,
-                    (true, _, 2) => first[i] as usize + width,
-                    (true, _, _) => first[i] as usize + width + 1,
-                    (false, _, _) => {
-                        (py[i] + cy[i] as i32) as usize * width + (px[i] + cx[i] as i32) as usize
-                    }
-                };
-                self.depth_test(idx, z, label, (covered >> i) & 1 != 0);
-            }
+            let idx: [usize; 4] = std::array::from_fn(|i| match (lane_index, N, j) {
+                (true, 2, 0) | (true, 4, 0) => first[i] as usize,
+                (true, 2, _) => far_index[i] as usize,
+                (true, _, 1) => first[i] as usize + 1,
+                (true, _, 2) => first[i] as usize + width,
+                (true, _, _) => first[i] as usize + width + 1,
+                (false, _, _) => {
+                    (py[i] + cy[i] as i32) as usize * width + (px[i] + cx[i] as i32) as usize
+                }
+            });
+            self.pixels.depth_test_lanes(idx, z, label, covered);
         }
     }
 
@@ -719,12 +880,7 @@ impl Target<'_> {
             }
             let z = 1.0 / ((iz_origin * inv_area) as f32);
             let idx = y0 as usize * self.width + x0 as usize;
-            if let (Some(d), Some(l)) = (self.depth_m.get_mut(idx), self.labels.get_mut(idx)) {
-                if z < *d || (z == *d && label < *l) {
-                    *d = z;
-                    *l = label;
-                }
-            }
+            self.pixels.depth_test(idx, z, label, true);
             return;
         }
         // 1/z as a plane over pixel coordinates: sum_i (e_i / area) inv_z_i.
@@ -759,32 +915,28 @@ impl Target<'_> {
             if lo <= hi {
                 let start = base + (x0 + lo) as usize;
                 let end = base + (x0 + hi) as usize;
-                let (Some(depths), Some(labels)) = (
-                    self.depth_m.get_mut(start..=end),
-                    self.labels.get_mut(start..=end),
-                ) else {
-                    return;
-                };
                 let mut e = [
                     e_row[0] + lo * step_x[0],
                     e_row[1] + lo * step_x[1],
                     e_row[2] + lo * step_x[2],
                 ];
                 let mut dxf = lo as f32;
-                for (d, l) in depths.iter_mut().zip(labels.iter_mut()) {
+                let z_at = || {
                     // In a span every pixel is inside; the test is then a
                     // predictable always-true branch.
-                    if (e[0] | e[1] | e[2]) >= 0 {
-                        let z = 1.0 / (iz_row + dxf * iz_dx);
-                        if z < *d || (z == *d && label < *l) {
-                            *d = z;
-                            *l = label;
-                        }
-                    }
+                    let z = if (e[0] | e[1] | e[2]) >= 0 {
+                        Some(1.0 / (iz_row + dxf * iz_dx))
+                    } else {
+                        None
+                    };
                     e[0] += step_x[0];
                     e[1] += step_x[1];
                     e[2] += step_x[2];
                     dxf += 1.0;
+                    z
+                };
+                if !self.pixels.depth_test_span(start, end, label, z_at) {
+                    return;
                 }
             }
             e_row[0] += step_y[0];
@@ -900,13 +1052,12 @@ impl PixelRect {
 /// for a freshly zeroed allocation, pages of background are never touched,
 /// and none is first read (mapping the shared zero page) and then written
 /// (a copy-on-write fault with a TLB flush on every core the process runs
-/// on). Between frames every pixel is background (label 0, depth
-/// infinity), restored block by block where something was drawn, so there
-/// is no full clear per frame.
+/// on). Depth and label are packed per pixel ([`Keys`]). Between frames
+/// every pixel is background ([`BACKGROUND_KEY`]), restored block by block
+/// where something was drawn, so there is no full clear per frame.
 #[derive(Debug)]
 struct LabelFrame {
-    labels: Vec<u16>,
-    depth_m: Vec<f32>,
+    keys: Vec<u64>,
     /// Set while drawing: a frame left dirty (by a panic) is cleared in full.
     dirty: bool,
 }
@@ -914,8 +1065,7 @@ struct LabelFrame {
 impl LabelFrame {
     const fn new() -> Self {
         Self {
-            labels: Vec::new(),
-            depth_m: Vec::new(),
+            keys: Vec::new(),
             dirty: false,
         }
     }
@@ -1222,16 +1372,19 @@ impl Rasterizer {
         out.reset(self.width, self.height);
         match &self.remap {
             None => {
-                self.draw_items(items, &self.pinhole, &mut out.labels, &mut out.depth_m);
+                let pixels = LabelDepth {
+                    labels: &mut out.labels,
+                    depth_m: &mut out.depth_m,
+                };
+                self.draw_items(items, &self.pinhole, pixels);
             }
             Some(remap) => {
                 let mut buffer = RenderOutput::new(remap.pinhole.width, remap.pinhole.height);
-                self.draw_items(
-                    items,
-                    &remap.pinhole,
-                    &mut buffer.labels,
-                    &mut buffer.depth_m,
-                );
+                let pixels = LabelDepth {
+                    labels: &mut buffer.labels,
+                    depth_m: &mut buffer.depth_m,
+                };
+                self.draw_items(items, &remap.pinhole, pixels);
                 for ((&src, label), depth) in remap
                     .source
                     .iter()
@@ -1292,48 +1445,42 @@ impl Rasterizer {
     /// the per-thread `frame` and then copying its covered pixels.
     fn draw_labels(&self, items: &[RenderItem], frame: &mut LabelFrame, labels: &mut [u16]) {
         let n = labels.len();
-        if frame.dirty || frame.labels.len() != n {
-            frame.labels.clear();
-            frame.labels.resize(n, 0);
-            frame.depth_m.clear();
-            frame.depth_m.resize(n, f32::INFINITY);
+        if frame.dirty || frame.keys.len() != n {
+            frame.keys.clear();
+            frame.keys.resize(n, BACKGROUND_KEY);
         }
         frame.dirty = true;
-        let drawn = self.draw_items(items, &self.pinhole, &mut frame.labels, &mut frame.depth_m);
+        let pixels = Keys {
+            keys: &mut frame.keys,
+        };
+        let drawn = self.draw_items(items, &self.pinhole, pixels);
         // Covered pixels are those with a label (items labelled 0 are not
-        // drawn), all inside `drawn`: copy them and reset their blocks of
-        // each row to background.
+        // drawn; the label is the key's low 16 bits), all inside `drawn`:
+        // copy them and reset their blocks of each row to background.
         const BLOCK: usize = 16;
         let width = self.width as usize;
         for y in drawn.rows() {
             let row = y * width;
             let span = row + drawn.x0 as usize..row + drawn.x1 as usize + 1;
-            let (Some(src), Some(depth), Some(dst)) = (
-                frame.labels.get_mut(span.clone()),
-                frame.depth_m.get_mut(span.clone()),
-                labels.get_mut(span),
-            ) else {
+            let (Some(src), Some(dst)) = (frame.keys.get_mut(span.clone()), labels.get_mut(span))
+            else {
                 continue;
             };
-            for ((src, depth), dst) in src
-                .chunks_mut(BLOCK)
-                .zip(depth.chunks_mut(BLOCK))
-                .zip(dst.chunks_mut(BLOCK))
-            {
-                if src.iter().fold(0, |acc, &l| acc | l) == 0 {
+            for (src, dst) in src.chunks_mut(BLOCK).zip(dst.chunks_mut(BLOCK)) {
+                if src.iter().fold(0, |acc, &k| acc | k as u16) == 0 {
                     continue;
                 }
                 for (s, d) in src.iter().zip(dst.iter_mut()) {
-                    if *s != 0 {
-                        *d = *s;
+                    let label = *s as u16;
+                    if label != 0 {
+                        *d = label;
                     }
                 }
-                src.fill(0);
-                depth.fill(f32::INFINITY);
+                src.fill(BACKGROUND_KEY);
             }
         }
         debug_assert!(
-            frame.labels.iter().all(|&l| l == 0),
+            frame.keys.iter().all(|&k| k == BACKGROUND_KEY),
             "drawn outside {drawn:?}"
         );
         frame.dirty = false;
@@ -1348,18 +1495,11 @@ impl Rasterizer {
     /// Draws all items into `labels` and `depth_m`, row-major buffers of
     /// the size of `k` (background-initialized by the caller). Returns a
     /// rectangle of pixels outside which nothing was drawn.
-    fn draw_items(
-        &self,
-        items: &[RenderItem],
-        k: &Pinhole,
-        labels: &mut [u16],
-        depth_m: &mut [f32],
-    ) -> PixelRect {
+    fn draw_items<P: Pixels>(&self, items: &[RenderItem], k: &Pinhole, pixels: P) -> PixelRect {
         let mut target = Target {
             width: k.width as usize,
             height: k.height as usize,
-            labels,
-            depth_m,
+            pixels,
         };
         SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
             Ok(mut scratch) => self.draw_items_with(items, k, &mut target, &mut scratch),
@@ -1375,22 +1515,22 @@ impl Rasterizer {
     /// [`Target::draw_triangle`]. The result is the same as drawing every
     /// triangle with [`Target::draw_triangle`], since both compute identical
     /// coverage and depth and the depth test does not depend on the order.
-    fn draw_items_with(
+    fn draw_items_with<P: Pixels>(
         &self,
         items: &[RenderItem],
         k: &Pinhole,
-        target: &mut Target,
+        target: &mut Target<P>,
         scratch: &mut Scratch,
     ) -> PixelRect {
         /// [`Rasterizer::draw_items_inline`] as a `pulp` kernel.
-        struct Kernel<'a, 'b, 'c> {
+        struct Kernel<'a, 'b, P> {
             rasterizer: &'a Rasterizer,
             items: &'a [RenderItem<'b>],
             k: &'a Pinhole,
-            target: &'a mut Target<'c>,
+            target: &'a mut Target<P>,
             scratch: &'a mut Scratch,
         }
-        impl pulp::WithSimd for Kernel<'_, '_, '_> {
+        impl<P: Pixels> pulp::WithSimd for Kernel<'_, '_, P> {
             type Output = PixelRect;
             #[inline(always)]
             fn with_simd<S: pulp::Simd>(self, _simd: S) -> PixelRect {
@@ -1416,11 +1556,11 @@ impl Rasterizer {
     /// The body of [`Rasterizer::draw_items_with`], inlined into its
     /// instruction-set-specific copies (as is everything it calls).
     #[inline(always)]
-    fn draw_items_inline(
+    fn draw_items_inline<P: Pixels>(
         &self,
         items: &[RenderItem],
         k: &Pinhole,
-        target: &mut Target,
+        target: &mut Target<P>,
         scratch: &mut Scratch,
     ) -> PixelRect {
         let planes = Planes::new(k);
@@ -1552,8 +1692,10 @@ impl Rasterizer {
         let mut target = Target {
             width: k.width as usize,
             height: k.height as usize,
-            labels: &mut out.labels,
-            depth_m: &mut out.depth_m,
+            pixels: LabelDepth {
+                labels: &mut out.labels,
+                depth_m: &mut out.depth_m,
+            },
         };
         for item in items {
             if item.label == 0 {
@@ -1881,6 +2023,102 @@ mod tests {
             drawn += fast.coverage();
         }
         assert!(drawn > 5000, "{drawn}");
+    }
+
+    /// Packed keys order as the depth test (nearer wins, then the lower
+    /// label) for depths of any sign and infinities, and the packed pixel
+    /// buffer's depth tests (single, four in a row, four anywhere, spans)
+    /// give the labels of separate depth and label buffers.
+    #[test]
+    fn packed_keys_match_separate_buffers() {
+        let mut rng = Rng(0x1234_5678_9abc_def1);
+        let depths = [
+            f32::NEG_INFINITY,
+            -3.5,
+            -1e-30,
+            1e-30,
+            0.01,
+            0.5,
+            0.5000001,
+            1.0,
+            7.25,
+            1e30,
+            f32::INFINITY,
+        ];
+        for &a in &depths {
+            for &b in &depths {
+                for (la, lb) in [(1u16, 2u16), (2, 1), (3, 3)] {
+                    let float_wins = a < b || (a == b && la < lb);
+                    assert_eq!(depth_key(a, la) < depth_key(b, lb), float_wins, "{a} {b}");
+                }
+            }
+        }
+        assert_eq!(depth_key(f32::INFINITY, 0), BACKGROUND_KEY);
+        let n = 64;
+        let mut labels = vec![0u16; n];
+        let mut depth_m = vec![f32::INFINITY; n];
+        let mut keys = vec![BACKGROUND_KEY; n];
+        let z_of = |rng: &mut Rng| {
+            // Few distinct depths, so that ties occur.
+            let z = 0.5 + (rng.next() * 8.0).floor() * 0.25;
+            if rng.next() < 0.05 {
+                -z
+            } else {
+                z
+            }
+        };
+        for step in 0..4000 {
+            let label = 1 + (rng.next() * 5.0) as u16;
+            let mut separate = LabelDepth {
+                labels: &mut labels,
+                depth_m: &mut depth_m,
+            };
+            let mut packed = Keys { keys: &mut keys };
+            // Indices reach past the end: ignored by both.
+            let idx = (rng.next() * (n + 6) as f32) as usize;
+            let z = f32x4::from([
+                z_of(&mut rng),
+                z_of(&mut rng),
+                z_of(&mut rng),
+                z_of(&mut rng),
+            ]);
+            let bits = (rng.next() * 16.0) as i32;
+            match step % 4 {
+                0 => {
+                    let covered = bits & 1 != 0;
+                    let z = z.to_array()[0];
+                    separate.depth_test(idx, z, label, covered);
+                    packed.depth_test(idx, z, label, covered);
+                }
+                1 => {
+                    let covered = LANE_MASKS[bits as usize];
+                    separate.depth_test_x4(idx, z, label, covered);
+                    packed.depth_test_x4(idx, z, label, covered);
+                }
+                2 => {
+                    let idx: [usize; 4] =
+                        std::array::from_fn(|_| (rng.next() * (n + 2) as f32) as usize);
+                    separate.depth_test_lanes(idx, z, label, bits);
+                    packed.depth_test_lanes(idx, z, label, bits);
+                }
+                _ => {
+                    let end = idx + (rng.next() * 5.0) as usize;
+                    let zs = z.to_array();
+                    let z_at = |i: &mut usize| {
+                        *i += 1;
+                        ((bits >> (*i % 4)) & 1 != 0).then_some(zs[*i % 4])
+                    };
+                    let (mut i, mut j) = (0, 0);
+                    let a = separate.depth_test_span(idx, end, label, || z_at(&mut i));
+                    let b = packed.depth_test_span(idx, end, label, || z_at(&mut j));
+                    assert_eq!(a, b);
+                }
+            }
+            for i in 0..n {
+                assert_eq!(keys[i], depth_key(depth_m[i], labels[i]), "step {step}");
+            }
+        }
+        assert!(labels.iter().filter(|&&l| l != 0).count() > n / 2);
     }
 
     #[test]
