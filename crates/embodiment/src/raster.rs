@@ -467,6 +467,15 @@ fn depth_key(z: f32, label: u16) -> u64 {
     (u64::from(ordered) << 32) | u64::from(label)
 }
 
+/// The high halves of [`depth_key`] (depth bits mapped to their order) of
+/// four depths, in SIMD lanes.
+#[inline(always)]
+fn ordered_bits_x4(z: f32x4) -> i32x4 {
+    let bits = bytemuck::cast::<f32x4, i32x4>(z);
+    let sign: i32x4 = bits >> 31_i32;
+    bits ^ (sign | i32x4::splat(i32::MIN))
+}
+
 /// [`depth_key`] of the background (depth infinity, label 0).
 const BACKGROUND_KEY: u64 = (((0x7f80_0000u32) | 0x8000_0000) as u64) << 32;
 
@@ -491,17 +500,19 @@ impl Pixels for Keys<'_> {
 
     #[inline(always)]
     fn depth_test_x4(&mut self, idx: usize, z: f32x4, label: u16, covered: i32x4) {
-        let (z, covered) = (z.to_array(), covered.move_mask());
         if let Some(k) = self.keys.get_mut(idx..idx + 4) {
-            for (c, (k, &z)) in k.iter_mut().zip(z.iter()).enumerate() {
-                let key = if (covered >> c) & 1 != 0 {
-                    depth_key(z, label)
+            let ordered = ordered_bits_x4(z).to_array();
+            let covered = covered.to_array();
+            for ((k, &o), &c) in k.iter_mut().zip(ordered.iter()).zip(covered.iter()) {
+                let key = if c != 0 {
+                    (u64::from(o as u32) << 32) | u64::from(label)
                 } else {
                     u64::MAX
                 };
                 *k = (*k).min(key);
             }
         } else {
+            let (z, covered) = (z.to_array(), covered.move_mask());
             for (c, &z) in z.iter().enumerate() {
                 self.depth_test(idx + c, z, label, (covered >> c) & 1 != 0);
             }
@@ -510,10 +521,7 @@ impl Pixels for Keys<'_> {
 
     #[inline(always)]
     fn depth_test_lanes(&mut self, idx: [usize; 4], z: f32x4, label: u16, covered: i32) {
-        // depth_key's bit mapping in SIMD lanes.
-        let bits = bytemuck::cast::<f32x4, i32x4>(z);
-        let sign: i32x4 = bits >> 31_i32;
-        let ordered = (bits ^ (sign | i32x4::splat(i32::MIN))).to_array();
+        let ordered = ordered_bits_x4(z).to_array();
         for i in 0..4 {
             let key = if (covered >> i) & 1 != 0 {
                 (u64::from(ordered[i] as u32) << 32) | u64::from(label)
