@@ -1,48 +1,20 @@
 //! `bridgev2w train` end to end: `bridgev2w synth` a tiny dataset, train three
 //! steps on the `random:tiny` backbone, resume to five, and the errors a user meets first.
 
-use std::process::Output;
-
 mod common;
 
-use common::{run, s};
-
-fn ok(o: &Output) {
-    assert!(
-        o.status.success(),
-        "failed: {}\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-}
+use common::{ok, run, s, synth_tiny, TINY_MODEL_TOML};
 
 #[test]
 fn synth_then_train_three_steps_then_resume() {
     let dir = tempfile::tempdir().expect("tempdir");
     let d = dir.path();
     let data = d.join("data");
-    ok(&run(&[
-        "synth",
-        "--out",
-        s(&data),
-        "--episodes-per-split",
-        "2",
-        "--frames",
-        "9",
-        "--width",
-        "96",
-        "--height",
-        "64",
-    ]));
+    synth_tiny(&data);
     let run_dir = d.join("run");
     let cfg = format!(
         r#"
-[model]
-backbone = "random:tiny"
-lora_rank = 4
-lora_alpha = 4.0
-controlnet_layers = 1
-
+{TINY_MODEL_TOML}
 [data]
 dataset = "{}"
 split = "train"

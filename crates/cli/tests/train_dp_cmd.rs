@@ -3,21 +3,12 @@
 //! global batch; and the environment errors a user meets first.
 
 use std::path::Path;
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
 
-use common::{run, s};
-
-fn ok(o: &Output) {
-    assert!(
-        o.status.success(),
-        "failed: {}\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-}
+use common::{ok, s, synth_tiny, TINY_MODEL_TOML};
 
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -43,28 +34,11 @@ fn train_cmd(cfg: &Path, out: &Path, env: &[(&str, String)]) -> Command {
 fn setup(d: &Path, batch_size: usize) -> std::path::PathBuf {
     let data = d.join("data");
     if !data.exists() {
-        ok(&run(&[
-            "synth",
-            "--out",
-            s(&data),
-            "--episodes-per-split",
-            "2",
-            "--frames",
-            "9",
-            "--width",
-            "96",
-            "--height",
-            "64",
-        ]));
+        synth_tiny(&data);
     }
     let cfg = format!(
         r#"
-[model]
-backbone = "random:tiny"
-lora_rank = 4
-lora_alpha = 4.0
-controlnet_layers = 1
-
+{TINY_MODEL_TOML}
 [data]
 dataset = "{}"
 split = "train"

@@ -18,3 +18,40 @@ pub fn run(args: &[&str]) -> Output {
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
 }
+
+/// Asserts that a run succeeded, printing its output when it did not.
+pub fn ok(o: &Output) {
+    assert!(
+        o.status.success(),
+        "failed: {}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// `bridgev2w synth` of a tiny dataset (2 episodes per split, 9 frames at
+/// 96x64) into `out`.
+pub fn synth_tiny(out: &Path) {
+    ok(&run(&[
+        "synth",
+        "--out",
+        s(out),
+        "--episodes-per-split",
+        "2",
+        "--frames",
+        "9",
+        "--width",
+        "96",
+        "--height",
+        "64",
+    ]));
+}
+
+/// The `[model]` section of the trainer tests: the `random:tiny` backbone,
+/// LoRA rank 4 and one ControlNet block.
+pub const TINY_MODEL_TOML: &str = r#"[model]
+backbone = "random:tiny"
+lora_rank = 4
+lora_alpha = 4.0
+controlnet_layers = 1
+"#;
