@@ -52,11 +52,12 @@
 //! - Performance (720x480, one thread, release, minimum over runs on a
 //!   shared machine): about 1.3 ms per frame for 8 capsules/spheres of ~2k
 //!   triangles each (`benches/raster.rs`, measured before the AVX2 copy)
-//!   and about 1.7-1.8 ms of CPU time per label map
+//!   and about 1.5-1.6 ms of CPU time per label map
 //!   ([`Rasterizer::render_labels`], including output allocation) for
 //!   pybullet's Franka Panda visual meshes (103k triangles,
-//!   `examples/panda_masks.rs`; about 24 M instructions per map); with two
-//!   threads `bridgev2w bench masks` renders about 1000 label maps/s.
+//!   `examples/panda_masks.rs`; about 19.5 M instructions per map inside
+//!   `render_labels`, callgrind); with two threads `bridgev2w bench masks`
+//!   renders about 1100 label maps/s.
 
 use crate::camera::Camera;
 use crate::mesh::TriMesh;
