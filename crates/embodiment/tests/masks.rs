@@ -182,28 +182,10 @@ fn back_face_culling_is_exact_for_closed_meshes() {
 /// and without lens distortion.
 #[test]
 fn labels_only_trajectory_matches_full_render() {
-    use bridgev2w_embodiment::camera::Distortion;
-    use bridgev2w_embodiment::kinematics::{random_q, SplitMix64};
     use bridgev2w_embodiment::masks::render_trajectory_labels;
-    let e = Embodiment::builtin("franka").expect("franka");
-    let mut rng = SplitMix64::new(5);
-    let joints: Vec<Vec<f64>> = (0..6).map(|_| random_q(&e.robot, &mut rng)).collect();
-    let mut distorted = Intrinsics::centered(300.0, 320, 240);
-    distorted.distortion = Some(Distortion {
-        k1: -0.2,
-        k2: 0.05,
-        p1: 0.001,
-        p2: -0.001,
-        k3: 0.0,
-    });
-    for intr in [Intrinsics::centered(300.0, 320, 240), distorted] {
-        let cam = Camera::look_at(
-            intr,
-            Point3::new(1.6, 0.7, 1.0),
-            Point3::new(0.3, 0.0, 0.4),
-            Vector3::z(),
-        )
-        .expect("cam");
+    let distortion = (-0.2, 0.05, 0.001, -0.001);
+    let (e, joints, cams) = franka_scenes(5, 6, (300.0, 320, 240), distortion);
+    for cam in cams {
         let full = render_trajectory(&e.robot, &cam, &joints, &|| {});
         let labels = render_trajectory_labels(&e.robot, &cam, &joints, &|| {});
         assert_eq!(full.len(), labels.len());
@@ -219,31 +201,13 @@ fn labels_only_trajectory_matches_full_render() {
 /// non-zero map writes exactly the covered pixels.
 #[test]
 fn label_array_matches_per_frame_labels_for_any_threads() {
-    use bridgev2w_embodiment::camera::Distortion;
-    use bridgev2w_embodiment::kinematics::{random_q, SplitMix64};
     use bridgev2w_embodiment::masks::{
         render_frame_labels_into, render_trajectory_label_array, render_trajectory_labels,
     };
     use bridgev2w_embodiment::raster::Rasterizer;
-    let e = Embodiment::builtin("franka").expect("franka");
-    let mut rng = SplitMix64::new(9);
-    let joints: Vec<Vec<f64>> = (0..7).map(|_| random_q(&e.robot, &mut rng)).collect();
-    let mut distorted = Intrinsics::centered(280.0, 200, 150);
-    distorted.distortion = Some(Distortion {
-        k1: -0.15,
-        k2: 0.02,
-        p1: 0.001,
-        p2: 0.0,
-        k3: 0.0,
-    });
-    for intr in [Intrinsics::centered(280.0, 200, 150), distorted] {
-        let cam = Camera::look_at(
-            intr,
-            Point3::new(1.6, 0.7, 1.0),
-            Point3::new(0.3, 0.0, 0.4),
-            Vector3::z(),
-        )
-        .expect("cam");
+    let distortion = (-0.15, 0.02, 0.001, 0.0);
+    let (e, joints, cams) = franka_scenes(9, 7, (280.0, 200, 150), distortion);
+    for cam in cams {
         let frames = render_trajectory_labels(&e.robot, &cam, &joints, &|| {});
         let expected: Vec<u16> = frames.concat();
         assert!(expected.iter().filter(|&&l| l != 0).count() > 2000);
@@ -270,4 +234,42 @@ fn label_array_matches_per_frame_labels_for_any_threads() {
             assert_eq!(*o, if l != 0 { l } else { u16::MAX });
         }
     }
+}
+
+/// The built-in Franka at `n` random joint configurations (seed `seed`),
+/// seen by the same camera pose with intrinsics `(focal, width, height)`
+/// without and with lens distortion `(k1, k2, p1, p2)`.
+fn franka_scenes(
+    seed: u64,
+    n: usize,
+    (focal, width, height): (f64, u32, u32),
+    (k1, k2, p1, p2): (f64, f64, f64, f64),
+) -> (Embodiment, Vec<Vec<f64>>, Vec<Camera>) {
+    use bridgev2w_embodiment::camera::Distortion;
+    use bridgev2w_embodiment::kinematics::{random_q, SplitMix64};
+    let e = Embodiment::builtin("franka").expect("franka");
+    let mut rng = SplitMix64::new(seed);
+    let joints: Vec<Vec<f64>> = (0..n).map(|_| random_q(&e.robot, &mut rng)).collect();
+    let plain = Intrinsics::centered(focal, width, height);
+    let mut distorted = plain;
+    distorted.distortion = Some(Distortion {
+        k1,
+        k2,
+        p1,
+        p2,
+        k3: 0.0,
+    });
+    let cams = [plain, distorted]
+        .into_iter()
+        .map(|intr| {
+            Camera::look_at(
+                intr,
+                Point3::new(1.6, 0.7, 1.0),
+                Point3::new(0.3, 0.0, 0.4),
+                Vector3::z(),
+            )
+            .expect("cam")
+        })
+        .collect();
+    (e, joints, cams)
 }
