@@ -186,6 +186,33 @@ fn config_fingerprint(cfg: &TrainConfig) -> Result<u64> {
     Ok(h.finish())
 }
 
+/// Checks that `rank` is one of `world` ranks and that `train.batch_size`
+/// divides among them (every rank takes `batch_size / world` items a step).
+fn check_ranks(cfg: &TrainConfig, rank: usize, world: usize) -> Result<()> {
+    if rank >= world {
+        return Err(TrainError::input(
+            "RANK",
+            format!("{rank}: expected 0..WORLD_SIZE={world}"),
+        ));
+    }
+    if cfg.train.batch_size % world != 0 {
+        return Err(TrainError::input(
+            "config train.batch_size",
+            format!(
+                "{} is not divisible by WORLD_SIZE={world}: every rank takes batch_size / WORLD_SIZE items of a step",
+                cfg.train.batch_size
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The items `rank, rank + world, ...` of a global batch's per-item list
+/// (`(0, 1)`: all of them).
+fn rank_items<T>(items: Vec<T>, (rank, world): (usize, usize)) -> Vec<T> {
+    items.into_iter().skip(rank).step_by(world).collect()
+}
+
 fn parse_device(s: &str) -> Result<ComputeDevice> {
     s.parse::<ComputeDevice>()
         .map_err(|e| TrainError::input("config model.device", e.to_string()))
@@ -208,15 +235,7 @@ impl Trainer {
         let collective = match &env {
             None => None,
             Some(env) => {
-                if cfg.train.batch_size % env.world != 0 {
-                    return Err(TrainError::input(
-                        "config train.batch_size",
-                        format!(
-                            "{} is not divisible by WORLD_SIZE={}: every rank takes batch_size / WORLD_SIZE items of a step",
-                            cfg.train.batch_size, env.world
-                        ),
-                    ));
-                }
+                check_ranks(&cfg, env.rank, env.world)?;
                 if let ComputeDevice::Cuda(_) = device {
                     device = ComputeDevice::Cuda(env.local_rank.unwrap_or(env.rank));
                 }
@@ -354,17 +373,7 @@ impl Trainer {
     /// [`Self::new`] with a ready data-parallel backend (e.g. a custom
     /// [`Collective`]); `train.batch_size` must divide by its world size.
     pub fn with_collective(cfg: TrainConfig, collective: Box<dyn Collective>) -> Result<Self> {
-        let world = collective.world();
-        if world == 0 || collective.rank() >= world || cfg.train.batch_size % world != 0 {
-            return Err(TrainError::input(
-                "config train.batch_size",
-                format!(
-                    "{} with rank {} of world size {world}: expected rank < world and a batch size divisible by it",
-                    cfg.train.batch_size,
-                    collective.rank()
-                ),
-            ));
-        }
+        check_ranks(&cfg, collective.rank(), collective.world())?;
         let mut t = Self::new(cfg)?;
         t.collective = Some(collective);
         Ok(t)
@@ -392,7 +401,7 @@ impl Trainer {
     fn shard_index(&self, global: i64, device: tch::Device) -> Option<Tensor> {
         let (rank, world) = self.rank_and_world();
         (world > 1).then(|| {
-            let idx: Vec<i64> = (rank as i64..global).step_by(world).collect();
+            let idx = rank_items((0..global).collect(), (rank, world));
             Tensor::from_slice(&idx).to_device(device)
         })
     }
@@ -509,8 +518,7 @@ impl Trainer {
         let clips = self
             .data
             .batch_clips(self.cfg.train.seed, step, self.cfg.train.batch_size);
-        let (rank, world) = self.rank_and_world();
-        let mine: Vec<(usize, usize)> = clips.into_iter().skip(rank).step_by(world).collect();
+        let mine = rank_items(clips, self.rank_and_world());
         self.data.clips(&mine, self.model.device())
     }
 
@@ -616,10 +624,9 @@ impl Trainer {
         tch::manual_seed(seed_for(seed, s, 3) as i64);
         let mut rng = rng_for(seed, s, 4);
         let b = batch.video.size()[0];
-        let (rank, world) = self.rank_and_world();
+        let rank_world = self.rank_and_world();
         // Per-item draws are made for the whole batch; this rank keeps its own.
-        let global_b = b * world as i64;
-        let mine = |i: i64| i as usize % world == rank;
+        let global_b = b * rank_world.1 as i64;
         let model = &self.model;
         // The frozen encoders make the targets and conditions: in f32 even
         // inside an autocast region (a guard with autocast off), so mixed
@@ -632,15 +639,12 @@ impl Trainer {
             let z0 = self.encode_sampled(&batch.video, seed_for(seed, s, 5))?;
             let mut first = batch.first_frames.shallow_clone();
             if t.image_noise {
-                let sig: Vec<f32> = (0..global_b)
+                let all: Vec<f32> = (0..global_b)
                     .map(|_| {
                         normal(&mut rng, t.image_noise_log_mean, t.image_noise_log_std).exp() as f32
                     })
                     .collect();
-                let sig: Vec<f32> = (0..global_b)
-                    .filter(|&i| mine(i))
-                    .map(|i| sig[i as usize])
-                    .collect();
+                let sig = rank_items(all, rank_world);
                 let sig = Tensor::from_slice(&sig)
                     .view([b, 1, 1, 1])
                     .to_device(first.device());
@@ -658,11 +662,8 @@ impl Trainer {
         // The prior is action-free: never conditioned.
         let dropped = rng.gen::<f64>() < t.condition_dropout || prior;
         let n_train = model.scheduler.num_train_timesteps as i64;
-        let ts: Vec<i64> = (0..global_b).map(|_| rng.gen_range(0..n_train)).collect();
-        let ts: Vec<i64> = (0..global_b)
-            .filter(|&i| mine(i))
-            .map(|i| ts[i as usize])
-            .collect();
+        let all: Vec<i64> = (0..global_b).map(|_| rng.gen_range(0..n_train)).collect();
+        let ts = rank_items(all, rank_world);
         let timesteps = Tensor::from_slice(&ts).to_device(model.device());
         let noise = self.shard_randn(&z0);
         let x_t = self.scheduler.add_noise(&z0, &noise, &timesteps)?;
