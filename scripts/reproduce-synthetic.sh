@@ -21,7 +21,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 OUT=${1:-runs/reproduce}
-VAE_STEPS=${VAE_STEPS:-400}
+VAE_STEPS=${VAE_STEPS:-1200}
 PRIOR_STEPS=${PRIOR_STEPS:-1500}
 FT_STEPS=${FT_STEPS:-1000}
 EVAL_VIDEOS=${EVAL_VIDEOS:-12}
@@ -141,7 +141,7 @@ PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
     echo "Dataset: \`bridgev2w synth\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
-    echo "Models: \`random:small\` VAE (3 blocks, 8 latent channels, 4x space / 4x time) trained $VAE_STEPS steps (L1 + KL);"
+    echo "Models: \`random:small\` VAE (3 blocks, 16 latent channels, 4x space / 4x time) trained $VAE_STEPS steps (L1 + KL);"
     echo "action-free I2V prior (4 layers, 4 heads x 32) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."

@@ -66,6 +66,14 @@ struct Scores {
     mask_iou: Option<f64>,
     baseline_mask_iou: Option<f64>,
     segmenter_mask_iou: Option<f64>,
+    /// The ground truth through the run's VAE (absent in files written
+    /// before it was scored).
+    #[serde(default)]
+    autoencoder_psnr: Option<f64>,
+    #[serde(default)]
+    autoencoder_ssim: Option<f64>,
+    #[serde(default)]
+    autoencoder_mask_iou: Option<f64>,
 }
 
 #[derive(Debug, serde::Deserialize)]
@@ -171,6 +179,14 @@ fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
                     .map_or("-".into(), |v| mark(v, bi, format!("{:.1}", 100.0 * v))),
             );
         }
+        // Not a method: the bound of every row that decodes through the VAE.
+        if let (Some(p), Some(s)) = (base.autoencoder_psnr, base.autoencoder_ssim) {
+            md += &format!(
+                "| *Ceiling: ground truth through the VAE* | *{p:.2}* | *{s:.3}* | - | - | {} |\n",
+                base.autoencoder_mask_iou
+                    .map_or("-".into(), |v| format!("*{:.1}*", 100.0 * v)),
+            );
+        }
     }
     if let Some(steps) = first.sampling_steps {
         md += &format!("\nSampling: {steps} denoising steps per prediction.\n");
@@ -253,6 +269,9 @@ mod tests {
                     mask_iou: Some(iou),
                     baseline_mask_iou: Some(0.3),
                     segmenter_mask_iou: Some(0.9),
+                    autoencoder_psnr: Some(psnr + 5.0),
+                    autoencoder_ssim: Some(0.7),
+                    autoencoder_mask_iou: None,
                 })
                 .collect(),
         }
@@ -280,6 +299,13 @@ mod tests {
             "{md}"
         );
         assert!(md.contains("segmenter ceiling Mask-IoU 90.0"), "{md}");
+        // The VAE ceiling (first entry's) is a row of its own, never marked best.
+        assert!(
+            md.contains(
+                "| *Ceiling: ground truth through the VAE* | *30.00* | *0.700* | - | - | - |"
+            ),
+            "{md}"
+        );
         let e = video_tables(&[
             ("A".into(), run(25.0, 0.5, 3)),
             ("B".into(), run(22.0, 0.6, 2)),
@@ -287,5 +313,25 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("2 videos, but the first entry has 3"), "{e}");
+    }
+
+    #[test]
+    fn files_without_the_vae_ceiling_still_parse_and_omit_its_row() {
+        let tmp = tempfile::tempdir().unwrap();
+        let f = tmp.path().join("old.json");
+        std::fs::write(
+            &f,
+            r#"{"step": 5, "splits": [{"split": "test", "videos": 2, "psnr": 21.0, "ssim": 0.5,
+                "baseline_psnr": 30.0, "baseline_ssim": 0.9, "mask_iou": null,
+                "baseline_mask_iou": null, "segmenter_mask_iou": null}]}"#,
+        )
+        .unwrap();
+        let entry = parse_entry(&format!("Old={}", f.display())).unwrap();
+        let md = video_tables(&[entry]).unwrap();
+        assert!(
+            md.contains("| Old (step 5) | 21.00 | 0.500 | - | - | - |"),
+            "{md}"
+        );
+        assert!(!md.contains("Ceiling"), "{md}");
     }
 }

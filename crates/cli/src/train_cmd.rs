@@ -214,7 +214,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         rows.push(scores);
     }
     let mut text = format!(
-        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling |\n|---|---|---|---|---|---|---|---|---|\n",
+        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling | VAE ceiling PSNR | VAE ceiling SSIM |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
         args.run.display(),
         trainer.step,
         trainer.cfg.train.stage,
@@ -224,7 +224,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
     for r in &rows {
         let iou = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{:.1}", 100.0 * x));
         text.push_str(&format!(
-            "| {} | {} | {:.2} | {:.4} | {} | {:.2} | {:.4} | {} | {} |\n",
+            "| {} | {} | {:.2} | {:.4} | {} | {:.2} | {:.4} | {} | {} | {:.2} | {:.4} |\n",
             r.split,
             r.videos,
             r.psnr,
@@ -233,7 +233,9 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
             r.baseline_psnr,
             r.baseline_ssim,
             iou(r.baseline_mask_iou),
-            iou(r.segmenter_mask_iou)
+            iou(r.segmenter_mask_iou),
+            r.autoencoder_psnr,
+            r.autoencoder_ssim
         ));
     }
     if let Some(path) = &args.json {

@@ -7,7 +7,9 @@
 //! segmenter ([`robot_segmenter`], fitted on the training split's frames and
 //! masks), Mask-IoU of the robot segmented in the predicted frames against
 //! the ground-truth masks, and the segmenter's ceiling (its Mask-IoU on the
-//! ground-truth frames).
+//! ground-truth frames). The autoencoder's ceiling is scored too: the
+//! ground-truth clip encoded (posterior mode) and decoded by the run's VAE,
+//! the best any model that predicts latents of this VAE can do.
 
 use crate::data::ClipDataset;
 use crate::trainer::Trainer;
@@ -62,6 +64,13 @@ pub struct SplitScores {
     pub baseline_mask_iou: Option<f64>,
     /// Mask-IoU of the segmenter on the ground-truth frames: the ceiling.
     pub segmenter_mask_iou: Option<f64>,
+    /// Mean PSNR of the ground truth through the VAE (encode, posterior
+    /// mode, decode): the autoencoder's ceiling.
+    pub autoencoder_psnr: f64,
+    /// Mean SSIM of the ground truth through the VAE.
+    pub autoencoder_ssim: f64,
+    /// Mask-IoU of the robot segmented in the VAE's reconstructions.
+    pub autoencoder_mask_iou: Option<f64>,
 }
 
 /// Bits per channel of the colour segmenter (32 levels).
@@ -139,6 +148,7 @@ pub fn evaluate_split(
     let metric = |e: bridgev2w_eval::MetricError| TrainError::input("metrics", e.to_string());
     let (mut p, mut s, mut bp, mut bs) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut iou, mut biou, mut ceil) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut ap, mut as_, mut aiou) = (Vec::new(), Vec::new(), Vec::new());
     let with_masks = segmenter.filter(|_| data.has_masks());
     for i in 0..n {
         let batch = data.clips(&[(i, 0)], trainer.model.device())?;
@@ -146,6 +156,14 @@ pub fn evaluate_split(
         let gt = frames(&batch.video)?;
         let pf = frames(&pred)?;
         let copy = frames(&batch.first_frames.unsqueeze(2).expand_as(&batch.video))?;
+        let model = &trainer.model;
+        let recon = tch::no_grad(|| -> Result<Tensor> {
+            let z = model.encode_latents(&batch.video, None)?; // [1, t, C, h, w]
+            Ok(model.decode_latents(&z)?)
+        })?;
+        let af = frames(&recon)?;
+        ap.push(video_psnr(&af, &gt).map_err(metric)?);
+        as_.push(video_ssim(&af, &gt).map_err(metric)?);
         p.push(video_psnr(&pf, &gt).map_err(metric)?);
         s.push(video_ssim(&pf, &gt).map_err(metric)?);
         bp.push(video_psnr(&copy, &gt).map_err(metric)?);
@@ -161,6 +179,7 @@ pub fn evaluate_split(
             iou.push(video_mask_iou(&segment(&pf)?, &gt_masks).map_err(metric)?);
             biou.push(video_mask_iou(&segment(&copy)?, &gt_masks).map_err(metric)?);
             ceil.push(video_mask_iou(&segment(&gt)?, &gt_masks).map_err(metric)?);
+            aiou.push(video_mask_iou(&segment(&af)?, &gt_masks).map_err(metric)?);
         }
         on_video();
     }
@@ -182,5 +201,8 @@ pub fn evaluate_split(
         mask_iou: opt_mean(&iou)?,
         baseline_mask_iou: opt_mean(&biou)?,
         segmenter_mask_iou: opt_mean(&ceil)?,
+        autoencoder_psnr: mean(&ap)?,
+        autoencoder_ssim: mean(&as_)?,
+        autoencoder_mask_iou: opt_mean(&aiou)?,
     })
 }

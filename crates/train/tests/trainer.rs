@@ -596,9 +596,13 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
             );
             assert!(cnn_ceiling > 0.0 && cnn_ceiling <= 1.0, "{c:?}");
         }
-        for v in [s.psnr, s.baseline_psnr] {
+        for v in [s.psnr, s.baseline_psnr, s.autoencoder_psnr] {
             assert!(v.is_finite() && v > 0.0 && v < 100.0, "{s:?}");
         }
+        assert!(
+            s.autoencoder_ssim > -1.0 && s.autoencoder_ssim <= 1.0,
+            "{s:?}"
+        );
         assert!(
             s.ssim > -1.0 && s.ssim <= 1.0 && s.baseline_ssim > 0.0,
             "{s:?}"

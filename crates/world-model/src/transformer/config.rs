@@ -143,14 +143,14 @@ impl TransformerConfig {
     }
 
     /// The CPU-trainable model of the synthetic proof run (`VaeConfig::small`
-    /// latents: 8 channels, 4x spatial compression): 4 layers of 4 heads x 32
+    /// latents: 16 channels, 4x spatial compression): 4 layers of 4 heads x 32
     /// on 64x96 clips of 9 frames (latents 3x16x24, 288 tokens).
     pub fn small() -> Self {
         Self {
             num_attention_heads: 4,
             attention_head_dim: 32,
-            in_channels: 16,
-            out_channels: Some(8),
+            in_channels: 32,
+            out_channels: Some(16),
             time_embed_dim: 128,
             text_embed_dim: 24,
             num_layers: 4,

@@ -145,13 +145,13 @@ impl VaeConfig {
     }
 
     /// The CPU-trainable autoencoder of the synthetic proof run: 3 blocks
-    /// (4x space, 4x time), 8 latent channels.
+    /// (4x space, 4x time), 16 latent channels as the real VAE.
     pub fn small() -> Self {
         Self {
             down_block_types: vec![DOWN_BLOCK_TYPE.to_owned(); 3],
             up_block_types: vec![UP_BLOCK_TYPE.to_owned(); 3],
             block_out_channels: vec![16, 32, 64],
-            latent_channels: 8,
+            latent_channels: 16,
             layers_per_block: 1,
             norm_num_groups: 8,
             sample_height: 64,
