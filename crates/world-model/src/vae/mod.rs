@@ -1105,6 +1105,19 @@ mod tests {
             (small.spatial_compression(), small.temporal_compress_level()),
             (4, 2)
         );
+        // The small transformer denoises the small VAE's latents (noisy ++ image).
+        let tf = crate::transformer::TransformerConfig::small();
+        assert_eq!(
+            (tf.in_channels, tf.out_channels()),
+            (2 * small.latent_channels, small.latent_channels)
+        );
+        assert_eq!(
+            (tf.sample_height, tf.sample_width),
+            (
+                small.sample_height / small.spatial_compression(),
+                small.sample_width / small.spatial_compression()
+            )
+        );
         let t = Tiling::for_config(&VaeConfig::cogvideox_5b_i2v());
         assert_eq!(
             (t.tile_sample_min_height, t.tile_sample_min_width),
