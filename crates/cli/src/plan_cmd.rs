@@ -595,21 +595,66 @@ pub struct PlanReportArgs {
     /// Also evaluate policies with the random-weight BridgeV2W (slow on CPU).
     #[arg(long)]
     pub with_random_model: bool,
+    /// Also plan and evaluate policies with a trained BridgeV2W: a folder
+    /// with `backbone/` (a diffusers CogVideoX image-to-video folder) and
+    /// `bridgev2w.safetensors`, as `assets/demo-model` or what
+    /// `scripts/reproduce-synthetic.sh` exports (minutes per trial on CPU).
+    #[arg(long)]
+    pub trained: Option<PathBuf>,
+    /// Denoising steps of the diffusion models' predictions.
+    #[arg(long, default_value_t = 4)]
+    pub denoise_steps: usize,
+    /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
 }
 
-fn model_args(model: &str) -> ModelArgs {
-    ModelArgs {
-        model: model.into(),
-        weights: None,
-        prompt_embeds: None,
-        denoise_steps: 4,
-        device: "cpu".into(),
-        width: 96,
-        height: 64,
-        clip_frames: 9,
+/// A model of the report: `perfect`, `random`, or a trained folder
+/// (`backbone/` + `bridgev2w.safetensors`).
+#[derive(Debug, Clone, PartialEq)]
+enum ReportModel {
+    Perfect,
+    Random,
+    Trained(PathBuf),
+}
+
+impl ReportModel {
+    fn label(&self) -> String {
+        match self {
+            Self::Perfect => "perfect".into(),
+            Self::Random => "random".into(),
+            Self::Trained(dir) => format!("trained (`{}`)", dir.display()),
+        }
+    }
+
+    fn args(&self, a: &PlanReportArgs) -> Result<ModelArgs> {
+        let (model, weights) = match self {
+            Self::Perfect => ("perfect".to_string(), None),
+            Self::Random => ("random".to_string(), None),
+            Self::Trained(dir) => {
+                let (backbone, weights) = (dir.join("backbone"), dir.join("bridgev2w.safetensors"));
+                if !backbone.is_dir() || !weights.is_file() {
+                    bail!(
+                        "--trained {}: expected backbone/ (a diffusers CogVideoX I2V folder) and bridgev2w.safetensors, as assets/demo-model",
+                        dir.display()
+                    );
+                }
+                (backbone.to_string_lossy().into_owned(), Some(weights))
+            }
+        };
+        Ok(ModelArgs {
+            model,
+            weights,
+            prompt_embeds: None,
+            denoise_steps: a.denoise_steps,
+            device: a.device.clone(),
+            width: 96,
+            height: 64,
+            clip_frames: 9,
+        })
     }
 }
 
@@ -620,11 +665,19 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
     let mut md =
         String::from("## Goal-image planning and policy evaluation in the synthetic world\n\n");
     md += &format!(
-        "Produced by `{}` (CPU). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; the planner uses the world model named in each table.\n\n",
+        "Produced by `{}` (diffusion models on `{}`). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; the planner uses the world model named in each table.\n\n",
         command.join(" "),
+        a.device,
         96,
         64
     );
+    let trained = a.trained.clone().map(ReportModel::Trained);
+    let mut planners = vec![ReportModel::Perfect];
+    planners.extend(trained.clone());
+    // Fail on a bad folder before hours of planning.
+    for m in &planners {
+        m.args(a)?;
+    }
     md += &format!(
         "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         a.trials,
@@ -646,53 +699,57 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
         .collect::<Result<Vec<Task>>>()?;
     for task in tasks {
-        let pa = PlanArgs {
-            task,
-            trials: a.trials,
-            model: model_args("perfect"),
-            cem: a.cem.clone(),
-            frames_per_action: 2,
-            max_steps: a.max_steps,
-            translation_std_m: a.translation_std_m,
-            search_rotation: false,
-            rotation: "joint".into(),
-            rotation_sample_fraction: 0.0,
-            discretize: false,
-            gripper: "auto".into(),
-            single_goal: false,
-            goals: a.goals.clone(),
-            no_workspace: false,
-            split: Split::Test,
-            episode_frames: 25,
-            seed: a.seed,
-        };
-        let s = plan_summary(&pa)?;
-        md += &format!(
-            "| {} | perfect | {}/{} | {}/{} | {:.1} | {:.1} | {:.1} | {:.0} |\n",
-            task.name(),
-            s.planned,
-            s.trials,
-            s.random,
-            s.trials,
-            s.planned_error_m * 100.0,
-            s.random_error_m * 100.0,
-            s.planned_steps,
-            s.seconds
-        );
+        for planner in &planners {
+            let pa = PlanArgs {
+                task,
+                trials: a.trials,
+                model: planner.args(a)?,
+                cem: a.cem.clone(),
+                frames_per_action: 2,
+                max_steps: a.max_steps,
+                translation_std_m: a.translation_std_m,
+                search_rotation: false,
+                rotation: "joint".into(),
+                rotation_sample_fraction: 0.0,
+                discretize: false,
+                gripper: "auto".into(),
+                single_goal: false,
+                goals: a.goals.clone(),
+                no_workspace: false,
+                split: Split::Test,
+                episode_frames: 25,
+                seed: a.seed,
+            };
+            let s = plan_summary(&pa)?;
+            md += &format!(
+                "| {} | {} | {}/{} | {}/{} | {:.1} | {:.1} | {:.1} | {:.0} |\n",
+                task.name(),
+                planner.label(),
+                s.planned,
+                s.trials,
+                s.random,
+                s.trials,
+                s.planned_error_m * 100.0,
+                s.random_error_m * 100.0,
+                s.planned_steps,
+                s.seconds
+            );
+        }
     }
-    let mut models = vec!["perfect"];
+    let mut models = vec![ReportModel::Perfect];
     if a.with_random_model {
-        models.push("random");
+        models.push(ReportModel::Random);
     }
+    models.extend(trained);
     md += &format!(
         "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). Synthetic-world success: the task's state check.\n",
         a.eval_trials
     );
-    for model in models {
+    for model in &models {
         let ea = EvalRolloutArgs {
             task: Task::PickPlace,
             trials: a.eval_trials,
-            model: model_args(model),
+            model: model.args(a)?,
             offsets_mm: "0,10,20,30,50".into(),
             jitter_mm: 2.0,
             chunk: 8,
@@ -703,7 +760,15 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             seed: a.seed,
         };
         let r = eval_rollout_report(&ea)?;
-        md += &format!("\n#### Model: {model}\n\n{}", eval_table(&r));
+        md += &format!(
+            "\n#### Model: {}{}\n\n{}",
+            model.label(),
+            match model {
+                ReportModel::Perfect => String::new(),
+                _ => format!(" ({} denoising steps)", a.denoise_steps),
+            },
+            eval_table(&r)
+        );
     }
     crate::report::write_section(&a.out, "planning", &md)?;
     crate::print_stdout(&md)

@@ -504,4 +504,40 @@ fn plan_with_the_perfect_model_and_bad_plan_options() {
     let out = words("plan-report --tasks reach,fly --trials 1");
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && e.contains("fly"), "{e}");
+    // A trained-model folder without its files, before any planning.
+    let tmp = tempfile::tempdir().expect("plan test");
+    let out = words(&format!(
+        "plan-report --tasks reach --trials 1 --trained {}",
+        tmp.path().display()
+    ));
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && e.contains("expected backbone/"),
+        "{e}"
+    );
+}
+
+/// `plan-report --trained DIR`: the shipped model plans and evaluates
+/// policies next to the perfect one, each a row / table of its own.
+#[test]
+fn plan_report_with_the_shipped_trained_model() {
+    let tmp = tempfile::tempdir().expect("plan-report test");
+    let md = tmp.path().join("results.md");
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo-model");
+    let line = format!(
+        "plan-report --tasks reach --trials 1 --samples 4 --elites 2 --iters 1 --max-steps 1 \
+         --waypoints 0 --eval-trials 1 --denoise-steps 1 --trained {} --out {}",
+        model.display(),
+        md.display()
+    );
+    let out = run(&line.split_whitespace().collect::<Vec<_>>());
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&md).expect("plan-report test");
+    assert!(text.contains("| reach | perfect | "), "{text}");
+    assert!(text.contains("| reach | trained (`"), "{text}");
+    assert!(text.contains("#### Model: perfect"), "{text}");
+    assert!(
+        text.contains("#### Model: trained (`") && text.contains("(1 denoising steps)"),
+        "{text}"
+    );
 }
