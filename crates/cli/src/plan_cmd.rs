@@ -671,13 +671,19 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         96,
         64
     );
-    let trained = a.trained.clone().map(ReportModel::Trained);
-    let mut planners = vec![ReportModel::Perfect];
+    // Resolved once, up front: a bad folder fails before hours of planning.
+    let resolve = |m: ReportModel| -> Result<(ReportModel, ModelArgs)> {
+        let args = m.args(a)?;
+        Ok((m, args))
+    };
+    let trained = a
+        .trained
+        .clone()
+        .map(|dir| resolve(ReportModel::Trained(dir)))
+        .transpose()?;
+    let perfect = resolve(ReportModel::Perfect)?;
+    let mut planners = vec![perfect.clone()];
     planners.extend(trained.clone());
-    // Fail on a bad folder before hours of planning.
-    for m in &planners {
-        m.args(a)?;
-    }
     md += &format!(
         "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         a.trials,
@@ -699,11 +705,11 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
         .collect::<Result<Vec<Task>>>()?;
     for task in tasks {
-        for planner in &planners {
+        for (planner, args) in &planners {
             let pa = PlanArgs {
                 task,
                 trials: a.trials,
-                model: planner.args(a)?,
+                model: args.clone(),
                 cem: a.cem.clone(),
                 frames_per_action: 2,
                 max_steps: a.max_steps,
@@ -736,20 +742,20 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             );
         }
     }
-    let mut models = vec![ReportModel::Perfect];
+    let mut models = vec![perfect];
     if a.with_random_model {
-        models.push(ReportModel::Random);
+        models.push(resolve(ReportModel::Random)?);
     }
     models.extend(trained);
     md += &format!(
         "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). Synthetic-world success: the task's state check.\n",
         a.eval_trials
     );
-    for model in &models {
+    for (model, args) in &models {
         let ea = EvalRolloutArgs {
             task: Task::PickPlace,
             trials: a.eval_trials,
-            model: model.args(a)?,
+            model: args.clone(),
             offsets_mm: "0,10,20,30,50".into(),
             jitter_mm: 2.0,
             chunk: 8,
