@@ -57,6 +57,8 @@ enum Command {
     EvalReport(report::EvalReportArgs),
     /// Goal-image CEM-MPC planning executed in the synthetic world, vs random actions.
     Plan(plan_cmd::PlanArgs),
+    /// Does a model's goal distance order candidate actions as the synthetic world does (Spearman)?
+    PlanFidelity(plan_cmd::PlanFidelityArgs),
     /// Policy evaluation by autoregressive world-model rollouts vs synthetic-world success.
     EvalPolicyRollout(plan_cmd::EvalRolloutArgs),
     /// Run planning on all tasks and the policy evaluation; write docs/results.md.
@@ -80,6 +82,7 @@ fn main() -> Result<()> {
         Command::EvalRun(a) => train_cmd::run_eval_run(&a),
         Command::EvalReport(a) => report::run_eval_report(&a),
         Command::Plan(a) => plan_cmd::run_plan(&a),
+        Command::PlanFidelity(a) => plan_cmd::run_plan_fidelity(&a),
         Command::EvalPolicyRollout(a) => plan_cmd::run_eval_rollout(&a),
         Command::PlanReport(a) => plan_cmd::run_plan_report(&a),
     }

@@ -4,7 +4,8 @@
 
 use anyhow::{bail, Context, Result};
 use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
-use bridgev2w_plan::cem::{CemConfig, RotationSearch};
+use bridgev2w_plan::cem::{standard_normal, CemConfig, RotationSearch};
+use bridgev2w_plan::fidelity::{rank_fidelity, RankFidelity};
 use bridgev2w_plan::model::{ActionWorldModel, MaskConditioned};
 use bridgev2w_plan::mpc::{run_mpc, run_random, GripperPolicy, MpcConfig};
 use bridgev2w_plan::policy::{
@@ -592,9 +593,21 @@ pub struct PlanReportArgs {
     /// Tasks to plan (comma-separated).
     #[arg(long, default_value = "reach,push,pick_place")]
     pub tasks: String,
-    /// Also evaluate policies with the random-weight BridgeV2W (slow on CPU).
+    /// Also evaluate policies with the random-weight BridgeV2W (slow on CPU);
+    /// the same as naming `random` in `--models`.
     #[arg(long)]
     pub with_random_model: bool,
+    /// The world models of the tables, comma-separated, in order: `perfect`
+    /// (the synthetic renderer), `trained` (the folder of `--trained`),
+    /// `random` (random weights; policy evaluation only). Default: perfect,
+    /// then random with `--with-random-model`, then trained with `--trained`.
+    #[arg(long)]
+    pub models: Option<String>,
+    /// The section of `--out` the tables replace (`<!-- section: NAME -->`):
+    /// runs with other settings (e.g. a smaller search for the slow trained
+    /// model) keep their own section.
+    #[arg(long, default_value = "planning")]
+    pub section: String,
     /// Also plan and evaluate policies with a trained BridgeV2W: a folder
     /// with `backbone/` (a diffusers CogVideoX image-to-video folder) and
     /// `bridgev2w.safetensors`, as `assets/demo-model` or what
@@ -658,12 +671,82 @@ impl ReportModel {
     }
 }
 
+/// The models of `plan-report`'s tables, in order, from `--models` (or the
+/// default: perfect, random with `--with-random-model`, trained with
+/// `--trained`).
+fn report_models(a: &PlanReportArgs) -> Result<Vec<ReportModel>> {
+    let Some(list) = &a.models else {
+        let mut out = vec![ReportModel::Perfect];
+        if a.with_random_model {
+            out.push(ReportModel::Random);
+        }
+        out.extend(a.trained.clone().map(ReportModel::Trained));
+        return Ok(out);
+    };
+    let mut out = Vec::new();
+    for name in list.split(',').map(str::trim) {
+        let m = match name {
+            "perfect" => ReportModel::Perfect,
+            "random" => ReportModel::Random,
+            "trained" => match &a.trained {
+                Some(dir) => ReportModel::Trained(dir.clone()),
+                None => bail!("--models {list}: `trained` needs --trained DIR"),
+            },
+            other => bail!(
+                "--models {list}: unknown model {other:?}; expected perfect, trained or random"
+            ),
+        };
+        if out.contains(&m) {
+            bail!("--models {list}: {name} named twice");
+        }
+        out.push(m);
+    }
+    if a.with_random_model && !out.contains(&ReportModel::Random) {
+        out.push(ReportModel::Random);
+    }
+    if a.trained.is_some() && !out.iter().any(|m| matches!(m, ReportModel::Trained(_))) {
+        bail!("--models {list}: --trained is given but `trained` is not among the models");
+    }
+    Ok(out)
+}
+
 /// `bridgev2w plan-report`: runs planning on all tasks and the policy
 /// evaluation, and writes the tables with the command that produced them.
 pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
     let command: Vec<String> = std::env::args().collect();
+    if a.section.is_empty()
+        || !a
+            .section
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+    {
+        bail!(
+            "--section {:?}: expected a name of letters, digits, - and _",
+            a.section
+        );
+    }
+    // Resolved once, up front: a bad folder fails before hours of planning.
+    let models = report_models(a)?
+        .into_iter()
+        .map(|m| {
+            let args = m.args(a)?;
+            Ok((m, args))
+        })
+        .collect::<Result<Vec<(ReportModel, ModelArgs)>>>()?;
+    let planners: Vec<&(ReportModel, ModelArgs)> = models
+        .iter()
+        .filter(|(m, _)| *m != ReportModel::Random)
+        .collect();
+    if planners.is_empty() {
+        bail!("--models: expected perfect or trained among them (random only evaluates policies)");
+    }
     let mut md =
-        String::from("## Goal-image planning and policy evaluation in the synthetic world\n\n");
+        String::from("## Goal-image planning and policy evaluation in the synthetic world");
+    if a.section != "planning" {
+        let names: Vec<String> = models.iter().map(|(m, _)| m.label()).collect();
+        md += &format!(": {}", names.join(", "));
+    }
+    md += "\n\n";
     md += &format!(
         "Produced by `{}` (diffusion models on `{}`). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; the planner uses the world model named in each table.\n\n",
         command.join(" "),
@@ -671,19 +754,6 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         96,
         64
     );
-    // Resolved once, up front: a bad folder fails before hours of planning.
-    let resolve = |m: ReportModel| -> Result<(ReportModel, ModelArgs)> {
-        let args = m.args(a)?;
-        Ok((m, args))
-    };
-    let trained = a
-        .trained
-        .clone()
-        .map(|dir| resolve(ReportModel::Trained(dir)))
-        .transpose()?;
-    let perfect = resolve(ReportModel::Perfect)?;
-    let mut planners = vec![perfect.clone()];
-    planners.extend(trained.clone());
     md += &format!(
         "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         a.trials,
@@ -705,7 +775,7 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
         .collect::<Result<Vec<Task>>>()?;
     for task in tasks {
-        for (planner, args) in &planners {
+        for &(planner, args) in &planners {
             let pa = PlanArgs {
                 task,
                 trials: a.trials,
@@ -742,11 +812,6 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             );
         }
     }
-    let mut models = vec![perfect];
-    if a.with_random_model {
-        models.push(resolve(ReportModel::Random)?);
-    }
-    models.extend(trained);
     md += &format!(
         "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). Synthetic-world success: the task's state check.\n",
         a.eval_trials
@@ -776,6 +841,178 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             eval_table(&r)
         );
     }
-    crate::report::write_section(&a.out, "planning", &md)?;
+    crate::report::write_section(&a.out, &a.section, &md)?;
+    crate::print_stdout(&md)
+}
+
+/// `bridgev2w plan-fidelity`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PlanFidelityArgs {
+    /// reach, push or pick_place.
+    #[arg(long, value_parser = parse_task, default_value = "reach")]
+    pub task: Task,
+    /// Trials (task instances of the split), each one start/goal pair.
+    #[arg(long, default_value_t = 6)]
+    pub trials: usize,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Candidate actions per trial, drawn as CEM's first iteration draws
+    /// them (translation only, kept in the workspace).
+    #[arg(long, default_value_t = 24)]
+    pub candidates: usize,
+    /// Standard deviation of the candidates' translation (metres).
+    #[arg(long, default_value_t = 0.1)]
+    pub translation_std_m: f64,
+    /// Waypoint goals before the first key goal (as `plan`); the trial's
+    /// goal is the first goal image, as the planner's first one.
+    #[arg(long, default_value_t = 2)]
+    pub waypoints: usize,
+    /// Clip frames per action.
+    #[arg(long, default_value_t = 2)]
+    pub frames_per_action: usize,
+    /// Split of the task instances.
+    #[arg(long, default_value = "test", value_parser = parse_split)]
+    pub split: Split,
+    /// Seed of the world and the candidates.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Also write the table to this markdown file (its `planning-fidelity`
+    /// section), e.g. docs/results.md.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+/// Mean and sample standard deviation.
+fn mean_std(v: &[f64]) -> (f64, f64) {
+    let n = v.len() as f64;
+    let m = v.iter().sum::<f64>() / n;
+    let var = if v.len() > 1 {
+        v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)
+    } else {
+        0.0
+    };
+    (m, var.sqrt())
+}
+
+/// `bridgev2w plan-fidelity`: does the model's goal distance order
+/// candidate actions as the synthetic world does?
+pub fn run_plan_fidelity(a: &PlanFidelityArgs) -> Result<()> {
+    if a.trials == 0 || a.candidates < 2 {
+        bail!(
+            "--trials {} / --candidates {}: expected at least 1 trial and 2 candidates",
+            a.trials,
+            a.candidates
+        );
+    }
+    if !(a.translation_std_m.is_finite() && a.translation_std_m > 0.0) {
+        bail!(
+            "--translation-std-m {}: expected a positive number of metres",
+            a.translation_std_m
+        );
+    }
+    let loaded = load(&a.model)?;
+    let world = world_for(&loaded, &a.model, 25, a.seed)?;
+    let t0 = Instant::now();
+    let reference = matches!(loaded, Loaded::Diffusion(_));
+    let (mut rows, mut perfect_rows): (Vec<RankFidelity>, Vec<RankFidelity>) = (vec![], vec![]);
+    for trial in 0..a.trials {
+        let inst = TaskInstance::new(&world, a.split, trial, a.task)?.with_waypoints(a.waypoints);
+        let goal = inst
+            .goal_images()
+            .into_iter()
+            .next()
+            .context("the task instance has no goal image")?;
+        let goal_ee = inst.expert_actions()[inst.goal_frames[0]];
+        let obs = SyntheticEnv::new(&world, inst.clone()).observe();
+        let workspace = inst.workspace(&world);
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(a.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let std = a.translation_std_m;
+        let normal = |rng: &mut ChaCha8Rng| std * standard_normal(rng);
+        let candidates: Vec<[f64; 7]> = (0..a.candidates)
+            .map(|_| {
+                let inc = [
+                    normal(&mut rng),
+                    normal(&mut rng),
+                    normal(&mut rng),
+                    0.0,
+                    0.0,
+                    0.0,
+                ];
+                workspace.clamp(&bridgev2w_plan::model::apply_increment(
+                    &obs.ee, &inc, obs.ee[6],
+                ))
+            })
+            .collect();
+        let real = PerfectWorldModel {
+            world: &world,
+            instance: inst.clone(),
+            clip_frames: 9,
+        };
+        let f = loaded.with_model(&a.model, &world, &inst, &mut |m| {
+            Ok(rank_fidelity(
+                m,
+                &real,
+                &obs,
+                &goal,
+                &goal_ee,
+                &candidates,
+                a.frames_per_action,
+            )?)
+        })?;
+        eprintln!(
+            "{} trial {trial}: Spearman model vs real {:.2}, real vs distance {:.2}, model vs distance {:.2}",
+            a.task.name(),
+            f.model_vs_real,
+            f.real_vs_distance,
+            f.model_vs_distance
+        );
+        rows.push(f);
+        if reference {
+            // The same candidates through the perfect model (the renderer
+            // with its pyramid latent): the reference row.
+            perfect_rows.push(rank_fidelity(
+                &real,
+                &real,
+                &obs,
+                &goal,
+                &goal_ee,
+                &candidates,
+                a.frames_per_action,
+            )?);
+        }
+    }
+    let row = |name: &str, rows: &[RankFidelity]| {
+        let col = |g: fn(&RankFidelity) -> f64| {
+            let v: Vec<f64> = rows.iter().map(g).collect();
+            let (m, s) = mean_std(&v);
+            format!("{m:.2} ± {s:.2}")
+        };
+        format!(
+            "| {name} | {} | {} | {} |\n",
+            col(|f| f.model_vs_real),
+            col(|f| f.real_vs_distance),
+            col(|f| f.model_vs_distance)
+        )
+    };
+    let mut table = row(&a.model.model, &rows);
+    if reference {
+        table += &row("perfect (the same candidates)", &perfect_rows);
+    }
+    let command: Vec<String> = std::env::args().collect();
+    let md = format!(
+        "## Does the model's goal distance order actions as the world does?\n\nProduced by `{}` ({:.0} s). Per trial (a `{}` task instance of split `{}`, its first goal image), {} candidate actions (translation ~ N(0, {} m) per axis from the start pose, in the workspace, {} clip frames each) are scored by the model (latent L1 of its predicted terminal frame to the goal, as the planner does) and by the synthetic world (the same latent L1 of the frame the world renders), and compared by Spearman's rank correlation, mean ± std over {} trials. CEM keeps the lowest-cost candidates, so it can only plan as well as *model vs distance* allows. The latent is the model's own: a diffusion model's VAE posterior mean, the perfect model's Gaussian image pyramid.\n\n| model | model vs real cost | real cost vs TCP distance | model cost vs TCP distance |\n|---|---|---|---|\n{table}",
+        command.join(" "),
+        t0.elapsed().as_secs_f64(),
+        a.task.name(),
+        a.split.name(),
+        a.candidates,
+        a.translation_std_m,
+        a.frames_per_action,
+        a.trials,
+    );
+    if let Some(out) = &a.out {
+        crate::report::write_section(out, "planning-fidelity", &md)?;
+    }
     crate::print_stdout(&md)
 }

@@ -541,3 +541,73 @@ fn plan_report_with_the_shipped_trained_model() {
         "{text}"
     );
 }
+
+/// `plan-report --models/--section`: the chosen models only, in their own
+/// section; bad lists and names are refused before any planning.
+#[test]
+fn plan_report_models_and_section() {
+    let words = |line: &str| run(&line.split_whitespace().collect::<Vec<_>>());
+    let tmp = tempfile::tempdir().expect("plan-report test");
+    let md = tmp.path().join("results.md");
+    let out = words(&format!(
+        "plan-report --models perfect --section planning-small --tasks reach --trials 1 \
+         --samples 4 --elites 2 --iters 1 --max-steps 1 --waypoints 0 --eval-trials 1 --out {}",
+        md.display()
+    ));
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&md).expect("plan-report test");
+    assert!(
+        text.contains("<!-- section: planning-small -->")
+            && !text.contains("<!-- section: planning -->"),
+        "{text}"
+    );
+    assert!(
+        text.contains(": perfect\n") && text.contains("| reach | perfect | "),
+        "{text}"
+    );
+    for (line, want) in [
+        ("--models trained", "needs --trained"),
+        ("--models perfect,fly", "unknown model \"fly\""),
+        ("--models perfect,perfect", "named twice"),
+        ("--models random", "expected perfect or trained"),
+        ("--section a/b", "--section \"a/b\""),
+    ] {
+        let out = words(&format!(
+            "plan-report --tasks reach --trials 1 {line} --out {}",
+            md.display()
+        ));
+        let e = stderr(&out);
+        assert!(!out.status.success() && e.contains(want), "{line}: {e}");
+    }
+}
+
+/// `plan-fidelity`: the perfect model orders candidates exactly as the
+/// world does (Spearman 1); bad sizes are refused.
+#[test]
+fn plan_fidelity_of_the_perfect_model() {
+    let words = |line: &str| run(&line.split_whitespace().collect::<Vec<_>>());
+    let tmp = tempfile::tempdir().expect("plan-fidelity test");
+    let md = tmp.path().join("results.md");
+    let out = words(&format!(
+        "plan-fidelity --model perfect --trials 2 --candidates 6 --out {}",
+        md.display()
+    ));
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&md).expect("plan-fidelity test");
+    assert!(
+        text.contains("<!-- section: planning-fidelity -->")
+            && text.contains("| perfect | 1.00 ± 0.00 | "),
+        "{text}"
+    );
+    assert!(
+        stderr(&out).contains("reach trial 1: Spearman"),
+        "{}",
+        stderr(&out)
+    );
+    let out = words("plan-fidelity --model perfect --candidates 1");
+    assert!(
+        !out.status.success() && stderr(&out).contains("--candidates 1"),
+        "{}",
+        stderr(&out)
+    );
+}

@@ -9,7 +9,9 @@
 //! * policy evaluation by autoregressive world-model rollouts ([`policy`]):
 //!   success rates per policy, MMRV and Pearson r against real success;
 //! * the synthetic tabletop world as the "real robot" and as a perfect
-//!   world model ([`synthetic`]).
+//!   world model ([`synthetic`]);
+//! * a diagnostic of whether a model's goal distance orders candidate
+//!   actions as the real world does ([`fidelity`]).
 //!
 //! Models are reached through [`model::ActionWorldModel`]: any
 //! [`bridgev2w_world_model::pipeline::WorldModel`] fits through
@@ -21,6 +23,7 @@
 
 pub mod cem;
 pub mod error;
+pub mod fidelity;
 pub mod model;
 pub mod mpc;
 pub mod policy;
