@@ -949,8 +949,8 @@ pub fn run_plan_fidelity(a: &PlanFidelityArgs) -> Result<()> {
             instance: inst.clone(),
             clip_frames: 9,
         };
-        let f = loaded.with_model(&a.model, &world, &inst, &mut |m| {
-            Ok(rank_fidelity(
+        let rank = |m: &dyn ActionWorldModel| {
+            rank_fidelity(
                 m,
                 &real,
                 &obs,
@@ -958,8 +958,9 @@ pub fn run_plan_fidelity(a: &PlanFidelityArgs) -> Result<()> {
                 &goal_ee,
                 &candidates,
                 a.frames_per_action,
-            )?)
-        })?;
+            )
+        };
+        let f = loaded.with_model(&a.model, &world, &inst, &mut |m| Ok(rank(m)?))?;
         eprintln!(
             "{} trial {trial}: Spearman model vs real {:.2}, real vs distance {:.2}, model vs distance {:.2}",
             a.task.name(),
@@ -971,15 +972,7 @@ pub fn run_plan_fidelity(a: &PlanFidelityArgs) -> Result<()> {
         if reference {
             // The same candidates through the perfect model (the renderer
             // with its pyramid latent): the reference row.
-            perfect_rows.push(rank_fidelity(
-                &real,
-                &real,
-                &obs,
-                &goal,
-                &goal_ee,
-                &candidates,
-                a.frames_per_action,
-            )?);
+            perfect_rows.push(rank(&real)?);
         }
     }
     let row = |name: &str, rows: &[RankFidelity]| {
