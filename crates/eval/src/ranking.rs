@@ -59,6 +59,42 @@ pub fn pearson(sim: &[f64], real: &[f64]) -> Result<f64> {
     Ok(dot / ((ss * rr).sqrt() + 1e-8))
 }
 
+/// Ranks `0..n` of `v` (ascending), ties sharing their mean rank.
+pub fn ranks(v: &[f64]) -> Vec<f64> {
+    let mut order: Vec<usize> = (0..v.len()).collect();
+    order.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
+    let mut out = vec![0.0; v.len()];
+    let mut i = 0;
+    while i < order.len() {
+        let mut j = i;
+        while j + 1 < order.len() && v[order[j + 1]] == v[order[i]] {
+            j += 1;
+        }
+        let mean = (i + j) as f64 / 2.0;
+        for &k in &order[i..=j] {
+            out[k] = mean;
+        }
+        i = j + 1;
+    }
+    out
+}
+
+/// Spearman's rank correlation: [`pearson`] of the (tie-averaged) ranks.
+/// Needs two finite vectors of the same length, at least 2 values.
+pub fn spearman(a: &[f64], b: &[f64]) -> Result<f64> {
+    if a.len() != b.len() || a.len() < 2 {
+        return Err(MetricError::Invalid(format!(
+            "{} and {} values: expected two equally long vectors of at least 2",
+            a.len(),
+            b.len()
+        )));
+    }
+    if let Some(v) = a.iter().chain(b).find(|v| !v.is_finite()) {
+        return Err(MetricError::Invalid(format!("value {v} is not finite")));
+    }
+    pearson(&ranks(a), &ranks(b))
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -102,5 +138,27 @@ mod tests {
         assert!(pearson(&[], &[]).is_err());
         let e = mmrv(&[f64::NAN], &[0.1]).unwrap_err().to_string();
         assert!(e.contains("NaN"), "{e}");
+    }
+
+    #[test]
+    fn ranks_average_ties() {
+        assert_eq!(ranks(&[3.0, 1.0, 2.0]), vec![2.0, 0.0, 1.0]);
+        assert_eq!(ranks(&[1.0, 5.0, 1.0, 0.0]), vec![1.5, 3.0, 1.5, 0.0]);
+    }
+
+    #[test]
+    fn spearman_is_rank_based_and_checks_input() {
+        // Monotone but non-linear: 1 (Pearson of the values would not be).
+        let x = [1.0, 2.0, 3.0, 4.0, 5.0];
+        let y: Vec<f64> = x.iter().map(|v: &f64| v.powi(5)).collect();
+        assert!((spearman(&x, &y).unwrap() - 1.0).abs() < 1e-6);
+        let rev: Vec<f64> = y.iter().rev().copied().collect();
+        assert!((spearman(&x, &rev).unwrap() + 1.0).abs() < 1e-6);
+        // Hand-computed: ranks [0,1,2,3] vs [1,0,3,2]: r = 0.6.
+        let r = spearman(&[1.0, 2.0, 3.0, 4.0], &[2.0, 1.0, 4.0, 3.0]).unwrap();
+        assert!((r - 0.6).abs() < 1e-6, "{r}");
+        assert!(spearman(&[1.0], &[1.0]).is_err());
+        assert!(spearman(&[1.0, 2.0], &[1.0]).is_err());
+        assert!(spearman(&[1.0, f64::NAN], &[1.0, 2.0]).is_err());
     }
 }
