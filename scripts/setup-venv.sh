@@ -1,24 +1,52 @@
 #!/usr/bin/env bash
 # Creates the project-local Python venv `.venv` with torch 2.11.0 (its libtorch is
 # what the `world-model` crate links through tch) and diffusers (the reference for
-# parity fixtures). Idempotent: a venv whose stamp matches the requirements is kept.
+# parity fixtures). Idempotent: a venv whose stamp matches the lock file is kept.
+#
+# Disk: the venv takes about 4.5 GiB (torch's CUDA libraries are most of it: the
+# PyPI torch wheel for Linux needs them even to run on the CPU). Packages are
+# installed from the pinned closure in requirements-lock.txt without resolving,
+# the large wheels one per pip call, so at most one downloaded wheel sits on disk
+# beside the installed tree.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="$root/.venv"
-req="$root/scripts/requirements-torch.txt"
+lock="$root/scripts/requirements-lock.txt"
 stamp="$venv/.bridgev2w-requirements"
+# What a fresh install needs free (KiB): the installed tree plus the largest wheel.
+need_kib=$((4800 * 1024))
 link_libtorch() {
   # tch links the libtorch inside the wheel; .cargo/config.toml points LIBTORCH here.
   local torch_dir
   torch_dir="$("$venv/bin/python" -c 'import os, importlib.util as u; print(os.path.dirname(u.find_spec("torch").origin))')"
   ln -sfn "$torch_dir" "$venv/libtorch"
 }
-if [[ -x "$venv/bin/python" && -f "$stamp" ]] && cmp -s "$req" "$stamp"; then
+if [[ -x "$venv/bin/python" && -f "$stamp" ]] && cmp -s "$lock" "$stamp"; then
   [[ -e "$venv/libtorch/lib/libtorch_cpu.so" ]] || link_libtorch
   exit 0
 fi
+free_kib="$(df -Pk "$root" | awk 'NR == 2 { print $4 }')"
+if [[ -n "$free_kib" && "$free_kib" -lt "$need_kib" && ! -d "$venv/lib" ]]; then
+  echo "scripts/setup-venv.sh: $((free_kib / 1024)) MiB free on the file system of $root," \
+    "but the project venv .venv needs about $((need_kib / 1024)) MiB (torch 2.11 and its CUDA" \
+    "libraries, plus one downloaded wheel at a time). Free some space (cargo clean drops" \
+    "target/) and run it again." >&2
+  exit 1
+fi
 python3 -m venv "$venv"
-"$venv/bin/python" -m pip install --disable-pip-version-check --no-cache-dir -q -r "$req"
-"$venv/bin/python" -c "import torch, diffusers; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
+pip_install() {
+  "$venv/bin/python" -m pip install --disable-pip-version-check --no-cache-dir \
+    --no-compile --no-deps -q "$@"
+}
+mapfile -t pins < <(grep -v -E '^[[:space:]]*(#|$)' "$lock")
+small=()
+for pin in "${pins[@]}"; do
+  case "$pin" in
+    torch==* | nvidia-*) pip_install "$pin" ;;
+    *) small+=("$pin") ;;
+  esac
+done
+pip_install "${small[@]}"
+"$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
 link_libtorch
-cp "$req" "$stamp"
+cp "$lock" "$stamp"
