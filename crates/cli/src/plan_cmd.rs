@@ -9,8 +9,8 @@ use bridgev2w_plan::fidelity::{rank_fidelity, RankFidelity};
 use bridgev2w_plan::model::{ActionWorldModel, MaskConditioned};
 use bridgev2w_plan::mpc::{run_mpc, run_random, GripperPolicy, MpcConfig};
 use bridgev2w_plan::policy::{
-    evaluate_trial, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport, ScriptedPolicy,
-    SuccessJudge,
+    evaluate_trial, report_from_tallies, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport,
+    PolicyTally, ScriptedPolicy, SuccessJudge,
 };
 use bridgev2w_plan::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance};
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
@@ -498,8 +498,7 @@ pub fn eval_rollout_report(a: &EvalRolloutArgs) -> Result<PolicyEvalReport> {
     let labels = a.labels.as_deref().map(LabelJudge::read).transpose()?;
     let horizon = a.episode_frames - 1;
     let mut names = Vec::new();
-    let mut predicted = Vec::new();
-    let mut real = Vec::new();
+    let mut tallies = Vec::new();
     // One instance at a time so each gets its own model (camera, scene).
     for (pi, off) in offsets.iter().enumerate() {
         let mut policy = ScriptedPolicy::new(
@@ -510,10 +509,10 @@ pub fn eval_rollout_report(a: &EvalRolloutArgs) -> Result<PolicyEvalReport> {
             a.seed ^ (pi as u64 + 1).wrapping_mul(0xA076_1D64_78BD_642F),
         );
         let name = policy.name();
-        let (mut wins_model, mut wins_real) = (0.0, 0.0);
+        let mut tally = PolicyTally::default();
         for (trial, inst) in instances.iter().enumerate() {
             policy.expert = inst.expert_actions();
-            let (m, r) = loaded.with_model(&a.model, &world, inst, &mut |m| {
+            let outcome = loaded.with_model(&a.model, &world, inst, &mut |m| {
                 let encode = |img: &Image| m.encode(img);
                 let goal_judge = GoalDistanceJudge {
                     encode: &encode,
@@ -533,20 +532,21 @@ pub fn eval_rollout_report(a: &EvalRolloutArgs) -> Result<PolicyEvalReport> {
                     horizon,
                 )?)
             })?;
-            wins_model += f64::from(u8::from(m));
-            wins_real += f64::from(u8::from(r));
+            tally.add(&outcome);
         }
-        let n = instances.len() as f64;
         eprintln!(
-            "{name}: world model {:.2}, synthetic world {:.2}",
-            wins_model / n,
-            wins_real / n
+            "{name}: world model {:.2}{}, synthetic world {:.2}",
+            tally.model_rate(),
+            tally
+                .mean_progress()
+                .map(|p| format!(" (goal progress {p:+.3})"))
+                .unwrap_or_default(),
+            tally.real_rate()
         );
         names.push(name);
-        predicted.push(wins_model / n);
-        real.push(wins_real / n);
+        tallies.push(tally);
     }
-    Ok(PolicyEvalReport::new(names, predicted, real)?)
+    Ok(report_from_tallies(names, &tallies)?)
 }
 
 /// `bridgev2w eval-policy-rollout`.
@@ -556,15 +556,33 @@ pub fn run_eval_rollout(a: &EvalRolloutArgs) -> Result<()> {
 }
 
 fn eval_table(r: &PolicyEvalReport) -> String {
-    let mut s =
-        String::from("| policy | world-model success | synthetic-world success |\n|---|---|---|\n");
-    for ((p, w), g) in r.policies.iter().zip(&r.predicted).zip(&r.real) {
-        s += &format!("| {p} | {w:.2} | {g:.2} |\n");
+    let progress = r.progress.as_ref();
+    let mut s = String::from("| policy | world-model success |");
+    if progress.is_some() {
+        s += " world-model goal progress |";
+    }
+    s += " synthetic-world success |\n|---|---|---|";
+    if progress.is_some() {
+        s += "---|";
+    }
+    s += "\n";
+    for (i, ((p, w), g)) in r.policies.iter().zip(&r.predicted).zip(&r.real).enumerate() {
+        s += &format!("| {p} | {w:.2} |");
+        if let Some(pr) = progress {
+            s += &format!(" {:+.3} |", pr.mean[i]);
+        }
+        s += &format!(" {g:.2} |\n");
     }
     s += &format!(
-        "\nMMRV {:.3} (lower is better), Pearson r {:.3}\n",
+        "\nSuccess rates: MMRV {:.3} (lower is better), Pearson r {:.3}\n",
         r.mmrv, r.pearson
     );
+    if let Some(pr) = progress {
+        s += &format!(
+            "Goal progress vs synthetic-world success: MMRV {:.3}, Pearson r {:.3}\n",
+            pr.mmrv, pr.pearson
+        );
+    }
     s
 }
 
@@ -574,7 +592,7 @@ pub struct PlanReportArgs {
     /// Output markdown file.
     #[arg(long, default_value = "docs/results.md")]
     pub out: PathBuf,
-    /// Planning trials per task.
+    /// Planning trials per task (0: no planning, only the policy evaluation).
     #[arg(long, default_value_t = 20)]
     pub trials: usize,
     /// Policy-evaluation trials per policy.
@@ -725,6 +743,11 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             a.section
         );
     }
+    let tasks = a
+        .tasks
+        .split(',')
+        .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
+        .collect::<Result<Vec<Task>>>()?;
     // Resolved once, up front: a bad folder fails before hours of planning.
     let models = report_models(a)?
         .into_iter()
@@ -737,11 +760,14 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         .iter()
         .filter(|(m, _)| *m != ReportModel::Random)
         .collect();
-    if planners.is_empty() {
-        bail!("--models: expected perfect or trained among them (random only evaluates policies)");
+    if planners.is_empty() && a.trials > 0 {
+        bail!("--models: expected perfect or trained among them (random only evaluates policies; --trials 0 plans nothing)");
     }
-    let mut md =
-        String::from("## Goal-image planning and policy evaluation in the synthetic world");
+    let mut md = String::from(if a.trials > 0 {
+        "## Goal-image planning and policy evaluation in the synthetic world"
+    } else {
+        "## Policy evaluation in the synthetic world"
+    });
     if a.section != "planning" {
         let names: Vec<String> = models.iter().map(|(m, _)| m.label()).collect();
         md += &format!(": {}", names.join(", "));
@@ -754,7 +780,50 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         96,
         64
     );
+    if a.trials > 0 {
+        md += &plan_tables(a, &tasks, &planners)?;
+    }
     md += &format!(
+        "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). World-model goal progress: the mean over trials of (d_start - d_last) / max(d_start, d_last) for those latent distances (1: at the goal, 0: no nearer, negative: farther); it ranks policies even when no rollout succeeds. Synthetic-world success: the task's state check.\n",
+        a.eval_trials
+    );
+    for (model, args) in &models {
+        let ea = EvalRolloutArgs {
+            task: Task::PickPlace,
+            trials: a.eval_trials,
+            model: args.clone(),
+            offsets_mm: "0,10,20,30,50".into(),
+            jitter_mm: 2.0,
+            chunk: 8,
+            ratio: 0.5,
+            labels: None,
+            split: Split::Test,
+            episode_frames: 25,
+            seed: a.seed,
+        };
+        let r = eval_rollout_report(&ea)?;
+        md += &format!(
+            "\n#### Model: {}{}\n\n{}",
+            model.label(),
+            match model {
+                ReportModel::Perfect => String::new(),
+                _ => format!(" ({} denoising steps)", a.denoise_steps),
+            },
+            eval_table(&r)
+        );
+    }
+    crate::report::write_section(&a.out, &a.section, &md)?;
+    crate::print_stdout(&md)
+}
+
+/// The planning part of `plan-report`: the CEM settings and a row per task
+/// and planning model.
+fn plan_tables(
+    a: &PlanReportArgs,
+    tasks: &[Task],
+    planners: &[&(ReportModel, ModelArgs)],
+) -> Result<String> {
+    let mut md = format!(
         "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         a.trials,
         a.cem.samples,
@@ -769,13 +838,8 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
         a.goals.subgoal_patience,
         a.goals.patience
     );
-    let tasks = a
-        .tasks
-        .split(',')
-        .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
-        .collect::<Result<Vec<Task>>>()?;
-    for task in tasks {
-        for &(planner, args) in &planners {
+    for &task in tasks {
+        for &(planner, args) in planners {
             let pa = PlanArgs {
                 task,
                 trials: a.trials,
@@ -812,37 +876,7 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
             );
         }
     }
-    md += &format!(
-        "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). Synthetic-world success: the task's state check.\n",
-        a.eval_trials
-    );
-    for (model, args) in &models {
-        let ea = EvalRolloutArgs {
-            task: Task::PickPlace,
-            trials: a.eval_trials,
-            model: args.clone(),
-            offsets_mm: "0,10,20,30,50".into(),
-            jitter_mm: 2.0,
-            chunk: 8,
-            ratio: 0.5,
-            labels: None,
-            split: Split::Test,
-            episode_frames: 25,
-            seed: a.seed,
-        };
-        let r = eval_rollout_report(&ea)?;
-        md += &format!(
-            "\n#### Model: {}{}\n\n{}",
-            model.label(),
-            match model {
-                ReportModel::Perfect => String::new(),
-                _ => format!(" ({} denoising steps)", a.denoise_steps),
-            },
-            eval_table(&r)
-        );
-    }
-    crate::report::write_section(&a.out, &a.section, &md)?;
-    crate::print_stdout(&md)
+    Ok(md)
 }
 
 /// `bridgev2w plan-fidelity`.

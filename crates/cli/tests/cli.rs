@@ -540,6 +540,11 @@ fn plan_report_with_the_shipped_trained_model() {
         text.contains("#### Model: trained (`") && text.contains("(1 denoising steps)"),
         "{text}"
     );
+    assert!(
+        text.contains("| world-model goal progress |")
+            && text.contains("Goal progress vs synthetic-world success: MMRV"),
+        "{text}"
+    );
 }
 
 /// `plan-report --models/--section`: the chosen models only, in their own
@@ -565,6 +570,24 @@ fn plan_report_models_and_section() {
         text.contains(": perfect\n") && text.contains("| reach | perfect | "),
         "{text}"
     );
+    // --trials 0: the policy evaluation alone, in its own section.
+    let out = words(&format!(
+        "plan-report --models perfect --section policies --trials 0 --eval-trials 1 --out {}",
+        md.display()
+    ));
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&md).expect("plan-report test");
+    let policies = text
+        .split("<!-- section: policies -->")
+        .nth(1)
+        .expect("the policies section");
+    assert!(
+        policies.contains("## Policy evaluation in the synthetic world: perfect")
+            && !policies.contains("Goal-image CEM-MPC")
+            && policies.contains("| scripted(offset 50 mm) | "),
+        "{text}"
+    );
+    assert!(text.contains("<!-- section: planning-small -->"), "{text}");
     for (line, want) in [
         ("--models trained", "needs --trained"),
         ("--models perfect,fly", "unknown model \"fly\""),

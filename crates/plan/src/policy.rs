@@ -119,14 +119,41 @@ pub struct JudgeInput<'a> {
     pub goal: &'a Image,
 }
 
+/// A judge's verdict on one rollout.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Verdict {
+    /// Success.
+    pub success: bool,
+    /// A graded score in `[-1, 1]` when the judge has one (see
+    /// [`goal_progress`]): it still ranks rollouts when none succeeds.
+    pub progress: Option<f64>,
+}
+
 /// Decides whether a rollout succeeded.
 pub trait SuccessJudge {
-    /// True for success.
-    fn judge(&self, input: &JudgeInput<'_>) -> Result<bool>;
+    /// The verdict on one rollout.
+    fn judge(&self, input: &JudgeInput<'_>) -> Result<Verdict>;
+}
+
+/// How much nearer the goal a rollout ended than it started, from the
+/// distances `d_start = d(start, goal)` and `d_last = d(last, goal)`:
+/// `(d_start - d_last) / max(d_start, d_last)`, in `[-1, 1]`. 1: the goal
+/// reached exactly; 0: no nearer (or both distances 0); negative: farther
+/// away, -1 only in the limit. Bounded, so one diverging rollout cannot
+/// dominate a policy's mean. `d_last <= ratio * d_start` (with `ratio` in
+/// `(0, 1]`) holds exactly when the progress is at least `1 - ratio`.
+pub fn goal_progress(d_start: f64, d_last: f64) -> f64 {
+    let scale = d_start.max(d_last);
+    if scale > 0.0 {
+        (d_start - d_last) / scale
+    } else {
+        0.0
+    }
 }
 
 /// Success when the final frame is much nearer the goal than the start was:
-/// `d(last, goal) <= ratio * d(start, goal)` with `d` the latent mean L1.
+/// `d(last, goal) <= ratio * d(start, goal)` with `d` the latent mean L1;
+/// the verdict's progress is [`goal_progress`] of the two distances.
 pub struct GoalDistanceJudge<'m> {
     /// The latent encoder.
     pub encode: &'m dyn Fn(&Image) -> Result<Vec<f32>>,
@@ -143,11 +170,14 @@ impl std::fmt::Debug for GoalDistanceJudge<'_> {
 }
 
 impl SuccessJudge for GoalDistanceJudge<'_> {
-    fn judge(&self, i: &JudgeInput<'_>) -> Result<bool> {
+    fn judge(&self, i: &JudgeInput<'_>) -> Result<Verdict> {
         let g = (self.encode)(i.goal)?;
         let d_last = latent_l1(&(self.encode)(i.last)?, &g)?;
         let d_start = latent_l1(&(self.encode)(i.start)?, &g)?;
-        Ok(d_last <= self.ratio * d_start)
+        Ok(Verdict {
+            success: d_last <= self.ratio * d_start,
+            progress: Some(goal_progress(d_start, d_last)),
+        })
     }
 }
 
@@ -208,14 +238,19 @@ impl LabelJudge {
 }
 
 impl SuccessJudge for LabelJudge {
-    fn judge(&self, i: &JudgeInput<'_>) -> Result<bool> {
-        self.labels
+    fn judge(&self, i: &JudgeInput<'_>) -> Result<Verdict> {
+        let success = self
+            .labels
             .get(&(i.policy.to_string(), i.trial))
             .copied()
             .ok_or_else(|| PlanError::Labels {
                 path: "labels".into(),
                 message: format!("no label for policy {} trial {}", i.policy, i.trial),
-            })
+            })?;
+        Ok(Verdict {
+            success,
+            progress: None,
+        })
     }
 }
 
@@ -323,6 +358,21 @@ pub struct PolicyEvalReport {
     pub mmrv: f64,
     /// Pearson r.
     pub pearson: f64,
+    /// The graded alternative, when the judge grades (see [`Verdict`]).
+    pub progress: Option<ProgressAgreement>,
+}
+
+/// Mean world-model goal progress per policy and its agreement with the
+/// real success rates: a weak model whose rollouts never succeed (every
+/// predicted rate 0, Pearson 0) can still rank policies by progress.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProgressAgreement {
+    /// Mean [`goal_progress`] of the world-model rollouts, per policy.
+    pub mean: Vec<f64>,
+    /// MMRV of the means against the real success rates.
+    pub mmrv: f64,
+    /// Pearson r of the means against the real success rates.
+    pub pearson: f64,
 }
 
 impl PolicyEvalReport {
@@ -336,14 +386,97 @@ impl PolicyEvalReport {
             real,
             mmrv,
             pearson,
+            progress: None,
         })
     }
+
+    /// Adds the mean goal progress per policy (same order as the rates).
+    pub fn with_progress(mut self, mean: Vec<f64>) -> Result<Self> {
+        let mmrv = bridgev2w_eval::ranking::mmrv(&mean, &self.real)?;
+        let pearson = bridgev2w_eval::ranking::pearson(&mean, &self.real)?;
+        self.progress = Some(ProgressAgreement {
+            mean,
+            mmrv,
+            pearson,
+        });
+        Ok(self)
+    }
+}
+
+/// Success and progress tallies of one policy's trials.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PolicyTally {
+    trials: usize,
+    model_wins: usize,
+    real_wins: usize,
+    progress_sum: f64,
+    graded: usize,
+}
+
+impl PolicyTally {
+    /// Counts one trial.
+    pub fn add(&mut self, t: &TrialOutcome) {
+        self.trials += 1;
+        self.model_wins += usize::from(t.model.success);
+        self.real_wins += usize::from(t.real_success);
+        if let Some(p) = t.model.progress {
+            self.progress_sum += p;
+            self.graded += 1;
+        }
+    }
+
+    /// World-model success rate.
+    pub fn model_rate(&self) -> f64 {
+        self.model_wins as f64 / self.trials.max(1) as f64
+    }
+
+    /// Synthetic-world success rate.
+    pub fn real_rate(&self) -> f64 {
+        self.real_wins as f64 / self.trials.max(1) as f64
+    }
+
+    /// Mean goal progress, when every trial was graded.
+    pub fn mean_progress(&self) -> Option<f64> {
+        (self.trials > 0 && self.graded == self.trials)
+            .then(|| self.progress_sum / self.trials as f64)
+    }
+}
+
+/// The report of tallied policies: rates, and progress when every policy's
+/// trials were all graded.
+pub fn report_from_tallies(
+    policies: Vec<String>,
+    tallies: &[PolicyTally],
+) -> Result<PolicyEvalReport> {
+    let report = PolicyEvalReport::new(
+        policies,
+        tallies.iter().map(PolicyTally::model_rate).collect(),
+        tallies.iter().map(PolicyTally::real_rate).collect(),
+    )?;
+    match tallies
+        .iter()
+        .map(PolicyTally::mean_progress)
+        .collect::<Option<Vec<f64>>>()
+    {
+        Some(mean) => report.with_progress(mean),
+        None => Ok(report),
+    }
+}
+
+/// One trial's outcome: the judge's verdict on the world-model rollout and
+/// the synthetic world's success.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrialOutcome {
+    /// The verdict on the world-model rollout.
+    pub model: Verdict,
+    /// The task's state check after executing the policy in the world.
+    pub real_success: bool,
 }
 
 /// One trial of one policy on one task instance: rolled out in the model
 /// (judged by `judge` on the images, against the instance's final goal
 /// image) and executed in the synthetic world (judged by the task's state
-/// check). Returns `(model success, real success)`.
+/// check).
 pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
     world: &bridgev2w_data::synth::World,
     instance: &TaskInstance,
@@ -352,7 +485,7 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
     model: &M,
     judge: &dyn SuccessJudge,
     horizon: usize,
-) -> Result<(bool, bool)> {
+) -> Result<TrialOutcome> {
     let name = policy.name();
     let goal = instance
         .goal_images()
@@ -362,7 +495,7 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
     let start = env.observe();
     policy.reset(trial);
     let r = rollout_in_model(model, policy, start.clone(), horizon)?;
-    let predicted = judge.judge(&JudgeInput {
+    let model_verdict = judge.judge(&JudgeInput {
         policy: &name,
         trial,
         start: &start.image,
@@ -376,7 +509,10 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
         horizon,
         model.clip_frames().saturating_sub(1),
     )?;
-    Ok((predicted, env.success()))
+    Ok(TrialOutcome {
+        model: model_verdict,
+        real_success: env.success(),
+    })
 }
 
 /// Evaluates policies on task instances (instance `i` is trial `i`) with
@@ -391,22 +527,25 @@ pub fn evaluate_policies<M: ActionWorldModel>(
     horizon: usize,
 ) -> Result<PolicyEvalReport> {
     let mut names = Vec::new();
-    let mut predicted = Vec::new();
-    let mut real = Vec::new();
+    let mut tallies = Vec::new();
     for p in policies.iter_mut() {
-        let (mut wins_model, mut wins_real) = (0usize, 0usize);
+        let mut tally = PolicyTally::default();
         for (trial, inst) in instances.iter().enumerate() {
             let model = model_for(inst)?;
-            let (m, r) = evaluate_trial(world, inst, trial, p.as_mut(), &model, judge, horizon)?;
-            wins_model += usize::from(m);
-            wins_real += usize::from(r);
+            tally.add(&evaluate_trial(
+                world,
+                inst,
+                trial,
+                p.as_mut(),
+                &model,
+                judge,
+                horizon,
+            )?);
         }
-        let n = instances.len().max(1) as f64;
         names.push(p.name());
-        predicted.push(wins_model as f64 / n);
-        real.push(wins_real as f64 / n);
+        tallies.push(tally);
     }
-    PolicyEvalReport::new(names, predicted, real)
+    report_from_tallies(names, &tallies)
 }
 
 #[cfg(test)]
@@ -429,14 +568,125 @@ mod tests {
             last: &img,
             goal: &img,
         };
-        assert!(j.judge(&inp(0)).unwrap());
-        assert!(!j.judge(&inp(1)).unwrap());
+        assert_eq!(
+            j.judge(&inp(0)).unwrap(),
+            Verdict {
+                success: true,
+                progress: None
+            }
+        );
+        assert!(!j.judge(&inp(1)).unwrap().success);
         assert!(j.judge(&inp(2)).is_err());
         assert!(LabelJudge::parse("a,x,1", "f")
             .unwrap_err()
             .to_string()
             .contains("line 1"));
         assert!(LabelJudge::parse("a,0,maybe", "f").is_err());
+    }
+
+    #[test]
+    fn goal_progress_closed_forms_and_the_ratio_rule() {
+        assert_eq!(goal_progress(2.0, 1.0), 0.5);
+        assert_eq!(goal_progress(1.0, 2.0), -0.5);
+        assert_eq!(goal_progress(1.0, 0.0), 1.0);
+        assert_eq!(goal_progress(3.0, 3.0), 0.0);
+        assert_eq!(goal_progress(0.0, 0.0), 0.0);
+        assert_eq!(goal_progress(0.0, 4.0), -1.0);
+        // Success with ratio r  <=>  progress >= 1 - r (away from the boundary).
+        for r in [0.25, 0.5, 0.9] {
+            for (ds, dl) in [(1.0, 0.1), (1.0, 0.6), (2.0, 1.9), (0.5, 3.0), (4.0, 0.3)] {
+                assert_eq!(
+                    dl <= r * ds,
+                    goal_progress(ds, dl) >= 1.0 - r,
+                    "{r} {ds} {dl}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn goal_distance_judge_grades_with_latent_distances() {
+        let img = |v: f32| Image {
+            height: 1,
+            width: 2,
+            data: vec![v; 6],
+        };
+        // The "latent" is the image itself: d = mean |a - b|.
+        let encode = |i: &Image| Ok(i.data.clone());
+        let judge = GoalDistanceJudge {
+            encode: &encode,
+            ratio: 0.5,
+        };
+        let (start, goal) = (img(0.0), img(1.0));
+        let verdict = |last: &Image| {
+            judge
+                .judge(&JudgeInput {
+                    policy: "p",
+                    trial: 0,
+                    start: &start,
+                    last,
+                    goal: &goal,
+                })
+                .unwrap()
+        };
+        // d_start 1, d_last 0.25: success, progress 0.75.
+        let v = verdict(&img(0.75));
+        assert!(v.success);
+        assert!((v.progress.unwrap() - 0.75).abs() < 1e-6);
+        // d_last 0.6: not half-way, progress 0.4.
+        let v = verdict(&img(0.4));
+        assert!(!v.success);
+        assert!((v.progress.unwrap() - 0.4).abs() < 1e-6);
+        // Away from the goal: d_last 1.5, progress (1 - 1.5) / 1.5.
+        let v = verdict(&img(-0.5));
+        assert!(!v.success);
+        assert!((v.progress.unwrap() + 1.0 / 3.0).abs() < 1e-6);
+    }
+
+    fn outcome(model: bool, progress: Option<f64>, real: bool) -> TrialOutcome {
+        TrialOutcome {
+            model: Verdict {
+                success: model,
+                progress,
+            },
+            real_success: real,
+        }
+    }
+
+    #[test]
+    fn progress_ranks_policies_a_weak_model_never_succeeds_with() {
+        // Three policies, real success 1, 1/2, 0; the model succeeds never,
+        // but its rollouts get less near the goal for the worse policies.
+        let trials = [
+            [(0.4, true), (0.3, true)],
+            [(0.2, true), (0.1, false)],
+            [(-0.1, false), (0.0, false)],
+        ];
+        let tallies: Vec<PolicyTally> = trials
+            .iter()
+            .map(|t| {
+                let mut tally = PolicyTally::default();
+                for &(p, real) in t {
+                    tally.add(&outcome(false, Some(p), real));
+                }
+                tally
+            })
+            .collect();
+        assert_eq!(tallies[1].real_rate(), 0.5);
+        assert!((tallies[0].mean_progress().unwrap() - 0.35).abs() < 1e-12);
+        let r = report_from_tallies(vec!["a".into(), "b".into(), "c".into()], &tallies).unwrap();
+        assert_eq!(r.predicted, vec![0.0; 3]);
+        assert_eq!(r.pearson, 0.0);
+        let p = r.progress.unwrap();
+        assert_eq!(p.mmrv, 0.0);
+        assert!(p.pearson > 0.95, "{}", p.pearson);
+        // One ungraded trial (a label judge): no progress for the report.
+        let mut partial = tallies.clone();
+        partial[2].add(&outcome(true, None, true));
+        assert_eq!(partial[2].mean_progress(), None);
+        let r = report_from_tallies(vec!["a".into(), "b".into(), "c".into()], &partial).unwrap();
+        assert!(r.progress.is_none());
+        assert_eq!(r.predicted[2], 1.0 / 3.0);
     }
 
     #[test]
