@@ -774,7 +774,7 @@ pub fn run_plan_report(a: &PlanReportArgs) -> Result<()> {
     }
     md += "\n\n";
     md += &format!(
-        "Produced by `{}` (diffusion models on `{}`). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; the planner uses the world model named in each table.\n\n",
+        "Produced by `{}` (diffusion models on `{}`). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; each table names the world model that plans or rolls policies out.\n\n",
         command.join(" "),
         a.device,
         96,
