@@ -433,6 +433,36 @@ impl TcpCollective {
         }
     }
 
+    /// Checks that every rank holds `len` values, before a collective that
+    /// cannot check it itself (NCCL would sum mismatched buffers into
+    /// garbage or wait forever). Every rank learns the outcome, so all stop
+    /// together: rank 0 sends its length, each rank compares, and the
+    /// mismatches are summed over all ranks.
+    pub fn agree_on_len(&mut self, len: usize, what: &str) -> Result<()> {
+        let theirs = self.broadcast_bytes(&(len as u64).to_le_bytes())?;
+        let rank0 = <[u8; 8]>::try_from(theirs.as_slice())
+            .map(u64::from_le_bytes)
+            .map_err(|_| {
+                TrainError::input(
+                    what,
+                    format!("rank 0 sent {} bytes, expected a length", theirs.len()),
+                )
+            })?;
+        let mut mismatched = [f32::from(u8::from(rank0 != len as u64))];
+        self.all_reduce_host(&mut mismatched)?;
+        if mismatched[0] > 0.0 {
+            return Err(TrainError::input(
+                what,
+                format!(
+                    "{} rank(s) hold a different number of values than rank 0's {rank0} \
+                     (rank {} holds {len}): different models or gradients?",
+                    mismatched[0], self.rank
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// Sums `buf` over all ranks in place (rank 0 adds the ranks' buffers in
     /// rank order, so every rank gets the same values).
     pub fn all_reduce_host(&mut self, buf: &mut [f32]) -> Result<()> {
@@ -529,6 +559,9 @@ impl Collective for TcpCollective {
 pub struct NcclCollective {
     tcp: TcpCollective,
     comm: bridgev2w_torch_ext::nccl::NcclComm,
+    /// The buffer length all ranks were found to share (checked over TCP on
+    /// the first all-reduce and whenever this rank's length changes).
+    agreed_len: Option<usize>,
 }
 
 impl NcclCollective {
@@ -574,7 +607,11 @@ impl NcclCollective {
             ));
         }
         let comm = nccl.init_rank(&id, tcp.world(), tcp.rank(), device)?;
-        Ok(Self { tcp, comm })
+        Ok(Self {
+            tcp,
+            comm,
+            agreed_len: None,
+        })
     }
 }
 
@@ -589,6 +626,11 @@ impl Collective for NcclCollective {
         "nccl"
     }
     fn all_reduce_sum(&mut self, buf: &mut Tensor) -> Result<()> {
+        let len = buf.numel();
+        if self.agreed_len != Some(len) {
+            self.tcp.agree_on_len(len, "NCCL all-reduce")?;
+            self.agreed_len = Some(len);
+        }
         Ok(self.comm.all_reduce_sum(buf)?)
     }
 }
@@ -711,6 +753,38 @@ mod tests {
             assert_eq!(got, vec![3.0, 3.0, -6.0]);
             assert_eq!(b, vec![0u8; 3]);
             assert_eq!(size, vec![3, 1]);
+        }
+    }
+
+    #[test]
+    fn buffer_lengths_are_agreed_on_or_every_rank_stops() {
+        let run = |lens: [usize; 3]| {
+            let port = free_port();
+            let handles: Vec<_> = (0..3)
+                .map(|rank| {
+                    std::thread::spawn(move || {
+                        let mut c = TcpCollective::connect(&env(rank, 3, port, 20.0), 5).unwrap();
+                        c.agree_on_len(lens[rank], "test all-reduce")
+                            .map_err(|e| e.to_string())
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap())
+                .collect::<Vec<_>>()
+        };
+        assert!(run([10, 10, 10]).iter().all(|r| r.is_ok()));
+        // Rank 1 differs: all three stop, each naming the counts.
+        for (rank, r) in run([10, 11, 10]).into_iter().enumerate() {
+            let e = r.unwrap_err();
+            assert!(
+                e.contains("test all-reduce")
+                    && e.contains("1 rank(s)")
+                    && e.contains("rank 0's 10")
+                    && e.contains(&format!("rank {rank} holds")),
+                "{e}"
+            );
         }
     }
 
