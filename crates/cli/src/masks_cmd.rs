@@ -7,7 +7,9 @@ use bridgev2w_embodiment::actions::{
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
-use bridgev2w_embodiment::masks::{render_trajectory, write_outputs, WriteOptions};
+use bridgev2w_embodiment::masks::{
+    render_trajectory, render_trajectory_labels, write_outputs, WriteOptions,
+};
 use bridgev2w_embodiment::npy::{write_atomic, write_npy};
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
@@ -160,6 +162,28 @@ pub fn render_with_progress(
     frames
 }
 
+/// As [`render_with_progress`] without depth maps (`depth_m` left empty):
+/// the faster path when only masks and labels are written.
+pub fn render_labels_with_progress(
+    e: &Embodiment,
+    camera: &Camera,
+    joints: &[Vec<f64>],
+) -> Vec<RenderOutput> {
+    let pb = progress_bar(joints.len(), "rendering masks");
+    let labels = render_trajectory_labels(&e.robot, camera, joints, &|| pb.inc(1));
+    pb.finish_and_clear();
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    labels
+        .into_iter()
+        .map(|labels| RenderOutput {
+            width,
+            height,
+            labels,
+            depth_m: Vec::new(),
+        })
+        .collect()
+}
+
 /// Writes the residual report `ik.json`.
 pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<()> {
     let p = dir.join("ik.json");
@@ -196,7 +220,11 @@ pub fn run(args: &MasksArgs) -> Result<()> {
         &ik,
         args.allow_ik_residual,
     )?;
-    let frames = render_with_progress(&e, &camera, &joints);
+    let frames = if args.depth {
+        render_with_progress(&e, &camera, &joints)
+    } else {
+        render_labels_with_progress(&e, &camera, &joints)
+    };
     let written = write_outputs(
         &args.out,
         &e.robot,

@@ -106,7 +106,8 @@ fn masks_contract_with_joints_json_csv_and_actions() {
     assert!(out.join("labels.json").is_file());
     assert!(out.join("frames/000003.png").is_file());
 
-    // CSV with a header row gives the same masks.
+    // CSV with a header row, rendered with depth (the other renderer path),
+    // gives the same masks and labels, and a float depth map.
     let mut csv = String::from("j1,j2,j3,j4,j5,j6,j7,finger\n");
     for t in 0..4 {
         let mut q = HOME.to_vec();
@@ -130,14 +131,23 @@ fn masks_contract_with_joints_json_csv_and_actions() {
             "160",
             "--height",
             "120",
+            "--depth",
             "--out",
             out2.to_str().expect("utf8"),
         ],
     );
     assert!(o.status.success(), "{}", stderr(&o));
+    for f in ["masks.npy", "labels.npy"] {
+        assert_eq!(
+            std::fs::read(out.join(f)).expect("a"),
+            std::fs::read(out2.join(f)).expect("b"),
+            "{f}"
+        );
+    }
+    assert!(!out.join("depth.npy").exists());
     assert_eq!(
-        std::fs::read(out.join("masks.npy")).expect("a"),
-        std::fs::read(out2.join("masks.npy")).expect("b")
+        npy_shape(&out2.join("depth.npy")),
+        ("<f4".to_string(), vec![4, 120, 160])
     );
 
     // End-effector actions through IK.
