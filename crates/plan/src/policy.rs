@@ -140,8 +140,9 @@ pub trait SuccessJudge {
 /// `(d_start - d_last) / max(d_start, d_last)`, in `[-1, 1]`. 1: the goal
 /// reached exactly; 0: no nearer (or both distances 0); negative: farther
 /// away, -1 only in the limit. Bounded, so one diverging rollout cannot
-/// dominate a policy's mean. `d_last <= ratio * d_start` (with `ratio` in
-/// `(0, 1]`) holds exactly when the progress is at least `1 - ratio`.
+/// dominate a policy's mean. For `d_start > 0` and `ratio` in `(0, 1]`,
+/// `d_last <= ratio * d_start` holds exactly when the progress is at least
+/// `1 - ratio`.
 pub fn goal_progress(d_start: f64, d_last: f64) -> f64 {
     let scale = d_start.max(d_last);
     if scale > 0.0 {
