@@ -266,7 +266,8 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         &IkOptions::default(),
         false,
     )?;
-    let frames = render_with_progress(&e, &camera, &joints);
+    // Depth as well: the overlay shades the links by it.
+    let frames = render_with_progress(&e, &camera, &joints, true);
     let out = &args.out;
     let written = write_outputs(
         out,

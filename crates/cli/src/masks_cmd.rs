@@ -151,37 +151,33 @@ pub fn progress_bar(len: usize, what: &str) -> ProgressBar {
     pb
 }
 
+/// Renders every frame of `joints` from `camera` with a progress bar:
+/// labels and depth maps with `depth`, else labels alone (`depth_m` left
+/// empty), the faster path when only masks and labels are written.
 pub fn render_with_progress(
     e: &Embodiment,
     camera: &Camera,
     joints: &[Vec<f64>],
+    depth: bool,
 ) -> Vec<RenderOutput> {
     let pb = progress_bar(joints.len(), "rendering masks");
-    let frames = render_trajectory(&e.robot, camera, joints, &|| pb.inc(1));
+    let tick = || pb.inc(1);
+    let frames = if depth {
+        render_trajectory(&e.robot, camera, joints, &tick)
+    } else {
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        render_trajectory_labels(&e.robot, camera, joints, &tick)
+            .into_iter()
+            .map(|labels| RenderOutput {
+                width,
+                height,
+                labels,
+                depth_m: Vec::new(),
+            })
+            .collect()
+    };
     pb.finish_and_clear();
     frames
-}
-
-/// As [`render_with_progress`] without depth maps (`depth_m` left empty):
-/// the faster path when only masks and labels are written.
-pub fn render_labels_with_progress(
-    e: &Embodiment,
-    camera: &Camera,
-    joints: &[Vec<f64>],
-) -> Vec<RenderOutput> {
-    let pb = progress_bar(joints.len(), "rendering masks");
-    let labels = render_trajectory_labels(&e.robot, camera, joints, &|| pb.inc(1));
-    pb.finish_and_clear();
-    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-    labels
-        .into_iter()
-        .map(|labels| RenderOutput {
-            width,
-            height,
-            labels,
-            depth_m: Vec::new(),
-        })
-        .collect()
 }
 
 /// Writes the residual report `ik.json`.
@@ -220,11 +216,7 @@ pub fn run(args: &MasksArgs) -> Result<()> {
         &ik,
         args.allow_ik_residual,
     )?;
-    let frames = if args.depth {
-        render_with_progress(&e, &camera, &joints)
-    } else {
-        render_labels_with_progress(&e, &camera, &joints)
-    };
+    let frames = render_with_progress(&e, &camera, &joints, args.depth);
     let written = write_outputs(
         &args.out,
         &e.robot,
