@@ -281,6 +281,11 @@ pub struct PlanSummary {
     pub planned_error_m: f64,
     /// Mean final task error of the random baseline (metres).
     pub random_error_m: f64,
+    /// Mean final TCP orientation error of the planner (radians; judged by
+    /// no task, see [`TaskInstance::tcp_rotation_error_rad`]).
+    pub planned_rotation_error_rad: f64,
+    /// The same for the random baseline.
+    pub random_rotation_error_rad: f64,
     /// Mean executed actions of the planner.
     pub planned_steps: f64,
     /// Wall time (seconds).
@@ -353,6 +358,7 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
     let t0 = Instant::now();
     let (mut planned, mut random) = (0, 0);
     let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);
+    let (mut planned_rot, mut random_rot) = (0.0, 0.0);
     for trial in 0..a.trials {
         let mut inst = TaskInstance::new(&world, a.split, trial, a.task)?;
         if !a.single_goal {
@@ -384,23 +390,29 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
         })?;
         let ok = env.success();
         let err = inst.error_m(&world, &env.state);
+        let rot = inst.tcp_rotation_error_rad(&world, &env.state);
         let mut base = SyntheticEnv::new(&world, inst.clone());
         run_random(&mut base, &cfg, &mut ChaCha8Rng::seed_from_u64(seed))?;
         let rok = base.success();
         let rerr = inst.error_m(&world, &base.state);
+        let rrot = inst.tcp_rotation_error_rad(&world, &base.state);
         eprintln!(
-            "{} trial {trial}: planner {} ({:.1} cm, {} steps), random {} ({:.1} cm)",
+            "{} trial {trial}: planner {} ({:.1} cm, TCP {:.1} deg off, {} steps), random {} ({:.1} cm, {:.1} deg)",
             a.task.name(),
             if ok { "success" } else { "failure" },
             err * 100.0,
+            rot.to_degrees(),
             out.steps,
             if rok { "success" } else { "failure" },
-            rerr * 100.0
+            rerr * 100.0,
+            rrot.to_degrees()
         );
         planned += usize::from(ok);
         random += usize::from(rok);
         planned_err += err;
         random_err += rerr;
+        planned_rot += rot;
+        random_rot += rrot;
         steps += out.steps as f64;
     }
     let n = a.trials as f64;
@@ -411,6 +423,8 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
         random,
         planned_error_m: planned_err / n,
         random_error_m: random_err / n,
+        planned_rotation_error_rad: planned_rot / n,
+        random_rotation_error_rad: random_rot / n,
         planned_steps: steps / n,
         seconds: t0.elapsed().as_secs_f64(),
     })
@@ -420,16 +434,18 @@ pub fn plan_summary(a: &PlanArgs) -> Result<PlanSummary> {
 pub fn run_plan(a: &PlanArgs) -> Result<()> {
     let s = plan_summary(a)?;
     crate::print_stdout(&format!(
-        "{}: planner ({}) {}/{} successes (mean error {:.1} cm, {:.1} actions), random actions {}/{} (mean error {:.1} cm); {:.0} s\n",
+        "{}: planner ({}) {}/{} successes (mean error {:.1} cm, TCP orientation {:.1} deg off, {:.1} actions), random actions {}/{} (mean error {:.1} cm, {:.1} deg); {:.0} s\n",
         s.task.name(),
         a.model.model,
         s.planned,
         s.trials,
         s.planned_error_m * 100.0,
+        s.planned_rotation_error_rad.to_degrees(),
         s.planned_steps,
         s.random,
         s.trials,
         s.random_error_m * 100.0,
+        s.random_rotation_error_rad.to_degrees(),
         s.seconds
     ))
 }

@@ -502,7 +502,9 @@ fn plan_with_the_perfect_model_and_bad_plan_options() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     assert!(
-        stdout.contains("reach: planner (perfect)") && stdout.contains("random actions"),
+        stdout.contains("reach: planner (perfect)")
+            && stdout.contains("random actions")
+            && stdout.contains("deg off"),
         "{stdout}"
     );
     assert!(stderr.contains("reach trial 0: planner"), "{stderr}");

@@ -178,6 +178,19 @@ impl TaskInstance {
     }
 }
 
+impl TaskInstance {
+    /// The angle (radians) between the TCP orientation of a state and the
+    /// expert's final one. No task's success depends on it (reach judges the
+    /// position, push and pick_place the object); it is reported so that
+    /// searches over rotation can be compared.
+    pub fn tcp_rotation_error_rad(&self, world: &World, state: &SceneState) -> f64 {
+        let meta = &self.expert.meta;
+        let want = world.world_from_tcp(meta, self.expert.joints.last().unwrap_or(&state.joints));
+        let got = world.world_from_tcp(meta, &state.joints);
+        want.rotation.angle_to(&got.rotation)
+    }
+}
+
 /// An observation of a synthetic scene state.
 fn observe(world: &World, inst: &TaskInstance, state: &SceneState, rgb: &[u8]) -> Observation {
     let (h, w) = inst.resolution();

@@ -694,3 +694,26 @@ fn waypoints_are_expert_frames_before_each_key_goal() {
     assert_eq!(dense.goal_frames, (1..=24).collect::<Vec<_>>());
     assert_eq!(dense.first_key_goal, 11);
 }
+
+#[test]
+fn tcp_rotation_error_is_the_angle_to_the_expert_final_orientation() {
+    let world = World::new(&SynthConfig {
+        frames: 9,
+        width: 48,
+        height: 32,
+        seed: 1,
+        ..SynthConfig::default()
+    })
+    .unwrap();
+    let inst = TaskInstance::new(&world, Split::Test, 0, Task::Reach).unwrap();
+    let mut state = SyntheticEnv::new(&world, inst.clone()).state;
+    state.joints = inst.expert.joints.last().unwrap().clone();
+    assert!(inst.tcp_rotation_error_rad(&world, &state) < 1e-9);
+    let position_m = inst.error_m(&world, &state);
+    // The last arm joint turns the hand about the axis the TCP lies on: the
+    // orientation error is that angle, the position error stays.
+    state.joints[6] += 0.3;
+    let e = inst.tcp_rotation_error_rad(&world, &state);
+    assert!((e - 0.3).abs() < 1e-9, "{e}");
+    assert!((inst.error_m(&world, &state) - position_m).abs() < 1e-9);
+}
