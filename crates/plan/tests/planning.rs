@@ -668,16 +668,21 @@ fn waypoint_goals_and_the_gripper_switch_after_the_key_goal() {
     );
 }
 
-#[test]
-fn waypoints_are_expert_frames_before_each_key_goal() {
-    let world = World::new(&SynthConfig {
-        frames: 25,
+/// A 48x32 synthetic world (seed 1) with episodes of `frames` frames.
+fn small_world(frames: usize) -> World {
+    World::new(&SynthConfig {
+        frames,
         width: 48,
         height: 32,
         seed: 1,
         ..SynthConfig::default()
     })
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn waypoints_are_expert_frames_before_each_key_goal() {
+    let world = small_world(25);
     let inst = TaskInstance::new(&world, Split::Test, 0, Task::PickPlace).unwrap();
     let keys = inst.goal_frames.clone();
     assert_eq!(keys, vec![12, 24]);
@@ -697,14 +702,7 @@ fn waypoints_are_expert_frames_before_each_key_goal() {
 
 #[test]
 fn tcp_rotation_error_is_the_angle_to_the_expert_final_orientation() {
-    let world = World::new(&SynthConfig {
-        frames: 9,
-        width: 48,
-        height: 32,
-        seed: 1,
-        ..SynthConfig::default()
-    })
-    .unwrap();
+    let world = small_world(9);
     let inst = TaskInstance::new(&world, Split::Test, 0, Task::Reach).unwrap();
     let mut state = SyntheticEnv::new(&world, inst.clone()).state;
     state.joints = inst.expert.joints.last().unwrap().clone();
