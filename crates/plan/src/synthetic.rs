@@ -15,6 +15,7 @@ use crate::{EeAction, Observation};
 use bridgev2w_data::synth::{Episode, RenderFrames, SceneState, Split, Task, World};
 use bridgev2w_embodiment::kinematics::xyz_rpy_from_pose;
 use bridgev2w_world_model::video::Image;
+use nalgebra::Isometry3;
 use rayon::prelude::*;
 
 /// Success tolerance: TCP (reach) or object (push, pick-and-place) within
@@ -155,12 +156,9 @@ impl TaskInstance {
     /// final TCP (reach), or horizontal distance of the task object to its
     /// expert final position.
     pub fn error_m(&self, world: &World, state: &SceneState) -> f64 {
-        let meta = &self.expert.meta;
         match self.task {
             Task::Reach => {
-                let want =
-                    world.world_from_tcp(meta, self.expert.joints.last().unwrap_or(&state.joints));
-                let got = world.world_from_tcp(meta, &state.joints);
+                let (want, got) = self.final_and_current_tcp(world, state);
                 (want.translation.vector - got.translation.vector).norm()
             }
             Task::Push | Task::PickPlace => {
@@ -176,18 +174,28 @@ impl TaskInstance {
             }
         }
     }
-}
 
-impl TaskInstance {
     /// The angle (radians) between the TCP orientation of a state and the
     /// expert's final one. No task's success depends on it (reach judges the
     /// position, push and pick_place the object); it is reported so that
     /// searches over rotation can be compared.
     pub fn tcp_rotation_error_rad(&self, world: &World, state: &SceneState) -> f64 {
-        let meta = &self.expert.meta;
-        let want = world.world_from_tcp(meta, self.expert.joints.last().unwrap_or(&state.joints));
-        let got = world.world_from_tcp(meta, &state.joints);
+        let (want, got) = self.final_and_current_tcp(world, state);
         want.rotation.angle_to(&got.rotation)
+    }
+
+    /// World poses of the expert's final TCP and of `state`'s TCP.
+    fn final_and_current_tcp(
+        &self,
+        world: &World,
+        state: &SceneState,
+    ) -> (Isometry3<f64>, Isometry3<f64>) {
+        let meta = &self.expert.meta;
+        let last = self.expert.joints.last().unwrap_or(&state.joints);
+        (
+            world.world_from_tcp(meta, last),
+            world.world_from_tcp(meta, &state.joints),
+        )
     }
 }
 
