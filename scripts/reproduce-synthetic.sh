@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
 # The CPU proof of BridgeV2W in the synthetic tabletop world, end to end:
 #
-#   1. synthetic dataset (train / test / unseen_camera / unseen_scene),
-#   2. the "pretrained video prior": a small causal VAE (stage vae), then an
-#      action-free image-to-video transformer on its latents (stage prior),
+#   1. synthetic dataset (train / test / unseen_camera / unseen_scene): the
+#      scripted tasks and random "play" episodes (TASKS),
+#   2. the "pretrained video prior": a small causal VAE, trained first on
+#      single frames (stage vae-image: the causal VAE encodes the first frame
+#      alone, and single frames are cheap), then on clips (stage vae); then
+#      an action-free image-to-video transformer on its latents (stage prior),
 #   3. BridgeV2W fine-tuning from the prior: ControlNet on embodiment masks +
 #      LoRA, diffusion + dynamics + flow losses,
 #   4. the mask_action = false ablation (end-effector actions through an MLP)
@@ -13,21 +16,28 @@
 #   6. eval-report: the table in docs/results.md (section `video`).
 #
 # Usage: scripts/reproduce-synthetic.sh [OUT_DIR]      (default runs/reproduce)
-# Budgets (environment, defaults sized for ~2 h on a 2-core CPU):
-#   VAE_STEPS PRIOR_STEPS FT_STEPS EVAL_VIDEOS EVAL_STEPS RESULTS
+# Budgets (environment, defaults sized for ~2.5 h on a 2-core CPU):
+#   VAE_IMAGE_STEPS VAE_STEPS PRIOR_STEPS FT_STEPS EVAL_VIDEOS EVAL_STEPS RESULTS
+#   EPISODES TASKS
+# Rerunning resumes: a finished stage is kept, a cut one resumes from its last
+# checkpoint. Each stage records a fingerprint of its inputs (its config and
+# the fingerprints of the stages it starts from) in OUT/NAME.inputs; a stage
+# whose inputs changed is moved aside to OUT/NAME.stale-FINGERPRINT and redone.
 # EXPORT_DEMO=1 also copies the fine-tuned model to assets/demo-model (the
 # default model of `bridgev2w demo`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 OUT=${1:-runs/reproduce}
-VAE_STEPS=${VAE_STEPS:-1200}
+VAE_IMAGE_STEPS=${VAE_IMAGE_STEPS:-1500}
+VAE_STEPS=${VAE_STEPS:-600}
 PRIOR_STEPS=${PRIOR_STEPS:-1500}
 FT_STEPS=${FT_STEPS:-1000}
 EVAL_VIDEOS=${EVAL_VIDEOS:-12}
 EVAL_STEPS=${EVAL_STEPS:-20}
 RESULTS=${RESULTS:-docs/results.md}
-EPISODES=${EPISODES:-160,12,12,12}
+EPISODES=${EPISODES:-240,12,12,12}
+TASKS=${TASKS:-reach,push,pick_place,play,play,play}
 
 BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
 if [[ -z ${BRIDGEV2W:-} ]]; then
@@ -49,21 +59,37 @@ stage() { # stage NAME COMMAND...: runs it, records its wall time
     printf '%s\t%s\n' "$name" "$(($(date +%s) - t0))" >>"$LOG"
 }
 
-# Shared data section: 9-frame clips at 96x64 from 17-frame episodes.
+# Shared data section: clips of ARG1 (default 9) frames at 96x64 from
+# 17-frame episodes.
 data_section() {
     cat <<EOF
 [data]
 dataset = "$OUT/synth"
-frames = 9
+frames = ${1:-9}
 width = 96
 height = 64
 clips_per_video = 2
 EOF
 }
 
-cat >"$OUT/configs/vae.toml" <<EOF
+cat >"$OUT/configs/vae-image.toml" <<EOF
 [model]
 backbone = "random:small"
+lora_rank = 0
+$(data_section 1)
+[train]
+stage = "vae"
+out = "$OUT/vae-image"
+batch_size = 16
+max_steps = $VAE_IMAGE_STEPS
+lr = 1e-3
+warmup_steps = 20
+checkpoint_every = 250
+EOF
+
+cat >"$OUT/configs/vae.toml" <<EOF
+[model]
+backbone = "$OUT/vae-image/final/backbone"
 lora_rank = 0
 $(data_section)
 [train]
@@ -71,7 +97,7 @@ stage = "vae"
 out = "$OUT/vae"
 batch_size = 4
 max_steps = $VAE_STEPS
-lr = 1e-3
+lr = 5e-4
 warmup_steps = 20
 checkpoint_every = 200
 EOF
@@ -115,22 +141,43 @@ EOF
 finetune_config "$OUT/bridgev2w" true >"$OUT/configs/bridgev2w.toml"
 finetune_config "$OUT/ablation-action-mlp" false >"$OUT/configs/ablation-action-mlp.toml"
 
-if [[ ! -d $OUT/synth ]]; then
-    stage synth "$BIN" synth --out "$OUT/synth" --episodes-per-split "$EPISODES" --frames 17
+fingerprint() { # fingerprint TEXT FILE...: 16 hex digits of TEXT and the files
+    { printf '%s\n' "$1"; shift; cat "$@"; } | sha256sum | cut -c1-16
+}
+fresh() { # fresh NAME FP: moves OUT/NAME aside when it was made from other inputs
+    local name=$1 fp=$2 old
+    old=$(cat "$OUT/$name.inputs" 2>/dev/null || true)
+    if [[ -e $OUT/$name && $old != "$fp" ]]; then
+        echo "== $name: its inputs changed (${old:-unrecorded} -> $fp); moving it to $OUT/$name.stale-${old:-unrecorded} and redoing it"
+        rm -rf "$OUT/$name.stale-${old:-unrecorded}"
+        mv "$OUT/$name" "$OUT/$name.stale-${old:-unrecorded}"
+    fi
+    printf '%s\n' "$fp" >"$OUT/$name.inputs"
+}
+
+SYNTH_ARGS=(--episodes-per-split "$EPISODES" --frames 17 --tasks "$TASKS")
+fresh synth "$(fingerprint "synth ${SYNTH_ARGS[*]}")"
+if [[ ! -f $OUT/synth/meta/info.json ]]; then
+    rm -rf "$OUT/synth"
+    stage synth "$BIN" synth --out "$OUT/synth" "${SYNTH_ARGS[@]}"
 fi
-train() { # train NAME: trains unless OUT/NAME/final exists; resumes a cut run
-    local name=$1 resume=()
+train() { # train NAME UPSTREAM...: trains unless OUT/NAME/final exists; resumes a cut run
+    local name=$1 resume=() ups=() u
+    shift
+    for u in synth "$@"; do ups+=("$OUT/$u.inputs"); done
+    fresh "$name" "$(fingerprint "train $name" "$OUT/configs/$name.toml" "${ups[@]}")"
     if [[ -f $OUT/$name/final/weights.safetensors ]]; then
-        echo "== $name: done before, kept"
+        echo "== $name: done before from the same inputs, kept"
         return
     fi
     [[ -d $OUT/$name/checkpoints ]] && resume=(--resume "$OUT/$name")
     stage "$name" "$BIN" train "$OUT/configs/$name.toml" --quiet "${resume[@]}"
 }
-train vae
-train prior
-train bridgev2w
-train ablation-action-mlp
+train vae-image
+train vae vae-image
+train prior vae
+train bridgev2w prior
+train ablation-action-mlp prior
 
 for name in bridgev2w ablation-action-mlp; do
     stage "eval $name" "$BIN" eval-run "$OUT/configs/$name.toml" --run "$OUT/$name" \
@@ -140,8 +187,8 @@ done
 PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
-    echo "Dataset: \`bridgev2w synth\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
-    echo "Models: \`random:small\` VAE (3 blocks, 16 latent channels, 4x space / 4x time) trained $VAE_STEPS steps (L1 + KL);"
+    echo "Dataset: \`bridgev2w synth --tasks $TASKS\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
+    echo "Models: \`random:small\` VAE (3 blocks, 16 latent channels, 4x space / 4x time) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4) (L1 + KL);"
     echo "action-free I2V prior (4 layers, 4 heads x 32) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."
@@ -160,7 +207,15 @@ if [[ ${EXPORT_DEMO:-0} == 1 ]]; then
     mkdir -p assets/demo-model.tmp
     cp -r "$OUT/prior/final/backbone" assets/demo-model.tmp/backbone
     cp "$OUT/bridgev2w/final/weights.safetensors" assets/demo-model.tmp/bridgev2w.safetensors
-    cp "$OUT/configs/bridgev2w.toml" assets/demo-model.tmp/train-config.toml
+    # The config as it stands, paths relative to the repository root: the
+    # backbone is the exported one, the dataset and run folders the
+    # reproduction's (rerun the script to recreate them).
+    {
+        echo "# BridgeV2W fine-tuning config of this model (scripts/reproduce-synthetic.sh $OUT);"
+        echo "# paths are relative to the repository root."
+        sed -e "s|\"$OUT/prior/final/backbone\"|\"assets/demo-model/backbone\"|" \
+            -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w.toml"
+    } >assets/demo-model.tmp/train-config.toml
     rm -rf assets/demo-model && mv assets/demo-model.tmp assets/demo-model
     du -sh assets/demo-model
 fi

@@ -26,7 +26,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 fn parse_task(s: &str) -> Result<Task, String> {
-    Task::parse(s).ok_or_else(|| format!("unknown task {s:?}: expected reach, push or pick_place"))
+    Task::parse(s)
+        .filter(|t| Task::ALL.contains(t))
+        .ok_or_else(|| format!("unknown task {s:?}: expected reach, push or pick_place"))
 }
 
 fn parse_split(s: &str) -> Result<Split, String> {
@@ -300,7 +302,7 @@ fn mpc_config(a: &PlanArgs) -> Result<MpcConfig> {
         r => bail!("--rotation {r}: expected joint, rotation-first or axis-wise"),
     };
     let heuristic = match a.task {
-        Task::Reach => GripperPolicy::Heuristic {
+        Task::Reach | Task::Play => GripperPolicy::Heuristic {
             approach: 0.0,
             after_switch: 0.0,
             release_at_end: false,

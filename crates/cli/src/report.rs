@@ -63,6 +63,13 @@ struct Scores {
     ssim: f64,
     baseline_psnr: f64,
     baseline_ssim: f64,
+    /// PSNR on the dynamic region (absent in files written before it was scored).
+    #[serde(default)]
+    dynamic_psnr: Option<f64>,
+    #[serde(default)]
+    baseline_dynamic_psnr: Option<f64>,
+    #[serde(default)]
+    autoencoder_dynamic_psnr: Option<f64>,
     mask_iou: Option<f64>,
     baseline_mask_iou: Option<f64>,
     segmenter_mask_iou: Option<f64>,
@@ -94,6 +101,7 @@ const SPLIT_TITLES: [(&str, &str); 4] = [
 struct Row {
     name: String,
     psnr: f64,
+    dyn_psnr: Option<f64>,
     ssim: f64,
     iou: Option<f64>,
 }
@@ -105,7 +113,7 @@ fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
         bail!("eval-report: no --entry given");
     };
     let mut md = String::from(
-        "| Methods | PSNR ↑ | SSIM ↑ | LPIPS ↓ | FVD ↓ | Mask-IoU ↑ |\n|---|---|---|---|---|---|\n",
+        "| Methods | PSNR ↑ | Dynamic PSNR ↑ | SSIM ↑ | LPIPS ↓ | FVD ↓ | Mask-IoU ↑ |\n|---|---|---|---|---|---|---|\n",
     );
     let mut order: Vec<&str> = first.splits.iter().map(|s| s.split.as_str()).collect();
     order.sort_by_key(|s| {
@@ -127,6 +135,7 @@ fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
         let mut rows = vec![Row {
             name: "Copy first frame".into(),
             psnr: base.baseline_psnr,
+            dyn_psnr: base.baseline_dynamic_psnr,
             ssim: base.baseline_ssim,
             iou: base.baseline_mask_iou,
         }];
@@ -144,6 +153,7 @@ fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
             rows.push(Row {
                 name: format!("{name} (step {})", run.step),
                 psnr: s.psnr,
+                dyn_psnr: s.dynamic_psnr,
                 ssim: s.ssim,
                 iou: s.mask_iou,
             });
@@ -151,8 +161,9 @@ fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
         let best = |f: &dyn Fn(&Row) -> Option<f64>| {
             rows.iter().filter_map(f).fold(f64::NEG_INFINITY, f64::max)
         };
-        let (bp, bs, bi) = (
+        let (bp, bd, bs, bi) = (
             best(&|r| Some(r.psnr)),
+            best(&|r| r.dyn_psnr),
             best(&|r| Some(r.ssim)),
             best(&|r| r.iou),
         );
@@ -164,16 +175,18 @@ fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
             }
         };
         md += &format!(
-            "| ***{title}*** ({} videos; segmenter ceiling Mask-IoU {}) | | | | | |\n",
+            "| ***{title}*** ({} videos; segmenter ceiling Mask-IoU {}) | | | | | | |\n",
             base.videos,
             base.segmenter_mask_iou
                 .map_or("-".into(), |v| format!("{:.1}", 100.0 * v))
         );
         for r in &rows {
             md += &format!(
-                "| {} | {} | {} | - | - | {} |\n",
+                "| {} | {} | {} | {} | - | - | {} |\n",
                 r.name,
                 mark(r.psnr, bp, format!("{:.2}", r.psnr)),
+                r.dyn_psnr
+                    .map_or("-".into(), |v| mark(v, bd, format!("{v:.2}"))),
                 mark(r.ssim, bs, format!("{:.3}", r.ssim)),
                 r.iou
                     .map_or("-".into(), |v| mark(v, bi, format!("{:.1}", 100.0 * v))),
@@ -182,7 +195,9 @@ fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
         // Not a method: the bound of every row that decodes through the VAE.
         if let (Some(p), Some(s)) = (base.autoencoder_psnr, base.autoencoder_ssim) {
             md += &format!(
-                "| *Ceiling: ground truth through the VAE* | *{p:.2}* | *{s:.3}* | - | - | {} |\n",
+                "| *Ceiling: ground truth through the VAE* | *{p:.2}* | {} | *{s:.3}* | - | - | {} |\n",
+                base.autoencoder_dynamic_psnr
+                    .map_or("-".into(), |v| format!("*{v:.2}*")),
                 base.autoencoder_mask_iou
                     .map_or("-".into(), |v| format!("*{:.1}*", 100.0 * v)),
             );
@@ -221,7 +236,7 @@ pub fn run_eval_report(a: &EvalReportArgs) -> Result<()> {
         Some("color") => "a colour classifier",
         _ => "a small dilated CNN",
     };
-    md += &format!("\nPSNR and SSIM per frame on [0, 1] RGB, averaged over frames, then videos. Mask-IoU (x100): the robot segmented in each frame by {segmenter} trained on the training split's frames and ground-truth masks (the paper uses Grounded SAM), against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames.");
+    md += &format!("\nPSNR and SSIM per frame on [0, 1] RGB, averaged over frames, then videos. Dynamic PSNR: PSNR pooled over the pixels the motion changes (in frames 1..T, a channel differs from the true first frame by more than 8/255; dilated by 2 px), where copying the first frame knows nothing; averaged over videos. Mask-IoU (x100): the robot segmented in each frame by {segmenter} trained on the training split's frames and ground-truth masks (the paper uses Grounded SAM), against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames.");
     md += " LPIPS and FVD need the pretrained AlexNet and I3D weights, which cannot be downloaded here (`bridgev2w eval` computes them from user-supplied weights).\n";
     write_section(&a.out, "video", &md)?;
     crate::print_stdout(&md)
@@ -266,6 +281,9 @@ mod tests {
                     ssim: 0.5,
                     baseline_psnr: 20.0,
                     baseline_ssim: 0.6,
+                    dynamic_psnr: Some(psnr - 4.0),
+                    baseline_dynamic_psnr: Some(15.0),
+                    autoencoder_dynamic_psnr: Some(psnr),
                     mask_iou: Some(iou),
                     baseline_mask_iou: Some(0.3),
                     segmenter_mask_iou: Some(0.9),
@@ -287,22 +305,22 @@ mod tests {
         // Splits in the paper's order, whatever the files' order.
         assert!(md.find("In-Domain").unwrap() < md.find("Unseen Camera").unwrap());
         assert!(
-            md.contains("| Copy first frame | 20.00 | **0.600** | - | - | 30.0 |"),
+            md.contains("| Copy first frame | 20.00 | 15.00 | **0.600** | - | - | 30.0 |"),
             "{md}"
         );
         assert!(
-            md.contains("| A (step 10) | **25.00** | 0.500 | - | - | 50.0 |"),
+            md.contains("| A (step 10) | **25.00** | **21.00** | 0.500 | - | - | 50.0 |"),
             "{md}"
         );
         assert!(
-            md.contains("| B (step 10) | 22.00 | 0.500 | - | - | **60.0** |"),
+            md.contains("| B (step 10) | 22.00 | 18.00 | 0.500 | - | - | **60.0** |"),
             "{md}"
         );
         assert!(md.contains("segmenter ceiling Mask-IoU 90.0"), "{md}");
         // The VAE ceiling (first entry's) is a row of its own, never marked best.
         assert!(
             md.contains(
-                "| *Ceiling: ground truth through the VAE* | *30.00* | *0.700* | - | - | - |"
+                "| *Ceiling: ground truth through the VAE* | *30.00* | *25.00* | *0.700* | - | - | - |"
             ),
             "{md}"
         );
@@ -329,7 +347,7 @@ mod tests {
         let entry = parse_entry(&format!("Old={}", f.display())).unwrap();
         let md = video_tables(&[entry]).unwrap();
         assert!(
-            md.contains("| Old (step 5) | 21.00 | 0.500 | - | - | - |"),
+            md.contains("| Old (step 5) | 21.00 | - | 0.500 | - | - | - |"),
             "{md}"
         );
         assert!(!md.contains("Ceiling"), "{md}");

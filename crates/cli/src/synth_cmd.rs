@@ -33,7 +33,8 @@ pub struct SynthArgs {
     /// Dataset seed (same seed, same bytes).
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Comma-separated tasks (reach, push, pick_place), assigned round-robin.
+    /// Comma-separated tasks (reach, push, pick_place, play), assigned round-robin;
+    /// repeat a task to weigh it (e.g. `reach,push,pick_place,play,play,play`).
     #[arg(long, default_value = "reach,push,pick_place")]
     tasks: String,
 }
@@ -57,7 +58,7 @@ pub fn run(args: &SynthArgs) -> Result<()> {
         .split(',')
         .map(|t| {
             Task::parse(t.trim()).ok_or_else(|| {
-                anyhow::anyhow!("--tasks: unknown task {t:?} (reach, push, pick_place)")
+                anyhow::anyhow!("--tasks: unknown task {t:?} (reach, push, pick_place, play)")
             })
         })
         .collect::<Result<Vec<_>>>()?;

@@ -214,7 +214,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         rows.push(scores);
     }
     let mut text = format!(
-        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling | VAE ceiling PSNR | VAE ceiling SSIM |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | dynamic PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame dynamic PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling | VAE ceiling PSNR | VAE ceiling dynamic PSNR | VAE ceiling SSIM |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
         args.run.display(),
         trainer.step,
         trainer.cfg.train.stage,
@@ -223,18 +223,22 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
     );
     for r in &rows {
         let iou = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{:.1}", 100.0 * x));
+        let db = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.2}"));
         text.push_str(&format!(
-            "| {} | {} | {:.2} | {:.4} | {} | {:.2} | {:.4} | {} | {} | {:.2} | {:.4} |\n",
+            "| {} | {} | {:.2} | {} | {:.4} | {} | {:.2} | {} | {:.4} | {} | {} | {:.2} | {} | {:.4} |\n",
             r.split,
             r.videos,
             r.psnr,
+            db(r.dynamic_psnr),
             r.ssim,
             iou(r.mask_iou),
             r.baseline_psnr,
+            db(r.baseline_dynamic_psnr),
             r.baseline_ssim,
             iou(r.baseline_mask_iou),
             iou(r.segmenter_mask_iou),
             r.autoencoder_psnr,
+            db(r.autoencoder_dynamic_psnr),
             r.autoencoder_ssim
         ));
     }

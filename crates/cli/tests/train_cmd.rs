@@ -90,8 +90,9 @@ lr = 1e-4
     ok(&o);
     let table = String::from_utf8_lossy(&o.stdout);
     assert!(
-        table.contains("| split | videos | PSNR | SSIM | Mask-IoU | copy-first-frame PSNR")
-            && table.contains("| unseen_scene | 1 |"),
+        table.contains(
+            "| split | videos | PSNR | dynamic PSNR | SSIM | Mask-IoU | copy-first-frame PSNR"
+        ) && table.contains("| unseen_scene | 1 |"),
         "{table}"
     );
     let v: serde_json::Value =
@@ -102,6 +103,17 @@ lr = 1e-4
         .as_f64()
         .expect("ceiling");
     assert!(iou > 0.0 && iou <= 1.0, "{v}");
+    // The synthetic clips move: every method has a dynamic-region score.
+    for key in [
+        "dynamic_psnr",
+        "baseline_dynamic_psnr",
+        "autoencoder_dynamic_psnr",
+    ] {
+        assert!(
+            v["splits"][0][key].as_f64().is_some_and(f64::is_finite),
+            "{key}: {v}"
+        );
+    }
     // The paper-layout table from the JSON, into a section of results.md
     // that keeps the rest of the file.
     let results = d.join("docs/results.md");

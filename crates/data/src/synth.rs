@@ -119,11 +119,18 @@ pub enum Task {
     Push,
     /// Grasp an object, carry it and release it elsewhere.
     PickPlace,
+    /// Random "play": a smooth path through a few random waypoints over the
+    /// table, some at an object (grasps that may hold or slip, pushes), the
+    /// gripper opened and closed at random. Training data that covers the
+    /// action space; no success criterion, so no planning task.
+    Play,
 }
 
 impl Task {
-    /// All tasks.
+    /// The scripted tasks with a goal (planning, policy evaluation).
     pub const ALL: [Task; 3] = [Task::Reach, Task::Push, Task::PickPlace];
+    /// Every task `synth` can generate: [`Task::ALL`] and [`Task::Play`].
+    pub const GENERATED: [Task; 4] = [Task::Reach, Task::Push, Task::PickPlace, Task::Play];
 
     /// The task's name.
     pub fn name(self) -> &'static str {
@@ -131,12 +138,13 @@ impl Task {
             Task::Reach => "reach",
             Task::Push => "push",
             Task::PickPlace => "pick_place",
+            Task::Play => "play",
         }
     }
 
-    /// Parses [`Task::name`].
+    /// Parses [`Task::name`] (any of [`Task::GENERATED`]).
     pub fn parse(s: &str) -> Option<Task> {
-        Task::ALL.into_iter().find(|x| x.name() == s)
+        Task::GENERATED.into_iter().find(|x| x.name() == s)
     }
 
     /// The natural-language task string stored in `meta/tasks.parquet`.
@@ -145,6 +153,7 @@ impl Task {
             Task::Reach => "reach to a point above the table",
             Task::Push => "push the object across the table",
             Task::PickPlace => "pick up the object and place it elsewhere",
+            Task::Play => "move the arm freely over the table",
         }
     }
 }
@@ -1071,6 +1080,39 @@ impl World {
                         1.0,
                     ),
                 ]);
+            }
+            (Task::Play, _) => {
+                // 3 to 5 waypoints at jittered, increasing times; about 40%
+                // at an object (grasp height), the rest anywhere over the
+                // table; the gripper flips with probability 0.4 at each.
+                let n_way = 3 + ((noise(1.0) + 1.0) * 1.5).floor().min(2.0) as usize;
+                let (mut g, mut yaw) = (0.0, 0.0);
+                for i in 1..=n_way {
+                    let t = if i == n_way {
+                        1.0
+                    } else {
+                        (i as f64 + noise(0.25)) / n_way as f64
+                    };
+                    let p = if !objects.is_empty() && noise(1.0) > 0.2 {
+                        let k = (((noise(0.5) + 0.5) * objects.len() as f64) as usize)
+                            .min(objects.len() - 1);
+                        let o = &objects[k];
+                        let z = tz + (0.5 * o.shape.height_m()).max(0.022) + noise(0.015).abs();
+                        let q = o.initial.position_m;
+                        Vector3::new(q[0] + noise(0.02), q[1] + noise(0.02), z)
+                    } else {
+                        Vector3::new(
+                            c.x + noise(0.15),
+                            c.y + noise(0.22),
+                            tz + 0.115 + noise(0.085),
+                        )
+                    };
+                    if noise(1.0) > 0.2 {
+                        g = 1.0 - g;
+                    }
+                    yaw += noise(0.4);
+                    keys.push((t, p, yaw, g));
+                }
             }
             _ => {
                 // Reach (or no object): a random point above the table.

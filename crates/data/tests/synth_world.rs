@@ -209,6 +209,50 @@ fn objects_move_only_when_contacted_and_tasks_move_them() {
 }
 
 #[test]
+fn play_episodes_roam_the_table_and_toggle_the_gripper() {
+    let w = World::new(&SynthConfig {
+        frames: 17,
+        ..config("franka")
+    })
+    .unwrap();
+    assert_eq!(Task::parse("play"), Some(Task::Play));
+    assert!(!Task::ALL.contains(&Task::Play));
+    let (mut toggled, mut touched) = (0, 0);
+    for i in 0..8 {
+        let e = w.generate(Split::Train, i, Task::Play).unwrap();
+        // Deterministic, like every task.
+        assert_eq!(
+            e.actions,
+            w.generate(Split::Train, i, Task::Play).unwrap().actions
+        );
+        let xyz = |r: &Vec<f64>| nalgebra::Vector3::new(r[0], r[1], r[2]);
+        let path: f64 = e
+            .actions
+            .windows(2)
+            .map(|p| (xyz(&p[1]) - xyz(&p[0])).norm())
+            .sum();
+        // Several waypoints: a longer path than the straight line home -> end.
+        let line = (xyz(e.actions.last().unwrap()) - xyz(&e.actions[0])).norm();
+        assert!(
+            path > line + 0.05,
+            "episode {i}: path {path:.3} m, line {line:.3} m"
+        );
+        let g: Vec<f64> = e.actions.iter().map(|r| r[6]).collect();
+        if g.windows(2).any(|p| (p[1] - p[0]).abs() > 0.05) {
+            toggled += 1;
+        }
+        if e.contacts.iter().flatten().any(|c| *c != Contact::None) {
+            touched += 1;
+        }
+    }
+    assert!(
+        toggled >= 4,
+        "the gripper moved in only {toggled}/8 play episodes"
+    );
+    assert!(touched >= 1, "no play episode touched an object");
+}
+
+#[test]
 fn agibot_generates_all_tasks() {
     let w = World::new(&config("agibot-g1")).unwrap();
     for task in Task::ALL {

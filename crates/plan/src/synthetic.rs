@@ -54,6 +54,11 @@ pub struct TaskInstance {
 impl TaskInstance {
     /// The instance `index` of `task` in `split` of `world`.
     pub fn new(world: &World, split: Split, index: usize, task: Task) -> Result<Self> {
+        if task == Task::Play {
+            return Err(PlanError::Invalid(
+                "task play has no goal: plan reach, push or pick_place".into(),
+            ));
+        }
         let expert = world.generate(split, index, task)?;
         let n = expert.rgb.len();
         let at = |frac: f64| ((frac * (n - 1) as f64).round() as usize).min(n - 1);
@@ -61,6 +66,7 @@ impl TaskInstance {
             Task::Reach => vec![at(0.5), n - 1],
             Task::Push => vec![at(0.85), n - 1],
             Task::PickPlace => vec![at(0.52), n - 1],
+            Task::Play => unreachable!("refused above"),
         };
         Ok(Self {
             task,
@@ -157,7 +163,7 @@ impl TaskInstance {
     /// expert final position.
     pub fn error_m(&self, world: &World, state: &SceneState) -> f64 {
         match self.task {
-            Task::Reach => {
+            Task::Reach | Task::Play => {
                 let (want, got) = self.final_and_current_tcp(world, state);
                 (want.translation.vector - got.translation.vector).norm()
             }

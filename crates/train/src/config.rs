@@ -36,8 +36,8 @@ pub struct TrainConfig {
 #[serde(default, deny_unknown_fields)]
 pub struct ModelSection {
     /// A diffusers CogVideoX image-to-video folder, or `random:tiny` /
-    /// `random:small` (the tiny or small VAE/transformer presets with random
-    /// weights, 9 frames at 64x96).
+    /// `random:small` / `random:small2x` (the tiny, small or 2x-spatial small
+    /// VAE/transformer presets with random weights, 9 frames at 64x96).
     pub backbone: String,
     /// The fixed prompt's embedding (safetensors, see `bridgev2w predict`); zeros when absent.
     pub prompt_embeds: Option<PathBuf>,

@@ -14,6 +14,7 @@
 use crate::data::ClipDataset;
 use crate::trainer::Trainer;
 use crate::{Result, TrainError};
+use bridgev2w_eval::dynamic::{dynamic_region, region_psnr};
 use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
 use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, video_psnr, video_ssim, Frame};
 use tch::{Kind, Tensor};
@@ -53,8 +54,13 @@ pub struct SplitScores {
     pub psnr: f64,
     /// Mean SSIM of the predictions.
     pub ssim: f64,
+    /// Mean PSNR of the predictions on the dynamic region
+    /// ([`bridgev2w_eval::dynamic`]), over the videos that have one.
+    pub dynamic_psnr: Option<f64>,
     /// Mean PSNR of the copy-the-first-frame baseline.
     pub baseline_psnr: f64,
+    /// Mean dynamic-region PSNR of the baseline.
+    pub baseline_dynamic_psnr: Option<f64>,
     /// Mean SSIM of the baseline.
     pub baseline_ssim: f64,
     /// Mean Mask-IoU (robot segmented in the predictions vs. ground-truth
@@ -69,6 +75,8 @@ pub struct SplitScores {
     pub autoencoder_psnr: f64,
     /// Mean SSIM of the ground truth through the VAE.
     pub autoencoder_ssim: f64,
+    /// Mean dynamic-region PSNR of the ground truth through the VAE.
+    pub autoencoder_dynamic_psnr: Option<f64>,
     /// Mask-IoU of the robot segmented in the VAE's reconstructions.
     pub autoencoder_mask_iou: Option<f64>,
 }
@@ -149,6 +157,8 @@ pub fn evaluate_split(
     let (mut p, mut s, mut bp, mut bs) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut iou, mut biou, mut ceil) = (Vec::new(), Vec::new(), Vec::new());
     let (mut ap, mut as_, mut aiou) = (Vec::new(), Vec::new(), Vec::new());
+    // Dynamic-region PSNR of the prediction, the baseline and the VAE.
+    let (mut dp, mut dbp, mut dap) = (Vec::new(), Vec::new(), Vec::new());
     let with_masks = segmenter.filter(|_| data.has_masks());
     for i in 0..n {
         let batch = data.clips(&[(i, 0)], trainer.model.device())?;
@@ -168,6 +178,10 @@ pub fn evaluate_split(
         s.push(video_ssim(&pf, &gt).map_err(metric)?);
         bp.push(video_psnr(&copy, &gt).map_err(metric)?);
         bs.push(video_ssim(&copy, &gt).map_err(metric)?);
+        let region = dynamic_region(&gt).map_err(metric)?;
+        for (out, v) in [(&mut dp, &pf), (&mut dbp, &copy), (&mut dap, &af)] {
+            out.extend(region_psnr(v, &gt, &region).map_err(metric)?);
+        }
         if let Some(seg) = with_masks {
             let gt_masks = mask_frames(&batch.masks)?;
             let segment = |v: &[Frame]| {
@@ -195,14 +209,17 @@ pub fn evaluate_split(
         split: split.to_string(),
         videos: n,
         psnr: mean(&p)?,
+        dynamic_psnr: opt_mean(&dp)?,
         ssim: mean(&s)?,
         baseline_psnr: mean(&bp)?,
+        baseline_dynamic_psnr: opt_mean(&dbp)?,
         baseline_ssim: mean(&bs)?,
         mask_iou: opt_mean(&iou)?,
         baseline_mask_iou: opt_mean(&biou)?,
         segmenter_mask_iou: opt_mean(&ceil)?,
         autoencoder_psnr: mean(&ap)?,
         autoencoder_ssim: mean(&as_)?,
+        autoencoder_dynamic_psnr: opt_mean(&dap)?,
         autoencoder_mask_iou: opt_mean(&aiou)?,
     })
 }

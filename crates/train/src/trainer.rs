@@ -150,9 +150,10 @@ fn random_preset(backbone: &str) -> Result<Option<(VaeConfig, TransformerConfig)
         None => Ok(None),
         Some("tiny") => Ok(Some((VaeConfig::tiny(), TransformerConfig::tiny()))),
         Some("small") => Ok(Some((VaeConfig::small(), TransformerConfig::small()))),
+        Some("small2x") => Ok(Some((VaeConfig::small_2x(), TransformerConfig::small_2x()))),
         Some(other) => Err(TrainError::input(
             "config model.backbone",
-            format!("`random:{other}`: expected random:tiny, random:small or a diffusers folder"),
+            format!("`random:{other}`: expected random:tiny, random:small, random:small2x or a diffusers folder"),
         )),
     }
 }

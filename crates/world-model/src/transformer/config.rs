@@ -164,17 +164,31 @@ impl TransformerConfig {
         }
     }
 
-    /// A preset by name: `cogvideox-5b-i2v`, `cogvideox-2b`, `small` or `tiny`.
+    /// The transformer of [`crate::vae::VaeConfig::small_2x`]'s latents
+    /// (48x32 at 96x64 pixels): [`TransformerConfig::small`] with patches of
+    /// 4x4 latent pixels, so a token covers 8x8 pixels and the sequence is as
+    /// long as `small`'s.
+    pub fn small_2x() -> Self {
+        Self {
+            patch_size: 4,
+            sample_width: 48,
+            sample_height: 32,
+            ..Self::small()
+        }
+    }
+
+    /// A preset by name: `cogvideox-5b-i2v`, `cogvideox-2b`, `small`, `small2x` or `tiny`.
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "cogvideox-5b-i2v" | "cogvideox_5b_i2v" => Ok(Self::cogvideox_5b_i2v()),
             "cogvideox-2b" | "cogvideox_2b" => Ok(Self::cogvideox_2b()),
             "tiny" => Ok(Self::tiny()),
             "small" => Ok(Self::small()),
+            "small2x" => Ok(Self::small_2x()),
             other => Err(WorldModelError::config(
                 PathBuf::from("<preset>"),
                 "name",
-                format!("unknown transformer preset `{other}`: expected cogvideox-5b-i2v, cogvideox-2b, small or tiny"),
+                format!("unknown transformer preset `{other}`: expected cogvideox-5b-i2v, cogvideox-2b, small, small2x or tiny"),
             )),
         }
     }
