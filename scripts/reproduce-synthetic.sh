@@ -18,7 +18,7 @@
 # Usage: scripts/reproduce-synthetic.sh [OUT_DIR]      (default runs/reproduce)
 # Budgets (environment, defaults sized for ~2.5 h on a 2-core CPU):
 #   VAE_IMAGE_STEPS VAE_STEPS PRIOR_STEPS FT_STEPS EVAL_VIDEOS EVAL_STEPS RESULTS
-#   EPISODES TASKS
+#   EPISODES TASKS PRESET
 # Rerunning resumes: a finished stage is kept, a cut one resumes from its last
 # checkpoint. Each stage records a fingerprint of its inputs (its config and
 # the fingerprints of the stages it starts from) in OUT/NAME.inputs; a stage
@@ -38,6 +38,8 @@ EVAL_STEPS=${EVAL_STEPS:-20}
 RESULTS=${RESULTS:-docs/results.md}
 EPISODES=${EPISODES:-240,12,12,12}
 TASKS=${TASKS:-reach,push,pick_place,play,play,play}
+# The VAE/transformer presets: small2x (2x space, patches of 4) or small (4x, patches of 2).
+PRESET=${PRESET:-small2x}
 
 BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
 if [[ -z ${BRIDGEV2W:-} ]]; then
@@ -74,7 +76,7 @@ EOF
 
 cat >"$OUT/configs/vae-image.toml" <<EOF
 [model]
-backbone = "random:small"
+backbone = "random:$PRESET"
 lora_rank = 0
 $(data_section 1)
 [train]
@@ -188,8 +190,8 @@ PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
     echo "Dataset: \`bridgev2w synth --tasks $TASKS\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
-    echo "Models: \`random:small\` VAE (3 blocks, 16 latent channels, 4x space / 4x time) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4) (L1 + KL);"
-    echo "action-free I2V prior (4 layers, 4 heads x 32) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
+    echo "Models: \`random:$PRESET\` VAE (16 latent channels, $([[ $PRESET == small2x ]] && echo '2 blocks, 2x space' || echo '3 blocks, 4x space') / 4x time) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4) (L1 + KL);"
+    echo "action-free I2V prior (4 layers, 4 heads x 32, patches of $([[ $PRESET == small2x ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."
     echo "Each method is scored on the first clip of the first $EVAL_VIDEOS episodes of each split."

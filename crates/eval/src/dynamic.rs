@@ -13,7 +13,7 @@
 //! weigh more, and `20 log10(1 / sqrt(mse))`. Frame 0 (the given image) and a
 //! clip without motion have no dynamic pixels; such a clip has no score.
 
-use crate::video::{Frame, PSNR_IDENTICAL, PSNR_MSE_FLOOR};
+use crate::video::{psnr_from_mse, Frame};
 use crate::{MetricError, Result};
 
 /// Per-channel absolute difference from the first frame above which a pixel
@@ -77,8 +77,8 @@ fn dilate(mask: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
 
 /// PSNR of `pred` against `gt` on `region` (one mask per frame, as from
 /// [`dynamic_region`]), the squared errors of all region pixels pooled;
-/// `None` when the region is empty. [`PSNR_IDENTICAL`] when the pooled MSE
-/// is below [`PSNR_MSE_FLOOR`].
+/// `None` when the region is empty. [`crate::video::PSNR_IDENTICAL`] when
+/// the pooled MSE is below [`crate::video::PSNR_MSE_FLOOR`].
 pub fn region_psnr(pred: &[Frame], gt: &[Frame], region: &[Vec<bool>]) -> Result<Option<f64>> {
     if pred.len() != gt.len() || region.len() != gt.len() {
         return Err(MetricError::ShapeMismatch {
@@ -109,12 +109,7 @@ pub fn region_psnr(pred: &[Frame], gt: &[Frame], region: &[Vec<bool>]) -> Result
     if n == 0 {
         return Ok(None);
     }
-    let mse = sum / n as f64;
-    Ok(Some(if mse < PSNR_MSE_FLOOR {
-        PSNR_IDENTICAL
-    } else {
-        20.0 * (1.0 / mse.sqrt()).log10()
-    }))
+    Ok(Some(psnr_from_mse(sum / n as f64)))
 }
 
 /// [`region_psnr`] on the [`dynamic_region`] of `gt`.
@@ -126,6 +121,7 @@ pub fn dynamic_psnr(pred: &[Frame], gt: &[Frame]) -> Result<Option<f64>> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+    use crate::video::PSNR_IDENTICAL;
 
     fn flat(w: usize, h: usize, v: f32) -> Frame {
         Frame::new(w, h, vec![v; w * h * 3]).unwrap()

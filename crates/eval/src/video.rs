@@ -80,12 +80,17 @@ pub fn psnr(pred: &Frame, gt: &Frame) -> Result<f64> {
                 .sum::<f64>()
         })
         .sum();
-    let mse = sum / pred.rgb.len().max(1) as f64;
-    Ok(if mse < PSNR_MSE_FLOOR {
+    Ok(psnr_from_mse(sum / pred.rgb.len().max(1) as f64))
+}
+
+/// `20 log10(1 / sqrt(mse))` of a mean squared error on `[0, 1]` data, or
+/// [`PSNR_IDENTICAL`] when `mse < PSNR_MSE_FLOOR`.
+pub fn psnr_from_mse(mse: f64) -> f64 {
+    if mse < PSNR_MSE_FLOOR {
         PSNR_IDENTICAL
     } else {
         20.0 * (1.0 / mse.sqrt()).log10()
-    })
+    }
 }
 
 /// Side of the SSIM window, pixels.

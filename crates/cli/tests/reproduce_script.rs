@@ -1,0 +1,145 @@
+//! `scripts/reproduce-synthetic.sh`, the CPU proof run: rerunning it keeps
+//! the stages made from the same inputs, redoes (after moving aside) every
+//! stage whose inputs changed and the stages downstream of it, and exports a
+//! demo config whose paths are relative to the repository root. Run on a copy
+//! of the script with a fake `bridgev2w` that records its calls.
+
+use std::fs;
+use std::os::unix::fs::PermissionsExt;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// A fake `bridgev2w`: appends `COMMAND NAME` to `calls.log` and makes the
+/// files the script checks (`synth`'s `meta/info.json`, `train`'s
+/// `final/weights.safetensors` and `final/backbone/`).
+const FAKE: &str = r#"#!/usr/bin/env bash
+set -eu
+log="$(dirname "$0")/calls.log"
+case $1 in
+synth)
+    out=$3
+    mkdir -p "$out/meta" && touch "$out/meta/info.json"
+    echo "synth" >>"$log" ;;
+train)
+    out=$(sed -n 's/^out = "\(.*\)"$/\1/p' "$2")
+    mkdir -p "$out/final/backbone" && touch "$out/final/weights.safetensors"
+    echo "train $(basename "$out")" >>"$log" ;;
+eval-run)
+    shift
+    while [[ $# -gt 0 ]]; do [[ $1 == --json ]] && echo '{}' >"$2"; shift; done
+    echo "eval-run" >>"$log" ;;
+eval-report)
+    echo "eval-report" >>"$log" ;;
+esac
+"#;
+
+fn sandbox() -> tempfile::TempDir {
+    let root = tempfile::tempdir().expect("tempdir");
+    fs::create_dir(root.path().join("scripts")).expect("mkdir");
+    fs::copy(
+        repo().join("scripts/reproduce-synthetic.sh"),
+        root.path().join("scripts/reproduce-synthetic.sh"),
+    )
+    .expect("copy script");
+    let fake = root.path().join("bridgev2w");
+    fs::write(&fake, FAKE).expect("write fake");
+    fs::set_permissions(&fake, fs::Permissions::from_mode(0o755)).expect("chmod");
+    root
+}
+
+/// Runs the script in `root` with `env`; returns the fake's calls of this run.
+fn run(root: &Path, env: &[(&str, &str)]) -> Vec<String> {
+    let log = root.join("calls.log");
+    let _ = fs::remove_file(&log);
+    let mut cmd = Command::new("bash");
+    cmd.arg(root.join("scripts/reproduce-synthetic.sh"))
+        .arg("runs/r")
+        .env("BRIDGEV2W", root.join("bridgev2w"))
+        .env("RESULTS", "results.md");
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let o = cmd.output().expect("run bash");
+    assert!(
+        o.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    fs::read_to_string(&log)
+        .unwrap_or_default()
+        .lines()
+        .map(str::to_string)
+        .collect()
+}
+
+fn trained(calls: &[String]) -> Vec<&str> {
+    calls
+        .iter()
+        .filter_map(|c| c.strip_prefix("train "))
+        .collect()
+}
+
+#[test]
+fn reruns_keep_what_is_done_and_redo_what_changed() {
+    let root = sandbox();
+    let r = root.path();
+    let first = run(r, &[]);
+    assert_eq!(first[0], "synth");
+    assert_eq!(
+        trained(&first),
+        [
+            "vae-image",
+            "vae",
+            "prior",
+            "bridgev2w",
+            "ablation-action-mlp"
+        ]
+    );
+    // Same inputs: nothing is trained again (the evaluations are redone).
+    let second = run(r, &[]);
+    assert!(!second.contains(&"synth".to_string()), "{second:?}");
+    assert!(trained(&second).is_empty(), "{second:?}");
+    // Another prior budget: the prior and both fine-tunings are redone, the
+    // autoencoders kept; the old prior is moved aside, not deleted.
+    let third = run(r, &[("PRIOR_STEPS", "7")]);
+    assert_eq!(
+        trained(&third),
+        ["prior", "bridgev2w", "ablation-action-mlp"]
+    );
+    let stale: Vec<String> = fs::read_dir(r.join("runs/r"))
+        .expect("ls")
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|n| n.contains(".stale-"))
+        .collect();
+    assert!(
+        stale.iter().any(|n| n.starts_with("prior.stale-"))
+            && stale.iter().any(|n| n.starts_with("bridgev2w.stale-")),
+        "{stale:?}"
+    );
+    // Another dataset: everything is redone.
+    let fourth = run(r, &[("PRIOR_STEPS", "7"), ("EPISODES", "9,1,1,1")]);
+    assert_eq!(fourth[0], "synth");
+    assert_eq!(trained(&fourth).len(), 5, "{fourth:?}");
+}
+
+#[test]
+fn the_exported_demo_config_names_repository_paths() {
+    let root = sandbox();
+    let r = root.path();
+    run(r, &[("EXPORT_DEMO", "1")]);
+    let cfg = fs::read_to_string(r.join("assets/demo-model/train-config.toml")).expect("config");
+    assert!(
+        cfg.contains("backbone = \"assets/demo-model/backbone\""),
+        "{cfg}"
+    );
+    assert!(cfg.contains("dataset = \"runs/r/synth\""), "{cfg}");
+    assert!(!cfg.contains(&r.display().to_string()), "{cfg}");
+    // It parses as a training config as it stands.
+    bridgev2w_train::config::TrainConfig::from_toml(&cfg).expect("a valid config");
+    assert!(r.join("assets/demo-model/backbone").is_dir());
+}
