@@ -294,6 +294,10 @@ pub struct TrainSection {
     pub stage: String,
     /// KL weight of the `vae` stage.
     pub kl_weight: f64,
+    /// `vae` stage: permute each clip's RGB channels and invert half of the
+    /// clips at random ([`crate::augment`]), so the autoencoder learns to
+    /// reconstruct colours beyond the training palettes.
+    pub color_augment: bool,
     /// Per-block gradient checkpointing of the backbone transformer
     /// (`bridgev2w` and `prior` stages): blocks run without autograd graphs
     /// and are recomputed one at a time in the backward pass. Same
@@ -341,6 +345,7 @@ impl Default for TrainSection {
             inject_nan_at_step: None,
             stage: "bridgev2w".into(),
             kl_weight: 1e-4,
+            color_augment: false,
             gradient_checkpointing: false,
             autocast: "auto".into(),
         }

@@ -7,6 +7,7 @@
 //!   Lucas-Kanade stand-in for CPU runs).
 
 pub mod action;
+pub mod augment;
 pub mod config;
 pub mod data;
 pub mod distributed;

@@ -25,6 +25,7 @@
 //! writes the metrics and checkpoints.
 
 use crate::action::ActionEncoder;
+use crate::augment::{recolor, ColorDraw};
 use crate::config::TrainConfig;
 use crate::data::{rng_for, seed_for, Batch, ClipDataset};
 use crate::distributed::{Collective, DistEnv};
@@ -584,10 +585,20 @@ impl Trainer {
     fn vae_losses(&self, batch: &Batch, step: usize) -> Result<Losses> {
         let t = &self.cfg.train;
         let vae = &self.model.vae;
-        let post = vae.encode_with_grad(&batch.video)?;
+        let video = if t.color_augment {
+            // Per-item draws for the whole batch; this rank keeps its own.
+            let rank_world = self.rank_and_world();
+            let global_b = batch.video.size()[0] as usize * rank_world.1;
+            let mut rng = rng_for(t.seed, step as u64, 7);
+            let all: Vec<ColorDraw> = (0..global_b).map(|_| ColorDraw::sample(&mut rng)).collect();
+            recolor(&batch.video, &rank_items(all, rank_world))?
+        } else {
+            batch.video.shallow_clone()
+        };
+        let post = vae.encode_with_grad(&video)?;
         let z = self.shard_sample(&post, seed_for(t.seed, step as u64, 5))?;
         let recon = vae.decode_with_grad(&z)?;
-        let l1 = (recon - batch.video.to_device(z.device()))
+        let l1 = (recon - video.to_device(z.device()))
             .abs()
             .mean(Kind::Float);
         let (mean, logvar) = (post.mean(), post.logvar());
