@@ -29,8 +29,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 OUT=${1:-runs/reproduce}
-VAE_IMAGE_STEPS=${VAE_IMAGE_STEPS:-1500}
-VAE_STEPS=${VAE_STEPS:-600}
+VAE_IMAGE_STEPS=${VAE_IMAGE_STEPS:-2500}
+VAE_STEPS=${VAE_STEPS:-500}
 PRIOR_STEPS=${PRIOR_STEPS:-1500}
 FT_STEPS=${FT_STEPS:-1000}
 EVAL_VIDEOS=${EVAL_VIDEOS:-12}
@@ -87,6 +87,7 @@ max_steps = $VAE_IMAGE_STEPS
 lr = 1e-3
 warmup_steps = 20
 checkpoint_every = 250
+color_augment = true
 EOF
 
 cat >"$OUT/configs/vae.toml" <<EOF
@@ -101,7 +102,8 @@ batch_size = 4
 max_steps = $VAE_STEPS
 lr = 5e-4
 warmup_steps = 20
-checkpoint_every = 200
+checkpoint_every = 100
+color_augment = true
 EOF
 
 cat >"$OUT/configs/prior.toml" <<EOF
@@ -190,7 +192,7 @@ PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
     echo "Dataset: \`bridgev2w synth --tasks $TASKS\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
-    echo "Models: \`random:$PRESET\` VAE (16 latent channels, $([[ $PRESET == small2x ]] && echo '2 blocks, 2x space' || echo '3 blocks, 4x space') / 4x time) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4) (L1 + KL);"
+    echo "Models: \`random:$PRESET\` VAE (16 latent channels, $([[ $PRESET == small2x ]] && echo '2 blocks, 2x space' || echo '3 blocks, 4x space') / 4x time) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4) (L1 + KL, colours permuted and inverted at random);"
     echo "action-free I2V prior (4 layers, 4 heads x 32, patches of $([[ $PRESET == small2x ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."

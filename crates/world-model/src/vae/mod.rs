@@ -162,7 +162,8 @@ impl VaeConfig {
     }
 
     /// The 2x-spatial variant of [`VaeConfig::small`]: 2 blocks of 16 and 32
-    /// channels (2x space, 4x time), 16 latent channels. Each latent pixel
+    /// channels, 16 latent channels. Its one resampling block halves space
+    /// and time (2x space, 2x time: 5 latent frames for 9). Each latent pixel
     /// holds 16 numbers for 2x2 RGB pixels of the first frame, so the
     /// autoencoder can reconstruct the synthetic world's 2-3 pixel objects
     /// and textures, and it costs less per frame than `small` (no
@@ -172,6 +173,7 @@ impl VaeConfig {
             down_block_types: vec![DOWN_BLOCK_TYPE.to_owned(); 2],
             up_block_types: vec![UP_BLOCK_TYPE.to_owned(); 2],
             block_out_channels: vec![16, 32],
+            temporal_compression_ratio: 2.0,
             ..Self::small()
         }
     }
@@ -284,6 +286,20 @@ impl VaeConfig {
             return err(
                 "temporal_compression_ratio",
                 format!("{}: must be >= 1", self.temporal_compression_ratio),
+            );
+        }
+        // Only the blocks with a down/upsampler (all but the last) can halve
+        // time: more levels than that would leave the latent longer than
+        // `latent_frames` expects.
+        let resamplers = n as i64 - 1;
+        if self.temporal_compress_level() > resamplers {
+            return err(
+                "temporal_compression_ratio",
+                format!(
+                    "{} needs {} time-halving blocks, but {n} blocks have only {resamplers} resamplers",
+                    self.temporal_compression_ratio,
+                    self.temporal_compress_level()
+                ),
             );
         }
         if self.norm_eps.is_nan() || self.norm_eps <= 0.0 {
@@ -1113,16 +1129,16 @@ mod tests {
             assert_eq!(cfg.temporal_compress_level(), 2);
         }
         use crate::transformer::TransformerConfig;
-        for (small, tf, space) in [
-            (VaeConfig::small(), TransformerConfig::small(), 4),
-            (VaeConfig::small_2x(), TransformerConfig::small_2x(), 2),
+        for (small, tf, space, time_levels) in [
+            (VaeConfig::small(), TransformerConfig::small(), 4, 2),
+            (VaeConfig::small_2x(), TransformerConfig::small_2x(), 2, 1),
         ] {
             small
                 .validate(Path::new("small"))
                 .unwrap_or_else(|e| panic!("{e}"));
             assert_eq!(
                 (small.spatial_compression(), small.temporal_compress_level()),
-                (space, 2)
+                (space, time_levels)
             );
             // The small transformer denoises the small VAE's latents (noisy ++ image).
             assert_eq!(
@@ -1147,6 +1163,22 @@ mod tests {
         assert_eq!(
             (t.tile_latent_min_height, t.tile_latent_min_width),
             (30, 45)
+        );
+    }
+
+    #[test]
+    fn time_compression_beyond_the_resampling_blocks_is_refused() {
+        let cfg = VaeConfig {
+            temporal_compression_ratio: 4.0,
+            ..VaeConfig::small_2x()
+        };
+        let e = cfg
+            .validate(Path::new("vae/config.json"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("temporal_compression_ratio") && e.contains("only 1 resamplers"),
+            "{e}"
         );
     }
 
