@@ -1174,7 +1174,7 @@ mod tests {
         };
         let e = cfg
             .validate(Path::new("vae/config.json"))
-            .unwrap_err()
+            .expect_err("4x time with one resampling block")
             .to_string();
         assert!(
             e.contains("temporal_compression_ratio") && e.contains("only 1 resamplers"),
