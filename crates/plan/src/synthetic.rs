@@ -54,20 +54,21 @@ pub struct TaskInstance {
 impl TaskInstance {
     /// The instance `index` of `task` in `split` of `world`.
     pub fn new(world: &World, split: Split, index: usize, task: Task) -> Result<Self> {
-        if task == Task::Play {
-            return Err(PlanError::Invalid(
-                "task play has no goal: plan reach, push or pick_place".into(),
-            ));
-        }
+        // The fraction of the expert episode at the first key goal.
+        let key_frac = match task {
+            Task::Reach => 0.5,
+            Task::Push => 0.85,
+            Task::PickPlace => 0.52,
+            Task::Play => {
+                return Err(PlanError::Invalid(
+                    "task play has no goal: plan reach, push or pick_place".into(),
+                ))
+            }
+        };
         let expert = world.generate(split, index, task)?;
         let n = expert.rgb.len();
         let at = |frac: f64| ((frac * (n - 1) as f64).round() as usize).min(n - 1);
-        let goal_frames = match task {
-            Task::Reach => vec![at(0.5), n - 1],
-            Task::Push => vec![at(0.85), n - 1],
-            Task::PickPlace => vec![at(0.52), n - 1],
-            Task::Play => unreachable!("refused above"),
-        };
+        let goal_frames = vec![at(key_frac), n - 1];
         Ok(Self {
             task,
             expert,

@@ -690,6 +690,9 @@ fn waypoints_are_expert_frames_before_each_key_goal() {
     let wp = inst.clone().with_waypoints(2);
     // Start 0 -> 4, 8 -> key 12 -> 16, 20 -> key 24.
     assert_eq!(wp.goal_frames, vec![4, 8, 12, 16, 20, 24]);
+    // Play episodes have no goal: refused with a clear error.
+    let e = TaskInstance::new(&world, Split::Test, 0, Task::Play).unwrap_err();
+    assert!(e.to_string().contains("task play has no goal"), "{e}");
     assert_eq!(wp.first_key_goal, 2);
     assert_eq!(wp.goal_images().len(), 6);
     let none = inst.clone().with_waypoints(0);
