@@ -30,7 +30,7 @@ cd "$(dirname "$0")/.."
 ROOT=$PWD
 OUT=${1:-runs/reproduce}
 VAE_IMAGE_STEPS=${VAE_IMAGE_STEPS:-2500}
-VAE_STEPS=${VAE_STEPS:-500}
+VAE_STEPS=${VAE_STEPS:-300}
 PRIOR_STEPS=${PRIOR_STEPS:-1500}
 FT_STEPS=${FT_STEPS:-1000}
 EVAL_VIDEOS=${EVAL_VIDEOS:-12}
@@ -38,8 +38,13 @@ EVAL_STEPS=${EVAL_STEPS:-20}
 RESULTS=${RESULTS:-docs/results.md}
 EPISODES=${EPISODES:-240,12,12,12}
 TASKS=${TASKS:-reach,push,pick_place,play,play,play}
-# The VAE/transformer presets: small2x (2x space, patches of 4) or small (4x, patches of 2).
+# The VAE/transformer presets: small2x (2x space, no time compression,
+# patches of 4) or small (4x space and time, patches of 2).
 PRESET=${PRESET:-small2x}
+# Without time compression the clip stage starts from the image autoencoder
+# applied frame by frame (its temporal taps summed into the current frame's).
+INFLATE=false
+[[ $PRESET == small2x ]] && INFLATE=true
 
 BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
 if [[ -z ${BRIDGEV2W:-} ]]; then
@@ -51,14 +56,16 @@ fi
 
 mkdir -p "$OUT/configs"
 LOG="$OUT/timings.tsv"
-: >"$LOG"
-stage() { # stage NAME COMMAND...: runs it, records its wall time
+touch "$LOG"
+stage() { # stage NAME COMMAND...: runs it, records its wall time (replacing an earlier record)
     local name=$1 t0
     shift
     echo "== $name: $*"
     t0=$(date +%s)
     "$@"
-    printf '%s\t%s\n' "$name" "$(($(date +%s) - t0))" >>"$LOG"
+    awk -F'\t' -v n="$name" '$1 != n' "$LOG" >"$LOG.tmp"
+    printf '%s\t%s\n' "$name" "$(($(date +%s) - t0))" >>"$LOG.tmp"
+    mv "$LOG.tmp" "$LOG"
 }
 
 # Shared data section: clips of ARG1 (default 9) frames at 96x64 from
@@ -104,6 +111,7 @@ lr = 5e-4
 warmup_steps = 20
 checkpoint_every = 100
 color_augment = true
+inflate_image_vae = $INFLATE
 EOF
 
 cat >"$OUT/configs/prior.toml" <<EOF
@@ -192,7 +200,7 @@ PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
     echo "Dataset: \`bridgev2w synth --tasks $TASKS\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
-    echo "Models: \`random:$PRESET\` VAE (16 latent channels, $([[ $PRESET == small2x ]] && echo '2 blocks, 2x space' || echo '3 blocks, 4x space') / 4x time) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4) (L1 + KL, colours permuted and inverted at random);"
+    echo "Models: \`random:$PRESET\` VAE (16 latent channels, $([[ $PRESET == small2x ]] && echo '2 blocks, 2x space, no time compression' || echo '3 blocks, 4x space, 4x time')) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4$([[ $INFLATE == true ]] && echo ', starting from the image autoencoder applied frame by frame')) (L1 + KL, colours permuted and inverted at random);"
     echo "action-free I2V prior (4 layers, 4 heads x 32, patches of $([[ $PRESET == small2x ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."

@@ -16,6 +16,8 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::{xyz_rpy_from_pose, IkOptions};
 use bridgev2w_embodiment::masks::{write_outputs, WriteOptions};
 use bridgev2w_embodiment::npy::write_atomic;
+use bridgev2w_eval::clip::{compare_with_copy, ClipScore};
+use bridgev2w_eval::video::Frame;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::video::{Image, MaskVideo};
@@ -180,6 +182,36 @@ fn predict(args: &DemoArgs) -> Result<()> {
         &out.join("prediction-actions.json"),
         serde_json::to_string(&episode.actions[..frames])?.as_bytes(),
     )?;
+    // The prediction against the ground truth, next to copying the first frame.
+    let to_frames = |clip: &[Vec<u8>]| -> Result<Vec<Frame>> {
+        Ok(clip
+            .iter()
+            .map(|f| Frame::from_rgb8(w, h, f))
+            .collect::<std::result::Result<_, _>>()?)
+    };
+    let scores = compare_with_copy(&to_frames(&pred)?, &to_frames(&episode.rgb[..frames])?)?;
+    let json = |s: &ClipScore| serde_json::json!({"psnr": s.psnr, "ssim": s.ssim, "dynamic_psnr": s.dynamic_psnr});
+    write_atomic(
+        &out.join("prediction-scores.json"),
+        serde_json::to_string_pretty(&serde_json::json!({
+            "prediction": json(&scores.prediction),
+            "copy_first_frame": json(&scores.copy_first_frame),
+        }))?
+        .as_bytes(),
+    )?;
+    let dynamic = |s: &ClipScore| {
+        s.dynamic_psnr
+            .map_or_else(|| "-".to_owned(), |v| format!("{v:.2} dB"))
+    };
+    println!(
+        "  against the ground truth: PSNR {:.2} dB, SSIM {:.3}, dynamic-region PSNR {} (copying the first frame: {:.2} dB, {:.3}, {})",
+        scores.prediction.psnr,
+        scores.prediction.ssim,
+        dynamic(&scores.prediction),
+        scores.copy_first_frame.psnr,
+        scores.copy_first_frame.ssim,
+        dynamic(&scores.copy_first_frame),
+    );
     println!(
         "  world model ({}): {frames} frames at {w}x{h} predicted from the first frame and the masks of a built-in pick-and-place (unseen camera), {} steps, in {:.1} s",
         dir.display(),
@@ -187,7 +219,7 @@ fn predict(args: &DemoArgs) -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     println!(
-        "  {0}/prediction.mp4, {0}/prediction.gif (first frame | masks | prediction | ground truth), prediction-actions.json",
+        "  {0}/prediction.mp4, {0}/prediction.gif (first frame | masks | prediction | ground truth), prediction-actions.json, prediction-scores.json",
         out.display()
     );
     Ok(())

@@ -478,6 +478,26 @@ fn demo_predicts_with_the_shipped_model() {
     )
     .expect("demo test");
     assert_eq!((actions.len(), actions[0].len()), (9, 7));
+    // The shipped model predicts the clip better than copying its first
+    // frame (which knows nothing of the motion): on the whole frames and on
+    // the pixels that move.
+    let scores: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("prediction-scores.json")).expect("demo test"),
+    )
+    .expect("demo test");
+    let score = |who: &str, what: &str| scores[who][what].as_f64().expect("demo scores");
+    assert!(
+        score("prediction", "psnr") >= score("copy_first_frame", "psnr"),
+        "{scores}"
+    );
+    assert!(
+        score("prediction", "dynamic_psnr") > score("copy_first_frame", "dynamic_psnr"),
+        "{scores}"
+    );
+    assert!(
+        stdout.contains("against the ground truth: PSNR"),
+        "{stdout}"
+    );
 
     let o = run(&[
         "demo",

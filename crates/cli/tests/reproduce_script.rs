@@ -111,6 +111,19 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         trained(&third),
         ["prior", "bridgev2w", "ablation-action-mlp"]
     );
+    // The wall-time table keeps the stages kept from earlier runs, once each.
+    let timings = fs::read_to_string(r.join("runs/r/timings.tsv")).expect("timings");
+    let stages: Vec<&str> = timings
+        .lines()
+        .filter_map(|l| l.split('\t').next())
+        .collect();
+    for name in ["synth", "vae-image", "vae", "prior", "bridgev2w"] {
+        assert_eq!(
+            stages.iter().filter(|s| **s == name).count(),
+            1,
+            "{timings}"
+        );
+    }
     let stale: Vec<String> = fs::read_dir(r.join("runs/r"))
         .expect("ls")
         .filter_map(|e| e.ok()?.file_name().into_string().ok())

@@ -8,6 +8,7 @@
 //! * Policy evaluation ([`ranking`]): MMRV and Pearson r between real and
 //!   world-model success rates, as SIMPLER computes them.
 
+pub mod clip;
 pub mod dynamic;
 pub mod frechet;
 pub mod ranking;

@@ -298,6 +298,12 @@ pub struct TrainSection {
     /// clips at random ([`crate::augment`]), so the autoencoder learns to
     /// reconstruct colours beyond the training palettes.
     pub color_augment: bool,
+    /// `vae` stage, fresh start: the backbone's VAE was trained on single
+    /// frames, so its causal convolutions' temporal taps are summed into the
+    /// current frame's ([`bridgev2w_world_model::vae::inflate_image_weights`])
+    /// and clip training starts from the image autoencoder applied frame by
+    /// frame. Useful only without time compression (e.g. `small2x`).
+    pub inflate_image_vae: bool,
     /// Per-block gradient checkpointing of the backbone transformer
     /// (`bridgev2w` and `prior` stages): blocks run without autograd graphs
     /// and are recomputed one at a time in the backward pass. Same
@@ -346,6 +352,7 @@ impl Default for TrainSection {
             stage: "bridgev2w".into(),
             kl_weight: 1e-4,
             color_augment: false,
+            inflate_image_vae: false,
             gradient_checkpointing: false,
             autocast: "auto".into(),
         }
@@ -450,6 +457,15 @@ impl TrainConfig {
             return bad(
                 "train.kl_weight",
                 format!("{}: expected a finite value >= 0", t.kl_weight),
+            );
+        }
+        if t.inflate_image_vae && t.stage != "vae" {
+            return bad(
+                "train.inflate_image_vae",
+                format!(
+                    "true with stage {:?}: it starts a \"vae\" stage from an image autoencoder",
+                    t.stage
+                ),
             );
         }
         if self.data.clips_per_video == 0 {

@@ -14,9 +14,10 @@
 use crate::data::ClipDataset;
 use crate::trainer::Trainer;
 use crate::{Result, TrainError};
-use bridgev2w_eval::dynamic::{dynamic_region, region_psnr};
+use bridgev2w_eval::clip::{copy_first_frame, score_clip};
+use bridgev2w_eval::dynamic::dynamic_region;
 use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
-use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, video_psnr, video_ssim, Frame};
+use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, Frame};
 use tch::{Kind, Tensor};
 
 /// Sampling settings of [`evaluate_split`].
@@ -165,22 +166,23 @@ pub fn evaluate_split(
         let pred = trainer.predict(&batch, opts.steps, opts.guidance, opts.seed)?;
         let gt = frames(&batch.video)?;
         let pf = frames(&pred)?;
-        let copy = frames(&batch.first_frames.unsqueeze(2).expand_as(&batch.video))?;
+        let copy = copy_first_frame(&gt).map_err(metric)?;
         let model = &trainer.model;
         let recon = tch::no_grad(|| -> Result<Tensor> {
             let z = model.encode_latents(&batch.video, None)?; // [1, t, C, h, w]
             Ok(model.decode_latents(&z)?)
         })?;
         let af = frames(&recon)?;
-        ap.push(video_psnr(&af, &gt).map_err(metric)?);
-        as_.push(video_ssim(&af, &gt).map_err(metric)?);
-        p.push(video_psnr(&pf, &gt).map_err(metric)?);
-        s.push(video_ssim(&pf, &gt).map_err(metric)?);
-        bp.push(video_psnr(&copy, &gt).map_err(metric)?);
-        bs.push(video_ssim(&copy, &gt).map_err(metric)?);
         let region = dynamic_region(&gt).map_err(metric)?;
-        for (out, v) in [(&mut dp, &pf), (&mut dbp, &copy), (&mut dap, &af)] {
-            out.extend(region_psnr(v, &gt, &region).map_err(metric)?);
+        for (v, psnr, ssim, dynamic) in [
+            (&pf, &mut p, &mut s, &mut dp),
+            (&copy, &mut bp, &mut bs, &mut dbp),
+            (&af, &mut ap, &mut as_, &mut dap),
+        ] {
+            let score = score_clip(v, &gt, &region).map_err(metric)?;
+            psnr.push(score.psnr);
+            ssim.push(score.ssim);
+            dynamic.extend(score.dynamic_psnr);
         }
         if let Some(seg) = with_masks {
             let gt_masks = mask_frames(&batch.masks)?;

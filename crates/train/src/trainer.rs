@@ -313,6 +313,9 @@ impl Trainer {
             params.push((format!("adapters.{name}"), t));
         }
         if stage == "vae" {
+            if cfg.train.inflate_image_vae {
+                bridgev2w_world_model::vae::inflate_image_weights(&model.vae_vs);
+            }
             model.vae_vs.unfreeze();
             for (name, t) in model.vae_vs.variables() {
                 params.push((format!("vae.{name}"), t));

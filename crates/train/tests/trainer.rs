@@ -511,6 +511,27 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
         "re-estimated scale {scale}"
     );
 
+    // A clip stage from it, inflated: every causal convolution's weight sits
+    // on the current frame's tap; only a vae stage accepts the switch.
+    let mut c = config(&tmp.path().join("vae-clips"));
+    c.model.backbone = backbone.display().to_string();
+    (c.train.stage, c.train.inflate_image_vae) = ("vae".into(), true);
+    let t = Trainer::new(c.clone()).unwrap();
+    let mut inflated = 0;
+    for (name, w) in t.model.vae_vs.variables() {
+        if w.dim() == 5 && w.size()[2] > 1 {
+            let kt = w.size()[2];
+            let earlier = w.narrow(2, 0, kt - 1).abs().max().double_value(&[]);
+            assert_eq!(earlier, 0.0, "{name}");
+            assert!(w.narrow(2, kt - 1, 1).abs().max().double_value(&[]) > 0.0);
+            inflated += 1;
+        }
+    }
+    assert!(inflated > 4, "{inflated} inflated convolutions");
+    c.train.stage = "prior".into();
+    let e = Trainer::new(c).unwrap_err().to_string();
+    assert!(e.contains("train.inflate_image_vae"), "{e}");
+
     let mut c = config(&tmp.path().join("prior"));
     c.model.backbone = backbone.display().to_string();
     (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);

@@ -165,12 +165,13 @@ impl TransformerConfig {
     }
 
     /// The transformer of [`crate::vae::VaeConfig::small_2x`]'s latents
-    /// (48x32 at 96x64 pixels): [`TransformerConfig::small`] with patches of
-    /// 4x4 latent pixels, so a token covers 8x8 pixels and the sequence is as
-    /// long as `small`'s.
+    /// (48x32 at 96x64 pixels, one latent frame per frame): [`TransformerConfig::small`]
+    /// with patches of 4x4 latent pixels, so a token covers 8x8 pixels
+    /// (96 tokens a frame, 864 for 9 frames).
     pub fn small_2x() -> Self {
         Self {
             patch_size: 4,
+            temporal_compression_ratio: 1,
             sample_width: 48,
             sample_height: 32,
             ..Self::small()

@@ -767,6 +767,51 @@ mod tests {
     use tch::{Device, Kind};
 
     #[test]
+    fn inflated_causal_conv_is_the_frame_by_frame_conv_and_keeps_single_frames() {
+        tch::manual_seed(1);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let conv = CausalConv3d::new(vs.root() / "c", 3, 4, 3);
+        tch::no_grad(|| {
+            for mut v in vs.variables().into_values() {
+                let r = Tensor::randn_like(&v) * 0.2;
+                v.copy_(&r);
+            }
+        });
+        let frame = Tensor::randn([1, 3, 1, 5, 6], (Kind::Float, Device::Cpu));
+        let clip = Tensor::randn([1, 3, 4, 5, 6], (Kind::Float, Device::Cpu));
+        let (single_before, _) = conv.forward(&frame, None).unwrap();
+        let (clip_before, _) = conv.forward(&clip, None).unwrap();
+        assert_eq!(crate::vae::inflate_image_weights(&vs), 1);
+        let (single_after, _) = conv.forward(&frame, None).unwrap();
+        assert!(
+            (&single_after - &single_before)
+                .abs()
+                .max()
+                .double_value(&[])
+                < 1e-5
+        );
+        // Every output frame is now the conv of its own frame alone.
+        let (clip_after, _) = conv.forward(&clip, None).unwrap();
+        for t in 0..4 {
+            let (alone, _) = conv.forward(&clip.narrow(2, t, 1), None).unwrap();
+            let d = (clip_after.narrow(2, t, 1) - alone)
+                .abs()
+                .max()
+                .double_value(&[]);
+            assert!(d < 1e-5, "frame {t}: {d}");
+        }
+        // Before, later frames mixed in their predecessors.
+        let (alone, _) = conv.forward(&clip.narrow(2, 3, 1), None).unwrap();
+        assert!(
+            (clip_before.narrow(2, 3, 1) - alone)
+                .abs()
+                .max()
+                .double_value(&[])
+                > 1e-2
+        );
+    }
+
+    #[test]
     fn one_frame_causal_conv_matches_the_time_padded_3d_conv() {
         tch::manual_seed(0);
         let vs = nn::VarStore::new(Device::Cpu);

@@ -163,17 +163,19 @@ impl VaeConfig {
 
     /// The 2x-spatial variant of [`VaeConfig::small`]: 2 blocks of 16 and 32
     /// channels, 16 latent channels. Its one resampling block halves space
-    /// and time (2x space, 2x time: 5 latent frames for 9). Each latent pixel
-    /// holds 16 numbers for 2x2 RGB pixels of the first frame, so the
+    /// only: 2x space, no time compression (one latent frame per frame, 9
+    /// for 9). Each latent pixel holds 16 numbers for 2x2 RGB pixels, so the
     /// autoencoder can reconstruct the synthetic world's 2-3 pixel objects
     /// and textures, and it costs less per frame than `small` (no
-    /// quarter-resolution block).
+    /// quarter-resolution block). Without time compression, an autoencoder
+    /// trained on single frames starts on clips as itself applied frame by
+    /// frame (`train.inflate_image_vae`).
     pub fn small_2x() -> Self {
         Self {
             down_block_types: vec![DOWN_BLOCK_TYPE.to_owned(); 2],
             up_block_types: vec![UP_BLOCK_TYPE.to_owned(); 2],
             block_out_channels: vec![16, 32],
-            temporal_compression_ratio: 2.0,
+            temporal_compression_ratio: 1.0,
             ..Self::small()
         }
     }
@@ -1095,6 +1097,34 @@ pub fn init_like_pytorch(vs: &VarStore) {
     });
 }
 
+/// Turns an autoencoder trained on single frames into the same autoencoder
+/// applied frame by frame: every causal convolution's temporal taps
+/// (`[Cout, Cin, kt, kh, kw]`, `kt > 1`, the last tap the current frame) are
+/// summed into the current frame's tap and the earlier taps zeroed. A single
+/// frame sees all `kt` taps on copies of itself, so its output is unchanged;
+/// a clip's frames then no longer mix in the convolutions (only the group
+/// norms still pool over time). The start of clip training after image
+/// training (3-D "inflation" of 2-D weights). Returns the number of weights changed.
+pub fn inflate_image_weights(vs: &VarStore) -> usize {
+    let vars = vs.variables();
+    let mut changed = 0;
+    tch::no_grad(|| {
+        for (name, w) in &vars {
+            if w.dim() != 5 || !name.ends_with(".weight") || w.size()[2] < 2 {
+                continue;
+            }
+            let kt = w.size()[2];
+            // [Cout, Cin, kt, kh, kw] -> [Cout, Cin, 1, kh, kw]
+            let summed = w.sum_dim_intlist(2, true, w.kind());
+            let mut dst = w.shallow_clone();
+            let _ = dst.zero_();
+            dst.narrow(2, kt - 1, 1).copy_(&summed);
+            changed += 1;
+        }
+    });
+    changed
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1131,7 +1161,7 @@ mod tests {
         use crate::transformer::TransformerConfig;
         for (small, tf, space, time_levels) in [
             (VaeConfig::small(), TransformerConfig::small(), 4, 2),
-            (VaeConfig::small_2x(), TransformerConfig::small_2x(), 2, 1),
+            (VaeConfig::small_2x(), TransformerConfig::small_2x(), 2, 0),
         ] {
             small
                 .validate(Path::new("small"))
@@ -1154,6 +1184,11 @@ mod tests {
             );
             // Every token covers 8x8 pixels in both presets.
             assert_eq!(tf.patch_size * small.spatial_compression(), 8);
+            // Its learned positions are sized for the VAE's latent frames.
+            assert_eq!(
+                tf.temporal_compression_ratio,
+                small.temporal_compression_ratio as i64
+            );
         }
         let t = Tiling::for_config(&VaeConfig::cogvideox_5b_i2v());
         assert_eq!(
