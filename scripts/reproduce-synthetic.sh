@@ -192,8 +192,16 @@ train bridgev2w prior
 train ablation-action-mlp prior
 
 for name in bridgev2w ablation-action-mlp; do
+    # Kept when the run and the evaluation's settings are the ones it scored.
+    fp=$(fingerprint "eval $name --max-videos $EVAL_VIDEOS --steps $EVAL_STEPS" "$OUT/$name.inputs")
+    if [[ -f $OUT/eval-$name.json && $(cat "$OUT/eval-$name.inputs" 2>/dev/null) == "$fp" ]]; then
+        echo "== eval $name: done before from the same run and settings, kept"
+        continue
+    fi
+    rm -f "$OUT/eval-$name.json" "$OUT/eval-$name.inputs"
     stage "eval $name" "$BIN" eval-run "$OUT/configs/$name.toml" --run "$OUT/$name" \
         --max-videos "$EVAL_VIDEOS" --steps "$EVAL_STEPS" --json "$OUT/eval-$name.json"
+    printf '%s\n' "$fp" >"$OUT/eval-$name.inputs"
 done
 
 PRE="$OUT/preamble.md"
@@ -215,20 +223,6 @@ PRE="$OUT/preamble.md"
     --entry "Ablation: actions through an MLP=$OUT/eval-ablation-action-mlp.json"
 
 if [[ ${EXPORT_DEMO:-0} == 1 ]]; then
-    rm -rf assets/demo-model.tmp
-    mkdir -p assets/demo-model.tmp
-    cp -r "$OUT/prior/final/backbone" assets/demo-model.tmp/backbone
-    cp "$OUT/bridgev2w/final/weights.safetensors" assets/demo-model.tmp/bridgev2w.safetensors
-    # The config as it stands, paths relative to the repository root: the
-    # backbone is the exported one, the dataset and run folders the
-    # reproduction's (rerun the script to recreate them).
-    {
-        echo "# BridgeV2W fine-tuning config of this model (scripts/reproduce-synthetic.sh $OUT);"
-        echo "# paths are relative to the repository root."
-        sed -e "s|\"$OUT/prior/final/backbone\"|\"assets/demo-model/backbone\"|" \
-            -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w.toml"
-    } >assets/demo-model.tmp/train-config.toml
-    rm -rf assets/demo-model && mv assets/demo-model.tmp assets/demo-model
-    du -sh assets/demo-model
+    scripts/export-demo.sh "$OUT"
 fi
 echo "== done: $RESULTS"

@@ -40,11 +40,13 @@ esac
 fn sandbox() -> tempfile::TempDir {
     let root = tempfile::tempdir().expect("tempdir");
     fs::create_dir(root.path().join("scripts")).expect("mkdir");
-    fs::copy(
-        repo().join("scripts/reproduce-synthetic.sh"),
-        root.path().join("scripts/reproduce-synthetic.sh"),
-    )
-    .expect("copy script");
+    for script in ["reproduce-synthetic.sh", "export-demo.sh"] {
+        fs::copy(
+            repo().join("scripts").join(script),
+            root.path().join("scripts").join(script),
+        )
+        .expect("copy script");
+    }
     let fake = root.path().join("bridgev2w");
     fs::write(&fake, FAKE).expect("write fake");
     fs::set_permissions(&fake, fs::Permissions::from_mode(0o755)).expect("chmod");
@@ -84,6 +86,10 @@ fn trained(calls: &[String]) -> Vec<&str> {
         .collect()
 }
 
+fn evaluated(calls: &[String]) -> usize {
+    calls.iter().filter(|c| *c == "eval-run").count()
+}
+
 #[test]
 fn reruns_keep_what_is_done_and_redo_what_changed() {
     let root = sandbox();
@@ -100,10 +106,16 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
             "ablation-action-mlp"
         ]
     );
-    // Same inputs: nothing is trained again (the evaluations are redone).
+    assert_eq!(evaluated(&first), 2, "{first:?}");
+    // Same inputs: nothing is trained or evaluated again.
     let second = run(r, &[]);
     assert!(!second.contains(&"synth".to_string()), "{second:?}");
     assert!(trained(&second).is_empty(), "{second:?}");
+    assert_eq!(evaluated(&second), 0, "{second:?}");
+    // Another evaluation budget: only the evaluations are redone.
+    let more = run(r, &[("EVAL_STEPS", "3")]);
+    assert!(trained(&more).is_empty(), "{more:?}");
+    assert_eq!(evaluated(&more), 2, "{more:?}");
     // Another prior budget: the prior and both fine-tunings are redone, the
     // autoencoders kept; the old prior is moved aside, not deleted.
     let third = run(r, &[("PRIOR_STEPS", "7")]);
@@ -111,6 +123,7 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         trained(&third),
         ["prior", "bridgev2w", "ablation-action-mlp"]
     );
+    assert_eq!(evaluated(&third), 2, "{third:?}");
     // The wall-time table keeps the stages kept from earlier runs, once each.
     let timings = fs::read_to_string(r.join("runs/r/timings.tsv")).expect("timings");
     let stages: Vec<&str> = timings

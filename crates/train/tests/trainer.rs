@@ -515,6 +515,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     // on the current frame's tap; only a vae stage accepts the switch.
     let mut c = config(&tmp.path().join("vae-clips"));
     c.model.backbone = backbone.display().to_string();
+    (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
     (c.train.stage, c.train.inflate_image_vae) = ("vae".into(), true);
     let t = Trainer::new(c.clone()).unwrap();
     let mut inflated = 0;

@@ -766,17 +766,23 @@ mod tests {
     use super::*;
     use tch::{Device, Kind};
 
-    #[test]
-    fn inflated_causal_conv_is_the_frame_by_frame_conv_and_keeps_single_frames() {
-        tch::manual_seed(1);
+    /// A 3 -> `out` causal 3x3x3 convolution with N(0, 0.2²) weights and bias.
+    fn random_conv(seed: i64, out: i64) -> (nn::VarStore, CausalConv3d) {
+        tch::manual_seed(seed);
         let vs = nn::VarStore::new(Device::Cpu);
-        let conv = CausalConv3d::new(vs.root() / "c", 3, 4, 3);
+        let conv = CausalConv3d::new(vs.root() / "c", 3, out, 3);
         tch::no_grad(|| {
             for mut v in vs.variables().into_values() {
                 let r = Tensor::randn_like(&v) * 0.2;
                 v.copy_(&r);
             }
         });
+        (vs, conv)
+    }
+
+    #[test]
+    fn inflated_causal_conv_is_the_frame_by_frame_conv_and_keeps_single_frames() {
+        let (vs, conv) = random_conv(1, 4);
         let frame = Tensor::randn([1, 3, 1, 5, 6], (Kind::Float, Device::Cpu));
         let clip = Tensor::randn([1, 3, 4, 5, 6], (Kind::Float, Device::Cpu));
         let (single_before, _) = conv.forward(&frame, None).unwrap();
@@ -813,15 +819,7 @@ mod tests {
 
     #[test]
     fn one_frame_causal_conv_matches_the_time_padded_3d_conv() {
-        tch::manual_seed(0);
-        let vs = nn::VarStore::new(Device::Cpu);
-        let conv = CausalConv3d::new(vs.root() / "c", 3, 5, 3);
-        tch::no_grad(|| {
-            for mut v in vs.variables().into_values() {
-                let r = Tensor::randn_like(&v) * 0.2;
-                v.copy_(&r);
-            }
-        });
+        let (_vs, conv) = random_conv(0, 5);
         let x = Tensor::randn([2, 3, 1, 6, 7], (Kind::Float, Device::Cpu));
         let (fast, cache) = conv.forward(&x, None).unwrap();
         // The general path: the frame k = 3 times, one 3-D convolution.
