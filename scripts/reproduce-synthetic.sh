@@ -208,7 +208,7 @@ PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
     echo "Dataset: \`bridgev2w synth --tasks $TASKS\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
-    echo "Models: \`random:$PRESET\` VAE (16 latent channels, $([[ $PRESET == small2x ]] && echo '2 blocks, 2x space, no time compression' || echo '3 blocks, 4x space, 4x time')) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4$([[ $INFLATE == true ]] && echo ', starting from the image autoencoder applied frame by frame')) (L1 + KL, colours permuted and inverted at random);"
+    echo "Models: \`random:$PRESET\` VAE ($([[ $PRESET == small2x ]] && echo '4 latent channels, 2 blocks, 2x space, no time compression' || echo '16 latent channels, 3 blocks, 4x space, 4x time')) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4$([[ $INFLATE == true ]] && echo ', starting from the image autoencoder applied frame by frame')) (L1 + KL, colours permuted and inverted at random);"
     echo "action-free I2V prior (4 layers, 4 heads x 32, patches of $([[ $PRESET == small2x ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."

@@ -165,12 +165,15 @@ impl TransformerConfig {
     }
 
     /// The transformer of [`crate::vae::VaeConfig::small_2x`]'s latents
-    /// (48x32 at 96x64 pixels, one latent frame per frame): [`TransformerConfig::small`]
-    /// with patches of 4x4 latent pixels, so a token covers 8x8 pixels
-    /// (96 tokens a frame, 864 for 9 frames).
+    /// (4 channels, 48x32 at 96x64 pixels, one latent frame per frame):
+    /// [`TransformerConfig::small`] with patches of 4x4 latent pixels, so a
+    /// token covers 8x8 pixels (96 tokens a frame, 864 for 9 frames) and
+    /// holds 64 noise + 64 image values in its 128 dimensions.
     pub fn small_2x() -> Self {
         Self {
             patch_size: 4,
+            in_channels: 8,
+            out_channels: Some(4),
             temporal_compression_ratio: 1,
             sample_width: 48,
             sample_height: 32,

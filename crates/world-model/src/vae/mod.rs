@@ -162,19 +162,24 @@ impl VaeConfig {
     }
 
     /// The 2x-spatial variant of [`VaeConfig::small`]: 2 blocks of 16 and 32
-    /// channels, 16 latent channels. Its one resampling block halves space
+    /// channels, 4 latent channels. Its one resampling block halves space
     /// only: 2x space, no time compression (one latent frame per frame, 9
-    /// for 9). Each latent pixel holds 16 numbers for 2x2 RGB pixels, so the
+    /// for 9). Each latent pixel holds 4 numbers for 2x2 RGB pixels, so the
     /// autoencoder can reconstruct the synthetic world's 2-3 pixel objects
     /// and textures, and it costs less per frame than `small` (no
-    /// quarter-resolution block). Without time compression, an autoencoder
-    /// trained on single frames starts on clips as itself applied frame by
-    /// frame (`train.inflate_image_vae`).
+    /// quarter-resolution block). 4 latent channels, not 16: a transformer
+    /// token of 4x4 latent pixels then holds 64 noise values, which its 128
+    /// dimensions can carry (with 16 channels, 256 noise values through 128
+    /// dimensions: the sampler cannot see, so cannot remove, most of the
+    /// noise, and the predictions stay noisy). Without time compression, an
+    /// autoencoder trained on single frames starts on clips as itself applied
+    /// frame by frame (`train.inflate_image_vae`).
     pub fn small_2x() -> Self {
         Self {
             down_block_types: vec![DOWN_BLOCK_TYPE.to_owned(); 2],
             up_block_types: vec![UP_BLOCK_TYPE.to_owned(); 2],
             block_out_channels: vec![16, 32],
+            latent_channels: 4,
             temporal_compression_ratio: 1.0,
             ..Self::small()
         }
@@ -1184,6 +1189,9 @@ mod tests {
             );
             // Every token covers 8x8 pixels in both presets.
             assert_eq!(tf.patch_size * small.spatial_compression(), 8);
+            // A token's noise and image values fit its width, so the
+            // sampler can see all the noise it has to remove.
+            assert!(tf.patch_size.pow(2) * tf.in_channels <= tf.inner_dim());
             // Its learned positions are sized for the VAE's latent frames.
             assert_eq!(
                 tf.temporal_compression_ratio,
