@@ -445,18 +445,7 @@ fn convert_droid_and_agibot_with_skip_report() {
 /// the model's size, a side-by-side GIF of four panels.
 #[test]
 fn demo_predicts_with_the_shipped_model() {
-    let tmp = tempfile::tempdir().expect("demo test");
-    let out = tmp.path().join("demo-out");
-    let o = run(&[
-        "demo",
-        "--frames",
-        "9",
-        "--steps",
-        "4",
-        "--out",
-        out.to_str().expect("demo test"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (tmp, out, o) = run_demo(&["--steps", "4"]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("world model"), "{stdout}");
     assert_eq!(npy_shape(&out.join("masks.npy")).1, vec![9, 480, 720]);
@@ -504,6 +493,18 @@ fn demo_predicts_with_the_shipped_model() {
     assert!(stderr(&o).contains("expected backbone/"), "{}", stderr(&o));
 }
 
+/// `bridgev2w demo --frames 9 ARGS --out TMP/demo-out`, which must succeed.
+fn run_demo(args: &[&str]) -> (tempfile::TempDir, std::path::PathBuf, std::process::Output) {
+    let tmp = tempfile::tempdir().expect("demo test");
+    let out = tmp.path().join("demo-out");
+    let mut line = vec!["demo", "--frames", "9"];
+    line.extend_from_slice(args);
+    line.extend_from_slice(&["--out", out.to_str().expect("demo test")]);
+    let o = run(&line);
+    assert!(o.status.success(), "{}", stderr(&o));
+    (tmp, out, o)
+}
+
 /// `prediction-scores.json` of a demo output folder.
 fn demo_scores(out: &std::path::Path) -> serde_json::Value {
     serde_json::from_str(
@@ -520,16 +521,7 @@ fn demo_scores(out: &std::path::Path) -> serde_json::Value {
 #[test]
 #[ignore = "issue 19: the shipped demo model is below copying the first frame"]
 fn demo_prediction_beats_copying_the_first_frame() {
-    let tmp = tempfile::tempdir().expect("demo test");
-    let out = tmp.path().join("demo-out");
-    let o = run(&[
-        "demo",
-        "--frames",
-        "9",
-        "--out",
-        out.to_str().expect("demo test"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (_tmp, out, _) = run_demo(&[]);
     let scores = demo_scores(&out);
     let score = |who: &str, what: &str| scores[who][what].as_f64().expect("demo scores");
     assert!(
