@@ -182,7 +182,11 @@ train() { # train NAME UPSTREAM...: trains unless OUT/NAME/final exists; resumes
         echo "== $name: done before from the same inputs, kept"
         return
     fi
-    [[ -d $OUT/$name/checkpoints ]] && resume=(--resume "$OUT/$name")
+    if [[ -d $OUT/$name/checkpoints ]]; then
+        resume=(--resume "$OUT/$name")
+    elif [[ -e $OUT/$name ]]; then
+        resume=(--overwrite) # cut before its first checkpoint: nothing to keep
+    fi
     stage "$name" "$BIN" train "$OUT/configs/$name.toml" --quiet "${resume[@]}"
 }
 train vae-image

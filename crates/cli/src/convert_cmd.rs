@@ -85,17 +85,10 @@ fn list(s: &Option<String>) -> Option<Vec<String>> {
 }
 
 pub fn run(args: &ConvertArgs) -> Result<()> {
-    if args.out.exists() {
-        bail!(
-            "--out {}: already exists (choose a new directory)",
-            args.out.display()
-        );
-    }
-    let tmp = PathBuf::from(format!("{}.tmp", args.out.display()));
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp)
-            .with_context(|| format!("removing stale {}", tmp.display()))?;
-    }
+    // Written to OUT.tmp, removed again if the conversion fails.
+    let output =
+        bridgev2w_embodiment::output::OutputDir::create(&args.out, false).context("--out")?;
+    let tmp = output.path().to_path_buf();
     let robot = args.robot.clone().unwrap_or_else(|| {
         match args.format {
             Format::Droid => "franka",
@@ -189,8 +182,7 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
             r?
         }
     };
-    std::fs::rename(&tmp, &args.out)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), args.out.display()))?;
+    output.commit()?;
     let mut text = format!(
         "wrote {} (LeRobot v3.0): {} episodes read, {} camera episodes of {}x{} with calc masks, robot {}\n",
         args.out.display(),

@@ -16,6 +16,7 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::{xyz_rpy_from_pose, IkOptions};
 use bridgev2w_embodiment::masks::{write_outputs, WriteOptions};
 use bridgev2w_embodiment::npy::write_atomic;
+use bridgev2w_embodiment::output::OutputDir;
 use bridgev2w_eval::clip::{compare_with_copy, ClipScore};
 use bridgev2w_eval::video::Frame;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
@@ -30,9 +31,14 @@ use std::time::Instant;
 /// Arguments of `demo`.
 #[derive(Debug, clap::Args)]
 pub struct DemoArgs {
-    /// Output directory.
+    /// Output directory (written to OUT.tmp, then renamed). An earlier
+    /// demo's output there is replaced; any other existing folder is refused
+    /// unless --overwrite.
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
+    /// Replace an existing --out folder that is not an earlier demo's output.
+    #[arg(long)]
+    pub overwrite: bool,
     /// Frames in the trajectory (CogVideoX clips are 49 frames).
     #[arg(long, default_value_t = 49)]
     pub frames: usize,
@@ -88,7 +94,7 @@ fn side_by_side(panels: &[&[u8]], w: usize, h: usize) -> Vec<u8> {
 
 /// The world-model half of the demo: predicts the video of a built-in
 /// synthetic pick-and-place (unseen camera) from its first frame and masks.
-fn predict(args: &DemoArgs) -> Result<()> {
+fn predict(args: &DemoArgs, tmp: &Path) -> Result<()> {
     let t0 = Instant::now();
     let dir = args.model.clone().unwrap_or_else(default_model_dir);
     let (backbone, weights) = (dir.join("backbone"), dir.join("bridgev2w.safetensors"));
@@ -155,7 +161,7 @@ fn predict(args: &DemoArgs) -> Result<()> {
                 .collect()
         })
         .collect();
-    let out = &args.out;
+    let out = tmp;
     let mut writer = Mp4VideoWriter::new(&out.join("prediction.mp4"), w, h, 10)?;
     for (i, f) in pred.iter().enumerate() {
         writer.push(f, i == 0)?;
@@ -220,7 +226,7 @@ fn predict(args: &DemoArgs) -> Result<()> {
     );
     println!(
         "  {0}/prediction.mp4, {0}/prediction.gif (first frame | masks | prediction | ground truth), prediction-actions.json, prediction-scores.json",
-        out.display()
+        args.out.display()
     );
     Ok(())
 }
@@ -285,8 +291,16 @@ pub fn demo_actions(e: &Embodiment, frames: usize) -> Result<Trajectory> {
     Ok(Trajectory::new("built-in demo trajectory", rows)?)
 }
 
+/// An earlier demo's output (the files every demo writes).
+fn is_earlier_demo(out: &Path) -> bool {
+    ["overlay.gif", "camera.json", "actions.json", "masks.npy"]
+        .iter()
+        .all(|f| out.join(f).is_file())
+}
+
 pub fn run(args: &DemoArgs) -> Result<()> {
     let start = Instant::now();
+    let output = OutputDir::create(&args.out, args.overwrite || is_earlier_demo(&args.out))?;
     let e = Embodiment::builtin("franka")?;
     let camera = demo_camera()?;
     let actions = demo_actions(&e, args.frames)?;
@@ -300,7 +314,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     )?;
     // Depth as well: the overlay shades the links by it.
     let frames = render_with_progress(&e, &camera, &joints, true);
-    let out = &args.out;
+    let out = output.path();
     let written = write_outputs(
         out,
         &e.robot,
@@ -340,6 +354,12 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         .map(|r| r.position_error_m)
         .fold(0.0, f64::max)
         * 1e3;
+    if !args.no_predict {
+        predict(args, out)?;
+    }
+    output.commit()?;
+    let out = args.out.as_path();
+    let (gif, still) = (out.join("overlay.gif"), out.join("overlay.png"));
     println!(
         "demo: {} frames of the Franka pick-and-place at 720x480 (IK max residual {max_res_mm:.4} mm) in {:.2} s",
         frames.len(),
@@ -362,8 +382,5 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         "  bridgev2w masks --robot franka --camera {0}/camera.json --actions {0}/actions.json --out OUT",
         out.display()
     );
-    if !args.no_predict {
-        predict(args)?;
-    }
     Ok(())
 }

@@ -111,8 +111,10 @@ fn is_mp4(path: &Path) -> bool {
             .is_some_and(|x| x.eq_ignore_ascii_case("mp4"))
 }
 
-/// The frames of video `name` under `dir`: `dir/name/*.png` or `dir/name.mp4`.
-fn load_frames(dir: &Path, name: &str) -> Result<Vec<Frame>> {
+/// The frames of video `name` under `dir`, by frame number:
+/// `dir/name/*.png` (numbered by the digits at the end of their names) or
+/// `dir/name.mp4` (numbered from 0).
+fn load_frames(dir: &Path, name: &str) -> Result<Vec<(u64, Frame)>> {
     let mp4 = dir.join(format!("{name}.mp4"));
     if is_mp4(&mp4) {
         let video = bridgev2w_data::video::decode_mp4(&mp4)?;
@@ -122,28 +124,72 @@ fn load_frames(dir: &Path, name: &str) -> Result<Vec<Frame>> {
             .enumerate()
             .map(|(i, f)| {
                 Frame::from_rgb8(video.width, video.height, f)
+                    .map(|f| (i as u64, f))
                     .with_context(|| format!("{}: frame {i}", mp4.display()))
             })
             .collect();
     }
     frame_files(&dir.join(name))?
-        .iter()
-        .map(|f| read_frame(f))
+        .into_iter()
+        .map(|(i, f)| Ok((i, read_frame(&f)?)))
         .collect()
 }
 
-/// The PNG files of one video folder, sorted by name.
-fn frame_files(dir: &Path) -> Result<Vec<PathBuf>> {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+/// The PNG files of one video folder with their frame numbers (the digits
+/// at the end of the file's stem: `000007.png`, `7.png` and `frame_7.png`
+/// are frame 7), in frame order. A file without a number, or two files of
+/// one number, is an error.
+fn frame_files(dir: &Path) -> Result<Vec<(u64, PathBuf)>> {
+    let mut files: Vec<(u64, PathBuf)> = std::fs::read_dir(dir)
         .with_context(|| format!("video folder {}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.extension().is_some_and(|x| x.eq_ignore_ascii_case("png")))
-        .collect();
+        .map(|p| Ok((frame_number(&p)?, p)))
+        .collect::<Result<_>>()?;
     if files.is_empty() {
         bail!("video folder {} has no PNG frames", dir.display());
     }
     files.sort();
+    if let Some(w) = files.windows(2).find(|w| w[0].0 == w[1].0) {
+        bail!(
+            "{} and {} are both frame {}: one file per frame number",
+            w[0].1.display(),
+            w[1].1.display(),
+            w[0].0
+        );
+    }
     Ok(files)
+}
+
+/// The number at the end of a frame file's stem.
+fn frame_number(path: &Path) -> Result<u64> {
+    let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("");
+    let digits = stem.len() - stem.trim_end_matches(|c: char| c.is_ascii_digit()).len();
+    stem[stem.len() - digits..].parse().map_err(|_| {
+        anyhow::anyhow!(
+            "frame {}: expected a frame number at the end of its name (e.g. 000007.png)",
+            path.display()
+        )
+    })
+}
+
+/// Checks that predicted and ground-truth frames have the same numbers
+/// (pairs are made by number, not by position).
+fn check_numbers(name: &str, what: &str, pred: &[u64], gt: &[u64]) -> Result<()> {
+    if pred == gt {
+        return Ok(());
+    }
+    let missing = |from: &[u64], to: &[u64]| from.iter().find(|i| !to.contains(i)).copied();
+    let detail = match (missing(gt, pred), missing(pred, gt)) {
+        (Some(i), _) => format!("ground-truth {what} {i} has no predicted one"),
+        (None, Some(i)) => format!("predicted {what} {i} has no ground-truth one"),
+        (None, None) => String::new(),
+    };
+    bail!(
+        "video \"{name}\": {} predicted {what} vs {} ground-truth {what}; {detail}: {what} are paired by frame number",
+        pred.len(),
+        gt.len()
+    )
 }
 
 fn read_frame(path: &Path) -> Result<Frame> {
@@ -170,31 +216,15 @@ struct VideoScores {
     mask_iou: Option<f64>,
 }
 
-fn check_frames(name: &str, what: &str, pred: &[PathBuf], gt: &[PathBuf]) -> Result<()> {
-    if pred.len() != gt.len() {
-        bail!(
-            "video \"{name}\": {} predicted {what} vs {} ground-truth {what}: frame counts must match",
-            pred.len(),
-            gt.len()
-        );
-    }
-    Ok(())
-}
-
 fn score_video(a: &EvalArgs, name: &str, want: &BTreeMap<&str, bool>) -> Result<VideoScores> {
     let mut s = VideoScores::default();
     if want["psnr"] || want["ssim"] {
         let pred = load_frames(&a.pred, name)?;
         let gt = load_frames(&a.gt, name)?;
-        if pred.len() != gt.len() {
-            bail!(
-                "video \"{name}\": {} predicted frames vs {} ground-truth frames: frame counts must match",
-                pred.len(),
-                gt.len()
-            );
-        }
+        let numbers = |v: &[(u64, Frame)]| v.iter().map(|f| f.0).collect::<Vec<_>>();
+        check_numbers(name, "frames", &numbers(&pred), &numbers(&gt))?;
         let (mut sum_psnr, mut sum_ssim) = (0.0, 0.0);
-        for (i, (fp, fg)) in pred.iter().zip(&gt).enumerate() {
+        for ((i, fp), (_, fg)) in pred.iter().zip(&gt) {
             if (fp.width, fp.height) != (fg.width, fg.height) {
                 bail!(
                     "video \"{name}\", frame {i}: predicted {}x{} vs ground truth {}x{}: resolutions must match",
@@ -216,9 +246,10 @@ fn score_video(a: &EvalArgs, name: &str, want: &BTreeMap<&str, bool>) -> Result<
         if let (Some(mp), Some(mg)) = (&a.masks_pred, &a.masks_gt) {
             let pred = frame_files(&mp.join(name))?;
             let gt = frame_files(&mg.join(name))?;
-            check_frames(name, "masks", &pred, &gt)?;
+            let numbers = |v: &[(u64, PathBuf)]| v.iter().map(|f| f.0).collect::<Vec<_>>();
+            check_numbers(name, "masks", &numbers(&pred), &numbers(&gt))?;
             let mut sum = 0.0;
-            for (i, (p, g)) in pred.iter().zip(&gt).enumerate() {
+            for ((i, p), (_, g)) in pred.iter().zip(&gt) {
                 let ((wp, hp, vp), (wg, hg, vg)) = (read_mask(p)?, read_mask(g)?);
                 if (wp, hp) != (wg, hg) {
                     bail!("video \"{name}\", mask {i}: predicted {wp}x{hp} vs ground truth {wg}x{hg}: resolutions must match");
@@ -356,11 +387,12 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
     Ok(())
 }
 
-fn read_video(dir: &Path, name: &str) -> Result<bridgev2w_world_model::video::Video> {
+/// Video `name` under `dir` and its frame numbers.
+fn read_video(dir: &Path, name: &str) -> Result<(Vec<u64>, bridgev2w_world_model::video::Video)> {
     let frames = load_frames(dir, name)?;
     let mut data = Vec::new();
     let mut size = None;
-    for (i, frame) in frames.iter().enumerate() {
+    for (i, frame) in &frames {
         let s = (frame.width, frame.height);
         if *size.get_or_insert(s) != s {
             bail!(
@@ -375,12 +407,16 @@ fn read_video(dir: &Path, name: &str) -> Result<bridgev2w_world_model::video::Vi
         data.extend_from_slice(&frame.rgb);
     }
     let (width, height) = size.unwrap_or((0, 0));
-    Ok(bridgev2w_world_model::video::Video {
-        frames: frames.len(),
-        height,
-        width,
-        data,
-    })
+    let numbers = frames.iter().map(|f| f.0).collect();
+    Ok((
+        numbers,
+        bridgev2w_world_model::video::Video {
+            frames: frames.len(),
+            height,
+            width,
+            data,
+        },
+    ))
 }
 
 /// Mean LPIPS over the frames of every video (one network, videos in turn).
@@ -393,7 +429,8 @@ fn lpips_scores(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<Vec<f6
     pb.set_message("LPIPS");
     let mut out = Vec::with_capacity(names.len());
     for name in names {
-        let (p, g) = (read_video(&a.pred, name)?, read_video(&a.gt, name)?);
+        let ((np, p), (ng, g)) = (read_video(&a.pred, name)?, read_video(&a.gt, name)?);
+        check_numbers(name, "frames", &np, &ng)?;
         if (p.frames, p.height, p.width) != (g.frames, g.height, g.width) {
             bail!(
                 "video \"{name}\": predicted {} frames of {}x{} vs ground truth {} frames of {}x{}",
@@ -430,7 +467,7 @@ fn fvd_score(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<f64> {
     let (mut pred, mut gt) = (Vec::new(), Vec::new());
     for name in names {
         for (dir, out) in [(&a.pred, &mut pred), (&a.gt, &mut gt)] {
-            let v = read_video(dir, name)?;
+            let (_, v) = read_video(dir, name)?;
             out.push(net.fvd_features(&v).with_context(|| {
                 format!("FVD features of video \"{name}\" in {}", dir.display())
             })?);

@@ -11,6 +11,7 @@ use bridgev2w_embodiment::masks::{
     render_trajectory, render_trajectory_labels, write_outputs, WriteOptions,
 };
 use bridgev2w_embodiment::npy::{write_atomic, write_npy};
+use bridgev2w_embodiment::output::OutputDir;
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -76,9 +77,13 @@ pub struct MasksArgs {
     /// Output height (the camera intrinsics are rescaled).
     #[arg(long, default_value_t = 480)]
     pub height: u32,
-    /// Output directory.
+    /// Output directory (written to OUT.tmp, then renamed; an existing one
+    /// is refused unless --overwrite).
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace an existing --out folder (as a whole: no earlier file stays).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Render frames whose IK target is out of reach (flagged in ik.json) instead of failing.
     #[arg(long)]
     pub allow_ik_residual: bool,
@@ -97,11 +102,17 @@ pub struct MasksArgs {
 }
 
 pub fn load_camera(path: &Path, width: u32, height: u32) -> Result<Camera> {
-    if width == 0 || height == 0 {
-        bail!("--width {width} --height {height}: expected positive sizes");
+    let max = bridgev2w_embodiment::camera::MAX_IMAGE_SIDE;
+    if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
+        bail!("--width {width} --height {height}: expected sizes of 1..={max} pixels");
     }
     let camera = Camera::from_json_file(path)?;
-    Ok(camera.rescaled(width, height))
+    let camera = camera.rescaled(width, height);
+    camera
+        .intrinsics
+        .validate()
+        .with_context(|| format!("{} at --width {width} --height {height}", path.display()))?;
+    Ok(camera)
 }
 
 /// Joint trajectory from `--joints` or `--actions`, with IK residuals for actions.
@@ -216,9 +227,10 @@ pub fn run(args: &MasksArgs) -> Result<()> {
         &ik,
         args.allow_ik_residual,
     )?;
+    let out = OutputDir::create(&args.out, args.overwrite)?;
     let frames = render_with_progress(&e, &camera, &joints, args.depth);
     let written = write_outputs(
-        &args.out,
+        out.path(),
         &e.robot,
         &frames,
         WriteOptions {
@@ -228,12 +240,15 @@ pub fn run(args: &MasksArgs) -> Result<()> {
     )?;
     let flat: Vec<f64> = joints.iter().flatten().copied().collect();
     write_npy(
-        &args.out.join("joints.npy"),
+        &out.path().join("joints.npy"),
         &[joints.len(), e.robot.dof()],
         &flat,
     )?;
     if !residuals.is_empty() {
-        write_ik_report(&args.out, &residuals)?;
+        write_ik_report(out.path(), &residuals)?;
+    }
+    out.commit()?;
+    if !residuals.is_empty() {
         let missed: Vec<usize> = residuals
             .iter()
             .filter(|r| !r.reached)

@@ -2,6 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use bridgev2w_embodiment::npy::{read_npy, write_atomic, write_npy};
+use bridgev2w_embodiment::output::OutputDir;
 use bridgev2w_embodiment::png::encode_rgb8;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
@@ -32,9 +33,14 @@ pub struct PredictArgs {
     /// at the model's frames and resolution.
     #[arg(long)]
     masks: PathBuf,
-    /// Output folder: frames/000000.png..., video.npy (uint8 [T, H, W, 3]).
+    /// Output folder: frames/000000.png..., video.npy (uint8 [T, H, W, 3]);
+    /// written to OUT.tmp, then renamed. An existing one is refused unless
+    /// --overwrite.
     #[arg(long)]
     out: PathBuf,
+    /// Replace an existing --out folder (as a whole: no earlier file stays).
+    #[arg(long)]
+    overwrite: bool,
     /// Denoising steps.
     #[arg(long, default_value_t = 50)]
     steps: usize,
@@ -77,6 +83,9 @@ fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
             dev,
             a.seed as i64,
         )?);
+    }
+    if let Some(preset) = a.model.strip_prefix("random:") {
+        bail!("--model random:{preset}: the random model of predict is random:tiny (a smoke test whose output is noise); otherwise give a diffusers folder (model_index.json, vae/, transformer/, scheduler/)");
     }
     let dir = Path::new(&a.model);
     BridgeV2W::load(
@@ -133,6 +142,26 @@ fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<Mask
             path.display()
         );
     }
+    // Binary masks only: labels (uint16) or soft masks (float) would be
+    // read as "non-zero = robot" without a word.
+    if arr.descr != "|u1" && arr.descr != "|b1" {
+        bail!(
+            "--masks {}: dtype {}, expected uint8 or bool binary masks (0/1 or 0/255) as `bridgev2w masks` writes in masks.npy",
+            path.display(),
+            arr.descr
+        );
+    }
+    let on = if arr.data.contains(&255.0) {
+        255.0
+    } else {
+        1.0
+    };
+    if let Some(v) = arr.data.iter().find(|&&v| v != 0.0 && v != on) {
+        bail!(
+            "--masks {}: a value of {v} next to {on}, expected binary masks (0 and 1, or 0 and 255)",
+            path.display()
+        );
+    }
     Ok(MaskVideo {
         frames,
         height: h,
@@ -145,6 +174,7 @@ fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<Mask
 const TILING_MIN_PIXELS: usize = 256 * 256;
 
 pub fn run(a: &PredictArgs) -> Result<()> {
+    let out = OutputDir::create(&a.out, a.overwrite)?;
     let mut model = load_model(a)?;
     let res = model.resolution();
     // Memory-motivated, as diffusers' CogVideoX examples: tile frames above 256x256.
@@ -177,7 +207,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
         .iter()
         .map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
         .collect();
-    let frames_dir = a.out.join("frames");
+    let frames_dir = out.path().join("frames");
     std::fs::create_dir_all(&frames_dir)
         .with_context(|| format!("creating {}", frames_dir.display()))?;
     let frame_len = video.height * video.width * 3;
@@ -190,10 +220,11 @@ pub fn run(a: &PredictArgs) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))?;
     }
     write_npy(
-        &a.out.join("video.npy"),
+        &out.path().join("video.npy"),
         &[video.frames, video.height, video.width, 3],
         &bytes,
     )?;
+    out.commit()?;
     println!(
         "wrote {} frames to {} ({secs:.1} s)",
         video.frames,

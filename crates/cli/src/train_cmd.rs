@@ -16,6 +16,10 @@ pub struct TrainArgs {
     /// Continue a run: a checkpoint folder, or a run folder (its latest checkpoint).
     #[arg(long)]
     resume: Option<PathBuf>,
+    /// Replace the run that `train.out` already holds (its config, metrics,
+    /// checkpoints and final weights); without it such a folder is refused.
+    #[arg(long, conflicts_with = "resume")]
+    overwrite: bool,
     /// Override `train.max_steps`.
     #[arg(long)]
     max_steps: Option<usize>,
@@ -46,6 +50,9 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         );
     }
     let mut trainer = Trainer::new_distributed(cfg, dist).context("setting up training")?;
+    if args.overwrite {
+        trainer.overwrite_existing_run();
+    }
     if let Some(r) = &args.resume {
         trainer
             .resume(r)

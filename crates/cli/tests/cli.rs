@@ -690,3 +690,25 @@ fn plan_fidelity_of_the_perfect_model() {
         stderr(&out)
     );
 }
+
+#[test]
+fn a_mesh_parser_panic_is_a_clean_error_without_the_panic_message() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let mesh = Path::new(env!("CARGO_MANIFEST_DIR")).join(
+        "../embodiment/tests/data/mesh/regressions/collada_instance_rs129_position_index_oob.dae",
+    );
+    std::fs::copy(&mesh, dir.path().join("bad.dae")).expect("copy");
+    let urdf = write(
+        dir.path(),
+        "r.urdf",
+        r#"<robot name="r"><link name="a"><visual><geometry><mesh filename="bad.dae"/></geometry></visual></link></robot>"#,
+    );
+    let o = run(&["robot-info", "--robot", &urdf]);
+    let err = stderr(&o);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("bad.dae") && err.contains("parser panicked"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked at"), "{err}");
+}

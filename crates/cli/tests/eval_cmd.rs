@@ -190,6 +190,63 @@ fn eval_bad_input_names_video_and_frame() {
 }
 
 #[test]
+fn eval_pairs_frames_by_number_not_by_sorted_name() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let p = |s: &str| d.join(s).to_string_lossy().into_owned();
+    // Identical frames, named 0.png..10.png against 000000.png..000010.png:
+    // sorted as strings, "10.png" comes before "2.png".
+    for t in 0..11u32 {
+        write_png(&d.join(format!("pred/v/{t}.png")), 16, 16, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+        write_png(&d.join(format!("gt/v/{t:06}.png")), 16, 16, |x, y, c| {
+            pattern(x, y, c, t)
+        });
+    }
+    let json = p("out.json");
+    let args = [
+        "eval",
+        "--pred",
+        &p("pred"),
+        "--gt",
+        &p("gt"),
+        "--metrics",
+        "psnr",
+        "--json",
+        &json,
+    ];
+    let o = run(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    assert_eq!(v["psnr"].as_f64(), Some(100.0), "{v}");
+    // A missing frame is named instead of shifting the rest.
+    std::fs::remove_file(d.join("pred/v/5.png")).expect("rm");
+    let o = run(&args);
+    assert!(
+        stderr(&o).contains("ground-truth frames 5 has no predicted one"),
+        "{}",
+        stderr(&o)
+    );
+    // A frame without a number, and two files of one number.
+    write_png(&d.join("pred/v/5.png"), 16, 16, |x, y, c| {
+        pattern(x, y, c, 5)
+    });
+    write_png(&d.join("pred/v/last.png"), 16, 16, |_, _, _| 0);
+    let o = run(&args);
+    assert!(
+        stderr(&o).contains("expected a frame number"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::remove_file(d.join("pred/v/last.png")).expect("rm");
+    write_png(&d.join("pred/v/0005.png"), 16, 16, |_, _, _| 0);
+    let o = run(&args);
+    assert!(stderr(&o).contains("are both frame 5"), "{}", stderr(&o));
+}
+
+#[test]
 fn eval_policy_table_and_json() {
     let dir = tempfile::tempdir().expect("tempdir");
     let d = dir.path();

@@ -63,6 +63,45 @@ fn predict_writes_frames_and_video_deterministically() {
         err.contains("[9, 32, 48]") && err.contains("--width 96 --height 64"),
         "{err}"
     );
+    // Soft (float) or label (uint16) masks are refused, not thresholded.
+    let soft: Vec<f32> = masks.iter().map(|&v| f32::from(v) * 0.5).collect();
+    write_npy(&d.join("soft.npy"), &[9, 64, 96], &soft).expect("npy");
+    let mut a = args("e");
+    a[6] = s(&d.join("soft.npy")).into();
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("dtype <f4") && err.contains("binary"), "{err}");
+    let grey: Vec<u8> = masks.iter().map(|&v| v * 128).collect();
+    write_npy(&d.join("grey.npy"), &[9, 64, 96], &grey).expect("npy");
+    a[6] = s(&d.join("grey.npy")).into();
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("a value of 128"), "{err}");
+    assert!(!d.join("e").exists() && !d.join("e.tmp").exists());
+    // An existing output is refused (nothing of it changes), or replaced
+    // whole with --overwrite.
+    std::fs::write(d.join("a/notes.txt"), "mine").expect("write");
+    let o = run(&args("a").iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("already exists") && err.contains("--overwrite"),
+        "{err}"
+    );
+    assert!(d.join("a/notes.txt").is_file());
+    let mut a = args("a");
+    a.push("--overwrite".into());
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!d.join("a/notes.txt").exists() && d.join("a/video.npy").is_file());
+    // An unknown random preset lists the one there is.
+    let mut a = args("f");
+    a[2] = "random:huge".into();
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("random:huge") && err.contains("smoke test"),
+        "{err}"
+    );
     // A folder that is not a diffusers pipeline.
     let mut a = args("d");
     a[2] = s(d).into();

@@ -925,16 +925,27 @@ impl LeRobotDataset {
     pub fn read_masks(&self, episode: i64) -> Result<(Vec<usize>, Vec<u8>), DatasetError> {
         let path = self.root.join(format!("masks/episode_{episode:06}.npy"));
         let a = read_npy(&path).map_err(|e| meta_err(&path, e.to_string()))?;
-        if a.shape.len() != 3 || a.descr != "|u1" {
+        if a.shape.len() != 3 || a.descr != "|u1" || a.shape.contains(&0) {
             return Err(meta_err(
                 &path,
                 format!(
-                    "expected uint8 [T,H,W] masks, found {} {:?}",
+                    "expected uint8 [T,H,W] masks with no empty dimension, found {} {:?}",
                     a.descr, a.shape
                 ),
             ));
         }
-        Ok((a.shape, a.data.iter().map(|&v| v as u8).collect()))
+        // Binary masks as 0/1 (this project's) or 0/255 (image tools').
+        let on = if a.data.contains(&255.0) { 255.0 } else { 1.0 };
+        if let Some(v) = a.data.iter().find(|&&v| v != 0.0 && v != on) {
+            return Err(meta_err(
+                &path,
+                format!("a mask value of {v} next to {on}: expected binary masks, 0 (background) and 1 or 255 (robot)"),
+            ));
+        }
+        Ok((
+            a.shape,
+            a.data.iter().map(|&v| u8::from(v != 0.0)).collect(),
+        ))
     }
 
     /// The synthetic camera calibration of an episode's video `key`.

@@ -424,6 +424,28 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
         let stsz = r.child(stbl, b"stsz", "stbl")?;
         let uniform = be_u32(stsz, 4).ok_or_else(|| short("stsz"))?;
         let count = be_u32(stsz, 8).ok_or_else(|| short("stsz"))? as usize;
+        // Bounded by the file before anything is allocated: every sample
+        // holds at least one byte of the file, and a table of sizes holds
+        // four bytes per sample.
+        let room = if uniform != 0 {
+            data.len() / uniform as usize
+        } else {
+            stsz.len().saturating_sub(12) / 4
+        };
+        if count > room.min(data.len()) {
+            return Err(r.err(format!(
+                "stsz claims {count} samples, but {} (at most {}): corrupt sample table",
+                if uniform != 0 {
+                    format!("{uniform}-byte samples fit the {}-byte file", data.len())
+                } else {
+                    format!(
+                        "its size table holds {} entries",
+                        stsz.len().saturating_sub(12) / 4
+                    )
+                },
+                room.min(data.len())
+            )));
+        }
         let sizes: Vec<u32> = if uniform != 0 {
             vec![uniform; count]
         } else {
@@ -459,20 +481,17 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
         for i in 0..n_stts {
             let c = be_u32(stts, 8 + 8 * i).ok_or_else(|| short("stts"))?;
             let d = be_u32(stts, 12 + 8 * i).ok_or_else(|| short("stts"))?;
-            for _ in 0..c {
-                if deltas.len() < count {
-                    deltas.push(d);
-                }
-            }
+            let take = (c as usize).min(count - deltas.len());
+            deltas.extend(std::iter::repeat_n(d, take));
         }
         let sync: Option<Vec<u32>> = match r.child(stbl, b"stss", "stbl") {
             Ok(stss) => {
                 let n = be_u32(stss, 4).ok_or_else(|| short("stss"))? as usize;
-                Some(
-                    (0..n)
-                        .map(|i| be_u32(stss, 8 + 4 * i).ok_or_else(|| short("stss")))
-                        .collect::<Result<_, _>>()?,
-                )
+                let mut s = (0..n)
+                    .map(|i| be_u32(stss, 8 + 4 * i).ok_or_else(|| short("stss")))
+                    .collect::<Result<Vec<_>, _>>()?;
+                s.sort_unstable();
+                Some(s)
             }
             Err(_) => None,
         };
@@ -505,7 +524,9 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
                     offset: off,
                     size,
                     dts,
-                    sync: sync.as_ref().is_none_or(|s| s.contains(&(i as u32 + 1))),
+                    sync: sync
+                        .as_ref()
+                        .is_none_or(|s| s.binary_search(&(i as u32 + 1)).is_ok()),
                 });
                 dts += u64::from(deltas.get(i).copied().unwrap_or(0));
                 off += u64::from(size);
@@ -559,4 +580,66 @@ pub fn read_file(path: &Path) -> Result<Vec<u8>, Mp4Error> {
         path: path.to_path_buf(),
         source,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 3-sample file (the sample bytes are not H.264: demuxing does not decode).
+    fn small_file() -> Vec<u8> {
+        let samples = vec![vec![0, 0, 0, 1, 0x65]; 3];
+        mux_h264(&H264Stream {
+            width: 16,
+            height: 16,
+            timescale: 30,
+            sample_duration: 1,
+            sps: &[0x67, 0x42, 0, 0x0a],
+            pps: &[0x68, 0xce],
+            samples: &samples,
+            sync: &[true, false, false],
+        })
+    }
+
+    /// The offset of the first field after `kind`'s version and flags.
+    fn full_box_body(data: &[u8], kind: &[u8; 4]) -> usize {
+        data.windows(4).position(|w| w == kind).unwrap() + 8
+    }
+
+    #[test]
+    fn a_small_file_demuxes() {
+        let t = demux(Path::new("ok.mp4"), &small_file()).unwrap();
+        assert_eq!(t.samples.len(), 3);
+        assert_eq!(t.samples[2].dts, 2);
+        assert!(t.samples[0].sync && !t.samples[1].sync);
+    }
+
+    #[test]
+    fn a_sample_count_beyond_the_file_is_an_error_not_an_allocation() {
+        let mut data = small_file();
+        let at = full_box_body(&data, b"stsz");
+        data[at + 4..at + 8].copy_from_slice(&0xFFFF_FFF0u32.to_be_bytes());
+        let e = demux(Path::new("lies.mp4"), &data).unwrap_err().to_string();
+        assert!(
+            e.contains("lies.mp4") && e.contains("4294967280 samples"),
+            "{e}"
+        );
+        // The same with one uniform size for every sample.
+        data[at..at + 4].copy_from_slice(&5u32.to_be_bytes());
+        let e = demux(Path::new("lies.mp4"), &data).unwrap_err().to_string();
+        assert!(e.contains("5-byte samples fit"), "{e}");
+    }
+
+    #[test]
+    fn a_huge_time_to_sample_run_is_cut_at_the_sample_count() {
+        let mut data = small_file();
+        let at = full_box_body(&data, b"stts");
+        // entry 0: (count, delta) after the entry count
+        data[at + 4..at + 8].copy_from_slice(&u32::MAX.to_be_bytes());
+        let t0 = std::time::Instant::now();
+        let t = demux(Path::new("long.mp4"), &data).unwrap();
+        assert_eq!(t.samples.len(), 3);
+        assert_eq!(t.samples[2].dts, 2);
+        assert!(t0.elapsed().as_secs_f64() < 1.0, "{:?}", t0.elapsed());
+    }
 }

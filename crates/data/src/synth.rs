@@ -194,6 +194,13 @@ impl Default for SynthConfig {
     }
 }
 
+/// The most frames an episode may have.
+pub const MAX_FRAMES: usize = 10_000;
+/// The most pixels a side of the rendered video may have.
+pub const MAX_SIDE: u32 = 4096;
+/// The most episodes a split may have.
+pub const MAX_EPISODES: usize = 100_000;
+
 impl SynthConfig {
     /// Checks the configuration.
     pub fn validate(&self) -> Result<(), SynthError> {
@@ -205,6 +212,23 @@ impl SynthConfig {
             return bad(format!(
                 "resolution {}x{} must be even and at least 16x16 (H.264 4:2:0)",
                 self.width, self.height
+            ));
+        }
+        if self.frames > MAX_FRAMES {
+            return bad(format!(
+                "--frames {}: at most {MAX_FRAMES} frames per episode",
+                self.frames
+            ));
+        }
+        if self.width > MAX_SIDE || self.height > MAX_SIDE {
+            return bad(format!(
+                "resolution {}x{}: at most {MAX_SIDE} pixels a side",
+                self.width, self.height
+            ));
+        }
+        if let Some(n) = self.episodes_per_split.iter().find(|&&n| n > MAX_EPISODES) {
+            return bad(format!(
+                "--episodes-per-split {n}: at most {MAX_EPISODES} episodes per split"
             ));
         }
         if self.fps == 0 {
@@ -1512,6 +1536,9 @@ pub enum WriteDatasetError {
     /// The output exists.
     #[error("{0}: already exists; choose another --out or remove it")]
     Exists(std::path::PathBuf),
+    /// Creating or committing the output folder failed.
+    #[error(transparent)]
+    Output(#[from] bridgev2w_embodiment::output::OutputError),
     /// File-system failure.
     #[error("{path}: {source}")]
     Io {
@@ -1551,19 +1578,14 @@ pub fn write_dataset(
     on_episode: &(dyn Fn() + Sync),
 ) -> Result<DatasetSummary, WriteDatasetError> {
     use crate::lerobot::{LeRobotV3Writer, WriterEpisode};
-    if out.exists() {
-        return Err(WriteDatasetError::Exists(out.to_path_buf()));
-    }
+    use bridgev2w_embodiment::output::{OutputDir, OutputError};
     let world = World::new(config)?;
-    let mut tmp = out.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = std::path::PathBuf::from(tmp);
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(|source| WriteDatasetError::Io {
-            path: tmp.clone(),
-            source,
-        })?;
-    }
+    // Removed again if anything below fails.
+    let output = OutputDir::create(out, false).map_err(|e| match e {
+        OutputError::Exists { path } => WriteDatasetError::Exists(path),
+        other => WriteDatasetError::Output(other),
+    })?;
+    let tmp = output.path().to_path_buf();
     let robot = &world.embodiment.robot;
     let state_names: Vec<String> = robot.dof_names().iter().map(|s| s.to_string()).collect();
     let mut action_names = Vec::new();
@@ -1653,9 +1675,6 @@ pub fn write_dataset(
         path: synth_path.clone(),
         source,
     })?;
-    std::fs::rename(&tmp, out).map_err(|source| WriteDatasetError::Io {
-        path: out.to_path_buf(),
-        source,
-    })?;
+    output.commit()?;
     Ok(summary)
 }

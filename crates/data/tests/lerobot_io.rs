@@ -341,3 +341,29 @@ fn truncated_mp4_and_unsupported_codec_name_the_file() {
     assert!(err.to_string().contains("episode_000001.json"));
     assert!(ds.read_calibration(0, VIDEO_KEY).is_ok());
 }
+
+#[test]
+fn stored_masks_with_an_empty_dimension_or_grey_values_are_refused() {
+    use bridgev2w_embodiment::npy::write_npy;
+    let dir = tempfile::tempdir().unwrap();
+    let out = small_dataset(dir.path());
+    let path = out.join("masks/episode_000000.npy");
+    let ds = LeRobotDataset::open(&out).unwrap();
+    let (shape, _) = ds.read_masks(0).unwrap();
+    write_npy(&path, &[shape[0], 0, shape[2]], &[] as &[u8]).unwrap();
+    let msg = ds.read_masks(0).unwrap_err().to_string();
+    assert!(
+        msg.contains("episode_000000.npy") && msg.contains("empty dimension"),
+        "{msg}"
+    );
+    // 0/255 masks (image tools') read as 0/1; a grey value is refused.
+    let mut data = vec![0u8; 2 * 4 * 6];
+    data[3] = 255;
+    write_npy(&path, &[2, 4, 6], &data).unwrap();
+    let (_, masks) = ds.read_masks(0).unwrap();
+    assert_eq!((masks[3], masks.iter().map(|&v| v as usize).sum()), (1, 1));
+    data[4] = 128;
+    write_npy(&path, &[2, 4, 6], &data).unwrap();
+    let msg = ds.read_masks(0).unwrap_err().to_string();
+    assert!(msg.contains("128"), "{msg}");
+}

@@ -310,3 +310,38 @@ fn stepping_from_the_initial_state_replays_an_episode() {
             .any(|(p, q)| moved(p, q) > 0.02));
     }
 }
+
+#[test]
+fn sizes_beyond_the_limits_are_refused_before_anything_is_allocated() {
+    let base = SynthConfig::default();
+    for (cfg, needle) in [
+        (
+            SynthConfig {
+                frames: 4_000_000_000,
+                ..base.clone()
+            },
+            "at most 10000 frames",
+        ),
+        (
+            SynthConfig {
+                width: 100_000,
+                ..base.clone()
+            },
+            "at most 4096 pixels",
+        ),
+        (
+            SynthConfig {
+                episodes_per_split: [4_000_000_000, 1, 1, 1],
+                ..base.clone()
+            },
+            "at most 100000 episodes",
+        ),
+    ] {
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(e.contains(needle), "{e}");
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("ds");
+        assert!(bridgev2w_data::synth::write_dataset(&cfg, &out, &|| {}).is_err());
+        assert!(!out.exists() && !dir.path().join("ds.tmp").exists());
+    }
+}

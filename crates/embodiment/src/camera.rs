@@ -26,6 +26,13 @@ const MIN_PROJECT_Z_M: f64 = 1e-9;
 const LAST_ROW_TOL: f64 = 1e-6;
 /// Tolerance on `|R^T R - I|` and `|det R - 1|` of a 3x3 rotation block.
 const ROTATION_TOL: f64 = 1e-4;
+/// The largest image side (pixels) a camera may have: far above any robot
+/// camera, far below what would exhaust memory when rasterized.
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+/// Focal length per pixel of image side, at the widest field of view (179.4 deg).
+const MIN_FOCAL_PER_PIXEL: f64 = 0.005;
+/// Focal length per pixel of image side, at the narrowest field of view (0.06 deg).
+const MAX_FOCAL_PER_PIXEL: f64 = 1000.0;
 
 /// Errors of camera construction and camera files.
 ///
@@ -229,8 +236,10 @@ impl Intrinsics {
         }
     }
 
-    /// Checks that focal lengths are finite and > 0, the principal point is
-    /// finite, the image is non-empty and distortion coefficients are finite.
+    /// Checks that focal lengths are finite and give a field of view of
+    /// 0.06..179.4 degrees, the principal point is finite, the image is
+    /// 1..=[`MAX_IMAGE_SIDE`] pixels a side and distortion coefficients are
+    /// finite.
     pub fn validate(&self) -> Result<(), CameraError> {
         self.validate_from("<intrinsics>")
     }
@@ -257,8 +266,26 @@ impl Intrinsics {
             }
         }
         for (name, n) in [("width", self.width), ("height", self.height)] {
-            if n == 0 {
-                return Err(bad(name, n.to_string(), "an image size > 0 pixels"));
+            if n == 0 || n > MAX_IMAGE_SIDE {
+                return Err(bad(
+                    name,
+                    n.to_string(),
+                    &format!("an image size of 1..={MAX_IMAGE_SIDE} pixels"),
+                ));
+            }
+        }
+        // A field of view between about 0.06 and 179.4 degrees: outside it the
+        // projection is a point or a line, and the masks garbage.
+        for (name, f, side) in [("fx", self.fx, self.width), ("fy", self.fy, self.height)] {
+            let ratio = f / f64::from(side);
+            if !(MIN_FOCAL_PER_PIXEL..=MAX_FOCAL_PER_PIXEL).contains(&ratio) {
+                return Err(bad(
+                    name,
+                    f.to_string(),
+                    &format!(
+                        "a focal length of {MIN_FOCAL_PER_PIXEL}..={MAX_FOCAL_PER_PIXEL} times the image's {side} pixels (a field of view of 0.06..179.4 degrees)"
+                    ),
+                ));
             }
         }
         if let Some(d) = &self.distortion {

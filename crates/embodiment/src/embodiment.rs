@@ -62,6 +62,9 @@ pub enum EmbodimentError {
     /// The `--robot` value is neither a built-in name nor a file.
     #[error("--robot \"{0}\": not a built-in robot ({1}) and no such URDF file")]
     Unknown(String, String),
+    /// A URDF file where only a built-in robot is accepted (e.g. `synth`).
+    #[error("--robot \"{0}\": a file, but only built-in robots are accepted here ({1}); URDF files work with masks, convert and train's data.robot")]
+    BuiltinOnly(String, String),
     /// An end-effector link or gripper joint does not exist or is unsuitable.
     #[error("{source_name}: {message}")]
     Invalid {
@@ -89,7 +92,13 @@ impl Embodiment {
         let spec = BUILTIN_ROBOTS
             .iter()
             .find(|b| b.name == name)
-            .ok_or_else(|| EmbodimentError::Unknown(name.to_string(), builtin_names()))?;
+            .ok_or_else(|| {
+                if std::path::Path::new(name).is_file() {
+                    EmbodimentError::BuiltinOnly(name.to_string(), builtin_names())
+                } else {
+                    EmbodimentError::Unknown(name.to_string(), builtin_names())
+                }
+            })?;
         let robot = Robot::from_urdf_str(spec.urdf, spec.name, None, &LoadOptions::default())?;
         let ees: Vec<(String, String, Option<String>)> = spec
             .end_effectors

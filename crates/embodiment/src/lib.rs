@@ -17,6 +17,8 @@ pub mod kinematics;
 pub mod masks;
 pub mod mesh;
 pub mod npy;
+pub mod output;
 pub mod png;
+pub mod quiet_panic;
 pub mod raster;
 pub mod robot;

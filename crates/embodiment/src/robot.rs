@@ -327,7 +327,7 @@ impl Robot {
 
 fn parse_urdf(text: &str, source_name: &str) -> Result<urdf_rs::Robot, RobotError> {
     // The XML parsers are third-party code: turn any panic into an error.
-    let result = std::panic::catch_unwind(|| urdf_rs::read_from_string(text));
+    let result = crate::quiet_panic::catch_quiet(|| urdf_rs::read_from_string(text));
     match result {
         Ok(Ok(robot)) => Ok(robot),
         Ok(Err(e)) => Err(RobotError::Parse {
@@ -559,6 +559,15 @@ impl Builder<'_> {
                     return Err(self.invalid(format!(
                         "joint \"{}\": limit lower={lo} upper={hi}: expected finite values with lower <= upper",
                         j.name
+                    )));
+                }
+                // urdf-rs reads a missing <limit> as lower = upper = 0, which
+                // would lock the joint and fail much later.
+                if lo == 0.0 && hi == 0.0 {
+                    return Err(self.invalid(format!(
+                        "joint \"{}\" ({}): no <limit lower upper> (or a zero range): URDF requires one on revolute and prismatic joints; use type=\"continuous\" for an unlimited revolute joint, type=\"fixed\" for a locked one",
+                        j.name,
+                        if kind == JointKind::Revolute { "revolute" } else { "prismatic" }
                     )));
                 }
                 Some((lo, hi))

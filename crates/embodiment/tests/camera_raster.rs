@@ -977,3 +977,29 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn absurd_focal_lengths_and_image_sizes_are_refused() {
+    let cam = |fx: &str, width: &str| {
+        format!(
+            r#"{{"fx": {fx}, "fy": 600, "cx": 359.5, "cy": 239.5, "width": {width}, "height": 480, "extrinsics_xyz_rpy": {XYZ_RPY:?}}}"#
+        )
+    };
+    Camera::from_json_str(&cam("600", "720"), "ok.json").expect("a plain camera");
+    // A field of view of 4e-5 degrees: every mask would be one pixel or none.
+    let e = Camera::from_json_str(&cam("1e9", "720"), "narrow.json")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("narrow.json") && e.contains("fx") && e.contains("field of view"),
+        "{e}"
+    );
+    let e = Camera::from_json_str(&cam("0.001", "720"), "wide.json")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("fx") && e.contains("field of view"), "{e}");
+    let e = Camera::from_json_str(&cam("600000", "100000"), "huge.json")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("width") && e.contains("16384"), "{e}");
+}

@@ -147,6 +147,31 @@ fn binary_stl_cube() {
 }
 
 #[test]
+fn a_binary_stl_whose_triangle_count_lies_is_refused() {
+    let good = binary_stl(&cube());
+    // The count says 13 triangles, the file holds 12: not silently 12.
+    let mut lies = good.clone();
+    lies[80..84].copy_from_slice(&13u32.to_le_bytes());
+    let err = load_mesh_from_bytes(&lies, MeshFormat::Stl, "lies.stl")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("lies.stl") && err.contains("13 triangles") && err.contains("734 bytes"),
+        "{err}"
+    );
+    // A truncated file, and one whose header starts with "solid" (as some
+    // binary writers do) are still read as binary.
+    let err = load_mesh_from_bytes(&good[..good.len() - 10], MeshFormat::Stl, "cut.stl")
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("should be 684 bytes"), "{err}");
+    let mut solid = good;
+    solid[..5].copy_from_slice(b"solid");
+    let m = load_mesh_from_bytes(&solid, MeshFormat::Stl, "solid.stl").unwrap();
+    assert_eq!(m.triangles.len(), 12);
+}
+
+#[test]
 fn obj_quads_with_missing_mtl_are_triangulated() {
     let m = load_fixture("cube_quads.obj");
     assert_eq!(m.triangles.len(), 12);

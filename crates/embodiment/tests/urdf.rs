@@ -231,3 +231,42 @@ fn package_meshes_are_found_scaled_and_welded() {
     );
     assert!(r.links[0].mesh_closed && r.links[1].mesh_closed);
 }
+
+#[test]
+fn a_revolute_joint_without_limit_is_named() {
+    let text = r#"<?xml version="1.0"?>
+<robot name="r">
+  <link name="base"/><link name="arm"/>
+  <joint name="shoulder" type="revolute">
+    <parent link="base"/><child link="arm"/><axis xyz="0 0 1"/>
+  </joint>
+</robot>"#;
+    let e = load(text).unwrap_err();
+    assert!(
+        e.contains("shoulder") && e.contains("no <limit") && e.contains("continuous"),
+        "{e}"
+    );
+    let with_limit = text.replace(
+        "<axis xyz=\"0 0 1\"/>",
+        "<axis xyz=\"0 0 1\"/><limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/>",
+    );
+    let robot = load(&with_limit).unwrap();
+    assert_eq!(robot.dof_limits(), vec![(-1.0, 1.0)]);
+}
+
+#[test]
+fn a_urdf_file_where_a_builtin_robot_is_required_says_so() {
+    use bridgev2w_embodiment::embodiment::Embodiment;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("some.urdf");
+    std::fs::write(&path, TREE).unwrap();
+    let e = Embodiment::builtin(path.to_str().unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("only built-in robots") && e.contains("franka"),
+        "{e}"
+    );
+    let e = Embodiment::builtin("nope").unwrap_err().to_string();
+    assert!(e.contains("no such URDF file"), "{e}");
+}

@@ -47,9 +47,10 @@ pub struct ModelSection {
     pub lora_rank: usize,
     /// LoRA alpha (paper: 64).
     pub lora_alpha: f64,
-    /// ControlNet branch blocks (copies of the backbone's first N; paper: 8).
-    /// Clamped to the backbone's block count.
-    pub controlnet_layers: usize,
+    /// ControlNet branch blocks (copies of the backbone's first N). Unset:
+    /// the paper's 8, or all the backbone's blocks when it has fewer; a
+    /// value above the backbone's block count is an error.
+    pub controlnet_layers: Option<usize>,
     /// Also train the backbone transformer's own weights (training a video
     /// prior from scratch; implied by `ablation.pretrained = false`).
     pub train_backbone: bool,
@@ -67,7 +68,7 @@ impl Default for ModelSection {
             init_weights: None,
             lora_rank: 64,
             lora_alpha: 64.0,
-            controlnet_layers: 8,
+            controlnet_layers: None,
             train_backbone: false,
             device: "cpu".into(),
             action_hidden: 256,
@@ -408,6 +409,19 @@ impl TrainConfig {
         toml::to_string_pretty(self).map_err(|e| TrainError::input("config", e.to_string()))
     }
 
+    /// The ControlNet's block count for a backbone of `backbone_layers`
+    /// blocks (see [`ModelSection::controlnet_layers`]).
+    pub fn controlnet_blocks(&self, backbone_layers: usize) -> Result<usize> {
+        match self.model.controlnet_layers {
+            None => Ok(backbone_layers.min(8)),
+            Some(n) if (1..=backbone_layers).contains(&n) => Ok(n),
+            Some(n) => Err(TrainError::input(
+                "config model.controlnet_layers",
+                format!("{n}: expected 1..={backbone_layers} (the backbone's blocks)"),
+            )),
+        }
+    }
+
     /// Checks value ranges.
     pub fn validate(&self) -> Result<()> {
         let t = &self.train;
@@ -481,7 +495,7 @@ impl TrainConfig {
                 format!("{}: expected > 0", self.model.lora_alpha),
             );
         }
-        if self.model.controlnet_layers == 0 {
+        if self.model.controlnet_layers == Some(0) {
             return bad("model.controlnet_layers", "0: expected at least 1".into());
         }
         if self.model.action_hidden <= 0 {
@@ -489,6 +503,33 @@ impl TrainConfig {
                 "model.action_hidden",
                 format!("{}: expected > 0", self.model.action_hidden),
             );
+        }
+        // Upper bounds, checked before anything is allocated: far above any
+        // real run, far below what would exhaust memory at the first step.
+        for (name, v, max) in [
+            ("data.frames", self.data.frames, 1024),
+            ("data.width", self.data.width, 8192),
+            ("data.height", self.data.height, 8192),
+            ("data.clips_per_video", self.data.clips_per_video, 10_000),
+            ("train.batch_size", t.batch_size, 65_536),
+            ("train.dyn_k", t.dyn_k, 1024),
+            ("model.lora_rank", self.model.lora_rank, 65_536),
+            (
+                "model.controlnet_layers",
+                self.model.controlnet_layers.unwrap_or(1),
+                1024,
+            ),
+            (
+                "model.action_hidden",
+                self.model.action_hidden.max(0) as usize,
+                1 << 20,
+            ),
+            ("train.max_steps", t.max_steps, 1_000_000_000),
+            ("train.epochs", t.epochs, 1_000_000_000),
+        ] {
+            if v > max {
+                return bad(name, format!("{v}: at most {max} is supported"));
+            }
         }
         if !matches!(t.autocast.as_str(), "auto" | "bf16" | "off") {
             return bad(
@@ -521,6 +562,23 @@ impl TrainConfig {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sizes_beyond_the_limits_name_the_field() {
+        let base = "[model]\nbackbone = \"random:tiny\"\n[data]\ndataset = \"d\"\n";
+        for (extra, field) in [
+            ("width = 100000\n", "data.width"),
+            ("frames = 4000000000\n", "data.frames"),
+        ] {
+            let text = format!("{base}{extra}");
+            let e = TrainConfig::from_toml(&text).unwrap_err().to_string();
+            assert!(e.contains(field) && e.contains("at most"), "{e}");
+        }
+        let e = TrainConfig::from_toml(&format!("{base}[train]\nbatch_size = 100000000\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("train.batch_size"), "{e}");
+    }
 
     #[test]
     fn paper_defaults_and_parsing() {

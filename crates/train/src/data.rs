@@ -337,6 +337,12 @@ impl ClipDataset {
                             format!("{} mask frames for {t} video frames", m.frames),
                         ));
                     }
+                    check_mask_aspect(&m, (h, w)).map_err(|message| {
+                        TrainError::input(
+                            format!("dataset {} episode {idx} masks", root.display()),
+                            message,
+                        )
+                    })?;
                     Some(resize_masks_nearest(&m, (h, w)))
                 }
                 None => None,
@@ -560,6 +566,30 @@ impl ClipDataset {
     }
 }
 
+/// Masks of another size than the video's `(h, w)` are resized, but only
+/// when they have its aspect ratio (within 2 %): anything else (e.g. masks
+/// stored `[T, W, H]`) would be stretched into garbage.
+fn check_mask_aspect(m: &EpisodeMasks, (h, w): (usize, usize)) -> std::result::Result<(), String> {
+    if (m.height, m.width) == (h, w) {
+        return Ok(());
+    }
+    let mask = m.width as f64 / m.height as f64;
+    let video = w as f64 / h as f64;
+    if (mask / video - 1.0).abs() <= 0.02 {
+        return Ok(());
+    }
+    // Transposed: the mask's H/W is the video's W/H.
+    let hint = if m.height * h == m.width * w {
+        " (stored [T, W, H]? expected [T, H, W])"
+    } else {
+        ""
+    };
+    Err(format!(
+        "{}x{} (HxW) for {h}x{w} video frames{hint}: masks of another aspect ratio cannot be resized to the video",
+        m.height, m.width
+    ))
+}
+
 /// Nearest-neighbour resize of every mask frame to `(h, w)` (masks from a
 /// segmentation tool may come at another resolution than the video).
 fn resize_masks_nearest(m: &EpisodeMasks, (h, w): (usize, usize)) -> Vec<u8> {
@@ -665,5 +695,26 @@ mod tests {
         // The batches of one epoch are consecutive slices of its slots.
         let b: Vec<usize> = (0..7).flat_map(|s| d.batch_episodes(1, s, 2)).collect();
         assert_eq!(b, slots[..14].to_vec());
+    }
+
+    #[test]
+    fn masks_of_another_aspect_ratio_are_refused_not_stretched() {
+        let masks = |height, width| EpisodeMasks {
+            frames: 1,
+            height,
+            width,
+            data: vec![0; height * width],
+        };
+        // Same size, or a half-resolution segmentation: resized.
+        check_mask_aspect(&masks(64, 96), (64, 96)).unwrap();
+        check_mask_aspect(&masks(32, 48), (64, 96)).unwrap();
+        // Stored [T, W, H].
+        let e = check_mask_aspect(&masks(96, 64), (64, 96)).unwrap_err();
+        assert!(e.contains("96x64") && e.contains("[T, W, H]"), "{e}");
+        let e = check_mask_aspect(&masks(64, 64), (64, 96)).unwrap_err();
+        assert!(
+            e.contains("aspect ratio") && !e.contains("[T, W, H]"),
+            "{e}"
+        );
     }
 }

@@ -15,6 +15,7 @@ pub mod evaluate;
 pub mod flow;
 pub mod losses;
 pub mod optim;
+pub mod run_dir;
 pub mod segmenter;
 pub mod trainer;
 

@@ -32,6 +32,7 @@ use crate::distributed::{Collective, DistEnv};
 use crate::flow::{flow_loss, flow_weight, FlowEstimator, FlowLossConfig, LucasKanade, RaftFlow};
 use crate::losses::{diffusion_loss, dynamics_loss, predicted_x0};
 use crate::optim::{AdamW, AdamWConfig};
+use crate::run_dir::{self, ExistingRun};
 use crate::{Result, TrainError};
 use bridgev2w_torch_ext::{autocast, AutocastDevice, AutocastDtype, AutocastGuard};
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
@@ -142,6 +143,8 @@ pub struct Trainer {
     autocast: Option<AutocastDtype>,
     /// Data-parallel training: the gradient all-reduce (`None`: one process).
     collective: Option<Box<dyn Collective>>,
+    /// What [`Self::run`] does when `train.out` already holds a run.
+    existing_run: ExistingRun,
 }
 
 /// `random:tiny` / `random:small`: the presets of a randomly initialised
@@ -293,7 +296,7 @@ impl Trainer {
                 model.vae.config().temporal_compression_ratio as i64,
                 cfg.model.action_hidden,
                 tf_cfg.inner_dim(),
-                cfg.model.controlnet_layers.min(tf_cfg.num_layers as usize),
+                cfg.controlnet_blocks(tf_cfg.num_layers as usize)?,
             );
             let (mean, std) = data.action_stats();
             enc.set_stats(&mean, &std)?;
@@ -372,6 +375,7 @@ impl Trainer {
             step: 0,
             autocast,
             collective,
+            existing_run: ExistingRun::Refuse,
         })
     }
 
@@ -844,6 +848,15 @@ impl Trainer {
         })
     }
 
+    /// Lets [`Self::run`] replace a run that `train.out` already holds (its
+    /// config, metrics, checkpoints and final weights; other files stay).
+    /// Without it (and without [`Self::resume`]) such a folder is refused.
+    pub fn overwrite_existing_run(&mut self) {
+        if self.existing_run == ExistingRun::Refuse {
+            self.existing_run = ExistingRun::Overwrite;
+        }
+    }
+
     /// Trains to [`Self::total_steps`], appending to `OUT/metrics.jsonl`,
     /// checkpointing every `checkpoint_every` steps and at the end
     /// (`OUT/checkpoints/step-NNNNNNNN`, `OUT/checkpoints/latest`), and
@@ -863,6 +876,9 @@ impl Trainer {
             return Ok(all);
         }
         let out = self.cfg.train.out.clone();
+        run_dir::claim(&out, &self.cfg, self.existing_run)?;
+        // From here on the folder is this run's own.
+        self.existing_run = ExistingRun::Continue;
         std::fs::create_dir_all(&out).map_err(|e| io_err(&out, e))?;
         let cfg_text = self.cfg.to_toml()?;
         write_atomic(&out.join("config.toml"), cfg_text.as_bytes())?;
@@ -982,11 +998,15 @@ impl Trainer {
         Ok(final_dir)
     }
 
+    /// Keeps the newest `keep_checkpoints` checkpoints up to the current step
+    /// (the one just written among them); checkpoints of later steps (a run
+    /// resumed from an earlier one) are left for the run to replace.
     fn prune_checkpoints(&self, root: &Path) -> Result<()> {
         let keep = self.cfg.train.keep_checkpoints;
         if keep == 0 {
             return Ok(());
         }
+        let current = format!("step-{:08}", self.step);
         let mut dirs: Vec<PathBuf> = std::fs::read_dir(root)
             .map_err(|e| io_err(root, e))?
             .filter_map(|e| e.ok().map(|e| e.path()))
@@ -994,7 +1014,7 @@ impl Trainer {
                 p.is_dir()
                     && p.file_name()
                         .and_then(|n| n.to_str())
-                        .is_some_and(|n| n.starts_with("step-"))
+                        .is_some_and(|n| n.starts_with("step-") && *n <= *current)
             })
             .collect();
         dirs.sort();
@@ -1033,7 +1053,17 @@ impl Trainer {
             .map_err(|e| TrainError::input(state_path.display().to_string(), e.to_string()))?;
         let step = state["step"].as_u64().ok_or_else(|| {
             TrainError::input(state_path.display().to_string(), "no integer `step`")
-        })? as usize;
+        })?;
+        let total = self.total_steps();
+        if step > total as u64 {
+            return Err(TrainError::input(
+                state_path.display().to_string(),
+                format!(
+                    "step {step} is beyond this run's {total} steps (train.max_steps/epochs): raise max_steps to continue it, or resume an earlier checkpoint"
+                ),
+            ));
+        }
+        let step = step as usize;
         if state["seed"].as_u64() != Some(self.cfg.train.seed) {
             return Err(TrainError::input(
                 state_path.display().to_string(),
@@ -1044,7 +1074,7 @@ impl Trainer {
             ));
         }
         let path = dir.join("trainable.safetensors");
-        let saved = Tensor::read_safetensors(&path)?;
+        let saved = bridgev2w_world_model::weights::read_safetensors(&path)?;
         let mut map: std::collections::BTreeMap<String, Tensor> = saved.into_iter().collect();
         for (name, t) in self.trainable_state() {
             let src = map.remove(&name).ok_or_else(|| {
@@ -1071,8 +1101,10 @@ impl Trainer {
         // action ablation) come from the weights file.
         self.model.load_weights(&dir.join("weights.safetensors"))?;
         let opt_path = dir.join("optimizer.safetensors");
-        self.opt.load_state(Tensor::read_safetensors(&opt_path)?)?;
+        self.opt
+            .load_state(bridgev2w_world_model::weights::read_safetensors(&opt_path)?)?;
         self.step = step;
+        self.existing_run = ExistingRun::Continue;
         Ok(())
     }
 }
@@ -1107,20 +1139,22 @@ fn build_model(
         alpha: cfg.model.lora_alpha,
     });
     let seed = seed_for(cfg.train.seed, u64::MAX, 8) as i64;
-    let make_cfg = |tf: &TransformerConfig| BridgeV2WConfig {
-        frames,
-        height,
-        width,
-        controlnet: ControlNetConfig {
-            num_layers: cfg.model.controlnet_layers.min(tf.num_layers as usize),
-            conditioning_scale: Vec::new(),
-            zero_init: cfg.ablation.controlnet,
-        },
-        lora,
+    let make_cfg = |tf: &TransformerConfig| -> Result<BridgeV2WConfig> {
+        Ok(BridgeV2WConfig {
+            frames,
+            height,
+            width,
+            controlnet: ControlNetConfig {
+                num_layers: cfg.controlnet_blocks(tf.num_layers as usize)?,
+                conditioning_scale: Vec::new(),
+                zero_init: cfg.ablation.controlnet,
+            },
+            lora,
+        })
     };
     let model = if let Some((vae, tf)) = random_preset(&cfg.model.backbone)? {
         BridgeV2W::random(
-            make_cfg(&tf),
+            make_cfg(&tf)?,
             &vae,
             &tf,
             SchedulerConfig::cogvideox_5b_i2v(),
@@ -1136,7 +1170,7 @@ fn build_model(
                 &dir,
                 None,
                 cfg.model.prompt_embeds.as_deref(),
-                make_cfg(&tf),
+                make_cfg(&tf)?,
                 device,
                 Precision::F32,
             )?
@@ -1145,7 +1179,7 @@ fn build_model(
             let vae_cfg = VaeConfig::from_file(&dir.join("vae").join("config.json"))?;
             let sched =
                 SchedulerConfig::load(&dir.join("scheduler").join("scheduler_config.json"))?;
-            let m = BridgeV2W::random(make_cfg(&tf), &vae_cfg, &tf, sched, device, seed)?;
+            let m = BridgeV2W::random(make_cfg(&tf)?, &vae_cfg, &tf, sched, device, seed)?;
             bridgev2w_world_model::weights::load_component(&m.vae_vs, &dir.join("vae"))?;
             m
         }

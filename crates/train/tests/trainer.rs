@@ -42,7 +42,7 @@ fn config(out: &Path) -> TrainConfig {
     c.model.backbone = "random:tiny".into();
     c.model.lora_rank = 4;
     c.model.lora_alpha = 4.0;
-    c.model.controlnet_layers = 1;
+    c.model.controlnet_layers = Some(1);
     c.model.action_hidden = 32;
     c.data.dataset = dataset().to_path_buf();
     c.data.clips_per_video = 1;
@@ -107,6 +107,81 @@ fn resume_repeats_the_uninterrupted_run() {
     let lines = std::fs::read_to_string(part.join("metrics.jsonl")).unwrap();
     assert_eq!(lines.lines().count(), 6);
     assert!(part.join("final/weights.safetensors").is_file());
+}
+
+#[test]
+fn a_second_run_into_the_same_out_is_refused_unless_resumed_or_overwritten() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.max_steps = 4;
+    c.train.checkpoint_every = 2;
+    c.train.keep_checkpoints = 1;
+    Trainer::new(c.clone()).unwrap().run(&mut |_| {}).unwrap();
+    let metrics = std::fs::read_to_string(tmp.path().join("metrics.jsonl")).unwrap();
+    let weights = std::fs::read(tmp.path().join("final/weights.safetensors")).unwrap();
+    // The lost run of issue 20: a new run without --resume.
+    let mut short = c.clone();
+    short.train.max_steps = 2;
+    let err = Trainer::new(short.clone())
+        .unwrap()
+        .run(&mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("already holds a run"), "{err}");
+    assert_eq!(
+        std::fs::read_to_string(tmp.path().join("metrics.jsonl")).unwrap(),
+        metrics
+    );
+    assert_eq!(
+        std::fs::read(tmp.path().join("final/weights.safetensors")).unwrap(),
+        weights
+    );
+    assert_eq!(
+        resolve_checkpoint(tmp.path()).unwrap().file_name().unwrap(),
+        "step-00000004"
+    );
+    // Resuming with another learning rate mixes two runs: refused too.
+    let mut other = c.clone();
+    other.train.lr *= 2.0;
+    other.train.max_steps = 6;
+    let mut t = Trainer::new(other).unwrap();
+    t.resume(tmp.path()).unwrap();
+    let err = t.run(&mut |_| {}).unwrap_err().to_string();
+    assert!(err.contains("train.lr"), "{err}");
+    // Starting over on request: a fresh run whose checkpoints survive pruning.
+    let mut t = Trainer::new(short).unwrap();
+    t.overwrite_existing_run();
+    t.run(&mut |_| {}).unwrap();
+    let ck = resolve_checkpoint(tmp.path()).unwrap();
+    assert!(ck.join("state.json").is_file(), "{}", ck.display());
+    assert!(ck.ends_with("step-00000002"), "{}", ck.display());
+    let lines = std::fs::read_to_string(tmp.path().join("metrics.jsonl")).unwrap();
+    assert_eq!(lines.lines().count(), 2);
+}
+
+#[test]
+fn a_checkpoint_beyond_the_configured_steps_is_refused() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.max_steps = 3;
+    Trainer::new(c.clone()).unwrap().run(&mut |_| {}).unwrap();
+    let ck = resolve_checkpoint(tmp.path()).unwrap();
+    let state = ck.join("state.json");
+    let text = std::fs::read_to_string(&state).unwrap();
+    let crafted = text.replace("\"step\":3", &format!("\"step\":{}", u64::MAX));
+    assert_ne!(crafted, text, "{text}");
+    std::fs::write(&state, crafted).unwrap();
+    let err = Trainer::new(c)
+        .unwrap()
+        .resume(tmp.path())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("state.json") && err.contains("beyond"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -63,6 +63,16 @@ pub enum WorldModelError {
         /// The file's shape.
         found: Vec<i64>,
     },
+    /// A tensor in the weight files holds NaN or infinite values.
+    #[error("{path}: weight `{key}` holds {count} NaN or infinite value(s) (a diverged run or a corrupt file)")]
+    NonFiniteWeight {
+        /// The weight file.
+        path: PathBuf,
+        /// The tensor's key.
+        key: String,
+        /// How many values are not finite.
+        count: i64,
+    },
     /// An input has the wrong shape, range or type.
     #[error("invalid input `{name}`: {message}")]
     Input {

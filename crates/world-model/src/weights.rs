@@ -99,6 +99,7 @@ pub fn read_safetensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
             std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
         ));
     }
+    check_safetensors(path)?;
     Tensor::read_safetensors(path).map_err(|e| {
         WorldModelError::io(
             path,
@@ -142,6 +143,20 @@ pub fn load_weights(
                     expected: var.size(),
                     found: tensor.size(),
                 });
+            }
+            if tensor.is_floating_point() {
+                let bad = tensor
+                    .isfinite()
+                    .logical_not()
+                    .sum(tch::Kind::Int64)
+                    .int64_value(&[]);
+                if bad > 0 {
+                    return Err(WorldModelError::NonFiniteWeight {
+                        path: path.clone(),
+                        key,
+                        count: bad,
+                    });
+                }
             }
             tch::no_grad(|| {
                 let mut var = var.shallow_clone();
@@ -256,6 +271,82 @@ fn read_safetensors_header(
         serde_json::Value::Object(map) => Ok((map, 8 + n)),
         _ => Err(bad("safetensors header is not a JSON object".into())),
     }
+}
+
+/// Bytes per element of a safetensors dtype name.
+fn safetensors_dtype_size(dtype: &str) -> Option<u64> {
+    Some(match dtype {
+        "BOOL" | "U8" | "I8" | "F8_E4M3" | "F8_E5M2" => 1,
+        "U16" | "I16" | "F16" | "BF16" => 2,
+        "U32" | "I32" | "F32" => 4,
+        "U64" | "I64" | "F64" => 8,
+        _ => return None,
+    })
+}
+
+/// Checks a safetensors file's header against its size before any tensor is
+/// read: every entry's dtype, shape and byte range, in words (the library's
+/// errors are codes such as `InvalidOffset`).
+pub fn check_safetensors(path: &Path) -> Result<()> {
+    let (header, data_start) = read_safetensors_header(path)?;
+    let file_len = std::fs::metadata(path)
+        .map_err(|e| WorldModelError::io(path, e))?
+        .len();
+    let data_len = file_len - data_start;
+    let bad = |key: &str, m: String| {
+        WorldModelError::io(
+            path,
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("not a valid safetensors file: tensor `{key}`: {m}"),
+            ),
+        )
+    };
+    for (key, entry) in &header {
+        if key == "__metadata__" {
+            continue;
+        }
+        let dtype = entry.get("dtype").and_then(|d| d.as_str()).unwrap_or("");
+        let size = safetensors_dtype_size(dtype).ok_or_else(|| {
+            bad(
+                key,
+                format!("dtype {:?} is not a safetensors dtype", entry.get("dtype")),
+            )
+        })?;
+        let shape: Option<Vec<u64>> = entry
+            .get("shape")
+            .and_then(|s| s.as_array())
+            .and_then(|a| a.iter().map(|d| d.as_u64()).collect());
+        let shape = shape.ok_or_else(|| bad(key, "no shape of non-negative integers".into()))?;
+        let numel = shape
+            .iter()
+            .try_fold(1u64, |n, &d| n.checked_mul(d))
+            .ok_or_else(|| bad(key, format!("shape {shape:?} overflows")))?;
+        let offsets: Option<Vec<u64>> = entry
+            .get("data_offsets")
+            .and_then(|s| s.as_array())
+            .and_then(|a| a.iter().map(|d| d.as_u64()).collect());
+        let (begin, end) = match offsets.as_deref() {
+            Some(&[b, e]) => (b, e),
+            _ => return Err(bad(key, "no data_offsets [begin, end]".into())),
+        };
+        if begin > end || end > data_len {
+            return Err(bad(
+                key,
+                format!("bytes {begin}..{end} lie outside the {data_len} data bytes of the file (truncated?)"),
+            ));
+        }
+        if Some(end - begin) != numel.checked_mul(size) {
+            return Err(bad(
+                key,
+                format!(
+                    "{} bytes for a {dtype} tensor of shape {shape:?} ({numel} values of {size} bytes)",
+                    end - begin
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The `__metadata__` string map of a safetensors file (empty when absent).

@@ -248,6 +248,29 @@ fn weights_file_round_trip_with_config_and_strict_loading() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("bad.safetensors"), "{err}");
+    // A truncated file: the tensor and the byte range in words, no library code.
+    let bytes = std::fs::read(&path).unwrap();
+    let cut = dir.path().join("cut.safetensors");
+    std::fs::write(&cut, &bytes[..bytes.len() - 16]).unwrap();
+    let err = other.load_weights(&cut).unwrap_err().to_string();
+    assert!(
+        err.contains("cut.safetensors")
+            && err.contains("lie outside")
+            && !err.contains("InvalidOffset"),
+        "{err}"
+    );
+    // NaN weights are refused when loaded, naming the file and the tensor.
+    let (name, v) = m.adapters.variables().into_iter().next().unwrap();
+    let _ = tch::no_grad(|| v.shallow_clone().fill_(f64::NAN));
+    let nan = dir.path().join("nan.safetensors");
+    m.save_weights(&nan).unwrap();
+    let err = other.load_weights(&nan).unwrap_err().to_string();
+    assert!(
+        err.contains("nan.safetensors")
+            && err.contains(&format!("`{name}`"))
+            && err.contains("NaN"),
+        "{err}"
+    );
 }
 
 fn image(seed: u64) -> Image {

@@ -227,6 +227,23 @@ fn errors_name_the_problem() {
         e.contains("attention_head_dim") && e.contains("cfg.json"),
         "{e}"
     );
+    // An absurd size is refused before any allocation (it panicked in tch).
+    bad_cfg.attention_head_dim = 1 << 40;
+    let e = bad_cfg
+        .validate(Path::new("cfg.json"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("attention_head_dim") && e.contains("at most"),
+        "{e}"
+    );
+    let mut wide = TransformerConfig::tiny();
+    (wide.num_attention_heads, wide.attention_head_dim) = (1024, 1024);
+    let e = wide
+        .validate(Path::new("cfg.json"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("1048576 dims"), "{e}");
     // Strict loading: a weight missing from the file is named.
     let dir = common::fixture(
         "tf-5b-i2v",

@@ -128,6 +128,16 @@ fn loading_and_config_errors_name_the_problem() {
         e.contains("vae/config.json") && e.contains("norm_num_groups"),
         "{e}"
     );
+    let mut huge = VaeConfig::tiny();
+    huge.block_out_channels = vec![huge.norm_num_groups << 30; huge.block_out_channels.len()];
+    let e = huge
+        .validate(Path::new("vae/config.json"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("block_out_channels") && e.contains("at most"),
+        "{e}"
+    );
 }
 
 fn diffusers_count(cfg: &VaeConfig) -> i64 {

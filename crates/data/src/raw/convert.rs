@@ -222,13 +222,14 @@ pub fn convert(
     options: &ConvertOptions,
     on_item: &dyn Fn(&str),
 ) -> Result<ConvertReport, ConvertError> {
-    if options.width == 0
-        || options.height == 0
+    let max = crate::synth::MAX_SIDE as usize;
+    if !(1..=max).contains(&options.width)
+        || !(1..=max).contains(&options.height)
         || options.width % 2 != 0
         || options.height % 2 != 0
     {
         return Err(ConvertError::Options(format!(
-            "output size {}x{}: expected even, non-zero width and height (H.264)",
+            "output size {}x{}: expected even width and height of 2..={max} pixels (H.264)",
             options.width, options.height
         )));
     }

@@ -32,9 +32,9 @@
 //! `tests/data/mesh/regressions/`.
 
 use super::TriMesh;
+use crate::quiet_panic::catch_quiet;
 use nalgebra::{Matrix4, Point3};
 use std::fmt;
-use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
 
 /// Most vertices (and, separately, triangles) a loaded mesh may have.
@@ -194,9 +194,12 @@ fn load_impl(
         format,
         message,
     };
-    let result = catch_unwind(AssertUnwindSafe(|| match format {
-        MeshFormat::Stl => mesh_loader::stl::from_slice(bytes)
-            .map_err(|e| parse_err(e.to_string()))
+    let result = catch_quiet(|| match format {
+        MeshFormat::Stl => stl_precheck(bytes)
+            .map_err(parse_err)
+            .and_then(|()| {
+                mesh_loader::stl::from_slice(bytes).map_err(|e| parse_err(e.to_string()))
+            })
             .and_then(|scene| merge_scene(name, scene)),
         MeshFormat::Obj => {
             // With no path, mesh-loader never follows `mtllib`.
@@ -217,17 +220,10 @@ fn load_impl(
             GltfFail::Parse(m) => parse_err(m),
             GltfFail::Mesh(e) => e,
         }),
-    }));
+    });
     let mesh = match result {
         Ok(r) => r?,
-        Err(payload) => {
-            let what = payload
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| payload.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "unknown panic".to_string());
-            return Err(parse_err(format!("parser panicked: {what}")));
-        }
+        Err(what) => return Err(parse_err(format!("parser panicked: {what}"))),
     };
     validate(name, &mesh)?;
     Ok(mesh)
@@ -372,6 +368,34 @@ fn collada_text(bytes: &[u8]) -> Result<String, String> {
 /// a `Name_array`/`IDREF_array` inside `<library_geometries>` (its string
 /// array reader never advances), `count` attributes larger than the file,
 /// huge input `offset`s, and `<vcount>` entries larger than the file.
+/// A binary STL (80-byte header, u32 triangle count, 50 bytes per
+/// triangle) must be exactly as long as its count says: the parser would
+/// otherwise read fewer triangles than the file claims, without a word. An
+/// ASCII STL (`solid ...` text) is left to the parser.
+fn stl_precheck(bytes: &[u8]) -> Result<(), String> {
+    // Text never holds a NUL byte; a binary STL's triangle count (< 2^24)
+    // always does.
+    let ascii = bytes.starts_with(b"solid") && !bytes.contains(&0);
+    if ascii {
+        return Ok(());
+    }
+    let Some(count) = bytes.get(80..84) else {
+        return Err(format!(
+            "{} bytes: a binary STL needs an 84-byte header",
+            bytes.len()
+        ));
+    };
+    let count = u32::from_le_bytes([count[0], count[1], count[2], count[3]]);
+    let expected = 84 + 50 * u64::from(count);
+    if bytes.len() as u64 != expected {
+        return Err(format!(
+            "binary STL with {count} triangles should be {expected} bytes, but the file has {} (truncated, or a wrong triangle count)",
+            bytes.len()
+        ));
+    }
+    Ok(())
+}
+
 fn collada_precheck(text: &str) -> Result<(), String> {
     let limit = text.len() as u64;
     // String arrays inside geometries.

@@ -246,6 +246,48 @@ impl TransformerConfig {
                 return bad(field, format!("{v}: expected a positive integer"));
             }
         }
+        // Upper bounds, checked before anything is allocated: far above every
+        // CogVideoX release (5B: 48 heads x 64, 42 layers, 60x90x49 samples),
+        // far below what would exhaust memory or overflow a tensor's size.
+        let bounded = [
+            ("num_attention_heads", self.num_attention_heads, 1024),
+            ("attention_head_dim", self.attention_head_dim, 1024),
+            ("in_channels", self.in_channels, 4096),
+            ("out_channels", self.out_channels.unwrap_or(1), 4096),
+            ("time_embed_dim", self.time_embed_dim, 65_536),
+            ("text_embed_dim", self.text_embed_dim, 65_536),
+            ("num_layers", self.num_layers, 1024),
+            ("sample_width", self.sample_width, 16_384),
+            ("sample_height", self.sample_height, 16_384),
+            ("sample_frames", self.sample_frames, 16_384),
+            ("patch_size", self.patch_size, 64),
+            ("patch_size_t", self.patch_size_t.unwrap_or(1), 64),
+            (
+                "temporal_compression_ratio",
+                self.temporal_compression_ratio,
+                64,
+            ),
+            ("max_text_seq_length", self.max_text_seq_length, 65_536),
+        ];
+        for (field, v, max) in bounded {
+            if v > max {
+                return bad(
+                    field,
+                    format!("{v}: at most {max} is supported (a corrupt config?)"),
+                );
+            }
+        }
+        if self.inner_dim() > 65_536 {
+            return bad(
+                "attention_head_dim",
+                format!(
+                    "{} heads x {} = {} dims: at most 65536 are supported (a corrupt config?)",
+                    self.num_attention_heads,
+                    self.attention_head_dim,
+                    self.inner_dim()
+                ),
+            );
+        }
         if self.out_channels.is_some_and(|c| c <= 0) {
             return bad(
                 "out_channels",

@@ -274,6 +274,44 @@ impl VaeConfig {
                 ),
             );
         }
+        // Upper bounds before anything is allocated: far above every
+        // CogVideoX VAE (4 blocks up to 512 channels, 16 latent channels).
+        if n > 16 {
+            return err(
+                "block_out_channels",
+                format!("{n} blocks: at most 16 are supported (a corrupt config?)"),
+            );
+        }
+        for (field, value, max) in [
+            ("in_channels", self.in_channels, 1024),
+            ("out_channels", self.out_channels, 1024),
+            ("latent_channels", self.latent_channels, 1024),
+            ("norm_num_groups", self.norm_num_groups, 1024),
+            (
+                "block_out_channels",
+                self.block_out_channels.iter().copied().max().unwrap_or(1),
+                8192,
+            ),
+            ("layers_per_block", self.layers_per_block, 64),
+            ("sample_height", self.sample_height, 16_384),
+            ("sample_width", self.sample_width, 16_384),
+        ] {
+            if value > max {
+                return err(
+                    field,
+                    format!("{value}: at most {max} is supported (a corrupt config?)"),
+                );
+            }
+        }
+        if self.temporal_compression_ratio > 64.0 {
+            return err(
+                "temporal_compression_ratio",
+                format!(
+                    "{}: at most 64 is supported",
+                    self.temporal_compression_ratio
+                ),
+            );
+        }
         if self.layers_per_block < 0 {
             return err(
                 "layers_per_block",

@@ -1,0 +1,199 @@
+//! The run folder (`train.out`) as one run's property: a new run refuses a
+//! folder that already holds one (unless told to start over), a resumed run
+//! refuses a folder that holds a run of another configuration.
+//!
+//! A folder "holds a run" when it has any of the files a run writes
+//! ([`RUN_FILES`]); other files in it are the user's and are never touched.
+
+use crate::config::TrainConfig;
+use crate::{Result, TrainError};
+use std::path::Path;
+
+/// The files and folders a run writes into `train.out`.
+pub const RUN_FILES: [&str; 4] = ["config.toml", "metrics.jsonl", "checkpoints", "final"];
+
+/// The `[train]` fields a resumed run may change: where it writes, how far it
+/// goes, how often it checkpoints, the device it runs on, and the test hook.
+const RESUMABLE_CHANGES: [&str; 7] = [
+    "train.out",
+    "train.max_steps",
+    "train.epochs",
+    "train.checkpoint_every",
+    "train.keep_checkpoints",
+    "train.inject_nan_at_step",
+    "model.device",
+];
+
+/// What to do with a run folder that already holds a run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ExistingRun {
+    /// Refuse it (the default of a new run).
+    #[default]
+    Refuse,
+    /// Continue it: the trainer resumed from a checkpoint; the folder's run
+    /// must have the same configuration (but for [`RESUMABLE_CHANGES`]).
+    Continue,
+    /// Start over: remove the run's files ([`RUN_FILES`]) first.
+    Overwrite,
+}
+
+/// The run files `out` holds.
+pub fn held_run_files(out: &Path) -> Vec<&'static str> {
+    RUN_FILES
+        .iter()
+        .copied()
+        .filter(|f| out.join(f).symlink_metadata().is_ok())
+        .collect()
+}
+
+/// Claims `out` for a run of `cfg`, as `existing` says.
+pub fn claim(out: &Path, cfg: &TrainConfig, existing: ExistingRun) -> Result<()> {
+    let held = held_run_files(out);
+    if held.is_empty() {
+        return Ok(());
+    }
+    match existing {
+        ExistingRun::Refuse => Err(TrainError::input(
+            format!("train.out {}", out.display()),
+            format!(
+                "already holds a run ({}): pass --resume {} to continue it, or --overwrite to replace it",
+                held.join(", "),
+                out.display()
+            ),
+        )),
+        ExistingRun::Continue => check_same_run(out, cfg),
+        ExistingRun::Overwrite => {
+            for f in held {
+                let p = out.join(f);
+                let removed = if p.is_dir() {
+                    std::fs::remove_dir_all(&p)
+                } else {
+                    std::fs::remove_file(&p)
+                };
+                removed.map_err(|error| TrainError::Io { path: p, error })?;
+            }
+            Ok(())
+        }
+    }
+}
+
+/// Errs when `out/config.toml` (if present) differs from `cfg` in a field
+/// other than [`RESUMABLE_CHANGES`], naming the fields and both values.
+fn check_same_run(out: &Path, cfg: &TrainConfig) -> Result<()> {
+    let path = out.join("config.toml");
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        return Ok(());
+    };
+    let old: toml::Table = toml::from_str(&text)
+        .map_err(|e| TrainError::input(path.display().to_string(), e.to_string()))?;
+    let new: toml::Table =
+        toml::from_str(&cfg.to_toml()?).map_err(|e| TrainError::input("config", e.to_string()))?;
+    let mut diffs = Vec::new();
+    diff_tables("", &old, &new, &mut diffs);
+    diffs.retain(|(key, _, _)| !RESUMABLE_CHANGES.contains(&key.as_str()));
+    if diffs.is_empty() {
+        return Ok(());
+    }
+    let list: Vec<String> = diffs
+        .iter()
+        .map(|(k, a, b)| format!("{k}: {a} there, {b} now"))
+        .collect();
+    Err(TrainError::input(
+        format!("train.out {}", out.display()),
+        format!(
+            "holds a run of another configuration ({}): resuming would mix two runs; use another `out`, or --overwrite to replace it",
+            list.join("; ")
+        ),
+    ))
+}
+
+/// The dotted keys whose values differ between `a` and `b` (a missing key
+/// shows as `(none)`).
+fn diff_tables(
+    prefix: &str,
+    a: &toml::Table,
+    b: &toml::Table,
+    out: &mut Vec<(String, String, String)>,
+) {
+    let mut keys: Vec<&String> = a.keys().chain(b.keys()).collect();
+    keys.sort();
+    keys.dedup();
+    for k in keys {
+        let key = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match (a.get(k), b.get(k)) {
+            (Some(toml::Value::Table(ta)), Some(toml::Value::Table(tb))) => {
+                diff_tables(&key, ta, tb, out)
+            }
+            (va, vb) if va != vb => {
+                let show = |v: Option<&toml::Value>| v.map_or("(none)".into(), |v| v.to_string());
+                out.push((key, show(va), show(vb)));
+            }
+            _ => {}
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cfg(out: &Path) -> TrainConfig {
+        let mut c = TrainConfig::from_toml(
+            "[model]\nbackbone = \"random:tiny\"\nlora_rank = 0\n[data]\ndataset = \"d\"\n",
+        )
+        .unwrap();
+        c.train.out = out.to_path_buf();
+        c
+    }
+
+    #[test]
+    fn a_new_run_refuses_a_folder_with_a_run_and_names_its_files() {
+        let dir = tempfile::tempdir().unwrap();
+        claim(dir.path(), &cfg(dir.path()), ExistingRun::Refuse).unwrap();
+        std::fs::write(dir.path().join("notes.txt"), "mine").unwrap();
+        claim(dir.path(), &cfg(dir.path()), ExistingRun::Refuse).unwrap();
+        std::fs::write(dir.path().join("metrics.jsonl"), "{}\n").unwrap();
+        std::fs::create_dir(dir.path().join("final")).unwrap();
+        let e = claim(dir.path(), &cfg(dir.path()), ExistingRun::Refuse)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("metrics.jsonl, final"), "{e}");
+        assert!(e.contains("--overwrite") && e.contains("--resume"), "{e}");
+        assert!(dir.path().join("metrics.jsonl").exists());
+    }
+
+    #[test]
+    fn overwrite_removes_only_the_run_files() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("notes.txt"), "mine").unwrap();
+        std::fs::write(dir.path().join("metrics.jsonl"), "{}\n").unwrap();
+        std::fs::create_dir_all(dir.path().join("checkpoints/step-00000005")).unwrap();
+        claim(dir.path(), &cfg(dir.path()), ExistingRun::Overwrite).unwrap();
+        assert!(held_run_files(dir.path()).is_empty());
+        assert!(dir.path().join("notes.txt").exists());
+    }
+
+    #[test]
+    fn continuing_checks_the_configuration_but_allows_more_steps() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = cfg(dir.path());
+        std::fs::write(dir.path().join("config.toml"), c.to_toml().unwrap()).unwrap();
+        let mut longer = c.clone();
+        longer.train.max_steps += 100;
+        longer.train.checkpoint_every = 7;
+        claim(dir.path(), &longer, ExistingRun::Continue).unwrap();
+        let mut other = c.clone();
+        other.train.lr *= 2.0;
+        other.model.lora_rank = 4;
+        let e = claim(dir.path(), &other, ExistingRun::Continue)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("model.lora_rank: 0 there, 4 now"), "{e}");
+        assert!(e.contains("train.lr"), "{e}");
+        assert!(!e.contains("max_steps"), "{e}");
+    }
+}
