@@ -583,6 +583,7 @@ pub fn read_file(path: &Path) -> Result<Vec<u8>, Mp4Error> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -141,6 +141,7 @@ fn remove(path: &Path) -> Result<(), OutputError> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -42,6 +42,7 @@ pub fn catch_quiet<R>(f: impl FnOnce() -> R) -> Result<R, String> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -241,7 +241,7 @@ fn a_revolute_joint_without_limit_is_named() {
     <parent link="base"/><child link="arm"/><axis xyz="0 0 1"/>
   </joint>
 </robot>"#;
-    let e = load(text).unwrap_err();
+    let e = load(text).expect_err("refused");
     assert!(
         e.contains("shoulder") && e.contains("no <limit") && e.contains("continuous"),
         "{e}"
@@ -250,23 +250,25 @@ fn a_revolute_joint_without_limit_is_named() {
         "<axis xyz=\"0 0 1\"/>",
         "<axis xyz=\"0 0 1\"/><limit lower=\"-1\" upper=\"1\" effort=\"1\" velocity=\"1\"/>",
     );
-    let robot = load(&with_limit).unwrap();
+    let robot = load(&with_limit).expect("ok");
     assert_eq!(robot.dof_limits(), vec![(-1.0, 1.0)]);
 }
 
 #[test]
 fn a_urdf_file_where_a_builtin_robot_is_required_says_so() {
     use bridgev2w_embodiment::embodiment::Embodiment;
-    let dir = tempfile::tempdir().unwrap();
+    let dir = tempfile::tempdir().expect("ok");
     let path = dir.path().join("some.urdf");
-    std::fs::write(&path, TREE).unwrap();
-    let e = Embodiment::builtin(path.to_str().unwrap())
-        .unwrap_err()
+    std::fs::write(&path, TREE).expect("ok");
+    let e = Embodiment::builtin(path.to_str().expect("ok"))
+        .expect_err("refused")
         .to_string();
     assert!(
         e.contains("only built-in robots") && e.contains("franka"),
         "{e}"
     );
-    let e = Embodiment::builtin("nope").unwrap_err().to_string();
+    let e = Embodiment::builtin("nope")
+        .expect_err("refused")
+        .to_string();
     assert!(e.contains("no such URDF file"), "{e}");
 }

@@ -706,12 +706,12 @@ mod tests {
             data: vec![0; height * width],
         };
         // Same size, or a half-resolution segmentation: resized.
-        check_mask_aspect(&masks(64, 96), (64, 96)).unwrap();
-        check_mask_aspect(&masks(32, 48), (64, 96)).unwrap();
+        check_mask_aspect(&masks(64, 96), (64, 96)).expect("resized");
+        check_mask_aspect(&masks(32, 48), (64, 96)).expect("resized");
         // Stored [T, W, H].
-        let e = check_mask_aspect(&masks(96, 64), (64, 96)).unwrap_err();
+        let e = check_mask_aspect(&masks(96, 64), (64, 96)).expect_err("refused");
         assert!(e.contains("96x64") && e.contains("[T, W, H]"), "{e}");
-        let e = check_mask_aspect(&masks(64, 64), (64, 96)).unwrap_err();
+        let e = check_mask_aspect(&masks(64, 64), (64, 96)).expect_err("refused");
         assert!(
             e.contains("aspect ratio") && !e.contains("[T, W, H]"),
             "{e}"

@@ -138,6 +138,7 @@ fn diff_tables(
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
