@@ -20,7 +20,7 @@ use bridgev2w_embodiment::output::OutputDir;
 use bridgev2w_eval::clip::{compare_with_copy, ClipScore};
 use bridgev2w_eval::video::Frame;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
-use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
+use bridgev2w_world_model::pipeline::{FirstFrame, PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::video::{Image, MaskVideo};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use nalgebra::{Point3, UnitQuaternion, Vector3};
@@ -56,6 +56,10 @@ pub struct DemoArgs {
     /// Sampling seed of the prediction.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// The first latent frame of the prediction: `generated` (diffusers'
+    /// sampler) or `replaced` by the image latent at every step.
+    #[arg(long, default_value = "generated")]
+    pub first_frame: FirstFrame,
 }
 
 /// The shipped demo model: `assets/demo-model` under the working directory,
@@ -148,6 +152,7 @@ fn predict(args: &DemoArgs, tmp: &Path) -> Result<()> {
             guidance_scale: 1.0,
             dynamic_cfg: false,
             seed: args.seed,
+            first_frame: args.first_frame,
         },
     };
     let video = model.predict(&image, &masks, &opts)?;

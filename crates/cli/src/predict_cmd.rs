@@ -189,6 +189,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
             guidance_scale: a.guidance,
             dynamic_cfg: a.dynamic_cfg,
             seed: a.seed,
+            first_frame: Default::default(),
         },
     };
     eprintln!(

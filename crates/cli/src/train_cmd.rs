@@ -164,6 +164,10 @@ pub struct EvalRunArgs {
     /// Also write the scores as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// The first latent frame of the predictions: `generated` (diffusers'
+    /// sampler) or `replaced` by the image latent at every step.
+    #[arg(long, default_value = "generated")]
+    first_frame: bridgev2w_world_model::pipeline::FirstFrame,
     /// The robot segmenter of Mask-IoU, trained on the run's training split:
     /// `cnn` (a small dilated CNN, shape-aware) or `color` (a colour classifier).
     #[arg(long, default_value = "cnn")]
@@ -186,6 +190,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         guidance: args.guidance,
         seed: args.seed,
         max_videos: args.max_videos,
+        first_frame: args.first_frame,
     };
     let segmenter: Option<Box<dyn RobotSegmenter>> = match args.segmenter.as_str() {
         "cnn" => {

@@ -18,6 +18,7 @@ use bridgev2w_eval::clip::{copy_first_frame, score_clip};
 use bridgev2w_eval::dynamic::dynamic_region;
 use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
 use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, Frame};
+use bridgev2w_world_model::pipeline::{FirstFrame, SampleOptions};
 use tch::{Kind, Tensor};
 
 /// Sampling settings of [`evaluate_split`].
@@ -31,6 +32,8 @@ pub struct EvalOptions {
     pub seed: u64,
     /// At most this many videos (0 = all).
     pub max_videos: usize,
+    /// The sampler's first latent frame.
+    pub first_frame: FirstFrame,
 }
 
 impl Default for EvalOptions {
@@ -40,6 +43,7 @@ impl Default for EvalOptions {
             guidance: 1.0,
             seed: 0,
             max_videos: 0,
+            first_frame: FirstFrame::Generated,
         }
     }
 }
@@ -163,7 +167,16 @@ pub fn evaluate_split(
     let with_masks = segmenter.filter(|_| data.has_masks());
     for i in 0..n {
         let batch = data.clips(&[(i, 0)], trainer.model.device())?;
-        let pred = trainer.predict(&batch, opts.steps, opts.guidance, opts.seed)?;
+        let pred = trainer.predict(
+            &batch,
+            &SampleOptions {
+                steps: opts.steps,
+                guidance_scale: opts.guidance,
+                dynamic_cfg: false,
+                seed: opts.seed,
+                first_frame: opts.first_frame,
+            },
+        )?;
         let gt = frames(&batch.video)?;
         let pf = frames(&pred)?;
         let copy = copy_first_frame(&gt).map_err(metric)?;

@@ -543,9 +543,8 @@ impl Trainer {
 
     /// The model's prediction `[B, 3, T, H, W]` in [-1, 1] for `batch`: from
     /// the first frames (posterior mode) and the run's condition (mask
-    /// branch, action MLP, or none for a prior), `steps` DDIM/DPM steps with
-    /// guidance `guidance`, seed `seed`.
-    pub fn predict(&self, batch: &Batch, steps: usize, guidance: f64, seed: u64) -> Result<Tensor> {
+    /// branch, action MLP, or none for a prior), sampled with `opts`.
+    pub fn predict(&self, batch: &Batch, opts: &SampleOptions) -> Result<Tensor> {
         let model = &self.model;
         tch::no_grad(|| -> Result<Tensor> {
             let img = model.image_latents(&batch.first_frames, None)?;
@@ -572,17 +571,7 @@ impl Trainer {
                 extra: &extra,
             };
             let mut scheduler = Scheduler::new(model.scheduler.clone())?;
-            let z = sample_latents(
-                &denoiser,
-                &mut scheduler,
-                &img,
-                &SampleOptions {
-                    steps,
-                    guidance_scale: guidance,
-                    dynamic_cfg: false,
-                    seed,
-                },
-            )?;
+            let z = sample_latents(&denoiser, &mut scheduler, &img, opts)?;
             Ok(model.decode_latents(&z)?.clamp(-1.0, 1.0))
         })
     }

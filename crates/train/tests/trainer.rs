@@ -8,6 +8,7 @@ use bridgev2w_data::synth::{write_dataset, SynthConfig};
 use bridgev2w_train::config::TrainConfig;
 use bridgev2w_train::trainer::{resolve_checkpoint, Trainer};
 use bridgev2w_train::TrainError;
+use bridgev2w_world_model::pipeline::SampleOptions;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, MutexGuard, OnceLock};
 use tch::Kind;
@@ -655,6 +656,7 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
         guidance: 1.0,
         seed: 3,
         max_videos: 1,
+        ..EvalOptions::default()
     };
     for mask_action in [true, false] {
         let mut c = config(tmp.path());
@@ -706,12 +708,40 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
         );
         let b = t.batch(0).unwrap();
         let (p1, p2) = (
-            t.predict(&b, 2, 1.0, 9).unwrap(),
-            t.predict(&b, 2, 1.0, 9).unwrap(),
+            t.predict(
+                &b,
+                &SampleOptions {
+                    steps: 2,
+                    guidance_scale: 1.0,
+                    seed: 9,
+                    ..SampleOptions::default()
+                },
+            )
+            .unwrap(),
+            t.predict(
+                &b,
+                &SampleOptions {
+                    steps: 2,
+                    guidance_scale: 1.0,
+                    seed: 9,
+                    ..SampleOptions::default()
+                },
+            )
+            .unwrap(),
         );
         assert_eq!(p1.size(), b.video.size());
         assert!(p1.equal(&p2), "same seed, same prediction");
-        let p3 = t.predict(&b, 2, 1.0, 10).unwrap();
+        let p3 = t
+            .predict(
+                &b,
+                &SampleOptions {
+                    steps: 2,
+                    guidance_scale: 1.0,
+                    seed: 10,
+                    ..SampleOptions::default()
+                },
+            )
+            .unwrap();
         assert!(!p1.equal(&p3), "another seed, another sample");
     }
     let err = evaluate_split(

@@ -29,6 +29,48 @@ pub trait Denoiser {
         -> Result<Tensor>;
 }
 
+/// What the sampler does with the first latent frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FirstFrame {
+    /// The model denoises it like every other frame (diffusers' pipeline).
+    #[default]
+    Generated,
+    /// After every step it is replaced by the image latent, noised to the
+    /// next step's level (the exact image latent after the last step), so
+    /// the later frames attend to a first frame that is right. Meant for
+    /// VAEs without time compression, where latent frame 0 is the image alone.
+    Replaced,
+}
+
+impl FirstFrame {
+    /// The names [`std::str::FromStr`] accepts.
+    pub const NAMES: [&'static str; 2] = ["generated", "replaced"];
+}
+
+impl std::str::FromStr for FirstFrame {
+    type Err = WorldModelError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "generated" => Ok(Self::Generated),
+            "replaced" => Ok(Self::Replaced),
+            other => Err(WorldModelError::input(
+                "first_frame",
+                format!("{other:?}: expected one of {}", Self::NAMES.join(", ")),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for FirstFrame {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Generated => "generated",
+            Self::Replaced => "replaced",
+        })
+    }
+}
+
 /// Sampling options.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SampleOptions {
@@ -40,6 +82,8 @@ pub struct SampleOptions {
     pub dynamic_cfg: bool,
     /// Seed of the initial noise and of the sampler's noise.
     pub seed: u64,
+    /// The first latent frame: generated, or replaced by the image latent.
+    pub first_frame: FirstFrame,
 }
 
 impl Default for SampleOptions {
@@ -49,6 +93,7 @@ impl Default for SampleOptions {
             guidance_scale: 6.0,
             dynamic_cfg: false,
             seed: 42,
+            first_frame: FirstFrame::Generated,
         }
     }
 }
@@ -83,7 +128,7 @@ pub fn sample_latents(
     let n_train = scheduler.config().num_train_timesteps as f64;
     let batch = shape[0];
     let mut noise = |s: &[i64]| Tensor::randn(s, (Kind::Float, device));
-    for &t in &timesteps {
+    for (i, &t) in timesteps.iter().enumerate() {
         // [B, F, C, h, w] ++ [B, F, C, h, w] -> [B, F, 2C, h, w]
         let latent_in = Tensor::cat(&[&latents, image_latents], 2);
         let ts = Tensor::full([batch], t, (Kind::Int64, device));
@@ -114,6 +159,22 @@ pub fn sample_latents(
                 &mut noise,
             )?
             .to_kind(kind);
+        if opts.first_frame == FirstFrame::Replaced {
+            // [B, 1, C, h, w]: the image latent at the level of the next step.
+            let z0 = image_latents.narrow(1, 0, 1).to_kind(Kind::Float);
+            let frame0 = match timesteps.get(i + 1) {
+                Some(&next) => {
+                    let ts = Tensor::full([batch], next, (Kind::Int64, device));
+                    scheduler.add_noise(&z0, &noise(&z0.size()), &ts)?
+                }
+                None => z0,
+            };
+            // [B, 1, C, h, w] ++ [B, F-1, C, h, w] -> [B, F, C, h, w]
+            latents = Tensor::cat(
+                &[frame0.to_kind(kind), latents.narrow(1, 1, shape[1] - 1)],
+                1,
+            );
+        }
     }
     Ok(latents)
 }
@@ -229,6 +290,7 @@ mod tests {
             guidance_scale: guidance,
             dynamic_cfg: false,
             seed: 7,
+            first_frame: FirstFrame::Generated,
         };
         (
             sample_latents(&oracle, &mut sched, &image, &opts).unwrap(),
@@ -252,6 +314,43 @@ mod tests {
         let (out, x0) = run(SamplerKind::Ddim, 3.0);
         let err = (out - &x0 * 3.0).abs().max().double_value(&[]);
         assert!(err < 1e-2, "{err}");
+    }
+
+    #[test]
+    fn a_replaced_first_frame_ends_as_the_image_latent() {
+        let mut cfg = SchedulerConfig::cogvideox_5b_i2v();
+        cfg.rescale_betas_zero_snr = false; // keep 1 - a > 0 for the oracle's inversion
+        let mut sched = Scheduler::new(cfg).unwrap().with_kind(SamplerKind::Ddim);
+        let alphas = sched.schedule().alphas_cumprod.clone();
+        tch::manual_seed(5);
+        let x0 = Tensor::randn([1, 3, 4, 2, 2], (Kind::Float, Device::Cpu));
+        let oracle = Oracle {
+            x0: x0.shallow_clone(),
+            alphas,
+        };
+        // The image latent in frame 0 differs from what the denoiser predicts.
+        let image = Tensor::zeros([1, 3, 4, 2, 2], (Kind::Float, Device::Cpu));
+        let _ = image.narrow(1, 0, 1).fill_(0.5);
+        let opts = SampleOptions {
+            steps: 10,
+            guidance_scale: 1.0,
+            first_frame: FirstFrame::Replaced,
+            ..SampleOptions::default()
+        };
+        let out = sample_latents(&oracle, &mut sched, &image, &opts).unwrap();
+        let first = (out.narrow(1, 0, 1) - 0.5).abs().max().double_value(&[]);
+        assert_eq!(first, 0.0);
+        let rest = (out.narrow(1, 1, 2) - x0.narrow(1, 1, 2))
+            .abs()
+            .max()
+            .double_value(&[]);
+        assert!(rest < 1e-3, "{rest}");
+        assert_eq!(
+            "replaced".parse::<FirstFrame>().unwrap(),
+            FirstFrame::Replaced
+        );
+        let e = "both".parse::<FirstFrame>().unwrap_err().to_string();
+        assert!(e.contains("generated, replaced"), "{e}");
     }
 
     #[test]

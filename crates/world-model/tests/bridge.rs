@@ -310,6 +310,7 @@ fn opts(seed: u64, guidance_scale: f64) -> PredictOptions {
             guidance_scale,
             dynamic_cfg: false,
             seed,
+            first_frame: Default::default(),
         },
     }
 }
