@@ -707,41 +707,19 @@ fn evaluation_scores_mask_and_action_models_against_the_baseline() {
             "{s:?}"
         );
         let b = t.batch(0).unwrap();
+        let sample = |seed| SampleOptions {
+            steps: 2,
+            guidance_scale: 1.0,
+            seed,
+            ..SampleOptions::default()
+        };
         let (p1, p2) = (
-            t.predict(
-                &b,
-                &SampleOptions {
-                    steps: 2,
-                    guidance_scale: 1.0,
-                    seed: 9,
-                    ..SampleOptions::default()
-                },
-            )
-            .unwrap(),
-            t.predict(
-                &b,
-                &SampleOptions {
-                    steps: 2,
-                    guidance_scale: 1.0,
-                    seed: 9,
-                    ..SampleOptions::default()
-                },
-            )
-            .unwrap(),
+            t.predict(&b, &sample(9)).unwrap(),
+            t.predict(&b, &sample(9)).unwrap(),
         );
         assert_eq!(p1.size(), b.video.size());
         assert!(p1.equal(&p2), "same seed, same prediction");
-        let p3 = t
-            .predict(
-                &b,
-                &SampleOptions {
-                    steps: 2,
-                    guidance_scale: 1.0,
-                    seed: 10,
-                    ..SampleOptions::default()
-                },
-            )
-            .unwrap();
+        let p3 = t.predict(&b, &sample(10)).unwrap();
         assert!(!p1.equal(&p3), "another seed, another sample");
     }
     let err = evaluate_split(
