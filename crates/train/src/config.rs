@@ -387,6 +387,9 @@ impl Default for AblationSection {
     }
 }
 
+/// The most steps (`train.max_steps`) a run may have.
+pub const MAX_STEPS: usize = 1_000_000_000;
+
 impl TrainConfig {
     /// Parses a TOML file.
     pub fn from_file(path: &Path) -> Result<Self> {
@@ -524,7 +527,7 @@ impl TrainConfig {
                 self.model.action_hidden.max(0) as usize,
                 1 << 20,
             ),
-            ("train.max_steps", t.max_steps, 1_000_000_000),
+            ("train.max_steps", t.max_steps, MAX_STEPS),
             ("train.epochs", t.epochs, 1_000_000_000),
         ] {
             if v > max {

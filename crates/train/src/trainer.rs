@@ -1043,12 +1043,14 @@ impl Trainer {
         let step = state["step"].as_u64().ok_or_else(|| {
             TrainError::input(state_path.display().to_string(), "no integer `step`")
         })?;
-        let total = self.total_steps();
-        if step > total as u64 {
+        // A checkpoint may lie beyond this config's steps (evaluating a run
+        // that was extended with --max-steps), but not beyond any run.
+        if step > crate::config::MAX_STEPS as u64 {
             return Err(TrainError::input(
                 state_path.display().to_string(),
                 format!(
-                    "step {step} is beyond this run's {total} steps (train.max_steps/epochs): raise max_steps to continue it, or resume an earlier checkpoint"
+                    "step {step} is beyond any run (at most {} steps): a corrupt state.json?",
+                    crate::config::MAX_STEPS
                 ),
             ));
         }
