@@ -162,7 +162,7 @@ fn a_second_run_into_the_same_out_is_refused_unless_resumed_or_overwritten() {
 }
 
 #[test]
-fn a_checkpoint_beyond_the_configured_steps_is_refused() {
+fn a_checkpoint_step_beyond_any_run_is_refused() {
     let _g = lock();
     let tmp = tempfile::tempdir().unwrap();
     let mut c = config(tmp.path());
