@@ -151,22 +151,14 @@ fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<Mask
             arr.descr
         );
     }
-    let on = if arr.data.contains(&255.0) {
-        255.0
-    } else {
-        1.0
-    };
-    if let Some(v) = arr.data.iter().find(|&&v| v != 0.0 && v != on) {
-        bail!(
-            "--masks {}: a value of {v} next to {on}, expected binary masks (0 and 1, or 0 and 255)",
-            path.display()
-        );
-    }
+    let data = arr
+        .binary_mask()
+        .map_err(|m| anyhow::anyhow!("--masks {}: {m}", path.display()))?;
     Ok(MaskVideo {
         frames,
         height: h,
         width: w,
-        data: arr.data.iter().map(|&v| u8::from(v != 0.0)).collect(),
+        data,
     })
 }
 

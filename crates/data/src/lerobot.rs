@@ -934,18 +934,8 @@ impl LeRobotDataset {
                 ),
             ));
         }
-        // Binary masks as 0/1 (this project's) or 0/255 (image tools').
-        let on = if a.data.contains(&255.0) { 255.0 } else { 1.0 };
-        if let Some(v) = a.data.iter().find(|&&v| v != 0.0 && v != on) {
-            return Err(meta_err(
-                &path,
-                format!("a mask value of {v} next to {on}: expected binary masks, 0 (background) and 1 or 255 (robot)"),
-            ));
-        }
-        Ok((
-            a.shape,
-            a.data.iter().map(|&v| u8::from(v != 0.0)).collect(),
-        ))
+        let masks = a.binary_mask().map_err(|m| meta_err(&path, m))?;
+        Ok((a.shape, masks))
     }
 
     /// The synthetic camera calibration of an episode's video `key`.

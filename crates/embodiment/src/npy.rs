@@ -41,6 +41,25 @@ pub struct NpyArray {
     pub descr: String,
 }
 
+impl NpyArray {
+    /// The values as a binary mask, 0 (background) and 1 (robot): masks are
+    /// stored 0/1 (this project's) or 0/255 (image tools'). Any other value
+    /// is an error naming it.
+    pub fn binary_mask(&self) -> Result<Vec<u8>, String> {
+        let on = if self.data.contains(&255.0) {
+            255.0
+        } else {
+            1.0
+        };
+        if let Some(v) = self.data.iter().find(|&&v| v != 0.0 && v != on) {
+            return Err(format!(
+                "a value of {v} next to {on}: expected binary masks, 0 (background) and 1 or 255 (robot)"
+            ));
+        }
+        Ok(self.data.iter().map(|&v| u8::from(v != 0.0)).collect())
+    }
+}
+
 /// Reads a `.npy` file.
 pub fn read_npy(path: &Path) -> Result<NpyArray, NpyError> {
     let bytes = std::fs::read(path).map_err(|source| NpyError::Io {
