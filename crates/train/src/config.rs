@@ -14,6 +14,7 @@
 
 use crate::data::{MaskKind, SourceSpec};
 use crate::{Result, TrainError};
+use bridgev2w_world_model::bridge::ImageConditioning;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -58,6 +59,10 @@ pub struct ModelSection {
     pub device: String,
     /// Hidden width of the action MLP (`ablation.mask_action = false`).
     pub action_hidden: i64,
+    /// Where the image latent enters the backbone's conditioning channels:
+    /// `first_frame` (CogVideoX-I2V) or `every_frame` (for backbones trained
+    /// here from scratch; the prior and the fine-tuning must agree).
+    pub image_conditioning: ImageConditioning,
 }
 
 impl Default for ModelSection {
@@ -72,6 +77,7 @@ impl Default for ModelSection {
             train_backbone: false,
             device: "cpu".into(),
             action_hidden: 256,
+            image_conditioning: ImageConditioning::FirstFrame,
         }
     }
 }

@@ -491,9 +491,7 @@ impl Trainer {
             return Ok(model.image_latents(first, Some(seed))?);
         }
         let z = self.encode_sampled(&first.unsqueeze(2), seed)?; // [B, 1, C, h, w]
-        let s = z.size();
-        let pad = Tensor::zeros([s[0], frames - 1, s[2], s[3], s[4]], (z.kind(), z.device()));
-        Ok(Tensor::cat(&[&z, &pad], 1))
+        Ok(model.config().image_conditioning.expand(&z, frames)) // [B, t, C, h, w]
     }
 
     /// The dtype the loss's forward passes autocast to (`None`: f32), from
@@ -1141,6 +1139,7 @@ fn build_model(
                 zero_init: cfg.ablation.controlnet,
             },
             lora,
+            image_conditioning: cfg.model.image_conditioning,
         })
     };
     let model = if let Some((vae, tf)) = random_preset(&cfg.model.backbone)? {
@@ -1177,6 +1176,16 @@ fn build_model(
     };
     if let Some(w) = &cfg.model.init_weights {
         model.load_weights(w)?;
+    }
+    let loaded = model.config().image_conditioning;
+    if loaded != cfg.model.image_conditioning {
+        return Err(TrainError::input(
+            "model.image_conditioning",
+            format!(
+                "{}, but the backbone {} was trained with {loaded}: set model.image_conditioning = \"{loaded}\"",
+                cfg.model.image_conditioning, cfg.model.backbone
+            ),
+        ));
     }
     Ok(model)
 }

@@ -8,6 +8,7 @@ use bridgev2w_data::synth::{write_dataset, SynthConfig};
 use bridgev2w_train::config::TrainConfig;
 use bridgev2w_train::trainer::{resolve_checkpoint, Trainer};
 use bridgev2w_train::TrainError;
+use bridgev2w_world_model::bridge::ImageConditioning;
 use bridgev2w_world_model::pipeline::SampleOptions;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, MutexGuard, OnceLock};
@@ -615,6 +616,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     c.train.stage = "prior".into();
     c.train.max_steps = 2;
     c.train.checkpoint_every = 0;
+    c.model.image_conditioning = ImageConditioning::EveryFrame;
     let mut t = Trainer::new(c).unwrap();
     assert!(t
         .opt
@@ -633,6 +635,13 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     c.model.backbone = prior.display().to_string();
     (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
     c.train.max_steps = 1;
+    // ... with the prior's image conditioning, which its folder records.
+    let e = Trainer::new(c.clone()).unwrap_err().to_string();
+    assert!(
+        e.contains("model.image_conditioning") && e.contains("every_frame"),
+        "{e}"
+    );
+    c.model.image_conditioning = ImageConditioning::EveryFrame;
     let mut t = Trainer::new(c).unwrap();
     assert!(t
         .opt

@@ -45,6 +45,61 @@ pub struct BridgeV2WConfig {
     pub controlnet: ControlNetConfig,
     /// LoRA on the backbone's attention (none: the backbone is used as is).
     pub lora: Option<LoraConfig>,
+    /// Where the image latent enters the conditioning channels.
+    pub image_conditioning: ImageConditioning,
+}
+
+/// Where the first frame's latent goes in the `C` conditioning channels that an
+/// image-to-video backbone concatenates to its noisy latents.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ImageConditioning {
+    /// Latent frame 0 only, the later frames zero (CogVideoX-I2V; the only
+    /// choice for its pretrained weights).
+    #[default]
+    FirstFrame,
+    /// Repeated in every latent frame, so that each token sees the image at
+    /// its own place and copying the static scene is a local map. A measured
+    /// deviation for backbones trained from scratch (the synthetic presets).
+    EveryFrame,
+}
+
+impl ImageConditioning {
+    /// The names [`std::str::FromStr`] accepts.
+    pub const NAMES: [&'static str; 2] = ["first_frame", "every_frame"];
+
+    /// `[B, t, C, h, w]` conditioning latents from the image latent `z`
+    /// `[B, 1, C, h, w]`.
+    pub fn expand(self, z: &Tensor, t: i64) -> Tensor {
+        let s = z.size();
+        match self {
+            Self::FirstFrame => {
+                let pad = Tensor::zeros([s[0], t - 1, s[2], s[3], s[4]], (z.kind(), z.device()));
+                Tensor::cat(&[z, &pad], 1) // [B, t, C, h, w]
+            }
+            Self::EveryFrame => z.expand([s[0], t, s[2], s[3], s[4]], false).contiguous(),
+        }
+    }
+}
+
+impl std::str::FromStr for ImageConditioning {
+    type Err = WorldModelError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "first_frame" => Ok(Self::FirstFrame),
+            "every_frame" => Ok(Self::EveryFrame),
+            other => Err(WorldModelError::input(
+                "image_conditioning",
+                format!("{other:?}: expected one of {}", Self::NAMES.join(", ")),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for ImageConditioning {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(Self::NAMES[*self as usize])
+    }
 }
 
 impl Default for BridgeV2WConfig {
@@ -62,6 +117,7 @@ impl BridgeV2WConfig {
             width: 720,
             controlnet: ControlNetConfig::default(),
             lora: Some(LoraConfig::paper()),
+            image_conditioning: ImageConditioning::FirstFrame,
         }
     }
 
@@ -77,6 +133,7 @@ impl BridgeV2WConfig {
                 rank: 4,
                 alpha: 4.0,
             }),
+            image_conditioning: ImageConditioning::FirstFrame,
         }
     }
 
@@ -255,10 +312,26 @@ impl BridgeV2W {
             Some(p) => PromptEmbedding::load(p, tf_cfg.text_embed_dim)?,
             None => PromptEmbedding::zeros(tf_cfg.max_text_seq_length, tf_cfg.text_embed_dim),
         };
-        let cfg = match weights {
+        let mut cfg = match weights {
             Some(w) => Self::weights_config(w)?.unwrap_or(cfg),
             None => cfg,
         };
+        match (folder.image_conditioning, weights) {
+            (Some(rec), Some(w)) if rec != cfg.image_conditioning => {
+                return Err(WorldModelError::config(
+                    w,
+                    "image_conditioning",
+                    format!(
+                        "{}, but the backbone {} was trained with {rec} ({})",
+                        cfg.image_conditioning,
+                        pipeline_dir.display(),
+                        crate::checkpoint::IMAGE_CONDITIONING_KEY
+                    ),
+                ))
+            }
+            (Some(rec), None) => cfg.image_conditioning = rec,
+            _ => {}
+        }
         let me = Self::assemble(cfg, vae_vs, vae, transformer, scheduler, prompt)?;
         if let Some(w) = weights {
             me.load_weights(w)?;
@@ -367,18 +440,21 @@ impl BridgeV2W {
             .class_name
             .clone()
             .unwrap_or_else(|| "CogVideoXDDIMScheduler".to_owned());
-        write_json(
-            &dir.join("model_index.json"),
-            &serde_json::json!({
-                "_class_name": "CogVideoXImageToVideoPipeline",
-                "_diffusers_version": "0.42.1",
-                "scheduler": ["diffusers", sched_class],
-                "transformer": ["diffusers", "CogVideoXTransformer3DModel"],
-                "vae": ["diffusers", "AutoencoderKLCogVideoX"],
-                "text_encoder": [null, null],
-                "tokenizer": [null, null],
-            }),
-        )
+        let mut index = serde_json::json!({
+            "_class_name": "CogVideoXImageToVideoPipeline",
+            "_diffusers_version": "0.42.1",
+            "scheduler": ["diffusers", sched_class],
+            "transformer": ["diffusers", "CogVideoXTransformer3DModel"],
+            "vae": ["diffusers", "AutoencoderKLCogVideoX"],
+            "text_encoder": [null, null],
+            "tokenizer": [null, null],
+        });
+        if self.cfg.image_conditioning != ImageConditioning::FirstFrame {
+            // Only the deviation is recorded: a folder without it is CogVideoX's.
+            index[crate::checkpoint::IMAGE_CONDITIONING_KEY] =
+                self.cfg.image_conditioning.to_string().into();
+        }
+        write_json(&dir.join("model_index.json"), &index)
     }
 
     fn latent_geometry(&self) -> (i64, i64, i64) {
@@ -410,10 +486,8 @@ impl BridgeV2W {
     /// (`first_frames` `[B, 3, H, W]` in [-1, 1]) followed by zeros.
     pub fn image_latents(&self, first_frames: &Tensor, seed: Option<u64>) -> Result<Tensor> {
         let z = self.encode_latents(&first_frames.unsqueeze(2), seed)?; // [B, 1, C, h, w]
-        let s = z.size();
         let (t, _, _) = self.latent_geometry();
-        let pad = Tensor::zeros([s[0], t - 1, s[2], s[3], s[4]], (self.kind, self.device));
-        Ok(Tensor::cat(&[&z, &pad], 1)) // [B, t, C, h, w]
+        Ok(self.cfg.image_conditioning.expand(&z, t)) // [B, t, C, h, w]
     }
 
     /// The branch input `[B, t, 2C, h, w]`: mask latents (`masks` `[B, 3, T, H, W]`

@@ -4,6 +4,7 @@
 //! `THUDM/CogVideoX-5b-I2V` loads unchanged; `text_encoder/` and `tokenizer/` are not
 //! used (the prompt is fixed: its embedding is read from a file, see [`PromptEmbedding`]).
 
+use crate::bridge::ImageConditioning;
 use crate::error::{read_json, Result, WorldModelError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -20,7 +21,14 @@ pub struct PipelineFolder {
     pub class_name: String,
     /// component name -> (library, class), e.g. `vae -> (diffusers, AutoencoderKLCogVideoX)`.
     pub components: BTreeMap<String, (String, String)>,
+    /// `_bridgev2w_image_conditioning`: how a backbone trained here takes its
+    /// image latent (absent in diffusers' own folders: CogVideoX's first frame).
+    pub image_conditioning: Option<ImageConditioning>,
 }
+
+/// The `model_index.json` key recording a backbone's [`ImageConditioning`]
+/// (diffusers ignores keys that start with `_`).
+pub const IMAGE_CONDITIONING_KEY: &str = "_bridgev2w_image_conditioning";
 
 impl PipelineFolder {
     /// Reads `DIR/model_index.json` and checks the components this crate loads.
@@ -50,10 +58,24 @@ impl PipelineFolder {
                 }
             }
         }
+        let image_conditioning = match obj.get(IMAGE_CONDITIONING_KEY) {
+            None => None,
+            Some(v) => Some(
+                v.as_str()
+                    .ok_or_else(|| {
+                        WorldModelError::config(&path, IMAGE_CONDITIONING_KEY, "expected a string")
+                    })?
+                    .parse::<ImageConditioning>()
+                    .map_err(|e| {
+                        WorldModelError::config(&path, IMAGE_CONDITIONING_KEY, e.to_string())
+                    })?,
+            ),
+        };
         let folder = Self {
             root: root.to_path_buf(),
             class_name,
             components,
+            image_conditioning,
         };
         folder.expect_class("transformer", &["CogVideoXTransformer3DModel"])?;
         folder.expect_class("vae", &["AutoencoderKLCogVideoX"])?;

@@ -6,7 +6,7 @@
 
 mod common;
 
-use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig, ImageConditioning};
 use bridgev2w_world_model::controlnet::ControlNetConfig;
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
@@ -561,4 +561,74 @@ fn per_block_gradient_checkpointing_gives_the_same_gradients() {
         .unwrap_err()
         .to_string();
     assert_eq!(e, plain);
+}
+
+#[test]
+fn image_conditioning_pads_or_repeats_and_travels_with_the_backbone() {
+    let every = BridgeV2WConfig {
+        image_conditioning: ImageConditioning::EveryFrame,
+        ..BridgeV2WConfig::tiny()
+    };
+    let first = tiny(BridgeV2WConfig::tiny(), 21);
+    let m = tiny(every.clone(), 21);
+    tch::manual_seed(22);
+    let img = Tensor::rand([2, 3, 64, 96], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    let a = first.image_latents(&img, None).unwrap(); // [2, 3, 8, 8, 12]
+    let b = m.image_latents(&img, None).unwrap();
+    assert_eq!(a.size(), b.size());
+    let t = a.size()[1];
+    assert!(a.narrow(1, 0, 1).abs().max().double_value(&[]) > 0.0);
+    assert_eq!(a.narrow(1, 1, t - 1).abs().max().double_value(&[]), 0.0);
+    for i in 0..t {
+        assert_eq!(
+            max_abs(&b.narrow(1, i, 1), &a.narrow(1, 0, 1)),
+            0.0,
+            "frame {i}"
+        );
+    }
+    // The folder records the deviation; loading it alone adopts it, and a
+    // weights file that disagrees is refused by name.
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("prior");
+    m.save_backbone(&folder).unwrap();
+    let index = std::fs::read_to_string(folder.join("model_index.json")).unwrap();
+    assert!(
+        index.contains("\"_bridgev2w_image_conditioning\": \"every_frame\""),
+        "{index}"
+    );
+    let load = |w: Option<&std::path::Path>| {
+        BridgeV2W::load(
+            &folder,
+            w,
+            None,
+            BridgeV2WConfig::tiny(),
+            ComputeDevice::Cpu,
+            Precision::F32,
+        )
+    };
+    let loaded = load(None).unwrap();
+    assert_eq!(
+        loaded.config().image_conditioning,
+        ImageConditioning::EveryFrame
+    );
+    let weights = dir.path().join("first.safetensors");
+    first.save_weights(&weights).unwrap();
+    let e = load(Some(&weights)).unwrap_err().to_string();
+    assert!(
+        e.contains("image_conditioning") && e.contains("every_frame") && e.contains("first_frame"),
+        "{e}"
+    );
+    // A first-frame backbone records nothing (diffusers' own folders).
+    first.save_backbone(&dir.path().join("cog")).unwrap();
+    let index = std::fs::read_to_string(dir.path().join("cog/model_index.json")).unwrap();
+    assert!(!index.contains("image_conditioning"), "{index}");
+    assert_eq!(
+        "every_frame".parse::<ImageConditioning>().unwrap(),
+        ImageConditioning::EveryFrame
+    );
+    let e = "repeat"
+        .parse::<ImageConditioning>()
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("first_frame, every_frame"), "{e}");
 }
