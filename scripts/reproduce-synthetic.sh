@@ -18,11 +18,13 @@
 # Usage: scripts/reproduce-synthetic.sh [OUT_DIR]      (default runs/reproduce)
 # Budgets (environment, defaults sized for ~2.5 h on a 2-core CPU):
 #   VAE_IMAGE_STEPS VAE_STEPS PRIOR_STEPS FT_STEPS EVAL_VIDEOS EVAL_STEPS RESULTS
-#   EPISODES TASKS PRESET
+#   EPISODES TASKS PRESET IMAGE_CONDITIONING
 # Rerunning resumes: a finished stage is kept, a cut one resumes from its last
 # checkpoint. Each stage records a fingerprint of its inputs (its config and
 # the fingerprints of the stages it starts from) in OUT/NAME.inputs; a stage
-# whose inputs changed is moved aside to OUT/NAME.stale-FINGERPRINT and redone.
+# whose inputs changed is moved aside to OUT/NAME.stale-FINGERPRINT and redone;
+# a training stage whose only change is a larger step budget continues from
+# its checkpoints (exactly the longer run).
 # EXPORT_DEMO=1 also copies the fine-tuned model to assets/demo-model (the
 # default model of `bridgev2w demo`).
 set -euo pipefail
@@ -31,8 +33,8 @@ ROOT=$PWD
 OUT=${1:-runs/reproduce}
 VAE_IMAGE_STEPS=${VAE_IMAGE_STEPS:-2500}
 VAE_STEPS=${VAE_STEPS:-300}
-PRIOR_STEPS=${PRIOR_STEPS:-1500}
-FT_STEPS=${FT_STEPS:-1000}
+PRIOR_STEPS=${PRIOR_STEPS:-4000}
+FT_STEPS=${FT_STEPS:-2000}
 EVAL_VIDEOS=${EVAL_VIDEOS:-12}
 EVAL_STEPS=${EVAL_STEPS:-20}
 RESULTS=${RESULTS:-docs/results.md}
@@ -45,6 +47,11 @@ PRESET=${PRESET:-small2x}
 # applied frame by frame (its temporal taps summed into the current frame's).
 INFLATE=false
 [[ $PRESET == small2x ]] && INFLATE=true
+# Where the prior and the fine-tuned models take the first frame's latent:
+# every_frame (repeated in every latent frame's conditioning channels, so that
+# copying the static scene is local; a measured deviation from CogVideoX) or
+# first_frame (CogVideoX-I2V: latent frame 0, the rest zero).
+IMAGE_CONDITIONING=${IMAGE_CONDITIONING:-every_frame}
 
 BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
 if [[ -z ${BRIDGEV2W:-} ]]; then
@@ -118,6 +125,7 @@ cat >"$OUT/configs/prior.toml" <<EOF
 [model]
 backbone = "$OUT/vae/final/backbone"
 lora_rank = 0
+image_conditioning = "$IMAGE_CONDITIONING"
 $(data_section)
 [train]
 stage = "prior"
@@ -137,6 +145,7 @@ lora_rank = 64
 lora_alpha = 64
 controlnet_layers = 2
 action_hidden = 128
+image_conditioning = "$IMAGE_CONDITIONING"
 $(data_section)
 [train]
 out = "$1"
@@ -174,10 +183,28 @@ if [[ ! -f $OUT/synth/meta/info.json ]]; then
     stage synth "$BIN" synth --out "$OUT/synth" "${SYNTH_ARGS[@]}"
 fi
 train() { # train NAME UPSTREAM...: trains unless OUT/NAME/final exists; resumes a cut run
-    local name=$1 resume=() ups=() u
+    local name=$1 resume=() ups=() u fp base steps old_fp old_steps
     shift
     for u in synth "$@"; do ups+=("$OUT/$u.inputs"); done
-    fresh "$name" "$(fingerprint "train $name" "$OUT/configs/$name.toml" "${ups[@]}")"
+    fp=$(fingerprint "train $name" "$OUT/configs/$name.toml" "${ups[@]}")
+    # The same inputs but for the step budget (OUT/NAME.base), grown: the
+    # learning rate is constant after warm-up and a resumed run is
+    # bit-identical to an uninterrupted one, so the longer run continues from
+    # the stage's checkpoints instead of starting over.
+    base=$(fingerprint "train $name" <(grep -v '^max_steps = ' "$OUT/configs/$name.toml") "${ups[@]}")
+    steps=$(sed -n 's/^max_steps = //p' "$OUT/configs/$name.toml")
+    old_fp=$(cat "$OUT/$name.inputs" 2>/dev/null || true)
+    old_steps=$(cat "$OUT/$name.steps" 2>/dev/null || true)
+    if [[ -d $OUT/$name/checkpoints && -n $old_fp && $old_fp != "$fp" && -n $old_steps
+        && $(cat "$OUT/$name.base" 2>/dev/null) == "$base" && $steps -ge $old_steps ]]; then
+        echo "== $name: only its step budget changed ($old_steps -> $steps): continuing from its checkpoints"
+        rm -rf "$OUT/$name/final"
+        printf '%s\n' "$fp" >"$OUT/$name.inputs"
+    else
+        fresh "$name" "$fp"
+    fi
+    printf '%s\n' "$base" >"$OUT/$name.base"
+    printf '%s\n' "$steps" >"$OUT/$name.steps"
     if [[ -f $OUT/$name/final/weights.safetensors ]]; then
         echo "== $name: done before from the same inputs, kept"
         return
@@ -192,21 +219,24 @@ train() { # train NAME UPSTREAM...: trains unless OUT/NAME/final exists; resumes
 train vae-image
 train vae vae-image
 train prior vae
-train bridgev2w prior
-train ablation-action-mlp prior
-
-for name in bridgev2w ablation-action-mlp; do
-    # Kept when the run and the evaluation's settings are the ones it scored.
+evaluate() { # evaluate NAME: eval-run of OUT/NAME, kept when its run and settings are unchanged
+    local name=$1 fp
     fp=$(fingerprint "eval $name --max-videos $EVAL_VIDEOS --steps $EVAL_STEPS" "$OUT/$name.inputs")
     if [[ -f $OUT/eval-$name.json && $(cat "$OUT/eval-$name.inputs" 2>/dev/null) == "$fp" ]]; then
         echo "== eval $name: done before from the same run and settings, kept"
-        continue
+        return
     fi
     rm -f "$OUT/eval-$name.json" "$OUT/eval-$name.inputs"
     stage "eval $name" "$BIN" eval-run "$OUT/configs/$name.toml" --run "$OUT/$name" \
         --max-videos "$EVAL_VIDEOS" --steps "$EVAL_STEPS" --json "$OUT/eval-$name.json"
     printf '%s\n' "$fp" >"$OUT/eval-$name.inputs"
-done
+}
+# BridgeV2W is trained and scored before the ablation, so that a cut run
+# has the main result first.
+train bridgev2w prior
+evaluate bridgev2w
+train ablation-action-mlp prior
+evaluate ablation-action-mlp
 
 PRE="$OUT/preamble.md"
 {

@@ -13,9 +13,10 @@ fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
-/// A fake `bridgev2w`: appends `COMMAND NAME` to `calls.log` and makes the
-/// files the script checks (`synth`'s `meta/info.json`, `train`'s
-/// `final/weights.safetensors` and `final/backbone/`).
+/// A fake `bridgev2w`: appends `COMMAND NAME` to `calls.log` (`train NAME
+/// --resume` for a resumed run) and makes the files the script checks
+/// (`synth`'s `meta/info.json`, `train`'s `final/weights.safetensors`,
+/// `final/backbone/` and `checkpoints/`).
 const FAKE: &str = r#"#!/usr/bin/env bash
 set -eu
 log="$(dirname "$0")/calls.log"
@@ -26,8 +27,10 @@ synth)
     echo "synth" >>"$log" ;;
 train)
     out=$(sed -n 's/^out = "\(.*\)"$/\1/p' "$2")
-    mkdir -p "$out/final/backbone" && touch "$out/final/weights.safetensors"
-    echo "train $(basename "$out")" >>"$log" ;;
+    mkdir -p "$out/final/backbone" "$out/checkpoints" && touch "$out/final/weights.safetensors"
+    resume=""
+    [[ " $* " == *" --resume "* ]] && resume=" --resume"
+    echo "train $(basename "$out")$resume" >>"$log" ;;
 eval-run)
     shift
     while [[ $# -gt 0 ]]; do [[ $1 == --json ]] && echo '{}' >"$2"; shift; done
@@ -146,6 +149,28 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         stale.iter().any(|n| n.starts_with("prior.stale-"))
             && stale.iter().any(|n| n.starts_with("bridgev2w.stale-")),
         "{stale:?}"
+    );
+    // A larger prior budget: the prior continues from its checkpoints (not
+    // moved aside), the fine-tunings downstream are redone.
+    let stale_priors = || {
+        fs::read_dir(r.join("runs/r"))
+            .expect("ls")
+            .filter_map(|e| e.ok()?.file_name().into_string().ok())
+            .filter(|n| n.starts_with("prior.stale-"))
+            .count()
+    };
+    let before = stale_priors();
+    let longer = run(r, &[("PRIOR_STEPS", "9")]);
+    assert_eq!(
+        trained(&longer),
+        ["prior --resume", "bridgev2w", "ablation-action-mlp"]
+    );
+    assert_eq!(stale_priors(), before, "the prior was moved aside");
+    // A smaller one cannot continue: the prior is redone from scratch.
+    let shorter = run(r, &[("PRIOR_STEPS", "8")]);
+    assert_eq!(
+        trained(&shorter),
+        ["prior", "bridgev2w", "ablation-action-mlp"]
     );
     // Another dataset: everything is redone.
     let fourth = run(r, &[("PRIOR_STEPS", "7"), ("EPISODES", "9,1,1,1")]);
