@@ -483,7 +483,8 @@ impl BridgeV2W {
     }
 
     /// The pipeline's image latents `[B, t, C, h, w]`: the first frame's latents
-    /// (`first_frames` `[B, 3, H, W]` in [-1, 1]) followed by zeros.
+    /// (`first_frames` `[B, 3, H, W]` in [-1, 1]) followed by zeros, or repeated
+    /// in every latent frame ([`BridgeV2WConfig::image_conditioning`]).
     pub fn image_latents(&self, first_frames: &Tensor, seed: Option<u64>) -> Result<Tensor> {
         let z = self.encode_latents(&first_frames.unsqueeze(2), seed)?; // [B, 1, C, h, w]
         let (t, _, _) = self.latent_geometry();

@@ -99,8 +99,9 @@ impl Default for SampleOptions {
 }
 
 /// Runs the sampling loop: returns the denoised latents `[B, F, C, h, w]`.
-/// `image_latents` `[B, F, C, h, w]` are the (scaled) first-frame latents padded with
-/// zeros over the later frames.
+/// `image_latents` `[B, F, C, h, w]` are the (scaled) first-frame latents in
+/// latent frame 0, the later frames zeros or the same latents again (see
+/// [`crate::bridge::ImageConditioning`]).
 pub fn sample_latents(
     denoiser: &dyn Denoiser,
     scheduler: &mut Scheduler,
