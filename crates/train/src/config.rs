@@ -444,8 +444,13 @@ impl TrainConfig {
                 "both 0: give a number of steps or epochs".into(),
             );
         }
+        if !(t.lr.is_finite() && t.lr > 0.0) {
+            return bad(
+                "train.lr",
+                format!("{}: expected a finite learning rate > 0", t.lr),
+            );
+        }
         for (name, v) in [
-            ("train.lr", t.lr),
             ("train.eps", t.eps),
             ("train.weight_decay", t.weight_decay),
             ("train.grad_clip", t.grad_clip),
@@ -587,6 +592,13 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("train.batch_size"), "{e}");
+        // A learning rate of 0 would train nothing (found by fuzz_config).
+        for lr in ["0.0", "-1e-4", "nan"] {
+            let e = TrainConfig::from_toml(&format!("{base}[train]\nlr = {lr}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("train.lr") && e.contains("> 0"), "{e}");
+        }
     }
 
     #[test]

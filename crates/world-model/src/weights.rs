@@ -265,11 +265,76 @@ fn read_safetensors_header(
     let mut header = vec![0u8; n as usize];
     f.read_exact(&mut header)
         .map_err(|e| bad(format!("truncated header: {e}")))?;
-    let value: serde_json::Value = serde_json::from_slice(&header)
+    if header.first() != Some(&b'{') {
+        return Err(bad(
+            "safetensors header does not start with '{' (a JSON object)".into(),
+        ));
+    }
+    let UniqueKeys(value) = serde_json::from_slice(&header)
         .map_err(|e| bad(format!("safetensors header is not JSON: {e}")))?;
     match value {
         serde_json::Value::Object(map) => Ok((map, 8 + n)),
         _ => Err(bad("safetensors header is not a JSON object".into())),
+    }
+}
+
+/// A JSON value whose objects have no repeated key (serde_json keeps the
+/// last; the safetensors library refuses the file with a bare code).
+struct UniqueKeys(serde_json::Value);
+
+impl<'de> serde::Deserialize<'de> for UniqueKeys {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        use serde::de::{Error, MapAccess, SeqAccess, Visitor};
+        use serde_json::Value;
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = Value;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("a JSON value")
+            }
+            fn visit_bool<E>(self, v: bool) -> std::result::Result<Value, E> {
+                Ok(Value::Bool(v))
+            }
+            fn visit_i64<E>(self, v: i64) -> std::result::Result<Value, E> {
+                Ok(v.into())
+            }
+            fn visit_u64<E>(self, v: u64) -> std::result::Result<Value, E> {
+                Ok(v.into())
+            }
+            fn visit_f64<E>(self, v: f64) -> std::result::Result<Value, E> {
+                Ok(v.into())
+            }
+            fn visit_str<E>(self, v: &str) -> std::result::Result<Value, E> {
+                Ok(Value::String(v.to_owned()))
+            }
+            fn visit_unit<E>(self) -> std::result::Result<Value, E> {
+                Ok(Value::Null)
+            }
+            fn visit_seq<A: SeqAccess<'de>>(
+                self,
+                mut a: A,
+            ) -> std::result::Result<Value, A::Error> {
+                let mut out = Vec::new();
+                while let Some(UniqueKeys(v)) = a.next_element()? {
+                    out.push(v);
+                }
+                Ok(Value::Array(out))
+            }
+            fn visit_map<A: MapAccess<'de>>(
+                self,
+                mut a: A,
+            ) -> std::result::Result<Value, A::Error> {
+                let mut out = serde_json::Map::new();
+                while let Some(k) = a.next_key::<String>()? {
+                    let UniqueKeys(v) = a.next_value()?;
+                    if out.insert(k.clone(), v).is_some() {
+                        return Err(A::Error::custom(format!("key {k:?} appears twice")));
+                    }
+                }
+                Ok(Value::Object(out))
+            }
+        }
+        d.deserialize_any(V).map(UniqueKeys)
     }
 }
 
@@ -302,8 +367,15 @@ pub fn check_safetensors(path: &Path) -> Result<()> {
             ),
         )
     };
+    let mut ranges: Vec<(u64, u64, &str)> = Vec::new();
     for (key, entry) in &header {
         if key == "__metadata__" {
+            if !entry
+                .as_object()
+                .is_some_and(|m| m.values().all(serde_json::Value::is_string))
+            {
+                return Err(bad(key, "expected a map of strings".into()));
+            }
             continue;
         }
         let dtype = entry.get("dtype").and_then(|d| d.as_str()).unwrap_or("");
@@ -345,6 +417,25 @@ pub fn check_safetensors(path: &Path) -> Result<()> {
                 ),
             ));
         }
+        ranges.push((begin, end, key));
+    }
+    // The tensors tile the data bytes, in order, without gaps or overlaps.
+    ranges.sort_unstable();
+    let mut at = 0;
+    for (begin, end, key) in ranges {
+        if begin != at {
+            return Err(bad(
+                key,
+                format!("its bytes start at {begin}, but the tensors before it end at {at} (overlapping or with a gap)"),
+            ));
+        }
+        at = end;
+    }
+    if at != data_len {
+        return Err(bad(
+            "*",
+            format!("the tensors end at byte {at} of {data_len} data bytes"),
+        ));
     }
     Ok(())
 }
