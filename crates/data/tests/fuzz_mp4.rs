@@ -4,15 +4,18 @@
 //! never a panic, and never allocate more than `ALLOC_FACTOR` times the
 //! input (plus a fixed `ALLOC_SLACK`) on the Rust heap.
 //!
-//! In the test suite it runs `FUZZ_CASES` cases (default 3000, about a second);
+//! In the test suite it runs `FUZZ_CASES` cases (default 1500);
 //! `scripts/fuzz.sh mp4 SECONDS` runs it for a wall-clock budget instead
-//! (`FUZZ_SECONDS`). Every case is derived from `FUZZ_SEED` (default 0) and
-//! its index, so a failure names the case to replay.
+//! (the case loop of `embodiment/tests/support/fuzz.rs`; its own allocation
+//! bound, with room for the decoder's tables).
+
+#[path = "../../embodiment/tests/support/fuzz.rs"]
+mod fuzz;
 
 use bridgev2w_data::mp4::demux;
 use bridgev2w_data::video::{decode_track, Mp4VideoWriter};
 use peak_alloc::PeakAlloc;
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use std::path::Path;
 
@@ -25,13 +28,6 @@ static ALLOCATOR: PeakAlloc = PeakAlloc;
 const ALLOC_FACTOR: usize = 64;
 /// Fixed allowance: decoder tables, error strings, one decoded frame.
 const ALLOC_SLACK: usize = 4 << 20;
-
-fn env_usize(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
 
 /// A valid 3-frame 32x32 H.264 MP4.
 fn seed_file() -> Vec<u8> {
@@ -169,20 +165,10 @@ fn mutated_mp4_files_never_panic_nor_over_allocate() {
     let seed = seed_file();
     let boxes = box_offsets(&seed);
     assert!(boxes.len() > 10, "{} boxes", boxes.len());
-    check(usize::MAX, &seed);
-    let cases = env_usize("FUZZ_CASES", 3000);
-    let seconds = env_usize("FUZZ_SECONDS", 0);
-    let base_seed = env_usize("FUZZ_SEED", 0) as u64;
-    let start = std::time::Instant::now();
-    let mut n = 0;
-    while (seconds == 0 && n < cases) || (seconds > 0 && start.elapsed().as_secs() < seconds as u64)
-    {
-        let mut rng = ChaCha8Rng::seed_from_u64(base_seed.wrapping_mul(1_000_003) ^ n as u64);
-        check(n, &mutate(&seed, &boxes, &mut rng));
-        n += 1;
-    }
-    eprintln!(
-        "fuzz mp4: {n} cases in {:.1} s",
-        start.elapsed().as_secs_f64()
+    fuzz::run_target(
+        "mp4",
+        std::slice::from_ref(&seed),
+        |s, rng| mutate(s, &boxes, rng),
+        check,
     );
 }
