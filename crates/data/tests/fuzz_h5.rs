@@ -12,7 +12,7 @@
 #[path = "../../embodiment/tests/support/fuzz.rs"]
 mod fuzz;
 
-use bridgev2w_data::raw::h5::H5;
+use bridgev2w_data::raw::h5::{H5, MAX_DECODED_RATIO};
 use fuzz::run_target;
 use peak_alloc::PeakAlloc;
 use rand::Rng;
@@ -112,12 +112,14 @@ fn read_all(path: &Path) -> Result<usize, String> {
     Ok(values)
 }
 
-/// Ignored: it finds a real fault not fixed yet (issue 20). With the default
-/// seed, case 262, a 12,664-byte mutation of the seed, makes the HDF5 path
-/// allocate 2,147,511,275 bytes (`hdf5-reader` trusts a size field of the
-/// file). Run it with `cargo test -p bridgev2w-data --test fuzz_h5 -- --ignored`.
+/// A format that compresses: the heap may hold twice
+/// [`MAX_DECODED_RATIO`] per byte of file (the decoded dataset and its `f64`
+/// copy), plus 16 MiB whatever the size: `hdf5-reader` reserves room for as
+/// many entries as a version-1 B-tree node claims (a 16-bit count, at most
+/// about 9.5 MB; a 2,811-byte file reached it). It found (seed 0, case 262) a 12,664-byte
+/// file whose dataspace claimed 33,554,438 rows beyond its maximum of 6, read
+/// into 2,147,511,275 bytes before `H5` bounded both.
 #[test]
-#[ignore = "issue 20: a 12 KB mutated HDF5 file makes the reader allocate 2 GB (not fixed yet)"]
 fn mutated_hdf5_files_never_panic_nor_over_allocate() {
     let dir = tempfile::tempdir().expect("tempdir");
     let seeds = vec![seed(dir.path())];
@@ -129,7 +131,13 @@ fn mutated_hdf5_files_never_panic_nor_over_allocate() {
     let path = dir.path().join("case.h5");
     run_target("h5", &seeds, mutate_h5, |case, data| {
         std::fs::write(&path, data).expect("write case");
-        let result = fuzz::guarded(&ALLOCATOR, "h5", case, data, || read_all(&path));
+        let limit = fuzz::AllocLimit {
+            per_byte: 2 * MAX_DECODED_RATIO,
+            fixed: 16 << 20,
+        };
+        let result = fuzz::guarded_by(&ALLOCATOR, "h5", case, data, data.len(), limit, || {
+            read_all(&path)
+        });
         if let Err(e) = result {
             assert!(
                 e.contains("case.h5"),
@@ -137,4 +145,41 @@ fn mutated_hdf5_files_never_panic_nor_over_allocate() {
             );
         }
     });
+}
+
+/// The case the fuzzer found, built here: `state/pose` (6 x 4, at most
+/// 6 x 4) told it has 33,554,438 rows, and a 1-row dataset told it has
+/// 2^40 rows with an unlimited maximum; both are refused by name before any
+/// value is read.
+#[test]
+fn a_dataspace_beyond_its_maximum_or_the_file_is_refused() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut data = seed(dir.path());
+    let pose_dims: Vec<u8> = [6u64, 4, 6, 4]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let at = data
+        .windows(pose_dims.len())
+        .position(|w| w == pose_dims.as_slice())
+        .expect("the dataspace of state/pose (6 x 4, max 6 x 4) is in the seed");
+    data[at..at + 8].copy_from_slice(&33_554_438u64.to_le_bytes());
+    let path = dir.path().join("rows.h5");
+    std::fs::write(&path, &data).expect("write");
+    let h5 = H5::open(&path).expect("the file opens");
+    let e = h5.read("state/pose").expect_err("refused").to_string();
+    assert!(
+        e.contains("rows.h5") && e.contains("state/pose") && e.contains("maximum shape"),
+        "{e}"
+    );
+    // Within the maximum but beyond what the file can hold.
+    data[at + 16..at + 24].copy_from_slice(&u64::MAX.to_le_bytes());
+    data[at..at + 8].copy_from_slice(&(1u64 << 40).to_le_bytes());
+    std::fs::write(&path, &data).expect("write");
+    let h5 = H5::open(&path).expect("the file opens");
+    let e = h5.read("state/pose").expect_err("refused").to_string();
+    assert!(
+        e.contains("state/pose") && e.contains(&format!("{MAX_DECODED_RATIO} times")),
+        "{e}"
+    );
 }

@@ -1,15 +1,29 @@
 //! Numeric datasets from HDF5 files (pure Rust, `hdf5-reader`): whatever the
 //! stored type (f32, f64, integers), values come back as `f64` with their
 //! shape, and every failure names the file and the dataset path.
+//!
+//! Sizes come from the file, so they are bounded before anything is
+//! allocated: a dataset's dimensions may not exceed its own maximum
+//! dimensions (libhdf5's rule), and one dataset may decode to at most
+//! [`MAX_DECODED_RATIO`] times the file's size.
 
 use super::RawError;
-use hdf5_reader::{Dataset, Datatype, Hdf5File};
+use hdf5_reader::{Dataset, Datatype, Hdf5File, OpenOptions};
 use std::path::{Path, PathBuf};
+
+/// The most bytes one dataset's values (as `f64`) may take, as a multiple of
+/// the file's size. Robot trajectories (joint and pose states, actions)
+/// compress a few times; deflate cannot exceed 1032:1, so a dataset claiming
+/// more than this is a corrupt size field, not data. A read holds the
+/// decoded dataset and its `f64` copy: at most twice this at its peak.
+pub const MAX_DECODED_RATIO: usize = 1024;
 
 /// An open HDF5 file that remembers its path for error messages.
 pub struct H5 {
     path: PathBuf,
     file: Hdf5File,
+    /// The most bytes one dataset may decode to.
+    decoded_limit: usize,
 }
 
 impl std::fmt::Debug for H5 {
@@ -52,7 +66,14 @@ impl H5 {
                 what: "HDF5 file".into(),
             });
         }
-        let file = Hdf5File::open(path).map_err(|e| RawError::Hdf5 {
+        let file_bytes = std::fs::metadata(path).map_or(0, |m| m.len() as usize);
+        let limit = file_bytes.saturating_mul(MAX_DECODED_RATIO).max(1 << 16);
+        let options = OpenOptions {
+            max_read_bytes: limit,
+            max_chunk_bytes: limit.min(hdf5_reader::DEFAULT_MAX_CHUNK_BYTES),
+            ..OpenOptions::default()
+        };
+        let file = Hdf5File::open_with_options(path, options).map_err(|e| RawError::Hdf5 {
             path: path.to_path_buf(),
             field: String::new(),
             message: format!("not a readable HDF5 file (corrupt or truncated?): {e}"),
@@ -60,6 +81,7 @@ impl H5 {
         Ok(Self {
             path: path.to_path_buf(),
             file,
+            decoded_limit: limit,
         })
     }
 
@@ -104,6 +126,37 @@ impl H5 {
     /// finite (a NaN or infinite state is an error naming the element).
     pub fn read(&self, name: &str) -> Result<Array, RawError> {
         let ds = self.dataset(name)?;
+        if let Some(max) = ds.max_dims() {
+            let over = ds
+                .shape()
+                .iter()
+                .zip(max)
+                .position(|(&d, &m)| m != u64::MAX && d > m);
+            if let Some(axis) = over {
+                return Err(self.err(
+                    name,
+                    format!(
+                        "shape {:?} exceeds the dataset's maximum shape {max:?} on axis {axis}: \
+                         a corrupt dataspace",
+                        ds.shape()
+                    ),
+                ));
+            }
+        }
+        let elements = ds.num_elements().unwrap_or(u64::MAX);
+        let bytes = elements.saturating_mul(8);
+        if bytes > self.decoded_limit as u64 {
+            return Err(self.err(
+                name,
+                format!(
+                    "shape {:?} is {elements} values ({bytes} bytes as f64), more than \
+                     {MAX_DECODED_RATIO} times the file's size ({} bytes allowed): a corrupt \
+                     dataspace",
+                    ds.shape(),
+                    self.decoded_limit
+                ),
+            ));
+        }
         let shape: Vec<usize> = ds.shape().iter().map(|&d| d as usize).collect();
         let values = self.read_values(&ds, name)?;
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {

@@ -110,6 +110,33 @@ pub fn guarded_within<T>(
     input_bytes: usize,
     parse: impl FnOnce() -> T,
 ) -> T {
+    let limit = AllocLimit {
+        per_byte: ALLOC_FACTOR,
+        fixed: ALLOC_SLACK,
+    };
+    guarded_by(allocator, target, case, data, input_bytes, limit, parse)
+}
+
+/// The most a parse may hold at its peak: `per_byte * input + fixed`.
+#[derive(Debug, Clone, Copy)]
+pub struct AllocLimit {
+    /// Bytes per input byte.
+    pub per_byte: usize,
+    /// Bytes whatever the input's size.
+    pub fixed: usize,
+}
+
+/// As [`guarded_within`] with the format's own `limit` (a compressed format
+/// decodes to more than [`ALLOC_FACTOR`] per byte).
+pub fn guarded_by<T>(
+    allocator: &PeakAlloc,
+    target: &str,
+    case: usize,
+    data: &[u8],
+    input_bytes: usize,
+    limit: AllocLimit,
+    parse: impl FnOnce() -> T,
+) -> T {
     let base = allocator.current_usage();
     allocator.reset_peak_usage();
     let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(parse));
@@ -122,8 +149,9 @@ pub fn guarded_within<T>(
         );
     };
     assert!(
-        peak <= ALLOC_FACTOR * input_bytes + ALLOC_SLACK,
-        "{target} case {case}: {peak} bytes allocated for {input_bytes} bytes of input: {shown:?}"
+        peak <= limit.per_byte * input_bytes + limit.fixed,
+        "{target} case {case}: {peak} bytes allocated for {input_bytes} bytes of input \
+         (at most {limit:?}): {shown:?}"
     );
     value
 }
