@@ -168,6 +168,10 @@ pub struct EvalRunArgs {
     /// sampler) or `replaced` by the image latent at every step.
     #[arg(long, default_value = "generated")]
     first_frame: bridgev2w_world_model::pipeline::FirstFrame,
+    /// The weights to score: `averaged` (the run's moving averages when it
+    /// keeps them, `train.ema_decay > 0`; else its parameters) or `raw`.
+    #[arg(long, default_value = "averaged")]
+    weights: bridgev2w_train::ema::RunWeights,
     /// The robot segmenter of Mask-IoU, trained on the run's training split:
     /// `cnn` (a small dilated CNN, shape-aware) or `color` (a colour classifier).
     #[arg(long, default_value = "cnn")]
@@ -185,6 +189,19 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
     trainer
         .resume(&args.run)
         .with_context(|| format!("loading the run {}", args.run.display()))?;
+    let averaged = args.weights == bridgev2w_train::ema::RunWeights::Averaged
+        && trainer.use_averaged_weights();
+    eprintln!(
+        "weights: {}",
+        if averaged {
+            format!(
+                "moving averages (train.ema_decay = {})",
+                trainer.cfg.train.ema_decay
+            )
+        } else {
+            "parameters".to_string()
+        }
+    );
     let opts = EvalOptions {
         steps: args.steps,
         guidance: args.guidance,

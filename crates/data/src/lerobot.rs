@@ -216,13 +216,55 @@ pub fn write_frames_parquet(path: &Path, rows: &[FrameRow]) -> Result<(), Datase
 
 fn read_batches(path: &Path) -> Result<Vec<RecordBatch>, DatasetError> {
     let file = std::fs::File::open(path).map_err(io_err(path))?;
-    let reader = ParquetRecordBatchReaderBuilder::try_new(file)
-        .map_err(pq_err(path))?
-        .build()
-        .map_err(pq_err(path))?;
-    reader
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(arrow_err(path))
+    let file_len = file.metadata().map_err(io_err(path))?.len();
+    // The parquet decoder asserts things of the data it reads (a dictionary
+    // page before dictionary-encoded pages, ...): a corrupt file can panic it.
+    bridgev2w_embodiment::quiet_panic::catch_quiet(|| {
+        let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(path))?;
+        check_column_chunks(path, builder.metadata(), file_len)?;
+        let reader = builder.build().map_err(pq_err(path))?;
+        reader
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(arrow_err(path))
+    })
+    .unwrap_or_else(|panic| {
+        Err(DatasetError::Parquet {
+            path: path.to_path_buf(),
+            message: format!("the parquet reader failed on corrupt data: {panic}"),
+        })
+    })
+}
+
+/// Every column chunk of the footer must lie inside the file: the parquet
+/// reader panics on a negative offset or size (`ColumnChunkMetaData::byte_range`).
+fn check_column_chunks(
+    path: &Path,
+    meta: &parquet::file::metadata::ParquetMetaData,
+    file_len: u64,
+) -> Result<(), DatasetError> {
+    for (g, group) in meta.row_groups().iter().enumerate() {
+        for c in group.columns() {
+            let start = c.dictionary_page_offset().unwrap_or(c.data_page_offset());
+            let len = c.compressed_size();
+            let inside = start >= 0
+                && len >= 0
+                && c.data_page_offset() >= 0
+                && (start as u64)
+                    .checked_add(len as u64)
+                    .is_some_and(|end| end <= file_len);
+            if !inside {
+                return Err(DatasetError::Parquet {
+                    path: path.to_path_buf(),
+                    message: format!(
+                        "row group {g}, column {:?}: bytes {start}..+{len} lie outside the \
+                         file's {file_len} bytes (a corrupt footer)",
+                        c.column_path().string()
+                    ),
+                });
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Typed access to the columns of parquet batches, with errors naming the file and field.

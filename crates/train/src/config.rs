@@ -219,6 +219,12 @@ impl DataSection {
                         ))
                     }
                 };
+                if !(m.weight.is_finite() && m.weight > 0.0) {
+                    return Err(TrainError::input(
+                        format!("config {what}.weight"),
+                        format!("{}: expected a finite mixing weight > 0", m.weight),
+                    ));
+                }
                 Ok(SourceSpec {
                     root: m.dataset.clone(),
                     split: m.split.clone(),
@@ -284,6 +290,11 @@ pub struct TrainSection {
     /// Probability of dropping the mask branch for a step (unconditional
     /// training for classifier-free guidance).
     pub condition_dropout: f64,
+    /// Exponential moving average of the trained parameters
+    /// ([`crate::ema`]): the decay per step, 0 = off (e.g. 0.999). The run's
+    /// final weights (and a trained backbone) are the averages; `eval-run`
+    /// scores them unless told `--weights raw`.
+    pub ema_decay: f64,
     /// Checkpoint every N steps (0 = only at the end).
     pub checkpoint_every: usize,
     /// Checkpoints kept (older ones deleted; 0 = keep all).
@@ -353,6 +364,7 @@ impl Default for TrainSection {
             image_noise_log_mean: -3.0,
             image_noise_log_std: 0.5,
             condition_dropout: 0.1,
+            ema_decay: 0.0,
             checkpoint_every: 100,
             keep_checkpoints: 3,
             inject_nan_at_step: None,
@@ -450,6 +462,15 @@ impl TrainConfig {
                 format!("{}: expected a finite learning rate > 0", t.lr),
             );
         }
+        if !(0.0..1.0).contains(&t.ema_decay) {
+            return bad(
+                "train.ema_decay",
+                format!(
+                    "{}: expected a decay in [0, 1) (0 = no average, e.g. 0.999)",
+                    t.ema_decay
+                ),
+            );
+        }
         for (name, v) in [
             ("train.eps", t.eps),
             ("train.weight_decay", t.weight_decay),
@@ -481,6 +502,18 @@ impl TrainConfig {
                 ),
             );
         }
+        if !(t.image_noise_log_mean.is_finite()
+            && t.image_noise_log_std.is_finite()
+            && t.image_noise_log_std >= 0.0)
+        {
+            return bad(
+                "train.image_noise_log_mean/std",
+                format!(
+                    "{} / {}: expected a finite mean and a finite std >= 0",
+                    t.image_noise_log_mean, t.image_noise_log_std
+                ),
+            );
+        }
         if !(t.kl_weight.is_finite() && t.kl_weight >= 0.0) {
             return bad(
                 "train.kl_weight",
@@ -503,10 +536,11 @@ impl TrainConfig {
         if t.dyn_k == 0 {
             return bad("train.dyn_k", "0: expected K >= 1".into());
         }
-        if self.model.lora_rank > 0 && self.model.lora_alpha <= 0.0 {
+        // Checked whatever the rank: a run without LoRA still records it.
+        if !(self.model.lora_alpha.is_finite() && self.model.lora_alpha > 0.0) {
             return bad(
                 "model.lora_alpha",
-                format!("{}: expected > 0", self.model.lora_alpha),
+                format!("{}: expected a finite value > 0", self.model.lora_alpha),
             );
         }
         if self.model.controlnet_layers == Some(0) {
@@ -598,6 +632,31 @@ mod tests {
                 .unwrap_err()
                 .to_string();
             assert!(e.contains("train.lr") && e.contains("> 0"), "{e}");
+        }
+        // Found by `scripts/fuzz.sh train-config 60`: lora_alpha = nan passed.
+        for (table, line, field) in [
+            ("[model]\n", "lora_alpha = nan\n", "model.lora_alpha"),
+            ("[data]\n", "weight = -1.0\n", "data.weight"),
+            ("[data]\n", "weight = inf\n", "data.weight"),
+            ("[data]\n", "weight = nan\n", "data.weight"),
+        ] {
+            let text = base.replace(table, &format!("{table}{line}"));
+            let e = TrainConfig::from_toml(&text)
+                .map(|_| ())
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(field), "{line}: {e}");
+        }
+        let e = TrainConfig::from_toml(&format!("{base}[train]\nimage_noise_log_std = nan\n"))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("train.image_noise_log"), "{e}");
+        for d in ["1.0", "-0.1", "nan"] {
+            let e = TrainConfig::from_toml(&format!("{base}[train]\nema_decay = {d}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("train.ema_decay") && e.contains("[0, 1)"), "{e}");
         }
     }
 

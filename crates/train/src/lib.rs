@@ -11,6 +11,7 @@ pub mod augment;
 pub mod config;
 pub mod data;
 pub mod distributed;
+pub mod ema;
 pub mod evaluate;
 pub mod flow;
 pub mod losses;

@@ -29,6 +29,7 @@ use crate::augment::{recolor, ColorDraw};
 use crate::config::TrainConfig;
 use crate::data::{rng_for, seed_for, Batch, ClipDataset};
 use crate::distributed::{Collective, DistEnv};
+use crate::ema::Ema;
 use crate::flow::{flow_loss, flow_weight, FlowEstimator, FlowLossConfig, LucasKanade, RaftFlow};
 use crate::losses::{diffusion_loss, dynamics_loss, predicted_x0};
 use crate::optim::{AdamW, AdamWConfig};
@@ -137,6 +138,8 @@ pub struct Trainer {
     scheduler: Scheduler,
     /// The optimizer over the trainable variables.
     pub opt: AdamW,
+    /// The moving average of the trainable variables (`train.ema_decay > 0`).
+    ema: Option<Ema>,
     /// Completed optimizer steps.
     pub step: usize,
     /// The autocast dtype of the loss's forward passes (`None`: f32).
@@ -346,6 +349,7 @@ impl Trainer {
                 weight_decay: cfg.train.weight_decay,
             },
         );
+        let ema = (cfg.train.ema_decay > 0.0).then(|| Ema::new(cfg.train.ema_decay, opt.params()));
         let estimator: Box<dyn FlowEstimator> = match &cfg.train.raft_weights {
             Some(path) => {
                 use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
@@ -372,6 +376,7 @@ impl Trainer {
             flow_cfg: FlowLossConfig::default(),
             scheduler,
             opt,
+            ema,
             step: 0,
             autocast,
             collective,
@@ -771,6 +776,9 @@ impl Trainer {
         check_finite(step, "gradient norm", grad_norm)?;
         let lr = self.cfg.lr_at(step);
         self.opt.step(lr);
+        if let Some(ema) = &mut self.ema {
+            ema.update(self.opt.params(), step);
+        }
         self.step += 1;
         Ok(StepMetrics {
             step,
@@ -890,6 +898,9 @@ impl Trainer {
                 self.save_checkpoint()?;
             }
         }
+        // The final weights (and backbone) are the averages, if any; the
+        // last checkpoint keeps the raw parameters.
+        self.use_averaged_weights();
         let fin = out.join("final");
         std::fs::create_dir_all(&fin).map_err(|e| io_err(&fin, e))?;
         self.model.save_weights(&fin.join("weights.safetensors"))?;
@@ -968,6 +979,9 @@ impl Trainer {
         self.model.save_weights(&tmp.join("weights.safetensors"))?;
         save_named(self.trainable_state(), &tmp.join("trainable.safetensors"))?;
         save_named(self.opt.state(), &tmp.join("optimizer.safetensors"))?;
+        if let Some(ema) = &self.ema {
+            save_named(ema.state(), &tmp.join("ema.safetensors"))?;
+        }
         let state = serde_json::json!({
             "step": self.step,
             "seed": self.cfg.train.seed,
@@ -1031,6 +1045,20 @@ impl Trainer {
         named
     }
 
+    /// Puts the moving averages (`train.ema_decay > 0`) into the trainable
+    /// variables, for evaluating or exporting them; `false` (nothing done)
+    /// for a run without averages. Training on afterwards would continue
+    /// from the averages, not from the raw parameters.
+    pub fn use_averaged_weights(&mut self) -> bool {
+        match &self.ema {
+            Some(ema) => {
+                ema.copy_into(self.opt.params());
+                true
+            }
+            None => false,
+        }
+    }
+
     /// Resumes from a checkpoint folder, or from a run folder's latest checkpoint.
     pub fn resume(&mut self, dir: &Path) -> Result<()> {
         let dir = resolve_checkpoint(dir)?;
@@ -1092,6 +1120,23 @@ impl Trainer {
         let opt_path = dir.join("optimizer.safetensors");
         self.opt
             .load_state(bridgev2w_world_model::weights::read_safetensors(&opt_path)?)?;
+        if let Some(ema) = &mut self.ema {
+            let path = dir.join("ema.safetensors");
+            if !path.is_file() {
+                return Err(TrainError::input(
+                    path.display().to_string(),
+                    format!(
+                        "missing: the config averages the weights (train.ema_decay = {}) but \
+                         this checkpoint has no averages",
+                        self.cfg.train.ema_decay
+                    ),
+                ));
+            }
+            ema.load(
+                bridgev2w_world_model::weights::read_safetensors(&path)?,
+                &path,
+            )?;
+        }
         self.step = step;
         self.existing_run = ExistingRun::Continue;
         Ok(())

@@ -75,7 +75,7 @@ color_augment = true
 
 #[test]
 fn mutated_training_configs_never_panic_nor_accept_garbage() {
-    run_target("train-config", &seeds(), mutate_text, |case, data| {
+    let check = |case: usize, data: &[u8]| {
         let text = String::from_utf8_lossy(data);
         let parsed = fuzz::guarded(&ALLOCATOR, "train-config", case, data, || {
             TrainConfig::from_toml(&text)
@@ -98,5 +98,10 @@ fn mutated_training_configs_never_panic_nor_accept_garbage() {
                 "train-config case {case}: the error names neither the config nor a field: {e}"
             ),
         }
-    });
+    };
+    run_target("train-config", &seeds(), mutate_text, check);
+    // Found by `scripts/fuzz.sh train-config 60`: `lora_alpha = nan` passed
+    // validation (NaN != NaN, so the round trip "differed"), with LoRA on
+    // (4049) and, after the first fix, with `lora_rank = 0` (117776).
+    fuzz::replay(&seeds(), mutate_text, &[4049, 117776], check);
 }

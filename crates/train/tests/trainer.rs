@@ -111,6 +111,101 @@ fn resume_repeats_the_uninterrupted_run() {
     assert!(part.join("final/weights.safetensors").is_file());
 }
 
+/// The named tensors of a safetensors file, as f64 values.
+fn tensors(path: &Path) -> Vec<(String, Vec<f64>)> {
+    let mut t: Vec<(String, Vec<f64>)> = tch::Tensor::read_safetensors(path)
+        .unwrap()
+        .into_iter()
+        .map(|(n, t)| {
+            let v = Vec::<f64>::try_from(t.to_kind(Kind::Double).reshape(-1)).unwrap();
+            (n, v)
+        })
+        .collect();
+    t.sort_by(|a, b| a.0.cmp(&b.0));
+    t
+}
+
+#[test]
+fn moving_averages_resume_with_the_run_and_are_its_final_weights() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let with_ema = |out: &Path, steps: usize| {
+        let mut c = config(out);
+        c.train.ema_decay = 0.5;
+        c.train.max_steps = steps;
+        c
+    };
+    let full = tmp.path().join("full");
+    Trainer::new(with_ema(&full, 6))
+        .unwrap()
+        .run(&mut |_| {})
+        .unwrap();
+    let part = tmp.path().join("part");
+    Trainer::new(with_ema(&part, 3))
+        .unwrap()
+        .run(&mut |_| {})
+        .unwrap();
+    assert!(part
+        .join("checkpoints/step-00000003/ema.safetensors")
+        .is_file());
+    let mut t = Trainer::new(with_ema(&part, 6)).unwrap();
+    t.resume(&part).unwrap();
+    t.run(&mut |_| {}).unwrap();
+    // The averages of the resumed run are those of the uninterrupted one.
+    let ema_full = tensors(&full.join("checkpoints/step-00000006/ema.safetensors"));
+    let ema_part = tensors(&part.join("checkpoints/step-00000006/ema.safetensors"));
+    assert_eq!(ema_full.len(), ema_part.len());
+    for ((n, a), (_, b)) in ema_full.iter().zip(&ema_part) {
+        let d = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert!(d <= 1e-6, "{n}: the resumed average differs by {d}");
+    }
+    // The final weights are the averages; the checkpoint keeps the raw
+    // parameters, which differ from them.
+    let fin: std::collections::BTreeMap<_, _> = tensors(&full.join("final/weights.safetensors"))
+        .into_iter()
+        .collect();
+    let raw: std::collections::BTreeMap<_, _> =
+        tensors(&full.join("checkpoints/step-00000006/weights.safetensors"))
+            .into_iter()
+            .collect();
+    let mut averaged = 0;
+    let mut moved = 0;
+    for (name, avg) in &ema_full {
+        let key = name.split_once('.').map_or(name.as_str(), |(_, k)| k);
+        let Some(w) = fin.get(key).or_else(|| fin.get(name)) else {
+            continue;
+        };
+        averaged += 1;
+        assert_eq!(w, avg, "{name}: the final weight is not the average");
+        if raw.get(key).or_else(|| raw.get(name)) != Some(avg) {
+            moved += 1;
+        }
+    }
+    assert!(
+        averaged > 0,
+        "no averaged tensor found in the final weights"
+    );
+    assert!(moved > 0, "the averages equal the raw parameters");
+    // A config that averages cannot resume a checkpoint without averages.
+    let plain = tmp.path().join("plain");
+    let mut c = config(&plain);
+    c.train.max_steps = 3;
+    Trainer::new(c).unwrap().run(&mut |_| {}).unwrap();
+    let e = Trainer::new(with_ema(&plain, 6))
+        .unwrap()
+        .resume(&plain)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("ema.safetensors") && e.contains("ema_decay"),
+        "{e}"
+    );
+}
+
 #[test]
 fn a_second_run_into_the_same_out_is_refused_unless_resumed_or_overwritten() {
     let _g = lock();

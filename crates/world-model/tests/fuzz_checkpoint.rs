@@ -66,8 +66,8 @@ fn mutate_safetensors(seed: &[u8], rng: &mut ChaCha8Rng) -> Vec<u8> {
             let mut h = mutate_text(header, rng);
             if rng.gen_bool(0.3) {
                 const DTYPES: [&str; 6] = ["\"F64\"", "\"U8\"", "\"X9\"", "\"BF16\"", "7", "\"\""];
-                let text = String::from_utf8_lossy(&h).into_owned();
-                if let Some(at) = text.find("\"F32\"") {
+                // By bytes: a lossy UTF-8 view of a mutated header has other offsets.
+                if let Some(at) = h.windows(5).position(|w| w == b"\"F32\"") {
                     let w = DTYPES[rng.gen_range(0..DTYPES.len())];
                     h.splice(at..at + 5, w.bytes());
                 }

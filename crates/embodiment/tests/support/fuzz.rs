@@ -76,15 +76,40 @@ pub fn run_target(
     let mut n = 0;
     while (seconds == 0 && n < cases) || (seconds > 0 && start.elapsed().as_secs() < seconds as u64)
     {
-        let mut rng = ChaCha8Rng::seed_from_u64(base_seed.wrapping_mul(1_000_003) ^ n as u64);
-        let seed = &seeds[rng.gen_range(0..seeds.len())];
-        check(n, &mutate(seed, &mut rng));
+        check(n, &case_input(seeds, &mutate, base_seed, n));
         n += 1;
     }
     eprintln!(
         "fuzz {name}: {n} cases in {:.1} s",
         start.elapsed().as_secs_f64()
     );
+}
+
+/// Case `n` of the series `base_seed`: a seed file picked and mutated by a
+/// generator derived from both.
+pub fn case_input(
+    seeds: &[Vec<u8>],
+    mutate: impl Fn(&[u8], &mut ChaCha8Rng) -> Vec<u8>,
+    base_seed: u64,
+    n: usize,
+) -> Vec<u8> {
+    let mut rng = ChaCha8Rng::seed_from_u64(base_seed.wrapping_mul(1_000_003) ^ n as u64);
+    let seed = &seeds[rng.gen_range(0..seeds.len())];
+    mutate(seed, &mut rng)
+}
+
+/// Reruns the given cases of series 0 (faults a longer run found, beyond
+/// the suite's `FUZZ_CASES`), whatever the environment says.
+pub fn replay(
+    seeds: &[Vec<u8>],
+    mutate: impl Fn(&[u8], &mut ChaCha8Rng) -> Vec<u8>,
+    cases: &[usize],
+    check: impl Fn(usize, &[u8]),
+) {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    for &n in cases {
+        check(n, &case_input(seeds, &mutate, 0, n));
+    }
 }
 
 /// Runs `parse` on the input `data` under the contract: no panic, and at
