@@ -539,9 +539,16 @@ impl Downsample3D {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let x = if self.compress_time {
             let t = x.size()[2];
-            // Average of frame pairs: [B, C, 2n, H, W] -> [B, C, n, H, W].
-            let pool =
-                |x: &Tensor| x.f_avg_pool3d([2, 1, 1], [2, 1, 1], [0, 0, 0], false, true, None);
+            // Average of frame pairs (diffusers' avg_pool3d of kernel and
+            // stride [2, 1, 1]), as a reshape and a mean: libtorch has no
+            // bf16 avg_pool3d on the CPU.
+            let pool = |x: &Tensor| -> Result<Tensor> {
+                let s = x.size();
+                // [B, C, 2n, H, W] -> [B, C, n, 2, H, W]
+                let pairs = x.f_reshape([s[0], s[1], s[2] / 2, 2, s[3], s[4]])?;
+                // [B, C, n, 2, H, W] -> [B, C, n, H, W]
+                Ok(pairs.f_mean_dim([3i64].as_slice(), false, None::<tch::Kind>)?)
+            };
             if t % 2 == 1 {
                 let first = x.narrow(2, 0, 1);
                 if t > 1 {
@@ -832,5 +839,57 @@ mod tests {
         // With a cache (a later frame batch) the 3-D path runs as before.
         let (next, _) = conv.forward(&x, Some(&x.repeat([1, 1, 2, 1, 1]))).unwrap();
         assert!((&next - &slow).abs().max().double_value(&[]) < 1e-5);
+    }
+
+    #[test]
+    fn time_pooling_is_avg_pool3d_and_runs_in_bf16_on_the_cpu() {
+        tch::manual_seed(3);
+        let mut vs = nn::VarStore::new(Device::Cpu);
+        let down = Downsample3D::new(vs.root() / "d", 3, true);
+        tch::no_grad(|| {
+            for mut v in vs.variables().into_values() {
+                let r = Tensor::randn_like(&v) * 0.2;
+                v.copy_(&r);
+            }
+        });
+        let pooled =
+            |x: &Tensor| x.avg_pool3d([2, 1, 1], [2, 1, 1], [0, 0, 0], false, true, None::<i64>);
+        let mut f32_outputs = Vec::new();
+        for t in [1i64, 4, 5] {
+            let x = Tensor::randn([2, 3, t, 6, 8], (Kind::Float, Device::Cpu));
+            let got = down.forward(&x).unwrap();
+            // The reference: diffusers' avg_pool3d, the first frame kept
+            // alone for an odd count.
+            let reference = match t {
+                1 => x.shallow_clone(),
+                _ if t % 2 == 1 => {
+                    Tensor::cat(&[x.narrow(2, 0, 1), pooled(&x.narrow(2, 1, t - 1))], 2)
+                }
+                _ => pooled(&x),
+            };
+            let want = down
+                .conv
+                .forward(&reference.constant_pad_nd([0, 1, 0, 1]))
+                .unwrap();
+            let d = (&got - &want).abs().max().double_value(&[]);
+            assert!(d < 1e-6, "t = {t}: {d}");
+            f32_outputs.push((x, got));
+        }
+        // The same downsampler in bf16 on the CPU, where avg_pool3d has no
+        // bf16 kernel: it runs and stays within bf16 rounding of f32.
+        vs.bfloat16();
+        for (x, want) in f32_outputs {
+            let got = down.forward(&x.to_kind(Kind::BFloat16)).unwrap();
+            assert_eq!(got.kind(), Kind::BFloat16);
+            let scale = want.abs().max().double_value(&[]);
+            let d = (got.to_kind(Kind::Float) - &want)
+                .abs()
+                .max()
+                .double_value(&[]);
+            assert!(
+                scale > 0.1 && d < 0.05 * scale,
+                "bf16 off by {d} (scale {scale})"
+            );
+        }
     }
 }
