@@ -221,7 +221,9 @@ train vae vae-image
 train prior vae
 evaluate() { # evaluate NAME: eval-run of OUT/NAME, kept when its run and settings are unchanged
     local name=$1 fp
-    fp=$(fingerprint "eval $name --max-videos $EVAL_VIDEOS --steps $EVAL_STEPS" "$OUT/$name.inputs")
+    # "frames 1..": the scoring protocol (frame 0, the input, not scored
+    # since 2026-11-25); a change of protocol redoes the evaluations.
+    fp=$(fingerprint "eval $name --max-videos $EVAL_VIDEOS --steps $EVAL_STEPS frames 1.." "$OUT/$name.inputs")
     if [[ -f $OUT/eval-$name.json && $(cat "$OUT/eval-$name.inputs" 2>/dev/null) == "$fp" ]]; then
         echo "== eval $name: done before from the same run and settings, kept"
         return

@@ -236,7 +236,7 @@ pub fn run_eval_report(a: &EvalReportArgs) -> Result<()> {
         Some("color") => "a colour classifier",
         _ => "a small dilated CNN",
     };
-    md += &format!("\nPSNR and SSIM per frame on [0, 1] RGB, averaged over frames, then videos. Dynamic PSNR: PSNR pooled over the pixels the motion changes (in frames 1..T, a channel differs from the true first frame by more than 8/255; dilated by 2 px), where copying the first frame knows nothing; averaged over videos. Mask-IoU (x100): the robot segmented in each frame by {segmenter} trained on the training split's frames and ground-truth masks (the paper uses Grounded SAM), against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames.");
+    md += &format!("\nPSNR and SSIM per frame on [0, 1] RGB, averaged over the predicted frames 1..T, then videos (frame 0 is every method's input: copying it would score 100 dB there, and until 2026-11-25 that frame was counted, which put the copy baseline about 8 dB higher). Dynamic PSNR: PSNR pooled over the pixels the motion changes (in frames 1..T, a channel differs from the true first frame by more than 8/255; dilated by 2 px), where copying the first frame knows nothing; averaged over videos. Mask-IoU (x100): the robot segmented in each predicted frame by {segmenter} trained on the training split's frames and ground-truth masks (the paper uses Grounded SAM), against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames.");
     md += " LPIPS and FVD need the pretrained AlexNet and I3D weights, which cannot be downloaded here (`bridgev2w eval` computes them from user-supplied weights).\n";
     write_section(&a.out, "video", &md)?;
     crate::print_stdout(&md)

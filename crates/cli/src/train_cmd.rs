@@ -243,7 +243,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         rows.push(scores);
     }
     let mut text = format!(
-        "run {} (step {}, stage {}), {} steps, guidance {}\n\n| split | videos | PSNR | dynamic PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame dynamic PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling | VAE ceiling PSNR | VAE ceiling dynamic PSNR | VAE ceiling SSIM |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "run {} (step {}, stage {}), {} steps, guidance {}; scored on the predicted frames (all but frame 0, the input)\n\n| split | videos | PSNR | dynamic PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame dynamic PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling | VAE ceiling PSNR | VAE ceiling dynamic PSNR | VAE ceiling SSIM |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
         args.run.display(),
         trainer.step,
         trainer.cfg.train.stage,

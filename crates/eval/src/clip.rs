@@ -2,6 +2,12 @@
 //! copy-the-first-frame baseline (the prediction that knows nothing of the
 //! motion): the per-clip scores behind `eval-run`'s tables and the demo's
 //! check.
+//!
+//! Only the predicted frames are scored: frame 0 is the model's input (the
+//! conditioning image). Copying it is exact, so scoring it would give the
+//! baseline one frame at [`crate::video::PSNR_IDENTICAL`] (100 dB) and SSIM
+//! 1, which dominates a per-frame mean: with 9 frames, a baseline at 24 dB
+//! on frames 1-8 would read 32.5 dB.
 
 use crate::dynamic::{dynamic_region, region_psnr};
 use crate::video::{video_psnr, video_ssim, Frame};
@@ -46,12 +52,27 @@ pub fn copy_first_frame(gt: &[Frame]) -> Result<Vec<Frame>> {
     Ok(vec![first.clone(); gt.len()])
 }
 
-/// Scores a prediction and the copy-the-first-frame baseline on `gt`.
+/// The frames a model predicts: all but frame 0, its input. An error for a
+/// clip of fewer than 2 frames (nothing predicted).
+pub fn predicted<T>(clip: &[T]) -> Result<&[T]> {
+    match clip {
+        [_, rest @ ..] if !rest.is_empty() => Ok(rest),
+        _ => Err(MetricError::Invalid(format!(
+            "a clip of {} frame(s) has no predicted frames: expected at least 2 (frame 0 is the input)",
+            clip.len()
+        ))),
+    }
+}
+
+/// Scores a prediction and the copy-the-first-frame baseline on `gt`, on
+/// the predicted frames 1.. (see the module's note).
 pub fn compare_with_copy(pred: &[Frame], gt: &[Frame]) -> Result<ClipComparison> {
     let region = dynamic_region(gt)?;
+    let copy = copy_first_frame(gt)?;
+    let (gt_p, region_p) = (predicted(gt)?, predicted(&region)?);
     Ok(ClipComparison {
-        prediction: score_clip(pred, gt, &region)?,
-        copy_first_frame: score_clip(&copy_first_frame(gt)?, gt, &region)?,
+        prediction: score_clip(predicted(pred)?, gt_p, region_p)?,
+        copy_first_frame: score_clip(predicted(&copy)?, gt_p, region_p)?,
     })
 }
 
@@ -86,11 +107,13 @@ mod tests {
         assert!(perfect.prediction.dynamic_psnr.unwrap() > 99.0);
         assert!((perfect.prediction.ssim - 1.0).abs() < 1e-9);
         // The copy misses the square's motion: frame 1 differs from frame 0
-        // in 4 pixels (2 appear, 2 vanish), frame 2 in 8, by 1.0 in every channel.
+        // in 4 pixels (2 appear, 2 vanish), frame 2 in 8, by 1.0 in every
+        // channel. Frame 0, the input, is not scored: it would add a frame
+        // at PSNR_IDENTICAL.
         let copy = perfect.copy_first_frame;
         let frame_mse = |px: f64| px * 3.0 / (16.0 * 12.0 * 3.0);
-        let expected =
-            (PSNR_IDENTICAL + psnr_from_mse(frame_mse(4.0)) + psnr_from_mse(frame_mse(8.0))) / 3.0;
+        let expected = (psnr_from_mse(frame_mse(4.0)) + psnr_from_mse(frame_mse(8.0))) / 2.0;
+        assert!(copy.psnr < PSNR_IDENTICAL / 3.0);
         assert!(
             (copy.psnr - expected).abs() < 1e-4,
             "{copy:?} vs {expected}"
@@ -101,5 +124,10 @@ mod tests {
         let c = compare_with_copy(&still, &still).unwrap();
         assert_eq!(c.copy_first_frame.dynamic_psnr, None);
         assert!(copy_first_frame(&[]).is_err());
+        // One frame: nothing was predicted.
+        let e = compare_with_copy(&still[..1], &still[..1])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("at least 2"), "{e}");
     }
 }

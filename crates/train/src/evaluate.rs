@@ -14,7 +14,7 @@
 use crate::data::ClipDataset;
 use crate::trainer::Trainer;
 use crate::{Result, TrainError};
-use bridgev2w_eval::clip::{copy_first_frame, score_clip};
+use bridgev2w_eval::clip::{copy_first_frame, predicted, score_clip};
 use bridgev2w_eval::dynamic::dynamic_region;
 use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
 use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, Frame};
@@ -48,7 +48,8 @@ impl Default for EvalOptions {
     }
 }
 
-/// Scores of one split.
+/// Scores of one split, each over the predicted frames 1.. of every clip
+/// (frame 0 is the model's input: see [`bridgev2w_eval::clip`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct SplitScores {
     /// Split name.
@@ -187,28 +188,35 @@ pub fn evaluate_split(
         })?;
         let af = frames(&recon)?;
         let region = dynamic_region(&gt).map_err(metric)?;
+        // Scored on the predicted frames 1.. (frame 0 is the input; see
+        // `bridgev2w_eval::clip`).
+        let later =
+            |v: &[Frame]| -> Result<Vec<Frame>> { Ok(predicted(v).map_err(metric)?.to_vec()) };
+        let (gt_p, region_p) = (later(&gt)?, predicted(&region).map_err(metric)?);
+        let (pf, copy, af) = (later(&pf)?, later(&copy)?, later(&af)?);
         for (v, psnr, ssim, dynamic) in [
             (&pf, &mut p, &mut s, &mut dp),
             (&copy, &mut bp, &mut bs, &mut dbp),
             (&af, &mut ap, &mut as_, &mut dap),
         ] {
-            let score = score_clip(v, &gt, &region).map_err(metric)?;
+            let score = score_clip(v, &gt_p, region_p).map_err(metric)?;
             psnr.push(score.psnr);
             ssim.push(score.ssim);
             dynamic.extend(score.dynamic_psnr);
         }
         if let Some(seg) = with_masks {
             let gt_masks = mask_frames(&batch.masks)?;
+            let gt_masks = predicted(&gt_masks).map_err(metric)?;
             let segment = |v: &[Frame]| {
                 v.iter()
                     .map(|f| seg.segment(f))
                     .collect::<std::result::Result<Vec<_>, _>>()
                     .map_err(metric)
             };
-            iou.push(video_mask_iou(&segment(&pf)?, &gt_masks).map_err(metric)?);
-            biou.push(video_mask_iou(&segment(&copy)?, &gt_masks).map_err(metric)?);
-            ceil.push(video_mask_iou(&segment(&gt)?, &gt_masks).map_err(metric)?);
-            aiou.push(video_mask_iou(&segment(&af)?, &gt_masks).map_err(metric)?);
+            iou.push(video_mask_iou(&segment(&pf)?, gt_masks).map_err(metric)?);
+            biou.push(video_mask_iou(&segment(&copy)?, gt_masks).map_err(metric)?);
+            ceil.push(video_mask_iou(&segment(&gt_p)?, gt_masks).map_err(metric)?);
+            aiou.push(video_mask_iou(&segment(&af)?, gt_masks).map_err(metric)?);
         }
         on_video();
     }
