@@ -41,12 +41,13 @@ RESULTS=${RESULTS:-docs/results.md}
 EPISODES=${EPISODES:-240,12,12,12}
 TASKS=${TASKS:-reach,push,pick_place,play,play,play}
 # The VAE/transformer presets: small2x (2x space, no time compression,
-# patches of 4) or small (4x space and time, patches of 2).
+# patches of 4, a transformer 128 wide), small2x-wide (the same, 256 wide)
+# or small (4x space and time, patches of 2).
 PRESET=${PRESET:-small2x}
 # Without time compression the clip stage starts from the image autoencoder
 # applied frame by frame (its temporal taps summed into the current frame's).
 INFLATE=false
-[[ $PRESET == small2x ]] && INFLATE=true
+[[ $PRESET == small2x* ]] && INFLATE=true
 # Where the prior and the fine-tuned models take the first frame's latent:
 # every_frame (repeated in every latent frame's conditioning channels, so that
 # copying the static scene is local; a measured deviation from CogVideoX) or
@@ -244,8 +245,8 @@ PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
     echo "Dataset: \`bridgev2w synth --tasks $TASKS\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
-    echo "Models: \`random:$PRESET\` VAE ($([[ $PRESET == small2x ]] && echo '4 latent channels, 2 blocks, 2x space, no time compression' || echo '16 latent channels, 3 blocks, 4x space, 4x time')) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4$([[ $INFLATE == true ]] && echo ', starting from the image autoencoder applied frame by frame')) (L1 + KL, colours permuted and inverted at random);"
-    echo "action-free I2V prior (4 layers, 4 heads x 32, patches of $([[ $PRESET == small2x ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
+    echo "Models: \`random:$PRESET\` VAE ($([[ $PRESET == small2x* ]] && echo '4 latent channels, 2 blocks, 2x space, no time compression' || echo '16 latent channels, 3 blocks, 4x space, 4x time')) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4$([[ $INFLATE == true ]] && echo ', starting from the image autoencoder applied frame by frame')) (L1 + KL, colours permuted and inverted at random);"
+    echo "action-free I2V prior (4 layers, $([[ $PRESET == small2x-wide ]] && echo 8 || echo 4) heads x 32, patches of $([[ $PRESET == small2x* ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; BridgeV2W (ControlNet of 2 blocks + LoRA rank 64)"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."
     echo "Each method is scored on the first clip of the first $EVAL_VIDEOS episodes of each split."

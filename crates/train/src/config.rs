@@ -37,8 +37,9 @@ pub struct TrainConfig {
 #[serde(default, deny_unknown_fields)]
 pub struct ModelSection {
     /// A diffusers CogVideoX image-to-video folder, or `random:tiny` /
-    /// `random:small` / `random:small2x` (the tiny, small or 2x-spatial small
-    /// VAE/transformer presets with random weights, 9 frames at 64x96).
+    /// `random:small` / `random:small2x` / `random:small2x-wide` (the tiny,
+    /// small or 2x-spatial small VAE/transformer presets with random
+    /// weights, 9 frames at 64x96; `-wide`: a transformer of 256, not 128).
     pub backbone: String,
     /// The fixed prompt's embedding (safetensors, see `bridgev2w predict`); zeros when absent.
     pub prompt_embeds: Option<PathBuf>,

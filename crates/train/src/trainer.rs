@@ -158,9 +158,10 @@ fn random_preset(backbone: &str) -> Result<Option<(VaeConfig, TransformerConfig)
         Some("tiny") => Ok(Some((VaeConfig::tiny(), TransformerConfig::tiny()))),
         Some("small") => Ok(Some((VaeConfig::small(), TransformerConfig::small()))),
         Some("small2x") => Ok(Some((VaeConfig::small_2x(), TransformerConfig::small_2x()))),
+        Some("small2x-wide") => Ok(Some((VaeConfig::small_2x(), TransformerConfig::small_2x_wide()))),
         Some(other) => Err(TrainError::input(
             "config model.backbone",
-            format!("`random:{other}`: expected random:tiny, random:small, random:small2x or a diffusers folder"),
+            format!("`random:{other}`: expected random:tiny, random:small, random:small2x, random:small2x-wide or a diffusers folder"),
         )),
     }
 }
@@ -1322,4 +1323,26 @@ fn truncate_metrics(path: &Path, step: usize) -> Result<()> {
         .map(|l| format!("{l}\n"))
         .collect();
     write_atomic(path, kept.as_bytes())
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn random_presets_by_name_and_an_unknown_one_lists_them() {
+        let (vae, tf) = random_preset("random:small2x-wide").unwrap().unwrap();
+        assert_eq!(vae, VaeConfig::small_2x());
+        assert_eq!(
+            tf.inner_dim(),
+            2 * TransformerConfig::small_2x().inner_dim()
+        );
+        assert!(random_preset("some/folder").unwrap().is_none());
+        let e = random_preset("random:huge").unwrap_err().to_string();
+        assert!(
+            e.contains("random:small2x-wide") && e.contains("random:huge"),
+            "{e}"
+        );
+    }
 }

@@ -181,7 +181,19 @@ impl TransformerConfig {
         }
     }
 
-    /// A preset by name: `cogvideox-5b-i2v`, `cogvideox-2b`, `small`, `small2x` or `tiny`.
+    /// [`Self::small_2x`] twice as wide: 8 heads of 32 (256), for CPU runs
+    /// where width buys more per second than steps do (`docs/results.md`,
+    /// section `levers`).
+    pub fn small_2x_wide() -> Self {
+        Self {
+            num_attention_heads: 8,
+            time_embed_dim: 256,
+            ..Self::small_2x()
+        }
+    }
+
+    /// A preset by name: `cogvideox-5b-i2v`, `cogvideox-2b`, `small`,
+    /// `small2x`, `small2x-wide` or `tiny`.
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "cogvideox-5b-i2v" | "cogvideox_5b_i2v" => Ok(Self::cogvideox_5b_i2v()),
@@ -189,10 +201,11 @@ impl TransformerConfig {
             "tiny" => Ok(Self::tiny()),
             "small" => Ok(Self::small()),
             "small2x" => Ok(Self::small_2x()),
+            "small2x-wide" => Ok(Self::small_2x_wide()),
             other => Err(WorldModelError::config(
                 PathBuf::from("<preset>"),
                 "name",
-                format!("unknown transformer preset `{other}`: expected cogvideox-5b-i2v, cogvideox-2b, small, small2x or tiny"),
+                format!("unknown transformer preset `{other}`: expected cogvideox-5b-i2v, cogvideox-2b, small, small2x, small2x-wide or tiny"),
             )),
         }
     }

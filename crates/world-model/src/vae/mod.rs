@@ -1205,7 +1205,15 @@ mod tests {
         for (small, tf, space, time_levels) in [
             (VaeConfig::small(), TransformerConfig::small(), 4, 2),
             (VaeConfig::small_2x(), TransformerConfig::small_2x(), 2, 0),
+            (
+                VaeConfig::small_2x(),
+                TransformerConfig::small_2x_wide(),
+                2,
+                0,
+            ),
         ] {
+            tf.validate(Path::new("transformer preset"))
+                .unwrap_or_else(|e| panic!("{e}"));
             small
                 .validate(Path::new("small"))
                 .unwrap_or_else(|e| panic!("{e}"));
