@@ -10,7 +10,6 @@
 //! the checkpoints' `weights.safetensors` the raw parameters a resume needs.
 
 use crate::{Result, TrainError};
-use std::collections::BTreeMap;
 use std::path::Path;
 use tch::Tensor;
 
@@ -101,33 +100,7 @@ impl Ema {
     /// Restores the averages from `saved` (read from `path`): every
     /// parameter's average must be there with its shape, and nothing else.
     pub fn load(&mut self, saved: Vec<(String, Tensor)>, path: &Path) -> Result<()> {
-        let mut map: BTreeMap<String, Tensor> = saved.into_iter().collect();
-        for (name, avg) in &mut self.averages {
-            let src = map.remove(name.as_str()).ok_or_else(|| {
-                TrainError::input(
-                    path.display().to_string(),
-                    format!("no average of `{name}` (a checkpoint of another configuration?)"),
-                )
-            })?;
-            if src.size() != avg.size() {
-                return Err(TrainError::input(
-                    path.display().to_string(),
-                    format!(
-                        "the average of `{name}` is {:?} but the parameter is {:?}",
-                        src.size(),
-                        avg.size()
-                    ),
-                ));
-            }
-            tch::no_grad(|| avg.copy_(&src.to_device(avg.device())));
-        }
-        if let Some(extra) = map.keys().next() {
-            return Err(TrainError::input(
-                path.display().to_string(),
-                format!("unexpected `{extra}` (a checkpoint of another configuration?)"),
-            ));
-        }
-        Ok(())
+        crate::checkpoint::copy_named_into(&self.averages, saved, path)
     }
 
     /// Copies the averages into the parameters (for evaluation or export).

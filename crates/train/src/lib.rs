@@ -8,6 +8,7 @@
 
 pub mod action;
 pub mod augment;
+pub mod checkpoint;
 pub mod config;
 pub mod data;
 pub mod distributed;

@@ -1093,28 +1093,7 @@ impl Trainer {
         }
         let path = dir.join("trainable.safetensors");
         let saved = bridgev2w_world_model::weights::read_safetensors(&path)?;
-        let mut map: std::collections::BTreeMap<String, Tensor> = saved.into_iter().collect();
-        for (name, t) in self.trainable_state() {
-            let src = map.remove(&name).ok_or_else(|| {
-                TrainError::input(
-                    path.display().to_string(),
-                    format!("no `{name}` (a checkpoint of another configuration?)"),
-                )
-            })?;
-            if src.size() != t.size() {
-                return Err(TrainError::input(
-                    path.display().to_string(),
-                    format!("`{name}` {:?} but the model has {:?}", src.size(), t.size()),
-                ));
-            }
-            tch::no_grad(|| t.shallow_clone().copy_(&src.to_device(t.device())));
-        }
-        if let Some(extra) = map.keys().next() {
-            return Err(TrainError::input(
-                path.display().to_string(),
-                format!("unexpected `{extra}` (a checkpoint of another configuration?)"),
-            ));
-        }
+        crate::checkpoint::copy_named_into(&self.trainable_state(), saved, &path)?;
         // The adapters' untrained variables (e.g. the unused branch of the
         // action ablation) come from the weights file.
         self.model.load_weights(&dir.join("weights.safetensors"))?;
