@@ -1,6 +1,6 @@
 //! The documentation's relative links and pictures point at files that
 //! exist: README.md, ARCHITECTURE.md and every markdown file under docs/
-//! (run logs under docs/proof-run excepted).
+//! (run logs under docs/results/logs excepted).
 
 use std::path::{Path, PathBuf};
 
@@ -16,7 +16,7 @@ fn markdown_files() -> Vec<PathBuf> {
         for e in std::fs::read_dir(&d).expect("docs folder") {
             let p = e.expect("entry").path();
             if p.is_dir() {
-                if p.file_name().is_some_and(|n| n != "proof-run") {
+                if p.file_name().is_some_and(|n| n != "logs") {
                     dirs.push(p);
                 }
             } else if p.extension().is_some_and(|x| x == "md") {
