@@ -310,7 +310,7 @@ pub struct TrainSection {
     /// dynamics losses, no condition). `vae` and `prior` write the trained
     /// backbone as a diffusers folder to `OUT/final/backbone`, the next stage's
     /// `model.backbone`.
-    pub stage: String,
+    pub stage: Stage,
     /// KL weight of the `vae` stage.
     pub kl_weight: f64,
     /// `vae` stage: permute each clip's RGB channels and invert half of the
@@ -369,13 +369,56 @@ impl Default for TrainSection {
             checkpoint_every: 100,
             keep_checkpoints: 3,
             inject_nan_at_step: None,
-            stage: "bridgev2w".into(),
+            stage: Stage::Bridgev2w,
             kl_weight: 1e-4,
             color_augment: false,
             inflate_image_vae: false,
             gradient_checkpointing: false,
             autocast: "auto".into(),
         }
+    }
+}
+
+/// What a run trains (`train.stage`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Stage {
+    /// ControlNet + LoRA on a video prior: the paper's fine-tuning.
+    #[default]
+    Bridgev2w,
+    /// The backbone's VAE as an autoencoder (L1 reconstruction + KL).
+    Vae,
+    /// The backbone transformer as an action-free image-to-video model.
+    Prior,
+}
+
+impl Stage {
+    /// The names [`std::str::FromStr`] accepts.
+    pub const NAMES: [&'static str; 3] = ["bridgev2w", "vae", "prior"];
+}
+
+impl std::str::FromStr for Stage {
+    type Err = TrainError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "bridgev2w" => Ok(Self::Bridgev2w),
+            "vae" => Ok(Self::Vae),
+            "prior" => Ok(Self::Prior),
+            other => Err(TrainError::input(
+                "train.stage",
+                format!("{other:?}: expected one of {}", Self::NAMES.join(", ")),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for Stage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Bridgev2w => "bridgev2w",
+            Self::Vae => "vae",
+            Self::Prior => "prior",
+        })
     }
 }
 
@@ -494,15 +537,6 @@ impl TrainConfig {
                 format!("{}: expected a probability", t.condition_dropout),
             );
         }
-        if !["bridgev2w", "vae", "prior"].contains(&t.stage.as_str()) {
-            return bad(
-                "train.stage",
-                format!(
-                    "{:?}: expected \"bridgev2w\", \"vae\" or \"prior\"",
-                    t.stage
-                ),
-            );
-        }
         if !(t.image_noise_log_mean.is_finite()
             && t.image_noise_log_std.is_finite()
             && t.image_noise_log_std >= 0.0)
@@ -521,11 +555,11 @@ impl TrainConfig {
                 format!("{}: expected a finite value >= 0", t.kl_weight),
             );
         }
-        if t.inflate_image_vae && t.stage != "vae" {
+        if t.inflate_image_vae && t.stage != Stage::Vae {
             return bad(
                 "train.inflate_image_vae",
                 format!(
-                    "true with stage {:?}: it starts a \"vae\" stage from an image autoencoder",
+                    "true with stage \"{}\": it starts a \"vae\" stage from an image autoencoder",
                     t.stage
                 ),
             );
@@ -653,6 +687,17 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("train.image_noise_log"), "{e}");
+        // A typed stage: an unknown one lists the stages.
+        let e = TrainConfig::from_toml(&format!("{base}[train]\nstage = \"fine\"\n"))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("fine") && e.contains("prior") && e.contains("vae"),
+            "{e}"
+        );
+        assert_eq!("prior".parse::<Stage>().unwrap(), Stage::Prior);
+        assert_eq!(Stage::Vae.to_string(), "vae");
         for d in ["1.0", "-0.1", "nan"] {
             let e = TrainConfig::from_toml(&format!("{base}[train]\nema_decay = {d}\n"))
                 .unwrap_err()

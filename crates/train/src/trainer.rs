@@ -26,7 +26,7 @@
 
 use crate::action::ActionEncoder;
 use crate::augment::{recolor, ColorDraw};
-use crate::config::TrainConfig;
+use crate::config::{Stage, TrainConfig};
 use crate::data::{rng_for, seed_for, Batch, ClipDataset};
 use crate::distributed::{Collective, DistEnv};
 use crate::ema::Ema;
@@ -280,7 +280,7 @@ impl Trainer {
             width,
             cfg.data.clips_per_video,
         )?;
-        if cfg.ablation.mask_action && cfg.train.stage == "bridgev2w" && !data.has_masks() {
+        if cfg.ablation.mask_action && cfg.train.stage == Stage::Bridgev2w && !data.has_masks() {
             return Err(TrainError::input(
                 format!("dataset {}", cfg.data.dataset.display()),
                 "mask conditioning needs masks for every episode: masks/episode_*.npy, data.robot to render calc masks, or data.masks = \"seg\"",
@@ -289,7 +289,8 @@ impl Trainer {
         let mut model = build_model(&cfg, device, frames, height, width)?;
         let tf_cfg = model.transformer.model.config().clone();
         let train_backbone = cfg.model.train_backbone || !cfg.ablation.pretrained;
-        let (action_vs, action) = if cfg.ablation.mask_action || cfg.train.stage != "bridgev2w" {
+        let (action_vs, action) = if cfg.ablation.mask_action || cfg.train.stage != Stage::Bridgev2w
+        {
             (None, None)
         } else {
             tch::manual_seed(seed_for(cfg.train.seed, u64::MAX, 7) as i64);
@@ -308,10 +309,10 @@ impl Trainer {
         };
         // Trainable: LoRA (+ the ControlNet when masks condition), the action
         // MLP, the backbone when trained from scratch.
-        let stage = cfg.train.stage.as_str();
+        let stage = cfg.train.stage;
         let mut params: Vec<(String, Tensor)> = Vec::new();
         for (name, t) in model.adapters.variables() {
-            if stage != "bridgev2w" || !t.requires_grad() {
+            if stage != Stage::Bridgev2w || !t.requires_grad() {
                 continue;
             }
             if !cfg.ablation.mask_action && name.starts_with("controlnet.") {
@@ -319,7 +320,7 @@ impl Trainer {
             }
             params.push((format!("adapters.{name}"), t));
         }
-        if stage == "vae" {
+        if stage == Stage::Vae {
             if cfg.train.inflate_image_vae {
                 bridgev2w_world_model::vae::inflate_image_weights(&model.vae_vs);
             }
@@ -335,7 +336,7 @@ impl Trainer {
                 }
             }
         }
-        if (train_backbone && stage == "bridgev2w") || stage == "prior" {
+        if (train_backbone && stage == Stage::Bridgev2w) || stage == Stage::Prior {
             model.transformer.vs.unfreeze();
             for (name, t) in model.transformer.vs.variables() {
                 params.push((format!("backbone.{name}"), t));
@@ -552,7 +553,7 @@ impl Trainer {
         let model = &self.model;
         tch::no_grad(|| -> Result<Tensor> {
             let img = model.image_latents(&batch.first_frames, None)?;
-            let bridge = self.cfg.train.stage == "bridgev2w";
+            let bridge = self.cfg.train.stage == Stage::Bridgev2w;
             let control = if bridge && self.cfg.ablation.mask_action {
                 Some(model.control_latents(&batch.masks, &img)?)
             } else {
@@ -626,10 +627,10 @@ impl Trainer {
 
     /// The objective on `batch` with the random draws of step `step`.
     pub fn losses(&self, batch: &Batch, step: usize) -> Result<Losses> {
-        if self.cfg.train.stage == "vae" {
+        if self.cfg.train.stage == Stage::Vae {
             return self.vae_losses(batch, step);
         }
-        let prior = self.cfg.train.stage == "prior";
+        let prior = self.cfg.train.stage == Stage::Prior;
         let t = &self.cfg.train;
         let seed = t.seed;
         let s = step as u64;
@@ -905,7 +906,7 @@ impl Trainer {
         let fin = out.join("final");
         std::fs::create_dir_all(&fin).map_err(|e| io_err(&fin, e))?;
         self.model.save_weights(&fin.join("weights.safetensors"))?;
-        if self.cfg.train.stage != "bridgev2w" {
+        if self.cfg.train.stage != Stage::Bridgev2w {
             self.save_trained_backbone(&fin.join("backbone"))?;
         }
         if let Some(vs) = &self.action_vs {
@@ -928,7 +929,7 @@ impl Trainer {
             std::fs::remove_dir_all(&tmp).map_err(|e| io_err(&tmp, e))?;
         }
         self.model.save_backbone(&tmp)?;
-        if self.cfg.train.stage == "vae" {
+        if self.cfg.train.stage == Stage::Vae {
             let mut sum = 0f64;
             let mut sq = 0f64;
             let mut n = 0f64;

@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used)]
 
 use bridgev2w_data::synth::{write_dataset, SynthConfig};
-use bridgev2w_train::config::TrainConfig;
+use bridgev2w_train::config::{Stage, TrainConfig};
 use bridgev2w_train::trainer::{resolve_checkpoint, Trainer};
 use bridgev2w_train::TrainError;
 use bridgev2w_world_model::bridge::ImageConditioning;
@@ -659,7 +659,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     let _g = lock();
     let tmp = tempfile::tempdir().unwrap();
     let mut c = config(&tmp.path().join("vae"));
-    c.train.stage = "vae".into();
+    c.train.stage = Stage::Vae;
     c.train.max_steps = 24;
     c.train.lr = 2e-3;
     c.train.warmup_steps = 0;
@@ -688,7 +688,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     let mut c = config(&tmp.path().join("vae-clips"));
     c.model.backbone = backbone.display().to_string();
     (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
-    (c.train.stage, c.train.inflate_image_vae) = ("vae".into(), true);
+    (c.train.stage, c.train.inflate_image_vae) = (Stage::Vae, true);
     let t = Trainer::new(c.clone()).unwrap();
     let mut inflated = 0;
     for (name, w) in t.model.vae_vs.variables() {
@@ -701,14 +701,14 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
         }
     }
     assert!(inflated > 4, "{inflated} inflated convolutions");
-    c.train.stage = "prior".into();
+    c.train.stage = Stage::Prior;
     let e = Trainer::new(c).unwrap_err().to_string();
     assert!(e.contains("train.inflate_image_vae"), "{e}");
 
     let mut c = config(&tmp.path().join("prior"));
     c.model.backbone = backbone.display().to_string();
     (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
-    c.train.stage = "prior".into();
+    c.train.stage = Stage::Prior;
     c.train.max_steps = 2;
     c.train.checkpoint_every = 0;
     c.model.image_conditioning = ImageConditioning::EveryFrame;
@@ -856,7 +856,7 @@ fn gradient_checkpointing_trains_exactly_like_the_plain_backward() {
             c.train.e_switch = 0;
             c.train.gradient_checkpointing = checkpointing;
             if variant == "prior" {
-                c.train.stage = "prior".into();
+                c.train.stage = Stage::Prior;
             }
             let mut t = Trainer::new(c).unwrap();
             let metrics = t.run(&mut |_| {}).unwrap();
