@@ -392,35 +392,11 @@ pub enum Stage {
     Prior,
 }
 
-impl Stage {
-    /// The names [`std::str::FromStr`] accepts.
-    pub const NAMES: [&'static str; 3] = ["bridgev2w", "vae", "prior"];
-}
-
-impl std::str::FromStr for Stage {
-    type Err = TrainError;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "bridgev2w" => Ok(Self::Bridgev2w),
-            "vae" => Ok(Self::Vae),
-            "prior" => Ok(Self::Prior),
-            other => Err(TrainError::input(
-                "train.stage",
-                format!("{other:?}: expected one of {}", Self::NAMES.join(", ")),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for Stage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Self::Bridgev2w => "bridgev2w",
-            Self::Vae => "vae",
-            Self::Prior => "prior",
-        })
-    }
-}
+bridgev2w_world_model::named_enum!(Stage, TrainError, TrainError::input, "train.stage", {
+    Bridgev2w => "bridgev2w",
+    Vae => "vae",
+    Prior => "prior",
+});
 
 /// `[ablation]`: the paper's switches (all `true` = full BridgeV2W).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

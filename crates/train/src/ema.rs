@@ -25,33 +25,10 @@ pub enum RunWeights {
     Raw,
 }
 
-impl RunWeights {
-    /// The names [`std::str::FromStr`] accepts.
-    pub const NAMES: [&'static str; 2] = ["averaged", "raw"];
-}
-
-impl std::str::FromStr for RunWeights {
-    type Err = TrainError;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "averaged" => Ok(Self::Averaged),
-            "raw" => Ok(Self::Raw),
-            other => Err(TrainError::input(
-                "weights",
-                format!("{other:?}: expected one of {}", Self::NAMES.join(", ")),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for RunWeights {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Self::Averaged => "averaged",
-            Self::Raw => "raw",
-        })
-    }
-}
+bridgev2w_world_model::named_enum!(RunWeights, TrainError, TrainError::input, "weights", {
+    Averaged => "averaged",
+    Raw => "raw",
+});
 
 /// The averages of a list of named parameters.
 #[derive(Debug)]

@@ -64,10 +64,12 @@ pub enum ImageConditioning {
     EveryFrame,
 }
 
-impl ImageConditioning {
-    /// The names [`std::str::FromStr`] accepts.
-    pub const NAMES: [&'static str; 2] = ["first_frame", "every_frame"];
+crate::named_enum!(ImageConditioning, WorldModelError, WorldModelError::input, "image_conditioning", {
+    FirstFrame => "first_frame",
+    EveryFrame => "every_frame",
+});
 
+impl ImageConditioning {
     /// `[B, t, C, h, w]` conditioning latents from the image latent `z`
     /// `[B, 1, C, h, w]`.
     pub fn expand(self, z: &Tensor, t: i64) -> Tensor {
@@ -79,26 +81,6 @@ impl ImageConditioning {
             }
             Self::EveryFrame => z.expand([s[0], t, s[2], s[3], s[4]], false).contiguous(),
         }
-    }
-}
-
-impl std::str::FromStr for ImageConditioning {
-    type Err = WorldModelError;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "first_frame" => Ok(Self::FirstFrame),
-            "every_frame" => Ok(Self::EveryFrame),
-            other => Err(WorldModelError::input(
-                "image_conditioning",
-                format!("{other:?}: expected one of {}", Self::NAMES.join(", ")),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for ImageConditioning {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(Self::NAMES[*self as usize])
     }
 }
 

@@ -14,6 +14,7 @@ pub mod controlnet;
 pub mod device;
 pub mod error;
 pub mod lora;
+pub mod named;
 pub mod nets;
 pub mod parity;
 pub mod pipeline;

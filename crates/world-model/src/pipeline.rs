@@ -43,33 +43,10 @@ pub enum FirstFrame {
     Replaced,
 }
 
-impl FirstFrame {
-    /// The names [`std::str::FromStr`] accepts.
-    pub const NAMES: [&'static str; 2] = ["generated", "replaced"];
-}
-
-impl std::str::FromStr for FirstFrame {
-    type Err = WorldModelError;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "generated" => Ok(Self::Generated),
-            "replaced" => Ok(Self::Replaced),
-            other => Err(WorldModelError::input(
-                "first_frame",
-                format!("{other:?}: expected one of {}", Self::NAMES.join(", ")),
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for FirstFrame {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Self::Generated => "generated",
-            Self::Replaced => "replaced",
-        })
-    }
-}
+crate::named_enum!(FirstFrame, WorldModelError, WorldModelError::input, "first_frame", {
+    Generated => "generated",
+    Replaced => "replaced",
+});
 
 /// Sampling options.
 #[derive(Debug, Clone, PartialEq)]
