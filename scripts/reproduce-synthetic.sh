@@ -44,6 +44,10 @@ TASKS=${TASKS:-reach,push,pick_place,play,play,play}
 # patches of 4, a transformer 128 wide), small2x-wide (the same, 256 wide)
 # or small (4x space and time, patches of 2).
 PRESET=${PRESET:-small2x}
+# The autoencoder stages depend only on the VAE, which small2x and
+# small2x-wide share: their runs are shared (the prior takes a fresh
+# transformer of PRESET, model.transformer).
+VAE_PRESET=${PRESET%-wide}
 # Without time compression the clip stage starts from the image autoencoder
 # applied frame by frame (its temporal taps summed into the current frame's).
 INFLATE=false
@@ -91,7 +95,7 @@ EOF
 
 cat >"$OUT/configs/vae-image.toml" <<EOF
 [model]
-backbone = "random:$PRESET"
+backbone = "random:$VAE_PRESET"
 lora_rank = 0
 $(data_section 1)
 [train]
@@ -125,6 +129,7 @@ EOF
 cat >"$OUT/configs/prior.toml" <<EOF
 [model]
 backbone = "$OUT/vae/final/backbone"
+transformer = "$PRESET"
 lora_rank = 0
 image_conditioning = "$IMAGE_CONDITIONING"
 $(data_section)

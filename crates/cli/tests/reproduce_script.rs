@@ -172,6 +172,15 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         trained(&shorter),
         ["prior", "bridgev2w", "ablation-action-mlp"]
     );
+    // Another transformer width: the autoencoders (the same VAE) are kept,
+    // the prior is a fresh transformer of that preset.
+    let wide = run(r, &[("PRIOR_STEPS", "8"), ("PRESET", "small2x-wide")]);
+    assert_eq!(
+        trained(&wide),
+        ["prior", "bridgev2w", "ablation-action-mlp"]
+    );
+    let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
+    assert!(prior.contains("transformer = \"small2x-wide\""), "{prior}");
     // Another dataset: everything is redone.
     let fourth = run(r, &[("PRIOR_STEPS", "7"), ("EPISODES", "9,1,1,1")]);
     assert_eq!(fourth[0], "synth");

@@ -15,6 +15,7 @@
 use crate::data::{MaskKind, SourceSpec};
 use crate::{Result, TrainError};
 use bridgev2w_world_model::bridge::ImageConditioning;
+use bridgev2w_world_model::transformer::TransformerConfig;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -64,6 +65,11 @@ pub struct ModelSection {
     /// `first_frame` (CogVideoX-I2V) or `every_frame` (for backbones trained
     /// here from scratch; the prior and the fine-tuning must agree).
     pub image_conditioning: ImageConditioning,
+    /// A transformer preset (`small2x-wide`, `small2x`, `small`, `tiny`, ...)
+    /// with fresh random weights in place of the backbone folder's
+    /// transformer; the VAE and scheduler still come from the folder. For a
+    /// `prior` stage of another width than the autoencoder stages' backbone.
+    pub transformer: Option<String>,
 }
 
 impl Default for ModelSection {
@@ -79,6 +85,7 @@ impl Default for ModelSection {
             device: "cpu".into(),
             action_hidden: 256,
             image_conditioning: ImageConditioning::FirstFrame,
+            transformer: None,
         }
     }
 }
@@ -554,6 +561,20 @@ impl TrainConfig {
                 format!("{}: expected a finite value > 0", self.model.lora_alpha),
             );
         }
+        if let Some(preset) = &self.model.transformer {
+            if self.model.backbone.starts_with("random:") {
+                return bad(
+                    "model.transformer",
+                    format!(
+                        "`{preset}` with model.backbone = `{}`: a random backbone already names its transformer; use model.backbone = \"random:{preset}\" or a backbone folder",
+                        self.model.backbone
+                    ),
+                );
+            }
+            if let Err(e) = TransformerConfig::preset(preset) {
+                return bad("model.transformer", e.to_string());
+            }
+        }
         if self.model.controlnet_layers == Some(0) {
             return bad("model.controlnet_layers", "0: expected at least 1".into());
         }
@@ -658,6 +679,33 @@ mod tests {
                 .to_string();
             assert!(e.contains(field), "{line}: {e}");
         }
+        // model.transformer: a known preset, over a backbone folder only.
+        let folder = base.replace("random:tiny", "some/folder");
+        let c = TrainConfig::from_toml(
+            &folder.replace("[model]\n", "[model]\ntransformer = \"small2x-wide\"\n"),
+        )
+        .unwrap();
+        assert_eq!(c.model.transformer.as_deref(), Some("small2x-wide"));
+        let e = TrainConfig::from_toml(
+            &folder.replace("[model]\n", "[model]\ntransformer = \"huge\"\n"),
+        )
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("model.transformer") && e.contains("small2x-wide"),
+            "{e}"
+        );
+        let e = TrainConfig::from_toml(
+            &base.replace("[model]\n", "[model]\ntransformer = \"small\"\n"),
+        )
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("model.transformer") && e.contains("random:small"),
+            "{e}"
+        );
         let e = TrainConfig::from_toml(&format!("{base}[train]\nimage_noise_log_std = nan\n"))
             .map(|_| ())
             .unwrap_err()

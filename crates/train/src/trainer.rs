@@ -288,7 +288,8 @@ impl Trainer {
         }
         let mut model = build_model(&cfg, device, frames, height, width)?;
         let tf_cfg = model.transformer.model.config().clone();
-        let train_backbone = cfg.model.train_backbone || !cfg.ablation.pretrained;
+        let train_backbone =
+            cfg.model.train_backbone || !cfg.ablation.pretrained || cfg.model.transformer.is_some();
         let (action_vs, action) = if cfg.ablation.mask_action || cfg.train.stage != Stage::Bridgev2w
         {
             (None, None)
@@ -1179,8 +1180,12 @@ fn build_model(
         )?
     } else {
         let dir = PathBuf::from(&cfg.model.backbone);
-        let tf = TransformerConfig::from_file(&dir.join("transformer").join("config.json"))?;
-        if cfg.ablation.pretrained {
+        // model.transformer: a fresh transformer of that preset, not the folder's.
+        let tf = match &cfg.model.transformer {
+            Some(preset) => TransformerConfig::preset(preset)?,
+            None => TransformerConfig::from_file(&dir.join("transformer").join("config.json"))?,
+        };
+        if cfg.ablation.pretrained && cfg.model.transformer.is_none() {
             tch::manual_seed(seed);
             BridgeV2W::load(
                 &dir,
@@ -1191,7 +1196,8 @@ fn build_model(
                 Precision::F32,
             )?
         } else {
-            // Random transformer with the folder's shapes; the pretrained VAE.
+            // A random transformer (the folder's shapes or model.transformer's
+            // preset); the pretrained VAE.
             let vae_cfg = VaeConfig::from_file(&dir.join("vae").join("config.json"))?;
             let sched =
                 SchedulerConfig::load(&dir.join("scheduler").join("scheduler_config.json"))?;

@@ -725,6 +725,32 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     let prior = tmp.path().join("prior/final/backbone");
     assert!(prior.join("transformer/config.json").is_file());
 
+    // model.transformer: a fresh transformer of that preset in place of the
+    // folder's (a prior of another width over the same autoencoder). Over
+    // the trained prior: fresh weights, the folder's VAE; the wide preset's
+    // learned positions do not fit this VAE's latents: refused up front.
+    let mut c = config(&tmp.path().join("prior-fresh"));
+    c.model.backbone = prior.display().to_string();
+    (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
+    (c.train.stage, c.train.max_steps, c.train.checkpoint_every) = (Stage::Prior, 1, 0);
+    c.model.image_conditioning = ImageConditioning::EveryFrame;
+    let loaded = Trainer::new(c.clone()).unwrap();
+    c.model.transformer = Some("tiny".into());
+    let fresh = Trainer::new(c.clone()).unwrap();
+    let weight = |t: &Trainer, name: &str| t.model.transformer.vs.variables()[name].shallow_clone();
+    let name = "patch_embed.proj.weight";
+    assert!(weight(&loaded, name).size() == weight(&fresh, name).size());
+    assert!(!weight(&loaded, name).allclose(&weight(&fresh, name), 1e-6, 1e-6, false));
+    for (n, v) in loaded.model.vae_vs.variables() {
+        assert!(v.equal(&fresh.model.vae_vs.variables()[&n]), "{n}");
+    }
+    c.model.transformer = Some("small2x-wide".into());
+    let e = Trainer::new(c).unwrap_err().to_string();
+    assert!(
+        e.contains("learned positional embedding") && e.contains("32x48"),
+        "{e}"
+    );
+
     // Fine-tuning from the prior loads it (the paper's pipeline).
     let mut c = config(&tmp.path().join("ft"));
     c.model.backbone = prior.display().to_string();

@@ -153,6 +153,24 @@ impl BridgeV2WConfig {
                 ),
             ));
         }
+        // Checked here, not first in a forward pass: a learned positional
+        // embedding holds one latent size.
+        let s = vae.spatial_compression() as usize;
+        let (sh, sw) = (tf.sample_height as usize, tf.sample_width as usize);
+        if tf.use_learned_positional_embeddings && (self.height / s, self.width / s) != (sh, sw) {
+            return Err(WorldModelError::input(
+                "resolution",
+                format!(
+                    "{}x{} (HxW) gives latents of {}x{}, but the transformer's learned positional embedding is for {sh}x{sw} latents ({}x{} pixels)",
+                    self.height,
+                    self.width,
+                    self.height / s,
+                    self.width / s,
+                    sh * s,
+                    sw * s
+                ),
+            ));
+        }
         if tf.in_channels != 2 * vae.latent_channels {
             return Err(WorldModelError::input(
                 "transformer.in_channels",
