@@ -49,7 +49,7 @@ pub struct EvalArgs {
     pub i3d_weights: Option<PathBuf>,
     /// Device for the LPIPS and I3D networks: cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
-    pub device: String,
+    pub device: bridgev2w_world_model::ComputeDevice,
 }
 
 #[derive(Debug, Args)]
@@ -422,7 +422,7 @@ fn read_video(dir: &Path, name: &str) -> Result<(Vec<u64>, bridgev2w_world_model
 /// Mean LPIPS over the frames of every video (one network, videos in turn).
 fn lpips_scores(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<Vec<f64>> {
     use bridgev2w_world_model::nets::lpips::Lpips;
-    let device: bridgev2w_world_model::ComputeDevice = a.device.parse()?;
+    let device = a.device;
     let net = Lpips::load(&[weights.to_path_buf()], device)
         .with_context(|| format!("loading LPIPS weights {}", weights.display()))?;
     let pb = indicatif::ProgressBar::new(names.len() as u64);
@@ -459,7 +459,7 @@ fn lpips_scores(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<Vec<f6
 fn fvd_score(a: &EvalArgs, weights: &Path, names: &[String]) -> Result<f64> {
     use bridgev2w_eval::frechet::{frechet_distance, Gaussian};
     use bridgev2w_world_model::nets::i3d::I3d;
-    let device: bridgev2w_world_model::ComputeDevice = a.device.parse()?;
+    let device = a.device;
     let net = I3d::load(&[weights.to_path_buf()], device)
         .with_context(|| format!("loading I3D weights {}", weights.display()))?;
     let pb = indicatif::ProgressBar::new(2 * names.len() as u64);

@@ -7,7 +7,7 @@ use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
 use bridgev2w_plan::cem::{standard_normal, CemConfig, RotationSearch};
 use bridgev2w_plan::fidelity::{rank_fidelity, RankFidelity};
 use bridgev2w_plan::model::{ActionWorldModel, MaskConditioned};
-use bridgev2w_plan::mpc::{run_mpc, run_random, GripperPolicy, MpcConfig};
+use bridgev2w_plan::mpc::{run_mpc, run_random, GripperChoice, MpcConfig};
 use bridgev2w_plan::policy::{
     evaluate_trial, report_from_tallies, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport,
     PolicyTally, ScriptedPolicy, SuccessJudge,
@@ -56,7 +56,7 @@ pub struct ModelArgs {
     pub denoise_steps: usize,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
-    pub device: String,
+    pub device: ComputeDevice,
     /// Image width of the synthetic world with the perfect model (pixels, even).
     #[arg(long, default_value_t = 96)]
     pub width: u32,
@@ -75,14 +75,6 @@ enum Loaded {
 }
 
 fn load(a: &ModelArgs) -> Result<Loaded> {
-    let dev = || -> Result<ComputeDevice> {
-        if a.device == "auto" {
-            return Ok(ComputeDevice::auto());
-        }
-        a.device
-            .parse()
-            .map_err(|e| anyhow::anyhow!("--device {}: {e}", a.device))
-    };
     Ok(match a.model.as_str() {
         "perfect" => Loaded::Perfect,
         "random" => Loaded::Diffusion(Box::new(BridgeV2W::random(
@@ -90,7 +82,7 @@ fn load(a: &ModelArgs) -> Result<Loaded> {
             &VaeConfig::tiny(),
             &TransformerConfig::tiny(),
             SchedulerConfig::cogvideox_5b_i2v(),
-            dev()?,
+            a.device,
             0,
         )?)),
         path => {
@@ -104,7 +96,7 @@ fn load(a: &ModelArgs) -> Result<Loaded> {
                     a.weights.as_deref(),
                     a.prompt_embeds.as_deref(),
                     BridgeV2WConfig::paper(),
-                    dev()?,
+                    a.device,
                     Precision::F32,
                 )
                 .with_context(|| format!("loading the model from {}", dir.display()))?,
@@ -238,7 +230,7 @@ pub struct PlanArgs {
     pub search_rotation: bool,
     /// Rotation refinement: joint, rotation-first or axis-wise.
     #[arg(long, default_value = "joint")]
-    pub rotation: String,
+    pub rotation: RotationSearch,
     /// Sample reallocation: fraction of samples that perturb rotation only.
     #[arg(long, default_value_t = 0.0)]
     pub rotation_sample_fraction: f64,
@@ -247,7 +239,7 @@ pub struct PlanArgs {
     pub discretize: bool,
     /// Gripper: auto (heuristic for push/pick_place, searched for reach), search, heuristic.
     #[arg(long, default_value = "auto")]
-    pub gripper: String,
+    pub gripper: GripperChoice,
     /// Plan toward the final goal image only (no subgoal, no waypoints).
     #[arg(long)]
     pub single_goal: bool,
@@ -295,34 +287,8 @@ pub struct PlanSummary {
 }
 
 fn mpc_config(a: &PlanArgs) -> Result<MpcConfig> {
-    let rotation_search = match a.rotation.as_str() {
-        "joint" => RotationSearch::Joint,
-        "rotation-first" => RotationSearch::RotationFirst,
-        "axis-wise" => RotationSearch::AxisWise,
-        r => bail!("--rotation {r}: expected joint, rotation-first or axis-wise"),
-    };
-    let heuristic = match a.task {
-        Task::Reach | Task::Play => GripperPolicy::Heuristic {
-            approach: 0.0,
-            after_switch: 0.0,
-            release_at_end: false,
-        },
-        Task::Push => GripperPolicy::Heuristic {
-            approach: 1.0,
-            after_switch: 1.0,
-            release_at_end: false,
-        },
-        Task::PickPlace => GripperPolicy::Heuristic {
-            approach: 0.0,
-            after_switch: 1.0,
-            release_at_end: true,
-        },
-    };
-    let gripper = match (a.gripper.as_str(), a.task) {
-        ("auto", Task::Reach) | ("search", _) => GripperPolicy::Search,
-        ("auto", _) | ("heuristic", _) => heuristic,
-        (g, _) => bail!("--gripper {g}: expected auto, search or heuristic"),
-    };
+    let rotation_search = a.rotation;
+    let gripper = a.gripper.policy(a.task);
     let cfg = MpcConfig {
         cem: CemConfig {
             samples: a.cem.samples,
@@ -655,7 +621,7 @@ pub struct PlanReportArgs {
     pub denoise_steps: usize,
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
-    pub device: String,
+    pub device: ComputeDevice,
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -699,7 +665,7 @@ impl ReportModel {
             weights,
             prompt_embeds: None,
             denoise_steps: a.denoise_steps,
-            device: a.device.clone(),
+            device: a.device,
             width: 96,
             height: 64,
             clip_frames: 9,
@@ -867,10 +833,10 @@ fn plan_tables(
                 max_steps: a.max_steps,
                 translation_std_m: a.translation_std_m,
                 search_rotation: false,
-                rotation: "joint".into(),
+                rotation: RotationSearch::Joint,
                 rotation_sample_fraction: 0.0,
                 discretize: false,
-                gripper: "auto".into(),
+                gripper: GripperChoice::Auto,
                 single_goal: false,
                 goals: a.goals.clone(),
                 no_workspace: false,

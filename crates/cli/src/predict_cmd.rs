@@ -54,7 +54,7 @@ pub struct PredictArgs {
     seed: u64,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
-    device: String,
+    device: ComputeDevice,
     /// f32 or bf16.
     #[arg(long, default_value = "f32")]
     precision: Precision,
@@ -65,15 +65,8 @@ pub struct PredictArgs {
     no_vae_tiling: bool,
 }
 
-fn device(s: &str) -> Result<ComputeDevice> {
-    if s == "auto" {
-        return Ok(ComputeDevice::auto());
-    }
-    s.parse().map_err(|e| anyhow::anyhow!("--device {s}: {e}"))
-}
-
 fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
-    let dev = device(&a.device)?;
+    let dev = a.device;
     if a.model == "random:tiny" {
         return Ok(BridgeV2W::random(
             BridgeV2WConfig::tiny(),

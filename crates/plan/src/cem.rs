@@ -33,6 +33,11 @@ pub enum RotationSearch {
     /// Yaw, then pitch, then roll, each alone, then translation.
     AxisWise,
 }
+bridgev2w_world_model::named_enum!(RotationSearch, crate::PlanError, crate::PlanError::input, "rotation search", {
+    Joint => "joint",
+    RotationFirst => "rotation-first",
+    AxisWise => "axis-wise",
+});
 
 /// How the gripper is chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -75,6 +75,24 @@ pub enum PlanError {
         /// What went wrong.
         message: String,
     },
+    /// A setting or argument with a value it cannot take.
+    #[error("{name}: {message}")]
+    Input {
+        /// The setting.
+        name: String,
+        /// The value and what was expected.
+        message: String,
+    },
+}
+
+impl PlanError {
+    /// A bad setting `name`.
+    pub fn input(name: impl Into<String>, message: impl Into<String>) -> Self {
+        Self::Input {
+            name: name.into(),
+            message: message.into(),
+        }
+    }
 }
 
 /// Result of this crate.

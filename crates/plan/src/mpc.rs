@@ -9,6 +9,7 @@ use crate::model::{
     apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel, Workspace,
 };
 use crate::{EeAction, Observation};
+use bridgev2w_data::synth::Task;
 use bridgev2w_world_model::video::Image;
 use rand_chacha::ChaCha8Rng;
 
@@ -29,6 +30,51 @@ pub enum GripperPolicy {
         /// Open the gripper at the end (release at the target).
         release_at_end: bool,
     },
+}
+
+/// The gripper as chosen by name (`--gripper`): searched, the task's
+/// heuristic, or `auto` (searched for `reach`, whose goal says nothing of
+/// the gripper; the heuristic for the tasks that grasp or push).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GripperChoice {
+    /// Searched for reach, the heuristic otherwise.
+    Auto,
+    /// Always searched.
+    Search,
+    /// Always the task's heuristic.
+    Heuristic,
+}
+bridgev2w_world_model::named_enum!(GripperChoice, crate::PlanError, crate::PlanError::input, "gripper", {
+    Auto => "auto",
+    Search => "search",
+    Heuristic => "heuristic",
+});
+
+impl GripperChoice {
+    /// The gripper policy for `task`.
+    pub fn policy(self, task: Task) -> GripperPolicy {
+        let heuristic = match task {
+            Task::Reach | Task::Play => GripperPolicy::Heuristic {
+                approach: 0.0,
+                after_switch: 0.0,
+                release_at_end: false,
+            },
+            Task::Push => GripperPolicy::Heuristic {
+                approach: 1.0,
+                after_switch: 1.0,
+                release_at_end: false,
+            },
+            Task::PickPlace => GripperPolicy::Heuristic {
+                approach: 0.0,
+                after_switch: 1.0,
+                release_at_end: true,
+            },
+        };
+        match (self, task) {
+            (Self::Auto, Task::Reach) | (Self::Search, _) => GripperPolicy::Search,
+            (Self::Auto, _) | (Self::Heuristic, _) => heuristic,
+        }
+    }
 }
 
 /// MPC settings.
@@ -363,4 +409,48 @@ pub fn run_random<E: Environment>(
         reached: env.goal_reached(),
         final_goal_distance: Vec::new(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--gripper` by name: auto searches only for reach; the heuristic
+    /// closes to push, grasps and releases to pick and place.
+    #[test]
+    fn gripper_choices_by_name_and_task() {
+        let auto: GripperChoice = "auto".parse().expect("auto");
+        assert_eq!(auto.policy(Task::Reach), GripperPolicy::Search);
+        assert!(matches!(
+            auto.policy(Task::PickPlace),
+            GripperPolicy::Heuristic {
+                after_switch: 1.0,
+                release_at_end: true,
+                ..
+            }
+        ));
+        assert!(matches!(
+            GripperChoice::Heuristic.policy(Task::Push),
+            GripperPolicy::Heuristic { approach: 1.0, .. }
+        ));
+        assert_eq!(
+            GripperChoice::Search.policy(Task::Push),
+            GripperPolicy::Search
+        );
+        let e = "closed"
+            .parse::<GripperChoice>()
+            .expect_err("not a choice")
+            .to_string();
+        assert!(
+            e.contains("gripper") && e.contains("auto, search, heuristic"),
+            "{e}"
+        );
+        let e = "spiral"
+            .parse::<RotationSearchName>()
+            .expect_err("not a search")
+            .to_string();
+        assert!(e.contains("joint, rotation-first, axis-wise"), "{e}");
+    }
+
+    type RotationSearchName = crate::cem::RotationSearch;
 }

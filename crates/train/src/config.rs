@@ -112,7 +112,7 @@ pub struct DataSection {
     /// Mask source: `calc` (rendered from URDF + calibration: the dataset's
     /// `masks/`, else rendered for `robot` and cached) or `seg` (PNG folders
     /// under `seg_masks`).
-    pub masks: String,
+    pub masks: MaskSource,
     /// `seg` masks: root of `episode_XXXXXX/*.png` folders (default
     /// `<dataset>/seg_masks`).
     pub seg_masks: Option<PathBuf>,
@@ -137,7 +137,7 @@ impl Default for DataSection {
             width: 0,
             height: 0,
             clips_per_video: 20,
-            masks: "calc".into(),
+            masks: MaskSource::Calc,
             seg_masks: None,
             robot: None,
             mask_cache: None,
@@ -158,7 +158,7 @@ pub struct MixSource {
     /// Video key (default: the dataset's first).
     pub video_key: Option<String>,
     /// `calc` or `seg`.
-    pub masks: String,
+    pub masks: MaskSource,
     /// `seg` masks root (default `<dataset>/seg_masks`).
     pub seg_masks: Option<PathBuf>,
     /// Robot for rendering `calc` masks.
@@ -175,7 +175,7 @@ impl Default for MixSource {
             dataset: PathBuf::new(),
             split: "train".into(),
             video_key: None,
-            masks: "calc".into(),
+            masks: MaskSource::Calc,
             seg_masks: None,
             robot: None,
             mask_cache: None,
@@ -191,7 +191,7 @@ impl DataSection {
             dataset: self.dataset.clone(),
             split: self.split.clone(),
             video_key: self.video_key.clone(),
-            masks: self.masks.clone(),
+            masks: self.masks,
             seg_masks: self.seg_masks.clone(),
             robot: self.robot.clone(),
             mask_cache: self.mask_cache.clone(),
@@ -206,26 +206,20 @@ impl DataSection {
                 } else {
                     format!("data.mix[{}]", i - 1)
                 };
-                let masks = match m.masks.as_str() {
-                    "calc" => MaskKind::Calc {
+                let masks = match m.masks {
+                    MaskSource::Calc => MaskKind::Calc {
                         robot: m.robot.clone(),
                         cache: m
                             .mask_cache
                             .clone()
                             .unwrap_or_else(|| m.dataset.join(".bridgev2w-mask-cache")),
                     },
-                    "seg" => MaskKind::Seg {
+                    MaskSource::Seg => MaskKind::Seg {
                         dir: m
                             .seg_masks
                             .clone()
                             .unwrap_or_else(|| m.dataset.join("seg_masks")),
                     },
-                    other => {
-                        return Err(TrainError::input(
-                            format!("config {what}.masks"),
-                            format!("{other:?}: expected \"calc\" or \"seg\""),
-                        ))
-                    }
                 };
                 if !(m.weight.is_finite() && m.weight > 0.0) {
                     return Err(TrainError::input(
@@ -343,7 +337,7 @@ pub struct TrainSection {
     /// the region), `off` (f32), or `auto` (the default: `bf16` on CUDA,
     /// `off` on the CPU, where bf16 matmuls are slower than f32 on most
     /// processors).
-    pub autocast: String,
+    pub autocast: Autocast,
 }
 
 impl Default for TrainSection {
@@ -381,10 +375,46 @@ impl Default for TrainSection {
             color_augment: false,
             inflate_image_vae: false,
             gradient_checkpointing: false,
-            autocast: "auto".into(),
+            autocast: Autocast::Auto,
         }
     }
 }
+
+/// Where a dataset's embodiment masks come from (`data.masks`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MaskSource {
+    /// Rendered from the URDF and the calibration: the dataset's `masks/`,
+    /// else rendered for `data.robot` and cached.
+    #[default]
+    Calc,
+    /// Segmentation PNG folders under `seg_masks`.
+    Seg,
+}
+
+bridgev2w_world_model::named_enum!(MaskSource, TrainError, TrainError::input, "data.masks", {
+    Calc => "calc",
+    Seg => "seg",
+});
+
+/// Mixed precision of the loss's forward passes (`train.autocast`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Autocast {
+    /// bf16 on CUDA, off on the CPU.
+    #[default]
+    Auto,
+    /// bf16 autocast.
+    Bf16,
+    /// f32.
+    Off,
+}
+
+bridgev2w_world_model::named_enum!(Autocast, TrainError, TrainError::input, "train.autocast", {
+    Auto => "auto",
+    Bf16 => "bf16",
+    Off => "off",
+});
 
 /// What a run trains (`train.stage`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -611,12 +641,6 @@ impl TrainConfig {
                 return bad(name, format!("{v}: at most {max} is supported"));
             }
         }
-        if !matches!(t.autocast.as_str(), "auto" | "bf16" | "off") {
-            return bad(
-                "train.autocast",
-                format!("{:?}: expected \"auto\", \"bf16\" or \"off\"", t.autocast),
-            );
-        }
         if !matches!(t.raft_model.as_str(), "raft_large" | "raft_small") {
             return bad(
                 "train.raft_model",
@@ -755,11 +779,14 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("beta2"), "{e}");
-        assert_eq!(c.train.autocast, "auto");
+        assert_eq!(c.train.autocast, Autocast::Auto);
         let e = TrainConfig::from_toml("[train]\nautocast = \"fp16\"\n")
             .unwrap_err()
             .to_string();
-        assert!(e.contains("train.autocast") && e.contains("fp16"), "{e}");
+        assert!(
+            e.contains("autocast") && e.contains("fp16") && e.contains("bf16"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -26,7 +26,7 @@
 
 use crate::action::ActionEncoder;
 use crate::augment::{recolor, ColorDraw};
-use crate::config::{Stage, TrainConfig};
+use crate::config::{Autocast, Stage, TrainConfig};
 use crate::data::{rng_for, seed_for, Batch, ClipDataset};
 use crate::distributed::{Collective, DistEnv};
 use crate::ema::Ema;
@@ -167,18 +167,12 @@ fn random_preset(backbone: &str) -> Result<Option<(VaeConfig, TransformerConfig)
 }
 
 /// `train.autocast` on `device`: `auto` is bf16 on CUDA, off on the CPU.
-fn resolve_autocast(setting: &str, device: ComputeDevice) -> Result<Option<AutocastDtype>> {
-    match setting {
-        "bf16" => Ok(Some(AutocastDtype::BFloat16)),
-        "off" => Ok(None),
-        "auto" => Ok(match device {
-            ComputeDevice::Cuda(_) => Some(AutocastDtype::BFloat16),
-            ComputeDevice::Cpu => None,
-        }),
-        other => Err(TrainError::input(
-            "config train.autocast",
-            format!("{other:?}: expected \"auto\", \"bf16\" or \"off\""),
-        )),
+fn resolve_autocast(setting: Autocast, device: ComputeDevice) -> Option<AutocastDtype> {
+    match (setting, device) {
+        (Autocast::Bf16, _) | (Autocast::Auto, ComputeDevice::Cuda(_)) => {
+            Some(AutocastDtype::BFloat16)
+        }
+        (Autocast::Off, _) | (Autocast::Auto, ComputeDevice::Cpu) => None,
     }
 }
 
@@ -258,7 +252,7 @@ impl Trainer {
                 )?)
             }
         };
-        let autocast = resolve_autocast(&cfg.train.autocast, device)?;
+        let autocast = resolve_autocast(cfg.train.autocast, device);
         let random = random_preset(&cfg.model.backbone)?;
         let (frames, height, width) = {
             let d = &cfg.data;

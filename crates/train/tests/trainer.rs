@@ -931,10 +931,10 @@ fn bf16_autocast_on_cpu_trains_close_to_f32_and_keeps_f32_state() {
     c.train.condition_dropout = 0.0;
     c.train.max_steps = 3;
     // `auto` on the CPU is off.
-    assert_eq!(c.train.autocast, "auto");
+    assert_eq!(c.train.autocast, bridgev2w_train::config::Autocast::Auto);
     let mut f32_run = Trainer::new(c.clone()).unwrap();
     assert_eq!(f32_run.autocast_dtype(), None);
-    c.train.autocast = "bf16".into();
+    c.train.autocast = bridgev2w_train::config::Autocast::Bf16;
     c.train.out = tmp.path().join("bf16");
     let mut bf16_run = Trainer::new(c.clone()).unwrap();
     assert_eq!(bf16_run.autocast_dtype(), Some(AutocastDtype::BFloat16));
