@@ -5,6 +5,7 @@
 use anyhow::{bail, Context, Result};
 use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
 use bridgev2w_plan::cem::{standard_normal, CemConfig, RotationSearch};
+use bridgev2w_plan::choice::PlanModel;
 use bridgev2w_plan::fidelity::{rank_fidelity, RankFidelity};
 use bridgev2w_plan::model::{ActionWorldModel, MaskConditioned};
 use bridgev2w_plan::mpc::{run_mpc, run_random, GripperChoice, MpcConfig};
@@ -16,13 +17,13 @@ use bridgev2w_plan::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance};
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
-use bridgev2w_world_model::transformer::TransformerConfig;
-use bridgev2w_world_model::vae::VaeConfig;
+use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
+
 use bridgev2w_world_model::video::Image;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 fn parse_task(s: &str) -> Result<Task, String> {
@@ -44,7 +45,7 @@ pub struct ModelArgs {
     /// with random tiny weights at 64x96, 9 frames: a smoke test), or a
     /// CogVideoX image-to-video diffusers folder (with --weights).
     #[arg(long, default_value = "perfect")]
-    pub model: String,
+    pub model: PlanModel,
     /// BridgeV2W weights (ControlNet + LoRA safetensors) for a model folder.
     #[arg(long)]
     pub weights: Option<PathBuf>,
@@ -75,20 +76,25 @@ enum Loaded {
 }
 
 fn load(a: &ModelArgs) -> Result<Loaded> {
-    Ok(match a.model.as_str() {
-        "perfect" => Loaded::Perfect,
-        "random" => Loaded::Diffusion(Box::new(BridgeV2W::random(
-            BridgeV2WConfig::tiny(),
-            &VaeConfig::tiny(),
-            &TransformerConfig::tiny(),
-            SchedulerConfig::cogvideox_5b_i2v(),
-            a.device,
-            0,
-        )?)),
-        path => {
-            let dir = Path::new(path);
+    Ok(match &a.model {
+        PlanModel::Perfect => Loaded::Perfect,
+        PlanModel::World(ModelSpec::Random(preset)) => {
+            let (vae, tf) = preset.configs();
+            Loaded::Diffusion(Box::new(BridgeV2W::random(
+                BridgeV2WConfig::tiny(),
+                &vae,
+                &tf,
+                SchedulerConfig::cogvideox_5b_i2v(),
+                a.device,
+                0,
+            )?))
+        }
+        PlanModel::World(ModelSpec::Folder(dir)) => {
             if !dir.is_dir() {
-                bail!("--model {path}: expected perfect, random or a model folder");
+                bail!(
+                    "--model {}: no such folder (expected perfect, random or a model folder)",
+                    dir.display()
+                );
             }
             Loaded::Diffusion(Box::new(
                 BridgeV2W::load(
@@ -647,8 +653,11 @@ impl ReportModel {
 
     fn args(&self, a: &PlanReportArgs) -> Result<ModelArgs> {
         let (model, weights) = match self {
-            Self::Perfect => ("perfect".to_string(), None),
-            Self::Random => ("random".to_string(), None),
+            Self::Perfect => (PlanModel::Perfect, None),
+            Self::Random => (
+                PlanModel::World(ModelSpec::Random(RandomPreset::Tiny)),
+                None,
+            ),
             Self::Trained(dir) => {
                 let (backbone, weights) = (dir.join("backbone"), dir.join("bridgev2w.safetensors"));
                 if !backbone.is_dir() || !weights.is_file() {
@@ -657,7 +666,7 @@ impl ReportModel {
                         dir.display()
                     );
                 }
-                (backbone.to_string_lossy().into_owned(), Some(weights))
+                (PlanModel::World(ModelSpec::Folder(backbone)), Some(weights))
             }
         };
         Ok(ModelArgs {
@@ -1006,7 +1015,7 @@ pub fn run_plan_fidelity(a: &PlanFidelityArgs) -> Result<()> {
             col(|f| f.model_vs_distance)
         )
     };
-    let mut table = row(&a.model.model, &rows);
+    let mut table = row(&a.model.model.to_string(), &rows);
     if reference {
         table += &row("perfect (the same candidates)", &perfect_rows);
     }

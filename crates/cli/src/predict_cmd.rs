@@ -7,8 +7,8 @@ use bridgev2w_embodiment::png::encode_rgb8;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
-use bridgev2w_world_model::transformer::TransformerConfig;
-use bridgev2w_world_model::vae::{TilingOptions, VaeConfig};
+use bridgev2w_world_model::spec::ModelSpec;
+use bridgev2w_world_model::vae::TilingOptions;
 use bridgev2w_world_model::video::{Image, MaskVideo};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::{Path, PathBuf};
@@ -16,10 +16,11 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, clap::Args)]
 pub struct PredictArgs {
     /// A CogVideoX image-to-video diffusers folder (model_index.json, vae/,
-    /// transformer/, scheduler/), or `random:tiny` (random tiny weights: a smoke test
+    /// transformer/, scheduler/), or `random:PRESET` (random weights of tiny,
+    /// small, small2x or small2x-wide at 9 frames of 96x64: a smoke test
     /// whose output is noise).
     #[arg(long)]
-    model: String,
+    model: ModelSpec,
     /// BridgeV2W weights (ControlNet + LoRA safetensors written by `bridgev2w train`).
     #[arg(long)]
     weights: Option<PathBuf>,
@@ -67,20 +68,20 @@ pub struct PredictArgs {
 
 fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
     let dev = a.device;
-    if a.model == "random:tiny" {
-        return Ok(BridgeV2W::random(
-            BridgeV2WConfig::tiny(),
-            &VaeConfig::tiny(),
-            &TransformerConfig::tiny(),
-            SchedulerConfig::cogvideox_5b_i2v(),
-            dev,
-            a.seed as i64,
-        )?);
-    }
-    if let Some(preset) = a.model.strip_prefix("random:") {
-        bail!("--model random:{preset}: the random model of predict is random:tiny (a smoke test whose output is noise); otherwise give a diffusers folder (model_index.json, vae/, transformer/, scheduler/)");
-    }
-    let dir = Path::new(&a.model);
+    let dir = match &a.model {
+        ModelSpec::Random(preset) => {
+            let (vae, tf) = preset.configs();
+            return Ok(BridgeV2W::random(
+                BridgeV2WConfig::tiny(),
+                &vae,
+                &tf,
+                SchedulerConfig::cogvideox_5b_i2v(),
+                dev,
+                a.seed as i64,
+            )?);
+        }
+        ModelSpec::Folder(dir) => dir,
+    };
     BridgeV2W::load(
         dir,
         a.weights.as_deref(),

@@ -93,13 +93,15 @@ fn predict_writes_frames_and_video_deterministically() {
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(!d.join("a/notes.txt").exists() && d.join("a/video.npy").is_file());
-    // An unknown random preset lists the one there is.
+    // An unknown random preset lists the presets there are.
     let mut a = args("f");
     a[2] = "random:huge".into();
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.contains("random:huge") && err.contains("smoke test"),
+        err.contains("random:huge")
+            && err.contains("random:tiny")
+            && err.contains("random:small2x-wide"),
         "{err}"
     );
     // A folder that is not a diffusers pipeline.

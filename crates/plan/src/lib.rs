@@ -22,6 +22,7 @@
 //! metres and angles radians unless a name says otherwise.
 
 pub mod cem;
+pub mod choice;
 pub mod error;
 pub mod fidelity;
 pub mod model;

@@ -15,6 +15,7 @@
 use crate::data::{MaskKind, SourceSpec};
 use crate::{Result, TrainError};
 use bridgev2w_world_model::bridge::ImageConditioning;
+use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -591,8 +592,13 @@ impl TrainConfig {
                 format!("{}: expected a finite value > 0", self.model.lora_alpha),
             );
         }
+        let backbone = self
+            .model
+            .backbone
+            .parse::<ModelSpec>()
+            .map_err(|e| TrainError::input("config model.backbone", e.to_string()))?;
         if let Some(preset) = &self.model.transformer {
-            if self.model.backbone.starts_with("random:") {
+            if matches!(backbone, ModelSpec::Random(_)) {
                 return bad(
                     "model.transformer",
                     format!(

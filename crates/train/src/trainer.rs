@@ -42,6 +42,7 @@ use bridgev2w_world_model::device::{ComputeDevice, Precision};
 use bridgev2w_world_model::lora::LoraConfig;
 use bridgev2w_world_model::pipeline::{sample_latents, Denoiser, Guidance, SampleOptions};
 use bridgev2w_world_model::scheduler::{Scheduler, SchedulerConfig};
+use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::transformer::{CheckpointedForward, TransformerConfig};
 use bridgev2w_world_model::vae::VaeConfig;
 use rand::Rng;
@@ -150,19 +151,13 @@ pub struct Trainer {
     existing_run: ExistingRun,
 }
 
-/// `random:tiny` / `random:small`: the presets of a randomly initialised
-/// backbone; `None` for a diffusers folder.
+/// The VAE and transformer presets of a `random:PRESET` backbone; `None`
+/// for a diffusers folder.
 fn random_preset(backbone: &str) -> Result<Option<(VaeConfig, TransformerConfig)>> {
-    match backbone.strip_prefix("random:") {
-        None => Ok(None),
-        Some("tiny") => Ok(Some((VaeConfig::tiny(), TransformerConfig::tiny()))),
-        Some("small") => Ok(Some((VaeConfig::small(), TransformerConfig::small()))),
-        Some("small2x") => Ok(Some((VaeConfig::small_2x(), TransformerConfig::small_2x()))),
-        Some("small2x-wide") => Ok(Some((VaeConfig::small_2x(), TransformerConfig::small_2x_wide()))),
-        Some(other) => Err(TrainError::input(
-            "config model.backbone",
-            format!("`random:{other}`: expected random:tiny, random:small, random:small2x, random:small2x-wide or a diffusers folder"),
-        )),
+    match backbone.parse::<ModelSpec>() {
+        Ok(ModelSpec::Random(preset)) => Ok(Some(preset.configs())),
+        Ok(ModelSpec::Folder(_)) => Ok(None),
+        Err(e) => Err(TrainError::input("config model.backbone", e.to_string())),
     }
 }
 

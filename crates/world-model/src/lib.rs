@@ -19,6 +19,7 @@ pub mod nets;
 pub mod parity;
 pub mod pipeline;
 pub mod scheduler;
+pub mod spec;
 pub mod transformer;
 pub mod vae;
 pub mod video;

@@ -1,0 +1,113 @@
+//! Where a model comes from, by name: `random:PRESET` (random weights of a
+//! small preset, for tests and for training a video prior from scratch) or
+//! a diffusers CogVideoX image-to-video folder. Parsed once
+//! ([`std::str::FromStr`]) wherever a model is named: `model.backbone`,
+//! `predict --model`, `plan --model`.
+
+use crate::error::WorldModelError;
+use crate::transformer::TransformerConfig;
+use crate::vae::VaeConfig;
+use std::fmt;
+use std::path::PathBuf;
+use std::str::FromStr;
+
+/// The VAE + transformer presets with random weights (`random:NAME`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RandomPreset {
+    /// Tiny VAE and transformer (a smoke test).
+    Tiny,
+    /// 4x spatial and temporal VAE, a transformer of 128 with patches of 2.
+    Small,
+    /// 2x spatial VAE without time compression, patches of 4 (the CPU proof run).
+    Small2x,
+    /// [`Self::Small2x`] with a transformer of 256.
+    Small2xWide,
+}
+
+crate::named_enum!(RandomPreset, WorldModelError, WorldModelError::input, "random preset", {
+    Tiny => "tiny",
+    Small => "small",
+    Small2x => "small2x",
+    Small2xWide => "small2x-wide",
+});
+
+impl RandomPreset {
+    /// The preset's VAE and transformer configurations.
+    pub fn configs(self) -> (VaeConfig, TransformerConfig) {
+        match self {
+            Self::Tiny => (VaeConfig::tiny(), TransformerConfig::tiny()),
+            Self::Small => (VaeConfig::small(), TransformerConfig::small()),
+            Self::Small2x => (VaeConfig::small_2x(), TransformerConfig::small_2x()),
+            Self::Small2xWide => (VaeConfig::small_2x(), TransformerConfig::small_2x_wide()),
+        }
+    }
+}
+
+/// A model by name: `random:PRESET` or a diffusers folder.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ModelSpec {
+    /// Random weights of a preset.
+    Random(RandomPreset),
+    /// A diffusers CogVideoX image-to-video folder (`model_index.json`,
+    /// `vae/`, `transformer/`, `scheduler/`).
+    Folder(PathBuf),
+}
+
+impl FromStr for ModelSpec {
+    type Err = WorldModelError;
+    fn from_str(s: &str) -> Result<Self, WorldModelError> {
+        match s.strip_prefix("random:") {
+            Some(name) => name.parse().map(Self::Random).map_err(|_| {
+                let names: Vec<String> = RandomPreset::NAMES
+                    .iter()
+                    .map(|n| format!("random:{n}"))
+                    .collect();
+                WorldModelError::input(
+                    "model",
+                    format!("{s:?}: expected {} or a diffusers folder", names.join(", ")),
+                )
+            }),
+            None if s.is_empty() => Err(WorldModelError::input(
+                "model",
+                "empty: expected random:PRESET or a diffusers folder",
+            )),
+            None => Ok(Self::Folder(PathBuf::from(s))),
+        }
+    }
+}
+
+impl fmt::Display for ModelSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Random(p) => write!(f, "random:{p}"),
+            Self::Folder(dir) => write!(f, "{}", dir.display()),
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn specs_parse_print_and_an_unknown_preset_lists_them() {
+        for text in ["random:tiny", "random:small2x-wide", "some/folder"] {
+            assert_eq!(text.parse::<ModelSpec>().unwrap().to_string(), text);
+        }
+        assert_eq!(
+            "random:small2x".parse::<ModelSpec>().unwrap(),
+            ModelSpec::Random(RandomPreset::Small2x)
+        );
+        let (vae, tf) = RandomPreset::Small2xWide.configs();
+        assert_eq!((vae, tf.num_attention_heads), (VaeConfig::small_2x(), 8));
+        let e = "random:huge".parse::<ModelSpec>().unwrap_err().to_string();
+        assert!(
+            e.contains("random:huge")
+                && e.contains("random:tiny")
+                && e.contains("random:small2x-wide"),
+            "{e}"
+        );
+        assert!("".parse::<ModelSpec>().is_err());
+    }
+}
