@@ -16,6 +16,8 @@
 //!   demo` is what `cli.rs`'s demo tests run, `./run test` what CI runs).
 //! - `configs/train.example.toml` is what the training guide shows.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -114,25 +116,6 @@ fn commands(body: &str) -> Vec<String> {
     out
 }
 
-fn markdown_files() -> Vec<PathBuf> {
-    let root = repo();
-    let mut out = vec![root.join("README.md"), root.join("ARCHITECTURE.md")];
-    let mut dirs = vec![root.join("docs")];
-    while let Some(d) = dirs.pop() {
-        for e in std::fs::read_dir(&d).expect("docs folder") {
-            let p = e.expect("entry").path();
-            if p.is_dir() {
-                if p.file_name().is_some_and(|n| n != "logs") {
-                    dirs.push(p);
-                }
-            } else if p.extension().is_some_and(|x| x == "md") {
-                out.push(p);
-            }
-        }
-    }
-    out
-}
-
 fn bridgev2w() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_bridgev2w"));
     c.env("RUST_BACKTRACE", "0");
@@ -182,7 +165,7 @@ fn every_documented_command_and_flag_exists() {
     let mut cache = BTreeMap::new();
     let mut checked = 0;
     let mut problems = Vec::new();
-    for file in markdown_files() {
+    for file in common::markdown_files() {
         let text = std::fs::read_to_string(&file).expect("read markdown");
         let mut lines: Vec<String> = code_spans(&text);
         for b in blocks(&text) {

@@ -2,29 +2,12 @@
 //! exist: README.md, ARCHITECTURE.md and every markdown file under docs/
 //! (run logs under docs/results/logs excepted).
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn markdown_files() -> Vec<PathBuf> {
-    let root = repo();
-    let mut out = vec![root.join("README.md"), root.join("ARCHITECTURE.md")];
-    let mut dirs = vec![root.join("docs")];
-    while let Some(d) = dirs.pop() {
-        for e in std::fs::read_dir(&d).expect("docs folder") {
-            let p = e.expect("entry").path();
-            if p.is_dir() {
-                if p.file_name().is_some_and(|n| n != "logs") {
-                    dirs.push(p);
-                }
-            } else if p.extension().is_some_and(|x| x == "md") {
-                out.push(p);
-            }
-        }
-    }
-    out
 }
 
 /// The targets of `[text](target)` and `![alt](target)` outside code spans
@@ -61,7 +44,7 @@ fn link_targets(text: &str) -> Vec<String> {
 #[test]
 fn relative_links_and_pictures_resolve() {
     let mut broken = Vec::new();
-    let files = markdown_files();
+    let files = common::markdown_files();
     assert!(files.len() >= 10, "found only {files:?}");
     for md in &files {
         let text = std::fs::read_to_string(md).expect("markdown");

@@ -55,3 +55,24 @@ lora_rank = 4
 lora_alpha = 4.0
 controlnet_layers = 1
 "#;
+
+/// The repository's markdown: README.md, ARCHITECTURE.md and every `.md`
+/// under docs/ (run logs under docs/results/logs excepted).
+pub fn markdown_files() -> Vec<std::path::PathBuf> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let mut out = vec![root.join("README.md"), root.join("ARCHITECTURE.md")];
+    let mut dirs = vec![root.join("docs")];
+    while let Some(d) = dirs.pop() {
+        for e in std::fs::read_dir(&d).expect("docs folder") {
+            let p = e.expect("entry").path();
+            if p.is_dir() {
+                if p.file_name().is_some_and(|n| n != "logs") {
+                    dirs.push(p);
+                }
+            } else if p.extension().is_some_and(|x| x == "md") {
+                out.push(p);
+            }
+        }
+    }
+    out
+}
