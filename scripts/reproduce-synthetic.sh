@@ -45,9 +45,12 @@ TASKS=${TASKS:-reach,push,pick_place,play,play,play}
 # or small (4x space and time, patches of 2).
 PRESET=${PRESET:-small2x}
 # The autoencoder stages depend only on the VAE, which small2x and
-# small2x-wide share: their runs are shared (the prior takes a fresh
-# transformer of PRESET, model.transformer).
+# small2x-wide share: their runs are shared (a small2x-wide prior takes a
+# fresh transformer of its preset, model.transformer; the others keep the
+# backbone's own).
 VAE_PRESET=${PRESET%-wide}
+PRIOR_TRANSFORMER=""
+[[ $PRESET != "$VAE_PRESET" ]] && PRIOR_TRANSFORMER="transformer = \"$PRESET\""$'\n'
 # Without time compression the clip stage starts from the image autoencoder
 # applied frame by frame (its temporal taps summed into the current frame's).
 INFLATE=false
@@ -129,8 +132,7 @@ EOF
 cat >"$OUT/configs/prior.toml" <<EOF
 [model]
 backbone = "$OUT/vae/final/backbone"
-transformer = "$PRESET"
-lora_rank = 0
+${PRIOR_TRANSFORMER}lora_rank = 0
 image_conditioning = "$IMAGE_CONDITIONING"
 $(data_section)
 [train]

@@ -173,14 +173,20 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         ["prior", "bridgev2w", "ablation-action-mlp"]
     );
     // Another transformer width: the autoencoders (the same VAE) are kept,
-    // the prior is a fresh transformer of that preset.
+    // the prior is a fresh transformer of that preset (small2x's prior keeps
+    // its backbone's own, as before model.transformer existed).
+    let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
+    assert!(!prior.contains("transformer ="), "{prior}");
     let wide = run(r, &[("PRIOR_STEPS", "8"), ("PRESET", "small2x-wide")]);
     assert_eq!(
         trained(&wide),
         ["prior", "bridgev2w", "ablation-action-mlp"]
     );
     let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
-    assert!(prior.contains("transformer = \"small2x-wide\""), "{prior}");
+    assert!(
+        prior.contains("\ntransformer = \"small2x-wide\"\nlora_rank"),
+        "{prior}"
+    );
     // Another dataset: everything is redone.
     let fourth = run(r, &[("PRIOR_STEPS", "7"), ("EPISODES", "9,1,1,1")]);
     assert_eq!(fourth[0], "synth");
