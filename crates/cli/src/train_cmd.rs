@@ -175,7 +175,7 @@ pub struct EvalRunArgs {
     /// The robot segmenter of Mask-IoU, trained on the run's training split:
     /// `cnn` (a small dilated CNN, shape-aware) or `color` (a colour classifier).
     #[arg(long, default_value = "cnn")]
-    segmenter: String,
+    segmenter: bridgev2w_train::segmenter::SegmenterKind,
 }
 
 /// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
@@ -183,7 +183,7 @@ pub struct EvalRunArgs {
 pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
     use bridgev2w_eval::segment::RobotSegmenter;
     use bridgev2w_train::evaluate::{color_segmenter, evaluate_split, EvalOptions};
-    use bridgev2w_train::segmenter::{CnnSegmenter, SegmenterOptions};
+    use bridgev2w_train::segmenter::{CnnSegmenter, SegmenterKind, SegmenterOptions};
     let cfg = TrainConfig::from_file(&args.config)?;
     let mut trainer = Trainer::new(cfg).context("setting up the run's model")?;
     trainer
@@ -209,8 +209,8 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         max_videos: args.max_videos,
         first_frame: args.first_frame,
     };
-    let segmenter: Option<Box<dyn RobotSegmenter>> = match args.segmenter.as_str() {
-        "cnn" => {
+    let segmenter: Option<Box<dyn RobotSegmenter>> = match args.segmenter {
+        SegmenterKind::Cnn => {
             let pb = ProgressBar::new_spinner().with_message("training the robot segmenter");
             pb.enable_steady_tick(std::time::Duration::from_millis(200));
             let s = CnnSegmenter::fit(&trainer.data, &SegmenterOptions::default())
@@ -221,10 +221,9 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
             }
             s.map(|s| Box::new(s) as Box<dyn RobotSegmenter>)
         }
-        "color" => color_segmenter(&trainer.data)
+        SegmenterKind::Color => color_segmenter(&trainer.data)
             .context("fitting the robot segmenter")?
             .map(|s| Box::new(s) as Box<dyn RobotSegmenter>),
-        other => anyhow::bail!("--segmenter {other:?}: expected cnn or color"),
     };
     if segmenter.is_none() {
         eprintln!("note: the training split has no masks; Mask-IoU is not measured");
@@ -280,7 +279,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
             "sampling_steps": args.steps,
             "guidance": args.guidance,
             "seed": args.seed,
-            "segmenter": args.segmenter,
+            "segmenter": args.segmenter.to_string(),
             "splits": rows,
         }))?;
         bridgev2w_embodiment::npy::write_atomic(path, body.as_bytes())

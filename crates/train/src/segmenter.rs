@@ -14,6 +14,20 @@ use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module, OptimizerConfig};
 use tch::{Device, Kind, Tensor};
 
+/// Which robot segmenter scores Mask-IoU (`eval-run --segmenter`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SegmenterKind {
+    /// A small dilated CNN ([`CnnSegmenter`]), shape-aware.
+    Cnn,
+    /// A colour classifier (`evaluate::color_segmenter`).
+    Color,
+}
+
+bridgev2w_world_model::named_enum!(SegmenterKind, TrainError, TrainError::input, "segmenter", {
+    Cnn => "cnn",
+    Color => "color",
+});
+
 /// Training settings of [`CnnSegmenter::fit`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct SegmenterOptions {
@@ -189,6 +203,23 @@ mod tests {
     use super::*;
     use bridgev2w_eval::segment::ColorSegmenter;
     use bridgev2w_eval::video::mask_iou;
+
+    #[test]
+    fn segmenter_kinds_by_name() {
+        assert_eq!(
+            "color".parse::<SegmenterKind>().ok(),
+            Some(SegmenterKind::Color)
+        );
+        assert_eq!(SegmenterKind::Cnn.to_string(), "cnn");
+        let e = "sam"
+            .parse::<SegmenterKind>()
+            .map(|_| ())
+            .map_err(|e| e.to_string());
+        assert!(
+            matches!(&e, Err(m) if m.contains("segmenter") && m.contains("cnn, color")),
+            "{e:?}"
+        );
+    }
 
     /// A frame where colour cannot tell the robot apart: the background is a
     /// 2-px checker of two greys, the "robot" a solid rectangle of the
