@@ -6,7 +6,6 @@ mod convert_cmd;
 mod demo;
 mod eval_cmd;
 mod masks_cmd;
-mod overlay;
 mod parity_cmd;
 mod plan_cmd;
 mod predict_cmd;
@@ -56,13 +55,13 @@ enum Command {
     /// Write the video-prediction table (paper layout) of several eval-run --json files to docs/results.md.
     EvalReport(report::EvalReportArgs),
     /// Goal-image CEM-MPC planning executed in the synthetic world, vs random actions.
-    Plan(plan_cmd::PlanArgs),
+    Plan(plan_cmd::plan::PlanArgs),
     /// Does a model's goal distance order candidate actions as the synthetic world does (Spearman)?
-    PlanFidelity(plan_cmd::PlanFidelityArgs),
+    PlanFidelity(plan_cmd::fidelity::PlanFidelityArgs),
     /// Policy evaluation by autoregressive world-model rollouts vs synthetic-world success.
-    EvalPolicyRollout(plan_cmd::EvalRolloutArgs),
+    EvalPolicyRollout(plan_cmd::rollout::EvalRolloutArgs),
     /// Run planning on all tasks and the policy evaluation; write docs/results.md.
-    PlanReport(plan_cmd::PlanReportArgs),
+    PlanReport(plan_cmd::report::PlanReportArgs),
 }
 
 fn main() -> Result<()> {
@@ -81,10 +80,10 @@ fn main() -> Result<()> {
         Command::Train(a) => train_cmd::run(&a),
         Command::EvalRun(a) => train_cmd::run_eval_run(&a),
         Command::EvalReport(a) => report::run_eval_report(&a),
-        Command::Plan(a) => plan_cmd::run_plan(&a),
-        Command::PlanFidelity(a) => plan_cmd::run_plan_fidelity(&a),
-        Command::EvalPolicyRollout(a) => plan_cmd::run_eval_rollout(&a),
-        Command::PlanReport(a) => plan_cmd::run_plan_report(&a),
+        Command::Plan(a) => plan_cmd::plan::run(&a),
+        Command::PlanFidelity(a) => plan_cmd::fidelity::run(&a),
+        Command::EvalPolicyRollout(a) => plan_cmd::rollout::run(&a),
+        Command::PlanReport(a) => plan_cmd::report::run(&a),
     }
 }
 

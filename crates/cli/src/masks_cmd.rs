@@ -10,7 +10,7 @@ use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_embodiment::masks::{
     render_trajectory, render_trajectory_labels, write_outputs, WriteOptions,
 };
-use bridgev2w_embodiment::npy::{write_atomic, write_npy};
+use bridgev2w_embodiment::npy::write_npy;
 use bridgev2w_embodiment::output::OutputDir;
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
@@ -193,16 +193,7 @@ pub fn render_with_progress(
 
 /// Writes the residual report `ik.json`.
 pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<()> {
-    let p = dir.join("ik.json");
-    let v = serde_json::json!({
-        "frames_not_reached": residuals.iter().filter(|r| !r.reached).map(|r| r.frame).collect::<Vec<_>>(),
-        "max_position_error_m": residuals.iter().map(|r| r.position_error_m).fold(0.0, f64::max),
-        "max_rotation_error_rad": residuals.iter().map(|r| r.rotation_error_rad).fold(0.0, f64::max),
-        "residuals": residuals,
-    });
-    write_atomic(&p, serde_json::to_string_pretty(&v)?.as_bytes())
-        .with_context(|| format!("{}", p.display()))?;
-    Ok(())
+    Ok(bridgev2w_embodiment::actions::write_ik_report(dir, residuals)?)
 }
 
 pub fn run(args: &MasksArgs) -> Result<()> {
@@ -276,13 +267,7 @@ pub fn run(args: &MasksArgs) -> Result<()> {
 }
 
 pub fn report_empty(empty: &[usize], total: usize) {
-    if empty.len() == total && total > 0 {
-        eprintln!("warning: every mask is empty: the robot is not in view; check the camera extrinsics (world_from_camera maps camera to robot-base coordinates; OpenCV axes: x right, y down, z forward)");
-    } else if !empty.is_empty() {
-        eprintln!(
-            "warning: {} of {total} masks are empty (robot out of view), first frames: {:?}",
-            empty.len(),
-            &empty[..empty.len().min(10)]
-        );
+    if let Some(w) = bridgev2w_embodiment::masks::empty_masks_warning(empty, total) {
+        eprintln!("{w}");
     }
 }

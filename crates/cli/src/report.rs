@@ -1,43 +1,9 @@
-//! `docs/results.md`: one file, several commands. Each report command owns one
-//! section (between `<!-- section: NAME -->` and `<!-- end section: NAME -->`)
-//! and replaces only that section, so `eval-report` (video prediction) and
-//! `plan-report` (planning, policy evaluation) can be rerun independently.
-//!
 //! `bridgev2w eval-report`: the video-prediction table in the paper's layout
 //! from `eval-run --json` files.
 
 use anyhow::{bail, Context, Result};
-use bridgev2w_embodiment::npy::write_atomic;
-use std::path::{Path, PathBuf};
-
-const HEADER: &str = "# Results\n\nEach section below is written by the command it names; rerunning a command replaces only its own section.\n";
-
-/// Replaces (or appends) section `name` of the markdown file `path` with
-/// `body`, keeping the rest of the file; written atomically.
-pub fn write_section(path: &Path, name: &str, body: &str) -> Result<()> {
-    let begin = format!("<!-- section: {name} -->");
-    let end = format!("<!-- end section: {name} -->");
-    let old = match std::fs::read_to_string(path) {
-        Ok(s) => s,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => HEADER.to_string(),
-        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
-    };
-    let block = format!("{begin}\n{}\n{end}", body.trim_end());
-    let new = match (old.find(&begin), old.find(&end)) {
-        (Some(b), Some(e)) if e > b => {
-            format!("{}{block}{}", &old[..b], &old[e + end.len()..])
-        }
-        (None, None) => format!("{}\n{block}\n", old.trim_end()),
-        _ => bail!(
-            "{}: section `{name}` has a broken marker pair ({begin} ... {end}); fix or delete the file",
-            path.display()
-        ),
-    };
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    write_atomic(path, new.as_bytes()).with_context(|| format!("writing {}", path.display()))
-}
+use bridgev2w_io::sections::write_section;
+use std::path::PathBuf;
 
 /// Arguments of `eval-report`.
 #[derive(Debug, clap::Args)]
@@ -246,26 +212,6 @@ pub fn run_eval_report(a: &EvalReportArgs) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn sections_are_replaced_in_place_and_others_kept() {
-        let tmp = tempfile::tempdir().unwrap();
-        let p = tmp.path().join("docs/results.md");
-        write_section(&p, "video", "video v1").unwrap();
-        write_section(&p, "planning", "plan v1").unwrap();
-        write_section(&p, "video", "video v2\nline 2").unwrap();
-        let s = std::fs::read_to_string(&p).unwrap();
-        assert!(s.starts_with("# Results"), "{s}");
-        assert!(
-            s.contains("video v2\nline 2") && !s.contains("video v1"),
-            "{s}"
-        );
-        assert!(s.contains("plan v1"), "{s}");
-        assert!(s.find("video v2").unwrap() < s.find("plan v1").unwrap());
-        std::fs::write(&p, "<!-- end section: video --> <!-- section: video -->").unwrap();
-        let e = write_section(&p, "video", "x").unwrap_err().to_string();
-        assert!(e.contains("broken marker pair"), "{e}");
-    }
 
     fn run(psnr: f64, iou: f64, videos: usize) -> RunScores {
         RunScores {

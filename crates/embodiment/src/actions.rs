@@ -16,6 +16,7 @@ use crate::kinematics::{pose_from_xyz_rpy, IkOptions, IkSolver};
 use crate::robot::Robot;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
+use bridgev2w_io::FileError;
 
 /// Errors reading trajectories or converting actions; each names the file
 /// (or input) and, where it applies, the frame and column.
@@ -431,4 +432,26 @@ pub fn check_joint_trajectory(robot: &Robot, joints: &Trajectory) -> Result<(), 
         })?;
     }
     Ok(())
+}
+
+/// The residual report `ik.json` of an IK solve: the frames not reached, the
+/// largest position and rotation errors, and every frame's residuals.
+pub fn ik_report(residuals: &[FrameResidual]) -> serde_json::Value {
+    serde_json::json!({
+        "frames_not_reached": residuals.iter().filter(|r| !r.reached).map(|r| r.frame).collect::<Vec<_>>(),
+        "max_position_error_m": residuals.iter().map(|r| r.position_error_m).fold(0.0, f64::max),
+        "max_rotation_error_rad": residuals.iter().map(|r| r.rotation_error_rad).fold(0.0, f64::max),
+        "residuals": residuals,
+    })
+}
+
+/// Writes [`ik_report`] as `dir/ik.json`, atomically.
+pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<(), FileError> {
+    let p = dir.join("ik.json");
+    let text = serde_json::to_string_pretty(&ik_report(residuals))
+        .map_err(|source| FileError::Json {
+            path: p.clone(),
+            source,
+        })?;
+    bridgev2w_io::atomic::write_atomic(&p, text.as_bytes())
 }

@@ -11,6 +11,7 @@
 //! name says otherwise. Cameras use OpenCV axes (x right, y down, z forward).
 
 pub mod actions;
+pub mod bench;
 pub mod camera;
 pub mod embodiment;
 pub mod kinematics;
@@ -18,6 +19,7 @@ pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod output;
+pub mod overlay;
 pub mod png;
 pub mod quiet_panic;
 pub mod raster;

@@ -309,3 +309,19 @@ pub fn write_outputs(
         .collect();
     Ok(written)
 }
+
+/// The warning for empty masks (robot out of view), if any: every mask
+/// empty points at the camera's extrinsics.
+pub fn empty_masks_warning(empty: &[usize], total: usize) -> Option<String> {
+    if empty.len() == total && total > 0 {
+        Some("warning: every mask is empty: the robot is not in view; check the camera extrinsics (world_from_camera maps camera to robot-base coordinates; OpenCV axes: x right, y down, z forward)".into())
+    } else if !empty.is_empty() {
+        Some(format!(
+            "warning: {} of {total} masks are empty (robot out of view), first frames: {:?}",
+            empty.len(),
+            &empty[..empty.len().min(10)]
+        ))
+    } else {
+        None
+    }
+}

@@ -6,11 +6,13 @@
 //! * Distribution distance ([`frechet`]): the Frechet distance between two
 //!   Gaussians fitted to features (the statistic behind FVD).
 //! * Policy evaluation ([`ranking`]): MMRV and Pearson r between real and
-//!   world-model success rates, as SIMPLER computes them.
+//!   world-model success rates, as SIMPLER computes them; [`policy_rates`]
+//!   reads success-rate files and compares them per task.
 
 pub mod clip;
 pub mod dynamic;
 pub mod frechet;
+pub mod policy_rates;
 pub mod ranking;
 pub mod segment;
 pub mod video;

@@ -58,6 +58,18 @@ pub enum PlanError {
     /// The world model failed.
     #[error(transparent)]
     Model(#[from] WorldModelError),
+    /// A model folder could not be loaded.
+    #[error("loading the model from {path}")]
+    ModelLoad {
+        /// The folder.
+        path: String,
+        /// Why.
+        #[source]
+        source: WorldModelError,
+    },
+    /// A results file could not be written.
+    #[error(transparent)]
+    File(#[from] bridgev2w_io::FileError),
     /// The synthetic world failed.
     #[error(transparent)]
     Synth(#[from] bridgev2w_data::synth::SynthError),

@@ -24,6 +24,7 @@
 pub mod cem;
 pub mod choice;
 pub mod error;
+pub mod experiment;
 pub mod fidelity;
 pub mod model;
 pub mod mpc;

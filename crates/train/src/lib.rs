@@ -5,19 +5,25 @@
 //! * [`flow`]: the optical-flow loss (direction + magnitude on moving pixels)
 //!   with a frozen, differentiable [`flow::FlowEstimator`] (RAFT, or a light
 //!   Lucas-Kanade stand-in for CPU runs).
+//! * [`score`]: video metrics between folders of predicted and ground-truth
+//!   videos (`bridgev2w eval`); [`report`]: the video-prediction tables of
+//!   `eval-run` results (`bridgev2w eval-report`).
 
 pub mod action;
 pub mod augment;
 pub mod checkpoint;
 pub mod config;
 pub mod data;
+pub mod demo;
 pub mod distributed;
 pub mod ema;
 pub mod evaluate;
 pub mod flow;
 pub mod losses;
 pub mod optim;
+pub mod report;
 pub mod run_dir;
+pub mod score;
 pub mod segmenter;
 pub mod trainer;
 

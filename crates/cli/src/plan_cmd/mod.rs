@@ -1,0 +1,144 @@
+//! The planning commands (`plan`, `plan-fidelity`, `eval-policy-rollout`,
+//! `plan-report`): their arguments, turned into `bridgev2w_plan::experiment`
+//! options, one library call each.
+
+pub mod fidelity;
+pub mod plan;
+pub mod report;
+pub mod rollout;
+
+use bridgev2w_data::synth::{Split, Task};
+use bridgev2w_plan::choice::PlanModel;
+use bridgev2w_plan::experiment::planning::{CemSizes, GoalOptions};
+use bridgev2w_plan::experiment::ModelOptions;
+use bridgev2w_world_model::ComputeDevice;
+use std::path::PathBuf;
+
+pub(crate) fn parse_task(s: &str) -> Result<Task, String> {
+    Task::parse(s)
+        .filter(|t| Task::ALL.contains(t))
+        .ok_or_else(|| format!("unknown task {s:?}: expected reach, push or pick_place"))
+}
+
+pub(crate) fn parse_split(s: &str) -> Result<Split, String> {
+    Split::parse(s).ok_or_else(|| {
+        format!("unknown split {s:?}: expected train, test, unseen_camera or unseen_scene")
+    })
+}
+
+/// Prints a progress line to stderr.
+pub(crate) fn progress(line: &str) {
+    eprintln!("{line}");
+}
+
+/// Which world model to plan or evaluate with.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ModelArgs {
+    /// `perfect` (the synthetic world's own renderer), `random` (BridgeV2W
+    /// with random tiny weights at 64x96, 9 frames: a smoke test), or a
+    /// CogVideoX image-to-video diffusers folder (with --weights).
+    #[arg(long, default_value = "perfect")]
+    pub model: PlanModel,
+    /// BridgeV2W weights (ControlNet + LoRA safetensors) for a model folder.
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// The fixed prompt's T5 embedding for a model folder.
+    #[arg(long)]
+    pub prompt_embeds: Option<PathBuf>,
+    /// Denoising steps of a diffusion model.
+    #[arg(long, default_value_t = 4)]
+    pub denoise_steps: usize,
+    /// cpu, cuda, cuda:N or auto.
+    #[arg(long, default_value = "auto")]
+    pub device: ComputeDevice,
+    /// Image width of the synthetic world with the perfect model (pixels, even).
+    #[arg(long, default_value_t = 96)]
+    pub width: u32,
+    /// Image height of the synthetic world with the perfect model (pixels, even).
+    #[arg(long, default_value_t = 64)]
+    pub height: u32,
+    /// Clip frames of the perfect model.
+    #[arg(long, default_value_t = 9)]
+    pub clip_frames: usize,
+}
+
+impl From<&ModelArgs> for ModelOptions {
+    fn from(a: &ModelArgs) -> Self {
+        Self {
+            model: a.model.clone(),
+            weights: a.weights.clone(),
+            prompt_embeds: a.prompt_embeds.clone(),
+            denoise_steps: a.denoise_steps,
+            device: a.device,
+            width: a.width,
+            height: a.height,
+            clip_frames: a.clip_frames,
+        }
+    }
+}
+
+/// The goal sequence and its switching, shared by `plan` and `plan-report`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct GoalArgs {
+    /// Waypoint goals: expert frames inserted evenly before each key goal
+    /// image (a goal image says little about a gripper far from it).
+    #[arg(long, default_value_t = 2)]
+    pub waypoints: usize,
+    /// Stalled steps (no 1% progress) after which the final goal counts as
+    /// reached as far as the model can tell.
+    #[arg(long, default_value_t = 4)]
+    pub patience: usize,
+    /// The same for subgoals and waypoints: then switch to the next goal.
+    #[arg(long, default_value_t = 1)]
+    pub subgoal_patience: usize,
+}
+
+impl From<&GoalArgs> for GoalOptions {
+    fn from(a: &GoalArgs) -> Self {
+        Self {
+            waypoints: a.waypoints,
+            patience: a.patience,
+            subgoal_patience: a.subgoal_patience,
+        }
+    }
+}
+
+/// The CEM sizes shared by `plan` and `plan-report`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CemArgs {
+    /// CEM samples S per iteration.
+    #[arg(long, default_value_t = 64)]
+    pub samples: usize,
+    /// CEM elites k.
+    #[arg(long, default_value_t = 8)]
+    pub elites: usize,
+    /// CEM iterations T.
+    #[arg(long, default_value_t = 3)]
+    pub iters: usize,
+    /// Planning horizon H (actions). With H > 1 only the terminal frame is
+    /// scored, so the executed first action of the best sequence is
+    /// unconstrained; H = 1 scores exactly the executed action's outcome.
+    #[arg(long, default_value_t = 1)]
+    pub horizon: usize,
+    /// Carry each CEM iteration's elites into the next selection (iCEM; off
+    /// in the paper's algorithm).
+    #[arg(long)]
+    pub keep_elites: bool,
+    /// Execute the best evaluated candidate's first action instead of the
+    /// refined mean's (the paper executes the mean).
+    #[arg(long)]
+    pub execute_best: bool,
+}
+
+impl From<&CemArgs> for CemSizes {
+    fn from(a: &CemArgs) -> Self {
+        Self {
+            samples: a.samples,
+            elites: a.elites,
+            iters: a.iters,
+            horizon: a.horizon,
+            keep_elites: a.keep_elites,
+            execute_best: a.execute_best,
+        }
+    }
+}

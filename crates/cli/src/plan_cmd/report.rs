@@ -1,0 +1,97 @@
+//! `bridgev2w plan-report`: planning on all tasks and the policy
+//! evaluation, written as one section of docs/results.md.
+
+use super::{parse_task, progress, CemArgs, GoalArgs};
+use anyhow::Result;
+use bridgev2w_data::synth::Task;
+use bridgev2w_plan::experiment::report::report_models;
+use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
+use bridgev2w_world_model::ComputeDevice;
+use std::path::PathBuf;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct PlanReportArgs {
+    /// Output markdown file.
+    #[arg(long, default_value = "docs/results.md")]
+    pub out: PathBuf,
+    /// Planning trials per task (0: no planning, only the policy evaluation).
+    #[arg(long, default_value_t = 20)]
+    pub trials: usize,
+    /// Policy-evaluation trials per policy.
+    #[arg(long, default_value_t = 10)]
+    pub eval_trials: usize,
+    #[command(flatten)]
+    pub cem: CemArgs,
+    /// Executed actions at most.
+    #[arg(long, default_value_t = 25)]
+    pub max_steps: usize,
+    /// Initial translational standard deviation per step (metres).
+    #[arg(long, default_value_t = 0.1)]
+    pub translation_std_m: f64,
+    #[command(flatten)]
+    pub goals: GoalArgs,
+    /// Tasks to plan (comma-separated).
+    #[arg(long, default_value = "reach,push,pick_place")]
+    pub tasks: String,
+    /// Also evaluate policies with the random-weight BridgeV2W (slow on CPU);
+    /// the same as naming `random` in `--models`.
+    #[arg(long)]
+    pub with_random_model: bool,
+    /// The world models of the tables, comma-separated, in order: `perfect`
+    /// (the synthetic renderer), `trained` (the folder of `--trained`),
+    /// `random` (random weights; policy evaluation only). Default: perfect,
+    /// then random with `--with-random-model`, then trained with `--trained`.
+    #[arg(long)]
+    pub models: Option<String>,
+    /// The section of `--out` the tables replace (`<!-- section: NAME -->`):
+    /// runs with other settings (e.g. a smaller search for the slow trained
+    /// model) keep their own section.
+    #[arg(long, default_value = "planning")]
+    pub section: String,
+    /// Also plan and evaluate policies with a trained BridgeV2W: a folder
+    /// with `backbone/` (a diffusers CogVideoX image-to-video folder) and
+    /// `bridgev2w.safetensors`, as `assets/demo-model` or what
+    /// `scripts/reproduce-synthetic.sh` exports (minutes per trial on CPU).
+    #[arg(long)]
+    pub trained: Option<PathBuf>,
+    /// Denoising steps of the diffusion models' predictions.
+    #[arg(long, default_value_t = 4)]
+    pub denoise_steps: usize,
+    /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
+    #[arg(long, default_value = "cpu")]
+    pub device: ComputeDevice,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// `bridgev2w plan-report`: runs planning on all tasks and the policy
+/// evaluation, and writes the tables with the command that produced them.
+pub fn run(a: &PlanReportArgs) -> Result<()> {
+    let o = PlanReportOptions {
+        trials: a.trials,
+        eval_trials: a.eval_trials,
+        cem: (&a.cem).into(),
+        max_steps: a.max_steps,
+        translation_std_m: a.translation_std_m,
+        goals: (&a.goals).into(),
+        tasks: a
+            .tasks
+            .split(',')
+            .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
+            .collect::<Result<Vec<Task>>>()?,
+        models: report_models(
+            a.models.as_deref(),
+            a.with_random_model,
+            a.trained.as_deref(),
+        )?,
+        section: a.section.clone(),
+        denoise_steps: a.denoise_steps,
+        device: a.device,
+        seed: a.seed,
+    };
+    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let md = plan_report(&o, &command, &mut progress)?;
+    bridgev2w_io::sections::write_section(&a.out, &a.section, &md)?;
+    crate::print_stdout(&md)
+}

@@ -1,0 +1,161 @@
+//! Writing the generated episodes as a LeRobot v3.0 dataset with the
+//! synthetic extras (`meta/synth.json`).
+
+use super::{plan, Contact, Episode, SynthConfig, SynthError, World};
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// Errors of [`write_dataset`].
+#[derive(Debug, thiserror::Error)]
+pub enum WriteDatasetError {
+    /// Generating an episode failed.
+    #[error(transparent)]
+    Synth(#[from] SynthError),
+    /// Writing the dataset failed.
+    #[error(transparent)]
+    Dataset(#[from] crate::lerobot::DatasetError),
+    /// The output exists.
+    #[error("{0}: already exists; choose another --out or remove it")]
+    Exists(std::path::PathBuf),
+    /// Creating or committing the output folder failed.
+    #[error(transparent)]
+    Output(#[from] bridgev2w_embodiment::output::OutputError),
+    /// File-system failure.
+    #[error("{path}: {source}")]
+    Io {
+        /// Path.
+        path: std::path::PathBuf,
+        /// Cause.
+        source: std::io::Error,
+    },
+}
+
+/// What [`write_dataset`] wrote.
+#[derive(Debug, Clone, Serialize)]
+pub struct DatasetSummary {
+    /// The dataset directory.
+    pub out: std::path::PathBuf,
+    /// Episodes per split name.
+    pub episodes_per_split: std::collections::BTreeMap<String, usize>,
+    /// Episodes per task name.
+    pub episodes_per_task: std::collections::BTreeMap<String, usize>,
+    /// Total frames.
+    pub total_frames: usize,
+    /// Object-moving contacts (push, grasp) over all episodes.
+    pub contact_events: usize,
+}
+
+/// The camera's video key in the dataset.
+pub const VIDEO_KEY: &str = "observation.images.main";
+
+/// Generates the configured episodes and writes them as a LeRobot v3.0
+/// dataset at `out` (first into `out.tmp`, renamed when complete).
+/// Episodes are rendered in parallel batches and written in plan order, so
+/// the bytes do not depend on the thread count. `on_episode` is called after
+/// each generated episode.
+pub fn write_dataset(
+    config: &SynthConfig,
+    out: &std::path::Path,
+    on_episode: &(dyn Fn() + Sync),
+) -> Result<DatasetSummary, WriteDatasetError> {
+    use crate::lerobot::{LeRobotV3Writer, WriterEpisode};
+    use bridgev2w_embodiment::output::{OutputDir, OutputError};
+    let world = World::new(config)?;
+    // Removed again if anything below fails.
+    let output = OutputDir::create(out, false).map_err(|e| match e {
+        OutputError::Exists { path } => WriteDatasetError::Exists(path),
+        other => WriteDatasetError::Output(other),
+    })?;
+    let tmp = output.path().to_path_buf();
+    let robot = &world.embodiment.robot;
+    let state_names: Vec<String> = robot.dof_names().iter().map(|s| s.to_string()).collect();
+    let mut action_names = Vec::new();
+    for ee in &world.embodiment.end_effectors {
+        for c in ["x", "y", "z", "roll", "pitch", "yaw", "gripper"] {
+            action_names.push(format!("{}.{c}", ee.arm));
+        }
+    }
+    let mut writer = LeRobotV3Writer::new(
+        &tmp,
+        &config.robot,
+        config.fps,
+        VIDEO_KEY,
+        (config.width as usize, config.height as usize),
+        state_names,
+        action_names,
+    )?;
+    let plan = plan(config);
+    let batch = (2 * rayon::current_num_threads()).max(4);
+    let mut summary = DatasetSummary {
+        out: out.to_path_buf(),
+        episodes_per_split: Default::default(),
+        episodes_per_task: Default::default(),
+        total_frames: 0,
+        contact_events: 0,
+    };
+    let mut metas = Vec::new();
+    for chunk in plan.chunks(batch) {
+        let episodes: Vec<Episode> = chunk
+            .par_iter()
+            .map(|&(split, i, task)| {
+                let e = world.generate(split, i, task);
+                on_episode();
+                e
+            })
+            .collect::<Result<_, _>>()?;
+        for e in &episodes {
+            let f32s = |rows: &[Vec<f64>]| -> Vec<Vec<f32>> {
+                rows.iter()
+                    .map(|r| r.iter().map(|&v| v as f32).collect())
+                    .collect()
+            };
+            let index = writer.add_episode(WriterEpisode {
+                task: e.meta.task.description(),
+                split: Some(e.meta.split.name()),
+                states: f32s(&e.joints),
+                actions: f32s(&e.actions),
+                rgb: &e.rgb,
+                masks: Some(&e.masks),
+                camera: Some(&e.camera),
+            })?;
+            *summary
+                .episodes_per_split
+                .entry(e.meta.split.name().into())
+                .or_default() += 1;
+            *summary
+                .episodes_per_task
+                .entry(e.meta.task.name().into())
+                .or_default() += 1;
+            summary.total_frames += e.rgb.len();
+            summary.contact_events += e
+                .contacts
+                .iter()
+                .flatten()
+                .filter(|c| matches!(c, Contact::Pushed | Contact::Grasped))
+                .count();
+            let mut m = serde_json::to_value(&e.meta).unwrap_or_default();
+            if let Some(o) = m.as_object_mut() {
+                o.insert("episode_index".into(), serde_json::json!(index));
+            }
+            metas.push(m);
+        }
+    }
+    let specs = serde_json::to_value(&world.specs).unwrap_or_default();
+    writer.finish(serde_json::json!({ "synth_splits": specs.clone() }))?;
+    let synth_path = tmp.join("meta/synth.json");
+    let synth = serde_json::json!({
+        "generator": "bridgev2w synth",
+        "config": config,
+        "scene_frame": world.frame,
+        "video_key": VIDEO_KEY,
+        "splits": specs,
+        "episodes": metas,
+    });
+    let text = serde_json::to_string_pretty(&synth).unwrap_or_default();
+    std::fs::write(&synth_path, text).map_err(|source| WriteDatasetError::Io {
+        path: synth_path.clone(),
+        source,
+    })?;
+    output.commit()?;
+    Ok(summary)
+}

@@ -1,0 +1,46 @@
+//! The synthetic world's planning and policy-evaluation experiments as
+//! library calls, each from a plain options struct to a report struct that
+//! renders itself as markdown (the command line and the Python package are
+//! thin layers over these):
+//!
+//! * [`planning`]: goal-image CEM-MPC on many task instances, next to the
+//!   random-action baseline on the same instances ([`plan_summary`]);
+//! * [`rollout`]: policy evaluation by world-model rollouts
+//!   ([`rollout_report`]);
+//! * [`fidelity_study`]: whether a model orders candidate actions as the
+//!   world does ([`fidelity_study()`]);
+//! * [`report`]: all of them as the `planning` sections of `docs/results.md`
+//!   ([`plan_report`]).
+//!
+//! The world model of each is named by [`ModelOptions`] and loaded once
+//! ([`LoadedModel`]).
+
+pub mod fidelity_study;
+mod models;
+pub mod planning;
+pub mod report;
+pub mod rollout;
+
+pub use fidelity_study::{fidelity_study, FidelityOptions, FidelityStudy};
+pub use models::{LoadedModel, ModelOptions};
+pub use planning::{plan_summary, PlanOptions, PlanSummary};
+pub use report::{plan_report, PlanReportOptions, ReportModel};
+pub use rollout::{rollout_report, RolloutOptions};
+
+/// The seed of trial `trial` of an experiment seeded `seed` (a golden-ratio
+/// multiple keeps neighbouring trials' streams apart).
+pub fn trial_seed(seed: u64, trial: u64) -> u64 {
+    seed ^ trial.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+}
+
+/// Mean and sample standard deviation (0 for one value).
+pub fn mean_std(v: &[f64]) -> (f64, f64) {
+    let n = v.len() as f64;
+    let m = v.iter().sum::<f64>() / n;
+    let var = if v.len() > 1 {
+        v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)
+    } else {
+        0.0
+    };
+    (m, var.sqrt())
+}

@@ -1,0 +1,187 @@
+//! The world model of an experiment: named by [`ModelOptions`], loaded once
+//! into a [`LoadedModel`], and wrapped per task instance (its camera, scene
+//! and start pose) as an [`ActionWorldModel`].
+
+use crate::choice::PlanModel;
+use crate::model::{ActionWorldModel, MaskConditioned};
+use crate::synthetic::{PerfectWorldModel, TaskInstance};
+use crate::{PlanError, Result};
+use bridgev2w_data::synth::{SynthConfig, World};
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions};
+use bridgev2w_world_model::scheduler::SchedulerConfig;
+use bridgev2w_world_model::spec::ModelSpec;
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use std::path::PathBuf;
+
+/// Which world model to plan or evaluate with.
+#[derive(Debug, Clone)]
+pub struct ModelOptions {
+    /// The model: the perfect renderer, random weights or a folder.
+    pub model: PlanModel,
+    /// BridgeV2W weights (ControlNet + LoRA safetensors) for a model folder.
+    pub weights: Option<PathBuf>,
+    /// The fixed prompt's T5 embedding for a model folder.
+    pub prompt_embeds: Option<PathBuf>,
+    /// Denoising steps of a diffusion model.
+    pub denoise_steps: usize,
+    /// The device of a diffusion model.
+    pub device: ComputeDevice,
+    /// Image width of the synthetic world with the perfect model (pixels).
+    pub width: u32,
+    /// Image height of the synthetic world with the perfect model (pixels).
+    pub height: u32,
+    /// Clip frames of the perfect model.
+    pub clip_frames: usize,
+}
+
+impl Default for ModelOptions {
+    fn default() -> Self {
+        Self {
+            model: PlanModel::Perfect,
+            weights: None,
+            prompt_embeds: None,
+            denoise_steps: 4,
+            device: ComputeDevice::auto(),
+            width: 96,
+            height: 64,
+            clip_frames: 9,
+        }
+    }
+}
+
+/// A loaded world model.
+#[derive(Debug)]
+pub enum LoadedModel {
+    /// The synthetic world's renderer.
+    Perfect {
+        /// Rendered width (pixels).
+        width: u32,
+        /// Rendered height (pixels).
+        height: u32,
+        /// Clip frames.
+        clip_frames: usize,
+    },
+    /// A BridgeV2W diffusion model.
+    Diffusion {
+        /// The model.
+        model: Box<BridgeV2W>,
+        /// Denoising steps per prediction.
+        denoise_steps: usize,
+    },
+}
+
+impl LoadedModel {
+    /// Loads the model `o` names.
+    pub fn load(o: &ModelOptions) -> Result<Self> {
+        Ok(match &o.model {
+            PlanModel::Perfect => Self::Perfect {
+                width: o.width,
+                height: o.height,
+                clip_frames: o.clip_frames,
+            },
+            PlanModel::World(ModelSpec::Random(preset)) => {
+                let (vae, tf) = preset.configs();
+                Self::Diffusion {
+                    model: Box::new(BridgeV2W::random(
+                        BridgeV2WConfig::tiny(),
+                        &vae,
+                        &tf,
+                        SchedulerConfig::cogvideox_5b_i2v(),
+                        o.device,
+                        0,
+                    )?),
+                    denoise_steps: o.denoise_steps,
+                }
+            }
+            PlanModel::World(ModelSpec::Folder(dir)) => {
+                if !dir.is_dir() {
+                    return Err(PlanError::input(
+                        format!("--model {}", dir.display()),
+                        "no such folder (expected perfect, random or a model folder)",
+                    ));
+                }
+                let model = BridgeV2W::load(
+                    dir,
+                    o.weights.as_deref(),
+                    o.prompt_embeds.as_deref(),
+                    BridgeV2WConfig::paper(),
+                    o.device,
+                    Precision::F32,
+                )
+                .map_err(|source| PlanError::ModelLoad {
+                    path: dir.display().to_string(),
+                    source,
+                })?;
+                Self::Diffusion {
+                    model: Box::new(model),
+                    denoise_steps: o.denoise_steps,
+                }
+            }
+        })
+    }
+
+    /// Whether this is a diffusion model (not the perfect renderer).
+    pub fn is_diffusion(&self) -> bool {
+        matches!(self, Self::Diffusion { .. })
+    }
+
+    /// `(height, width)` the synthetic world must render at.
+    pub fn resolution(&self) -> (u32, u32) {
+        match self {
+            Self::Perfect { width, height, .. } => (*height, *width),
+            Self::Diffusion { model, .. } => {
+                (model.config().height as u32, model.config().width as u32)
+            }
+        }
+    }
+
+    /// The synthetic world at this model's resolution.
+    pub fn world(&self, episode_frames: usize, seed: u64) -> Result<World> {
+        let (h, w) = self.resolution();
+        Ok(World::new(&SynthConfig {
+            frames: episode_frames,
+            width: w,
+            height: h,
+            seed,
+            ..SynthConfig::default()
+        })?)
+    }
+
+    /// Runs `f` with the world model of task instance `inst`.
+    pub fn with_model<T>(
+        &self,
+        world: &World,
+        inst: &TaskInstance,
+        f: &mut dyn FnMut(&dyn ActionWorldModel) -> Result<T>,
+    ) -> Result<T> {
+        match self {
+            Self::Perfect { clip_frames, .. } => f(&PerfectWorldModel {
+                world,
+                instance: inst.clone(),
+                clip_frames: *clip_frames,
+            }),
+            Self::Diffusion {
+                model,
+                denoise_steps,
+            } => {
+                let predict = PredictOptions {
+                    sample: SampleOptions {
+                        steps: *denoise_steps,
+                        guidance_scale: 1.0,
+                        ..SampleOptions::default()
+                    },
+                };
+                let wrapped = MaskConditioned::new(
+                    model.as_ref(),
+                    world.embodiment.clone(),
+                    inst.expert.meta.arm,
+                    inst.expert.camera.clone(),
+                    inst.expert.actions[0].clone(),
+                    predict,
+                )?;
+                f(&wrapped)
+            }
+        }
+    }
+}

@@ -1,0 +1,302 @@
+//! Goal-image CEM-MPC on the task instances of a split, and the random-action
+//! baseline on the same instances (`bridgev2w plan`).
+
+use super::{trial_seed, LoadedModel, ModelOptions};
+use crate::cem::{CemConfig, RotationSearch};
+use crate::mpc::{run_mpc, run_random, GripperChoice, MpcConfig};
+use crate::synthetic::{SyntheticEnv, TaskInstance};
+use crate::{PlanError, Result};
+use bridgev2w_data::synth::{Split, Task};
+use bridgev2w_world_model::video::Image;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::time::Instant;
+
+/// The CEM sizes of an experiment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CemSizes {
+    /// Samples S per iteration.
+    pub samples: usize,
+    /// Elites k.
+    pub elites: usize,
+    /// Iterations T.
+    pub iters: usize,
+    /// Planning horizon H (actions).
+    pub horizon: usize,
+    /// Carry each iteration's elites into the next selection (iCEM).
+    pub keep_elites: bool,
+    /// Execute the best evaluated candidate's first action instead of the
+    /// refined mean's (the paper executes the mean).
+    pub execute_best: bool,
+}
+
+impl Default for CemSizes {
+    /// The paper's search: S 64, k 8, T 3, H 1.
+    fn default() -> Self {
+        Self {
+            samples: 64,
+            elites: 8,
+            iters: 3,
+            horizon: 1,
+            keep_elites: false,
+            execute_best: false,
+        }
+    }
+}
+
+/// The goal sequence and its switching.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GoalOptions {
+    /// Waypoint goals: expert frames inserted evenly before each key goal.
+    pub waypoints: usize,
+    /// Stalled steps (no 1% progress) after which the final goal counts as
+    /// reached as far as the model can tell.
+    pub patience: usize,
+    /// The same for subgoals and waypoints: then switch to the next goal.
+    pub subgoal_patience: usize,
+}
+
+impl Default for GoalOptions {
+    fn default() -> Self {
+        Self {
+            waypoints: 2,
+            patience: 4,
+            subgoal_patience: 1,
+        }
+    }
+}
+
+/// One planning experiment: a task, its instances, the model and the search.
+#[derive(Debug, Clone)]
+pub struct PlanOptions {
+    /// The task.
+    pub task: Task,
+    /// Trials (task instances of the split).
+    pub trials: usize,
+    /// The world model.
+    pub model: ModelOptions,
+    /// The CEM sizes.
+    pub cem: CemSizes,
+    /// Clip frames per planned action.
+    pub frames_per_action: usize,
+    /// Executed actions at most.
+    pub max_steps: usize,
+    /// Initial translational standard deviation per step (metres).
+    pub translation_std_m: f64,
+    /// Search rotation too (default: translation only).
+    pub search_rotation: bool,
+    /// Rotation refinement.
+    pub rotation: RotationSearch,
+    /// Fraction of samples that perturb rotation only.
+    pub rotation_sample_fraction: f64,
+    /// Discretise increments (0.05 m, 20 degrees).
+    pub discretize: bool,
+    /// How the gripper command is chosen.
+    pub gripper: GripperChoice,
+    /// Plan toward the final goal image only (no subgoal, no waypoints).
+    pub single_goal: bool,
+    /// The goals.
+    pub goals: GoalOptions,
+    /// Do not keep planned positions inside the table's workspace box.
+    pub no_workspace: bool,
+    /// Split of the task instances.
+    pub split: Split,
+    /// Frames of the scripted expert episodes (start, goals).
+    pub episode_frames: usize,
+    /// Seed of the world and the planner.
+    pub seed: u64,
+}
+
+impl PlanOptions {
+    /// The defaults of `bridgev2w plan` for `task`.
+    pub fn new(task: Task) -> Self {
+        Self {
+            task,
+            trials: 20,
+            model: ModelOptions::default(),
+            cem: CemSizes::default(),
+            frames_per_action: 2,
+            max_steps: 25,
+            translation_std_m: 0.1,
+            search_rotation: false,
+            rotation: RotationSearch::Joint,
+            rotation_sample_fraction: 0.0,
+            discretize: false,
+            gripper: GripperChoice::Auto,
+            single_goal: false,
+            goals: GoalOptions::default(),
+            no_workspace: false,
+            split: Split::Test,
+            episode_frames: 25,
+            seed: 0,
+        }
+    }
+
+    /// The MPC settings, checked.
+    pub fn mpc_config(&self) -> Result<MpcConfig> {
+        let cfg = MpcConfig {
+            cem: CemConfig {
+                samples: self.cem.samples,
+                elites: self.cem.elites,
+                iterations: self.cem.iters,
+                horizon: self.cem.horizon,
+                init_translation_std_m: self.translation_std_m,
+                translation_only: !self.search_rotation,
+                discretize: self.discretize,
+                rotation_search: self.rotation,
+                rotation_sample_fraction: self.rotation_sample_fraction,
+                keep_elites: self.cem.keep_elites,
+                ..CemConfig::default()
+            },
+            frames_per_action: self.frames_per_action,
+            max_steps: self.max_steps,
+            gripper: self.gripper.policy(self.task),
+            execute_best: self.cem.execute_best,
+            patience: self.goals.patience,
+            subgoal_patience: self.goals.subgoal_patience,
+            ..MpcConfig::default()
+        };
+        cfg.cem.validate()?;
+        Ok(cfg)
+    }
+}
+
+/// Success counts of the planner and the random baseline on one task.
+#[derive(Debug, Clone)]
+pub struct PlanSummary {
+    /// Task.
+    pub task: Task,
+    /// Trials.
+    pub trials: usize,
+    /// Planner successes.
+    pub planned: usize,
+    /// Random-action successes.
+    pub random: usize,
+    /// Mean final task error of the planner (metres).
+    pub planned_error_m: f64,
+    /// Mean final task error of the random baseline (metres).
+    pub random_error_m: f64,
+    /// Mean final TCP orientation error of the planner (radians; judged by
+    /// no task, see [`TaskInstance::tcp_rotation_error_rad`]).
+    pub planned_rotation_error_rad: f64,
+    /// The same for the random baseline.
+    pub random_rotation_error_rad: f64,
+    /// Mean executed actions of the planner.
+    pub planned_steps: f64,
+    /// Wall time (seconds).
+    pub seconds: f64,
+}
+
+impl PlanSummary {
+    /// One line: the planner's and the random baseline's successes and errors.
+    pub fn line(&self, model: &str) -> String {
+        format!(
+            "{}: planner ({model}) {}/{} successes (mean error {:.1} cm, TCP orientation {:.1} deg off, {:.1} actions), random actions {}/{} (mean error {:.1} cm, {:.1} deg); {:.0} s",
+            self.task.name(),
+            self.planned,
+            self.trials,
+            self.planned_error_m * 100.0,
+            self.planned_rotation_error_rad.to_degrees(),
+            self.planned_steps,
+            self.random,
+            self.trials,
+            self.random_error_m * 100.0,
+            self.random_rotation_error_rad.to_degrees(),
+            self.seconds
+        )
+    }
+}
+
+/// Plans every trial of `o.task` and runs the random baseline on the same
+/// instances; `progress` gets a line per trial.
+pub fn plan_summary(o: &PlanOptions, progress: &mut dyn FnMut(&str)) -> Result<PlanSummary> {
+    if o.trials == 0 {
+        return Err(PlanError::input("--trials", "must be at least 1"));
+    }
+    let cfg = o.mpc_config()?;
+    let loaded = LoadedModel::load(&o.model)?;
+    plan_with(&loaded, o, &cfg, progress)
+}
+
+/// [`plan_summary`] with a model already loaded.
+pub(crate) fn plan_with(
+    loaded: &LoadedModel,
+    o: &PlanOptions,
+    cfg: &MpcConfig,
+    progress: &mut dyn FnMut(&str),
+) -> Result<PlanSummary> {
+    let world = loaded.world(o.episode_frames, o.seed)?;
+    let t0 = Instant::now();
+    let (mut planned, mut random) = (0, 0);
+    let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);
+    let (mut planned_rot, mut random_rot) = (0.0, 0.0);
+    for trial in 0..o.trials {
+        let mut inst = TaskInstance::new(&world, o.split, trial, o.task)?;
+        if !o.single_goal {
+            inst = inst.with_waypoints(o.goals.waypoints);
+        }
+        let mut goals: Vec<Image> = inst.goal_images();
+        if o.single_goal {
+            goals.drain(..goals.len() - 1);
+        }
+        let seed = trial_seed(o.seed, trial as u64);
+        let mut cfg = cfg.clone();
+        cfg.switch_after_goal = if o.single_goal {
+            0
+        } else {
+            inst.first_key_goal
+        };
+        if !o.no_workspace {
+            cfg.workspace = Some(inst.workspace(&world));
+        }
+        let mut env = SyntheticEnv::new(&world, inst.clone());
+        let out = loaded.with_model(&world, &inst, &mut |m| {
+            run_mpc(
+                m,
+                &mut env,
+                &goals,
+                &cfg,
+                &mut ChaCha8Rng::seed_from_u64(seed),
+            )
+        })?;
+        let ok = env.success();
+        let err = inst.error_m(&world, &env.state);
+        let rot = inst.tcp_rotation_error_rad(&world, &env.state);
+        let mut base = SyntheticEnv::new(&world, inst.clone());
+        run_random(&mut base, &cfg, &mut ChaCha8Rng::seed_from_u64(seed))?;
+        let rok = base.success();
+        let rerr = inst.error_m(&world, &base.state);
+        let rrot = inst.tcp_rotation_error_rad(&world, &base.state);
+        progress(&format!(
+            "{} trial {trial}: planner {} ({:.1} cm, TCP {:.1} deg off, {} steps), random {} ({:.1} cm, {:.1} deg)",
+            o.task.name(),
+            if ok { "success" } else { "failure" },
+            err * 100.0,
+            rot.to_degrees(),
+            out.steps,
+            if rok { "success" } else { "failure" },
+            rerr * 100.0,
+            rrot.to_degrees()
+        ));
+        planned += usize::from(ok);
+        random += usize::from(rok);
+        planned_err += err;
+        random_err += rerr;
+        planned_rot += rot;
+        random_rot += rrot;
+        steps += out.steps as f64;
+    }
+    let n = o.trials as f64;
+    Ok(PlanSummary {
+        task: o.task,
+        trials: o.trials,
+        planned,
+        random,
+        planned_error_m: planned_err / n,
+        random_error_m: random_err / n,
+        planned_rotation_error_rad: planned_rot / n,
+        random_rotation_error_rad: random_rot / n,
+        planned_steps: steps / n,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}

@@ -1,0 +1,280 @@
+//! `plan-report`: planning on every task and the policy evaluation, with
+//! each named model, as one section of the results file.
+
+use super::planning::{plan_with, CemSizes, GoalOptions, PlanOptions};
+use super::rollout::{rollout_with, RolloutOptions};
+use super::{LoadedModel, ModelOptions};
+use crate::choice::PlanModel;
+use crate::{PlanError, Result};
+use bridgev2w_data::synth::Task;
+use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
+use bridgev2w_world_model::ComputeDevice;
+use std::path::PathBuf;
+
+/// A model of the report: `perfect`, `random`, or a trained folder
+/// (`backbone/` + `bridgev2w.safetensors`).
+#[derive(Debug, Clone, PartialEq)]
+pub enum ReportModel {
+    /// The synthetic renderer.
+    Perfect,
+    /// Random tiny weights (policy evaluation only).
+    Random,
+    /// A trained folder, as `assets/demo-model`.
+    Trained(PathBuf),
+}
+
+impl ReportModel {
+    /// The model's name in the tables.
+    pub fn label(&self) -> String {
+        match self {
+            Self::Perfect => "perfect".into(),
+            Self::Random => "random".into(),
+            Self::Trained(dir) => format!("trained (`{}`)", dir.display()),
+        }
+    }
+
+    /// How to load it.
+    fn options(&self, o: &PlanReportOptions) -> Result<ModelOptions> {
+        let (model, weights) = match self {
+            Self::Perfect => (PlanModel::Perfect, None),
+            Self::Random => (
+                PlanModel::World(ModelSpec::Random(RandomPreset::Tiny)),
+                None,
+            ),
+            Self::Trained(dir) => {
+                let (backbone, weights) = (dir.join("backbone"), dir.join("bridgev2w.safetensors"));
+                if !backbone.is_dir() || !weights.is_file() {
+                    return Err(PlanError::input(
+                        format!("--trained {}", dir.display()),
+                        "expected backbone/ (a diffusers CogVideoX I2V folder) and bridgev2w.safetensors, as assets/demo-model",
+                    ));
+                }
+                (PlanModel::World(ModelSpec::Folder(backbone)), Some(weights))
+            }
+        };
+        Ok(ModelOptions {
+            model,
+            weights,
+            prompt_embeds: None,
+            denoise_steps: o.denoise_steps,
+            device: o.device,
+            width: 96,
+            height: 64,
+            clip_frames: 9,
+        })
+    }
+}
+
+/// The settings of `plan-report`.
+#[derive(Debug, Clone)]
+pub struct PlanReportOptions {
+    /// Planning trials per task (0: no planning, only the policy evaluation).
+    pub trials: usize,
+    /// Policy-evaluation trials per policy.
+    pub eval_trials: usize,
+    /// The CEM sizes.
+    pub cem: CemSizes,
+    /// Executed actions at most.
+    pub max_steps: usize,
+    /// Initial translational standard deviation per step (metres).
+    pub translation_std_m: f64,
+    /// The goals.
+    pub goals: GoalOptions,
+    /// Tasks to plan.
+    pub tasks: Vec<Task>,
+    /// The world models of the tables, in order.
+    pub models: Vec<ReportModel>,
+    /// The results file's section the tables replace: its name decides the
+    /// heading (the default `planning` names no models).
+    pub section: String,
+    /// Denoising steps of the diffusion models' predictions.
+    pub denoise_steps: usize,
+    /// The device of the diffusion models.
+    pub device: ComputeDevice,
+    /// Seed.
+    pub seed: u64,
+}
+
+/// The models of the report from a comma-separated list (or, without one,
+/// the default: perfect, random with `with_random`, trained with
+/// `trained`).
+pub fn report_models(
+    list: Option<&str>,
+    with_random: bool,
+    trained: Option<&std::path::Path>,
+) -> Result<Vec<ReportModel>> {
+    let Some(list) = list else {
+        let mut out = vec![ReportModel::Perfect];
+        if with_random {
+            out.push(ReportModel::Random);
+        }
+        out.extend(trained.map(|d| ReportModel::Trained(d.to_path_buf())));
+        return Ok(out);
+    };
+    let bad = |m: String| PlanError::input(format!("--models {list}"), m);
+    let mut out = Vec::new();
+    for name in list.split(',').map(str::trim) {
+        let m = match name {
+            "perfect" => ReportModel::Perfect,
+            "random" => ReportModel::Random,
+            "trained" => match trained {
+                Some(dir) => ReportModel::Trained(dir.to_path_buf()),
+                None => return Err(bad("`trained` needs --trained DIR".into())),
+            },
+            other => {
+                return Err(bad(format!(
+                    "unknown model {other:?}; expected perfect, trained or random"
+                )))
+            }
+        };
+        if out.contains(&m) {
+            return Err(bad(format!("{name} named twice")));
+        }
+        out.push(m);
+    }
+    if with_random && !out.contains(&ReportModel::Random) {
+        out.push(ReportModel::Random);
+    }
+    if trained.is_some() && !out.iter().any(|m| matches!(m, ReportModel::Trained(_))) {
+        return Err(bad(
+            "--trained is given but `trained` is not among the models".into(),
+        ));
+    }
+    Ok(out)
+}
+
+/// Runs planning on every task and the policy evaluation with every model,
+/// and returns the section's markdown; `command` is the command line that
+/// produced it, `progress` gets a line per trial.
+pub fn plan_report(
+    o: &PlanReportOptions,
+    command: &str,
+    progress: &mut dyn FnMut(&str),
+) -> Result<String> {
+    if !bridgev2w_io::sections::is_section_name(&o.section) {
+        return Err(PlanError::input(
+            format!("--section {:?}", o.section),
+            bridgev2w_io::sections::SECTION_NAME_EXPECTED,
+        ));
+    }
+    // Resolved once, up front: a bad folder fails before hours of planning.
+    let models = o
+        .models
+        .iter()
+        .map(|m| Ok((m.clone(), m.options(o)?)))
+        .collect::<Result<Vec<(ReportModel, ModelOptions)>>>()?;
+    let planners: Vec<&(ReportModel, ModelOptions)> = models
+        .iter()
+        .filter(|(m, _)| *m != ReportModel::Random)
+        .collect();
+    if planners.is_empty() && o.trials > 0 {
+        return Err(PlanError::input(
+            "--models",
+            "expected perfect or trained among them (random only evaluates policies; --trials 0 plans nothing)",
+        ));
+    }
+    let mut md = String::from(if o.trials > 0 {
+        "## Goal-image planning and policy evaluation in the synthetic world"
+    } else {
+        "## Policy evaluation in the synthetic world"
+    });
+    if o.section != "planning" {
+        let names: Vec<String> = models.iter().map(|(m, _)| m.label()).collect();
+        md += &format!(": {}", names.join(", "));
+    }
+    md += "\n\n";
+    md += &format!(
+        "Produced by `{command}` (diffusion models on `{}`). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; each table names the world model that plans or rolls policies out.\n\n",
+        o.device,
+        96,
+        64
+    );
+    if o.trials > 0 {
+        md += &plan_tables(o, &planners, progress)?;
+    }
+    md += &format!(
+        "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). World-model goal progress: the mean over trials of (d_start - d_last) / max(d_start, d_last) for those latent distances (1: at the goal, 0: no nearer, negative: farther); it ranks policies even when no rollout succeeds. Synthetic-world success: the task's state check.\n",
+        o.eval_trials
+    );
+    for (model, options) in &models {
+        let ro = RolloutOptions {
+            trials: o.eval_trials,
+            model: options.clone(),
+            seed: o.seed,
+            ..RolloutOptions::new(Task::PickPlace)
+        };
+        if ro.trials == 0 {
+            return Err(PlanError::input("--eval-trials", "must be at least 1"));
+        }
+        let loaded = LoadedModel::load(options)?;
+        let r = rollout_with(&loaded, &ro, progress)?;
+        md += &format!(
+            "\n#### Model: {}{}\n\n{}",
+            model.label(),
+            match model {
+                ReportModel::Perfect => String::new(),
+                _ => format!(" ({} denoising steps)", o.denoise_steps),
+            },
+            r.markdown()
+        );
+    }
+    Ok(md)
+}
+
+/// The planning part of the report: the CEM settings and a row per task
+/// and planning model.
+fn plan_tables(
+    o: &PlanReportOptions,
+    planners: &[&(ReportModel, ModelOptions)],
+    progress: &mut dyn FnMut(&str),
+) -> Result<String> {
+    let mut md = format!(
+        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
+        o.trials,
+        o.cem.samples,
+        o.cem.elites,
+        o.cem.iters,
+        o.cem.horizon,
+        o.translation_std_m,
+        o.max_steps,
+        if o.cem.keep_elites { ", elites carried over (iCEM)" } else { "" },
+        if o.cem.execute_best { ", the best candidate executed" } else { ", the refined mean executed" },
+        o.goals.waypoints,
+        o.goals.subgoal_patience,
+        o.goals.patience
+    );
+    let loaded = planners
+        .iter()
+        .map(|(_, options)| LoadedModel::load(options))
+        .collect::<Result<Vec<_>>>()?;
+    for &task in &o.tasks {
+        for (&(planner, options), loaded) in planners.iter().zip(&loaded) {
+            let po = PlanOptions {
+                trials: o.trials,
+                model: options.clone(),
+                cem: o.cem.clone(),
+                max_steps: o.max_steps,
+                translation_std_m: o.translation_std_m,
+                goals: o.goals.clone(),
+                seed: o.seed,
+                ..PlanOptions::new(task)
+            };
+            let cfg = po.mpc_config()?;
+            let s = plan_with(loaded, &po, &cfg, progress)?;
+            md += &format!(
+                "| {} | {} | {}/{} | {}/{} | {:.1} | {:.1} | {:.1} | {:.0} |\n",
+                task.name(),
+                planner.label(),
+                s.planned,
+                s.trials,
+                s.random,
+                s.trials,
+                s.planned_error_m * 100.0,
+                s.random_error_m * 100.0,
+                s.planned_steps,
+                s.seconds
+            );
+        }
+    }
+    Ok(md)
+}

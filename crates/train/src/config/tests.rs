@@ -1,0 +1,130 @@
+use super::*;
+
+#[test]
+fn sizes_beyond_the_limits_name_the_field() {
+    let base = "[model]\nbackbone = \"random:tiny\"\n[data]\ndataset = \"d\"\n";
+    for (extra, field) in [
+        ("width = 100000\n", "data.width"),
+        ("frames = 4000000000\n", "data.frames"),
+    ] {
+        let text = format!("{base}{extra}");
+        let e = TrainConfig::from_toml(&text).unwrap_err().to_string();
+        assert!(e.contains(field) && e.contains("at most"), "{e}");
+    }
+    let e = TrainConfig::from_toml(&format!("{base}[train]\nbatch_size = 100000000\n"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("train.batch_size"), "{e}");
+    // A learning rate of 0 would train nothing (found by fuzz_config).
+    for lr in ["0.0", "-1e-4", "nan"] {
+        let e = TrainConfig::from_toml(&format!("{base}[train]\nlr = {lr}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("train.lr") && e.contains("> 0"), "{e}");
+    }
+    // Found by `scripts/fuzz.sh train-config 60`: lora_alpha = nan passed.
+    for (table, line, field) in [
+        ("[model]\n", "lora_alpha = nan\n", "model.lora_alpha"),
+        ("[data]\n", "weight = -1.0\n", "data.weight"),
+        ("[data]\n", "weight = inf\n", "data.weight"),
+        ("[data]\n", "weight = nan\n", "data.weight"),
+    ] {
+        let text = base.replace(table, &format!("{table}{line}"));
+        let e = TrainConfig::from_toml(&text)
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(field), "{line}: {e}");
+    }
+    // model.transformer: a known preset, over a backbone folder only.
+    let folder = base.replace("random:tiny", "some/folder");
+    let c = TrainConfig::from_toml(
+        &folder.replace("[model]\n", "[model]\ntransformer = \"small2x-wide\"\n"),
+    )
+    .unwrap();
+    assert_eq!(c.model.transformer.as_deref(), Some("small2x-wide"));
+    let e =
+        TrainConfig::from_toml(&folder.replace("[model]\n", "[model]\ntransformer = \"huge\"\n"))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+    assert!(
+        e.contains("model.transformer") && e.contains("small2x-wide"),
+        "{e}"
+    );
+    let e =
+        TrainConfig::from_toml(&base.replace("[model]\n", "[model]\ntransformer = \"small\"\n"))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+    assert!(
+        e.contains("model.transformer") && e.contains("random:small"),
+        "{e}"
+    );
+    let e = TrainConfig::from_toml(&format!("{base}[train]\nimage_noise_log_std = nan\n"))
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("train.image_noise_log"), "{e}");
+    // A typed stage: an unknown one lists the stages.
+    let e = TrainConfig::from_toml(&format!("{base}[train]\nstage = \"fine\"\n"))
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("fine") && e.contains("prior") && e.contains("vae"),
+        "{e}"
+    );
+    assert_eq!("prior".parse::<Stage>().unwrap(), Stage::Prior);
+    assert_eq!(Stage::Vae.to_string(), "vae");
+    for d in ["1.0", "-0.1", "nan"] {
+        let e = TrainConfig::from_toml(&format!("{base}[train]\nema_decay = {d}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("train.ema_decay") && e.contains("[0, 1)"), "{e}");
+    }
+}
+
+#[test]
+fn paper_defaults_and_parsing() {
+    let c = TrainConfig::from_toml("[data]\ndataset = \"d\"\n").unwrap();
+    assert_eq!(c.train.lr, 2e-5);
+    assert_eq!((c.train.beta1, c.train.beta2), (0.9, 0.95));
+    assert_eq!(c.train.eps, 1e-8);
+    assert_eq!(c.train.weight_decay, 1e-4);
+    assert_eq!(c.train.grad_clip, 1.0);
+    assert_eq!(c.train.warmup_steps, 100);
+    assert_eq!((c.model.lora_rank, c.model.lora_alpha), (64, 64.0));
+    assert_eq!((c.train.lambda_dyn, c.train.dyn_k), (0.1, 4));
+    assert_eq!((c.train.lambda_flow, c.train.e_switch), (0.05, 5));
+    assert!(c.ablation.mask_action && c.ablation.controlnet);
+    // Round trip.
+    let back = TrainConfig::from_toml(&c.to_toml().unwrap()).unwrap();
+    assert_eq!(back, c);
+    // Unknown keys and bad values are errors naming the field.
+    let e = TrainConfig::from_toml("[train]\nlearning_rate = 1\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("learning_rate"), "{e}");
+    let e = TrainConfig::from_toml("[train]\nbeta2 = 1.5\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("beta2"), "{e}");
+    assert_eq!(c.train.autocast, Autocast::Auto);
+    let e = TrainConfig::from_toml("[train]\nautocast = \"fp16\"\n")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("autocast") && e.contains("fp16") && e.contains("bf16"),
+        "{e}"
+    );
+}
+
+#[test]
+fn warmup_then_constant() {
+    let mut c = TrainConfig::default();
+    c.train.warmup_steps = 4;
+    c.train.lr = 1.0;
+    let lrs: Vec<f64> = (0..6).map(|s| c.lr_at(s)).collect();
+    assert_eq!(lrs, vec![0.25, 0.5, 0.75, 1.0, 1.0, 1.0]);
+}

@@ -1,0 +1,309 @@
+//! Layers of the CogVideoX 3D causal VAE, after diffusers'
+//! `models/autoencoders/autoencoder_kl_cogvideox.py`, `downsampling.py` and
+//! `upsampling.py` (0.42.1). Every struct takes a [`nn::Path`] and creates its
+//! parameters under diffusers' exact names, so a `vae/diffusion_pytorch_model.safetensors`
+//! loads unchanged.
+//!
+//! Videos are `[batch, channels, frames, height, width]` throughout. Parameters are
+//! created with constant values (zeros, ones for norm scales) without touching the
+//! global RNG: the model is meant to be loaded from weights, or randomised with
+//! [`crate::vae::init_like_pytorch`] to train from scratch.
+//!
+//! Causal temporal convolutions carry a *conv cache* between the frame batches that
+//! the autoencoder feeds through the encoder/decoder one after another: the last
+//! `kernel - 1` (padded) input frames of the previous batch, which replace the
+//! first-frame replication padding of the first batch. The cache types here mirror
+//! diffusers' nested `conv_cache` dicts, holding only the entries that are ever read
+//! (convolutions with a temporal kernel above 1).
+
+mod blocks;
+mod resample;
+
+use crate::error::Result;
+use tch::nn::{self, Init};
+use tch::Tensor;
+
+pub use blocks::{BlockCache, DownBlock3D, MidBlock3D, ResnetBlock3D, ResnetCache, UpBlock3D};
+pub use resample::{Downsample3D, Upsample3D};
+
+/// The resnets' nonlinearity (`act_fn` in the config, diffusers' `get_activation`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Activation {
+    /// `silu` / `swish`: `x * sigmoid(x)`.
+    Silu,
+    /// `mish`: `x * tanh(softplus(x))`.
+    Mish,
+    /// `gelu` (exact, erf-based).
+    Gelu,
+    /// `relu`.
+    Relu,
+}
+
+impl Activation {
+    /// Parses diffusers' activation name.
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "silu" | "swish" => Some(Self::Silu),
+            "mish" => Some(Self::Mish),
+            "gelu" => Some(Self::Gelu),
+            "relu" => Some(Self::Relu),
+            _ => None,
+        }
+    }
+
+    /// Applies the activation.
+    pub fn forward(self, x: &Tensor) -> Tensor {
+        match self {
+            Self::Silu => x.silu(),
+            Self::Mish => x.mish(),
+            Self::Gelu => x.gelu("none"),
+            Self::Relu => x.relu(),
+        }
+    }
+}
+
+/// diffusers' `CogVideoXSafeConv3d`: an `nn.Conv3d` (parameters `weight`, `bias`) that
+/// splits inputs above 2 GiB (counted at 2 bytes an element) into frame chunks, each
+/// chunk after the first prefixed with the previous chunk's last `kernel_t - 1` frames,
+/// so the output equals the unsplit convolution.
+#[derive(Debug)]
+pub struct SafeConv3d {
+    weight: Tensor,
+    bias: Tensor,
+    stride: [i64; 3],
+    padding: [i64; 3],
+}
+
+impl SafeConv3d {
+    /// A convolution with kernel `[t, h, w]`, zero padding `padding` and `stride`.
+    pub fn new(
+        p: nn::Path,
+        in_channels: i64,
+        out_channels: i64,
+        kernel: [i64; 3],
+        stride: [i64; 3],
+        padding: [i64; 3],
+    ) -> Self {
+        let weight = p.var(
+            "weight",
+            &[out_channels, in_channels, kernel[0], kernel[1], kernel[2]],
+            Init::Const(0.),
+        );
+        let bias = p.var("bias", &[out_channels], Init::Const(0.));
+        Self {
+            weight,
+            bias,
+            stride,
+            padding,
+        }
+    }
+
+    /// The temporal kernel size.
+    fn time_kernel(&self) -> i64 {
+        self.weight.size()[2]
+    }
+
+    fn conv(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(x.f_conv3d(
+            &self.weight,
+            Some(&self.bias),
+            self.stride,
+            self.padding,
+            [1, 1, 1],
+            1,
+        )?)
+    }
+
+    /// The convolution of a clip of `k` copies of one frame (`k` the temporal
+    /// kernel, stride 1 in time): `[B, Cin, H, W] -> [B, Cout, 1, H', W']`.
+    /// Every temporal tap sees the same frame, so this is one 2-D
+    /// convolution with the taps' weights summed: a third of the
+    /// arithmetic of the 3-D one for a `3³` kernel.
+    fn forward_repeated_frame(&self, frame: &Tensor) -> Result<Tensor> {
+        // [Cout, Cin, kt, kh, kw] -> [Cout, Cin, kh, kw]
+        let w = self
+            .weight
+            .f_sum_dim_intlist(2, false, self.weight.kind())?;
+        Ok(frame
+            .f_conv2d(
+                &w,
+                Some(&self.bias),
+                [self.stride[1], self.stride[2]],
+                [self.padding[1], self.padding[2]],
+                [1, 1],
+                1,
+            )?
+            .f_unsqueeze(2)?) // [B, Cout, H', W'] -> [B, Cout, 1, H', W']
+    }
+
+    /// `[B, Cin, T, H, W] -> [B, Cout, T', H', W']`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let numel: i64 = x.size().iter().product();
+        // diffusers: `numel * 2 / 1024**3` GiB, split above 2.
+        let memory_gib = (numel as f64 * 2.0) / 1024f64.powi(3);
+        if memory_gib <= 2.0 {
+            return self.conv(x);
+        }
+        let parts = (memory_gib / 2.0) as i64 + 1;
+        let chunks = x.f_chunk(parts, 2)?;
+        let k = self.time_kernel();
+        let mut outputs = Vec::with_capacity(chunks.len());
+        for (i, chunk) in chunks.iter().enumerate() {
+            let out = if i > 0 && k > 1 {
+                // Prefix the previous chunk's last k - 1 frames (fewer if it is shorter).
+                let prev = &chunks[i - 1];
+                let prev_t = prev.size()[2];
+                let n = (k - 1).min(prev_t);
+                let input =
+                    Tensor::f_cat(&[prev.narrow(2, prev_t - n, n), chunk.shallow_clone()], 2)?;
+                self.conv(&input)?
+            } else {
+                self.conv(chunk)?
+            };
+            outputs.push(out);
+        }
+        Ok(Tensor::f_cat(&outputs, 2)?)
+    }
+}
+
+/// diffusers' `CogVideoXCausalConv3d` with CogVideoX's padding mode (`"first"`, i.e.
+/// not `"replicate"`): a cubic-kernel convolution (`conv.weight`, `conv.bias`), zero
+/// padding `(k - 1) / 2` in height and width, and causal temporal padding: the first
+/// frame replicated `k - 1` times in front, or the conv cache of the previous frame
+/// batch instead.
+#[derive(Debug)]
+pub struct CausalConv3d {
+    conv: SafeConv3d,
+    time_kernel: i64,
+}
+
+impl CausalConv3d {
+    /// A causal convolution with a `kernel³` kernel and stride 1.
+    pub fn new(p: nn::Path, in_channels: i64, out_channels: i64, kernel: i64) -> Self {
+        let spatial_pad = (kernel - 1) / 2;
+        let conv = SafeConv3d::new(
+            p / "conv",
+            in_channels,
+            out_channels,
+            [kernel, kernel, kernel],
+            [1, 1, 1],
+            [0, spatial_pad, spatial_pad],
+        );
+        Self {
+            conv,
+            time_kernel: kernel,
+        }
+    }
+
+    /// `[B, Cin, T, H, W] -> [B, Cout, T, H, W]`, with the cache for the next frame batch
+    /// (the last `k - 1` frames of the time-padded input; `None` when `k == 1`, where
+    /// diffusers' cache is never read).
+    pub fn forward(&self, x: &Tensor, cache: Option<&Tensor>) -> Result<(Tensor, Option<Tensor>)> {
+        let k = self.time_kernel;
+        if k <= 1 {
+            return Ok((self.conv.forward(x)?, None));
+        }
+        if cache.is_none() && x.size()[2] == 1 && self.conv.padding[0] == 0 {
+            // One frame and no cache: the time-padded input is k copies of it.
+            // [B, C, 1, H, W] -> [B, C, k - 1, H, W]
+            let new_cache = x.f_repeat([1, 1, k - 1, 1, 1])?;
+            let out = self.conv.forward_repeated_frame(&x.f_squeeze_dim(2)?)?;
+            return Ok((out, Some(new_cache)));
+        }
+        let front = match cache {
+            Some(c) => c.shallow_clone(),
+            // [B, C, 1, H, W] -> [B, C, k - 1, H, W]: the first frame, k - 1 times.
+            None => x.narrow(2, 0, 1).f_repeat([1, 1, k - 1, 1, 1])?,
+        };
+        // [B, C, k - 1 + T, H, W]
+        let padded = Tensor::f_cat(&[front, x.shallow_clone()], 2)?;
+        let t = padded.size()[2];
+        // A copy, so the cache does not keep the whole padded input alive.
+        let new_cache = padded.narrow(2, t - (k - 1), k - 1).copy();
+        Ok((self.conv.forward(&padded)?, Some(new_cache)))
+    }
+}
+
+/// `nn.GroupNorm` with affine parameters `weight`, `bias`.
+#[derive(Debug)]
+pub struct GroupNorm {
+    weight: Tensor,
+    bias: Tensor,
+    groups: i64,
+    eps: f64,
+}
+
+impl GroupNorm {
+    /// Group norm over `channels` in `groups` groups.
+    pub fn new(p: nn::Path, groups: i64, channels: i64, eps: f64) -> Self {
+        Self {
+            weight: p.var("weight", &[channels], Init::Const(1.)),
+            bias: p.var("bias", &[channels], Init::Const(0.)),
+            groups,
+            eps,
+        }
+    }
+
+    /// Normalizes `[B, C, ...]` over each group of channels and all other dimensions.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(x.f_group_norm(
+            self.groups,
+            Some(&self.weight),
+            Some(&self.bias),
+            self.eps,
+            true,
+        )?)
+    }
+}
+
+/// diffusers' `CogVideoXSpatialNorm3D`: group norm (eps 1e-6) of the features `f`,
+/// scaled and shifted by 1×1×1 convolutions (`conv_y`, `conv_b`) of the latent `zq`
+/// resized to `f` by nearest interpolation. When `f` has an odd frame count above 1,
+/// the first latent frame is resized to the first feature frame and the rest to the
+/// rest separately.
+#[derive(Debug)]
+pub struct SpatialNorm3D {
+    norm_layer: GroupNorm,
+    conv_y: CausalConv3d,
+    conv_b: CausalConv3d,
+}
+
+impl SpatialNorm3D {
+    /// Norm of `f_channels` features conditioned on a `zq_channels` latent.
+    pub fn new(p: nn::Path, f_channels: i64, zq_channels: i64, groups: i64) -> Self {
+        Self {
+            norm_layer: GroupNorm::new(&p / "norm_layer", groups, f_channels, 1e-6),
+            conv_y: CausalConv3d::new(&p / "conv_y", zq_channels, f_channels, 1),
+            conv_b: CausalConv3d::new(&p / "conv_b", zq_channels, f_channels, 1),
+        }
+    }
+
+    /// `f [B, Cf, T, H, W]`, `zq [B, Cz, t, h, w]` -> `[B, Cf, T, H, W]`.
+    pub fn forward(&self, f: &Tensor, zq: &Tensor) -> Result<Tensor> {
+        let fs = f.size();
+        let (t, h, w) = (fs[2], fs[3], fs[4]);
+        let zq = if t > 1 && t % 2 == 1 {
+            let zt = zq.size()[2];
+            // [B, Cz, 1, h, w] -> [B, Cz, 1, H, W]
+            let z_first = zq
+                .narrow(2, 0, 1)
+                .f_upsample_nearest3d([1, h, w], None, None, None)?;
+            // [B, Cz, t - 1, h, w] -> [B, Cz, T - 1, H, W]
+            let z_rest =
+                zq.narrow(2, 1, zt - 1)
+                    .f_upsample_nearest3d([t - 1, h, w], None, None, None)?;
+            Tensor::f_cat(&[z_first, z_rest], 2)?
+        } else {
+            // [B, Cz, t, h, w] -> [B, Cz, T, H, W]
+            zq.f_upsample_nearest3d([t, h, w], None, None, None)?
+        };
+        let (conv_y, _) = self.conv_y.forward(&zq, None)?;
+        let (conv_b, _) = self.conv_b.forward(&zq, None)?;
+        let norm_f = self.norm_layer.forward(f)?;
+        Ok(norm_f * conv_y + conv_b)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests;

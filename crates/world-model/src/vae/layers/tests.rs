@@ -1,0 +1,120 @@
+use super::*;
+use tch::{Device, Kind};
+
+/// A 3 -> `out` causal 3x3x3 convolution with N(0, 0.2²) weights and bias.
+fn random_conv(seed: i64, out: i64) -> (nn::VarStore, CausalConv3d) {
+    tch::manual_seed(seed);
+    let vs = nn::VarStore::new(Device::Cpu);
+    let conv = CausalConv3d::new(vs.root() / "c", 3, out, 3);
+    tch::no_grad(|| {
+        for mut v in vs.variables().into_values() {
+            let r = Tensor::randn_like(&v) * 0.2;
+            v.copy_(&r);
+        }
+    });
+    (vs, conv)
+}
+
+#[test]
+fn inflated_causal_conv_is_the_frame_by_frame_conv_and_keeps_single_frames() {
+    let (vs, conv) = random_conv(1, 4);
+    let frame = Tensor::randn([1, 3, 1, 5, 6], (Kind::Float, Device::Cpu));
+    let clip = Tensor::randn([1, 3, 4, 5, 6], (Kind::Float, Device::Cpu));
+    let (single_before, _) = conv.forward(&frame, None).unwrap();
+    let (clip_before, _) = conv.forward(&clip, None).unwrap();
+    assert_eq!(crate::vae::inflate_image_weights(&vs), 1);
+    let (single_after, _) = conv.forward(&frame, None).unwrap();
+    assert!(
+        (&single_after - &single_before)
+            .abs()
+            .max()
+            .double_value(&[])
+            < 1e-5
+    );
+    // Every output frame is now the conv of its own frame alone.
+    let (clip_after, _) = conv.forward(&clip, None).unwrap();
+    for t in 0..4 {
+        let (alone, _) = conv.forward(&clip.narrow(2, t, 1), None).unwrap();
+        let d = (clip_after.narrow(2, t, 1) - alone)
+            .abs()
+            .max()
+            .double_value(&[]);
+        assert!(d < 1e-5, "frame {t}: {d}");
+    }
+    // Before, later frames mixed in their predecessors.
+    let (alone, _) = conv.forward(&clip.narrow(2, 3, 1), None).unwrap();
+    assert!(
+        (clip_before.narrow(2, 3, 1) - alone)
+            .abs()
+            .max()
+            .double_value(&[])
+            > 1e-2
+    );
+}
+
+#[test]
+fn one_frame_causal_conv_matches_the_time_padded_3d_conv() {
+    let (_vs, conv) = random_conv(0, 5);
+    let x = Tensor::randn([2, 3, 1, 6, 7], (Kind::Float, Device::Cpu));
+    let (fast, cache) = conv.forward(&x, None).unwrap();
+    // The general path: the frame k = 3 times, one 3-D convolution.
+    let slow = conv.conv.forward(&x.repeat([1, 1, 3, 1, 1])).unwrap();
+    assert_eq!(fast.size(), vec![2, 5, 1, 6, 7]);
+    let diff = (&fast - &slow).abs().max().double_value(&[]);
+    assert!(diff < 1e-5, "{diff}");
+    // The cache for the next frames is the general path's: the frame, twice.
+    assert!(cache.unwrap().equal(&x.repeat([1, 1, 2, 1, 1])));
+    // With a cache (a later frame batch) the 3-D path runs as before.
+    let (next, _) = conv.forward(&x, Some(&x.repeat([1, 1, 2, 1, 1]))).unwrap();
+    assert!((&next - &slow).abs().max().double_value(&[]) < 1e-5);
+}
+
+#[test]
+fn time_pooling_is_avg_pool3d_and_runs_in_bf16_on_the_cpu() {
+    tch::manual_seed(3);
+    let mut vs = nn::VarStore::new(Device::Cpu);
+    let down = Downsample3D::new(vs.root() / "d", 3, true);
+    tch::no_grad(|| {
+        for mut v in vs.variables().into_values() {
+            let r = Tensor::randn_like(&v) * 0.2;
+            v.copy_(&r);
+        }
+    });
+    let pooled =
+        |x: &Tensor| x.avg_pool3d([2, 1, 1], [2, 1, 1], [0, 0, 0], false, true, None::<i64>);
+    let mut f32_outputs = Vec::new();
+    for t in [1i64, 4, 5] {
+        let x = Tensor::randn([2, 3, t, 6, 8], (Kind::Float, Device::Cpu));
+        let got = down.forward(&x).unwrap();
+        // The reference: diffusers' avg_pool3d, the first frame kept
+        // alone for an odd count.
+        let reference = match t {
+            1 => x.shallow_clone(),
+            _ if t % 2 == 1 => Tensor::cat(&[x.narrow(2, 0, 1), pooled(&x.narrow(2, 1, t - 1))], 2),
+            _ => pooled(&x),
+        };
+        let want = down
+            .conv
+            .forward(&reference.constant_pad_nd([0, 1, 0, 1]))
+            .unwrap();
+        let d = (&got - &want).abs().max().double_value(&[]);
+        assert!(d < 1e-6, "t = {t}: {d}");
+        f32_outputs.push((x, got));
+    }
+    // The same downsampler in bf16 on the CPU, where avg_pool3d has no
+    // bf16 kernel: it runs and stays within bf16 rounding of f32.
+    vs.bfloat16();
+    for (x, want) in f32_outputs {
+        let got = down.forward(&x.to_kind(Kind::BFloat16)).unwrap();
+        assert_eq!(got.kind(), Kind::BFloat16);
+        let scale = want.abs().max().double_value(&[]);
+        let d = (got.to_kind(Kind::Float) - &want)
+            .abs()
+            .max()
+            .double_value(&[]);
+        assert!(
+            scale > 0.1 && d < 0.05 * scale,
+            "bf16 off by {d} (scale {scale})"
+        );
+    }
+}

@@ -1,0 +1,79 @@
+//! The VAE's diagonal Gaussian posterior.
+
+use crate::error::{Result, WorldModelError};
+use tch::Tensor;
+
+/// The diagonal Gaussian posterior of an encoded video (diffusers'
+/// `DiagonalGaussianDistribution`): `mean` and `logvar` (clamped to `[-30, 20]`),
+/// each `[B, latent_channels, t, h, w]`, unscaled.
+#[derive(Debug)]
+pub struct Posterior {
+    mean: Tensor,
+    logvar: Tensor,
+}
+
+impl Posterior {
+    /// Splits the encoder's moments `[B, 2C, t, h, w]` into mean and log-variance.
+    pub fn from_moments(moments: &Tensor) -> Result<Self> {
+        let parts = moments.f_chunk(2, 1)?;
+        let [mean, logvar] = <[Tensor; 2]>::try_from(parts).map_err(|p| {
+            WorldModelError::input(
+                "moments",
+                format!("expected 2 chunks along channels, got {}", p.len()),
+            )
+        })?;
+        Ok(Self {
+            mean,
+            logvar: logvar.clamp(-30.0, 20.0),
+        })
+    }
+
+    /// The mean `[B, C, t, h, w]` (diffusers' `latent_dist.mean`, also the mode).
+    pub fn mean(&self) -> &Tensor {
+        &self.mean
+    }
+
+    /// The clamped log-variance.
+    pub fn logvar(&self) -> &Tensor {
+        &self.logvar
+    }
+
+    /// `exp(0.5 * logvar)`.
+    pub fn std(&self) -> Tensor {
+        (&self.logvar * 0.5).exp()
+    }
+
+    /// The mode (== mean).
+    pub fn mode(&self) -> Tensor {
+        self.mean.shallow_clone()
+    }
+
+    /// `mean + std * noise` for a caller-supplied standard normal `noise` of the
+    /// mean's shape.
+    pub fn sample_with_noise(&self, noise: &Tensor) -> Result<Tensor> {
+        if noise.size() != self.mean.size() {
+            return Err(WorldModelError::input(
+                "noise",
+                format!(
+                    "shape {:?}, the posterior's is {:?}",
+                    noise.size(),
+                    self.mean.size()
+                ),
+            ));
+        }
+        let noise = noise
+            .to_device(self.mean.device())
+            .to_kind(self.mean.kind());
+        Ok(&self.mean + self.std() * noise)
+    }
+
+    /// A sample with the noise of diffusers'
+    /// `sample(generator=torch.Generator().manual_seed(seed))`: standard normal noise
+    /// drawn on the CPU after seeding libtorch's global generators with `seed` (which
+    /// they keep afterwards).
+    pub fn sample(&self, seed: u64) -> Result<Tensor> {
+        tch::manual_seed(seed as i64);
+        let noise = Tensor::f_randn(self.mean.size(), (self.mean.kind(), tch::Device::Cpu))?;
+        self.sample_with_noise(&noise)
+    }
+}

@@ -1,0 +1,108 @@
+use super::*;
+
+#[test]
+fn frame_batches_match_diffusers() {
+    assert_eq!(frame_batches(1, 8), vec![(0, 1)]);
+    assert_eq!(frame_batches(5, 8), vec![(0, 5)]);
+    assert_eq!(frame_batches(9, 8), vec![(0, 9)]);
+    assert_eq!(frame_batches(13, 8), vec![(0, 13)]);
+    assert_eq!(frame_batches(16, 8), vec![(0, 8), (8, 16)]);
+    assert_eq!(frame_batches(17, 8), vec![(0, 9), (9, 17)]);
+    assert_eq!(frame_batches(49, 8).len(), 6);
+    assert_eq!(frame_batches(49, 8)[0], (0, 9));
+    assert_eq!(
+        frame_batches(13, 2),
+        vec![(0, 3), (3, 5), (5, 7), (7, 9), (9, 11), (11, 13)]
+    );
+    assert_eq!(frame_batches(1, 2), vec![(0, 1)]);
+}
+
+#[test]
+fn presets_validate() {
+    for cfg in [
+        VaeConfig::cogvideox_5b_i2v(),
+        VaeConfig::cogvideox_2b(),
+        VaeConfig::tiny(),
+    ] {
+        cfg.validate(Path::new("preset"))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(cfg.spatial_compression(), 8);
+        assert_eq!(cfg.temporal_compress_level(), 2);
+    }
+    use crate::transformer::TransformerConfig;
+    for (small, tf, space, time_levels) in [
+        (VaeConfig::small(), TransformerConfig::small(), 4, 2),
+        (VaeConfig::small_2x(), TransformerConfig::small_2x(), 2, 0),
+        (
+            VaeConfig::small_2x(),
+            TransformerConfig::small_2x_wide(),
+            2,
+            0,
+        ),
+    ] {
+        tf.validate(Path::new("transformer preset"))
+            .unwrap_or_else(|e| panic!("{e}"));
+        small
+            .validate(Path::new("small"))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            (small.spatial_compression(), small.temporal_compress_level()),
+            (space, time_levels)
+        );
+        // The small transformer denoises the small VAE's latents (noisy ++ image).
+        assert_eq!(
+            (tf.in_channels, tf.out_channels()),
+            (2 * small.latent_channels, small.latent_channels)
+        );
+        assert_eq!(
+            (tf.sample_height, tf.sample_width),
+            (
+                small.sample_height / small.spatial_compression(),
+                small.sample_width / small.spatial_compression()
+            )
+        );
+        // Every token covers 8x8 pixels in both presets.
+        assert_eq!(tf.patch_size * small.spatial_compression(), 8);
+        // A token's noise and image values fit its width, so the
+        // sampler can see all the noise it has to remove.
+        assert!(tf.patch_size.pow(2) * tf.in_channels <= tf.inner_dim());
+        // Its learned positions are sized for the VAE's latent frames.
+        assert_eq!(
+            tf.temporal_compression_ratio,
+            small.temporal_compression_ratio as i64
+        );
+    }
+    let t = Tiling::for_config(&VaeConfig::cogvideox_5b_i2v());
+    assert_eq!(
+        (t.tile_sample_min_height, t.tile_sample_min_width),
+        (240, 360)
+    );
+    assert_eq!(
+        (t.tile_latent_min_height, t.tile_latent_min_width),
+        (30, 45)
+    );
+}
+
+#[test]
+fn time_compression_beyond_the_resampling_blocks_is_refused() {
+    let cfg = VaeConfig {
+        temporal_compression_ratio: 4.0,
+        ..VaeConfig::small_2x()
+    };
+    let e = cfg
+        .validate(Path::new("vae/config.json"))
+        .expect_err("4x time with one resampling block")
+        .to_string();
+    assert!(
+        e.contains("temporal_compression_ratio") && e.contains("only 1 resamplers"),
+        "{e}"
+    );
+}
+
+#[test]
+fn config_parses_diffusers_json() {
+    let json = r#"{"_class_name": "AutoencoderKLCogVideoX", "_diffusers_version": "0.30.0",
+            "scaling_factor": 0.7, "block_out_channels": [128, 256, 256, 512]}"#;
+    let cfg: VaeConfig = serde_json::from_str(json).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(cfg, VaeConfig::cogvideox_5b_i2v());
+}
