@@ -86,8 +86,7 @@ fn list(s: &Option<String>) -> Option<Vec<String>> {
 
 pub fn run(args: &ConvertArgs) -> Result<()> {
     // Written to OUT.tmp, removed again if the conversion fails.
-    let output =
-        bridgev2w_embodiment::output::OutputDir::create(&args.out, false).context("--out")?;
+    let output = bridgev2w_io::output::OutputDir::create(&args.out, false).context("--out")?;
     let tmp = output.path().to_path_buf();
     let robot = args.robot.clone().unwrap_or_else(|| {
         match args.format {

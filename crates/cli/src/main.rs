@@ -1,7 +1,6 @@
 //! `bridgev2w`: the command-line tool.
 
 mod bench;
-mod bench_model;
 mod convert_cmd;
 mod demo;
 mod eval_cmd;
@@ -9,6 +8,7 @@ mod masks_cmd;
 mod parity_cmd;
 mod plan_cmd;
 mod predict_cmd;
+mod progress;
 mod report;
 mod robot_info;
 mod synth_cmd;

@@ -1,5 +1,6 @@
 //! `bridgev2w masks`.
 
+pub use crate::progress::progress_bar;
 use anyhow::{bail, Context, Result};
 use bridgev2w_embodiment::actions::{
     actions_to_joints, check_joint_trajectory, FrameResidual, Trajectory,
@@ -10,11 +11,11 @@ use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_embodiment::masks::{
     render_trajectory, render_trajectory_labels, write_outputs, WriteOptions,
 };
-use bridgev2w_embodiment::npy::write_npy;
-use bridgev2w_embodiment::output::OutputDir;
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
-use indicatif::{ProgressBar, ProgressStyle};
+use bridgev2w_io::npy::write_npy;
+use bridgev2w_io::output::OutputDir;
+use indicatif::ProgressBar;
 use std::path::{Path, PathBuf};
 
 /// Which robot, shared by several commands.
@@ -151,17 +152,6 @@ pub fn joint_trajectory(
     Ok(result?)
 }
 
-pub fn progress_bar(len: usize, what: &str) -> ProgressBar {
-    let pb = ProgressBar::new(len as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    pb.set_message(what.to_string());
-    pb
-}
-
 /// Renders every frame of `joints` from `camera` with a progress bar:
 /// labels and depth maps with `depth`, else labels alone (`depth_m` left
 /// empty), the faster path when only masks and labels are written.
@@ -193,7 +183,9 @@ pub fn render_with_progress(
 
 /// Writes the residual report `ik.json`.
 pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<()> {
-    Ok(bridgev2w_embodiment::actions::write_ik_report(dir, residuals)?)
+    Ok(bridgev2w_embodiment::actions::write_ik_report(
+        dir, residuals,
+    )?)
 }
 
 pub fn run(args: &MasksArgs) -> Result<()> {

@@ -1,12 +1,11 @@
 //! `bridgev2w predict`: the video a mask sequence causes, from a first frame.
 
 use anyhow::{bail, Context, Result};
-use bridgev2w_embodiment::npy::{read_npy, write_atomic, write_npy};
-use bridgev2w_embodiment::output::OutputDir;
-use bridgev2w_embodiment::png::encode_rgb8;
-use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_io::npy::{read_npy, write_atomic, write_npy};
+use bridgev2w_io::output::OutputDir;
+use bridgev2w_io::png::encode_rgb8;
+use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
-use bridgev2w_world_model::scheduler::SchedulerConfig;
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::vae::TilingOptions;
 use bridgev2w_world_model::video::{Image, MaskVideo};
@@ -67,30 +66,13 @@ pub struct PredictArgs {
 }
 
 fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
-    let dev = a.device;
-    let dir = match &a.model {
-        ModelSpec::Random(preset) => {
-            let (vae, tf) = preset.configs();
-            return Ok(BridgeV2W::random(
-                BridgeV2WConfig::tiny(),
-                &vae,
-                &tf,
-                SchedulerConfig::cogvideox_5b_i2v(),
-                dev,
-                a.seed as i64,
-            )?);
-        }
-        ModelSpec::Folder(dir) => dir,
-    };
-    BridgeV2W::load(
-        dir,
+    Ok(a.model.load_bridge(
         a.weights.as_deref(),
         a.prompt_embeds.as_deref(),
-        BridgeV2WConfig::paper(),
-        dev,
+        a.device,
         a.precision,
-    )
-    .with_context(|| format!("loading the model from {}", dir.display()))
+        a.seed as i64,
+    )?)
 }
 
 fn read_image(path: &Path, (h, w): (usize, usize)) -> Result<Image> {

@@ -4,6 +4,8 @@
 use anyhow::{Context, Result};
 use bridgev2w_train::config::TrainConfig;
 use bridgev2w_train::distributed::DistEnv;
+use bridgev2w_train::eval_run::{evaluate_run, EvalProgress, EvalRunOptions};
+use bridgev2w_train::evaluate::EvalOptions;
 use bridgev2w_train::trainer::Trainer;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -178,112 +180,60 @@ pub struct EvalRunArgs {
     segmenter: bridgev2w_train::segmenter::SegmenterKind,
 }
 
+/// The spinner of `eval-run`: a new one for each long step.
+#[derive(Default)]
+struct Spinner(std::cell::RefCell<Option<ProgressBar>>);
+
+impl EvalProgress for Spinner {
+    fn begin(&self, what: &str) {
+        let pb = ProgressBar::new_spinner().with_message(what.to_string());
+        pb.enable_steady_tick(std::time::Duration::from_millis(200));
+        *self.0.borrow_mut() = Some(pb);
+    }
+    fn tick(&self) {
+        if let Some(pb) = &*self.0.borrow() {
+            pb.tick();
+        }
+    }
+    fn end(&self) {
+        if let Some(pb) = self.0.borrow_mut().take() {
+            pb.finish_and_clear();
+        }
+    }
+    fn note(&self, line: &str) {
+        eprintln!("{line}");
+    }
+}
+
 /// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
 /// next to the copy-the-first-frame baseline.
 pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
-    use bridgev2w_eval::segment::RobotSegmenter;
-    use bridgev2w_train::evaluate::{color_segmenter, evaluate_split, EvalOptions};
-    use bridgev2w_train::segmenter::{CnnSegmenter, SegmenterKind, SegmenterOptions};
-    let cfg = TrainConfig::from_file(&args.config)?;
-    let mut trainer = Trainer::new(cfg).context("setting up the run's model")?;
-    trainer
-        .resume(&args.run)
-        .with_context(|| format!("loading the run {}", args.run.display()))?;
-    let averaged = args.weights == bridgev2w_train::ema::RunWeights::Averaged
-        && trainer.use_averaged_weights();
-    eprintln!(
-        "weights: {}",
-        if averaged {
-            format!(
-                "moving averages (train.ema_decay = {})",
-                trainer.cfg.train.ema_decay
-            )
-        } else {
-            "parameters".to_string()
-        }
-    );
-    let opts = EvalOptions {
-        steps: args.steps,
-        guidance: args.guidance,
-        seed: args.seed,
-        max_videos: args.max_videos,
-        first_frame: args.first_frame,
+    let o = EvalRunOptions {
+        config: args.config.clone(),
+        run: args.run.clone(),
+        splits: args
+            .splits
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .map(String::from)
+            .collect(),
+        sampling: EvalOptions {
+            steps: args.steps,
+            guidance: args.guidance,
+            seed: args.seed,
+            max_videos: args.max_videos,
+            first_frame: args.first_frame,
+        },
+        weights: args.weights,
+        segmenter: args.segmenter,
     };
-    let segmenter: Option<Box<dyn RobotSegmenter>> = match args.segmenter {
-        SegmenterKind::Cnn => {
-            let pb = ProgressBar::new_spinner().with_message("training the robot segmenter");
-            pb.enable_steady_tick(std::time::Duration::from_millis(200));
-            let s = CnnSegmenter::fit(&trainer.data, &SegmenterOptions::default())
-                .context("training the robot segmenter")?;
-            pb.finish_and_clear();
-            if let Some(s) = &s {
-                eprintln!("robot segmenter: CNN, final BCE {:.4}", s.final_loss);
-            }
-            s.map(|s| Box::new(s) as Box<dyn RobotSegmenter>)
-        }
-        SegmenterKind::Color => color_segmenter(&trainer.data)
-            .context("fitting the robot segmenter")?
-            .map(|s| Box::new(s) as Box<dyn RobotSegmenter>),
-    };
-    if segmenter.is_none() {
-        eprintln!("note: the training split has no masks; Mask-IoU is not measured");
-    }
-    let mut rows = Vec::new();
-    for split in args
-        .splits
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-    {
-        let pb = ProgressBar::new_spinner().with_message(format!("scoring {split}"));
-        let scores = evaluate_split(&trainer, split, &opts, segmenter.as_deref(), &|| pb.tick())
-            .with_context(|| format!("split {split}"))?;
-        pb.finish_and_clear();
-        rows.push(scores);
-    }
-    let mut text = format!(
-        "run {} (step {}, stage {}), {} steps, guidance {}; scored on the predicted frames (all but frame 0, the input)\n\n| split | videos | PSNR | dynamic PSNR | SSIM | Mask-IoU | copy-first-frame PSNR | copy-first-frame dynamic PSNR | copy-first-frame SSIM | copy-first-frame Mask-IoU | segmenter ceiling | VAE ceiling PSNR | VAE ceiling dynamic PSNR | VAE ceiling SSIM |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
-        args.run.display(),
-        trainer.step,
-        trainer.cfg.train.stage,
-        args.steps,
-        args.guidance
-    );
-    for r in &rows {
-        let iou = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{:.1}", 100.0 * x));
-        let db = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.2}"));
-        text.push_str(&format!(
-            "| {} | {} | {:.2} | {} | {:.4} | {} | {:.2} | {} | {:.4} | {} | {} | {:.2} | {} | {:.4} |\n",
-            r.split,
-            r.videos,
-            r.psnr,
-            db(r.dynamic_psnr),
-            r.ssim,
-            iou(r.mask_iou),
-            r.baseline_psnr,
-            db(r.baseline_dynamic_psnr),
-            r.baseline_ssim,
-            iou(r.baseline_mask_iou),
-            iou(r.segmenter_mask_iou),
-            r.autoencoder_psnr,
-            db(r.autoencoder_dynamic_psnr),
-            r.autoencoder_ssim
-        ));
-    }
+    let evaluation = evaluate_run(&o, &Spinner::default())?;
     if let Some(path) = &args.json {
-        let body = serde_json::to_string_pretty(&serde_json::json!({
-            "run": args.run,
-            "step": trainer.step,
-            "stage": trainer.cfg.train.stage,
-            "mask_action": trainer.cfg.ablation.mask_action,
-            "sampling_steps": args.steps,
-            "guidance": args.guidance,
-            "seed": args.seed,
-            "segmenter": args.segmenter.to_string(),
-            "splits": rows,
-        }))?;
-        bridgev2w_embodiment::npy::write_atomic(path, body.as_bytes())
-            .with_context(|| format!("writing {}", path.display()))?;
+        bridgev2w_io::atomic::write_atomic(
+            path,
+            serde_json::to_string_pretty(&evaluation.to_json())?.as_bytes(),
+        )?;
     }
-    crate::print_stdout(&text)
+    crate::print_stdout(&evaluation.markdown())
 }

@@ -387,8 +387,7 @@ fn the_world_model_guide_runs() {
                 }
             }
         }
-        bridgev2w_embodiment::npy::write_npy(&d.join("masks.npy"), &[9, 64, 96], &masks)
-            .expect("npy");
+        bridgev2w_io::npy::write_npy(&d.join("masks.npy"), &[9, 64, 96], &masks).expect("npy");
     });
     assert!(d.path().join("prediction/video.npy").is_file());
 }

@@ -1,7 +1,7 @@
 //! `bridgev2w predict` end to end on random tiny weights (shapes, files, determinism,
 //! and the errors a user meets first).
 
-use bridgev2w_embodiment::npy::{read_npy, write_npy};
+use bridgev2w_io::npy::{read_npy, write_npy};
 
 mod common;
 

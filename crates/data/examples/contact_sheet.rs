@@ -51,7 +51,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
     }
-    let png = bridgev2w_embodiment::png::encode_rgb8(sw as u32, sh as u32, &sheet);
+    let png = bridgev2w_io::png::encode_rgb8(sw as u32, sh as u32, &sheet);
     std::fs::write(out, png)?;
     Ok(())
 }

@@ -14,8 +14,8 @@
 use crate::lerobot::{DatasetError, LeRobotDataset};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::masks::render_frame_mask;
-use bridgev2w_embodiment::npy::{read_npy, write_npy};
 use bridgev2w_embodiment::raster::Rasterizer;
+use bridgev2w_io::npy::{read_npy, write_npy};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 

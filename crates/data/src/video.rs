@@ -236,7 +236,7 @@ pub fn write_test_pattern(
         writer.push(&rgb, f == 0)?;
     }
     let bytes = writer.to_bytes()?;
-    bridgev2w_embodiment::npy::write_atomic(path, &bytes).map_err(|e| VideoError::Frame {
+    bridgev2w_io::npy::write_atomic(path, &bytes).map_err(|e| VideoError::Frame {
         path: path.to_path_buf(),
         message: format!("cannot write: {e}"),
     })

@@ -344,7 +344,7 @@ fn truncated_mp4_and_unsupported_codec_name_the_file() {
 
 #[test]
 fn stored_masks_with_an_empty_dimension_or_grey_values_are_refused() {
-    use bridgev2w_embodiment::npy::write_npy;
+    use bridgev2w_io::npy::write_npy;
     let dir = tempfile::tempdir().unwrap();
     let out = small_dataset(dir.path());
     let path = out.join("masks/episode_000000.npy");

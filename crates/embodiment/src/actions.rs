@@ -14,9 +14,9 @@
 
 use crate::kinematics::{pose_from_xyz_rpy, IkOptions, IkSolver};
 use crate::robot::Robot;
+use bridgev2w_io::FileError;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
-use bridgev2w_io::FileError;
 
 /// Errors reading trajectories or converting actions; each names the file
 /// (or input) and, where it applies, the frame and column.
@@ -134,7 +134,7 @@ impl Trajectory {
             .unwrap_or_default();
         let rows = match ext.as_str() {
             "npy" => {
-                let a = crate::npy::read_npy(path).map_err(|e| ActionError::Format {
+                let a = bridgev2w_io::npy::read_npy(path).map_err(|e| ActionError::Format {
                     source_name: name.clone(),
                     message: e.to_string(),
                 })?;
@@ -448,8 +448,8 @@ pub fn ik_report(residuals: &[FrameResidual]) -> serde_json::Value {
 /// Writes [`ik_report`] as `dir/ik.json`, atomically.
 pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<(), FileError> {
     let p = dir.join("ik.json");
-    let text = serde_json::to_string_pretty(&ik_report(residuals))
-        .map_err(|source| FileError::Json {
+    let text =
+        serde_json::to_string_pretty(&ik_report(residuals)).map_err(|source| FileError::Json {
             path: p.clone(),
             source,
         })?;

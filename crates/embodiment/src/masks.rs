@@ -5,9 +5,9 @@
 //! the result does not depend on the number of threads.
 
 use crate::camera::Camera;
-use crate::npy::{write_atomic, write_npy, NpyError};
 use crate::raster::{Rasterizer, RenderItem, RenderOutput};
 use crate::robot::Robot;
+use bridgev2w_io::npy::{write_atomic, write_npy, NpyError};
 use nalgebra::Isometry3;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -294,7 +294,7 @@ pub fn write_outputs(
                     .iter()
                     .map(|&l| if l != 0 { 255 } else { 0 })
                     .collect();
-                let bytes = crate::png::encode_gray8(f.width, f.height, &gray);
+                let bytes = bridgev2w_io::png::encode_gray8(f.width, f.height, &gray);
                 write_atomic(&p, &bytes).map_err(|e| file_err(&p, e.to_string()))?;
                 Ok(p)
             })

@@ -194,7 +194,9 @@ mod tests {
         let frames = vec![vec![255u8; 4 * 2 * 3], vec![0u8; 4 * 2 * 3]];
         let bytes = encode_gif(4, 2, &frames, 5).unwrap();
         assert!(bytes.starts_with(b"GIF89a"));
-        let e = encode_gif(4, 2, &[vec![0u8; 5]], 5).unwrap_err().to_string();
+        let e = encode_gif(4, 2, &[vec![0u8; 5]], 5)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("frame 0") && e.contains("4x2"), "{e}");
     }
 }

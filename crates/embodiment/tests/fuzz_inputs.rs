@@ -17,7 +17,7 @@ mod fuzz;
 
 use bridgev2w_embodiment::actions::{parse_csv_rows, parse_json_rows, ActionError, Trajectory};
 use bridgev2w_embodiment::camera::Camera;
-use bridgev2w_embodiment::npy::{encode_npy, parse_npy};
+use bridgev2w_io::npy::{encode_npy, parse_npy};
 use fuzz::{mutate_text, run_target};
 use peak_alloc::PeakAlloc;
 use rand::Rng;

@@ -3,8 +3,8 @@
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::masks::{link_labels, render_trajectory, write_outputs, WriteOptions};
-use bridgev2w_embodiment::npy::read_npy;
 use bridgev2w_embodiment::robot::{LoadOptions, Robot};
+use bridgev2w_io::npy::read_npy;
 use nalgebra::{Point3, Vector3};
 
 fn camera() -> Camera {

@@ -9,6 +9,7 @@
 //!   world-model success rates, as SIMPLER computes them; [`policy_rates`]
 //!   reads success-rate files and compares them per task.
 
+pub mod bench;
 pub mod clip;
 pub mod dynamic;
 pub mod frechet;

@@ -1,18 +1,30 @@
-//! Small file utilities every bridgev2w crate shares, each with one home:
+//! The utilities every bridgev2w crate shares, each with one home (files
+//! mostly, hence the name; also the seeds and the peer processes that the
+//! benchmarks and tests compare against):
 //!
 //! * [`atomic`]: files written through a synced temporary file and a rename,
 //!   so a reader (or a killed run) sees the old file or the new one, never a
 //!   part;
 //! * [`json`]: JSON files read and written with errors that name the file;
+//! * [`npy`] and [`png`]: NumPy arrays and PNG images, the formats masks,
+//!   frames and videos are exchanged in;
+//! * [`output`]: output folders as transactions (built in `OUT.tmp`, renamed
+//!   to `OUT` when complete);
 //! * [`sections`]: a markdown results file that several commands share, each
 //!   owning one marked section;
+//! * [`seed`]: seeded, reproducible randomness (seed mixing, SplitMix64,
+//!   normal draws);
 //! * [`peer`]: the Python peers of the benches (repository root, venvs,
 //!   scripts that print a JSON result) and the benches' progress reports.
 
 pub mod atomic;
 pub mod json;
+pub mod npy;
+pub mod output;
 pub mod peer;
+pub mod png;
 pub mod sections;
+pub mod seed;
 
 use std::path::{Path, PathBuf};
 

@@ -75,7 +75,10 @@ mod tests {
         assert!(s.find("video v2").unwrap() < s.find("plan v1").unwrap());
         std::fs::write(&p, "<!-- end section: video --> <!-- section: video -->").unwrap();
         let e = write_section(&p, "video", "x").unwrap_err().to_string();
-        assert!(e.contains("broken marker pair") && e.contains("results.md"), "{e}");
+        assert!(
+            e.contains("broken marker pair") && e.contains("results.md"),
+            "{e}"
+        );
         let e = write_section(&p, "a/b", "x").unwrap_err().to_string();
         assert!(e.contains("\"a/b\""), "{e}");
     }

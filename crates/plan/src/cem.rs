@@ -212,12 +212,8 @@ pub fn discretize(inc: &mut [f64; 6]) {
     }
 }
 
-/// One draw of N(0, 1) (Box-Muller).
-pub fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
-    let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
-    let u2: f64 = rng.gen_range(0.0..1.0);
-    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-}
+/// One draw of N(0, 1) (Box-Muller; the project's one normal sampler).
+pub use bridgev2w_io::seed::standard_normal;
 
 /// Draws one candidate: on the `active` dimensions from the step Gaussians
 /// (the covariance restricted to them), elsewhere the mean.

@@ -58,15 +58,6 @@ pub enum PlanError {
     /// The world model failed.
     #[error(transparent)]
     Model(#[from] WorldModelError),
-    /// A model folder could not be loaded.
-    #[error("loading the model from {path}")]
-    ModelLoad {
-        /// The folder.
-        path: String,
-        /// Why.
-        #[source]
-        source: WorldModelError,
-    },
     /// A results file could not be written.
     #[error(transparent)]
     File(#[from] bridgev2w_io::FileError),

@@ -297,11 +297,7 @@ impl ScriptedPolicy {
     }
 }
 
-fn gauss(rng: &mut ChaCha8Rng) -> f64 {
-    let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
-    let u2: f64 = rng.gen_range(0.0..1.0);
-    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-}
+use bridgev2w_io::seed::{standard_normal as gauss, trial_seed};
 
 impl Policy for ScriptedPolicy {
     fn name(&self) -> String {
@@ -309,9 +305,7 @@ impl Policy for ScriptedPolicy {
     }
 
     fn reset(&mut self, trial: usize) {
-        self.rng = ChaCha8Rng::seed_from_u64(
-            self.seed ^ (trial as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        );
+        self.rng = ChaCha8Rng::seed_from_u64(trial_seed(self.seed, trial as u64));
         self.cursor = 1;
         let s = self.offset_std_m;
         self.offset_m = [

@@ -107,19 +107,8 @@ pub struct ClipDataset {
     pub sources: Vec<(String, f64)>,
 }
 
-fn seed_of(parts: &[u64]) -> u64 {
-    // SplitMix64 over the parts: a well-mixed seed per (seed, epoch/step, purpose).
-    let mut h: u64 = 0x9E37_79B9_7F4A_7C15;
-    for &p in parts {
-        h ^= p.wrapping_add(0x9E37_79B9_7F4A_7C15).wrapping_add(h << 6);
-        h = h.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = h;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        h = z ^ (z >> 31);
-    }
-    h
-}
+/// A well-mixed seed per (seed, epoch/step, purpose).
+use bridgev2w_io::seed::derive_seed as seed_of;
 
 /// A deterministic RNG for `(seed, step, purpose)`.
 pub fn rng_for(seed: u64, step: u64, purpose: u64) -> ChaCha8Rng {

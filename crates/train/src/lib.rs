@@ -11,12 +11,14 @@
 
 pub mod action;
 pub mod augment;
+pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod data;
 pub mod demo;
 pub mod distributed;
 pub mod ema;
+pub mod eval_run;
 pub mod evaluate;
 pub mod flow;
 pub mod losses;
@@ -56,6 +58,21 @@ pub enum TrainError {
         /// The error.
         error: std::io::Error,
     },
+    /// An error while doing something named.
+    #[error("{what}")]
+    Context {
+        /// What was being done.
+        what: String,
+        /// The error.
+        #[source]
+        source: Box<TrainError>,
+    },
+    /// A synthetic dataset's settings.
+    #[error(transparent)]
+    Synth(#[from] bridgev2w_data::synth::SynthError),
+    /// Writing a synthetic dataset.
+    #[error(transparent)]
+    WriteDataset(#[from] bridgev2w_data::synth::WriteDatasetError),
     /// From the world model.
     #[error(transparent)]
     WorldModel(#[from] bridgev2w_world_model::error::WorldModelError),

@@ -537,7 +537,7 @@ fn calc_and_seg_mask_sources_and_mixing() {
                 .collect();
             std::fs::write(
                 dir.join(format!("{f:06}.png")),
-                bridgev2w_embodiment::png::encode_gray8(48, 32, &half),
+                bridgev2w_io::png::encode_gray8(48, 32, &half),
             )
             .unwrap();
         }

@@ -396,7 +396,7 @@ impl BridgeV2W {
                 path: path.to_path_buf(),
                 error: e,
             })?;
-            crate::error::write_atomic(path, text.as_bytes())
+            Ok(bridgev2w_io::atomic::write_atomic(path, text.as_bytes())?)
         };
         let with_class = |value: serde_json::Value, class: &str| {
             let mut v = value;

@@ -5,7 +5,8 @@
 //! used (the prompt is fixed: its embedding is read from a file, see [`PromptEmbedding`]).
 
 use crate::bridge::ImageConditioning;
-use crate::error::{read_json, Result, WorldModelError};
+use crate::error::{Result, WorldModelError};
+use bridgev2w_io::json::read_json;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 

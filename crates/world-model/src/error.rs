@@ -84,12 +84,29 @@ pub enum WorldModelError {
     /// An error from libtorch.
     #[error("libtorch: {0}")]
     Torch(#[from] tch::TchError),
+    /// Loading a model folder failed.
+    #[error("loading the model from {}", path.display())]
+    Load {
+        /// The folder.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: Box<WorldModelError>,
+    },
 }
 
 /// Result alias of this crate.
 pub type Result<T, E = WorldModelError> = std::result::Result<T, E>;
 
 impl WorldModelError {
+    /// This error, as one of loading the model folder `dir`.
+    pub fn in_folder(self, dir: &std::path::Path) -> Self {
+        Self::Load {
+            path: dir.to_path_buf(),
+            source: Box::new(self),
+        }
+    }
+
     pub(crate) fn io(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
         Self::Io {
             path: path.into(),
@@ -117,29 +134,22 @@ impl WorldModelError {
     }
 }
 
-/// Reads and parses a JSON file with errors naming the file.
-pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &std::path::Path) -> Result<T> {
-    let text = std::fs::read_to_string(path).map_err(|e| WorldModelError::io(path, e))?;
-    serde_json::from_str(&text).map_err(|error| WorldModelError::Json {
-        path: path.to_path_buf(),
-        error,
-    })
-}
-
-/// Writes a file atomically (a temporary file in the same folder, then rename).
-pub(crate) fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(std::path::Path::new("."));
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "file".to_owned());
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    std::fs::write(&tmp, bytes).map_err(|e| WorldModelError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        WorldModelError::io(path, e)
-    })
+impl From<bridgev2w_io::FileError> for WorldModelError {
+    fn from(e: bridgev2w_io::FileError) -> Self {
+        use bridgev2w_io::FileError;
+        match e {
+            FileError::Io { path, source } => Self::Io {
+                path,
+                error: source,
+            },
+            FileError::Json { path, source } => Self::Json {
+                path,
+                error: source,
+            },
+            FileError::Format { path, message } => Self::Input {
+                name: path.display().to_string(),
+                message,
+            },
+        }
+    }
 }

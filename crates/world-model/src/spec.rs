@@ -4,11 +4,14 @@
 //! ([`std::str::FromStr`]) wherever a model is named: `model.backbone`,
 //! `predict --model`, `plan --model`.
 
+use crate::bridge::{BridgeV2W, BridgeV2WConfig};
+use crate::device::{ComputeDevice, Precision};
 use crate::error::WorldModelError;
+use crate::scheduler::SchedulerConfig;
 use crate::transformer::TransformerConfig;
 use crate::vae::VaeConfig;
 use std::fmt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 /// The VAE + transformer presets with random weights (`random:NAME`).
@@ -51,6 +54,44 @@ pub enum ModelSpec {
     /// A diffusers CogVideoX image-to-video folder (`model_index.json`,
     /// `vae/`, `transformer/`, `scheduler/`).
     Folder(PathBuf),
+}
+
+impl ModelSpec {
+    /// Builds the BridgeV2W this names: random weights of a preset (the
+    /// tiny BridgeV2W settings, initialised from `seed`), or a diffusers
+    /// folder with the paper's settings and the given adapter `weights` and
+    /// `prompt_embeds` (a folder error names the folder).
+    pub fn load_bridge(
+        &self,
+        weights: Option<&Path>,
+        prompt_embeds: Option<&Path>,
+        device: ComputeDevice,
+        precision: Precision,
+        seed: i64,
+    ) -> Result<BridgeV2W, WorldModelError> {
+        match self {
+            Self::Random(preset) => {
+                let (vae, tf) = preset.configs();
+                BridgeV2W::random(
+                    BridgeV2WConfig::tiny(),
+                    &vae,
+                    &tf,
+                    SchedulerConfig::cogvideox_5b_i2v(),
+                    device,
+                    seed,
+                )
+            }
+            Self::Folder(dir) => BridgeV2W::load(
+                dir,
+                weights,
+                prompt_embeds,
+                BridgeV2WConfig::paper(),
+                device,
+                precision,
+            )
+            .map_err(|e| e.in_folder(dir)),
+        }
+    }
 }
 
 impl FromStr for ModelSpec {

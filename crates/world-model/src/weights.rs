@@ -8,7 +8,8 @@
 //! (each can be allowed explicitly, e.g. for the ControlNet/LoRA parameters that a
 //! base checkpoint lacks).
 
-use crate::error::{read_json, Result, WorldModelError};
+use crate::error::{Result, WorldModelError};
+use bridgev2w_io::json::read_json;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use tch::nn::VarStore;

@@ -7,7 +7,7 @@ use super::meta::{format_template, EpisodeData, EpisodeInfo, FrameRow, Version, 
 use super::DatasetError;
 use crate::video::decode_mp4;
 use bridgev2w_embodiment::camera::Camera;
-use bridgev2w_embodiment::npy::read_npy;
+use bridgev2w_io::npy::read_npy;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -90,10 +90,13 @@ pub struct LeRobotDataset {
 }
 
 fn read_json(path: &Path) -> Result<Value, DatasetError> {
-    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
-    serde_json::from_str(&text).map_err(|e| DatasetError::Meta {
-        path: path.to_path_buf(),
-        message: format!("invalid JSON: {e}"),
+    bridgev2w_io::json::read_json(path).map_err(|e| match e {
+        bridgev2w_io::FileError::Io { path, source } => DatasetError::Io { path, source },
+        bridgev2w_io::FileError::Json { path, source } => DatasetError::Meta {
+            path,
+            message: format!("invalid JSON: {source}"),
+        },
+        bridgev2w_io::FileError::Format { path, message } => DatasetError::Meta { path, message },
     })
 }
 

@@ -12,7 +12,7 @@ use arrow_array::{
 };
 use arrow_schema::{DataType, Field, Schema};
 use bridgev2w_embodiment::camera::Camera;
-use bridgev2w_embodiment::npy::write_npy;
+use bridgev2w_io::npy::write_npy;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::Compression;
 use parquet::file::properties::WriterProperties;

@@ -105,8 +105,13 @@ pub(crate) fn read_json(path: &Path) -> Result<Value, RawError> {
             what: "JSON file".into(),
         });
     }
-    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
-    serde_json::from_str(&text).map_err(|e| json_err(path, "", format!("invalid JSON: {e}")))
+    bridgev2w_io::json::read_json(path).map_err(|e| match e {
+        bridgev2w_io::FileError::Io { path, source } => RawError::Io { path, source },
+        bridgev2w_io::FileError::Json { path, source } => {
+            json_err(&path, "", format!("invalid JSON: {source}"))
+        }
+        bridgev2w_io::FileError::Format { path, message } => json_err(&path, "", message),
+    })
 }
 
 /// A finite number at `value[field]`.

@@ -265,6 +265,6 @@ pub fn episode_seed(seed: u64, split: Split, index: usize) -> u64 {
     let mut h = seed ^ split.stream_id().wrapping_mul(0xA076_1D64_78BD_642F);
     h = h.wrapping_add((index as u64).wrapping_mul(0xE703_7ED1_A0B4_28DB));
     h ^= h >> 32;
-    h = h.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    h = h.wrapping_mul(bridgev2w_io::seed::GOLDEN_GAMMA);
     h ^ (h >> 29)
 }

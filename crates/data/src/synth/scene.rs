@@ -87,7 +87,7 @@ impl Pattern {
 }
 
 fn hash2(i: i64, j: i64, seed: u32) -> f64 {
-    let mut h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+    let mut h = (i as u64).wrapping_mul(bridgev2w_io::seed::GOLDEN_GAMMA)
         ^ (j as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
         ^ u64::from(seed).wrapping_mul(0x1656_67B1_9E37_79F9);
     h ^= h >> 31;

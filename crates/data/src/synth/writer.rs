@@ -19,7 +19,7 @@ pub enum WriteDatasetError {
     Exists(std::path::PathBuf),
     /// Creating or committing the output folder failed.
     #[error(transparent)]
-    Output(#[from] bridgev2w_embodiment::output::OutputError),
+    Output(#[from] bridgev2w_io::output::OutputError),
     /// File-system failure.
     #[error("{path}: {source}")]
     Io {
@@ -59,7 +59,7 @@ pub fn write_dataset(
     on_episode: &(dyn Fn() + Sync),
 ) -> Result<DatasetSummary, WriteDatasetError> {
     use crate::lerobot::{LeRobotV3Writer, WriterEpisode};
-    use bridgev2w_embodiment::output::{OutputDir, OutputError};
+    use bridgev2w_io::output::{OutputDir, OutputError};
     let world = World::new(config)?;
     // Removed again if anything below fails.
     let output = OutputDir::create(out, false).map_err(|e| match e {

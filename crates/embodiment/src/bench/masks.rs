@@ -6,10 +6,10 @@
 use super::{BenchError, Result};
 use crate::camera::{Camera, Intrinsics};
 use crate::masks::render_trajectory_label_array;
-use crate::npy::{read_npy, write_npy};
 use crate::robot::{LoadOptions, Robot};
 use bridgev2w_io::atomic::write_atomic;
 use bridgev2w_io::json::write_json_atomic;
+use bridgev2w_io::npy::{read_npy, write_npy};
 use bridgev2w_io::peer::{self, Progress};
 use nalgebra::{Point3, Vector3};
 use std::fmt;

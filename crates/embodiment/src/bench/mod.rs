@@ -14,8 +14,8 @@ pub use masks::{bench_masks, MaskAgreement, MasksBenchOptions, MasksBenchReport,
 
 use crate::camera::CameraError;
 use crate::embodiment::EmbodimentError;
-use crate::npy::NpyError;
 use crate::robot::RobotError;
+use bridgev2w_io::npy::NpyError;
 use bridgev2w_io::peer::PeerError;
 use bridgev2w_io::FileError;
 

@@ -27,11 +27,7 @@ pub use planning::{plan_summary, PlanOptions, PlanSummary};
 pub use report::{plan_report, PlanReportOptions, ReportModel};
 pub use rollout::{rollout_report, RolloutOptions};
 
-/// The seed of trial `trial` of an experiment seeded `seed` (a golden-ratio
-/// multiple keeps neighbouring trials' streams apart).
-pub fn trial_seed(seed: u64, trial: u64) -> u64 {
-    seed ^ trial.wrapping_mul(0x9E37_79B9_7F4A_7C15)
-}
+pub use bridgev2w_io::seed::trial_seed;
 
 /// Mean and sample standard deviation (0 for one value).
 pub fn mean_std(v: &[f64]) -> (f64, f64) {

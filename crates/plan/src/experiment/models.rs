@@ -7,9 +7,8 @@ use crate::model::{ActionWorldModel, MaskConditioned};
 use crate::synthetic::{PerfectWorldModel, TaskInstance};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{SynthConfig, World};
-use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions};
-use bridgev2w_world_model::scheduler::SchedulerConfig;
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
@@ -80,39 +79,22 @@ impl LoadedModel {
                 height: o.height,
                 clip_frames: o.clip_frames,
             },
-            PlanModel::World(ModelSpec::Random(preset)) => {
-                let (vae, tf) = preset.configs();
-                Self::Diffusion {
-                    model: Box::new(BridgeV2W::random(
-                        BridgeV2WConfig::tiny(),
-                        &vae,
-                        &tf,
-                        SchedulerConfig::cogvideox_5b_i2v(),
-                        o.device,
-                        0,
-                    )?),
-                    denoise_steps: o.denoise_steps,
+            PlanModel::World(spec) => {
+                if let ModelSpec::Folder(dir) = spec {
+                    if !dir.is_dir() {
+                        return Err(PlanError::input(
+                            format!("--model {}", dir.display()),
+                            "no such folder (expected perfect, random or a model folder)",
+                        ));
+                    }
                 }
-            }
-            PlanModel::World(ModelSpec::Folder(dir)) => {
-                if !dir.is_dir() {
-                    return Err(PlanError::input(
-                        format!("--model {}", dir.display()),
-                        "no such folder (expected perfect, random or a model folder)",
-                    ));
-                }
-                let model = BridgeV2W::load(
-                    dir,
+                let model = spec.load_bridge(
                     o.weights.as_deref(),
                     o.prompt_embeds.as_deref(),
-                    BridgeV2WConfig::paper(),
                     o.device,
                     Precision::F32,
-                )
-                .map_err(|source| PlanError::ModelLoad {
-                    path: dir.display().to_string(),
-                    source,
-                })?;
+                    0,
+                )?;
                 Self::Diffusion {
                     model: Box::new(model),
                     denoise_steps: o.denoise_steps,

@@ -21,8 +21,8 @@ use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_embodiment::masks::{
     empty_masks_warning, render_trajectory, write_outputs, WriteOptions,
 };
-use bridgev2w_embodiment::output::OutputDir;
 use bridgev2w_embodiment::overlay::{floor_background, overlay, write_gif};
+use bridgev2w_io::output::OutputDir;
 use bridgev2w_world_model::pipeline::FirstFrame;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -45,7 +45,7 @@ pub enum DemoError {
     Masks(#[from] bridgev2w_embodiment::masks::WriteError),
     /// The output folder.
     #[error(transparent)]
-    Output(#[from] bridgev2w_embodiment::output::OutputError),
+    Output(#[from] bridgev2w_io::output::OutputError),
     /// The GIF overlay.
     #[error(transparent)]
     Overlay(#[from] bridgev2w_embodiment::overlay::OverlayError),
@@ -202,7 +202,8 @@ pub fn run_demo(o: &DemoOptions, tick: &(dyn Fn() + Sync)) -> Result<DemoReport,
         },
     )?;
     write_ik_report(out, &residuals)?;
-    let write = |name: &str, bytes: &[u8]| bridgev2w_io::atomic::write_atomic(&out.join(name), bytes);
+    let write =
+        |name: &str, bytes: &[u8]| bridgev2w_io::atomic::write_atomic(&out.join(name), bytes);
     write("camera.json", camera.to_json().as_bytes())?;
     write(
         "actions.json",
@@ -220,7 +221,7 @@ pub fn run_demo(o: &DemoOptions, tick: &(dyn Fn() + Sync)) -> Result<DemoReport,
     let mid = &rgb[rgb.len() / 2];
     write(
         "overlay.png",
-        &bridgev2w_embodiment::png::encode_rgb8(width, height, mid),
+        &bridgev2w_io::png::encode_rgb8(width, height, mid),
     )?;
     let warning = empty_masks_warning(&written.empty_frames, frames.len());
     let max_ik_residual_mm = residuals

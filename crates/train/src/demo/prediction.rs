@@ -85,7 +85,11 @@ impl PredictionSummary {
 }
 
 /// JSON text of `value`, or an error naming `path`.
-fn json_text(path: &Path, value: &impl serde::Serialize, pretty: bool) -> Result<String, FileError> {
+fn json_text(
+    path: &Path,
+    value: &impl serde::Serialize,
+    pretty: bool,
+) -> Result<String, FileError> {
     let r = if pretty {
         serde_json::to_string_pretty(value)
     } else {

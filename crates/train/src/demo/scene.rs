@@ -66,4 +66,3 @@ pub fn demo_actions(e: &Embodiment, frames: usize) -> Result<Trajectory, ActionE
         .collect();
     Trajectory::new("built-in demo trajectory", rows)
 }
-

@@ -351,7 +351,7 @@ mod tests {
 
     fn write_png(path: &Path, value: u8) {
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-        image::RgbImage::from_pixel(8, 6, image::Rgb([value, value / 2, 200]))
+        image::RgbImage::from_pixel(16, 12, image::Rgb([value, value / 2, 200]))
             .save(path)
             .unwrap();
     }

@@ -6,7 +6,6 @@ use super::{io_err, Trainer};
 use crate::config::Stage;
 use crate::run_dir::ExistingRun;
 use crate::{Result, TrainError};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};
 
@@ -235,17 +234,9 @@ pub fn resolve_checkpoint(dir: &Path) -> Result<PathBuf> {
     Ok(dir.join("checkpoints").join(name.trim()))
 }
 
-/// Writes `bytes` to `path` through a temporary file and a rename.
+/// Writes `bytes` to `path` through a synced temporary file and a rename.
 pub(super) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = PathBuf::from(tmp);
-    {
-        let mut f = std::fs::File::create(&tmp).map_err(|e| io_err(&tmp, e))?;
-        f.write_all(bytes).map_err(|e| io_err(&tmp, e))?;
-        f.sync_all().map_err(|e| io_err(&tmp, e))?;
-    }
-    std::fs::rename(&tmp, path).map_err(|e| io_err(path, e))
+    bridgev2w_io::atomic::write_atomic_io(path, bytes).map_err(|e| io_err(path, e))
 }
 
 pub(super) fn save_named(mut named: Vec<(String, Tensor)>, path: &Path) -> Result<()> {

@@ -9,21 +9,19 @@ use crate::data::{rng_for, seed_for, Batch};
 use crate::flow::{flow_loss, flow_weight};
 use crate::losses::{diffusion_loss, dynamics_loss, predicted_x0};
 use crate::Result;
+use bridgev2w_io::seed::box_muller;
 use bridgev2w_torch_ext::{AutocastDevice, AutocastGuard};
 use rand::Rng;
-use rand_distr_free::normal;
 use tch::{Kind, Tensor};
 
-/// Box-Muller normal draws from a `rand` RNG (no extra dependency).
-mod rand_distr_free {
-    use rand::Rng;
-
-    /// One draw of `N(mean, std^2)`.
-    pub fn normal(rng: &mut impl Rng, mean: f64, std: f64) -> f64 {
-        let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
-        let u2: f64 = rng.gen();
-        mean + std * (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
+/// One draw of `N(mean, std^2)` ([`box_muller`]). The second uniform comes
+/// from `rng.gen()`, not `gen_range` as in
+/// [`bridgev2w_io::seed::standard_normal`]: the two give different streams,
+/// and this one is what the shipped model was trained with.
+fn normal(rng: &mut impl Rng, mean: f64, std: f64) -> f64 {
+    let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
+    let u2: f64 = rng.gen();
+    mean + std * box_muller(u1, u2)
 }
 
 impl Trainer {

@@ -307,16 +307,6 @@ impl I3d {
     }
 }
 
-/// Parity fixture outputs (`kind: i3d`): `logits` of the input `video`.
-pub fn fixture_outputs(
-    model_dir: &std::path::Path,
-    io: &crate::parity::FixtureIo,
-) -> Result<Vec<(String, Tensor)>> {
-    let files = crate::weights::resolve_weight_files(model_dir, "i3d")?;
-    let net = I3d::load(&files, ComputeDevice::Cpu)?;
-    Ok(vec![("logits".to_string(), net.forward(io.get("video")?)?)])
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -210,14 +210,3 @@ impl Lpips {
         Ok(sum / t as f64)
     }
 }
-
-/// Outputs of an `lpips` parity fixture: `distance` from `in0`, `in1`.
-pub fn fixture_outputs(
-    model_dir: &std::path::Path,
-    io: &crate::parity::FixtureIo,
-) -> Result<Vec<(String, Tensor)>> {
-    let files = crate::weights::resolve_weight_files(model_dir, "lpips_alex")?;
-    let net = Lpips::load(&files, ComputeDevice::Cpu)?;
-    let d = net.forward(io.get("in0")?, io.get("in1")?)?;
-    Ok(vec![("distance".to_string(), d)])
-}

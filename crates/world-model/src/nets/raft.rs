@@ -670,31 +670,3 @@ fn convex_upsample(flow: &Tensor, mask: &Tensor) -> Tensor {
     let up = (mask * patches).sum_dim_intlist(2, false, Kind::Float); // [B, C, 8, 8, h, w]
     up.permute([0, 1, 4, 2, 5, 3]).reshape([b, c, h * 8, w * 8]) // [B, C, h, 8, w, 8] -> [B, C, 8h, 8w]
 }
-
-/// Outputs of a `raft` parity fixture: `flow` (final estimate) from
-/// `image1`, `image2`, with the variant and iterations of `meta`.
-pub fn fixture_outputs(
-    model_dir: &std::path::Path,
-    meta: &serde_json::Value,
-    io: &crate::parity::FixtureIo,
-) -> Result<Vec<(String, Tensor)>> {
-    let variant = meta
-        .get("variant")
-        .and_then(|v| v.as_str())
-        .unwrap_or("raft_large");
-    let iterations = meta
-        .get("iterations")
-        .and_then(serde_json::Value::as_u64)
-        .unwrap_or(12) as usize;
-    let files = crate::weights::resolve_weight_files(model_dir, variant)?;
-    let net = Raft::load(RaftConfig::by_name(variant)?, &files, ComputeDevice::Cpu)?;
-    let flows = net.forward_all(io.get("image1")?, io.get("image2")?, iterations)?;
-    let mut out = vec![];
-    if let Some(first) = flows.first() {
-        out.push(("flow_first".to_string(), first.shallow_clone()));
-    }
-    if let Some(last) = flows.last() {
-        out.push(("flow".to_string(), last.shallow_clone()));
-    }
-    Ok(out)
-}

@@ -1,7 +1,8 @@
 //! `TransformerConfig`: diffusers' `transformer/config.json` of
 //! `CogVideoXTransformer3DModel`, with named presets.
 
-use crate::error::{read_json, Result, WorldModelError};
+use crate::error::{Result, WorldModelError};
+use bridgev2w_io::json::read_json;
 use std::path::{Path, PathBuf};
 
 /// The transformer's configuration. Unknown JSON fields (`_class_name`, ...)

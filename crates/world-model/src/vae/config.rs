@@ -1,7 +1,8 @@
 //! The VAE's configuration: diffusers' `vae/config.json`, its presets and its checks.
 
 use super::layers::Activation;
-use crate::error::{read_json, Result, WorldModelError};
+use crate::error::{Result, WorldModelError};
+use bridgev2w_io::json::read_json;
 use std::path::Path;
 
 /// The only block type of the encoder.

@@ -15,7 +15,6 @@
 
 mod coder;
 mod config;
-mod fixture;
 mod init;
 pub mod layers;
 mod posterior;
@@ -31,7 +30,6 @@ use tch::{Kind, Tensor};
 
 pub use coder::{DecoderCache, EncoderCache};
 pub use config::{VaeConfig, DOWN_BLOCK_TYPE, UP_BLOCK_TYPE};
-pub(crate) use fixture::parity_outputs;
 pub use init::{inflate_image_weights, init_like_pytorch};
 pub use posterior::Posterior;
 pub use tiling::{Tiling, TilingOptions};

@@ -9,8 +9,16 @@
 //! `max_abs = max |rust - diffusers|`, `max_rel = max_abs / max |diffusers|`
 //! (the error relative to the output's scale, robust to elements near zero).
 
-use crate::error::{read_json, Result, WorldModelError};
+mod i3d;
+mod lpips;
+mod raft;
+mod scheduler;
+mod transformer;
+mod vae;
+
+use crate::error::{Result, WorldModelError};
 use crate::weights::read_safetensors;
+use bridgev2w_io::json::read_json;
 use std::collections::HashMap;
 use std::path::Path;
 use tch::Tensor;
@@ -131,14 +139,14 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
     let io = FixtureIo::read(&dir.join("io.safetensors"))?;
     let model_dir = dir.join("model");
     let computed = tch::no_grad(|| -> Result<Vec<(String, Tensor)>> {
-        // One arm per kind: each module computes its outputs from `model_dir` and `io`.
+        // One arm per kind: each submodule computes its outputs from `model_dir` and `io`.
         match kind.as_str() {
-            "scheduler" => crate::scheduler::fixture_outputs(&model_dir, &io),
-            "lpips" => crate::nets::lpips::fixture_outputs(&model_dir, &io),
-            "raft" => crate::nets::raft::fixture_outputs(&model_dir, &meta, &io),
-            "i3d" => crate::nets::i3d::fixture_outputs(&model_dir, &io),
-            "transformer" => crate::transformer::fixture_outputs(&model_dir, &io),
-            "vae" => crate::vae::parity_outputs(&model_dir, &meta, &meta_path, &io),
+            "scheduler" => scheduler::fixture_outputs(&model_dir, &io),
+            "lpips" => lpips::fixture_outputs(&model_dir, &io),
+            "raft" => raft::fixture_outputs(&model_dir, &meta, &io),
+            "i3d" => i3d::fixture_outputs(&model_dir, &io),
+            "transformer" => transformer::fixture_outputs(&model_dir, &io),
+            "vae" => vae::fixture_outputs(&model_dir, &meta, &meta_path, &io),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",

@@ -1,5 +1,17 @@
 //! Timing of the model's main operations on random weights, for `bridgev2w bench
-//! model` (which runs diffusers on the same configs and shapes in the same run).
+//! model`, which runs diffusers on the same configs and shapes in the same run:
+//!
+//! * here: [`time_model`], one transformer forward and one VAE encode/decode;
+//! * [`diffusers`]: the same operations timed by diffusers (a Python peer);
+//! * [`gpu_memory`]: each side's peak GPU memory, polled from `nvidia-smi`;
+//! * [`compare`]: both sides from one options struct to one report.
+
+pub mod compare;
+pub mod diffusers;
+pub mod gpu_memory;
+
+pub use compare::{bench_configs, bench_model, GpuPeakMib, ModelBenchOptions, ModelBenchReport};
+pub use diffusers::DiffusersPeer;
 
 use crate::device::{ComputeDevice, Precision};
 use crate::error::{Result, WorldModelError};
@@ -8,6 +20,23 @@ use crate::vae::{AutoencoderKLCogVideoX, VaeConfig};
 use std::time::Instant;
 use tch::nn::VarStore;
 use tch::{Kind, Tensor};
+
+/// Why `bench model` could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// The options do not fit together: says which and what is expected.
+    #[error("{0}")]
+    Invalid(String),
+    /// This crate's model failed.
+    #[error(transparent)]
+    Model(#[from] WorldModelError),
+    /// diffusers could not be found, run or understood.
+    #[error(transparent)]
+    Peer(#[from] bridgev2w_io::peer::PeerError),
+    /// A config file for the peer could not be written.
+    #[error(transparent)]
+    File(#[from] bridgev2w_io::FileError),
+}
 
 /// What is timed: one clip of `frames` pixel frames at `height` x `width`.
 #[derive(Debug, Clone, PartialEq)]

@@ -1,9 +1,9 @@
-//! The VAE's arm of the parity fixtures (outputs to compare with diffusers').
+//! The VAE's arm of the parity fixtures (`kind: "vae"`).
 
-use super::{AutoencoderKLCogVideoX, TilingOptions};
+use super::FixtureIo;
 use crate::device::{ComputeDevice, Precision};
 use crate::error::{Result, WorldModelError};
-use crate::parity::FixtureIo;
+use crate::vae::{AutoencoderKLCogVideoX, TilingOptions};
 use std::path::{Path, PathBuf};
 use tch::Tensor;
 
@@ -26,10 +26,10 @@ struct FixtureTiling {
     tile_overlap_factor_width: f64,
 }
 
-/// The `"vae"` arm of [`crate::parity::run_fixture`]: loads `model_dir`, applies the
+/// The `"vae"` arm of [`run_fixture`](super::run_fixture): loads `model_dir`, applies the
 /// fixture's tiling/slicing and computes `latent_mean` (and `latent_sample`) from
 /// `video`, `decoded` from `latents`.
-pub(crate) fn parity_outputs(
+pub(super) fn fixture_outputs(
     model_dir: &Path,
     meta: &serde_json::Value,
     meta_path: &Path,

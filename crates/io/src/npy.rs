@@ -6,7 +6,6 @@
 //! needs it) files in C order, via a temporary file renamed into place so a
 //! crash never leaves a half-written file.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// Errors reading or writing `.npy` files; each names the file.
@@ -302,28 +301,9 @@ pub fn write_npy<T: NpyElement>(path: &Path, shape: &[usize], data: &[T]) -> Res
 }
 
 /// Writes `bytes` to a temporary file beside `path`, syncs it and renames it
-/// over `path`, so readers see either the old or the new file, never a part.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
+/// over `path`, so readers see either the old or the new file, never a part
+/// (the project's one atomic write, [`crate::atomic`]).
+pub use crate::atomic::write_atomic_io as write_atomic;
 
 #[cfg(test)]
 mod tests {

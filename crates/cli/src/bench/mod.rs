@@ -1,0 +1,38 @@
+//! `bridgev2w bench`: speed against peers measured in the same run. Each
+//! subcommand turns its flags into the library bench's options, runs it and
+//! prints its report.
+
+mod kinematics;
+mod loader;
+mod masks;
+mod metrics;
+mod model;
+
+use anyhow::Result;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum BenchCommand {
+    /// Mask rendering: this renderer vs pybullet's getCameraImage (TinyRenderer) on
+    /// pybullet's own franka_panda/panda.urdf with its OBJ meshes.
+    Masks(masks::MasksBench),
+    /// Forward kinematics poses/s and warm-started IK time per solve (built-in Franka).
+    Kinematics(kinematics::KinematicsBench),
+    /// PSNR + SSIM frames/s: bridgev2w-eval vs scikit-image on the same frames.
+    Metrics(metrics::MetricsBench),
+    /// One transformer forward and one VAE encode/decode: this crate vs diffusers
+    /// on the same configs, shapes, threads and precision (random weights).
+    Model(model::ModelBench),
+    /// Clip loader throughput (clips/s): decoding + masks (stored, rendered calc,
+    /// cached calc) and batch assembly, on a dataset or a generated synthetic one.
+    Loader(loader::LoaderBench),
+}
+
+pub fn run(cmd: &BenchCommand) -> Result<()> {
+    match cmd {
+        BenchCommand::Masks(a) => masks::run(a),
+        BenchCommand::Kinematics(a) => kinematics::run(a),
+        BenchCommand::Metrics(a) => metrics::run(a),
+        BenchCommand::Model(a) => model::run(a),
+        BenchCommand::Loader(a) => loader::run(a),
+    }
+}

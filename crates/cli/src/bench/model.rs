@@ -1,0 +1,72 @@
+//! `bridgev2w bench model`: flags of [`bridgev2w_world_model::bench::compare`].
+
+use crate::progress::TerminalProgress;
+use anyhow::Result;
+use bridgev2w_world_model::bench::{bench_model, ModelBenchOptions};
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use std::path::PathBuf;
+
+#[derive(Debug, clap::Args)]
+pub struct ModelBench {
+    /// Architecture family: `2b` (sin-cos positions) or `5b-i2v` (RoPE, learned positions, I2V input).
+    #[arg(long, default_value = "2b")]
+    style: String,
+    /// Transformer blocks (the full models have 30 / 42).
+    #[arg(long, default_value_t = 8)]
+    layers: i64,
+    /// Pixel frames (4k + 1). The defaults keep a 2-core CPU run near two minutes;
+    /// `--frames 25 --height 256 --width 384` is the mid-size setting of the issue
+    /// (the full-width VAE then dominates: tens of minutes on 2 cores).
+    #[arg(long, default_value_t = 9)]
+    frames: i64,
+    #[arg(long, default_value_t = 128)]
+    height: i64,
+    #[arg(long, default_value_t = 192)]
+    width: i64,
+    /// Transformer batch: 2 times one denoising step with classifier-free
+    /// guidance (the pipeline's conditional and unconditional halves).
+    #[arg(long, default_value_t = 1)]
+    batch: i64,
+    /// Timed runs per operation (best is reported), after one warm-up.
+    #[arg(long, default_value_t = 1)]
+    repeat: usize,
+    /// f32 or bf16.
+    #[arg(long, default_value = "f32")]
+    precision: Precision,
+    /// cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: ComputeDevice,
+    /// Skip diffusers (time this crate only).
+    #[arg(long)]
+    no_diffusers: bool,
+    /// Python with torch + diffusers (default: the project venv's).
+    #[arg(long)]
+    python: Option<PathBuf>,
+    /// Repository root (holds scripts/bench/); default: found from the current directory.
+    #[arg(long)]
+    repo: Option<PathBuf>,
+}
+
+impl From<&ModelBench> for ModelBenchOptions {
+    fn from(a: &ModelBench) -> Self {
+        Self {
+            style: a.style.clone(),
+            layers: a.layers,
+            frames: a.frames,
+            height: a.height,
+            width: a.width,
+            batch: a.batch,
+            repeat: a.repeat,
+            precision: a.precision,
+            device: a.device,
+            diffusers: !a.no_diffusers,
+            python: a.python.clone(),
+            repo: a.repo.clone(),
+        }
+    }
+}
+
+pub fn run(a: &ModelBench) -> Result<()> {
+    let report = bench_model(&a.into(), &TerminalProgress::default())?;
+    crate::print_stdout(&report.to_string())
+}

@@ -1,0 +1,176 @@
+//! `bench loader`: clip-loader throughput of [`crate::data::ClipDataset`]
+//! (batches per second, videos opened per second), on a given dataset or a
+//! synthetic one generated in a temporary folder.
+
+use crate::data::{ClipDataset, MaskKind, SourceSpec};
+use crate::{Result, TrainError};
+use bridgev2w_io::peer::Progress;
+use std::fmt;
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// What `bench loader` loads.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoaderBenchOptions {
+    /// Dataset (LeRobot with `masks/` or calibration); `None`: a synthetic
+    /// one generated in a temporary folder.
+    pub dataset: Option<PathBuf>,
+    /// Robot for rendering calc masks of the synthetic dataset.
+    pub robot: String,
+    /// Episodes of the synthetic dataset.
+    pub episodes: usize,
+    /// Clip frames.
+    pub frames: usize,
+    /// Clip width.
+    pub width: usize,
+    /// Clip height.
+    pub height: usize,
+    /// Clips per batch.
+    pub batch: usize,
+    /// Batches assembled.
+    pub steps: usize,
+}
+
+/// One timed opening of the dataset.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OpenTiming {
+    /// How the masks were obtained.
+    pub label: String,
+    /// Videos loaded.
+    pub videos: usize,
+    /// Seconds.
+    pub seconds: f64,
+}
+
+/// The measurements of `bench loader`; `Display` prints them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoaderBenchReport {
+    /// The dataset root.
+    pub root: PathBuf,
+    /// rayon's threads.
+    pub threads: usize,
+    /// The openings: stored masks, then (synthetic dataset) rendered and cached calc masks.
+    pub opens: Vec<OpenTiming>,
+    /// Clips assembled into batches.
+    pub clips: usize,
+    /// Clip shape `(frames, height, width)`.
+    pub clip_shape: (usize, usize, usize),
+    /// Seconds to assemble them.
+    pub batch_seconds: f64,
+}
+
+impl fmt::Display for LoaderBenchReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "clip loader on {} ({} threads)",
+            self.root.display(),
+            self.threads
+        )?;
+        for o in &self.opens {
+            writeln!(
+                f,
+                "  open ({}): {} videos in {:.2} s = {:.1} videos/s",
+                o.label,
+                o.videos,
+                o.seconds,
+                o.videos as f64 / o.seconds
+            )?;
+        }
+        let (t, h, w) = self.clip_shape;
+        writeln!(
+            f,
+            "  batches: {} clips of {t}x{h}x{w} in {:.2} s = {:.1} clips/s",
+            self.clips,
+            self.batch_seconds,
+            self.clips as f64 / self.batch_seconds
+        )
+    }
+}
+
+/// Opens the dataset (with stored masks; for the generated dataset also
+/// with calc masks rendered, then read from the cache) and assembles
+/// `options.steps` batches on the CPU.
+pub fn bench_loader(
+    options: &LoaderBenchOptions,
+    progress: &dyn Progress,
+) -> Result<LoaderBenchReport> {
+    let a = options;
+    let io = |path: &std::path::Path| {
+        let path = path.to_path_buf();
+        move |error| TrainError::Io { path, error }
+    };
+    let tmp = tempfile::tempdir().map_err(io(&std::env::temp_dir()))?;
+    let root = match &a.dataset {
+        Some(d) => d.clone(),
+        None => {
+            let out = tmp.path().join("synth");
+            let cfg = bridgev2w_data::synth::SynthConfig {
+                frames: a.frames,
+                width: a.width as u32,
+                height: a.height as u32,
+                episodes_per_split: [a.episodes, 0, 0, 0],
+                ..Default::default()
+            };
+            cfg.validate()?;
+            progress.start(a.episodes, "generating a synthetic dataset");
+            bridgev2w_data::synth::write_dataset(&cfg, &out, &|| progress.tick())?;
+            progress.finish();
+            out
+        }
+    };
+    let spec = |masks: MaskKind| SourceSpec {
+        root: root.clone(),
+        split: "train".into(),
+        video_key: None,
+        masks,
+        weight: 1.0,
+    };
+    let cache = tmp.path().join("mask-cache");
+    let mut opens = Vec::new();
+    let mut open = |label: &str, masks: MaskKind| -> Result<ClipDataset> {
+        let t0 = Instant::now();
+        let d = ClipDataset::open_sources(&[spec(masks)], a.frames, a.height, a.width, 20)?;
+        opens.push(OpenTiming {
+            label: label.to_owned(),
+            videos: d.episodes.len(),
+            seconds: t0.elapsed().as_secs_f64(),
+        });
+        Ok(d)
+    };
+    let stored = open(
+        "decode + stored masks",
+        MaskKind::Calc {
+            robot: None,
+            cache: cache.clone(),
+        },
+    )?;
+    if a.dataset.is_none() {
+        // The same dataset without masks/: calc masks rendered, then read from the cache.
+        std::fs::rename(root.join("masks"), tmp.path().join("masks.off"))
+            .map_err(io(&root.join("masks")))?;
+        let calc = MaskKind::Calc {
+            robot: Some(a.robot.clone()),
+            cache: cache.clone(),
+        };
+        open("decode + render calc masks", calc.clone())?;
+        open("decode + cached calc masks", calc)?;
+    }
+    let t0 = Instant::now();
+    for step in 0..a.steps {
+        stored.batch(
+            0,
+            step,
+            a.batch,
+            bridgev2w_world_model::ComputeDevice::Cpu.to_tch(),
+        )?;
+    }
+    Ok(LoaderBenchReport {
+        root,
+        threads: rayon::current_num_threads(),
+        opens,
+        clips: a.steps * a.batch,
+        clip_shape: (a.frames, a.height, a.width),
+        batch_seconds: t0.elapsed().as_secs_f64(),
+    })
+}

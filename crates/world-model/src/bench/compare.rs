@@ -1,0 +1,338 @@
+//! `bench model`: this crate's transformer forward and VAE encode/decode
+//! against diffusers on the same configs and shapes, with each side's peak
+//! GPU memory on CUDA.
+
+use super::gpu_memory::{with_gpu_peak, NVIDIA_SMI};
+use super::{time_model, torch_threads, BenchError, DiffusersPeer, ModelBenchShape, ModelTimings};
+use crate::device::{ComputeDevice, Precision};
+use crate::transformer::TransformerConfig;
+use crate::vae::VaeConfig;
+use bridgev2w_io::peer::Progress;
+use std::fmt;
+use std::path::PathBuf;
+
+/// What `bench model` builds and times.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelBenchOptions {
+    /// Architecture family: `2b` (sin-cos positions) or `5b-i2v` (RoPE,
+    /// learned positions, I2V input).
+    pub style: String,
+    /// Transformer blocks.
+    pub layers: i64,
+    /// Pixel frames (`4k + 1`).
+    pub frames: i64,
+    /// Pixel height.
+    pub height: i64,
+    /// Pixel width.
+    pub width: i64,
+    /// Transformer batch (2 is one denoising step with classifier-free guidance).
+    pub batch: i64,
+    /// Timed runs per operation (best is reported), after one warm-up.
+    pub repeat: usize,
+    /// Precision of weights and activations.
+    pub precision: Precision,
+    /// Where both sides run.
+    pub device: ComputeDevice,
+    /// Time diffusers too.
+    pub diffusers: bool,
+    /// Python with torch and diffusers (default: the project venv's).
+    pub python: Option<PathBuf>,
+    /// Repository root (holds `scripts/bench/`); default: found from the
+    /// current directory.
+    pub repo: Option<PathBuf>,
+}
+
+impl Default for ModelBenchOptions {
+    fn default() -> Self {
+        Self {
+            style: "2b".into(),
+            layers: 8,
+            frames: 9,
+            height: 128,
+            width: 192,
+            batch: 1,
+            repeat: 1,
+            precision: Precision::F32,
+            device: ComputeDevice::Cpu,
+            diffusers: true,
+            python: None,
+            repo: None,
+        }
+    }
+}
+
+/// Peak GPU memory above idle of each side, in MiB (`None`: not measured).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GpuPeakMib {
+    /// This crate's run.
+    pub bridgev2w: Option<u64>,
+    /// diffusers' run.
+    pub diffusers: Option<u64>,
+}
+
+/// The measurements of `bench model`; `Display` prints them as a table.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelBenchReport {
+    /// Architecture family.
+    pub style: String,
+    /// The transformer that was timed.
+    pub transformer: TransformerConfig,
+    /// The VAE that was timed.
+    pub vae: VaeConfig,
+    /// The clip shape.
+    pub shape: ModelBenchShape,
+    /// Precision.
+    pub precision: Precision,
+    /// Device.
+    pub device: ComputeDevice,
+    /// libtorch's intra-op threads (diffusers gets the same).
+    pub threads: usize,
+    /// This crate's timings.
+    pub bridgev2w: ModelTimings,
+    /// diffusers' timings, when it ran.
+    pub diffusers: Option<ModelTimings>,
+    /// Peak GPU memory (on CUDA only).
+    pub gpu_peak_mib: Option<GpuPeakMib>,
+}
+
+impl fmt::Display for ModelBenchReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let (tf, s) = (&self.transformer, &self.shape);
+        writeln!(
+            f,
+            "model: {} style, {} layers ({} heads x {}), VAE {:?}; {} frames at {}x{}, {:?} on {:?}, {} threads",
+            self.style,
+            tf.num_layers,
+            tf.num_attention_heads,
+            tf.attention_head_dim,
+            self.vae.block_out_channels,
+            s.frames,
+            s.height,
+            s.width,
+            self.precision,
+            self.device,
+            self.threads
+        )?;
+        writeln!(
+            f,
+            "{:<24} {:>12} {:>12} {:>10}",
+            "operation", "bridgev2w s", "diffusers s", "speed-up"
+        )?;
+        let (ours, theirs) = (&self.bridgev2w, self.diffusers.as_ref());
+        let forward = format!("transformer forward (b{})", s.batch);
+        let rows = [
+            (
+                forward.as_str(),
+                ours.transformer_forward_s,
+                theirs.map(|t| t.transformer_forward_s),
+            ),
+            (
+                "VAE encode",
+                ours.vae_encode_s,
+                theirs.map(|t| t.vae_encode_s),
+            ),
+            (
+                "VAE decode",
+                ours.vae_decode_s,
+                theirs.map(|t| t.vae_decode_s),
+            ),
+        ];
+        for (name, o, t) in rows {
+            match t {
+                Some(t) => writeln!(f, "{name:<24} {o:>12.3} {t:>12.3} {:>9.2}x", t / o)?,
+                None => writeln!(f, "{name:<24} {o:>12.3} {:>12} {:>10}", "-", "-")?,
+            }
+        }
+        let Some(peak) = self.gpu_peak_mib else {
+            return Ok(());
+        };
+        let show = |p: Option<u64>| p.map_or("n/a".to_owned(), |m| format!("{m} MiB"));
+        writeln!(
+            f,
+            "peak GPU memory above idle (nvidia-smi, whole run): bridgev2w {}, diffusers {}",
+            show(peak.bridgev2w),
+            if theirs.is_none() {
+                "-".to_owned()
+            } else {
+                show(peak.diffusers)
+            }
+        )?;
+        if peak.bridgev2w.is_none() {
+            writeln!(
+                f,
+                "  (n/a: `{NVIDIA_SMI}` could not be queried on this machine)"
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// The transformer and VAE configs of `options`: the style's, with
+/// `options.layers` blocks and positions sized for the clip.
+pub fn bench_configs(
+    options: &ModelBenchOptions,
+) -> Result<(TransformerConfig, VaeConfig), BenchError> {
+    let a = options;
+    let mut tf = match a.style.as_str() {
+        "2b" => TransformerConfig::cogvideox_2b(),
+        "5b-i2v" => TransformerConfig::cogvideox_5b_i2v(),
+        other => {
+            return Err(BenchError::Invalid(format!(
+                "--style {other}: expected 2b or 5b-i2v"
+            )))
+        }
+    };
+    if a.layers < 1 {
+        return Err(BenchError::Invalid(format!(
+            "--layers {}: expected >= 1",
+            a.layers
+        )));
+    }
+    tf.num_layers = a.layers;
+    let s = 8;
+    if tf.use_learned_positional_embeddings
+        && (a.height / s != tf.sample_height || a.width / s != tf.sample_width)
+    {
+        // Learned positions exist for one resolution only: size them for this one.
+        tf.sample_height = a.height / s;
+        tf.sample_width = a.width / s;
+    }
+    tf.sample_frames = tf.sample_frames.max(a.frames);
+    let vae = if a.style == "2b" {
+        VaeConfig::cogvideox_2b()
+    } else {
+        VaeConfig::cogvideox_5b_i2v()
+    };
+    Ok((tf, vae))
+}
+
+/// Times this crate's model, then (unless `options.diffusers` is off)
+/// diffusers' on the same configs, each under a GPU memory probe on CUDA.
+pub fn bench_model(
+    options: &ModelBenchOptions,
+    progress: &dyn Progress,
+) -> Result<ModelBenchReport, BenchError> {
+    let a = options;
+    let (tf, vae) = bench_configs(a)?;
+    let shape = ModelBenchShape {
+        frames: a.frames,
+        height: a.height,
+        width: a.width,
+        text_len: tf.max_text_seq_length,
+        batch: a.batch,
+    };
+    let gpu = match a.device {
+        ComputeDevice::Cuda(i) => Some(i),
+        ComputeDevice::Cpu => None,
+    };
+    let (ours, our_peak) = with_gpu_peak(NVIDIA_SMI, gpu, || {
+        time_model(&tf, &vae, &shape, a.device, a.precision, a.repeat)
+    })?;
+    let (theirs, their_peak) = if a.diffusers {
+        progress.note("running diffusers on the same configs...");
+        let (t, p) = with_gpu_peak(NVIDIA_SMI, gpu, || {
+            DiffusersPeer::find(a.python.as_deref(), a.repo.as_deref())?.time_model(
+                &tf,
+                &vae,
+                &shape,
+                a.device,
+                a.precision,
+                a.repeat,
+            )
+        })?;
+        (Some(t), p)
+    } else {
+        (None, None)
+    };
+    Ok(ModelBenchReport {
+        style: a.style.clone(),
+        transformer: tf,
+        vae,
+        shape,
+        precision: a.precision,
+        device: a.device,
+        threads: torch_threads(),
+        bridgev2w: ours,
+        diffusers: theirs,
+        gpu_peak_mib: gpu.map(|_| GpuPeakMib {
+            bridgev2w: our_peak,
+            diffusers: their_peak,
+        }),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn configs_check_the_style_and_layers() {
+        let mut o = ModelBenchOptions {
+            style: "x".into(),
+            ..ModelBenchOptions::default()
+        };
+        let e = bench_configs(&o).expect_err("style");
+        assert_eq!(e.to_string(), "--style x: expected 2b or 5b-i2v");
+        o.style = "2b".into();
+        o.layers = 0;
+        let e = bench_configs(&o).expect_err("layers");
+        assert_eq!(e.to_string(), "--layers 0: expected >= 1");
+        o.style = "5b-i2v".into();
+        o.layers = 2;
+        let (tf, _) = bench_configs(&o).expect("5b");
+        assert_eq!(
+            (tf.num_layers, tf.sample_height, tf.sample_width),
+            (2, 16, 24)
+        );
+    }
+
+    #[test]
+    fn report_prints_dashes_without_diffusers_and_memory_only_on_cuda() {
+        let o = ModelBenchOptions::default();
+        let (transformer, vae) = bench_configs(&o).expect("configs");
+        let t = ModelTimings {
+            transformer_forward_s: 2.0,
+            vae_encode_s: 1.0,
+            vae_decode_s: 4.0,
+        };
+        let mut report = ModelBenchReport {
+            style: o.style.clone(),
+            transformer,
+            vae,
+            shape: ModelBenchShape {
+                frames: 9,
+                height: 128,
+                width: 192,
+                text_len: 226,
+                batch: 2,
+            },
+            precision: Precision::F32,
+            device: ComputeDevice::Cpu,
+            threads: 2,
+            bridgev2w: t.clone(),
+            diffusers: None,
+            gpu_peak_mib: None,
+        };
+        let text = report.to_string();
+        assert_eq!(text.lines().count(), 5, "{text}");
+        assert!(text.contains("transformer forward (b2)        2.000            -          -"));
+        report.diffusers = Some(ModelTimings {
+            vae_decode_s: 8.0,
+            ..t
+        });
+        report.gpu_peak_mib = Some(GpuPeakMib {
+            bridgev2w: None,
+            diffusers: Some(12),
+        });
+        let text = report.to_string();
+        assert!(
+            text.contains("VAE decode                      4.000        8.000      2.00x"),
+            "{text}"
+        );
+        assert!(text.contains("bridgev2w n/a, diffusers 12 MiB"), "{text}");
+        assert!(
+            text.ends_with("could not be queried on this machine)\n"),
+            "{text}"
+        );
+    }
+}
