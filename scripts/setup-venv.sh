@@ -47,6 +47,6 @@ for pin in "${pins[@]}"; do
   esac
 done
 pip_install "${small[@]}"
-"$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
+"$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py, peft; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
 link_libtorch
 cp "$lock" "$stamp"

@@ -4,6 +4,7 @@ mod bench;
 mod convert_cmd;
 mod demo;
 mod eval_cmd;
+mod export_lora_cmd;
 mod masks_cmd;
 mod parity_cmd;
 mod plan_cmd;
@@ -42,6 +43,8 @@ enum Command {
     Eval(eval_cmd::EvalArgs),
     /// Predict the video a mask sequence causes, from a first frame (the world model).
     Predict(predict_cmd::PredictArgs),
+    /// Write a BridgeV2W weights file's backbone LoRA as diffusers' pytorch_lora_weights.safetensors.
+    ExportLora(export_lora_cmd::ExportLoraArgs),
     /// Policy-evaluation metrics (MMRV, Pearson r) between real and world-model success rates.
     EvalPolicy(eval_cmd::EvalPolicyArgs),
     /// Render a synthetic tabletop dataset (RGB clips, GT masks, actions, cameras) in the LeRobot v3.0 layout.
@@ -75,6 +78,7 @@ fn main() -> Result<()> {
         Command::Eval(a) => eval_cmd::run_eval(&a),
         Command::EvalPolicy(a) => eval_cmd::run_eval_policy(&a),
         Command::Predict(a) => predict_cmd::run(&a),
+        Command::ExportLora(a) => export_lora_cmd::run(&a),
         Command::Synth(a) => synth_cmd::run(&a),
         Command::Convert(a) => convert_cmd::run(&a),
         Command::Train(a) => train_cmd::run(&a),

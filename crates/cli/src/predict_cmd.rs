@@ -1,6 +1,7 @@
 //! `bridgev2w predict`: the video a mask sequence causes, from a first frame.
 
 use anyhow::{bail, Context, Result};
+use bridgev2w_io::frame::{u8_from_unit, unit_from_u8, RgbFrame};
 use bridgev2w_io::npy::{read_npy, write_atomic, write_npy};
 use bridgev2w_io::output::OutputDir;
 use bridgev2w_io::png::encode_rgb8;
@@ -8,7 +9,7 @@ use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::vae::TilingOptions;
-use bridgev2w_world_model::video::{Image, MaskVideo};
+use bridgev2w_world_model::video::MaskVideo;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::{Path, PathBuf};
 
@@ -75,7 +76,7 @@ fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
     )?)
 }
 
-fn read_image(path: &Path, (h, w): (usize, usize)) -> Result<Image> {
+fn read_image(path: &Path, (h, w): (usize, usize)) -> Result<RgbFrame> {
     let img = image::open(path)
         .with_context(|| format!("--image {}: not a readable image", path.display()))?
         .to_rgb8();
@@ -95,10 +96,10 @@ fn read_image(path: &Path, (h, w): (usize, usize)) -> Result<Image> {
     } else {
         img
     };
-    Ok(Image {
-        height: h,
+    Ok(RgbFrame {
         width: w,
-        data: img.as_raw().iter().map(|&v| v as f32 / 255.0).collect(),
+        height: h,
+        rgb: img.as_raw().iter().map(|&v| unit_from_u8(v)).collect(),
     })
 }
 
@@ -171,11 +172,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
     let video = model.predict(&image, &masks, &opts)?;
     let secs = t0.elapsed().as_secs_f64();
-    let bytes: Vec<u8> = video
-        .data
-        .iter()
-        .map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
-        .collect();
+    let bytes: Vec<u8> = video.data.iter().map(|&v| u8_from_unit(v)).collect();
     let frames_dir = out.path().join("frames");
     std::fs::create_dir_all(&frames_dir)
         .with_context(|| format!("creating {}", frames_dir.display()))?;

@@ -366,10 +366,10 @@ fn eval_lpips_with_weights_file() {
     let got = v["lpips"].as_f64().expect("lpips");
     // Video "a" is identical (0); "b" differs: the mean is half of b's.
     let net = Lpips::load(&[weights], ComputeDevice::Cpu).expect("load");
-    let frame = |f: &dyn Fn(u32, u32, u32) -> u8| bridgev2w_world_model::video::Image {
+    let frame = |f: &dyn Fn(u32, u32, u32) -> u8| bridgev2w_io::frame::RgbFrame {
         height: 32,
         width: 40,
-        data: (0..32u32)
+        rgb: (0..32u32)
             .flat_map(|y| (0..40u32).flat_map(move |x| (0..3u32).map(move |c| (x, y, c))))
             .map(|(x, y, c)| f32::from(f(x, y, c)) / 255.0)
             .collect(),

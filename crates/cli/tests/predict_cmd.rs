@@ -114,3 +114,83 @@ fn predict_writes_frames_and_video_deterministically() {
         "{err}"
     );
 }
+
+/// `--model OWNER/NAME` resolves from the Hugging Face cache, offline: a
+/// cache tree built around a tiny random model (`refs/main` -> a snapshot);
+/// a name the cache lacks is an error listing where it looked.
+#[test]
+fn predict_finds_a_hub_name_in_the_hugging_face_cache() {
+    use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+    use bridgev2w_world_model::scheduler::SchedulerConfig;
+    use bridgev2w_world_model::spec::RandomPreset;
+    use bridgev2w_world_model::ComputeDevice;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let cache = d.join("hf/hub");
+    let repo = cache.join("models--bridgev2w-test--tiny-i2v");
+    let commit = "4f1c2e0b9a8d7c6b5a4f3e2d1c0b9a8f7e6d5c4b";
+    let (vae, tf) = RandomPreset::Tiny.configs();
+    let model = BridgeV2W::random(
+        BridgeV2WConfig::tiny(),
+        &vae,
+        &tf,
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        0,
+    )
+    .expect("a tiny model");
+    model
+        .save_backbone(&repo.join("snapshots").join(commit))
+        .expect("a snapshot");
+    // The adapters carry the model's settings (64x96, 9 frames).
+    model
+        .save_weights(&d.join("bridgev2w.safetensors"))
+        .expect("weights");
+    std::fs::create_dir_all(repo.join("refs")).expect("refs");
+    std::fs::write(repo.join("refs/main"), commit).expect("refs/main");
+    image::RgbImage::from_pixel(96, 64, image::Rgb([90, 120, 150]))
+        .save(d.join("first.png"))
+        .expect("png");
+    write_npy(&d.join("masks.npy"), &[9, 64, 96], &vec![0u8; 9 * 64 * 96]).expect("npy");
+    let predict = |model: &str, out: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+            .env("HF_HOME", d.join("hf"))
+            .env_remove("HF_HUB_CACHE")
+            .env_remove("HUGGINGFACE_HUB_CACHE")
+            .current_dir(d)
+            .args([
+                "predict",
+                "--model",
+                model,
+                "--weights",
+                "bridgev2w.safetensors",
+                "--image",
+                "first.png",
+                "--masks",
+                "masks.npy",
+                "--out",
+                out,
+                "--steps",
+                "2",
+                "--device",
+                "cpu",
+            ])
+            .output()
+            .expect("run bridgev2w")
+    };
+    let o = predict("bridgev2w-test/tiny-i2v", "a");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(
+        read_npy(&d.join("a/video.npy")).expect("video").shape,
+        [9, 64, 96, 3]
+    );
+    let o = predict("bridgev2w-test/other", "b");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && err.contains("bridgev2w-test/other: no such local folder")
+            && err.contains("models--bridgev2w-test--other: not in the cache")
+            && err.contains("huggingface-cli download"),
+        "{err}"
+    );
+}

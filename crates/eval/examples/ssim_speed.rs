@@ -1,7 +1,8 @@
 //! Profiling harness: PSNR + SSIM of one 720x480 frame pair, ten times, on
 //! one thread. Usage: `cargo run --release -p bridgev2w-eval --example ssim_speed`.
 
-use bridgev2w_eval::video::{psnr, ssim, Frame};
+use bridgev2w_eval::video::{psnr, ssim};
+use bridgev2w_io::frame::RgbFrame;
 
 fn main() -> Result<(), bridgev2w_eval::MetricError> {
     let (w, h) = (720, 480);
@@ -16,7 +17,10 @@ fn main() -> Result<(), bridgev2w_eval::MetricError> {
         .map(|i| ((i % w) as u8 / 2).wrapping_add(next() / 8))
         .collect();
     let b: Vec<u8> = a.iter().map(|&v| v.saturating_add(next() / 16)).collect();
-    let (fa, fb) = (Frame::from_rgb8(w, h, &a)?, Frame::from_rgb8(w, h, &b)?);
+    let (fa, fb) = (
+        RgbFrame::from_rgb8(w, h, &a)?,
+        RgbFrame::from_rgb8(w, h, &b)?,
+    );
     let t = std::time::Instant::now();
     let mut checksum = 0.0;
     for _ in 0..10 {

@@ -3,9 +3,10 @@
 //! (rayon threads) and by `scripts/bench/skimage_metrics.py` (worker
 //! processes, in the bench venv), with the largest difference of the values.
 
-use crate::video::{psnr, ssim, Frame};
+use crate::video::{psnr, ssim};
 use crate::MetricError;
 use bridgev2w_io::atomic::write_atomic;
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_io::peer::{self, PeerError, Progress};
 use bridgev2w_io::FileError;
 use rayon::prelude::*;
@@ -166,8 +167,8 @@ pub fn bench_metrics(
         .into_par_iter()
         .map(|t| -> Result<(f64, f64), MetricError> {
             let r = t * frame_len..(t + 1) * frame_len;
-            let p = Frame::from_rgb8(w, h, &pred[r.clone()])?;
-            let g = Frame::from_rgb8(w, h, &gt[r])?;
+            let p = RgbFrame::from_rgb8(w, h, &pred[r.clone()])?;
+            let g = RgbFrame::from_rgb8(w, h, &gt[r])?;
             Ok((psnr(&p, &g)?, ssim(&p, &g)?))
         })
         .collect::<Result<_, _>>()?;

@@ -10,8 +10,9 @@
 //! on frames 1-8 would read 32.5 dB.
 
 use crate::dynamic::{dynamic_region, region_psnr};
-use crate::video::{video_psnr, video_ssim, Frame};
+use crate::video::{video_psnr, video_ssim};
 use crate::{MetricError, Result};
+use bridgev2w_io::frame::RgbFrame;
 
 /// PSNR, SSIM and dynamic-region PSNR of one clip (see [`crate::dynamic`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -36,7 +37,7 @@ pub struct ClipComparison {
 
 /// Scores `pred` against `gt` (same frame count and size) with a given
 /// dynamic region (from [`dynamic_region`] of `gt`).
-pub fn score_clip(pred: &[Frame], gt: &[Frame], region: &[Vec<bool>]) -> Result<ClipScore> {
+pub fn score_clip(pred: &[RgbFrame], gt: &[RgbFrame], region: &[Vec<bool>]) -> Result<ClipScore> {
     Ok(ClipScore {
         psnr: video_psnr(pred, gt)?,
         ssim: video_ssim(pred, gt)?,
@@ -45,7 +46,7 @@ pub fn score_clip(pred: &[Frame], gt: &[Frame], region: &[Vec<bool>]) -> Result<
 }
 
 /// The ground truth's first frame repeated for every frame.
-pub fn copy_first_frame(gt: &[Frame]) -> Result<Vec<Frame>> {
+pub fn copy_first_frame(gt: &[RgbFrame]) -> Result<Vec<RgbFrame>> {
     let first = gt
         .first()
         .ok_or_else(|| MetricError::Invalid("copy first frame: the clip has no frames".into()))?;
@@ -66,7 +67,7 @@ pub fn predicted<T>(clip: &[T]) -> Result<&[T]> {
 
 /// Scores a prediction and the copy-the-first-frame baseline on `gt`, on
 /// the predicted frames 1.. (see the module's note).
-pub fn compare_with_copy(pred: &[Frame], gt: &[Frame]) -> Result<ClipComparison> {
+pub fn compare_with_copy(pred: &[RgbFrame], gt: &[RgbFrame]) -> Result<ClipComparison> {
     let region = dynamic_region(gt)?;
     let copy = copy_first_frame(gt)?;
     let (gt_p, region_p) = (predicted(gt)?, predicted(&region)?);
@@ -82,14 +83,14 @@ mod tests {
     use super::*;
     use crate::video::{psnr_from_mse, PSNR_IDENTICAL};
 
-    fn flat(v: f32) -> Frame {
-        Frame::new(16, 12, vec![v; 16 * 12 * 3]).unwrap()
+    fn flat(v: f32) -> RgbFrame {
+        RgbFrame::new(16, 12, vec![v; 16 * 12 * 3]).unwrap()
     }
 
     #[test]
     fn the_baseline_is_exact_on_frame_zero_and_blind_to_motion() {
         // Ground truth: a 2x2 square moves right by one pixel a frame.
-        let gt: Vec<Frame> = (0..3)
+        let gt: Vec<RgbFrame> = (0..3)
             .map(|t| {
                 let mut f = flat(0.0);
                 for y in 2..4 {

@@ -13,8 +13,9 @@
 //! weigh more, and `20 log10(1 / sqrt(mse))`. Frame 0 (the given image) and a
 //! clip without motion have no dynamic pixels; such a clip has no score.
 
-use crate::video::{psnr_from_mse, Frame};
+use crate::video::psnr_from_mse;
 use crate::{MetricError, Result};
+use bridgev2w_io::frame::RgbFrame;
 
 /// Per-channel absolute difference from the first frame above which a pixel
 /// is dynamic (about 8 levels of 255: above the video codec's noise).
@@ -24,7 +25,7 @@ pub const DYNAMIC_DILATE_PX: usize = 2;
 
 /// The dynamic region of a ground-truth clip: one `width * height` mask per
 /// frame (frame 0's is empty), see the module's definition.
-pub fn dynamic_region(gt: &[Frame]) -> Result<Vec<Vec<bool>>> {
+pub fn dynamic_region(gt: &[RgbFrame]) -> Result<Vec<Vec<bool>>> {
     let Some(first) = gt.first() else {
         return Err(MetricError::Invalid(
             "dynamic region: the clip has no frames".into(),
@@ -79,7 +80,11 @@ fn dilate(mask: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
 /// [`dynamic_region`]), the squared errors of all region pixels pooled;
 /// `None` when the region is empty. [`crate::video::PSNR_IDENTICAL`] when
 /// the pooled MSE is below [`crate::video::PSNR_MSE_FLOOR`].
-pub fn region_psnr(pred: &[Frame], gt: &[Frame], region: &[Vec<bool>]) -> Result<Option<f64>> {
+pub fn region_psnr(
+    pred: &[RgbFrame],
+    gt: &[RgbFrame],
+    region: &[Vec<bool>],
+) -> Result<Option<f64>> {
     if pred.len() != gt.len() || region.len() != gt.len() {
         return Err(MetricError::ShapeMismatch {
             what: "region PSNR: frame counts (prediction, ground truth, region)".into(),
@@ -113,7 +118,7 @@ pub fn region_psnr(pred: &[Frame], gt: &[Frame], region: &[Vec<bool>]) -> Result
 }
 
 /// [`region_psnr`] on the [`dynamic_region`] of `gt`.
-pub fn dynamic_psnr(pred: &[Frame], gt: &[Frame]) -> Result<Option<f64>> {
+pub fn dynamic_psnr(pred: &[RgbFrame], gt: &[RgbFrame]) -> Result<Option<f64>> {
     region_psnr(pred, gt, &dynamic_region(gt)?)
 }
 
@@ -123,12 +128,12 @@ mod tests {
     use super::*;
     use crate::video::PSNR_IDENTICAL;
 
-    fn flat(w: usize, h: usize, v: f32) -> Frame {
-        Frame::new(w, h, vec![v; w * h * 3]).unwrap()
+    fn flat(w: usize, h: usize, v: f32) -> RgbFrame {
+        RgbFrame::new(w, h, vec![v; w * h * 3]).unwrap()
     }
 
     /// A frame of `v` with the pixel `(x, y)` set to `p`.
-    fn dot(w: usize, h: usize, v: f32, x: usize, y: usize, p: f32) -> Frame {
+    fn dot(w: usize, h: usize, v: f32, x: usize, y: usize, p: f32) -> RgbFrame {
         let mut f = flat(w, h, v);
         for c in 0..3 {
             f.rgb[(y * w + x) * 3 + c] = p;

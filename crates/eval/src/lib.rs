@@ -36,5 +36,12 @@ pub enum MetricError {
     Invalid(String),
 }
 
+impl From<bridgev2w_io::frame::FrameError> for MetricError {
+    /// A frame that does not fit its size or holds a non-finite value.
+    fn from(e: bridgev2w_io::frame::FrameError) -> Self {
+        Self::Invalid(e.0)
+    }
+}
+
 /// Result of the metric functions.
 pub type Result<T> = std::result::Result<T, MetricError>;

@@ -11,18 +11,18 @@
 //! it gives, since a prediction cannot score above what the segmenter reads
 //! from real frames.
 
-use crate::video::Frame;
 use crate::{MetricError, Result};
+use bridgev2w_io::frame::RgbFrame;
 
 /// Anything that labels the robot's pixels in a frame (1 = robot, one value
 /// per pixel, row-major).
 pub trait RobotSegmenter {
     /// The robot mask of `frame`.
-    fn segment(&self, frame: &Frame) -> Result<Vec<u8>>;
+    fn segment(&self, frame: &RgbFrame) -> Result<Vec<u8>>;
 }
 
 impl RobotSegmenter for ColorSegmenter {
-    fn segment(&self, frame: &Frame) -> Result<Vec<u8>> {
+    fn segment(&self, frame: &RgbFrame) -> Result<Vec<u8>> {
         Ok(ColorSegmenter::segment(self, frame))
     }
 }
@@ -59,7 +59,7 @@ impl ColorSegmenter {
 
     /// Adds the pixels of `frame` with their ground-truth `mask` (one value
     /// per pixel, non-zero = robot).
-    pub fn observe(&mut self, frame: &Frame, mask: &[u8]) -> Result<()> {
+    pub fn observe(&mut self, frame: &RgbFrame, mask: &[u8]) -> Result<()> {
         if mask.len() != frame.width * frame.height {
             return Err(MetricError::ShapeMismatch {
                 what: "colour segmenter frame and mask".into(),
@@ -86,7 +86,7 @@ impl ColorSegmenter {
     /// The robot mask of `frame` (1 = robot): pixels whose colour bin was
     /// robot in more than half of its observations; unseen colours are not
     /// robot.
-    pub fn segment(&self, frame: &Frame) -> Vec<u8> {
+    pub fn segment(&self, frame: &RgbFrame) -> Vec<u8> {
         frame
             .rgb
             .chunks_exact(3)
@@ -106,8 +106,8 @@ mod tests {
 
     /// A 4x2 frame: robot pixels white or grey, the rest red or dark grey,
     /// one colour shared by both classes.
-    fn frame(colors: &[[f32; 3]]) -> Frame {
-        Frame::new(colors.len(), 1, colors.iter().flatten().copied().collect()).unwrap()
+    fn frame(colors: &[[f32; 3]]) -> RgbFrame {
+        RgbFrame::new(colors.len(), 1, colors.iter().flatten().copied().collect()).unwrap()
     }
 
     #[test]

@@ -2,58 +2,19 @@
 //! then over videos (each video weighs the same whatever its length).
 
 use crate::{MetricError, Result};
+use bridgev2w_io::frame::RgbFrame;
 use rayon::prelude::*;
 
-/// An RGB frame, row-major `[height, width, 3]`, values in `[0, 1]`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Frame {
-    /// Width, pixels.
-    pub width: usize,
-    /// Height, pixels.
-    pub height: usize,
-    /// Interleaved RGB values, `(y * width + x) * 3 + channel`.
-    pub rgb: Vec<f32>,
-}
-
-impl Frame {
-    /// A frame from `[0, 1]` values; errors when the length is not
-    /// `width * height * 3` or a value is not finite.
-    pub fn new(width: usize, height: usize, rgb: Vec<f32>) -> Result<Self> {
-        if rgb.len() != width * height * 3 {
-            return Err(MetricError::Invalid(format!(
-                "frame of {width}x{height} needs {} RGB values, got {}",
-                width * height * 3,
-                rgb.len()
-            )));
-        }
-        if let Some(i) = rgb.iter().position(|v| !v.is_finite()) {
-            return Err(MetricError::Invalid(format!(
-                "frame value {i} is {}: expected a finite number in [0, 1]",
-                rgb[i]
-            )));
-        }
-        Ok(Self { width, height, rgb })
+/// Errors unless two frames have one size.
+fn check_same(a: &RgbFrame, b: &RgbFrame, what: &str) -> Result<()> {
+    if (a.width, a.height) != (b.width, b.height) {
+        return Err(MetricError::ShapeMismatch {
+            what: what.to_string(),
+            left: format!("{}x{}", a.width, a.height),
+            right: format!("{}x{}", b.width, b.height),
+        });
     }
-
-    /// A frame from 8-bit RGB (`value / 255`).
-    pub fn from_rgb8(width: usize, height: usize, rgb: &[u8]) -> Result<Self> {
-        Self::new(
-            width,
-            height,
-            rgb.iter().map(|&v| f32::from(v) / 255.0).collect(),
-        )
-    }
-
-    fn check_same(&self, other: &Frame, what: &str) -> Result<()> {
-        if (self.width, self.height) != (other.width, other.height) {
-            return Err(MetricError::ShapeMismatch {
-                what: what.to_string(),
-                left: format!("{}x{}", self.width, self.height),
-                right: format!("{}x{}", other.width, other.height),
-            });
-        }
-        Ok(())
-    }
+    Ok(())
 }
 
 /// PSNR value reported for (near-)identical frames, whose MSE is below
@@ -64,8 +25,8 @@ pub const PSNR_MSE_FLOOR: f64 = 1e-10;
 
 /// PSNR of one frame pair on `[0, 1]` data: `20 log10(1 / sqrt(mse))`, or
 /// [`PSNR_IDENTICAL`] when `mse < 1e-10`.
-pub fn psnr(pred: &Frame, gt: &Frame) -> Result<f64> {
-    pred.check_same(gt, "PSNR frames")?;
+pub fn psnr(pred: &RgbFrame, gt: &RgbFrame) -> Result<f64> {
+    check_same(pred, gt, "PSNR frames")?;
     let sum: f64 = pred
         .rgb
         .chunks(4096)
@@ -122,8 +83,8 @@ pub fn ssim_window() -> [f64; SSIM_WINDOW] {
 /// Computed in f32 with AVX2/FMA when the CPU has them (runtime dispatch);
 /// agrees with the f64 computation to ~1e-7 (checked in the tests and by
 /// `bridgev2w bench metrics` against scikit-image).
-pub fn ssim(pred: &Frame, gt: &Frame) -> Result<f64> {
-    pred.check_same(gt, "SSIM frames")?;
+pub fn ssim(pred: &RgbFrame, gt: &RgbFrame) -> Result<f64> {
+    check_same(pred, gt, "SSIM frames")?;
     let (w, h) = (pred.width, pred.height);
     if w < SSIM_WINDOW || h < SSIM_WINDOW {
         return Err(MetricError::Invalid(format!(
@@ -328,12 +289,12 @@ where
 }
 
 /// Mean PSNR over the frames of one video pair.
-pub fn video_psnr(pred: &[Frame], gt: &[Frame]) -> Result<f64> {
+pub fn video_psnr(pred: &[RgbFrame], gt: &[RgbFrame]) -> Result<f64> {
     video_mean(pred, gt, "PSNR", psnr)
 }
 
 /// Mean SSIM over the frames of one video pair.
-pub fn video_ssim(pred: &[Frame], gt: &[Frame]) -> Result<f64> {
+pub fn video_ssim(pred: &[RgbFrame], gt: &[RgbFrame]) -> Result<f64> {
     video_mean(pred, gt, "SSIM", ssim)
 }
 
@@ -365,19 +326,19 @@ mod tests {
         }
     }
 
-    fn random_frame(rng: &mut Rng, w: usize, h: usize) -> Frame {
-        Frame::new(w, h, (0..w * h * 3).map(|_| rng.next()).collect()).unwrap()
+    fn random_frame(rng: &mut Rng, w: usize, h: usize) -> RgbFrame {
+        RgbFrame::new(w, h, (0..w * h * 3).map(|_| rng.next()).collect()).unwrap()
     }
 
     /// Straightforward SSIM in f64: a full 2-D window at every valid
     /// position (a second implementation).
-    fn ssim_reference(a: &Frame, b: &Frame) -> f64 {
+    fn ssim_reference(a: &RgbFrame, b: &RgbFrame) -> f64 {
         let g = ssim_window();
         let (w, h) = (a.width, a.height);
         let (c1, c2) = (1e-4, 9e-4);
         let mut total = 0.0;
         for c in 0..3 {
-            let px = |f: &Frame, x: usize, y: usize| f64::from(f.rgb[(y * w + x) * 3 + c]);
+            let px = |f: &RgbFrame, x: usize, y: usize| f64::from(f.rgb[(y * w + x) * 3 + c]);
             let mut sum = 0.0;
             let mut n = 0;
             for y0 in 0..=h - SSIM_WINDOW {
@@ -407,13 +368,13 @@ mod tests {
 
     #[test]
     fn psnr_closed_form() {
-        let a = Frame::new(4, 3, vec![0.5; 36]).unwrap();
-        let b = Frame::new(4, 3, vec![0.6; 36]).unwrap();
+        let a = RgbFrame::new(4, 3, vec![0.5; 36]).unwrap();
+        let b = RgbFrame::new(4, 3, vec![0.6; 36]).unwrap();
         // mse = 0.01 -> 20 log10(1 / 0.1) = 20 dB.
         assert!((psnr(&a, &b).unwrap() - 20.0).abs() < 1e-5);
         assert_eq!(psnr(&a, &a).unwrap(), PSNR_IDENTICAL);
-        let c = Frame::new(4, 3, vec![0.0; 36]).unwrap();
-        let d = Frame::new(4, 3, vec![1.0; 36]).unwrap();
+        let c = RgbFrame::new(4, 3, vec![0.0; 36]).unwrap();
+        let d = RgbFrame::new(4, 3, vec![1.0; 36]).unwrap();
         assert!(psnr(&c, &d).unwrap().abs() < 1e-12);
     }
 
@@ -425,7 +386,7 @@ mod tests {
             let a = random_frame(&mut rng, w, h);
             // A correlated second frame: a blend with noise.
             let noise = random_frame(&mut rng, w, h);
-            let b = Frame::new(
+            let b = RgbFrame::new(
                 w,
                 h,
                 a.rgb
@@ -461,8 +422,8 @@ mod tests {
     fn ssim_of_constant_frames_closed_form() {
         // Constant frames: variances vanish, SSIM = (2 a b + C1) / (a^2 + b^2 + C1).
         let (p, q) = (0.2f32, 0.7f32);
-        let a = Frame::new(12, 12, vec![p; 12 * 12 * 3]).unwrap();
-        let b = Frame::new(12, 12, vec![q; 12 * 12 * 3]).unwrap();
+        let a = RgbFrame::new(12, 12, vec![p; 12 * 12 * 3]).unwrap();
+        let b = RgbFrame::new(12, 12, vec![q; 12 * 12 * 3]).unwrap();
         let (p, q) = (f64::from(p), f64::from(q));
         let expected = (2.0 * p * q + 1e-4) / (p * p + q * q + 1e-4);
         assert!((ssim(&a, &b).unwrap() - expected).abs() < 1e-9);
@@ -470,16 +431,16 @@ mod tests {
 
     #[test]
     fn errors_name_the_problem() {
-        let a = Frame::new(12, 12, vec![0.0; 432]).unwrap();
-        let small = Frame::new(10, 12, vec![0.0; 360]).unwrap();
+        let a = RgbFrame::new(12, 12, vec![0.0; 432]).unwrap();
+        let small = RgbFrame::new(10, 12, vec![0.0; 360]).unwrap();
         assert!(matches!(
             psnr(&a, &small),
             Err(MetricError::ShapeMismatch { .. })
         ));
         let e = ssim(&small, &small).unwrap_err().to_string();
         assert!(e.contains("11x11") && e.contains("10x12"), "{e}");
-        assert!(Frame::new(2, 2, vec![0.0; 11]).is_err());
-        let e = Frame::new(1, 1, vec![0.0, f32::NAN, 0.0])
+        assert!(RgbFrame::new(2, 2, vec![0.0; 11]).is_err());
+        let e = RgbFrame::new(1, 1, vec![0.0, f32::NAN, 0.0])
             .unwrap_err()
             .to_string();
         assert!(e.contains("NaN"), "{e}");

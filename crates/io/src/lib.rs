@@ -8,6 +8,8 @@
 //! * [`json`]: JSON files read and written with errors that name the file;
 //! * [`npy`] and [`png`]: NumPy arrays and PNG images, the formats masks,
 //!   frames and videos are exchanged in;
+//! * [`frame`]: [`frame::RgbFrame`], the float RGB frame that the world
+//!   model, the planners and the metrics all use, and its 8-bit conversions;
 //! * [`output`]: output folders as transactions (built in `OUT.tmp`, renamed
 //!   to `OUT` when complete);
 //! * [`sections`]: a markdown results file that several commands share, each
@@ -18,6 +20,7 @@
 //!   scripts that print a JSON result) and the benches' progress reports.
 
 pub mod atomic;
+pub mod frame;
 pub mod json;
 pub mod npy;
 pub mod output;

@@ -18,7 +18,7 @@
 use crate::error::{PlanError, Result};
 use crate::model::{check_image_size, expand_waypoints, latent_l1, ActionWorldModel};
 use crate::{EeAction, Observation};
-use bridgev2w_world_model::video::Image;
+use bridgev2w_io::frame::RgbFrame;
 
 /// Spearman rank correlations of one start/goal pair (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -46,7 +46,7 @@ pub fn rank_fidelity<M, R>(
     model: &M,
     real: &R,
     start: &Observation,
-    goal: &Image,
+    goal: &RgbFrame,
     goal_ee: &EeAction,
     candidates: &[EeAction],
     frames_per_action: usize,
@@ -122,37 +122,37 @@ mod tests {
                     let x = s.last().unwrap()[0] as f32;
                     let v = if self.flip { 1.0 - x } else { x };
                     Observation {
-                        image: Image {
+                        image: RgbFrame {
                             height: 2,
                             width: 2,
-                            data: vec![v; 12],
+                            rgb: vec![v; 12],
                         },
                         ..start.clone()
                     }
                 })
                 .collect())
         }
-        fn encode(&self, image: &Image) -> Result<Vec<f32>> {
-            Ok(image.data.clone())
+        fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>> {
+            Ok(image.rgb.clone())
         }
     }
 
     #[test]
     fn a_faithful_model_ranks_like_the_world_and_a_mirrored_one_does_not() {
         let start = Observation {
-            image: Image {
+            image: RgbFrame {
                 height: 2,
                 width: 2,
-                data: vec![0.0; 12],
+                rgb: vec![0.0; 12],
             },
             joints: vec![],
             ee: [0.0; 7],
             scene: None,
         };
-        let goal = Image {
+        let goal = RgbFrame {
             height: 2,
             width: 2,
-            data: vec![0.2; 12],
+            rgb: vec![0.2; 12],
         };
         let goal_ee = [0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
         let cands: Vec<EeAction> = [0.0, 0.15, 0.3, 0.5, 0.9]
@@ -169,10 +169,10 @@ mod tests {
         assert!(f.model_vs_distance < 0.5, "{f:?}");
         // Bad input: one candidate, a wrong-size goal.
         assert!(rank_fidelity(&world, &world, &start, &goal, &goal_ee, &cands[..1], 2).is_err());
-        let small = Image {
+        let small = RgbFrame {
             height: 1,
             width: 1,
-            data: vec![0.0; 3],
+            rgb: vec![0.0; 3],
         };
         assert!(matches!(
             rank_fidelity(&world, &world, &start, &small, &goal_ee, &cands, 2),

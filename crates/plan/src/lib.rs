@@ -44,7 +44,7 @@ pub type EeAction = [f64; 7];
 #[derive(Debug, Clone)]
 pub struct Observation {
     /// The camera image at the model's resolution.
-    pub image: bridgev2w_world_model::video::Image,
+    pub image: bridgev2w_io::frame::RgbFrame,
     /// Robot joints (URDF actuated order).
     pub joints: Vec<f64>,
     /// The acting arm's current end-effector action (pose + gripper): the

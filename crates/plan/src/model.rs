@@ -8,8 +8,9 @@ use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::{pose_from_xyz_rpy, xyz_rpy_from_pose, IkOptions};
 use bridgev2w_embodiment::masks::render_trajectory_labels;
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::pipeline::{PredictOptions, WorldModel};
-use bridgev2w_world_model::video::{Image, MaskVideo};
+use bridgev2w_world_model::video::MaskVideo;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use rayon::prelude::*;
 
@@ -33,7 +34,7 @@ pub trait ActionWorldModel {
     ) -> Result<Vec<Observation>>;
 
     /// A latent code of an image for goal distances.
-    fn encode(&self, image: &Image) -> Result<Vec<f32>>;
+    fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>>;
 }
 
 impl<T: ActionWorldModel + ?Sized> ActionWorldModel for &T {
@@ -50,7 +51,7 @@ impl<T: ActionWorldModel + ?Sized> ActionWorldModel for &T {
     ) -> Result<Vec<Observation>> {
         (**self).rollout_batch(start, sequences)
     }
-    fn encode(&self, image: &Image) -> Result<Vec<f32>> {
+    fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>> {
         (**self).encode(image)
     }
 }
@@ -88,8 +89,8 @@ pub fn latent_l1(u: &[f32], v: &[f32]) -> Result<f64> {
 }
 
 /// Checks that an image has the model's resolution.
-pub fn check_image_size(image: &Image, (h, w): (usize, usize)) -> Result<()> {
-    if (image.height, image.width) != (h, w) || image.data.len() != h * w * 3 {
+pub fn check_image_size(image: &RgbFrame, (h, w): (usize, usize)) -> Result<()> {
+    if (image.height, image.width) != (h, w) || image.rgb.len() != h * w * 3 {
         return Err(PlanError::GoalImageSize {
             got_h: image.height,
             got_w: image.width,
@@ -362,7 +363,7 @@ impl<M: WorldModel + ?Sized> ActionWorldModel for MaskConditioned<'_, M> {
             .collect()
     }
 
-    fn encode(&self, image: &Image) -> Result<Vec<f32>> {
+    fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>> {
         Ok(self.model.encode_image(image)?)
     }
 }

@@ -10,7 +10,7 @@ use crate::model::{
 };
 use crate::{EeAction, Observation};
 use bridgev2w_data::synth::Task;
-use bridgev2w_world_model::video::Image;
+use bridgev2w_io::frame::RgbFrame;
 use rand_chacha::ChaCha8Rng;
 
 /// How the gripper is commanded.
@@ -253,7 +253,7 @@ pub struct MpcOutcome {
 pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
     model: &M,
     env: &mut E,
-    goals: &[Image],
+    goals: &[RgbFrame],
     cfg: &MpcConfig,
     rng: &mut ChaCha8Rng,
 ) -> Result<MpcOutcome> {
@@ -357,7 +357,7 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
 pub fn select_proposal<M: ActionWorldModel + ?Sized>(
     model: &M,
     obs: &Observation,
-    goal: &Image,
+    goal: &RgbFrame,
     proposals: &[Vec<EeAction>],
 ) -> Result<(usize, Vec<f64>)> {
     check_image_size(goal, model.resolution())?;

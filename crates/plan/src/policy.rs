@@ -8,7 +8,7 @@ use crate::error::{check_finite, PlanError, Result};
 use crate::model::{latent_l1, ActionWorldModel};
 use crate::synthetic::{SyntheticEnv, TaskInstance};
 use crate::{EeAction, Observation};
-use bridgev2w_world_model::video::Image;
+use bridgev2w_io::frame::RgbFrame;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::HashMap;
@@ -40,7 +40,7 @@ fn next_chunk(policy: &mut dyn Policy, obs: &Observation) -> Result<Vec<EeAction
 #[derive(Debug, Clone)]
 pub struct RolloutResult {
     /// The last predicted frame of every chunk.
-    pub chunk_last_frames: Vec<Image>,
+    pub chunk_last_frames: Vec<RgbFrame>,
     /// The final observation.
     pub last: Observation,
     /// Policy actions executed (without padding).
@@ -112,11 +112,11 @@ pub struct JudgeInput<'a> {
     /// Trial index.
     pub trial: usize,
     /// The start image.
-    pub start: &'a Image,
+    pub start: &'a RgbFrame,
     /// The rollout's final image.
-    pub last: &'a Image,
+    pub last: &'a RgbFrame,
     /// The task's goal image.
-    pub goal: &'a Image,
+    pub goal: &'a RgbFrame,
 }
 
 /// A judge's verdict on one rollout.
@@ -157,7 +157,7 @@ pub fn goal_progress(d_start: f64, d_last: f64) -> f64 {
 /// the verdict's progress is [`goal_progress`] of the two distances.
 pub struct GoalDistanceJudge<'m> {
     /// The latent encoder.
-    pub encode: &'m dyn Fn(&Image) -> Result<Vec<f32>>,
+    pub encode: &'m dyn Fn(&RgbFrame) -> Result<Vec<f32>>,
     /// The ratio.
     pub ratio: f64,
 }
@@ -551,10 +551,10 @@ mod tests {
     #[test]
     fn labels_parse_and_bad_lines_are_errors() {
         let j = LabelJudge::parse("policy,trial,success\n# c\na,0,1\na,1,false\n", "x").unwrap();
-        let img = Image {
+        let img = RgbFrame {
             height: 1,
             width: 1,
-            data: vec![0.0; 3],
+            rgb: vec![0.0; 3],
         };
         let inp = |trial| JudgeInput {
             policy: "a",
@@ -601,19 +601,19 @@ mod tests {
 
     #[test]
     fn goal_distance_judge_grades_with_latent_distances() {
-        let img = |v: f32| Image {
+        let img = |v: f32| RgbFrame {
             height: 1,
             width: 2,
-            data: vec![v; 6],
+            rgb: vec![v; 6],
         };
         // The "latent" is the image itself: d = mean |a - b|.
-        let encode = |i: &Image| Ok(i.data.clone());
+        let encode = |i: &RgbFrame| Ok(i.rgb.clone());
         let judge = GoalDistanceJudge {
             encode: &encode,
             ratio: 0.5,
         };
         let (start, goal) = (img(0.0), img(1.0));
-        let verdict = |last: &Image| {
+        let verdict = |last: &RgbFrame| {
             judge
                 .judge(&JudgeInput {
                     policy: "p",

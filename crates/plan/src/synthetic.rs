@@ -14,7 +14,7 @@ use crate::model::{check_image_size, full_rows, pad_to_clip, ActionWorldModel, W
 use crate::{EeAction, Observation};
 use bridgev2w_data::synth::{Episode, RenderFrames, SceneState, Split, Task, World};
 use bridgev2w_embodiment::kinematics::xyz_rpy_from_pose;
-use bridgev2w_world_model::video::Image;
+use bridgev2w_io::frame::{unit_from_u8, RgbFrame};
 use nalgebra::Isometry3;
 use rayon::prelude::*;
 
@@ -27,12 +27,12 @@ pub const WORKSPACE_CLEARANCE_M: f64 = 0.02;
 /// Highest planned TCP height above the start pose's (metres).
 pub const WORKSPACE_HEADROOM_M: f64 = 0.05;
 
-/// RGB8 to an [`Image`].
-pub fn image_from_rgb8(rgb: &[u8], height: usize, width: usize) -> Image {
-    Image {
+/// RGB8 to an [`RgbFrame`] ([`unit_from_u8`]: `value / 255`).
+pub fn image_from_rgb8(rgb: &[u8], height: usize, width: usize) -> RgbFrame {
+    RgbFrame {
         height,
         width,
-        data: rgb.iter().map(|&v| f32::from(v) / 255.0).collect(),
+        rgb: rgb.iter().map(|&v| unit_from_u8(v)).collect(),
     }
 }
 
@@ -113,7 +113,7 @@ impl TaskInstance {
     }
 
     /// The goal images, subgoal first.
-    pub fn goal_images(&self) -> Vec<Image> {
+    pub fn goal_images(&self) -> Vec<RgbFrame> {
         let (h, w) = self.resolution();
         self.goal_frames
             .iter()
@@ -330,7 +330,7 @@ impl ActionWorldModel for PerfectWorldModel<'_> {
             .collect()
     }
 
-    fn encode(&self, image: &Image) -> Result<Vec<f32>> {
+    fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>> {
         check_image_size(image, self.resolution())?;
         Ok(pyramid_latent(image))
     }
@@ -355,13 +355,13 @@ pub const PYRAMID_SIGMAS: [f64; 6] = [
 /// Coarse levels widen the basin of the goal distance (a pixel-exact
 /// distance is flat until the arm overlaps its goal pose), fine levels
 /// make it precise near the goal.
-pub fn pyramid_latent(image: &Image) -> Vec<f32> {
+pub fn pyramid_latent(image: &RgbFrame) -> Vec<f32> {
     let (h, w) = (image.height, image.width);
     let levels: Vec<Vec<f32>> = PYRAMID_SIGMAS
         .iter()
         .map(|frac| {
             let sigma = (frac * w as f64).max(0.5);
-            let blurred = gaussian_blur(&image.data, h, w, sigma);
+            let blurred = gaussian_blur(&image.rgb, h, w, sigma);
             let stride = (sigma.floor() as usize).max(1);
             let mut out = Vec::with_capacity((h / stride + 1) * (w / stride + 1) * 3);
             for y in (0..h).step_by(stride) {
@@ -427,17 +427,17 @@ pub fn gaussian_blur(data: &[f32], h: usize, w: usize, sigma: f64) -> Vec<f32> {
 mod tests {
     use super::*;
 
-    fn square(h: usize, w: usize, x0: usize, y0: usize, side: usize) -> Image {
+    fn square(h: usize, w: usize, x0: usize, y0: usize, side: usize) -> RgbFrame {
         let mut data = vec![0.0f32; h * w * 3];
         for y in y0..(y0 + side).min(h) {
             for x in x0..(x0 + side).min(w) {
                 data[(y * w + x) * 3..(y * w + x) * 3 + 3].fill(1.0);
             }
         }
-        Image {
+        RgbFrame {
             height: h,
             width: w,
-            data,
+            rgb: data,
         }
     }
 
@@ -473,8 +473,8 @@ mod tests {
         };
         let pixel = |dx: usize| {
             crate::model::latent_l1(
-                &square(h, w, 10 + dx, 30, 4).data,
-                &square(h, w, 10, 30, 4).data,
+                &square(h, w, 10 + dx, 30, 4).rgb,
+                &square(h, w, 10, 30, 4).rgb,
             )
             .unwrap()
         };

@@ -6,6 +6,7 @@ use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::xyz_rpy_from_pose;
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::cem::{CemConfig, GripperMode};
 use bridgev2w_plan::model::{
     expand_waypoints, pad_to_clip, ActionWorldModel, MaskConditioned, Workspace,
@@ -17,7 +18,7 @@ use bridgev2w_plan::policy::{rollout_in_model, Policy};
 use bridgev2w_plan::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance};
 use bridgev2w_plan::{EeAction, Observation, PlanError, Result};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
-use bridgev2w_world_model::video::{Image, MaskVideo, Video};
+use bridgev2w_world_model::video::{MaskVideo, Video};
 use nalgebra::{Point3, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -31,11 +32,11 @@ struct PositionModel {
     padded: Mutex<Vec<Vec<EeAction>>>,
 }
 
-fn position_image(a: &EeAction) -> Image {
-    Image {
+fn position_image(a: &EeAction) -> RgbFrame {
+    RgbFrame {
         height: 1,
         width: 2,
-        data: vec![
+        rgb: vec![
             (0.5 + a[0]) as f32,
             (0.5 + a[1]) as f32,
             (0.5 + a[2]) as f32,
@@ -71,8 +72,8 @@ impl ActionWorldModel for PositionModel {
             })
             .collect()
     }
-    fn encode(&self, image: &Image) -> Result<Vec<f32>> {
-        Ok(image.data.clone())
+    fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>> {
+        Ok(image.rgb.clone())
     }
 }
 
@@ -232,7 +233,7 @@ impl WorldModel for CountingModel {
     }
     fn predict(
         &self,
-        f: &Image,
+        f: &RgbFrame,
         m: &MaskVideo,
         _: &PredictOptions,
     ) -> bridgev2w_world_model::Result<Video> {
@@ -252,7 +253,7 @@ impl WorldModel for CountingModel {
     }
     fn predict_batch(
         &self,
-        f: &[Image],
+        f: &[RgbFrame],
         m: &[MaskVideo],
         o: &PredictOptions,
     ) -> bridgev2w_world_model::Result<Vec<Video>> {
@@ -262,8 +263,8 @@ impl WorldModel for CountingModel {
             .map(|(f, m)| self.predict(f, m, o))
             .collect()
     }
-    fn encode_image(&self, image: &Image) -> bridgev2w_world_model::Result<Vec<f32>> {
-        Ok(image.data.clone())
+    fn encode_image(&self, image: &RgbFrame) -> bridgev2w_world_model::Result<Vec<f32>> {
+        Ok(image.rgb.clone())
     }
 }
 
@@ -279,10 +280,10 @@ fn franka_model(counting: &CountingModel) -> (MaskConditioned<'_, CountingModel>
     let tcp = e.robot.link_pose(e.end_effectors[0].link, &e.home);
     let v = xyz_rpy_from_pose(&tcp);
     let obs = Observation {
-        image: Image {
+        image: RgbFrame {
             height: 24,
             width: 32,
-            data: vec![0.5; 24 * 32 * 3],
+            rgb: vec![0.5; 24 * 32 * 3],
         },
         joints: e.home.clone(),
         ee: [v[0], v[1], v[2], v[3], v[4], v[5], 0.0],
@@ -337,7 +338,7 @@ fn bad_inputs_are_clear_errors() {
     let model = position_model();
     let start = [0.0; 7];
     let good_goal = position_image(&start);
-    let run = |goal: &Image, cem: CemConfig| {
+    let run = |goal: &RgbFrame, cem: CemConfig| {
         let mut env = PositionEnv {
             ee: start,
             target: [1.0; 3],
@@ -355,10 +356,10 @@ fn bad_inputs_are_clear_errors() {
             &mut ChaCha8Rng::seed_from_u64(0),
         )
     };
-    let wrong = Image {
+    let wrong = RgbFrame {
         height: 2,
         width: 2,
-        data: vec![0.0; 12],
+        rgb: vec![0.0; 12],
     };
     let e = run(&wrong, CemConfig::default()).unwrap_err();
     assert!(
@@ -460,7 +461,7 @@ impl Policy for StepPolicy {
     }
     fn reset(&mut self, _: usize) {}
     fn act(&mut self, obs: &Observation) -> Result<Vec<EeAction>> {
-        self.seen_x.push(f64::from(obs.image.data[0]) - 0.5);
+        self.seen_x.push(f64::from(obs.image.rgb[0]) - 0.5);
         Ok((0..3)
             .map(|_| {
                 self.next_x += 0.01;

@@ -17,7 +17,8 @@ use crate::{Result, TrainError};
 use bridgev2w_eval::clip::{copy_first_frame, predicted, score_clip};
 use bridgev2w_eval::dynamic::dynamic_region;
 use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
-use bridgev2w_eval::video::{mean_over_videos, video_mask_iou, Frame};
+use bridgev2w_eval::video::{mean_over_videos, video_mask_iou};
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::pipeline::{FirstFrame, SampleOptions};
 use tch::{Kind, Tensor};
 
@@ -98,7 +99,7 @@ pub fn color_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
     let mut seg = ColorSegmenter::new(SEGMENTER_BITS).map_err(metric)?;
     let frames = data.masked_frames();
     for f in &frames {
-        let frame = Frame::from_rgb8(f.width, f.height, f.rgb).map_err(metric)?;
+        let frame = RgbFrame::from_rgb8(f.width, f.height, f.rgb).map_err(|e| metric(e.into()))?;
         seg.observe(&frame, f.mask).map_err(metric)?;
     }
     Ok((!frames.is_empty()).then_some(seg))
@@ -120,7 +121,7 @@ fn mask_frames(masks: &Tensor) -> Result<Vec<Vec<u8>>> {
 }
 
 /// `[1, 3, T, H, W]` in [-1, 1] to metric frames in [0, 1].
-fn frames(video: &Tensor) -> Result<Vec<Frame>> {
+fn frames(video: &Tensor) -> Result<Vec<RgbFrame>> {
     let v = ((video.to_kind(Kind::Float).clamp(-1.0, 1.0) + 1.0) / 2.0)
         .squeeze_dim(0)
         .permute([1, 2, 3, 0]) // [3, T, H, W] -> [T, H, W, 3]
@@ -131,7 +132,8 @@ fn frames(video: &Tensor) -> Result<Vec<Frame>> {
     data.chunks(h * w * 3)
         .take(t)
         .map(|c| {
-            Frame::new(w, h, c.to_vec()).map_err(|e| TrainError::input("prediction", e.to_string()))
+            RgbFrame::new(w, h, c.to_vec())
+                .map_err(|e| TrainError::input("prediction", e.to_string()))
         })
         .collect()
 }
@@ -190,8 +192,9 @@ pub fn evaluate_split(
         let region = dynamic_region(&gt).map_err(metric)?;
         // Scored on the predicted frames 1.. (frame 0 is the input; see
         // `bridgev2w_eval::clip`).
-        let later =
-            |v: &[Frame]| -> Result<Vec<Frame>> { Ok(predicted(v).map_err(metric)?.to_vec()) };
+        let later = |v: &[RgbFrame]| -> Result<Vec<RgbFrame>> {
+            Ok(predicted(v).map_err(metric)?.to_vec())
+        };
         let (gt_p, region_p) = (later(&gt)?, predicted(&region).map_err(metric)?);
         let (pf, copy, af) = (later(&pf)?, later(&copy)?, later(&af)?);
         for (v, psnr, ssim, dynamic) in [
@@ -207,7 +210,7 @@ pub fn evaluate_split(
         if let Some(seg) = with_masks {
             let gt_masks = mask_frames(&batch.masks)?;
             let gt_masks = predicted(&gt_masks).map_err(metric)?;
-            let segment = |v: &[Frame]| {
+            let segment = |v: &[RgbFrame]| {
                 v.iter()
                     .map(|f| seg.segment(f))
                     .collect::<std::result::Result<Vec<_>, _>>()

@@ -8,7 +8,7 @@
 use crate::data::ClipDataset;
 use crate::{Result, TrainError};
 use bridgev2w_eval::segment::RobotSegmenter;
-use bridgev2w_eval::video::Frame;
+use bridgev2w_io::frame::RgbFrame;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tch::nn::{self, Module, OptimizerConfig};
@@ -181,12 +181,8 @@ impl CnnSegmenter {
 }
 
 impl RobotSegmenter for CnnSegmenter {
-    fn segment(&self, frame: &Frame) -> bridgev2w_eval::Result<Vec<u8>> {
-        let rgb: Vec<u8> = frame
-            .rgb
-            .iter()
-            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-            .collect();
+    fn segment(&self, frame: &RgbFrame) -> bridgev2w_eval::Result<Vec<u8>> {
+        let rgb = frame.to_rgb8();
         let logits = tch::no_grad(|| {
             self.net
                 .forward(&to_input(&[&rgb], frame.height, frame.width))
@@ -256,11 +252,11 @@ mod tests {
         let mut colour = ColorSegmenter::new(5).unwrap();
         for (rgb, m) in &train {
             colour
-                .observe(&Frame::from_rgb8(w, h, rgb).unwrap(), m)
+                .observe(&RgbFrame::from_rgb8(w, h, rgb).unwrap(), m)
                 .unwrap();
         }
         let (rgb, mask) = frame(&mut rng, h, w);
-        let f = Frame::from_rgb8(w, h, &rgb).unwrap();
+        let f = RgbFrame::from_rgb8(w, h, &rgb).unwrap();
         let cnn_iou = mask_iou(&cnn.segment(&f).unwrap(), &mask).unwrap();
         let colour_iou = mask_iou(&RobotSegmenter::segment(&colour, &f).unwrap(), &mask).unwrap();
         assert!(cnn_iou > 0.8, "CNN IoU {cnn_iou} (BCE {})", cnn.final_loss);

@@ -629,7 +629,7 @@ fn raft_flow_loss_trains_through_the_decoder() {
     c.train.e_switch = 0;
     c.train.condition_dropout = 0.0;
     c.train.raft_weights = Some(weights);
-    c.train.raft_model = "raft_small".into();
+    c.train.raft_model = bridgev2w_world_model::nets::raft::RaftVariant::RaftSmall;
     c.train.raft_iterations = 2;
     let grads = |c: TrainConfig| -> (f64, f64) {
         let t = Trainer::new(c).unwrap();

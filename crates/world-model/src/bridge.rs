@@ -18,11 +18,12 @@ use crate::pipeline::{
 use crate::scheduler::{Scheduler, SchedulerConfig};
 use crate::transformer::{CheckpointedForward, LoadedTransformer, Rotary, TransformerConfig};
 use crate::vae::{AutoencoderKLCogVideoX, VaeConfig};
-use crate::video::{Image, MaskVideo, Video};
+use crate::video::{image_to_tensor, MaskVideo, Video};
 use crate::weights::{
     load_weights, read_safetensors_metadata, save_safetensors, save_safetensors_with_metadata,
     DIFFUSERS_WEIGHTS_STEM,
 };
+use bridgev2w_io::frame::RgbFrame;
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::nn::VarStore;
@@ -290,6 +291,7 @@ impl BridgeV2W {
         device: ComputeDevice,
         precision: Precision,
     ) -> Result<Self> {
+        let pipeline_dir = &crate::hub::resolve_model_dir(pipeline_dir)?;
         let folder = PipelineFolder::open(pipeline_dir)?;
         let device = device.check_available()?;
         let vae_dir = folder.component_dir("vae");
@@ -668,7 +670,7 @@ impl BridgeV2W {
         self.kind
     }
 
-    fn check_inputs(&self, first_frame: &Image, masks: &MaskVideo) -> Result<()> {
+    fn check_inputs(&self, first_frame: &RgbFrame, masks: &MaskVideo) -> Result<()> {
         let (h, w, t) = (self.cfg.height, self.cfg.width, self.cfg.frames);
         if (first_frame.height, first_frame.width) != (h, w) {
             return Err(WorldModelError::input(
@@ -744,7 +746,7 @@ impl WorldModel for BridgeV2W {
 
     fn predict(
         &self,
-        first_frame: &Image,
+        first_frame: &RgbFrame,
         masks: &MaskVideo,
         opts: &PredictOptions,
     ) -> Result<Video> {
@@ -759,7 +761,7 @@ impl WorldModel for BridgeV2W {
 
     fn predict_batch(
         &self,
-        first_frames: &[Image],
+        first_frames: &[RgbFrame],
         masks: &[MaskVideo],
         opts: &PredictOptions,
     ) -> Result<Vec<Video>> {
@@ -775,7 +777,7 @@ impl WorldModel for BridgeV2W {
         let mut mask_videos = Vec::with_capacity(masks.len());
         for (f, m) in first_frames.iter().zip(masks) {
             self.check_inputs(f, m)?;
-            images.push(f.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, H, W]
+            images.push(image_to_tensor(f, Device::Cpu, Kind::Float)?); // [1, 3, H, W]
             mask_videos.push(m.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, T, H, W]
         }
         let images = Tensor::cat(&images, 0); // [B, 3, H, W]
@@ -789,8 +791,8 @@ impl WorldModel for BridgeV2W {
             .collect()
     }
 
-    fn encode_image(&self, image: &Image) -> Result<Vec<f32>> {
-        let x = image.to_tensor(Device::Cpu, Kind::Float)?.unsqueeze(2); // [1, 3, 1, H, W]
+    fn encode_image(&self, image: &RgbFrame) -> Result<Vec<f32>> {
+        let x = image_to_tensor(image, Device::Cpu, Kind::Float)?.unsqueeze(2); // [1, 3, 1, H, W]
         let z = self.vae.encode(&x)?.mode();
         Ok(Vec::<f32>::try_from(
             &z.to_kind(Kind::Float).to_device(Device::Cpu).flatten(0, -1),

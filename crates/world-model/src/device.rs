@@ -82,6 +82,77 @@ impl FromStr for ComputeDevice {
     }
 }
 
+/// A device as a configuration names it: `auto` stays `auto` until the run
+/// starts ([`DeviceSpec::resolve`]), and `cuda` stays `cuda` (not `cuda:0`),
+/// so a configuration reads back as written.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum DeviceSpec {
+    /// CUDA:0 when libtorch sees a GPU, else the CPU.
+    Auto,
+    /// The CPU.
+    #[default]
+    Cpu,
+    /// A CUDA GPU: `cuda` (`None`, the first) or `cuda:N`.
+    Cuda(Option<usize>),
+}
+
+impl DeviceSpec {
+    /// The device on this machine.
+    pub fn resolve(self) -> ComputeDevice {
+        match self {
+            Self::Auto => ComputeDevice::auto(),
+            Self::Cpu => ComputeDevice::Cpu,
+            Self::Cuda(i) => ComputeDevice::Cuda(i.unwrap_or(0)),
+        }
+    }
+}
+
+impl FromStr for DeviceSpec {
+    type Err = WorldModelError;
+    /// `cpu`, `cuda`, `cuda:N` or `auto`.
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "cpu" => Ok(Self::Cpu),
+            "cuda" => Ok(Self::Cuda(None)),
+            "auto" => Ok(Self::Auto),
+            _ => s
+                .strip_prefix("cuda:")
+                .and_then(|i| i.parse().ok())
+                .map(|i| Self::Cuda(Some(i)))
+                .ok_or_else(|| {
+                    WorldModelError::input(
+                        "device",
+                        format!("`{s}`: expected cpu, cuda, cuda:N or auto"),
+                    )
+                }),
+        }
+    }
+}
+
+impl fmt::Display for DeviceSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Auto => write!(f, "auto"),
+            Self::Cpu => write!(f, "cpu"),
+            Self::Cuda(None) => write!(f, "cuda"),
+            Self::Cuda(Some(i)) => write!(f, "cuda:{i}"),
+        }
+    }
+}
+
+impl serde::Serialize for DeviceSpec {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for DeviceSpec {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        text.parse().map_err(serde::de::Error::custom)
+    }
+}
+
 /// Numeric precision of weights and activations.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Precision {

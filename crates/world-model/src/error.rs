@@ -84,6 +84,14 @@ pub enum WorldModelError {
     /// An error from libtorch.
     #[error("libtorch: {0}")]
     Torch(#[from] tch::TchError),
+    /// A model name is neither a local folder nor in the Hugging Face cache.
+    #[error("model {name}: not found (offline); looked at:\n  - {}\nGive a diffusers folder, or download it first (e.g. `huggingface-cli download {name}`; HF_HUB_CACHE or HF_HOME name the cache)", looked.join("\n  - "))]
+    ModelNotFound {
+        /// The name given.
+        name: String,
+        /// Each place looked at, and why it did not hold the model.
+        looked: Vec<String>,
+    },
     /// Loading a model folder failed.
     #[error("loading the model from {}", path.display())]
     Load {

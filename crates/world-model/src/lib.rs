@@ -13,7 +13,9 @@ pub mod checkpoint;
 pub mod controlnet;
 pub mod device;
 pub mod error;
+pub mod hub;
 pub mod lora;
+pub mod lora_export;
 pub mod named;
 pub mod nets;
 pub mod parity;
@@ -25,5 +27,5 @@ pub mod vae;
 pub mod video;
 pub mod weights;
 
-pub use device::{ComputeDevice, Precision};
+pub use device::{ComputeDevice, DeviceSpec, Precision};
 pub use error::{Result, WorldModelError};

@@ -10,7 +10,8 @@
 
 use crate::error::{Result, WorldModelError};
 use crate::scheduler::Scheduler;
-use crate::video::{Image, MaskVideo, Video};
+use crate::video::{MaskVideo, Video};
+use bridgev2w_io::frame::RgbFrame;
 use tch::{Kind, Tensor};
 
 /// Which side of classifier-free guidance a denoiser call is for.
@@ -158,7 +159,7 @@ pub fn sample_latents(
 }
 
 /// Checks that a batch pairs every first frame with one mask sequence.
-pub fn check_batch(first_frames: &[Image], masks: &[MaskVideo]) -> Result<()> {
+pub fn check_batch(first_frames: &[RgbFrame], masks: &[MaskVideo]) -> Result<()> {
     if first_frames.len() != masks.len() {
         return Err(WorldModelError::input(
             "predict_batch",
@@ -193,7 +194,7 @@ pub trait WorldModel {
     /// caused by the actions whose masks are `masks` `[T, H, W]`.
     fn predict(
         &self,
-        first_frame: &Image,
+        first_frame: &RgbFrame,
         masks: &MaskVideo,
         opts: &PredictOptions,
     ) -> Result<Video>;
@@ -201,7 +202,7 @@ pub trait WorldModel {
     /// Several predictions; models that batch override this.
     fn predict_batch(
         &self,
-        first_frames: &[Image],
+        first_frames: &[RgbFrame],
         masks: &[MaskVideo],
         opts: &PredictOptions,
     ) -> Result<Vec<Video>> {
@@ -214,7 +215,7 @@ pub trait WorldModel {
     }
 
     /// A latent code of an image for goal distances (e.g. the VAE posterior mean).
-    fn encode_image(&self, image: &Image) -> Result<Vec<f32>>;
+    fn encode_image(&self, image: &RgbFrame) -> Result<Vec<f32>>;
 }
 
 #[cfg(test)]

@@ -1,19 +1,11 @@
-//! Plain-data images, videos and mask sequences: what callers of the world model pass
-//! and get back (no tch types), with conversions to the model's tensor layouts.
+//! Plain-data videos and mask sequences: what callers of the world model pass and
+//! get back (no tch types), with conversions to the model's tensor layouts. Single
+//! frames are [`RgbFrame`]s (the one frame type of every crate); their tensor
+//! conversions are the free functions [`validate_image`] and [`image_to_tensor`].
 
 use crate::error::{Result, WorldModelError};
+use bridgev2w_io::frame::RgbFrame;
 use tch::{Device, Kind, Tensor};
-
-/// An RGB image, row-major `[H, W, 3]`, values in [0, 1].
-#[derive(Debug, Clone, PartialEq)]
-pub struct Image {
-    /// Rows.
-    pub height: usize,
-    /// Columns.
-    pub width: usize,
-    /// `H * W * 3` values in [0, 1].
-    pub data: Vec<f32>,
-}
 
 /// An RGB video, `[T, H, W, 3]`, values in [0, 1].
 #[derive(Debug, Clone, PartialEq)]
@@ -52,37 +44,35 @@ fn check_len(name: &str, got: usize, dims: &[usize]) -> Result<()> {
     Ok(())
 }
 
-impl Image {
-    /// Checks the size and range.
-    pub fn validate(&self) -> Result<()> {
-        check_len("image", self.data.len(), &[self.height, self.width, 3])?;
-        if let Some((i, v)) = self
-            .data
-            .iter()
-            .enumerate()
-            .find(|(_, v)| !(0.0..=1.0).contains(*v))
-        {
-            return Err(WorldModelError::input(
-                "image",
-                format!("value {v} at index {i}: expected [0, 1]"),
-            ));
-        }
-        Ok(())
+/// Checks an image's size (`H * W * 3` values, non-empty) and range ([0, 1]).
+pub fn validate_image(image: &RgbFrame) -> Result<()> {
+    check_len("image", image.rgb.len(), &[image.height, image.width, 3])?;
+    if let Some((i, v)) = image
+        .rgb
+        .iter()
+        .enumerate()
+        .find(|(_, v)| !(0.0..=1.0).contains(*v))
+    {
+        return Err(WorldModelError::input(
+            "image",
+            format!("value {v} at index {i}: expected [0, 1]"),
+        ));
     }
+    Ok(())
+}
 
-    /// `[1, 3, H, W]` in [-1, 1] (the VAE's input range).
-    pub fn to_tensor(&self, device: Device, kind: Kind) -> Result<Tensor> {
-        self.validate()?;
-        let (h, w) = (self.height as i64, self.width as i64);
-        Ok(Tensor::from_slice(&self.data)
-            .reshape([h, w, 3]) // [H, W, 3]
-            .permute([2, 0, 1]) // [3, H, W]
-            .unsqueeze(0) // [1, 3, H, W]
-            .to_device(device)
-            .to_kind(kind)
-            * 2.0
-            - 1.0)
-    }
+/// An image as `[1, 3, H, W]` in [-1, 1] (the VAE's input range).
+pub fn image_to_tensor(image: &RgbFrame, device: Device, kind: Kind) -> Result<Tensor> {
+    validate_image(image)?;
+    let (h, w) = (image.height as i64, image.width as i64);
+    Ok(Tensor::from_slice(&image.rgb)
+        .reshape([h, w, 3]) // [H, W, 3]
+        .permute([2, 0, 1]) // [3, H, W]
+        .unsqueeze(0) // [1, 3, H, W]
+        .to_device(device)
+        .to_kind(kind)
+        * 2.0
+        - 1.0)
 }
 
 impl MaskVideo {
@@ -160,12 +150,12 @@ impl Video {
     }
 
     /// Frame `i` as an image.
-    pub fn frame(&self, i: usize) -> Option<Image> {
+    pub fn frame(&self, i: usize) -> Option<RgbFrame> {
         let n = self.height * self.width * 3;
-        (i < self.frames).then(|| Image {
-            height: self.height,
+        (i < self.frames).then(|| RgbFrame {
             width: self.width,
-            data: self.data[i * n..(i + 1) * n].to_vec(),
+            height: self.height,
+            rgb: self.data[i * n..(i + 1) * n].to_vec(),
         })
     }
 }
@@ -193,7 +183,21 @@ mod tests {
         for (a, b) in back.data.iter().zip(&v.data) {
             assert!((a - b).abs() < 1e-6);
         }
-        assert_eq!(back.frame(1).unwrap().data, v.data[36..72].to_vec());
+        assert_eq!(back.frame(1).unwrap().rgb, v.data[36..72].to_vec());
+    }
+
+    #[test]
+    fn image_tensor_layout() {
+        let img = RgbFrame {
+            width: 3,
+            height: 2,
+            rgb: (0..18).map(|i| i as f32 / 17.0).collect(),
+        };
+        let t = image_to_tensor(&img, Device::Cpu, Kind::Float).unwrap();
+        assert_eq!(t.size(), [1, 3, 2, 3]);
+        // pixel (y=1, x=2), channel 2 is rgb[(1 * 3 + 2) * 3 + 2]
+        let want = img.rgb[17] * 2.0 - 1.0;
+        assert!((t.double_value(&[0, 2, 1, 2]) as f32 - want).abs() < 1e-6);
     }
 
     #[test]
@@ -214,18 +218,22 @@ mod tests {
 
     #[test]
     fn bad_sizes_and_ranges_are_errors() {
-        let img = Image {
-            height: 2,
+        let img = RgbFrame {
             width: 2,
-            data: vec![0.5; 11],
+            height: 2,
+            rgb: vec![0.5; 11],
         };
-        assert!(img.validate().unwrap_err().to_string().contains("12"));
-        let img = Image {
-            height: 1,
+        assert!(validate_image(&img).unwrap_err().to_string().contains("12"));
+        let img = RgbFrame {
             width: 1,
-            data: vec![0.5, 1.5, 0.0],
+            height: 1,
+            rgb: vec![0.5, 1.5, 0.0],
         };
-        assert!(img.validate().unwrap_err().to_string().contains("1.5"));
+        assert!(validate_image(&img)
+            .unwrap_err()
+            .to_string()
+            .contains("1.5"));
+        assert!(image_to_tensor(&img, Device::Cpu, Kind::Float).is_err());
         let m = MaskVideo {
             frames: 0,
             height: 2,

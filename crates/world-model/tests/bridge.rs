@@ -6,13 +6,14 @@
 
 mod common;
 
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig, ImageConditioning};
 use bridgev2w_world_model::controlnet::ControlNetConfig;
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use bridgev2w_world_model::vae::VaeConfig;
-use bridgev2w_world_model::video::{Image, MaskVideo};
+use bridgev2w_world_model::video::MaskVideo;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use tch::{Device, Kind, Tensor};
 
@@ -273,15 +274,15 @@ fn weights_file_round_trip_with_config_and_strict_loading() {
     );
 }
 
-fn image(seed: u64) -> Image {
+fn image(seed: u64) -> RgbFrame {
     let (h, w) = (64, 96);
     let data = (0..h * w * 3)
         .map(|i| (((i as u64 * 2654435761 + seed) % 1000) as f32) / 1000.0)
         .collect();
-    Image {
+    RgbFrame {
         height: h,
         width: w,
-        data,
+        rgb: data,
     }
 }
 
@@ -345,10 +346,10 @@ fn predict_follows_the_world_model_contract() {
     let latent = m.encode_image(&image(1)).unwrap();
     assert_eq!(latent.len(), 4 * 8 * 12);
     // Bad input.
-    let small = Image {
+    let small = RgbFrame {
         height: 32,
         width: 48,
-        data: vec![0.5; 32 * 48 * 3],
+        rgb: vec![0.5; 32 * 48 * 3],
     };
     let e = m
         .predict(&small, &masks(0), &opts(3, 1.0))

@@ -4,9 +4,10 @@
 
 mod common;
 
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::nets::lpips::Lpips;
 use bridgev2w_world_model::parity::{run_fixture, DEFAULT_TOLERANCE};
-use bridgev2w_world_model::video::{Image, Video};
+use bridgev2w_world_model::video::Video;
 use bridgev2w_world_model::weights::resolve_weight_files;
 use bridgev2w_world_model::ComputeDevice;
 
@@ -27,7 +28,7 @@ fn matches_the_lpips_package() {
     );
 }
 
-fn image(seed: u64, h: usize, w: usize) -> Image {
+fn image(seed: u64, h: usize, w: usize) -> RgbFrame {
     let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
     let data = (0..h * w * 3)
         .map(|_| {
@@ -37,10 +38,10 @@ fn image(seed: u64, h: usize, w: usize) -> Image {
             (s >> 40) as f32 / (1u64 << 24) as f32
         })
         .collect();
-    Image {
+    RgbFrame {
         height: h,
         width: w,
-        data,
+        rgb: data,
     }
 }
 
@@ -53,11 +54,11 @@ fn identity_symmetry_and_positivity() {
     let (ab, ba) = (net.distance(&a, &b).unwrap(), net.distance(&b, &a).unwrap());
     assert!(ab > 0.0 && (ab - ba).abs() < 1e-6 * ab, "{ab} {ba}");
     // A video's mean equals the mean of its frames' distances.
-    let video = |imgs: &[&Image]| Video {
+    let video = |imgs: &[&RgbFrame]| Video {
         frames: imgs.len(),
         height: 48,
         width: 64,
-        data: imgs.iter().flat_map(|i| i.data.iter().copied()).collect(),
+        data: imgs.iter().flat_map(|i| i.rgb.iter().copied()).collect(),
     };
     let c = image(3, 48, 64);
     let v = net

@@ -5,11 +5,10 @@
 use crate::choice::PlanModel;
 use crate::model::{ActionWorldModel, MaskConditioned};
 use crate::synthetic::{PerfectWorldModel, TaskInstance};
-use crate::{PlanError, Result};
+use crate::Result;
 use bridgev2w_data::synth::{SynthConfig, World};
 use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions};
-use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -80,14 +79,6 @@ impl LoadedModel {
                 clip_frames: o.clip_frames,
             },
             PlanModel::World(spec) => {
-                if let ModelSpec::Folder(dir) = spec {
-                    if !dir.is_dir() {
-                        return Err(PlanError::input(
-                            format!("--model {}", dir.display()),
-                            "no such folder (expected perfect, random or a model folder)",
-                        ));
-                    }
-                }
                 let model = spec.load_bridge(
                     o.weights.as_deref(),
                     o.prompt_embeds.as_deref(),

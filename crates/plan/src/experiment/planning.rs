@@ -7,7 +7,7 @@ use crate::mpc::{run_mpc, run_random, GripperChoice, MpcConfig};
 use crate::synthetic::{SyntheticEnv, TaskInstance};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
-use bridgev2w_world_model::video::Image;
+use bridgev2w_io::frame::RgbFrame;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
@@ -235,7 +235,7 @@ pub(crate) fn plan_with(
         if !o.single_goal {
             inst = inst.with_waypoints(o.goals.waypoints);
         }
-        let mut goals: Vec<Image> = inst.goal_images();
+        let mut goals: Vec<RgbFrame> = inst.goal_images();
         if o.single_goal {
             goals.drain(..goals.len() - 1);
         }

@@ -11,7 +11,7 @@ use crate::policy::{
 use crate::synthetic::TaskInstance;
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
-use bridgev2w_world_model::video::Image;
+use bridgev2w_io::frame::RgbFrame;
 use std::path::PathBuf;
 
 /// One policy evaluation.
@@ -131,7 +131,7 @@ pub(crate) fn rollout_with(
         for (trial, inst) in instances.iter().enumerate() {
             policy.expert = inst.expert_actions();
             let outcome = loaded.with_model(&world, inst, &mut |m| {
-                let encode = |img: &Image| m.encode(img);
+                let encode = |img: &RgbFrame| m.encode(img);
                 let goal_judge = GoalDistanceJudge {
                     encode: &encode,
                     ratio: o.ratio,

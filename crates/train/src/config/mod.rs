@@ -58,8 +58,8 @@ pub struct ModelSection {
     /// Also train the backbone transformer's own weights (training a video
     /// prior from scratch; implied by `ablation.pretrained = false`).
     pub train_backbone: bool,
-    /// `cpu`, `cuda` or `auto`.
-    pub device: String,
+    /// `cpu`, `cuda`, `cuda:N` or `auto`.
+    pub device: bridgev2w_world_model::DeviceSpec,
     /// Hidden width of the action MLP (`ablation.mask_action = false`).
     pub action_hidden: i64,
     /// Where the image latent enters the backbone's conditioning channels:
@@ -83,7 +83,7 @@ impl Default for ModelSection {
             lora_alpha: 64.0,
             controlnet_layers: None,
             train_backbone: false,
-            device: "cpu".into(),
+            device: bridgev2w_world_model::DeviceSpec::Cpu,
             action_hidden: 256,
             image_conditioning: ImageConditioning::FirstFrame,
             transformer: None,
@@ -280,7 +280,7 @@ pub struct TrainSection {
     /// absent: the differentiable Lucas-Kanade stand-in.
     pub raft_weights: Option<PathBuf>,
     /// `raft_large` or `raft_small` (with `raft_weights`).
-    pub raft_model: String,
+    pub raft_model: bridgev2w_world_model::nets::raft::RaftVariant,
     /// RAFT refinement iterations.
     pub raft_iterations: usize,
     /// Image-noise augmentation of the first frame (CogVideoX I2V): sigma =
@@ -361,7 +361,7 @@ impl Default for TrainSection {
             lambda_flow: 0.05,
             e_switch: 5,
             raft_weights: None,
-            raft_model: "raft_large".into(),
+            raft_model: bridgev2w_world_model::nets::raft::RaftVariant::RaftLarge,
             raft_iterations: 12,
             image_noise: true,
             image_noise_log_mean: -3.0,
@@ -646,12 +646,6 @@ impl TrainConfig {
             if v > max {
                 return bad(name, format!("{v}: at most {max} is supported"));
             }
-        }
-        if !matches!(t.raft_model.as_str(), "raft_large" | "raft_small") {
-            return bad(
-                "train.raft_model",
-                format!("{:?}: expected raft_large or raft_small", t.raft_model),
-            );
         }
         Ok(())
     }

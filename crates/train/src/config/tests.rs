@@ -76,6 +76,29 @@ fn sizes_beyond_the_limits_name_the_field() {
         "{e}"
     );
     assert_eq!("prior".parse::<Stage>().unwrap(), Stage::Prior);
+    // A typed device: written back as named (`auto` and `cuda` stay), an
+    // unknown one names the value and the choices.
+    for name in ["cpu", "auto", "cuda", "cuda:1"] {
+        let text = base.replace("[data]", &format!("device = \"{name}\"\n[data]"));
+        let cfg = TrainConfig::from_toml(&text).unwrap();
+        assert_eq!(cfg.model.device.to_string(), name);
+        let again = TrainConfig::from_toml(&cfg.to_toml().unwrap()).unwrap();
+        assert_eq!(again.model.device, cfg.model.device);
+    }
+    let e = TrainConfig::from_toml(&base.replace("[data]", "device = \"gpu\"\n[data]"))
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("gpu") && e.contains("cuda:N"), "{e}");
+    // A typed RAFT variant: an unknown one names both.
+    let e = TrainConfig::from_toml(&format!("{base}[train]\nraft_model = \"raft_huge\"\n"))
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("raft_huge") && e.contains("raft_large") && e.contains("raft_small"),
+        "{e}"
+    );
     assert_eq!(Stage::Vae.to_string(), "vae");
     for d in ["1.0", "-0.1", "nan"] {
         let e = TrainConfig::from_toml(&format!("{base}[train]\nema_decay = {d}\n"))

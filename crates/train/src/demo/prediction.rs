@@ -9,12 +9,13 @@ use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
 use bridgev2w_data::video::Mp4VideoWriter;
 use bridgev2w_embodiment::overlay::{mask_rgb, side_by_side, upscale, write_gif};
 use bridgev2w_eval::clip::{compare_with_copy, ClipComparison, ClipScore};
-use bridgev2w_eval::video::Frame;
+use bridgev2w_eval::MetricError;
 use bridgev2w_io::atomic::write_atomic;
+use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
 use bridgev2w_io::FileError;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
-use bridgev2w_world_model::video::{Image, MaskVideo};
+use bridgev2w_world_model::video::MaskVideo;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -135,14 +136,7 @@ pub fn predict(o: &DemoOptions, out: &Path) -> Result<PredictionSummary, DemoErr
         ..SynthConfig::default()
     })?;
     let episode = world.generate(Split::UnseenCamera, 0, Task::PickPlace)?;
-    let image = Image {
-        height: h,
-        width: w,
-        data: episode.rgb[0]
-            .iter()
-            .map(|&v| f32::from(v) / 255.0)
-            .collect(),
-    };
+    let image = RgbFrame::from_rgb8(w, h, &episode.rgb[0]).map_err(MetricError::from)?;
     let masks = MaskVideo {
         frames,
         height: h,
@@ -163,11 +157,7 @@ pub fn predict(o: &DemoOptions, out: &Path) -> Result<PredictionSummary, DemoErr
     let pred: Vec<Vec<u8>> = video
         .data
         .chunks(px)
-        .map(|f| {
-            f.iter()
-                .map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
-                .collect()
-        })
+        .map(|f| f.iter().map(|&v| u8_from_unit(v)).collect())
         .collect();
     let mut writer = Mp4VideoWriter::new(&out.join("prediction.mp4"), w, h, 10)?;
     for (i, f) in pred.iter().enumerate() {
@@ -198,10 +188,10 @@ pub fn predict(o: &DemoOptions, out: &Path) -> Result<PredictionSummary, DemoErr
         json_text(&actions_path, &&episode.actions[..frames], false)?.as_bytes(),
     )?;
     // The prediction against the ground truth, next to copying the first frame.
-    let to_frames = |clip: &[Vec<u8>]| -> Result<Vec<Frame>, DemoError> {
+    let to_frames = |clip: &[Vec<u8>]| -> Result<Vec<RgbFrame>, DemoError> {
         Ok(clip
             .iter()
-            .map(|f| Frame::from_rgb8(w, h, f))
+            .map(|f| RgbFrame::from_rgb8(w, h, f).map_err(MetricError::from))
             .collect::<Result<_, _>>()?)
     };
     let scores = compare_with_copy(&to_frames(&pred)?, &to_frames(&episode.rgb[..frames])?)?;

@@ -3,7 +3,7 @@
 //! of a video with their numbers, and frames and masks read from them.
 
 use super::error::{invalid, Result, ScoreError};
-use bridgev2w_eval::video::Frame;
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::video::Video;
 use std::path::{Path, PathBuf};
 
@@ -64,7 +64,7 @@ fn is_mp4(path: &Path) -> bool {
 /// The frames of video `name` under `dir`, by frame number:
 /// `dir/name/*.png` (numbered by the digits at the end of their names) or
 /// `dir/name.mp4` (numbered from 0).
-pub fn load_frames(dir: &Path, name: &str) -> Result<Vec<(u64, Frame)>> {
+pub fn load_frames(dir: &Path, name: &str) -> Result<Vec<(u64, RgbFrame)>> {
     let mp4 = dir.join(format!("{name}.mp4"));
     if is_mp4(&mp4) {
         let video = bridgev2w_data::video::decode_mp4(&mp4)?;
@@ -73,11 +73,11 @@ pub fn load_frames(dir: &Path, name: &str) -> Result<Vec<(u64, Frame)>> {
             .iter()
             .enumerate()
             .map(|(i, f)| {
-                Frame::from_rgb8(video.width, video.height, f)
+                RgbFrame::from_rgb8(video.width, video.height, f)
                     .map(|f| (i as u64, f))
                     .map_err(|source| ScoreError::MetricAt {
                         context: format!("{}: frame {i}", mp4.display()),
-                        source,
+                        source: source.into(),
                     })
             })
             .collect();
@@ -150,7 +150,7 @@ pub fn check_numbers(name: &str, what: &str, pred: &[u64], gt: &[u64]) -> Result
 }
 
 /// An RGB frame from an image file.
-fn read_frame(path: &Path) -> Result<Frame> {
+fn read_frame(path: &Path) -> Result<RgbFrame> {
     let img = image::open(path)
         .map_err(|source| ScoreError::Image {
             what: "frame",
@@ -159,7 +159,8 @@ fn read_frame(path: &Path) -> Result<Frame> {
         })?
         .to_rgb8();
     let (w, h) = img.dimensions();
-    Ok(Frame::from_rgb8(w as usize, h as usize, img.as_raw())?)
+    Ok(RgbFrame::from_rgb8(w as usize, h as usize, img.as_raw())
+        .map_err(bridgev2w_eval::MetricError::from)?)
 }
 
 /// A mask (grey values, non-zero = robot) from an image file: width,

@@ -5,7 +5,8 @@
 use super::error::{invalid, Result, ScoreError};
 use super::files::{check_numbers, frame_files, load_frames, read_mask};
 use super::{ScoreOptions, VideoMetric};
-use bridgev2w_eval::video::{mask_iou, psnr, ssim, Frame};
+use bridgev2w_eval::video::{mask_iou, psnr, ssim};
+use bridgev2w_io::frame::RgbFrame;
 use std::path::PathBuf;
 
 /// Per-video values of the frame metrics (`None`: not asked for, or no masks).
@@ -27,7 +28,7 @@ pub fn score_video(opts: &ScoreOptions, name: &str) -> Result<VideoScores> {
     if want_psnr || want_ssim {
         let pred = load_frames(&opts.pred, name)?;
         let gt = load_frames(&opts.gt, name)?;
-        let numbers = |v: &[(u64, Frame)]| v.iter().map(|f| f.0).collect::<Vec<_>>();
+        let numbers = |v: &[(u64, RgbFrame)]| v.iter().map(|f| f.0).collect::<Vec<_>>();
         check_numbers(name, "frames", &numbers(&pred), &numbers(&gt))?;
         let (mut sum_psnr, mut sum_ssim) = (0.0, 0.0);
         for ((i, fp), (_, fg)) in pred.iter().zip(&gt) {

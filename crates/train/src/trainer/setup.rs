@@ -21,7 +21,7 @@ use bridgev2w_world_model::scheduler::{Scheduler, SchedulerConfig};
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use bridgev2w_world_model::vae::VaeConfig;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use tch::nn::VarStore;
 use tch::Tensor;
 
@@ -79,11 +79,6 @@ fn check_ranks(cfg: &TrainConfig, rank: usize, world: usize) -> Result<()> {
     Ok(())
 }
 
-fn parse_device(s: &str) -> Result<ComputeDevice> {
-    s.parse::<ComputeDevice>()
-        .map_err(|e| TrainError::input("config model.device", e.to_string()))
-}
-
 impl Trainer {
     /// Builds the model, reads the data, creates the optimizer (step 0).
     pub fn new(cfg: TrainConfig) -> Result<Self> {
@@ -97,7 +92,7 @@ impl Trainer {
     /// the model: NCCL on CUDA, the TCP backend on the CPU.
     pub fn new_distributed(cfg: TrainConfig, env: Option<DistEnv>) -> Result<Self> {
         cfg.validate()?;
-        let mut device = parse_device(&cfg.model.device)?;
+        let mut device = cfg.model.device.resolve();
         let collective = match &env {
             None => None,
             Some(env) => {
@@ -214,7 +209,7 @@ impl Trainer {
             Some(path) => {
                 use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
                 let raft = Raft::load(
-                    RaftConfig::by_name(&cfg.train.raft_model)?,
+                    RaftConfig::of(cfg.train.raft_model),
                     std::slice::from_ref(path),
                     device,
                 )?;
@@ -290,7 +285,7 @@ fn build_model(
             seed,
         )?
     } else {
-        let dir = PathBuf::from(&cfg.model.backbone);
+        let dir = bridgev2w_world_model::hub::resolve_model_dir(Path::new(&cfg.model.backbone))?;
         // model.transformer: a fresh transformer of that preset, not the folder's.
         let tf = match &cfg.model.transformer {
             Some(preset) => TransformerConfig::preset(preset)?,

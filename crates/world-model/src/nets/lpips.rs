@@ -14,8 +14,9 @@
 
 use crate::device::ComputeDevice;
 use crate::error::{Result, WorldModelError};
-use crate::video::{Image, Video};
+use crate::video::{image_to_tensor, Video};
 use crate::weights::load_weights;
+use bridgev2w_io::frame::RgbFrame;
 use std::path::PathBuf;
 use tch::nn::{self, Module, VarStore};
 use tch::{Kind, Tensor};
@@ -168,11 +169,11 @@ impl Lpips {
     }
 
     /// Distance of two images (values in `[0, 1]`).
-    pub fn distance(&self, a: &Image, b: &Image) -> Result<f64> {
+    pub fn distance(&self, a: &RgbFrame, b: &RgbFrame) -> Result<f64> {
         let device = self.vs.device();
         let (ta, tb) = (
-            a.to_tensor(device, Kind::Float)?,
-            b.to_tensor(device, Kind::Float)?,
+            image_to_tensor(a, device, Kind::Float)?,
+            image_to_tensor(b, device, Kind::Float)?,
         );
         let d = tch::no_grad(|| self.forward(&ta, &tb))?;
         Ok(d.double_value(&[0]))

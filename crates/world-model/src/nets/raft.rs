@@ -115,6 +115,14 @@ impl RaftConfig {
         }
     }
 
+    /// The configuration of a torchvision variant.
+    pub fn of(variant: RaftVariant) -> Self {
+        match variant {
+            RaftVariant::RaftLarge => Self::large(),
+            RaftVariant::RaftSmall => Self::small(),
+        }
+    }
+
     /// By name: `large` / `raft_large` or `small` / `raft_small`.
     pub fn by_name(name: &str) -> Result<Self> {
         match name {
@@ -126,6 +134,18 @@ impl RaftConfig {
             )),
         }
     }
+}
+
+/// torchvision's RAFT variants, named as its builders (`raft_large`,
+/// `raft_small`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RaftVariant {
+    /// `raft_large` (the paper's flow estimator).
+    #[default]
+    RaftLarge,
+    /// `raft_small`.
+    RaftSmall,
 }
 
 /// torchvision's `Conv2dNormActivation`: `.0` convolution (bias), `.1` norm
