@@ -4,7 +4,7 @@
 //! `THUDM/CogVideoX-5b-I2V` loads unchanged; `text_encoder/` and `tokenizer/` are not
 //! used (the prompt is fixed: its embedding is read from a file, see [`PromptEmbedding`]).
 
-use crate::bridge::ImageConditioning;
+use crate::conditioning::ImageConditioning;
 use crate::error::{Result, WorldModelError};
 use bridgev2w_io::json::read_json;
 use std::collections::BTreeMap;

@@ -10,6 +10,7 @@
 pub mod bench;
 pub mod bridge;
 pub mod checkpoint;
+pub mod conditioning;
 pub mod controlnet;
 pub mod device;
 pub mod error;

@@ -3,8 +3,6 @@
 //! into per-class lists.
 
 use super::lanes::LANE_MASKS;
-#[cfg(doc)]
-use super::triangle::Target;
 use super::vertex::{gather_x4, ScreenVertex};
 use super::SUBPIXEL_BITS;
 use wide::{f64x4, i32x4, CmpEq, CmpGt, CmpLt};
@@ -20,19 +18,19 @@ pub(super) const CLASS_ONE: u8 = 1;
 pub(super) const CLASS_TWO: u8 = 2;
 /// Bounding box inside the image holding 2x2 pixel centres.
 pub(super) const CLASS_QUAD: u8 = 3;
-/// Any other unclipped triangle: [`Target::draw_triangle`].
+/// Any other unclipped triangle: `Target::draw_triangle` (in `triangle.rs`).
 pub(super) const CLASS_LARGE: u8 = 4;
 /// Some vertex outside a clip plane: clipped, then
-/// [`Target::draw_triangle`].
+/// `Target::draw_triangle` (in `triangle.rs`).
 pub(super) const CLASS_CLIP: u8 = 5;
 /// Not small, bounding box inside the image holding at most
 /// [`MEDIUM_COLUMNS`] x [`MEDIUM_ROWS`] pixel centres:
-/// [`Target::draw_medium`].
+/// `Target::draw_medium` (in `triangle.rs`).
 pub(super) const CLASS_MEDIUM: u8 = 6;
 /// Largest box of [`CLASS_MEDIUM`], pixel centres.
 pub(super) const MEDIUM_COLUMNS: usize = 4;
 pub(super) const MEDIUM_ROWS: usize = 16;
-/// `draw_list` selector of [`Target::draw_medium`].
+/// `draw_list` selector of `Target::draw_medium` (in `triangle.rs`).
 pub(super) const MEDIUM: usize = 3;
 
 /// Classes of four triangles (vertex indices `tris`, screen vertices
