@@ -25,6 +25,10 @@ pub enum RandomPreset {
     Small2x,
     /// [`Self::Small2x`] with a transformer of 256.
     Small2xWide,
+    /// CogVideoX-5B-I2V's shapes (42 blocks of 3072, the 16-channel 8x VAE)
+    /// at the paper's 480x720: random weights at full size, for measuring
+    /// speed and memory on a GPU (about 22 GB of f32 weights).
+    Cogvideox5bI2v,
 }
 
 crate::named_enum!(RandomPreset, WorldModelError, WorldModelError::input, "random preset", {
@@ -32,6 +36,7 @@ crate::named_enum!(RandomPreset, WorldModelError, WorldModelError::input, "rando
     Small => "small",
     Small2x => "small2x",
     Small2xWide => "small2x-wide",
+    Cogvideox5bI2v => "cogvideox-5b-i2v",
 });
 
 impl RandomPreset {
@@ -42,6 +47,20 @@ impl RandomPreset {
             Self::Small => (VaeConfig::small(), TransformerConfig::small()),
             Self::Small2x => (VaeConfig::small_2x(), TransformerConfig::small_2x()),
             Self::Small2xWide => (VaeConfig::small_2x(), TransformerConfig::small_2x_wide()),
+            Self::Cogvideox5bI2v => (
+                VaeConfig::cogvideox_5b_i2v(),
+                TransformerConfig::cogvideox_5b_i2v(),
+            ),
+        }
+    }
+
+    /// The BridgeV2W settings a random model of this preset gets: the tiny
+    /// ones (9 frames at 64x96, a small ControlNet and LoRA) for the small
+    /// presets, the paper's (480x720) for the full-size one.
+    pub fn bridge_config(self) -> BridgeV2WConfig {
+        match self {
+            Self::Cogvideox5bI2v => BridgeV2WConfig::paper(),
+            _ => BridgeV2WConfig::tiny(),
         }
     }
 }
@@ -57,8 +76,8 @@ pub enum ModelSpec {
 }
 
 impl ModelSpec {
-    /// Builds the BridgeV2W this names: random weights of a preset (the
-    /// tiny BridgeV2W settings, initialised from `seed`), or a diffusers
+    /// Builds the BridgeV2W this names: random weights of a preset (its
+    /// [`RandomPreset::bridge_config`], initialised from `seed`), or a diffusers
     /// folder with the paper's settings and the given adapter `weights` and
     /// `prompt_embeds` (a folder error names the folder).
     pub fn load_bridge(
@@ -73,7 +92,7 @@ impl ModelSpec {
             Self::Random(preset) => {
                 let (vae, tf) = preset.configs();
                 BridgeV2W::random(
-                    BridgeV2WConfig::tiny(),
+                    preset.bridge_config(),
                     &vae,
                     &tf,
                     SchedulerConfig::cogvideox_5b_i2v(),

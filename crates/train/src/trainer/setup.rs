@@ -111,13 +111,17 @@ impl Trainer {
             }
         };
         let autocast = resolve_autocast(cfg.train.autocast, device);
-        let random = random_preset(&cfg.model.backbone)?;
+        random_preset(&cfg.model.backbone)?; // an unknown preset fails before the data is read
         let (frames, height, width) = {
             let d = &cfg.data;
-            let (f, h, w) = if random.is_some() {
-                (9, 64, 96)
-            } else {
-                (25, 480, 720)
+            // A random preset's own size (9 frames at 64x96, or the
+            // paper's for the full-size preset); a folder: the paper's.
+            let (f, h, w) = match cfg.model.backbone.parse::<ModelSpec>() {
+                Ok(ModelSpec::Random(preset)) => {
+                    let b = preset.bridge_config();
+                    (b.frames, b.height, b.width)
+                }
+                _ => (25, 480, 720),
             };
             (
                 if d.frames == 0 { f } else { d.frames },

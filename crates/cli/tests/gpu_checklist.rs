@@ -1,0 +1,73 @@
+//! The GPU checklist's dry run (`scripts/gpu/run.sh --dry-run`): the same
+//! items as on a GPU, on the CPU at tiny shapes. Every item that can run on
+//! the CPU must pass, the CUDA-only ones are reported skipped (not failed),
+//! and the summary carries every item's figures: so the checklist cannot
+//! rot between the rare GPU loans.
+
+use std::path::Path;
+use std::process::Command;
+
+#[test]
+fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = Command::new("bash")
+        .arg(root.join("scripts/gpu/run.sh"))
+        .arg("--dry-run")
+        .env("OUT", out.path())
+        .env("BRIDGEV2W", env!("CARGO_BIN_EXE_bridgev2w"))
+        .current_dir(&root)
+        .output()
+        .expect("run scripts/gpu/run.sh");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let text = std::fs::read_to_string(out.path().join("summary.json")).expect("summary.json");
+    let summary: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+    let items = summary["items"].as_array().expect("items");
+    let item = |name: &str| {
+        items
+            .iter()
+            .find(|i| i["item"] == name)
+            .unwrap_or_else(|| panic!("no item {name} in {text}"))
+    };
+    for name in [
+        "environment",
+        "predict-random-tiny",
+        "predict-demo-model",
+        "train-bf16",
+        "distributed-one-rank",
+        "bench-model",
+        "planning-cost",
+    ] {
+        assert_eq!(item(name)["status"], "ok", "{name}: {text}\n{stderr}");
+    }
+    for name in ["predict-full", "train-step-full"] {
+        assert_eq!(item(name)["status"], "skipped: no CUDA device", "{name}");
+    }
+    assert_eq!(summary["environment"]["mode"], "dry-run");
+    // The CPU against itself: the same bytes, the same losses.
+    assert_eq!(item("predict-random-tiny")["metrics"]["max_abs_diff_u8"], 0);
+    assert_eq!(
+        item("distributed-one-rank")["metrics"]["max_relative_diff"],
+        0.0
+    );
+    // bf16 autocast against f32: finite and close.
+    let bf16 = &item("train-bf16")["metrics"];
+    assert_eq!(bf16["finite"], true);
+    assert!(
+        bf16["max_relative_diff"].as_f64().expect("a number") < 0.05,
+        "{bf16}"
+    );
+    let bench = &item("bench-model")["metrics"];
+    assert!(
+        bench["transformer_forward_b1_speedup"].as_f64().is_some()
+            && bench["vae_decode_speedup"].as_f64().is_some(),
+        "{bench}"
+    );
+    let md = std::fs::read_to_string(out.path().join("summary.md")).expect("summary.md");
+    assert!(
+        md.contains("| predict-full | skipped: no CUDA device |")
+            && md.contains("| train-bf16 | ok |"),
+        "{md}"
+    );
+}

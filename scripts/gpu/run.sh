@@ -1,0 +1,260 @@
+#!/usr/bin/env bash
+# The GPU checklist (issue 22): every CUDA path of the project measured in
+# one go, in parts that each fit the device tool's 10-minute command limit.
+# Each item runs under its own time limit and the checklist goes on past a
+# failing one; OUT gets logs/, metrics/, items.tsv, summary.json and
+# summary.md (the table for docs/benchmarks.md).
+#
+# Usage: [OUT=DIR] scripts/gpu/run.sh [--dry-run] [PART...]
+#   PART: smoke (environment, predict on CUDA vs the CPU, bf16 training,
+#         one-rank data parallelism; about 3 min on an H100), speed (bench
+#         model at 5B-I2V shapes vs diffusers, a full 50-step predict; about
+#         6 min), training (one full-size training step, planning cost;
+#         about 5 min); default: all three, in that order.
+#   --dry-run: the same items on the CPU at tiny shapes (the test suite runs
+#         it, so the checklist cannot rot between GPU loans); CUDA-only items
+#         are reported "skipped: no CUDA device".
+# Prepared here by scripts/gpu/prepare.sh (gpu-bundle/: a stripped binary and
+# the diffusers wheels); on the GPU machine:
+#   run(command="OUT=$OUT scripts/gpu/run.sh smoke", carry=["gpu-bundle"])
+# Environment: OUT (default gpu-out), BRIDGEV2W (the binary; default
+# gpu-bundle/bridgev2w, else target/release/bridgev2w), PYTHON (default the
+# project venv's, else python3).
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+ROOT=$PWD
+HERE=$ROOT/scripts/gpu
+DRY=0
+PARTS=()
+for a in "$@"; do
+    case $a in
+        --dry-run) DRY=1 ;;
+        smoke|speed|training) PARTS+=("$a") ;;
+        *) echo "run.sh: unknown argument $a (expected --dry-run, smoke, speed or training)" >&2; exit 2 ;;
+    esac
+done
+((${#PARTS[@]})) || PARTS=(smoke speed training)
+OUT=${OUT:-$ROOT/gpu-out}
+mkdir -p "$OUT/logs" "$OUT/metrics" "$OUT/work"
+OUT=$(cd "$OUT" && pwd)
+export OUT
+WORK=$OUT/work
+
+BIN=${BRIDGEV2W:-}
+[[ -z $BIN && -x $ROOT/gpu-bundle/bridgev2w ]] && BIN=$ROOT/gpu-bundle/bridgev2w
+[[ -z $BIN ]] && BIN=$ROOT/target/release/bridgev2w
+PY=${PYTHON:-}
+[[ -z $PY && -x $ROOT/.venv/bin/python ]] && PY=$ROOT/.venv/bin/python
+[[ -z $PY ]] && PY=python3
+CHECK=("$PY" "$HERE/checklist.py")
+
+# The binary links the Python's libtorch; libtorch_cuda.so is preloaded so
+# that a binary built against the CPU wheel registers CUDA (same torch
+# version on both sides).
+TORCH_LIB=$("$PY" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')
+export LD_LIBRARY_PATH="$TORCH_LIB${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+HAS_CUDA=$("$PY" -c 'import torch; print(int(torch.cuda.is_available()))')
+DEVICE=cpu
+if [[ $DRY == 0 && $HAS_CUDA == 1 ]]; then
+    DEVICE=cuda
+    [[ -f $TORCH_LIB/libtorch_cuda.so ]] && export LD_PRELOAD="$TORCH_LIB/libtorch_cuda.so${LD_PRELOAD:+:$LD_PRELOAD}"
+fi
+# diffusers from the bundle's wheels when the Python lacks it.
+if ! "$PY" -c 'import diffusers' 2>/dev/null && compgen -G "$ROOT/gpu-bundle/wheels/*.whl" >/dev/null; then
+    "$PY" -m pip install --quiet --no-index --no-deps --target "$WORK/pylib" "$ROOT"/gpu-bundle/wheels/*.whl \
+        > "$OUT/logs/pip.log" 2>&1
+    export PYTHONPATH="$WORK/pylib${PYTHONPATH:+:$PYTHONPATH}"
+fi
+# Sizes: the real ones on a GPU, tiny ones in the dry run.
+if [[ $DRY == 1 ]]; then
+    BIG=random:tiny; TRAIN_STEPS=3; PLAN_SAMPLES=4
+    BENCH=(--style 5b-i2v --layers 1 --frames 1 --height 32 --width 48 --precision f32)
+else
+    BIG=random:cogvideox-5b-i2v; TRAIN_STEPS=20; PLAN_SAMPLES=8
+    BENCH=(--style 5b-i2v --layers 42 --frames 25 --height 480 --width 720 --precision bf16 --batch 2)
+fi
+
+# item NAME LIMIT_S NEEDS_CUDA FUNCTION: runs FUNCTION with its output in
+# logs/NAME.log and records the status line in items.tsv.
+item() {
+    local name=$1 limit=$2 needs_cuda=$3 fn=$4 status rc
+    local log=$OUT/logs/$name.log start=$SECONDS
+    if [[ $needs_cuda == 1 && $DEVICE != cuda ]]; then
+        status="skipped: no CUDA device"
+    else
+        echo "== $name (at most ${limit}s)" >&2
+        timeout --kill-after=10 "$limit" bash -c "$fn" > "$log" 2>&1
+        rc=$?
+        case $rc in
+            0) status=ok ;;
+            124|137) status="failed: over ${limit}s" ;;
+            *) status="failed: exit $rc (see logs/$name.log: $(tail -n 1 "$log" | cut -c1-160))" ;;
+        esac
+    fi
+    printf '%s\t%s\t%s\t%s\n' "$name" "$status" "$((SECONDS - start))" "logs/$name.log" >> "$OUT/items.tsv"
+    echo "   $name: $status" >&2
+}
+export BIN PY DEVICE DRY WORK BIG TRAIN_STEPS PLAN_SAMPLES ROOT HERE
+export BENCH_ARGS="${BENCH[*]}"
+
+# gpu_poll NAME COMMAND...: runs COMMAND while nvidia-smi records the used
+# memory, then records the peak as NAME's peak_gpu_memory_mib.
+gpu_poll() {
+    local name=$1; shift
+    local poll=$WORK/$name.mem pid=""
+    if [[ $DEVICE == cuda ]] && command -v nvidia-smi >/dev/null; then
+        nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 200 > "$poll" &
+        pid=$!
+    fi
+    "$@"
+    local rc=$?
+    [[ -n $pid ]] && kill "$pid" 2>/dev/null
+    [[ -n $pid ]] && "$PY" "$HERE/checklist.py" peak-mib "$poll" "$name"
+    return $rc
+}
+
+now() { date +%s.%N; }
+since() { "$PY" -c 'import sys, time; print(round(time.time() - float(sys.argv[1]), 3))' "$1"; }
+export -f now since
+
+inputs() { # the demo's camera and actions, and masks at SIZE: inputs DIR FRAMES WIDTH HEIGHT
+    local dir=$1
+    [[ -f $dir/masks.npy ]] && return 0
+    "$BIN" demo --no-predict --frames "$2" --out "$dir.demo" --overwrite &&
+    "$BIN" masks --robot franka --camera "$dir.demo/camera.json" --actions "$dir.demo/actions.json" \
+        --width "$3" --height "$4" --out "$dir" --overwrite &&
+    cp "$dir.demo/overlay.png" "$dir/first.png"
+}
+export -f inputs
+
+environment() {
+    nvidia-smi 2>&1 || true
+    "$BIN" --version
+    "$PY" "$HERE/checklist.py" environment "$([[ $DRY == 1 ]] && echo dry-run || echo "$DEVICE")" \
+        "$(cat "$ROOT/gpu-bundle/commit" 2>/dev/null || git -C "$ROOT" rev-parse HEAD 2>/dev/null || echo unknown)"
+}
+
+predict_pair() { # NAME MODEL [WEIGHTS]: the same prediction on DEVICE and on the CPU
+    local name=$1 model=$2 weights=${3:-}
+    inputs "$WORK/in-9" 9 96 64 || return 1
+    local extra=(); [[ -n $weights ]] && extra=(--weights "$weights")
+    for dev in "$DEVICE" cpu; do
+        local t0=$(now)
+        "$BIN" predict --model "$model" "${extra[@]}" --image "$WORK/in-9/first.png" --masks "$WORK/in-9/masks.npy" \
+            --steps 4 --guidance 1 --seed 0 --device "$dev" --out "$WORK/$name-$dev" --overwrite || return 1
+        "$PY" "$HERE/checklist.py" record-seconds "$name" "${dev%%:*}_seconds" "$(since "$t0")"
+    done
+    "$PY" "$HERE/checklist.py" compare-videos "$WORK/$name-$DEVICE/video.npy" "$WORK/$name-cpu/video.npy" "$name"
+}
+predict_random_tiny() { predict_pair predict-random-tiny random:tiny; }
+predict_demo_model() {
+    predict_pair predict-demo-model "$ROOT/assets/demo-model/backbone" "$ROOT/assets/demo-model/bridgev2w.safetensors"
+}
+export -f predict_pair
+
+dataset() { # DIR FRAMES WIDTH HEIGHT EPISODES
+    [[ -f $1/meta/info.json ]] && return 0
+    "$BIN" synth --out "$1" --episodes-per-split "$5,0,0,0" --frames "$2" --width "$3" --height "$4" --tasks pick_place
+}
+export -f dataset
+
+config() { # FILE OUT BACKBONE DATASET DEVICE AUTOCAST CHECKPOINTING STEPS EXTRA
+    cat > "$1" <<TOML
+[model]
+backbone = "$3"
+device = "$5"
+$9
+[data]
+dataset = "$4"
+[train]
+out = "$2"
+batch_size = 1
+max_steps = $8
+warmup_steps = 1
+checkpoint_every = 1000
+autocast = "$6"
+gradient_checkpointing = $7
+seed = 0
+TOML
+}
+export -f config
+
+train_bf16() { # bf16 autocast + gradient checkpointing on DEVICE vs f32 on the CPU
+    dataset "$WORK/data-9" 9 96 64 2 || return 1
+    local tiny='lora_rank = 4
+lora_alpha = 4.0'
+    config "$WORK/bf16.toml" "$WORK/run-bf16" random:tiny "$WORK/data-9" "$DEVICE" bf16 true "$TRAIN_STEPS" "$tiny"
+    config "$WORK/f32.toml" "$WORK/run-f32" random:tiny "$WORK/data-9" cpu "off" false "$TRAIN_STEPS" "$tiny"
+    "$BIN" train "$WORK/bf16.toml" --quiet --overwrite || return 1
+    "$BIN" train "$WORK/f32.toml" --quiet --overwrite || return 1
+    "$PY" "$HERE/checklist.py" compare-losses "$WORK/run-bf16/metrics.jsonl" "$WORK/run-f32/metrics.jsonl" train-bf16
+}
+
+distributed_one_rank() { # the data-parallel path with one rank (NCCL on CUDA, TCP on the CPU): the same losses as without it
+    dataset "$WORK/data-9" 9 96 64 2 || return 1
+    local tiny='lora_rank = 4
+lora_alpha = 4.0'
+    config "$WORK/dp.toml" "$WORK/run-dp" random:tiny "$WORK/data-9" "$DEVICE" off false 5 "$tiny"
+    config "$WORK/single.toml" "$WORK/run-single" random:tiny "$WORK/data-9" "$DEVICE" off false 5 "$tiny"
+    RANK=0 WORLD_SIZE=1 LOCAL_RANK=0 MASTER_ADDR=127.0.0.1 MASTER_PORT=29517 \
+        "$BIN" train "$WORK/dp.toml" --quiet --overwrite || return 1
+    "$BIN" train "$WORK/single.toml" --quiet --overwrite || return 1
+    "$PY" "$HERE/checklist.py" compare-losses "$WORK/run-dp/metrics.jsonl" "$WORK/run-single/metrics.jsonl" distributed-one-rank
+}
+
+bench_model() { # one CFG denoising step and the VAE, this crate vs diffusers, same run
+    gpu_poll bench-model "$BIN" bench model $BENCH_ARGS --device "$DEVICE" --python "$PY" --repo "$ROOT" \
+        | tee "$WORK/bench-model.txt" || return 1
+    "$PY" "$HERE/checklist.py" bench-table "$WORK/bench-model.txt" bench-model
+}
+
+predict_full() { # one 50-step prediction at the full size, random weights
+    inputs "$WORK/in-25" 25 720 480 || return 1
+    local t0=$(now)
+    gpu_poll predict-full "$BIN" predict --model "$BIG" --image "$WORK/in-25/first.png" --masks "$WORK/in-25/masks.npy" \
+        --steps 50 --guidance 6 --seed 0 --device "$DEVICE" --out "$WORK/predict-full" --overwrite || return 1
+    "$PY" "$HERE/checklist.py" record-seconds predict-full seconds "$(since "$t0")"
+}
+
+train_step_full() { # full-size training steps: 8-block ControlNet + LoRA r64, bf16, checkpointing
+    dataset "$WORK/data-25" 25 720 480 1 || return 1
+    config "$WORK/full.toml" "$WORK/run-full" "$BIG" "$WORK/data-25" "$DEVICE" bf16 true 3 \
+        "lora_rank = 64
+lora_alpha = 64.0"
+    gpu_poll train-step-full "$BIN" train "$WORK/full.toml" --quiet --overwrite || return 1
+    "$PY" "$HERE/checklist.py" step-seconds "$WORK/run-full/metrics.jsonl" train-step-full
+}
+
+planning_cost() { # seconds per planned action, from one CEM iteration of PLAN_SAMPLES candidates
+    for steps in 4 20; do
+        local t0=$(now)
+        "$BIN" plan --task reach --trials 1 --model "$([[ $DRY == 1 ]] && echo random || echo "$BIG")" \
+            --device "$DEVICE" --samples "$PLAN_SAMPLES" --elites 2 --iters 1 --horizon 1 --max-steps 1 \
+            --denoise-steps "$steps" --waypoints 0 || return 1
+        "$PY" "$HERE/checklist.py" record-seconds planning-cost "seconds_${PLAN_SAMPLES}_candidates_${steps}_steps" "$(since "$t0")"
+    done
+}
+export -f environment predict_random_tiny predict_demo_model train_bf16 distributed_one_rank \
+    bench_model predict_full train_step_full planning_cost gpu_poll
+
+for part in "${PARTS[@]}"; do
+    case $part in
+        smoke)
+            item environment 60 0 environment
+            item predict-random-tiny 150 0 predict_random_tiny
+            item predict-demo-model 150 0 predict_demo_model
+            item train-bf16 240 0 train_bf16
+            item distributed-one-rank 150 0 distributed_one_rank
+            ;;
+        speed)
+            item bench-model 330 0 bench_model
+            item predict-full 240 1 predict_full
+            ;;
+        training)
+            item train-step-full 300 1 train_step_full
+            item planning-cost 240 0 planning_cost
+            ;;
+    esac
+done
+"${CHECK[@]}" summary "$OUT" > /dev/null
+echo "run.sh: $OUT/summary.md" >&2
