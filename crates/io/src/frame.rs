@@ -56,12 +56,14 @@ impl RgbFrame {
 }
 
 /// An 8-bit value on `[0, 1]`: `value / 255`.
+#[inline]
 pub fn unit_from_u8(v: u8) -> f32 {
     f32::from(v) / 255.0
 }
 
 /// A `[0, 1]` value in 8 bits: `v * 255` rounded (half away from zero) and
 /// clamped to `0..=255`; NaN gives 0.
+#[inline]
 pub fn u8_from_unit(v: f32) -> u8 {
     (v * 255.0).round().clamp(0.0, 255.0) as u8
 }

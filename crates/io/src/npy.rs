@@ -230,6 +230,8 @@ macro_rules! npy_element {
     ($t:ty, $d:literal) => {
         impl NpyElement for $t {
             const DESCR: &'static str = $d;
+            // Inlined into the caller's loop (another crate's, without LTO).
+            #[inline]
             fn put(self, out: &mut Vec<u8>) {
                 out.extend_from_slice(&self.to_le_bytes());
             }

@@ -17,6 +17,7 @@ use rand::Rng;
 pub const GOLDEN_GAMMA: u64 = 0x9E37_79B9_7F4A_7C15;
 
 /// SplitMix64's finaliser (a bijection of `u64` with good avalanche).
+#[inline]
 pub fn mix64(mut z: u64) -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
@@ -35,17 +36,20 @@ impl SplitMix64 {
     }
 
     /// Next 64 random bits.
+    #[inline]
     pub fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(GOLDEN_GAMMA);
         mix64(self.0)
     }
 
     /// Uniform in `[0, 1)` (53 bits).
+    #[inline]
     pub fn next_f64(&mut self) -> f64 {
         (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
     }
 
     /// Uniform in `[lo, hi)`.
+    #[inline]
     pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
         lo + (hi - lo) * self.next_f64()
     }
@@ -66,17 +70,20 @@ pub fn derive_seed(parts: &[u64]) -> u64 {
 /// The seed of trial `trial` of an experiment seeded `seed`: the trial's
 /// index spread by [`GOLDEN_GAMMA`], so neighbouring trials' streams differ
 /// in many bits.
+#[inline]
 pub fn trial_seed(seed: u64, trial: u64) -> u64 {
     seed ^ trial.wrapping_mul(GOLDEN_GAMMA)
 }
 
 /// The Box-Muller transform: one N(0, 1) value from `u1` in `(0, 1]` and
 /// `u2` in `[0, 1)`.
+#[inline]
 pub fn box_muller(u1: f64, u2: f64) -> f64 {
     (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
 }
 
 /// One N(0, 1) draw from `rng` ([`box_muller`] of two uniform draws).
+#[inline]
 pub fn standard_normal(rng: &mut impl Rng) -> f64 {
     let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
     let u2: f64 = rng.gen_range(0.0..1.0);
