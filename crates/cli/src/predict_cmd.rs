@@ -1,6 +1,7 @@
 //! `bridgev2w predict`: the video a mask sequence causes, from a first frame.
 
 use anyhow::{bail, Context, Result};
+use bridgev2w_data::video::Mp4VideoWriter;
 use bridgev2w_io::frame::{u8_from_unit, unit_from_u8, RgbFrame};
 use bridgev2w_io::npy::{read_npy, write_atomic, write_npy};
 use bridgev2w_io::output::OutputDir;
@@ -190,6 +191,15 @@ pub fn run(a: &PredictArgs) -> Result<()> {
         &[video.frames, video.height, video.width, 3],
         &bytes,
     )?;
+    // The same frames as H.264 for people to watch (8 frames per second,
+    // CogVideoX's rate).
+    let mp4 = out.path().join("video.mp4");
+    let mut writer = Mp4VideoWriter::new(&mp4, video.width, video.height, 8)?;
+    for (i, frame) in bytes.chunks(frame_len).enumerate() {
+        writer.push(frame, i == 0)?;
+    }
+    write_atomic(&mp4, &writer.to_bytes()?)
+        .with_context(|| format!("writing {}", mp4.display()))?;
     out.commit()?;
     println!(
         "wrote {} frames to {} ({secs:.1} s)",

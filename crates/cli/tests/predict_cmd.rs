@@ -51,6 +51,25 @@ fn predict_writes_frames_and_video_deterministically() {
     for i in 0..9 {
         assert!(d.join(format!("a/frames/{i:06}.png")).is_file());
     }
+    // video.mp4: the same frames as H.264, each decoded frame nearer
+    // its own predicted frame than the next one (the codec is lossy, and
+    // random weights predict noise).
+    let mp4 = bridgev2w_data::video::decode_mp4(&d.join("a/video.mp4")).expect("video.mp4");
+    assert_eq!((mp4.frames.len(), mp4.width, mp4.height), (9, 96, 64));
+    let px = 96 * 64 * 3;
+    let mean_abs = |t: usize, u: usize| {
+        let want = &va.data[u * px..(u + 1) * px];
+        mp4.frames[t]
+            .iter()
+            .zip(want)
+            .map(|(&a, &b)| (f64::from(a) - b).abs())
+            .sum::<f64>()
+            / px as f64
+    };
+    for t in 0..9 {
+        let (own, next) = (mean_abs(t, t), mean_abs(t, (t + 1) % 9));
+        assert!(own < 20.0 && own < next, "frame {t}: {own} vs {next}");
+    }
 
     // Masks at another resolution: the error says how to render them.
     write_npy(&d.join("small.npy"), &[9, 32, 48], &vec![0u8; 9 * 32 * 48]).expect("npy");
