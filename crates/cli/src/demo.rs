@@ -30,8 +30,9 @@ pub struct DemoArgs {
     /// Skip the world-model prediction (masks and overlay only).
     #[arg(long)]
     pub no_predict: bool,
-    /// Denoising steps of the prediction.
-    #[arg(long, default_value_t = 20)]
+    /// Denoising steps of the prediction (2: chosen on the training split,
+    /// see docs/results.md "Fewer denoising steps").
+    #[arg(long, default_value_t = 2)]
     pub steps: usize,
     /// Sampling seed of the prediction.
     #[arg(long, default_value_t = 0)]

@@ -513,7 +513,7 @@ fn demo_scores(out: &std::path::Path) -> serde_json::Value {
     .expect("demo scores")
 }
 
-/// The shipped model predicts the demo clip (its default 20 steps) better
+/// The shipped model predicts the demo clip (its default 2 steps) better
 /// than copying the first frame, which knows nothing of the motion: on the
 /// predicted frames (frame 0 is the input) and on the pixels that move
 /// (2026-11-25: 21.91 vs 20.80 dB, dynamic 14.28 vs 11.96 dB).

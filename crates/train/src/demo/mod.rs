@@ -108,7 +108,7 @@ impl Default for DemoOptions {
             frames: 49,
             model: None,
             no_predict: false,
-            steps: 20,
+            steps: 2,
             seed: 0,
             first_frame: FirstFrame::default(),
         }
