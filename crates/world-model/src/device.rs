@@ -62,23 +62,9 @@ impl fmt::Display for ComputeDevice {
 
 impl FromStr for ComputeDevice {
     type Err = WorldModelError;
-    /// `cpu`, `cuda`, `cuda:N` or `auto`.
+    /// `cpu`, `cuda`, `cuda:N` or `auto` (resolved now: see [`DeviceSpec`]).
     fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "cpu" => Ok(Self::Cpu),
-            "cuda" => Ok(Self::Cuda(0)),
-            "auto" => Ok(Self::auto()),
-            _ => s
-                .strip_prefix("cuda:")
-                .and_then(|i| i.parse().ok())
-                .map(Self::Cuda)
-                .ok_or_else(|| {
-                    WorldModelError::input(
-                        "device",
-                        format!("`{s}`: expected cpu, cuda, cuda:N or auto"),
-                    )
-                }),
-        }
+        s.parse::<DeviceSpec>().map(DeviceSpec::resolve)
     }
 }
 
@@ -182,6 +168,33 @@ impl FromStr for Precision {
                 "precision",
                 format!("`{s}`: expected f32 or bf16"),
             )),
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn devices_parse_once_for_both_the_spec_and_the_resolved_device() {
+        for (text, spec, device) in [
+            ("cpu", DeviceSpec::Cpu, ComputeDevice::Cpu),
+            ("cuda", DeviceSpec::Cuda(None), ComputeDevice::Cuda(0)),
+            ("cuda:2", DeviceSpec::Cuda(Some(2)), ComputeDevice::Cuda(2)),
+        ] {
+            assert_eq!(text.parse::<DeviceSpec>().unwrap(), spec);
+            assert_eq!(spec.to_string(), text);
+            assert_eq!(text.parse::<ComputeDevice>().unwrap(), device);
+        }
+        assert_eq!(
+            "auto".parse::<ComputeDevice>().unwrap(),
+            ComputeDevice::auto()
+        );
+        for bad in ["gpu", "cuda:x", ""] {
+            let e = bad.parse::<ComputeDevice>().unwrap_err().to_string();
+            assert!(e.contains("expected cpu, cuda, cuda:N or auto"), "{e}");
         }
     }
 }
