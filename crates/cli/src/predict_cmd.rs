@@ -160,6 +160,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
             dynamic_cfg: a.dynamic_cfg,
             seed: a.seed,
             first_frame: Default::default(),
+            ..SampleOptions::default()
         },
     };
     eprintln!(

@@ -178,6 +178,7 @@ pub fn evaluate_split(
                 dynamic_cfg: false,
                 seed: opts.seed,
                 first_frame: opts.first_frame,
+                ..SampleOptions::default()
             },
         )?;
         let gt = frames(&batch.video)?;

@@ -13,7 +13,7 @@ use crate::device::{ComputeDevice, Precision};
 use crate::error::{Result, WorldModelError};
 use crate::lora::LoraConfig;
 use crate::pipeline::{
-    check_batch, sample_latents, Denoiser, Guidance, PredictOptions, WorldModel,
+    check_batch, sample_latents, BatchNoise, Denoiser, Guidance, PredictOptions, WorldModel,
 };
 use crate::scheduler::{Scheduler, SchedulerConfig};
 use crate::transformer::{CheckpointedForward, LoadedTransformer, Rotary, TransformerConfig};
@@ -438,9 +438,20 @@ impl BridgeV2W {
     /// Scaled VAE latents `[B, t, C, h, w]` of a video `[B, 3, T, H, W]` in
     /// [-1, 1]: the posterior mean, or a sample with `seed`.
     pub fn encode_latents(&self, video: &Tensor, seed: Option<u64>) -> Result<Tensor> {
+        self.encode_latents_drawn(video, seed, BatchNoise::Independent)
+    }
+
+    /// [`Self::encode_latents`] with the posterior noise of a batch drawn as
+    /// `batch_noise` says.
+    pub fn encode_latents_drawn(
+        &self,
+        video: &Tensor,
+        seed: Option<u64>,
+        batch_noise: BatchNoise,
+    ) -> Result<Tensor> {
         let post = self.vae.encode(video)?;
         let z = match seed {
-            Some(s) => post.sample(s)?,
+            Some(s) => post.sample_batch(s, batch_noise)?,
             None => post.mode(),
         };
         Ok(self
@@ -455,7 +466,19 @@ impl BridgeV2W {
     /// (`first_frames` `[B, 3, H, W]` in [-1, 1]) followed by zeros, or repeated
     /// in every latent frame ([`BridgeV2WConfig::image_conditioning`]).
     pub fn image_latents(&self, first_frames: &Tensor, seed: Option<u64>) -> Result<Tensor> {
-        let z = self.encode_latents(&first_frames.unsqueeze(2), seed)?; // [B, 1, C, h, w]
+        self.image_latents_drawn(first_frames, seed, BatchNoise::Independent)
+    }
+
+    /// [`Self::image_latents`] with the posterior noise of a batch drawn as
+    /// `batch_noise` says.
+    pub fn image_latents_drawn(
+        &self,
+        first_frames: &Tensor,
+        seed: Option<u64>,
+        batch_noise: BatchNoise,
+    ) -> Result<Tensor> {
+        // [B, 3, H, W] -> [B, 3, 1, H, W] -> [B, 1, C, h, w]
+        let z = self.encode_latents_drawn(&first_frames.unsqueeze(2), seed, batch_noise)?;
         let (t, _, _) = self.latent_geometry();
         Ok(self.cfg.image_conditioning.expand(&z, t)) // [B, t, C, h, w]
     }
@@ -749,7 +772,8 @@ impl WorldModel for BridgeV2W {
         }
         let images = Tensor::cat(&images, 0); // [B, 3, H, W]
         let mask_videos = Tensor::cat(&mask_videos, 0); // [B, 3, T, H, W]
-        let image_latents = self.image_latents(&images, Some(opts.sample.seed))?;
+        let image_latents =
+            self.image_latents_drawn(&images, Some(opts.sample.seed), opts.sample.batch_noise)?;
         let control = self.control_latents(&mask_videos, &image_latents)?;
         let latents = self.sample(&image_latents, &control, opts)?;
         let videos = self.decode_latents(&latents)?; // [B, 3, T, H, W]

@@ -49,6 +49,43 @@ crate::named_enum!(FirstFrame, WorldModelError, WorldModelError::input, "first_f
     Replaced => "replaced",
 });
 
+/// How the noise of a batch is drawn.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BatchNoise {
+    /// Every batch element its own noise (diffusers' pipeline with a batch).
+    #[default]
+    Independent,
+    /// One noise draw shared by every batch element (common random numbers):
+    /// element `i` gets the noise a batch of one would get with the same seed,
+    /// so predictions for different actions differ by the actions alone. This
+    /// is what a planner that ranks candidates wants.
+    Shared,
+}
+
+crate::named_enum!(BatchNoise, WorldModelError, WorldModelError::input, "batch_noise", {
+    Independent => "independent",
+    Shared => "shared",
+});
+
+impl BatchNoise {
+    /// Standard normal noise of `shape` `[B, ...]`, drawn from libtorch's
+    /// global generator: `B` draws, or one draw expanded to `B` when shared
+    /// (the same values as a batch of one).
+    pub fn randn(self, shape: &[i64], kind: Kind, device: tch::Device) -> Tensor {
+        match (self, shape.split_first()) {
+            (Self::Shared, Some((&b, rest))) if b > 1 => {
+                let one: Vec<i64> = std::iter::once(1).chain(rest.iter().copied()).collect();
+                // [1, ...] -> [B, ...]
+                Tensor::randn(one.as_slice(), (kind, device))
+                    .expand(shape, false)
+                    .contiguous()
+            }
+            _ => Tensor::randn(shape, (kind, device)),
+        }
+    }
+}
+
 /// Sampling options.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SampleOptions {
@@ -62,6 +99,9 @@ pub struct SampleOptions {
     pub seed: u64,
     /// The first latent frame: generated, or replaced by the image latent.
     pub first_frame: FirstFrame,
+    /// How a batch's noise is drawn (initial latents, sampler noise and the
+    /// first frame's posterior sample).
+    pub batch_noise: BatchNoise,
 }
 
 impl Default for SampleOptions {
@@ -72,6 +112,7 @@ impl Default for SampleOptions {
             dynamic_cfg: false,
             seed: 42,
             first_frame: FirstFrame::Generated,
+            batch_noise: BatchNoise::Independent,
         }
     }
 }
@@ -103,10 +144,13 @@ pub fn sample_latents(
     let shape = image_latents.size();
     let generator_seed = opts.seed as i64;
     tch::manual_seed(generator_seed);
-    let mut latents = Tensor::randn(shape.as_slice(), (Kind::Float, device)).to_kind(kind);
+    let mut latents = opts
+        .batch_noise
+        .randn(&shape, Kind::Float, device)
+        .to_kind(kind);
     let n_train = scheduler.config().num_train_timesteps as f64;
     let batch = shape[0];
-    let mut noise = |s: &[i64]| Tensor::randn(s, (Kind::Float, device));
+    let mut noise = |s: &[i64]| opts.batch_noise.randn(s, Kind::Float, device);
     for (i, &t) in timesteps.iter().enumerate() {
         // [B, F, C, h, w] ++ [B, F, C, h, w] -> [B, F, 2C, h, w]
         let latent_in = Tensor::cat(&[&latents, image_latents], 2);
@@ -270,6 +314,7 @@ mod tests {
             dynamic_cfg: false,
             seed: 7,
             first_frame: FirstFrame::Generated,
+            ..SampleOptions::default()
         };
         (
             sample_latents(&oracle, &mut sched, &image, &opts).unwrap(),

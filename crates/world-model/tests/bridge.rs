@@ -9,7 +9,7 @@ mod common;
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig, ImageConditioning};
 use bridgev2w_world_model::controlnet::ControlNetConfig;
-use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
+use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use bridgev2w_world_model::vae::VaeConfig;
@@ -312,6 +312,7 @@ fn opts(seed: u64, guidance_scale: f64) -> PredictOptions {
             dynamic_cfg: false,
             seed,
             first_frame: Default::default(),
+            batch_noise: BatchNoise::Independent,
         },
     }
 }
@@ -343,6 +344,30 @@ fn predict_follows_the_world_model_contract() {
     assert!(close(&batch[0].data, &v1.data) < 1e-4);
     // Later batch items draw later noise (as diffusers with one generator).
     assert!(close(&batch[1].data, &batch[0].data) > 1e-4);
+    // Shared noise (common random numbers): every item gets the noise of a
+    // batch of one, so it equals its own single prediction, and the same
+    // inputs give the same video.
+    let shared = |seed| PredictOptions {
+        sample: SampleOptions {
+            batch_noise: BatchNoise::Shared,
+            ..opts(seed, 2.0).sample
+        },
+    };
+    let moved_alone = m.predict(&image(1), &masks(20), &shared(3)).unwrap();
+    assert!(close(&moved_alone.data, &moved.data) == 0.0, "a batch of one");
+    let batch = m
+        .predict_batch(
+            &[image(1), image(1), image(1)],
+            &[masks(0), masks(20), masks(0)],
+            &shared(3),
+        )
+        .unwrap();
+    assert!(close(&batch[0].data, &v1.data) < 1e-4);
+    assert!(close(&batch[1].data, &moved.data) < 1e-4);
+    assert!(close(&batch[2].data, &batch[0].data) < 1e-5);
+    assert!("shared".parse::<BatchNoise>().unwrap() == BatchNoise::Shared);
+    let e = "common".parse::<BatchNoise>().unwrap_err().to_string();
+    assert!(e.contains("batch_noise") && e.contains("shared"), "{e}");
     let latent = m.encode_image(&image(1)).unwrap();
     assert_eq!(latent.len(), 4 * 8 * 12);
     // Bad input.

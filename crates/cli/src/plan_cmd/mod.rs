@@ -11,6 +11,7 @@ use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_plan::choice::PlanModel;
 use bridgev2w_plan::experiment::planning::{CemSizes, GoalOptions};
 use bridgev2w_plan::experiment::ModelOptions;
+use bridgev2w_world_model::pipeline::BatchNoise;
 use bridgev2w_world_model::ComputeDevice;
 use std::path::PathBuf;
 
@@ -48,6 +49,11 @@ pub struct ModelArgs {
     /// Denoising steps of a diffusion model.
     #[arg(long, default_value_t = 4)]
     pub denoise_steps: usize,
+    /// How a diffusion model draws the noise of a batch of candidates:
+    /// `shared` (common random numbers: candidates differ by their actions
+    /// alone) or `independent`.
+    #[arg(long, default_value = "shared")]
+    pub batch_noise: BatchNoise,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     pub device: ComputeDevice,
@@ -69,6 +75,7 @@ impl From<&ModelArgs> for ModelOptions {
             weights: a.weights.clone(),
             prompt_embeds: a.prompt_embeds.clone(),
             denoise_steps: a.denoise_steps,
+            batch_noise: a.batch_noise,
             device: a.device,
             width: a.width,
             height: a.height,

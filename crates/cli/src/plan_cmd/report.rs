@@ -6,6 +6,7 @@ use anyhow::Result;
 use bridgev2w_data::synth::Task;
 use bridgev2w_plan::experiment::report::report_models;
 use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
+use bridgev2w_world_model::pipeline::BatchNoise;
 use bridgev2w_world_model::ComputeDevice;
 use std::path::PathBuf;
 
@@ -57,6 +58,10 @@ pub struct PlanReportArgs {
     /// Denoising steps of the diffusion models' predictions.
     #[arg(long, default_value_t = 4)]
     pub denoise_steps: usize,
+    /// How the diffusion models draw the noise of a batch of candidates:
+    /// `shared` (common random numbers) or `independent`.
+    #[arg(long, default_value = "shared")]
+    pub batch_noise: BatchNoise,
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
@@ -87,6 +92,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         )?,
         section: a.section.clone(),
         denoise_steps: a.denoise_steps,
+        batch_noise: a.batch_noise,
         device: a.device,
         seed: a.seed,
     };

@@ -8,7 +8,7 @@ use crate::synthetic::{PerfectWorldModel, TaskInstance};
 use crate::Result;
 use bridgev2w_data::synth::{SynthConfig, World};
 use bridgev2w_world_model::bridge::BridgeV2W;
-use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions};
+use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -23,6 +23,9 @@ pub struct ModelOptions {
     pub prompt_embeds: Option<PathBuf>,
     /// Denoising steps of a diffusion model.
     pub denoise_steps: usize,
+    /// How the noise of a batch of candidates is drawn: shared (common random
+    /// numbers, so candidates differ by their actions alone) or independent.
+    pub batch_noise: BatchNoise,
     /// The device of a diffusion model.
     pub device: ComputeDevice,
     /// Image width of the synthetic world with the perfect model (pixels).
@@ -40,6 +43,7 @@ impl Default for ModelOptions {
             weights: None,
             prompt_embeds: None,
             denoise_steps: 4,
+            batch_noise: BatchNoise::Shared,
             device: ComputeDevice::auto(),
             width: 96,
             height: 64,
@@ -66,6 +70,8 @@ pub enum LoadedModel {
         model: Box<BridgeV2W>,
         /// Denoising steps per prediction.
         denoise_steps: usize,
+        /// How a batch's noise is drawn.
+        batch_noise: BatchNoise,
     },
 }
 
@@ -89,6 +95,7 @@ impl LoadedModel {
                 Self::Diffusion {
                     model: Box::new(model),
                     denoise_steps: o.denoise_steps,
+                    batch_noise: o.batch_noise,
                 }
             }
         })
@@ -137,11 +144,13 @@ impl LoadedModel {
             Self::Diffusion {
                 model,
                 denoise_steps,
+                batch_noise,
             } => {
                 let predict = PredictOptions {
                     sample: SampleOptions {
                         steps: *denoise_steps,
                         guidance_scale: 1.0,
+                        batch_noise: *batch_noise,
                         ..SampleOptions::default()
                     },
                 };

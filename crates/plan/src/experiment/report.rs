@@ -7,6 +7,7 @@ use super::{LoadedModel, ModelOptions};
 use crate::choice::PlanModel;
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::Task;
+use bridgev2w_world_model::pipeline::BatchNoise;
 use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
 use bridgev2w_world_model::ComputeDevice;
 use std::path::PathBuf;
@@ -57,6 +58,7 @@ impl ReportModel {
             weights,
             prompt_embeds: None,
             denoise_steps: o.denoise_steps,
+            batch_noise: o.batch_noise,
             device: o.device,
             width: 96,
             height: 64,
@@ -89,6 +91,8 @@ pub struct PlanReportOptions {
     pub section: String,
     /// Denoising steps of the diffusion models' predictions.
     pub denoise_steps: usize,
+    /// How the diffusion models draw a batch's noise.
+    pub batch_noise: BatchNoise,
     /// The device of the diffusion models.
     pub device: ComputeDevice,
     /// Seed.
@@ -213,7 +217,10 @@ pub fn plan_report(
             model.label(),
             match model {
                 ReportModel::Perfect => String::new(),
-                _ => format!(" ({} denoising steps)", o.denoise_steps),
+                _ => format!(
+                    " ({} denoising steps, {} noise)",
+                    o.denoise_steps, o.batch_noise
+                ),
             },
             r.markdown()
         );

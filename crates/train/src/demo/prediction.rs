@@ -150,6 +150,7 @@ pub fn predict(o: &DemoOptions, out: &Path) -> Result<PredictionSummary, DemoErr
             dynamic_cfg: false,
             seed: o.seed,
             first_frame: o.first_frame,
+            ..SampleOptions::default()
         },
     };
     let video = model.predict(&image, &masks, &opts)?;

@@ -76,4 +76,16 @@ impl Posterior {
         let noise = Tensor::f_randn(self.mean.size(), (self.mean.kind(), tch::Device::Cpu))?;
         self.sample_with_noise(&noise)
     }
+
+    /// [`Self::sample`] with the batch's noise drawn as `batch_noise` says:
+    /// shared, every element gets the noise of element 0.
+    pub fn sample_batch(
+        &self,
+        seed: u64,
+        batch_noise: crate::pipeline::BatchNoise,
+    ) -> Result<Tensor> {
+        tch::manual_seed(seed as i64);
+        let noise = batch_noise.randn(&self.mean.size(), self.mean.kind(), tch::Device::Cpu);
+        self.sample_with_noise(&noise)
+    }
 }
