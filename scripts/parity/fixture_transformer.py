@@ -6,7 +6,9 @@ io inputs:  hidden_states [B,F,C,H,W], encoder_hidden_states [B,L,D_text], times
             ofs [1] (models with an ofs embedding)
 io outputs: sample [B,F,C_out,H,W] with the rotary embedding that diffusers'
             CogVideoXImageToVideoPipeline computes for this latent grid (RoPE models);
-            rope_cos / rope_sin: those tables
+            rope_cos / rope_sin: those tables;
+            with --bf16 also sample_bf16: the same forward with the model and its inputs in
+            bfloat16 (diffusers' own bf16 error is sample_bf16 - sample; stored as float32)
 """
 import json
 import types
@@ -21,6 +23,7 @@ def add_args(parser):
     parser.add_argument("--sample-size", default=None, help="config sample H,W (default: the H,W of --shape)")
     parser.add_argument("--config-json", default=None, help="extra config fields as JSON")
     parser.add_argument("--shard", action="store_true", help="save in several shards")
+    parser.add_argument("--bf16", action="store_true", help="also write sample_bf16 (the model run in bfloat16)")
 
 
 def build(args, model_dir):
@@ -69,5 +72,17 @@ def build(args, model_dir):
     with torch.no_grad():
         io["sample"] = model(hidden_states=hidden, encoder_hidden_states=text, timestep=timestep,
                              ofs=ofs, image_rotary_emb=rope, return_dict=False)[0]
-    meta = {"style": args.style, "config": cfg, "shape": [b, f, c, h, w], "sharded": bool(args.shard)}
+        if args.bf16:
+            # As a pipeline loaded with torch_dtype=torch.bfloat16 runs it: weights and
+            # latents in bf16, the rotary tables in float32.
+            # No module of this class is kept in float32 (_keep_in_fp32_modules is empty),
+            # so the cast equals from_pretrained(torch_dtype=torch.bfloat16); quiet its warning.
+            from diffusers.utils import logging as diffusers_logging
+            diffusers_logging.set_verbosity_error()
+            model.to(torch.bfloat16)
+            io["sample_bf16"] = model(hidden_states=hidden.bfloat16(), encoder_hidden_states=text.bfloat16(),
+                                      timestep=timestep, ofs=ofs, image_rotary_emb=rope,
+                                      return_dict=False)[0].float()
+    meta = {"style": args.style, "config": cfg, "shape": [b, f, c, h, w], "sharded": bool(args.shard),
+            "bf16": bool(args.bf16)}
     return meta, io

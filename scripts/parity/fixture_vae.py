@@ -4,7 +4,7 @@
         [--frames T] [--height H] [--width W] [--latent-frames t]
         [--tiling [--tile-sample-height H --tile-sample-width W
                    --tile-overlap-height F --tile-overlap-width F]]
-        [--slicing] [--sample-seed S] [--noise-std STD]
+        [--slicing] [--sample-seed S] [--noise-std STD] [--bf16]
 
 io.safetensors:
   video         [B, 3, T, H, W] uniform in [-1, 1]       (input of encode)
@@ -12,6 +12,8 @@ io.safetensors:
   latent_sample [B, C, t, h, w] posterior.sample(torch.Generator().manual_seed(sample_seed))
   latents       [B, C, t', h', w'] standard normal        (input of decode)
   decoded       [B, 3, T', H', W'] decode(latents)
+  with --bf16 also latent_mean_bf16 and decoded_bf16: the same with the model and its inputs
+  in bfloat16 (diffusers' own bf16 error; stored as float32)
 
 meta.json: {"config": the diffusers config, "options": {batch, frames, height, width,
 latent_frames, tiling: null | {tile_sample_min_height, tile_sample_min_width,
@@ -86,6 +88,7 @@ def add_args(parser):
     parser.add_argument(
         "--noise-std", type=float, default=0.05, help="std of the noise added to every parameter (zero-inits hide bugs)"
     )
+    parser.add_argument("--bf16", action="store_true", help="also write the bfloat16 outputs (*_bf16)")
 
 
 def build(args, model_dir):
@@ -127,6 +130,14 @@ def build(args, model_dir):
             shape[2] = args.latent_frames
         latents = torch.randn(shape)
         decoded = model.decode(latents).sample
+        if args.bf16:
+            # As from_pretrained(torch_dtype=torch.bfloat16) loads it (no module of this
+            # class is kept in float32); quiet the cast's warning.
+            from diffusers.utils import logging as diffusers_logging
+            diffusers_logging.set_verbosity_error()
+            model.to(torch.bfloat16)
+            latent_mean_bf16 = model.encode(video.bfloat16()).latent_dist.mean.float()
+            decoded_bf16 = model.decode(latents.bfloat16()).sample.float()
 
     meta = {
         "config": config,
@@ -141,6 +152,7 @@ def build(args, model_dir):
             "slicing": args.slicing,
             "sample_seed": args.sample_seed,
             "noise_std": args.noise_std,
+            "bf16": args.bf16,
         },
     }
     io = {
@@ -150,4 +162,7 @@ def build(args, model_dir):
         "latents": latents,
         "decoded": decoded,
     }
+    if args.bf16:
+        io["latent_mean_bf16"] = latent_mean_bf16
+        io["decoded_bf16"] = decoded_bf16
     return meta, io

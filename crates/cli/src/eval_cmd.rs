@@ -6,13 +6,9 @@
 use anyhow::{anyhow, Result};
 use bridgev2w_eval::policy_rates::{compare, read_rates};
 use bridgev2w_io::json::write_json_atomic;
-use bridgev2w_train::score::{
-    score_videos, MaskFolders, ScoreOptions, ScorePhase, ScoreProgress, VideoMetric,
-};
+use bridgev2w_train::score::{score_videos, MaskFolders, ScoreOptions, VideoMetric};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
-use std::sync::Mutex;
 
 /// Arguments of `eval`.
 #[derive(Debug, Args)]
@@ -97,55 +93,10 @@ impl TryFrom<&EvalArgs> for ScoreOptions {
     }
 }
 
-/// A progress bar on stderr per scoring pass.
-#[derive(Debug, Default)]
-struct Bars(Mutex<Option<ProgressBar>>);
-
-impl ScoreProgress for Bars {
-    fn start(&self, phase: ScorePhase, total: u64) {
-        let bar = ProgressBar::new(total);
-        let bar = match phase {
-            ScorePhase::Frames => {
-                let bar = bar.with_style(
-                    ProgressStyle::with_template(
-                        "{msg} {bar:40} {pos}/{len} videos [{elapsed}<{eta}]",
-                    )
-                    .unwrap_or_else(|_| ProgressStyle::default_bar()),
-                );
-                bar.set_message("evaluating");
-                bar
-            }
-            ScorePhase::Lpips => {
-                bar.set_message("LPIPS");
-                bar
-            }
-            ScorePhase::Fvd => {
-                bar.set_message("FVD");
-                bar
-            }
-        };
-        if let Ok(mut slot) = self.0.lock() {
-            *slot = Some(bar);
-        }
-    }
-
-    fn step(&self) {
-        if let Ok(Some(bar)) = self.0.lock().as_deref() {
-            bar.inc(1);
-        }
-    }
-
-    fn finish(&self) {
-        if let Some(bar) = self.0.lock().ok().and_then(|mut slot| slot.take()) {
-            bar.finish_and_clear();
-        }
-    }
-}
-
 /// `bridgev2w eval`.
 pub fn run_eval(a: &EvalArgs) -> Result<()> {
     let opts = ScoreOptions::try_from(a)?;
-    let report = score_videos(&opts, &Bars::default())?;
+    let report = score_videos(&opts, &crate::progress::TerminalProgress::default())?;
     crate::print_stdout(&report.markdown())?;
     if let Some(path) = &a.json {
         write_json_atomic(path, &report.to_json())?;

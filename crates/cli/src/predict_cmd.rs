@@ -1,16 +1,20 @@
-//! `bridgev2w predict`: the video a mask sequence causes, from a first frame.
+//! `bridgev2w predict`: the video a mask sequence causes, from a first frame;
+//! several mask sequences (clips) from the same frame in batches.
 
+use crate::progress::TerminalProgress;
 use anyhow::{bail, Context, Result};
 use bridgev2w_data::video::Mp4VideoWriter;
 use bridgev2w_io::frame::{u8_from_unit, unit_from_u8, RgbFrame};
+use bridgev2w_io::json::write_json_atomic;
 use bridgev2w_io::npy::{read_npy, write_atomic, write_npy};
 use bridgev2w_io::output::OutputDir;
 use bridgev2w_io::png::encode_rgb8;
+use bridgev2w_io::progress::Progress;
 use bridgev2w_world_model::bridge::BridgeV2W;
-use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
+use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::vae::TilingOptions;
-use bridgev2w_world_model::video::MaskVideo;
+use bridgev2w_world_model::video::{MaskVideo, Video};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::{Path, PathBuf};
 
@@ -32,12 +36,17 @@ pub struct PredictArgs {
     #[arg(long)]
     image: PathBuf,
     /// Embodiment masks, uint8 `[T, H, W]` `.npy` (`bridgev2w masks` writes masks.npy)
-    /// at the model's frames and resolution.
-    #[arg(long)]
-    masks: PathBuf,
-    /// Output folder: frames/000000.png..., video.npy (uint8 [T, H, W, 3]);
-    /// written to OUT.tmp, then renamed. An existing one is refused unless
-    /// --overwrite.
+    /// at the model's frames and resolution. Repeat it, or name a folder (its
+    /// `.npy` files, by name), to predict several clips from the same --image
+    /// in one call: each clip is written to OUT/NAME/ (NAME: the file's stem,
+    /// or NNN-STEM numbered in order when two stems are the same) and
+    /// OUT/clips.json lists the clips and their masks.
+    #[arg(long, required = true)]
+    masks: Vec<PathBuf>,
+    /// Output folder: frames/000000.png..., video.npy (uint8 [T, H, W, 3]),
+    /// video.mp4 (H.264), or one such folder per clip when several --masks;
+    /// written to OUT.tmp, then renamed (all clips or none). An existing one
+    /// is refused unless --overwrite.
     #[arg(long)]
     out: PathBuf,
     /// Replace an existing --out folder (as a whole: no earlier file stays).
@@ -52,8 +61,18 @@ pub struct PredictArgs {
     /// CogVideoX's dynamic guidance schedule.
     #[arg(long)]
     dynamic_cfg: bool,
+    /// The seed of the noise (every clip of a call gets the same: see --batch-size).
     #[arg(long, default_value_t = 42)]
     seed: u64,
+    /// Clips denoised together: per batch the first frame is encoded once,
+    /// the masks in one VAE call, and each denoising step is one transformer
+    /// call for all clips (two with guidance). Lower it if memory runs out.
+    /// The clips of a batch share one noise draw (not diffusers' independent
+    /// draw per batch item), so a clip's video does not depend on the batch
+    /// size or the other clips: it is the video a call with its masks alone
+    /// and the same --seed gives (to float rounding: one uint8 level).
+    #[arg(long, default_value_t = 4)]
+    batch_size: usize,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     device: ComputeDevice,
@@ -143,39 +162,81 @@ fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<Mask
 /// Frames with more pixels than this use VAE tiling unless `--no-vae-tiling`.
 const TILING_MIN_PIXELS: usize = 256 * 256;
 
-pub fn run(a: &PredictArgs) -> Result<()> {
-    let out = OutputDir::create(&a.out, a.overwrite)?;
-    let mut model = load_model(a)?;
-    let res = model.resolution();
-    // Memory-motivated, as diffusers' CogVideoX examples: tile frames above 256x256.
-    if !a.no_vae_tiling && res.0 * res.1 > TILING_MIN_PIXELS {
-        model.vae.enable_tiling(TilingOptions::default())?;
+/// One clip of a call: its masks and the subfolder of --out it goes to
+/// (`None`: --out itself, the single-clip layout).
+#[derive(Debug, Clone, PartialEq)]
+struct Clip {
+    name: Option<String>,
+    masks: PathBuf,
+}
+
+/// The clips of `--masks`: files as given, folders as their `.npy` files by
+/// name. One file keeps the single-clip layout; otherwise each clip is
+/// named by its file's stem (`NNN-STEM`, numbered in order, when stems repeat).
+fn clips(masks: &[PathBuf]) -> Result<Vec<Clip>> {
+    let mut files = Vec::new();
+    for m in masks {
+        if m.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(m)
+                .with_context(|| format!("--masks {}: reading the folder", m.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| {
+                    p.is_file() && p.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy"))
+                })
+                .collect();
+            if found.is_empty() {
+                bail!(
+                    "--masks {}: no .npy files in this folder (expected uint8 [T, H, W] masks as `bridgev2w masks` writes)",
+                    m.display()
+                );
+            }
+            found.sort();
+            files.extend(found);
+        } else {
+            files.push(m.clone());
+        }
     }
-    let image = read_image(&a.image, res)?;
-    let masks = read_masks(&a.masks, model.clip_frames(), res)?;
-    let opts = PredictOptions {
-        sample: SampleOptions {
-            steps: a.steps,
-            guidance_scale: a.guidance,
-            dynamic_cfg: a.dynamic_cfg,
-            seed: a.seed,
-            first_frame: Default::default(),
-            ..SampleOptions::default()
-        },
-    };
-    eprintln!(
-        "predicting {} frames at {}x{} (HxW), {} steps, guidance {}...",
-        model.clip_frames(),
-        res.0,
-        res.1,
-        a.steps,
-        a.guidance
-    );
-    let t0 = std::time::Instant::now();
-    let video = model.predict(&image, &masks, &opts)?;
-    let secs = t0.elapsed().as_secs_f64();
+    if let ([one], [file]) = (masks, files.as_slice()) {
+        if one == file {
+            return Ok(vec![Clip {
+                name: None,
+                masks: file.clone(),
+            }]);
+        }
+    }
+    let stems: Vec<String> = files
+        .iter()
+        .map(|f| {
+            f.file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| "clip".to_owned())
+        })
+        .collect();
+    let unique = stems
+        .iter()
+        .collect::<std::collections::BTreeSet<_>>()
+        .len()
+        == stems.len();
+    Ok(files
+        .into_iter()
+        .zip(stems)
+        .enumerate()
+        .map(|(i, (masks, stem))| Clip {
+            name: Some(if unique {
+                stem
+            } else {
+                format!("{i:03}-{stem}")
+            }),
+            masks,
+        })
+        .collect())
+}
+
+/// Writes one predicted clip into `dir`: frames/NNNNNN.png, video.npy and
+/// video.mp4.
+fn write_clip(dir: &Path, video: &Video) -> Result<()> {
     let bytes: Vec<u8> = video.data.iter().map(|&v| u8_from_unit(v)).collect();
-    let frames_dir = out.path().join("frames");
+    let frames_dir = dir.join("frames");
     std::fs::create_dir_all(&frames_dir)
         .with_context(|| format!("creating {}", frames_dir.display()))?;
     let frame_len = video.height * video.width * 3;
@@ -188,24 +249,103 @@ pub fn run(a: &PredictArgs) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))?;
     }
     write_npy(
-        &out.path().join("video.npy"),
+        &dir.join("video.npy"),
         &[video.frames, video.height, video.width, 3],
         &bytes,
     )?;
     // The same frames as H.264 for people to watch (8 frames per second,
     // CogVideoX's rate).
-    let mp4 = out.path().join("video.mp4");
+    let mp4 = dir.join("video.mp4");
     let mut writer = Mp4VideoWriter::new(&mp4, video.width, video.height, 8)?;
     for (i, frame) in bytes.chunks(frame_len).enumerate() {
         writer.push(frame, i == 0)?;
     }
-    write_atomic(&mp4, &writer.to_bytes()?)
-        .with_context(|| format!("writing {}", mp4.display()))?;
-    out.commit()?;
-    println!(
-        "wrote {} frames to {} ({secs:.1} s)",
-        video.frames,
-        a.out.display()
+    write_atomic(&mp4, &writer.to_bytes()?).with_context(|| format!("writing {}", mp4.display()))
+}
+
+pub fn run(a: &PredictArgs) -> Result<()> {
+    if a.batch_size == 0 {
+        bail!("--batch-size 0: expected at least 1 clip per batch");
+    }
+    let clips = clips(&a.masks)?;
+    let out = OutputDir::create(&a.out, a.overwrite)?;
+    let mut model = load_model(a)?;
+    let res = model.resolution();
+    // Memory-motivated, as diffusers' CogVideoX examples: tile frames above 256x256.
+    if !a.no_vae_tiling && res.0 * res.1 > TILING_MIN_PIXELS {
+        model.vae.enable_tiling(TilingOptions::default())?;
+    }
+    let image = read_image(&a.image, res)?;
+    // Every clip's masks are checked before the first is predicted.
+    for clip in &clips {
+        read_masks(&clip.masks, model.clip_frames(), res)?;
+    }
+    let opts = PredictOptions {
+        sample: SampleOptions {
+            steps: a.steps,
+            guidance_scale: a.guidance,
+            dynamic_cfg: a.dynamic_cfg,
+            seed: a.seed,
+            first_frame: Default::default(),
+            // Each clip the noise of a batch of one: its single prediction.
+            batch_noise: BatchNoise::Shared,
+        },
+    };
+    let batches = clips.len().div_ceil(a.batch_size);
+    eprintln!(
+        "predicting {} frames at {}x{} (HxW), {} steps, guidance {}{}...",
+        model.clip_frames(),
+        res.0,
+        res.1,
+        a.steps,
+        a.guidance,
+        if clips.len() > 1 {
+            format!(
+                ", {} clips in {batches} batch{} of up to {}",
+                clips.len(),
+                if batches == 1 { "" } else { "es" },
+                a.batch_size
+            )
+        } else {
+            String::new()
+        }
     );
+    let progress = TerminalProgress::default();
+    let t0 = std::time::Instant::now();
+    for (b, batch) in clips.chunks(a.batch_size).enumerate() {
+        if batches > 1 {
+            progress.note(&format!("batch {}/{batches}", b + 1));
+        }
+        let masks = batch
+            .iter()
+            .map(|c| read_masks(&c.masks, model.clip_frames(), res))
+            .collect::<Result<Vec<_>>>()?;
+        let frames = vec![image.clone(); batch.len()];
+        let videos = model.predict_batch_with_progress(&frames, &masks, &opts, &progress)?;
+        for (clip, video) in batch.iter().zip(&videos) {
+            let dir = match &clip.name {
+                Some(name) => out.path().join(name),
+                None => out.path().to_path_buf(),
+            };
+            write_clip(&dir, video)?;
+        }
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    if clips.iter().any(|c| c.name.is_some()) {
+        let list: Vec<serde_json::Value> = clips
+            .iter()
+            .map(|c| serde_json::json!({"name": c.name, "masks": c.masks}))
+            .collect();
+        write_json_atomic(
+            &out.path().join("clips.json"),
+            &serde_json::json!({ "seed": a.seed, "steps": a.steps, "clips": list }),
+        )?;
+    }
+    out.commit()?;
+    let what = match clips.len() {
+        1 => format!("{} frames", model.clip_frames()),
+        n => format!("{n} clips of {} frames", model.clip_frames()),
+    };
+    println!("wrote {what} to {} ({secs:.1} s)", a.out.display());
     Ok(())
 }

@@ -1,7 +1,8 @@
 //! Terminal progress of the commands: indicatif bars, and the bar-and-stderr
-//! reporter that the library benches take as their [`Progress`].
+//! reporter that the libraries take as their [`Progress`] (benches, video
+//! scores, a run's evaluation, the denoising steps of `predict`).
 
-use bridgev2w_io::peer::Progress;
+use bridgev2w_io::progress::Progress;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::sync::Mutex;
 
@@ -17,8 +18,16 @@ pub fn progress_bar(len: usize, what: &str) -> ProgressBar {
     pb
 }
 
-/// Shows a library's stages as [`progress_bar`]s (cleared when done) and its
-/// notes as lines on stderr.
+/// A spinner labelled `what`, for a stage whose length is not known.
+pub fn spinner(what: &str) -> ProgressBar {
+    let pb = ProgressBar::new_spinner().with_message(what.to_string());
+    pb.enable_steady_tick(std::time::Duration::from_millis(200));
+    pb
+}
+
+/// Shows a library's stages as [`progress_bar`]s (a [`spinner`] when the
+/// stage's total is 0, unknown), cleared when done, and its notes as lines
+/// on stderr.
 #[derive(Debug, Default)]
 pub struct TerminalProgress {
     bar: Mutex<Option<ProgressBar>>,
@@ -35,7 +44,12 @@ impl TerminalProgress {
 impl Progress for TerminalProgress {
     fn start(&self, total: usize, label: &str) {
         self.with_bar(|bar| {
-            if let Some(old) = bar.replace(progress_bar(total, label)) {
+            let new = if total == 0 {
+                spinner(label)
+            } else {
+                progress_bar(total, label)
+            };
+            if let Some(old) = bar.replace(new) {
                 old.finish_and_clear();
             }
         });
@@ -58,6 +72,10 @@ impl Progress for TerminalProgress {
     }
 
     fn note(&self, text: &str) {
-        eprintln!("{text}");
+        // Above a bar that is drawn, not through it.
+        self.with_bar(|bar| match bar {
+            Some(b) => b.suspend(|| eprintln!("{text}")),
+            None => eprintln!("{text}"),
+        });
     }
 }

@@ -4,7 +4,7 @@
 use anyhow::{Context, Result};
 use bridgev2w_train::config::TrainConfig;
 use bridgev2w_train::distributed::DistEnv;
-use bridgev2w_train::eval_run::{evaluate_run, EvalProgress, EvalRunOptions};
+use bridgev2w_train::eval_run::{evaluate_run, EvalRunOptions};
 use bridgev2w_train::evaluate::EvalOptions;
 use bridgev2w_train::trainer::Trainer;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -180,31 +180,6 @@ pub struct EvalRunArgs {
     segmenter: bridgev2w_train::segmenter::SegmenterKind,
 }
 
-/// The spinner of `eval-run`: a new one for each long step.
-#[derive(Default)]
-struct Spinner(std::cell::RefCell<Option<ProgressBar>>);
-
-impl EvalProgress for Spinner {
-    fn begin(&self, what: &str) {
-        let pb = ProgressBar::new_spinner().with_message(what.to_string());
-        pb.enable_steady_tick(std::time::Duration::from_millis(200));
-        *self.0.borrow_mut() = Some(pb);
-    }
-    fn tick(&self) {
-        if let Some(pb) = &*self.0.borrow() {
-            pb.tick();
-        }
-    }
-    fn end(&self) {
-        if let Some(pb) = self.0.borrow_mut().take() {
-            pb.finish_and_clear();
-        }
-    }
-    fn note(&self, line: &str) {
-        eprintln!("{line}");
-    }
-}
-
 /// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
 /// next to the copy-the-first-frame baseline.
 pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
@@ -228,7 +203,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
         weights: args.weights,
         segmenter: args.segmenter,
     };
-    let evaluation = evaluate_run(&o, &Spinner::default())?;
+    let evaluation = evaluate_run(&o, &crate::progress::TerminalProgress::default())?;
     if let Some(path) = &args.json {
         bridgev2w_io::atomic::write_atomic(
             path,

@@ -388,8 +388,33 @@ fn the_world_model_guide_runs() {
             }
         }
         bridgev2w_io::npy::write_npy(&d.join("masks.npy"), &[9, 64, 96], &masks).expect("npy");
+        // The batch example's folder: the same masks, and an arm moving back.
+        std::fs::create_dir_all(d.join("clips")).expect("clips");
+        bridgev2w_io::npy::write_npy(&d.join("clips/reach.npy"), &[9, 64, 96], &masks)
+            .expect("npy");
+        let wave: Vec<u8> = (0..9)
+            .rev()
+            .flat_map(|t| masks[t * 64 * 96..(t + 1) * 64 * 96].to_vec())
+            .collect();
+        bridgev2w_io::npy::write_npy(&d.join("clips/wave.npy"), &[9, 64, 96], &wave).expect("npy");
     });
-    assert!(d.path().join("prediction/video.npy").is_file());
+    let video = |p: &str| {
+        bridgev2w_io::npy::read_npy(&d.path().join(p))
+            .expect(p)
+            .data
+    };
+    let single = video("prediction/video.npy");
+    let batched = video("predictions/reach/video.npy");
+    let diff = single
+        .iter()
+        .zip(&batched)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        diff <= 1.0,
+        "a batched clip is {diff} uint8 levels from its single prediction"
+    );
+    assert!(d.path().join("predictions/wave/video.mp4").is_file());
 }
 
 #[test]

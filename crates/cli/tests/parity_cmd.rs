@@ -67,3 +67,83 @@ fn parity_command_passes_and_fails_as_it_should() {
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("meta.json"));
 }
+
+#[test]
+fn bf16_parity_compares_both_sides_with_diffusers_f32() {
+    let python = repo_root().join(".venv/bin/python");
+    assert!(
+        python.is_file(),
+        "{} missing: run scripts/setup-venv.sh (./run test does)",
+        python.display()
+    );
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let fixture = tmp.path().join("tf");
+    let status = Command::new(&python)
+        .arg(repo_root().join("scripts/parity/make_parity_fixture.py"))
+        .args([
+            "transformer",
+            "--style",
+            "5b-i2v",
+            "--shape",
+            "1,2,8,4,4",
+            "--layers",
+            "1",
+            "--bf16",
+            "--out",
+        ])
+        .arg(&fixture)
+        .status()
+        .expect("run fixture script");
+    assert!(status.success());
+    let parity = |extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+            .args(["parity", "--precision", "bf16"])
+            .args(extra)
+            .arg(&fixture)
+            .output()
+            .expect("run bridgev2w")
+    };
+    let ok = parity(&[]);
+    let table = String::from_utf8_lossy(&ok.stdout);
+    assert!(
+        ok.status.success(),
+        "{table}\n{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    assert!(
+        table.contains("diffusers bf16 rms rel") && table.contains("| sample |"),
+        "{table}"
+    );
+    // No room at all: ours (a bf16 run, so not exact) fails, naming the output.
+    let strict = parity(&["--bf16-factor", "0", "--bf16-epsilon", "0"]);
+    assert!(!strict.status.success());
+    let err = String::from_utf8_lossy(&strict.stderr);
+    assert!(
+        err.contains("bf16 error above") && err.contains("sample"),
+        "{err}"
+    );
+
+    // A fixture made without --bf16: the error says how to make one.
+    let f32_only = tmp.path().join("tf32");
+    let status = Command::new(&python)
+        .arg(repo_root().join("scripts/parity/make_parity_fixture.py"))
+        .args([
+            "transformer",
+            "--shape",
+            "1,2,8,4,4",
+            "--layers",
+            "1",
+            "--out",
+        ])
+        .arg(&f32_only)
+        .status()
+        .expect("run fixture script");
+    assert!(status.success());
+    let o = Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+        .args(["parity", "--precision", "bf16"])
+        .arg(&f32_only)
+        .output()
+        .expect("run bridgev2w");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--bf16"), "{err}");
+}

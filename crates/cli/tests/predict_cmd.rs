@@ -2,6 +2,7 @@
 //! and the errors a user meets first).
 
 use bridgev2w_io::npy::{read_npy, write_npy};
+use std::path::Path;
 
 mod common;
 
@@ -212,4 +213,191 @@ fn predict_finds_a_hub_name_in_the_hugging_face_cache() {
             && err.contains("huggingface-cli download"),
         "{err}"
     );
+}
+
+/// A moving box of robot pixels (`speed` pixels a frame), 9 frames of 64x96.
+fn box_masks(speed: usize) -> Vec<u8> {
+    let mut masks = vec![0u8; 9 * 64 * 96];
+    for t in 0..9 {
+        for y in 20..40 {
+            for x in 10 + speed * t..30 + speed * t {
+                masks[(t * 64 + y) * 96 + x] = 1;
+            }
+        }
+    }
+    masks
+}
+
+/// The largest difference between two uint8 videos (read as f64 values).
+fn max_diff(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+}
+
+/// Several clips in one call (`--masks` repeated or a folder): each clip in
+/// its own folder, equal to the single-clip prediction of the same masks
+/// and seed (shared batch noise) to one uint8 level (float rounding of a
+/// batch of 2 vs 1 may move a value across a rounding boundary), whatever
+/// the batch size; bad clips are refused before anything is predicted,
+/// naming the file.
+#[test]
+fn predict_batches_clips_as_their_single_predictions() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let img = image::RgbImage::from_fn(96, 64, |x, y| image::Rgb([x as u8, y as u8, 128]));
+    img.save(d.join("first.png")).expect("png");
+    std::fs::create_dir_all(d.join("clips")).expect("clips");
+    std::fs::create_dir_all(d.join("x")).expect("x");
+    write_npy(&d.join("clips/a.npy"), &[9, 64, 96], &box_masks(3)).expect("npy");
+    write_npy(&d.join("clips/b.npy"), &[9, 64, 96], &box_masks(6)).expect("npy");
+    std::fs::write(d.join("clips/notes.txt"), "not masks").expect("notes");
+    std::fs::copy(d.join("clips/a.npy"), d.join("x/a.npy")).expect("copy");
+    // random:tiny's ControlNet starts with zero output projections, so its
+    // masks change nothing: these weights are random:tiny's with them
+    // perturbed, so each clip's masks show in its video.
+    let model = bridgev2w_world_model::bridge::BridgeV2W::random(
+        bridgev2w_world_model::bridge::BridgeV2WConfig::tiny(),
+        &bridgev2w_world_model::spec::RandomPreset::Tiny.configs().0,
+        &bridgev2w_world_model::spec::RandomPreset::Tiny.configs().1,
+        bridgev2w_world_model::scheduler::SchedulerConfig::cogvideox_5b_i2v(),
+        bridgev2w_world_model::ComputeDevice::Cpu,
+        0,
+    )
+    .expect("a tiny model");
+    tch::manual_seed(1);
+    tch::no_grad(|| {
+        for (name, mut v) in model.adapters.variables() {
+            if name.contains("out_projectors") {
+                v.copy_(&(tch::Tensor::randn_like(&v) * 0.05));
+            }
+        }
+    });
+    model.save_backbone(&d.join("backbone")).expect("backbone");
+    model
+        .save_weights(&d.join("bridgev2w.safetensors"))
+        .expect("weights");
+    let (backbone, weights) = (d.join("backbone"), d.join("bridgev2w.safetensors"));
+    let (first, outs) = (d.join("first.png"), d.to_path_buf());
+    let predict = |masks: &[&Path], out: &str, extra: &[&str]| {
+        let out = outs.join(out);
+        let mut a = vec![
+            "predict",
+            "--model",
+            s(&backbone),
+            "--weights",
+            s(&weights),
+            "--image",
+            s(&first),
+            "--out",
+            s(&out),
+            "--steps",
+            "3",
+            "--seed",
+            "5",
+            "--device",
+            "cpu",
+        ];
+        for m in masks {
+            a.extend(["--masks", s(m)]);
+        }
+        a.extend(extra);
+        run(&a)
+    };
+    let video = |path: &str| read_npy(&d.join(path)).expect(path).data;
+    let (a, b) = (d.join("clips/a.npy"), d.join("clips/b.npy"));
+    for (m, out) in [(&a, "single-a"), (&b, "single-b")] {
+        let o = predict(&[m], out, &[]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    // Two clips in one batch.
+    let o = predict(&[&a, &b], "batch", &["--batch-size", "2"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("wrote 2 clips of 9 frames"));
+    for clip in ["a", "b"] {
+        let single = video(&format!("single-{clip}/video.npy"));
+        let batched = video(&format!("batch/{clip}/video.npy"));
+        let diff = max_diff(&single, &batched);
+        eprintln!("batch clip {clip}: {diff} uint8 levels from its single prediction");
+        assert!(
+            diff <= 1.0,
+            "clip {clip}: {diff} uint8 levels from its single prediction"
+        );
+        assert!(d.join(format!("batch/{clip}/video.mp4")).is_file());
+        for i in 0..9 {
+            assert!(d.join(format!("batch/{clip}/frames/{i:06}.png")).is_file());
+        }
+    }
+    assert!(
+        max_diff(&video("batch/a/video.npy"), &video("batch/b/video.npy")) > 1.0,
+        "other masks, other video"
+    );
+    let index: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("batch/clips.json")).expect("clips.json"),
+    )
+    .expect("json");
+    assert_eq!(index["clips"][1]["name"], "b");
+    assert_eq!(index["clips"][1]["masks"], s(&b));
+    // A folder (its .npy files by name) and a file, in batches of 2 (the
+    // second batch a single clip): a repeated stem numbers every clip.
+    let o = predict(
+        &[&d.join("clips"), &d.join("x/a.npy")],
+        "mixed",
+        &["--batch-size", "2"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let names: Vec<String> = std::fs::read_dir(d.join("mixed"))
+        .expect("mixed")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    assert_eq!(names, ["000-a", "001-b", "002-a", "clips.json"]);
+    for (clip, single) in [("000-a", "a"), ("001-b", "b"), ("002-a", "a")] {
+        let diff = max_diff(
+            &video(&format!("single-{single}/video.npy")),
+            &video(&format!("mixed/{clip}/video.npy")),
+        );
+        eprintln!("clip {clip}: {diff} uint8 levels from its single prediction");
+        assert!(diff <= 1.0, "clip {clip}: {diff}");
+    }
+    // An existing output is refused, whole.
+    let o = predict(&[&a, &b], "batch", &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--overwrite"), "{err}");
+    assert!(d.join("batch/clips.json").is_file());
+
+    // Bad input: nothing is written.
+    // A clip at another shape: the error names its file.
+    write_npy(
+        &d.join("clips/c.npy"),
+        &[9, 32, 48],
+        &vec![0u8; 9 * 32 * 48],
+    )
+    .expect("npy");
+    let o = predict(&[&d.join("clips")], "bad", &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("c.npy") && err.contains("[9, 32, 48]"),
+        "{err}"
+    );
+    // A folder without masks.
+    std::fs::create_dir_all(d.join("empty")).expect("empty");
+    std::fs::write(d.join("empty/readme.txt"), "nothing").expect("readme");
+    let o = predict(&[&a, &d.join("empty")], "bad", &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains(s(&d.join("empty"))) && err.contains("no .npy"),
+        "{err}"
+    );
+    // A missing file, named.
+    let o = predict(&[&a, &d.join("missing.npy")], "bad", &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("missing.npy"), "{err}");
+    let o = predict(&[&a, &b], "bad", &["--batch-size", "0"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--batch-size"), "{err}");
+    assert!(!d.join("bad").exists() && !d.join("bad.tmp").exists());
 }

@@ -7,7 +7,8 @@ use crate::video::{psnr, ssim};
 use crate::MetricError;
 use bridgev2w_io::atomic::write_atomic;
 use bridgev2w_io::frame::RgbFrame;
-use bridgev2w_io::peer::{self, PeerError, Progress};
+use bridgev2w_io::peer::{self, PeerError};
+use bridgev2w_io::progress::Progress;
 use bridgev2w_io::FileError;
 use rayon::prelude::*;
 use std::fmt;
@@ -248,7 +249,7 @@ mod tests {
             width: 10,
             ..MetricsBenchOptions::default()
         };
-        let e = bench_metrics(&options, &peer::Silent).expect_err("too small");
+        let e = bench_metrics(&options, &bridgev2w_io::progress::Silent).expect_err("too small");
         assert_eq!(
             e.to_string(),
             "--frames must be >= 1 and --width/--height >= 11 (the SSIM window)"

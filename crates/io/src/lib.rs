@@ -17,7 +17,9 @@
 //! * [`seed`]: seeded, reproducible randomness (seed mixing, SplitMix64,
 //!   normal draws);
 //! * [`peer`]: the Python peers of the benches (repository root, venvs,
-//!   scripts that print a JSON result) and the benches' progress reports.
+//!   scripts that print a JSON result);
+//! * [`progress`]: [`progress::Progress`], how a library reports stages,
+//!   steps and notes while it runs (the command-line tool draws the bars).
 
 pub mod atomic;
 pub mod frame;
@@ -26,6 +28,7 @@ pub mod npy;
 pub mod output;
 pub mod peer;
 pub mod png;
+pub mod progress;
 pub mod sections;
 pub mod seed;
 

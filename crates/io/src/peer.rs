@@ -2,10 +2,8 @@
 //! `scripts/bench/`, the Python interpreters (the bench venv with pybullet and
 //! scikit-image, the project venv with torch and diffusers), a scratch folder
 //! for the arrays handed to a peer, and running a peer script that prints its
-//! result as one JSON object on stdout.
-//!
-//! [`Progress`] is how a bench reports its stages and notes while it runs, so
-//! that library benches stay free of terminal code.
+//! result as one JSON object on stdout. A bench reports its stages and
+//! notes through [`crate::progress::Progress`].
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -221,30 +219,6 @@ impl PeerOutput {
         }
     }
 }
-
-/// What a bench reports while it runs: stages of counted steps (a progress
-/// bar in the command-line tool) and notes (one line on stderr there). Every
-/// method does nothing unless overridden.
-pub trait Progress: Sync {
-    /// A stage of `total` steps called `label` begins.
-    fn start(&self, total: usize, label: &str) {
-        let _ = (total, label);
-    }
-    /// One step of the current stage is done (called from any thread).
-    fn tick(&self) {}
-    /// The current stage is over.
-    fn finish(&self) {}
-    /// A note for the user, e.g. that a slow peer runs now.
-    fn note(&self, text: &str) {
-        let _ = text;
-    }
-}
-
-/// A [`Progress`] that reports nothing.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct Silent;
-
-impl Progress for Silent {}
 
 #[cfg(test)]
 mod tests {

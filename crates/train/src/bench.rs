@@ -4,7 +4,7 @@
 
 use crate::data::{ClipDataset, MaskKind, SourceSpec};
 use crate::{Result, TrainError};
-use bridgev2w_io::peer::Progress;
+use bridgev2w_io::progress::Progress;
 use std::fmt;
 use std::path::PathBuf;
 use std::time::Instant;

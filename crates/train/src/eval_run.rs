@@ -8,6 +8,7 @@ use crate::segmenter::{CnnSegmenter, SegmenterKind, SegmenterOptions};
 use crate::trainer::Trainer;
 use crate::{config::TrainConfig, Result, TrainError};
 use bridgev2w_eval::segment::RobotSegmenter;
+use bridgev2w_io::progress::Progress;
 use std::path::PathBuf;
 
 /// What to score.
@@ -25,18 +26,6 @@ pub struct EvalRunOptions {
     pub weights: RunWeights,
     /// The robot segmenter of Mask-IoU.
     pub segmenter: SegmenterKind,
-}
-
-/// Progress of a run's evaluation, for a spinner.
-pub trait EvalProgress {
-    /// A long step begins (`what` names it).
-    fn begin(&self, what: &str);
-    /// The step moved on.
-    fn tick(&self);
-    /// The step ended.
-    fn end(&self);
-    /// A line worth telling (which weights, the segmenter's loss, ...).
-    fn note(&self, line: &str);
 }
 
 /// The scores of a run.
@@ -62,8 +51,10 @@ fn context(what: String) -> impl FnOnce(TrainError) -> TrainError {
     }
 }
 
-/// Loads the run and scores every split.
-pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn EvalProgress) -> Result<RunEvaluation> {
+/// Loads the run and scores every split. `progress` sees the segmenter's
+/// training and each split's scoring as stages of unknown length (total 0),
+/// a tick per scored video, and notes (which weights, the segmenter's loss).
+pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn Progress) -> Result<RunEvaluation> {
     let cfg = TrainConfig::from_file(&o.config)?;
     let mut trainer = Trainer::new(cfg).map_err(context("setting up the run's model".into()))?;
     trainer
@@ -83,10 +74,10 @@ pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn EvalProgress) -> Result<R
     ));
     let segmenter: Option<Box<dyn RobotSegmenter>> = match o.segmenter {
         SegmenterKind::Cnn => {
-            progress.begin("training the robot segmenter");
+            progress.start(0, "training the robot segmenter");
             let s = CnnSegmenter::fit(&trainer.data, &SegmenterOptions::default())
                 .map_err(context("training the robot segmenter".into()));
-            progress.end();
+            progress.finish();
             let s = s?;
             if let Some(s) = &s {
                 progress.note(&format!(
@@ -105,12 +96,12 @@ pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn EvalProgress) -> Result<R
     }
     let mut rows = Vec::new();
     for split in &o.splits {
-        progress.begin(&format!("scoring {split}"));
+        progress.start(0, &format!("scoring {split}"));
         let scores = evaluate_split(&trainer, split, &o.sampling, segmenter.as_deref(), &|| {
             progress.tick()
         })
         .map_err(context(format!("split {split}")));
-        progress.end();
+        progress.finish();
         rows.push(scores?);
     }
     Ok(RunEvaluation {

@@ -1,6 +1,7 @@
 //! The BridgeV2W model: a CogVideoX image-to-video backbone (VAE + transformer,
 //! frozen), LoRA adapters on its attention, and the mask [`ControlNet`] branch;
-//! it implements [`Denoiser`] and [`WorldModel`].
+//! it implements [`crate::pipeline::Denoiser`] and [`crate::pipeline::WorldModel`]
+//! (in `bridge/predict.rs`, with batch prediction).
 //!
 //! Files: the backbone is a diffusers pipeline folder (loaded unchanged); BridgeV2W's
 //! own weights (ControlNet + LoRA) are one safetensors file with keys
@@ -12,22 +13,20 @@ use crate::controlnet::{ControlNet, ControlNetConfig};
 use crate::device::{ComputeDevice, Precision};
 use crate::error::{Result, WorldModelError};
 use crate::lora::LoraConfig;
-use crate::pipeline::{
-    check_batch, sample_latents, BatchNoise, Denoiser, Guidance, PredictOptions, WorldModel,
-};
-use crate::scheduler::{Scheduler, SchedulerConfig};
+use crate::pipeline::BatchNoise;
+use crate::scheduler::SchedulerConfig;
 use crate::transformer::{CheckpointedForward, LoadedTransformer, Rotary, TransformerConfig};
-use crate::vae::{AutoencoderKLCogVideoX, VaeConfig};
-use crate::video::{image_to_tensor, MaskVideo, Video};
+use crate::vae::{AutoencoderKLCogVideoX, Posterior, VaeConfig};
 use crate::weights::{
     load_weights, read_safetensors_metadata, save_safetensors, save_safetensors_with_metadata,
     DIFFUSERS_WEIGHTS_STEM,
 };
-use bridgev2w_io::frame::RgbFrame;
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
+
+mod predict;
 
 /// The metadata key of the config in a BridgeV2W weights file.
 pub const CONFIG_METADATA_KEY: &str = "bridgev2w_config";
@@ -449,7 +448,17 @@ impl BridgeV2W {
         seed: Option<u64>,
         batch_noise: BatchNoise,
     ) -> Result<Tensor> {
-        let post = self.vae.encode(video)?;
+        self.posterior_latents(&self.vae.encode(video)?, seed, batch_noise)
+    }
+
+    /// Scaled latents `[B, t, C, h, w]` of a VAE posterior: its mean, or a
+    /// sample with `seed` (a batch's noise drawn as `batch_noise` says).
+    fn posterior_latents(
+        &self,
+        post: &Posterior,
+        seed: Option<u64>,
+        batch_noise: BatchNoise,
+    ) -> Result<Tensor> {
         let z = match seed {
             Some(s) => post.sample_batch(s, batch_noise)?,
             None => post.mode(),
@@ -627,21 +636,6 @@ impl BridgeV2W {
         })
     }
 
-    /// Samples a clip's latents `[B, t, C, h, w]` from image latents and control latents.
-    pub fn sample(
-        &self,
-        image_latents: &Tensor,
-        control: &Tensor,
-        opts: &PredictOptions,
-    ) -> Result<Tensor> {
-        let mut scheduler = Scheduler::new(self.scheduler.clone())?;
-        let denoiser = Conditioned {
-            model: self,
-            control,
-        };
-        tch::no_grad(|| sample_latents(&denoiser, &mut scheduler, image_latents, &opts.sample))
-    }
-
     /// Decodes scaled latents `[B, t, C, h, w]` into videos `[B, 3, T, H, W]` in [-1, 1].
     pub fn decode_latents(&self, latents: &Tensor) -> Result<Tensor> {
         let z = self.vae.unscale_latents(&latents.permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
@@ -658,29 +652,6 @@ impl BridgeV2W {
     /// The compute dtype of the backbone.
     pub fn kind(&self) -> Kind {
         self.kind
-    }
-
-    fn check_inputs(&self, first_frame: &RgbFrame, masks: &MaskVideo) -> Result<()> {
-        let (h, w, t) = (self.cfg.height, self.cfg.width, self.cfg.frames);
-        if (first_frame.height, first_frame.width) != (h, w) {
-            return Err(WorldModelError::input(
-                "first_frame",
-                format!(
-                    "{}x{} (HxW): the model works at {h}x{w}",
-                    first_frame.height, first_frame.width
-                ),
-            ));
-        }
-        if (masks.frames, masks.height, masks.width) != (t, h, w) {
-            return Err(WorldModelError::input(
-                "masks",
-                format!(
-                    "[{}, {}, {}]: expected [{t}, {h}, {w}] (frames, height, width)",
-                    masks.frames, masks.height, masks.width
-                ),
-            ));
-        }
-        Ok(())
     }
 }
 
@@ -701,92 +672,4 @@ fn save_vars(vs: &VarStore, dir: &Path) -> Result<()> {
         &named,
         &dir.join(format!("{DIFFUSERS_WEIGHTS_STEM}.safetensors")),
     )
-}
-
-/// The model with a fixed branch input: conditional = branch on, unconditional
-/// = branch off (as training's condition dropout).
-struct Conditioned<'a> {
-    model: &'a BridgeV2W,
-    control: &'a Tensor,
-}
-
-impl Denoiser for Conditioned<'_> {
-    fn velocity(
-        &self,
-        latent_in: &Tensor,
-        timestep: &Tensor,
-        guidance: Guidance,
-    ) -> Result<Tensor> {
-        let control = match guidance {
-            Guidance::Conditional => Some(self.control),
-            Guidance::Unconditional => None,
-        };
-        self.model.velocity_with(latent_in, timestep, control)
-    }
-}
-
-impl WorldModel for BridgeV2W {
-    fn clip_frames(&self) -> usize {
-        self.cfg.frames
-    }
-
-    fn resolution(&self) -> (usize, usize) {
-        (self.cfg.height, self.cfg.width)
-    }
-
-    fn predict(
-        &self,
-        first_frame: &RgbFrame,
-        masks: &MaskVideo,
-        opts: &PredictOptions,
-    ) -> Result<Video> {
-        Ok(self
-            .predict_batch(
-                std::slice::from_ref(first_frame),
-                std::slice::from_ref(masks),
-                opts,
-            )?
-            .remove(0))
-    }
-
-    fn predict_batch(
-        &self,
-        first_frames: &[RgbFrame],
-        masks: &[MaskVideo],
-        opts: &PredictOptions,
-    ) -> Result<Vec<Video>> {
-        check_batch(first_frames, masks)?;
-        if first_frames.is_empty() {
-            return Err(WorldModelError::input(
-                "predict_batch",
-                "no frames: expected at least one (frame, masks) pair",
-            ));
-        }
-        let _guard = tch::no_grad_guard();
-        let mut images = Vec::with_capacity(first_frames.len());
-        let mut mask_videos = Vec::with_capacity(masks.len());
-        for (f, m) in first_frames.iter().zip(masks) {
-            self.check_inputs(f, m)?;
-            images.push(image_to_tensor(f, Device::Cpu, Kind::Float)?); // [1, 3, H, W]
-            mask_videos.push(m.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, T, H, W]
-        }
-        let images = Tensor::cat(&images, 0); // [B, 3, H, W]
-        let mask_videos = Tensor::cat(&mask_videos, 0); // [B, 3, T, H, W]
-        let image_latents =
-            self.image_latents_drawn(&images, Some(opts.sample.seed), opts.sample.batch_noise)?;
-        let control = self.control_latents(&mask_videos, &image_latents)?;
-        let latents = self.sample(&image_latents, &control, opts)?;
-        let videos = self.decode_latents(&latents)?; // [B, 3, T, H, W]
-        (0..videos.size()[0])
-            .map(|i| Video::from_tensor(&videos.get(i)))
-            .collect()
-    }
-
-    fn encode_image(&self, image: &RgbFrame) -> Result<Vec<f32>> {
-        let x = image_to_tensor(image, Device::Cpu, Kind::Float)?.unsqueeze(2); // [1, 3, 1, H, W]
-        let z = self.vae.encode(&x)?.mode();
-        Ok(Vec::<f32>::try_from(
-            &z.to_kind(Kind::Float).to_device(Device::Cpu).flatten(0, -1),
-        )?)
-    }
 }

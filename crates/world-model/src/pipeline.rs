@@ -12,6 +12,7 @@ use crate::error::{Result, WorldModelError};
 use crate::scheduler::Scheduler;
 use crate::video::{MaskVideo, Video};
 use bridgev2w_io::frame::RgbFrame;
+use bridgev2w_io::progress::{Progress, Silent};
 use tch::{Kind, Tensor};
 
 /// Which side of classifier-free guidance a denoiser call is for.
@@ -127,6 +128,23 @@ pub fn sample_latents(
     image_latents: &Tensor,
     opts: &SampleOptions,
 ) -> Result<Tensor> {
+    sample_latents_with_progress(denoiser, scheduler, image_latents, opts, &Silent)
+}
+
+/// The stage label that [`sample_latents_with_progress`] reports.
+pub const DENOISING: &str = "denoising";
+
+/// [`sample_latents`] reporting its steps to `progress`: one stage
+/// ([`DENOISING`]) of as many steps as the scheduler's timesteps, a tick
+/// after each step (whatever the guidance's denoiser calls per step), and
+/// the stage finished however the loop ends.
+pub fn sample_latents_with_progress(
+    denoiser: &dyn Denoiser,
+    scheduler: &mut Scheduler,
+    image_latents: &Tensor,
+    opts: &SampleOptions,
+    progress: &dyn Progress,
+) -> Result<Tensor> {
     if !(opts.guidance_scale.is_finite() && opts.guidance_scale >= 1.0) {
         return Err(WorldModelError::input(
             "guidance_scale",
@@ -151,6 +169,8 @@ pub fn sample_latents(
     let n_train = scheduler.config().num_train_timesteps as f64;
     let batch = shape[0];
     let mut noise = |s: &[i64]| opts.batch_noise.randn(s, Kind::Float, device);
+    progress.start(timesteps.len(), DENOISING);
+    let _finish = FinishOnDrop(progress);
     for (i, &t) in timesteps.iter().enumerate() {
         // [B, F, C, h, w] ++ [B, F, C, h, w] -> [B, F, 2C, h, w]
         let latent_in = Tensor::cat(&[&latents, image_latents], 2);
@@ -198,8 +218,18 @@ pub fn sample_latents(
                 1,
             );
         }
+        progress.tick();
     }
     Ok(latents)
+}
+
+/// Finishes a [`Progress`] stage when dropped (an early error included).
+struct FinishOnDrop<'a>(&'a dyn Progress);
+
+impl Drop for FinishOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.finish();
+    }
 }
 
 /// Checks that a batch pairs every first frame with one mask sequence.
@@ -375,6 +405,90 @@ mod tests {
         );
         let e = "both".parse::<FirstFrame>().unwrap_err().to_string();
         assert!(e.contains("generated, replaced"), "{e}");
+    }
+
+    /// Counts what a [`Progress`] is told.
+    #[derive(Default)]
+    struct Counter {
+        starts: std::sync::Mutex<Vec<(usize, String)>>,
+        ticks: std::sync::atomic::AtomicUsize,
+        finishes: std::sync::atomic::AtomicUsize,
+    }
+
+    impl Progress for Counter {
+        fn start(&self, total: usize, label: &str) {
+            self.starts.lock().unwrap().push((total, label.to_owned()));
+        }
+        fn tick(&self) {
+            self.ticks.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+        fn finish(&self) {
+            self.finishes
+                .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+    }
+
+    #[test]
+    fn progress_is_ticked_once_per_step() {
+        use std::sync::atomic::Ordering::SeqCst;
+        let mut cfg = SchedulerConfig::cogvideox_5b_i2v();
+        cfg.rescale_betas_zero_snr = false;
+        let alphas = Scheduler::new(cfg.clone())
+            .unwrap()
+            .schedule()
+            .alphas_cumprod
+            .clone();
+        let oracle = Oracle {
+            x0: Tensor::zeros([2, 3, 4, 2, 2], (Kind::Float, Device::Cpu)),
+            alphas,
+        };
+        let image = Tensor::zeros([2, 3, 4, 2, 2], (Kind::Float, Device::Cpu));
+        // Guidance (two denoiser calls per step) and a replaced first frame
+        // (more noise per step) still tick once per step.
+        for (steps, guidance, first_frame) in [
+            (7, 1.0, FirstFrame::Generated),
+            (3, 4.0, FirstFrame::Replaced),
+        ] {
+            let mut sched = Scheduler::new(cfg.clone()).unwrap();
+            let counter = Counter::default();
+            let opts = SampleOptions {
+                steps,
+                guidance_scale: guidance,
+                first_frame,
+                ..SampleOptions::default()
+            };
+            let with =
+                sample_latents_with_progress(&oracle, &mut sched, &image, &opts, &counter).unwrap();
+            assert_eq!(
+                *counter.starts.lock().unwrap(),
+                [(steps, DENOISING.to_owned())]
+            );
+            assert_eq!(counter.ticks.load(SeqCst), steps);
+            assert_eq!(counter.finishes.load(SeqCst), 1);
+            // Reporting changes nothing.
+            let mut sched = Scheduler::new(cfg.clone()).unwrap();
+            let without = sample_latents(&oracle, &mut sched, &image, &opts).unwrap();
+            assert!(with.equal(&without));
+        }
+        // A failing loop still finishes its stage.
+        let counter = Counter::default();
+        let mut sched = Scheduler::new(cfg).unwrap();
+        struct Failing;
+        impl Denoiser for Failing {
+            fn velocity(&self, _: &Tensor, _: &Tensor, _: Guidance) -> Result<Tensor> {
+                Err(WorldModelError::input("denoiser", "fails"))
+            }
+        }
+        let opts = SampleOptions {
+            steps: 2,
+            guidance_scale: 1.0,
+            ..SampleOptions::default()
+        };
+        assert!(
+            sample_latents_with_progress(&Failing, &mut sched, &image, &opts, &counter).is_err()
+        );
+        assert_eq!(counter.ticks.load(SeqCst), 0);
+        assert_eq!(counter.finishes.load(SeqCst), 1);
     }
 
     #[test]

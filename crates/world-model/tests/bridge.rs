@@ -354,7 +354,10 @@ fn predict_follows_the_world_model_contract() {
         },
     };
     let moved_alone = m.predict(&image(1), &masks(20), &shared(3)).unwrap();
-    assert!(close(&moved_alone.data, &moved.data) == 0.0, "a batch of one");
+    assert!(
+        close(&moved_alone.data, &moved.data) == 0.0,
+        "a batch of one"
+    );
     let batch = m
         .predict_batch(
             &[image(1), image(1), image(1)],

@@ -6,7 +6,9 @@
 mod common;
 
 use bridgev2w_world_model::lora::LoraConfig;
-use bridgev2w_world_model::parity::{run_fixture, DEFAULT_TOLERANCE};
+use bridgev2w_world_model::parity::{
+    run_fixture, run_fixture_bf16, BF16_EPSILON, BF16_FACTOR, DEFAULT_TOLERANCE,
+};
 use bridgev2w_world_model::transformer::{
     CogVideoXTransformer3DModel, LoadedTransformer, TransformerConfig,
 };
@@ -31,13 +33,38 @@ fn check(name: &str, args: &[&str], outputs: usize) {
     }
 }
 
+/// A 2-block 5B-I2V-style transformer (RoPE, learned positions), with
+/// diffusers' output in f32 and in bf16.
+const I2V: (&str, &[&str]) = (
+    "tf-5b-i2v",
+    &[
+        "transformer",
+        "--style",
+        "5b-i2v",
+        "--shape",
+        "2,3,8,8,12",
+        "--bf16",
+    ],
+);
+
 #[test]
 fn i2v_rope_learned_positions_at_training_size() {
-    check(
-        "tf-5b-i2v",
-        &["transformer", "--style", "5b-i2v", "--shape", "2,3,8,8,12"],
-        3,
+    check(I2V.0, I2V.1, 3);
+}
+
+#[test]
+fn i2v_in_bf16_is_as_accurate_as_diffusers_in_bf16() {
+    // Weights and inputs in bf16 on the CPU: the error against diffusers'
+    // f32 output at most 1.5 times diffusers' own bf16 error + 1e-3.
+    let dir = common::fixture(I2V.0, I2V.1);
+    let report = run_fixture_bf16(&dir).unwrap();
+    assert_eq!(report.outputs.len(), 1, "sample");
+    let o = &report.outputs[0];
+    assert!(
+        o.ours.rms_rel > 1e-4 && o.diffusers.rms_rel > 1e-4,
+        "both ran in bf16: {o:?}"
     );
+    assert!(o.within(BF16_FACTOR, BF16_EPSILON), "{o:?}");
 }
 
 #[test]

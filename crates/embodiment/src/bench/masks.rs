@@ -10,7 +10,8 @@ use crate::robot::{LoadOptions, Robot};
 use bridgev2w_io::atomic::write_atomic;
 use bridgev2w_io::json::write_json_atomic;
 use bridgev2w_io::npy::{read_npy, write_npy};
-use bridgev2w_io::peer::{self, Progress};
+use bridgev2w_io::peer;
+use bridgev2w_io::progress::Progress;
 use nalgebra::{Point3, Vector3};
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -385,10 +386,10 @@ mod tests {
             pybullet: false,
             ..MasksBenchOptions::default()
         };
-        let e = bench_masks(&options, &peer::Silent).expect_err("no urdf");
+        let e = bench_masks(&options, &bridgev2w_io::progress::Silent).expect_err("no urdf");
         assert_eq!(e.to_string(), "--no-pybullet needs --urdf PATH");
         options.urdf = Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("robots/franka.urdf"));
-        let report = bench_masks(&options, &peer::Silent).expect("bench");
+        let report = bench_masks(&options, &bridgev2w_io::progress::Silent).expect("bench");
         assert!(report.masks_per_s > 0.0 && report.pybullet.is_none());
         let text = report.to_string();
         assert!(text.starts_with("scene: "), "{text}");
@@ -396,7 +397,7 @@ mod tests {
         assert_eq!(text.lines().count(), 2, "{text}");
         assert!(report.warnings().is_empty());
         options.repeat = 0;
-        let e = bench_masks(&options, &peer::Silent).expect_err("repeat 0");
+        let e = bench_masks(&options, &bridgev2w_io::progress::Silent).expect_err("repeat 0");
         assert_eq!(e.to_string(), "--frames and --repeat must be positive");
     }
 }

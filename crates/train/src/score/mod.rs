@@ -10,8 +10,9 @@
 //! is reported unavailable with the reason, not an error.
 //!
 //! ```no_run
-//! use bridgev2w_train::score::{score_videos, NoProgress, ScoreOptions};
-//! let report = score_videos(&ScoreOptions::new("pred", "gt"), &NoProgress)?;
+//! use bridgev2w_io::progress::Silent;
+//! use bridgev2w_train::score::{score_videos, ScoreOptions};
+//! let report = score_videos(&ScoreOptions::new("pred", "gt"), &Silent)?;
 //! print!("{}", report.markdown());
 //! # Ok::<(), bridgev2w_train::score::ScoreError>(())
 //! ```
@@ -25,6 +26,7 @@ pub use error::{Result, ScoreError};
 pub use files::video_names;
 pub use per_video::{score_video, VideoScores};
 
+use bridgev2w_io::progress::Progress;
 use bridgev2w_world_model::ComputeDevice;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -153,39 +155,6 @@ impl ScoreOptions {
     }
 }
 
-/// The passes of [`score_videos`], as reported to a [`ScoreProgress`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ScorePhase {
-    /// PSNR, SSIM and Mask-IoU: a step per video (videos in parallel).
-    Frames,
-    /// LPIPS: a step per video.
-    Lpips,
-    /// FVD features: a step per video and side.
-    Fvd,
-}
-
-/// Receives the progress of [`score_videos`]: phases one after the other,
-/// each started, stepped and finished; [`ScoreProgress::step`] is called
-/// from several threads during [`ScorePhase::Frames`].
-pub trait ScoreProgress: Sync {
-    /// `phase` begins with `total` steps.
-    fn start(&self, phase: ScorePhase, total: u64);
-    /// A step of the current phase is done.
-    fn step(&self);
-    /// The current phase is done.
-    fn finish(&self);
-}
-
-/// No progress display.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct NoProgress;
-
-impl ScoreProgress for NoProgress {
-    fn start(&self, _phase: ScorePhase, _total: u64) {}
-    fn step(&self) {}
-    fn finish(&self) {}
-}
-
 /// The result of [`score_videos`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct VideoScoreReport {
@@ -279,8 +248,11 @@ fn unavailable(opts: &ScoreOptions, videos: usize) -> BTreeMap<&'static str, Str
 }
 
 /// Scores the videos of `opts.pred` against those of `opts.gt` (same
-/// names) with the metrics `opts` asks for; `progress` sees each pass.
-pub fn score_videos(opts: &ScoreOptions, progress: &dyn ScoreProgress) -> Result<VideoScoreReport> {
+/// names) with the metrics `opts` asks for; `progress` sees each pass as a
+/// stage: "evaluating" (PSNR, SSIM and Mask-IoU, a step per video, ticked
+/// from several threads), "LPIPS" (a step per video) and "FVD" (a step per
+/// video and side).
+pub fn score_videos(opts: &ScoreOptions, progress: &dyn Progress) -> Result<VideoScoreReport> {
     let names = video_names(&opts.pred, "--pred")?;
     let gt_names = video_names(&opts.gt, "--gt")?;
     let missing: Vec<&String> = names.iter().filter(|n| !gt_names.contains(n)).collect();
@@ -291,12 +263,12 @@ pub fn score_videos(opts: &ScoreOptions, progress: &dyn ScoreProgress) -> Result
         )));
     }
     let unavailable = unavailable(opts, names.len());
-    progress.start(ScorePhase::Frames, names.len() as u64);
+    progress.start(names.len(), "evaluating");
     let scores = names
         .par_iter()
         .map(|n| {
             let r = score_video(opts, n);
-            progress.step();
+            progress.tick();
             r
         })
         .collect::<Result<Vec<_>>>()?;
@@ -381,7 +353,7 @@ mod tests {
         }
         let mut opts = ScoreOptions::new(tmp.path().join("pred"), tmp.path().join("gt"));
         opts.metrics = vec![VideoMetric::MaskIou, VideoMetric::Ssim, VideoMetric::Psnr];
-        let report = score_videos(&opts, &NoProgress).unwrap();
+        let report = score_videos(&opts, &bridgev2w_io::progress::Silent).unwrap();
         assert_eq!(report.num_videos, 2);
         assert_eq!(report.value(VideoMetric::Psnr), Some(100.0));
         assert_eq!(report.value(VideoMetric::MaskIou), None);
@@ -393,7 +365,9 @@ mod tests {
         assert_eq!(json["psnr"], 100.0);
         assert!(json["mask_iou"].is_null() && json["unavailable"]["mask_iou"].is_string());
         std::fs::remove_dir_all(tmp.path().join("gt/b")).unwrap();
-        let e = score_videos(&opts, &NoProgress).unwrap_err().to_string();
+        let e = score_videos(&opts, &bridgev2w_io::progress::Silent)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("missing in --gt: [\"b\"]"), "{e}");
     }
 }

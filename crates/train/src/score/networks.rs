@@ -4,8 +4,8 @@
 
 use super::error::{invalid, Result, ScoreError};
 use super::files::{check_numbers, read_video};
-use super::{ScorePhase, ScoreProgress};
 use bridgev2w_eval::frechet::{frechet_distance, Gaussian};
+use bridgev2w_io::progress::Progress;
 use bridgev2w_world_model::nets::i3d::I3d;
 use bridgev2w_world_model::nets::lpips::Lpips;
 use bridgev2w_world_model::ComputeDevice;
@@ -22,14 +22,14 @@ pub fn lpips_scores(
     weights: &Path,
     device: ComputeDevice,
     names: &[String],
-    progress: &dyn ScoreProgress,
+    progress: &dyn Progress,
 ) -> Result<Vec<f64>> {
     let net =
         Lpips::load(&[weights.to_path_buf()], device).map_err(|source| ScoreError::Network {
             context: format!("loading LPIPS weights {}", weights.display()),
             source,
         })?;
-    progress.start(ScorePhase::Lpips, names.len() as u64);
+    progress.start(names.len(), "LPIPS");
     let mut out = Vec::with_capacity(names.len());
     for name in names {
         let ((np, p), (ng, g)) = (read_video(pred, name)?, read_video(gt, name)?);
@@ -51,7 +51,7 @@ pub fn lpips_scores(
                 source,
             }
         })?);
-        progress.step();
+        progress.tick();
     }
     progress.finish();
     Ok(out)
@@ -67,14 +67,14 @@ pub fn fvd_score(
     weights: &Path,
     device: ComputeDevice,
     names: &[String],
-    progress: &dyn ScoreProgress,
+    progress: &dyn Progress,
 ) -> Result<f64> {
     let net =
         I3d::load(&[weights.to_path_buf()], device).map_err(|source| ScoreError::Network {
             context: format!("loading I3D weights {}", weights.display()),
             source,
         })?;
-    progress.start(ScorePhase::Fvd, 2 * names.len() as u64);
+    progress.start(2 * names.len(), "FVD");
     let (mut pred_features, mut gt_features) = (Vec::new(), Vec::new());
     for name in names {
         for (dir, out) in [(pred, &mut pred_features), (gt, &mut gt_features)] {
@@ -83,7 +83,7 @@ pub fn fvd_score(
                 context: format!("FVD features of video \"{name}\" in {}", dir.display()),
                 source,
             })?);
-            progress.step();
+            progress.tick();
         }
     }
     progress.finish();

@@ -7,7 +7,7 @@ use super::{time_model, torch_threads, BenchError, DiffusersPeer, ModelBenchShap
 use crate::device::{ComputeDevice, Precision};
 use crate::transformer::TransformerConfig;
 use crate::vae::VaeConfig;
-use bridgev2w_io::peer::Progress;
+use bridgev2w_io::progress::Progress;
 use std::fmt;
 use std::path::PathBuf;
 

@@ -8,7 +8,13 @@
 //! from the inputs, and each is compared with diffusers' value:
 //! `max_abs = max |rust - diffusers|`, `max_rel = max_abs / max |diffusers|`
 //! (the error relative to the output's scale, robust to elements near zero).
+//!
+//! Fixtures made with `--bf16` (transformer and VAE) also hold diffusers'
+//! outputs in bfloat16 (`NAME_bf16`): [`run_fixture_bf16`] runs the Rust model in
+//! bf16 and compares both bf16 errors against diffusers' f32 output (the bound:
+//! [`Bf16Output::within`]).
 
+mod bf16;
 mod i3d;
 mod lpips;
 mod raft;
@@ -16,6 +22,9 @@ mod scheduler;
 mod transformer;
 mod vae;
 
+pub use bf16::{run_fixture_bf16, Bf16Error, Bf16Output, Bf16Report, BF16_EPSILON, BF16_FACTOR};
+
+use crate::device::Precision;
 use crate::error::{Result, WorldModelError};
 use crate::weights::read_safetensors;
 use bridgev2w_io::json::read_json;
@@ -129,6 +138,26 @@ pub fn compare(io: &FixtureIo, computed: &[(String, Tensor)]) -> Result<Vec<Pari
 
 /// Runs one fixture directory with the Rust implementation.
 pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
+    let c = fixture_computed(dir, Precision::F32)?;
+    let outputs = compare(&c.io, &c.outputs)?;
+    Ok(ParityReport {
+        kind: c.kind,
+        outputs,
+    })
+}
+
+/// A fixture read and its outputs computed here.
+struct Computed {
+    /// The fixture's kind.
+    kind: String,
+    /// Its inputs and diffusers' outputs.
+    io: FixtureIo,
+    /// The outputs computed here, by name.
+    outputs: Vec<(String, Tensor)>,
+}
+
+/// Reads a fixture and computes its outputs in `precision`.
+fn fixture_computed(dir: &Path, precision: Precision) -> Result<Computed> {
     let meta_path = dir.join("meta.json");
     let meta: serde_json::Value = read_json(&meta_path)?;
     let kind = meta
@@ -136,6 +165,13 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
         .and_then(|k| k.as_str())
         .ok_or_else(|| WorldModelError::config(&meta_path, "kind", "missing or not a string"))?
         .to_owned();
+    if precision != Precision::F32 && kind != "transformer" && kind != "vae" {
+        return Err(WorldModelError::config(
+            &meta_path,
+            "kind",
+            format!("`{kind}`: only transformer and vae fixtures run in {precision:?}"),
+        ));
+    }
     let io = FixtureIo::read(&dir.join("io.safetensors"))?;
     let model_dir = dir.join("model");
     let computed = tch::no_grad(|| -> Result<Vec<(String, Tensor)>> {
@@ -145,8 +181,8 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
             "lpips" => lpips::fixture_outputs(&model_dir, &io),
             "raft" => raft::fixture_outputs(&model_dir, &meta, &io),
             "i3d" => i3d::fixture_outputs(&model_dir, &io),
-            "transformer" => transformer::fixture_outputs(&model_dir, &io),
-            "vae" => vae::fixture_outputs(&model_dir, &meta, &meta_path, &io),
+            "transformer" => transformer::fixture_outputs(&model_dir, &io, precision),
+            "vae" => vae::fixture_outputs(&model_dir, &meta, &meta_path, &io, precision),
             other => Err(WorldModelError::config(
                 &meta_path,
                 "kind",
@@ -154,6 +190,9 @@ pub fn run_fixture(dir: &Path) -> Result<ParityReport> {
             )),
         }
     })?;
-    let outputs = compare(&io, &computed)?;
-    Ok(ParityReport { kind, outputs })
+    Ok(Computed {
+        kind,
+        io,
+        outputs: computed,
+    })
 }

@@ -10,10 +10,16 @@ use tch::Tensor;
 /// Outputs of a `transformer` parity fixture: `sample` (with the model's own
 /// rotary embedding), `sample_fixture_rope` (with the fixture's, when given)
 /// and `rope_cos` / `rope_sin` (the model's tables, compared with the pipeline's).
-pub(super) fn fixture_outputs(model_dir: &Path, io: &FixtureIo) -> Result<Vec<(String, Tensor)>> {
-    let t = LoadedTransformer::load(model_dir, ComputeDevice::Cpu, Precision::F32)?;
-    let hidden = io.get("hidden_states")?;
-    let text = io.get("encoder_hidden_states")?;
+/// In `precision` bf16 the weights and the latent and text inputs are bf16 (as a
+/// pipeline loaded in bf16 runs them); the rotary tables stay float32.
+pub(super) fn fixture_outputs(
+    model_dir: &Path,
+    io: &FixtureIo,
+    precision: Precision,
+) -> Result<Vec<(String, Tensor)>> {
+    let t = LoadedTransformer::load(model_dir, ComputeDevice::Cpu, precision)?;
+    let hidden = &io.get("hidden_states")?.to_kind(precision.kind());
+    let text = &io.get("encoder_hidden_states")?.to_kind(precision.kind());
     let timestep = io.get("timestep")?;
     let ofs = if io.contains("ofs") {
         Some(io.get("ofs")?)

@@ -28,12 +28,14 @@ struct FixtureTiling {
 
 /// The `"vae"` arm of [`run_fixture`](super::run_fixture): loads `model_dir`, applies the
 /// fixture's tiling/slicing and computes `latent_mean` (and `latent_sample`) from
-/// `video`, `decoded` from `latents`.
+/// `video`, `decoded` from `latents`, with the weights in `precision` (the
+/// inputs are cast to it).
 pub(super) fn fixture_outputs(
     model_dir: &Path,
     meta: &serde_json::Value,
     meta_path: &Path,
     io: &FixtureIo,
+    precision: Precision,
 ) -> Result<Vec<(String, Tensor)>> {
     let options: FixtureOptions = match meta.get("options") {
         Some(o) => serde_json::from_value(o.clone()).map_err(|error| WorldModelError::Json {
@@ -46,7 +48,7 @@ pub(super) fn fixture_outputs(
             sample_seed: None,
         },
     };
-    let mut vae = AutoencoderKLCogVideoX::load(model_dir, ComputeDevice::Cpu, Precision::F32)?;
+    let mut vae = AutoencoderKLCogVideoX::load(model_dir, ComputeDevice::Cpu, precision)?;
     if let Some(t) = &options.tiling {
         vae.enable_tiling(TilingOptions {
             tile_sample_min_height: Some(t.tile_sample_min_height),

@@ -28,6 +28,26 @@ impl Posterior {
         })
     }
 
+    /// The posterior of `batch` copies of a single element's (the mean and
+    /// log-variance expanded, not copied): encoding a frame once stands for
+    /// encoding it `batch` times.
+    pub fn repeat_batch(&self, batch: i64) -> Result<Self> {
+        let size = self.mean.size();
+        match size.split_first() {
+            Some((1, rest)) if batch >= 1 => {
+                let shape: Vec<i64> = std::iter::once(batch).chain(rest.iter().copied()).collect();
+                Ok(Self {
+                    mean: self.mean.expand(shape.as_slice(), false),
+                    logvar: self.logvar.expand(shape.as_slice(), false),
+                })
+            }
+            _ => Err(WorldModelError::input(
+                "posterior",
+                format!("shape {size:?} to repeat {batch} times: expected a batch of one"),
+            )),
+        }
+    }
+
     /// The mean `[B, C, t, h, w]` (diffusers' `latent_dist.mean`, also the mode).
     pub fn mean(&self) -> &Tensor {
         &self.mean
@@ -87,5 +107,31 @@ impl Posterior {
         tch::manual_seed(seed as i64);
         let noise = batch_noise.randn(&self.mean.size(), self.mean.kind(), tch::Device::Cpu);
         self.sample_with_noise(&noise)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::pipeline::BatchNoise;
+    use tch::{Device, Kind};
+
+    #[test]
+    fn a_repeated_posterior_samples_as_its_copies() {
+        tch::manual_seed(0);
+        let one = Tensor::randn([1, 4, 1, 2, 3], (Kind::Float, Device::Cpu)); // [1, 2C, t, h, w]
+        let post = Posterior::from_moments(&one).unwrap();
+        let copies = Posterior::from_moments(&Tensor::cat(&[&one, &one, &one], 0)).unwrap();
+        let repeated = post.repeat_batch(3).unwrap();
+        assert_eq!(repeated.mean().size(), [3, 2, 1, 2, 3]);
+        for noise in [BatchNoise::Independent, BatchNoise::Shared] {
+            let a = repeated.sample_batch(5, noise).unwrap();
+            let b = copies.sample_batch(5, noise).unwrap();
+            assert!(a.equal(&b), "{noise:?}");
+        }
+        let e = copies.repeat_batch(2).unwrap_err().to_string();
+        assert!(e.contains("batch of one"), "{e}");
+        assert!(post.repeat_batch(0).is_err());
     }
 }

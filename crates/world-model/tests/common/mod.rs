@@ -44,8 +44,23 @@ fn scripts_digest(args: &[&str]) -> String {
     format!("{:016x}", h.finish())
 }
 
+/// One lock per fixture name: tests of one binary that share a fixture (the
+/// f32 and the bf16 checks) wait for one generation instead of racing.
+fn fixture_lock(name: &str) -> std::sync::Arc<std::sync::Mutex<()>> {
+    use std::collections::HashMap;
+    use std::sync::{Arc, Mutex, OnceLock};
+    static LOCKS: OnceLock<Mutex<HashMap<String, Arc<Mutex<()>>>>> = OnceLock::new();
+    let mut locks = LOCKS
+        .get_or_init(Default::default)
+        .lock()
+        .unwrap_or_else(|p| p.into_inner());
+    locks.entry(name.to_owned()).or_default().clone()
+}
+
 /// The fixture `name` made by `make_parity_fixture.py ARGS` (generated if stale).
 pub fn fixture(name: &str, args: &[&str]) -> PathBuf {
+    let lock = fixture_lock(name);
+    let _guard = lock.lock().unwrap_or_else(|p| p.into_inner());
     let out = repo_root().join("target/parity-fixtures").join(name);
     let digest = scripts_digest(args);
     let stamp = out.join("stamp");

@@ -1,0 +1,208 @@
+//! Prediction with [`BridgeV2W`]: the sampling loop with the mask branch
+//! ([`BridgeV2W::sample`]), batch prediction with progress
+//! ([`BridgeV2W::predict_batch_with_progress`]) and the [`WorldModel`] impl.
+//!
+//! Per batch, the first frames are encoded once (a frame that every item
+//! shares: once in all, its posterior expanded to the batch) and the prompt
+//! embedding is the model's, computed when it was loaded and expanded (a
+//! view) to the batch in every transformer call.
+
+use super::BridgeV2W;
+use crate::error::{Result, WorldModelError};
+use crate::pipeline::{
+    check_batch, sample_latents_with_progress, Denoiser, Guidance, PredictOptions, WorldModel,
+};
+use crate::scheduler::Scheduler;
+use crate::video::{image_to_tensor, MaskVideo, Video};
+use bridgev2w_io::frame::RgbFrame;
+use bridgev2w_io::progress::{Progress, Silent};
+use tch::{Device, Kind, Tensor};
+
+impl BridgeV2W {
+    /// Samples a clip's latents `[B, t, C, h, w]` from image latents and control latents.
+    pub fn sample(
+        &self,
+        image_latents: &Tensor,
+        control: &Tensor,
+        opts: &PredictOptions,
+    ) -> Result<Tensor> {
+        self.sample_with_progress(image_latents, control, opts, &Silent)
+    }
+
+    /// [`Self::sample`] reporting its denoising steps to `progress` (see
+    /// [`sample_latents_with_progress`]).
+    pub fn sample_with_progress(
+        &self,
+        image_latents: &Tensor,
+        control: &Tensor,
+        opts: &PredictOptions,
+        progress: &dyn Progress,
+    ) -> Result<Tensor> {
+        let mut scheduler = Scheduler::new(self.scheduler.clone())?;
+        let denoiser = Conditioned {
+            model: self,
+            control,
+        };
+        tch::no_grad(|| {
+            sample_latents_with_progress(
+                &denoiser,
+                &mut scheduler,
+                image_latents,
+                &opts.sample,
+                progress,
+            )
+        })
+    }
+
+    /// [`WorldModel::predict_batch`] reporting the denoising steps to
+    /// `progress` (one stage per call). One batch: the first frames are
+    /// encoded in one VAE call (once when they are all the same frame), the
+    /// masks in one, and the batch is denoised and decoded together; with
+    /// [`crate::pipeline::BatchNoise::Shared`] every item is the video a
+    /// batch of one with the same seed gives.
+    pub fn predict_batch_with_progress(
+        &self,
+        first_frames: &[RgbFrame],
+        masks: &[MaskVideo],
+        opts: &PredictOptions,
+        progress: &dyn Progress,
+    ) -> Result<Vec<Video>> {
+        check_batch(first_frames, masks)?;
+        if first_frames.is_empty() {
+            return Err(WorldModelError::input(
+                "predict_batch",
+                "no frames: expected at least one (frame, masks) pair",
+            ));
+        }
+        let _guard = tch::no_grad_guard();
+        let mut mask_videos = Vec::with_capacity(masks.len());
+        for (f, m) in first_frames.iter().zip(masks) {
+            self.check_inputs(f, m)?;
+            mask_videos.push(m.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, T, H, W]
+        }
+        let mask_videos = Tensor::cat(&mask_videos, 0); // [B, 3, T, H, W]
+        let image_latents = self.batch_image_latents(first_frames, opts)?;
+        let control = self.control_latents(&mask_videos, &image_latents)?;
+        let latents = self.sample_with_progress(&image_latents, &control, opts, progress)?;
+        let videos = self.decode_latents(&latents)?; // [B, 3, T, H, W]
+        (0..videos.size()[0])
+            .map(|i| Video::from_tensor(&videos.get(i)))
+            .collect()
+    }
+
+    /// The image latents `[B, t, C, h, w]` of a batch's first frames, the
+    /// posterior sampled with the options' seed and batch noise. A frame
+    /// that every item shares is encoded once and its posterior expanded:
+    /// the same latents as encoding it `B` times.
+    fn batch_image_latents(
+        &self,
+        first_frames: &[RgbFrame],
+        opts: &PredictOptions,
+    ) -> Result<Tensor> {
+        let b = first_frames.len();
+        let post = match first_frames.split_first() {
+            Some((first, rest)) if rest.iter().all(|f| f == first) => {
+                let x = image_to_tensor(first, Device::Cpu, Kind::Float)?; // [1, 3, H, W]
+                self.vae.encode(&x.unsqueeze(2))?.repeat_batch(b as i64)? // [B, C, 1, h, w]
+            }
+            _ => {
+                let images = first_frames
+                    .iter()
+                    .map(|f| image_to_tensor(f, Device::Cpu, Kind::Float)) // [1, 3, H, W]
+                    .collect::<Result<Vec<_>>>()?;
+                // [B, 3, H, W] -> [B, 3, 1, H, W]
+                self.vae.encode(&Tensor::cat(&images, 0).unsqueeze(2))?
+            }
+        };
+        let z = self.posterior_latents(&post, Some(opts.sample.seed), opts.sample.batch_noise)?;
+        let (t, _, _) = self.latent_geometry();
+        Ok(self.cfg.image_conditioning.expand(&z, t)) // [B, t, C, h, w]
+    }
+
+    fn check_inputs(&self, first_frame: &RgbFrame, masks: &MaskVideo) -> Result<()> {
+        let (h, w, t) = (self.cfg.height, self.cfg.width, self.cfg.frames);
+        if (first_frame.height, first_frame.width) != (h, w) {
+            return Err(WorldModelError::input(
+                "first_frame",
+                format!(
+                    "{}x{} (HxW): the model works at {h}x{w}",
+                    first_frame.height, first_frame.width
+                ),
+            ));
+        }
+        if (masks.frames, masks.height, masks.width) != (t, h, w) {
+            return Err(WorldModelError::input(
+                "masks",
+                format!(
+                    "[{}, {}, {}]: expected [{t}, {h}, {w}] (frames, height, width)",
+                    masks.frames, masks.height, masks.width
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The model with a fixed branch input: conditional = branch on, unconditional
+/// = branch off (as training's condition dropout).
+struct Conditioned<'a> {
+    model: &'a BridgeV2W,
+    control: &'a Tensor,
+}
+
+impl Denoiser for Conditioned<'_> {
+    fn velocity(
+        &self,
+        latent_in: &Tensor,
+        timestep: &Tensor,
+        guidance: Guidance,
+    ) -> Result<Tensor> {
+        let control = match guidance {
+            Guidance::Conditional => Some(self.control),
+            Guidance::Unconditional => None,
+        };
+        self.model.velocity_with(latent_in, timestep, control)
+    }
+}
+
+impl WorldModel for BridgeV2W {
+    fn clip_frames(&self) -> usize {
+        self.cfg.frames
+    }
+
+    fn resolution(&self) -> (usize, usize) {
+        (self.cfg.height, self.cfg.width)
+    }
+
+    fn predict(
+        &self,
+        first_frame: &RgbFrame,
+        masks: &MaskVideo,
+        opts: &PredictOptions,
+    ) -> Result<Video> {
+        Ok(self
+            .predict_batch(
+                std::slice::from_ref(first_frame),
+                std::slice::from_ref(masks),
+                opts,
+            )?
+            .remove(0))
+    }
+
+    fn predict_batch(
+        &self,
+        first_frames: &[RgbFrame],
+        masks: &[MaskVideo],
+        opts: &PredictOptions,
+    ) -> Result<Vec<Video>> {
+        self.predict_batch_with_progress(first_frames, masks, opts, &Silent)
+    }
+
+    fn encode_image(&self, image: &RgbFrame) -> Result<Vec<f32>> {
+        let x = image_to_tensor(image, Device::Cpu, Kind::Float)?.unsqueeze(2); // [1, 3, 1, H, W]
+        let z = self.vae.encode(&x)?.mode();
+        Ok(Vec::<f32>::try_from(
+            &z.to_kind(Kind::Float).to_device(Device::Cpu).flatten(0, -1),
+        )?)
+    }
+}
