@@ -237,11 +237,37 @@ impl BridgeV2W {
         device: ComputeDevice,
         seed: i64,
     ) -> Result<Self> {
+        Self::random_in(
+            cfg,
+            vae_cfg,
+            tf_cfg,
+            scheduler,
+            device,
+            Precision::F32,
+            seed,
+        )
+    }
+
+    /// [`Self::random`] in `precision`: the same weights (drawn in f32 from
+    /// `seed`), then, for bf16, the transformer in bf16 and the VAE too unless
+    /// its config says `force_upcast`, as [`Self::load`] does for a folder.
+    pub fn random_in(
+        cfg: BridgeV2WConfig,
+        vae_cfg: &VaeConfig,
+        tf_cfg: &TransformerConfig,
+        scheduler: SchedulerConfig,
+        device: ComputeDevice,
+        precision: Precision,
+        seed: i64,
+    ) -> Result<Self> {
         tch::manual_seed(seed);
-        let vae_vs = VarStore::new(device.check_available()?.to_tch());
+        let mut vae_vs = VarStore::new(device.check_available()?.to_tch());
         let vae = AutoencoderKLCogVideoX::new(vae_cfg, vae_vs.root())?;
         crate::vae::init_like_pytorch(&vae_vs);
-        let transformer = LoadedTransformer::random(tf_cfg, device, Precision::F32)?;
+        if precision == Precision::Bf16 && !vae_cfg.force_upcast {
+            vae_vs.bfloat16();
+        }
+        let transformer = LoadedTransformer::random(tf_cfg, device, precision)?;
         let prompt = PromptEmbedding::zeros(tf_cfg.max_text_seq_length, tf_cfg.text_embed_dim);
         Self::assemble(cfg, vae_vs, vae, transformer, scheduler, prompt)
     }

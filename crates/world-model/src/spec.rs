@@ -76,8 +76,9 @@ pub enum ModelSpec {
 }
 
 impl ModelSpec {
-    /// Builds the BridgeV2W this names: random weights of a preset (its
-    /// [`RandomPreset::bridge_config`], initialised from `seed`), or a diffusers
+    /// Builds the BridgeV2W this names, in `precision`: random weights of a
+    /// preset (its [`RandomPreset::bridge_config`], initialised from `seed`,
+    /// the same weights in either precision), or a diffusers
     /// folder with the paper's settings and the given adapter `weights` and
     /// `prompt_embeds` (a folder error names the folder).
     pub fn load_bridge(
@@ -91,12 +92,13 @@ impl ModelSpec {
         match self {
             Self::Random(preset) => {
                 let (vae, tf) = preset.configs();
-                BridgeV2W::random(
+                BridgeV2W::random_in(
                     preset.bridge_config(),
                     &vae,
                     &tf,
                     SchedulerConfig::cogvideox_5b_i2v(),
                     device,
+                    precision,
                     seed,
                 )
             }

@@ -481,6 +481,84 @@ fn bf16_model_predicts_close_to_f32() {
 }
 
 #[test]
+fn random_spec_honours_bf16_with_the_same_weights() {
+    use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
+    let spec = ModelSpec::Random(RandomPreset::Tiny);
+    let load = |p| {
+        spec.load_bridge(None, None, ComputeDevice::Cpu, p, 0)
+            .unwrap()
+    };
+    let (f32m, bf16m) = (load(Precision::F32), load(Precision::Bf16));
+    // F32 is `BridgeV2W::random`, bit for bit.
+    let direct = BridgeV2W::random(
+        RandomPreset::Tiny.bridge_config(),
+        &VaeConfig::tiny(),
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        0,
+    )
+    .unwrap();
+    assert_eq!(f32m.kind(), Kind::Float);
+    let v32 = f32m.predict(&image(3), &masks(0), &opts(1, 2.0)).unwrap();
+    let vd = direct.predict(&image(3), &masks(0), &opts(1, 2.0)).unwrap();
+    assert!(v32 == vd, "f32 random:tiny unchanged");
+    // bf16: the same weights, rounded; the VAE (force_upcast) stays f32.
+    assert_eq!(bf16m.kind(), Kind::BFloat16);
+    let (w32, w16) = (
+        f32m.transformer.vs.variables(),
+        bf16m.transformer.vs.variables(),
+    );
+    assert_eq!(w32.len(), w16.len());
+    for (name, v) in &w16 {
+        assert_eq!(v.kind(), Kind::BFloat16, "{name}");
+        assert!(v.equal(&w32[name].to_kind(Kind::BFloat16)), "{name}");
+    }
+    assert!(bf16m
+        .adapters
+        .variables()
+        .values()
+        .all(|v| v.kind() == Kind::BFloat16));
+    let vae32 = f32m.vae_vs.variables();
+    for (name, v) in bf16m.vae_vs.variables() {
+        assert!(v.kind() == Kind::Float && v.equal(&vae32[&name]), "{name}");
+    }
+    let v16 = bf16m.predict(&image(3), &masks(0), &opts(1, 2.0)).unwrap();
+    assert_eq!(v16.data.len(), v32.data.len());
+    assert!(v16.data.iter().all(|x| x.is_finite()));
+    let mean = v16
+        .data
+        .iter()
+        .zip(&v32.data)
+        .map(|(a, b)| f64::from((a - b).abs()))
+        .sum::<f64>()
+        / v32.data.len() as f64;
+    assert!(v16 != v32 && mean < 0.05, "bf16 vs f32 mean |diff| {mean}");
+    // Without force_upcast the VAE goes to bf16 too.
+    let vae_cfg = VaeConfig {
+        force_upcast: false,
+        ..VaeConfig::tiny()
+    };
+    let m = BridgeV2W::random_in(
+        BridgeV2WConfig::tiny(),
+        &vae_cfg,
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        Precision::Bf16,
+        0,
+    )
+    .unwrap();
+    assert!(m
+        .vae_vs
+        .variables()
+        .values()
+        .all(|v| v.kind() == Kind::BFloat16));
+    let v = m.predict(&image(3), &masks(0), &opts(1, 2.0)).unwrap();
+    assert!(v.data.iter().all(|x| x.is_finite()));
+}
+
+#[test]
 fn per_block_gradient_checkpointing_gives_the_same_gradients() {
     let m = tiny(BridgeV2WConfig::tiny(), 21);
     // Non-zero projections and LoRA B, so every path carries gradient.
