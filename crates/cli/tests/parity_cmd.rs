@@ -8,23 +8,35 @@ fn repo_root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
-#[test]
-fn parity_command_passes_and_fails_as_it_should() {
+/// Writes a diffusers parity fixture with `scripts/parity/make_parity_fixture.py
+/// ARGS --out TMP/NAME` (the project venv's Python) and returns its folder.
+fn make_fixture(tmp: &tempfile::TempDir, name: &str, args: &[&str]) -> PathBuf {
     let python = repo_root().join(".venv/bin/python");
     assert!(
         python.is_file(),
         "{} missing: run scripts/setup-venv.sh (./run test does)",
         python.display()
     );
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let fixture = tmp.path().join("ddim");
+    let fixture = tmp.path().join(name);
     let status = Command::new(&python)
         .arg(repo_root().join("scripts/parity/make_parity_fixture.py"))
-        .args(["scheduler", "--sampler", "ddim", "--steps", "4", "--out"])
+        .args(args)
+        .arg("--out")
         .arg(&fixture)
         .status()
         .expect("run fixture script");
     assert!(status.success());
+    fixture
+}
+
+#[test]
+fn parity_command_passes_and_fails_as_it_should() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let fixture = make_fixture(
+        &tmp,
+        "ddim",
+        &["scheduler", "--sampler", "ddim", "--steps", "4"],
+    );
 
     let ok = Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
         .arg("parity")
@@ -70,17 +82,11 @@ fn parity_command_passes_and_fails_as_it_should() {
 
 #[test]
 fn bf16_parity_compares_both_sides_with_diffusers_f32() {
-    let python = repo_root().join(".venv/bin/python");
-    assert!(
-        python.is_file(),
-        "{} missing: run scripts/setup-venv.sh (./run test does)",
-        python.display()
-    );
     let tmp = tempfile::tempdir().expect("tempdir");
-    let fixture = tmp.path().join("tf");
-    let status = Command::new(&python)
-        .arg(repo_root().join("scripts/parity/make_parity_fixture.py"))
-        .args([
+    let fixture = make_fixture(
+        &tmp,
+        "tf",
+        &[
             "transformer",
             "--style",
             "5b-i2v",
@@ -89,12 +95,8 @@ fn bf16_parity_compares_both_sides_with_diffusers_f32() {
             "--layers",
             "1",
             "--bf16",
-            "--out",
-        ])
-        .arg(&fixture)
-        .status()
-        .expect("run fixture script");
-    assert!(status.success());
+        ],
+    );
     let parity = |extra: &[&str]| {
         Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
             .args(["parity", "--precision", "bf16"])
@@ -124,21 +126,11 @@ fn bf16_parity_compares_both_sides_with_diffusers_f32() {
     );
 
     // A fixture made without --bf16: the error says how to make one.
-    let f32_only = tmp.path().join("tf32");
-    let status = Command::new(&python)
-        .arg(repo_root().join("scripts/parity/make_parity_fixture.py"))
-        .args([
-            "transformer",
-            "--shape",
-            "1,2,8,4,4",
-            "--layers",
-            "1",
-            "--out",
-        ])
-        .arg(&f32_only)
-        .status()
-        .expect("run fixture script");
-    assert!(status.success());
+    let f32_only = make_fixture(
+        &tmp,
+        "tf32",
+        &["transformer", "--shape", "1,2,8,4,4", "--layers", "1"],
+    );
     let o = Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
         .args(["parity", "--precision", "bf16"])
         .arg(&f32_only)
