@@ -67,10 +67,10 @@ if ! "$PY" -c 'import diffusers' 2>/dev/null && compgen -G "$ROOT/gpu-bundle/whe
 fi
 # Sizes: the real ones on a GPU, tiny ones in the dry run.
 if [[ $DRY == 1 ]]; then
-    BIG=random:tiny; TRAIN_STEPS=3; PLAN_SAMPLES=4
+    BIG=random:tiny; BIG_PRECISION=f32; TRAIN_STEPS=3; PLAN_SAMPLES=4
     BENCH=(--style 5b-i2v --layers 1 --frames 1 --height 32 --width 48 --precision f32)
 else
-    BIG=random:cogvideox-5b-i2v; TRAIN_STEPS=20; PLAN_SAMPLES=4
+    BIG=random:cogvideox-5b-i2v; BIG_PRECISION=bf16; TRAIN_STEPS=20; PLAN_SAMPLES=4
     BENCH=(--style 5b-i2v --layers 42 --frames 25 --height 480 --width 720 --precision bf16 --batch 2)
 fi
 
@@ -94,7 +94,7 @@ item() {
     printf '%s\t%s\t%s\t%s\n' "$name" "$status" "$((SECONDS - start))" "logs/$name.log" >> "$OUT/items.tsv"
     echo "   $name: $status" >&2
 }
-export BIN PY DEVICE DRY WORK BIG TRAIN_STEPS PLAN_SAMPLES ROOT HERE
+export BIN PY DEVICE DRY WORK BIG BIG_PRECISION TRAIN_STEPS PLAN_SAMPLES ROOT HERE
 export BENCH_ARGS="${BENCH[*]}"
 
 # gpu_poll NAME COMMAND...: runs COMMAND while nvidia-smi records the used
@@ -212,7 +212,8 @@ predict_full() { # one 50-step prediction at the full size, random weights
     inputs "$WORK/in-25" 25 720 480 || return 1
     local t0=$(now)
     gpu_poll predict-full "$BIN" predict --model "$BIG" --image "$WORK/in-25/first.png" --masks "$WORK/in-25/masks.npy" \
-        --steps 50 --guidance 6 --seed 0 --device "$DEVICE" --out "$WORK/predict-full" --overwrite || return 1
+        --steps 50 --guidance 6 --seed 0 --precision "$BIG_PRECISION" --device "$DEVICE" \
+        --out "$WORK/predict-full" --overwrite || return 1
     "$PY" "$HERE/checklist.py" record-seconds predict-full seconds "$(since "$t0")"
 }
 

@@ -591,7 +591,8 @@ fn plan_report_with_the_shipped_trained_model() {
     assert!(text.contains("| reach | trained (`"), "{text}");
     assert!(text.contains("#### Model: perfect"), "{text}");
     assert!(
-        text.contains("#### Model: trained (`") && text.contains("(1 denoising steps)"),
+        text.contains("#### Model: trained (`")
+            && text.contains("(1 denoising steps, shared noise)"),
         "{text}"
     );
     assert!(
