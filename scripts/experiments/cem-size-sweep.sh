@@ -24,6 +24,6 @@ for cfg in "16 4 1 15 0.1" "24 4 1 15 0.1" "32 4 1 12 0.1" "16 4 2 12 0.1" "12 3
     # | reach | perfect | 13/20 | 0/20 | 11.1 | 43.0 | 18.0 | 136 |
     row=$(grep '^| reach' "$TMP/sweep.md")
     IFS='|' read -r _ _ _ ok _ err rerr acts secs _ <<<"$row"
-    echo "| $1 | $2 | $3 | $4 | $5 | $(($1 * $3 * $4)) |$ok |$err |$rerr |$acts |$secs |"
+    echo "| $1 | $2 | $3 | $4 | $5 | $(($1 * $3 * $4)) |$ok|$err|$rerr|$acts|$secs|"
     rm -f "$TMP/sweep.md"
 done
