@@ -463,18 +463,7 @@ impl BridgeV2W {
     /// Scaled VAE latents `[B, t, C, h, w]` of a video `[B, 3, T, H, W]` in
     /// [-1, 1]: the posterior mean, or a sample with `seed`.
     pub fn encode_latents(&self, video: &Tensor, seed: Option<u64>) -> Result<Tensor> {
-        self.encode_latents_drawn(video, seed, BatchNoise::Independent)
-    }
-
-    /// [`Self::encode_latents`] with the posterior noise of a batch drawn as
-    /// `batch_noise` says.
-    pub fn encode_latents_drawn(
-        &self,
-        video: &Tensor,
-        seed: Option<u64>,
-        batch_noise: BatchNoise,
-    ) -> Result<Tensor> {
-        self.posterior_latents(&self.vae.encode(video)?, seed, batch_noise)
+        self.posterior_latents(&self.vae.encode(video)?, seed, BatchNoise::Independent)
     }
 
     /// Scaled latents `[B, t, C, h, w]` of a VAE posterior: its mean, or a
@@ -501,19 +490,8 @@ impl BridgeV2W {
     /// (`first_frames` `[B, 3, H, W]` in [-1, 1]) followed by zeros, or repeated
     /// in every latent frame ([`BridgeV2WConfig::image_conditioning`]).
     pub fn image_latents(&self, first_frames: &Tensor, seed: Option<u64>) -> Result<Tensor> {
-        self.image_latents_drawn(first_frames, seed, BatchNoise::Independent)
-    }
-
-    /// [`Self::image_latents`] with the posterior noise of a batch drawn as
-    /// `batch_noise` says.
-    pub fn image_latents_drawn(
-        &self,
-        first_frames: &Tensor,
-        seed: Option<u64>,
-        batch_noise: BatchNoise,
-    ) -> Result<Tensor> {
         // [B, 3, H, W] -> [B, 3, 1, H, W] -> [B, 1, C, h, w]
-        let z = self.encode_latents_drawn(&first_frames.unsqueeze(2), seed, batch_noise)?;
+        let z = self.encode_latents(&first_frames.unsqueeze(2), seed)?;
         let (t, _, _) = self.latent_geometry();
         Ok(self.cfg.image_conditioning.expand(&z, t)) // [B, t, C, h, w]
     }

@@ -92,9 +92,7 @@ impl Posterior {
     /// drawn on the CPU after seeding libtorch's global generators with `seed` (which
     /// they keep afterwards).
     pub fn sample(&self, seed: u64) -> Result<Tensor> {
-        tch::manual_seed(seed as i64);
-        let noise = Tensor::f_randn(self.mean.size(), (self.mean.kind(), tch::Device::Cpu))?;
-        self.sample_with_noise(&noise)
+        self.sample_batch(seed, crate::pipeline::BatchNoise::Independent)
     }
 
     /// [`Self::sample`] with the batch's noise drawn as `batch_noise` says:
