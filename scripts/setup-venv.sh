@@ -21,8 +21,36 @@ link_libtorch() {
   torch_dir="$("$venv/bin/python" -c 'import os, importlib.util as u; print(os.path.dirname(u.find_spec("torch").origin))')"
   ln -sfn "$torch_dir" "$venv/libtorch"
 }
+gloo_headers() {
+  # The gloo headers c10d's ProcessGroupGloo.hpp includes (for pointer types only;
+  # the code is libtorch's own): the PyPI wheel ships none, so crates/torch-ext
+  # compiles against Debian's libgloo-dev headers, unpacked here without root.
+  [[ -f "$venv/include/gloo/context.h" ]] && return 0
+  local tmp
+  tmp="$(mktemp -d)"
+  if ! (cd "$tmp" && apt-get download libgloo-dev >/dev/null 2>&1); then
+    if [[ "$(id -u)" == 0 ]] && command -v apt-get >/dev/null; then
+      apt-get update -qq >/dev/null 2>&1 || true
+      (cd "$tmp" && apt-get download libgloo-dev >/dev/null 2>&1) || true
+    fi
+  fi
+  local deb
+  deb="$(ls "$tmp"/libgloo-dev_*.deb 2>/dev/null | head -n 1)"
+  if [[ -n "$deb" ]] && dpkg-deb -x "$deb" "$tmp/x" && [[ -f "$tmp/x/usr/include/gloo/context.h" ]]; then
+    mkdir -p "$venv/include"
+    rm -rf "$venv/include/gloo.tmp"
+    cp -r "$tmp/x/usr/include/gloo" "$venv/include/gloo.tmp"
+    mv "$venv/include/gloo.tmp" "$venv/include/gloo"
+  else
+    echo "scripts/setup-venv.sh: could not fetch Debian's libgloo-dev (apt-get download):" \
+      "data-parallel training on the CPU (Gloo) will be unavailable. Install libgloo-dev" \
+      "or set BRIDGEV2W_GLOO_INCLUDE to a folder holding gloo/context.h." >&2
+  fi
+  rm -rf "$tmp"
+}
 if [[ -x "$venv/bin/python" && -f "$stamp" ]] && cmp -s "$lock" "$stamp"; then
   [[ -e "$venv/libtorch/lib/libtorch_cpu.so" ]] || link_libtorch
+  gloo_headers
   exit 0
 fi
 free_kib="$(df -Pk "$root" | awk 'NR == 2 { print $4 }')"
@@ -49,4 +77,5 @@ done
 pip_install "${small[@]}"
 "$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py, peft; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
 link_libtorch
+gloo_headers
 cp "$lock" "$stamp"

@@ -1,6 +1,8 @@
 //! Data-parallel `bridgev2w train`: two processes (RANK 0/1, WORLD_SIZE 2,
-//! the TCP all-reduce on the CPU) train exactly like one process on the same
-//! global batch; and the environment errors a user meets first.
+//! c10d's Gloo on the CPU) train exactly like one process on the same global
+//! batch, started by hand, by `torchrun` (static rendezvous, its agent
+//! hosting the store) and by `torchrun --standalone`; and the environment
+//! errors a user meets first.
 
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -75,29 +77,10 @@ fn dist_env(rank: usize, world: usize, port: u16) -> Vec<(&'static str, String)>
     ]
 }
 
-#[test]
-fn two_processes_train_like_one_on_the_global_batch() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let d = dir.path();
-    let cfg = setup(d, 2);
-    let single = d.join("single");
-    ok(&train_cmd(&cfg, &single, &[]).output().expect("run"));
-    let port = free_port();
-    let (dp0, dp1) = (d.join("dp"), d.join("dp-rank1"));
-    let r0 = train_cmd(&cfg, &dp0, &dist_env(0, 2, port))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn rank 0");
-    let r1 = train_cmd(&cfg, &dp1, &dist_env(1, 2, port))
-        .output()
-        .expect("run rank 1");
-    let r0 = r0.wait_with_output().expect("rank 0");
-    ok(&r1);
-    ok(&r0);
-    // Rank 1 writes nothing; rank 0 writes what a single process writes.
-    assert!(!dp1.exists(), "rank 1 wrote {}", dp1.display());
-    let (a, b) = (metrics(&single), metrics(&dp0));
+/// The single process's run `single` and the data-parallel run `dp` (rank
+/// 0's folder) have the same losses and parameters after their 3 steps.
+fn assert_trained_alike(single: &Path, dp: &Path) {
+    let (a, b) = (metrics(single), metrics(dp));
     assert_eq!(a.len(), 3);
     assert_eq!(b.len(), 3);
     let secs = |m: &[serde_json::Value]| -> f64 {
@@ -126,7 +109,7 @@ fn two_processes_train_like_one_on_the_global_batch() {
         v.sort_by(|a, b| a.0.cmp(&b.0));
         v
     };
-    let (wa, wb) = (read(&single), read(&dp0));
+    let (wa, wb) = (read(single), read(dp));
     assert_eq!(wa.len(), wb.len());
     assert!(!wa.is_empty());
     let mut max_diff = 0f64;
@@ -141,6 +124,31 @@ fn two_processes_train_like_one_on_the_global_batch() {
         .iter()
         .any(|(n, t)| n.contains("lora") && t.abs().max().double_value(&[]) > 0.0);
     assert!(moved, "no LoRA weight moved");
+}
+
+#[test]
+fn two_processes_train_like_one_on_the_global_batch() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let cfg = setup(d, 2);
+    let single = d.join("single");
+    ok(&train_cmd(&cfg, &single, &[]).output().expect("run"));
+    let port = free_port();
+    let (dp0, dp1) = (d.join("dp"), d.join("dp-rank1"));
+    let r0 = train_cmd(&cfg, &dp0, &dist_env(0, 2, port))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn rank 0");
+    let r1 = train_cmd(&cfg, &dp1, &dist_env(1, 2, port))
+        .output()
+        .expect("run rank 1");
+    let r0 = r0.wait_with_output().expect("rank 0");
+    ok(&r1);
+    ok(&r0);
+    // Rank 1 writes nothing; rank 0 writes what a single process writes.
+    assert!(!dp1.exists(), "rank 1 wrote {}", dp1.display());
+    assert_trained_alike(&single, &dp0);
 }
 
 #[test]
@@ -178,4 +186,64 @@ fn environment_errors_name_the_variable_and_value() {
         "{e}"
     );
     assert!(!out.exists(), "a failed rank wrote {}", out.display());
+}
+
+fn torchrun() -> std::path::PathBuf {
+    let t = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../.venv/bin/torchrun");
+    assert!(
+        t.is_file(),
+        "{}: no torchrun (scripts/setup-venv.sh installs torch)",
+        t.display()
+    );
+    t
+}
+
+/// `torchrun --no-python ... bridgev2w train` with `launch` (the
+/// rendezvous flags), the two ranks' output in `out`.
+fn torchrun_train(cfg: &Path, out: &Path, launch: &[String]) -> std::process::Output {
+    let mut c = Command::new(torchrun());
+    c.env("RUST_BACKTRACE", "0")
+        .env("BRIDGEV2W_DIST_TIMEOUT", "120")
+        .env("OMP_NUM_THREADS", "1")
+        .env_remove("RANK")
+        .env_remove("WORLD_SIZE")
+        .env_remove("LOCAL_RANK")
+        .env_remove("MASTER_ADDR")
+        .env_remove("MASTER_PORT")
+        .args(launch)
+        .args(["--nproc-per-node", "2", "--no-python"])
+        .arg(env!("CARGO_BIN_EXE_bridgev2w"))
+        .args(["train", s(cfg), "--quiet", "--out", s(out)]);
+    c.output().expect("run torchrun")
+}
+
+#[test]
+fn torchrun_static_and_standalone_train_like_one_process() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let cfg = setup(d, 2);
+    let single = d.join("single");
+    ok(&train_cmd(&cfg, &single, &[]).output().expect("run"));
+    // Static rendezvous: torchrun's agent hosts the TCPStore on MASTER_PORT
+    // (TORCHELASTIC_USE_AGENT_STORE=True), which the ranks must not bind.
+    let port = free_port();
+    let static_out = d.join("static");
+    let o = torchrun_train(
+        &cfg,
+        &static_out,
+        &[
+            "--nnodes".into(),
+            "1".into(),
+            "--master-addr".into(),
+            "127.0.0.1".into(),
+            "--master-port".into(),
+            port.to_string(),
+        ],
+    );
+    ok(&o);
+    assert_trained_alike(&single, &static_out);
+    // --standalone: a c10d rendezvous on a free port of its own.
+    let standalone = d.join("standalone");
+    ok(&torchrun_train(&cfg, &standalone, &["--standalone".into()]));
+    assert_trained_alike(&single, &standalone);
 }

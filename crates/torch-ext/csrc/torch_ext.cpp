@@ -5,8 +5,6 @@
 // reports failure through its return value: none may unwind into Rust.
 
 #include <ATen/autocast_mode.h>
-#include <c10/core/Stream.h>
-#include <c10/core/impl/DeviceGuardImplInterface.h>
 
 namespace {
 
@@ -109,32 +107,6 @@ int bv2w_autocast_decrement_nesting() {
 int bv2w_autocast_clear_cache() {
   try {
     at::autocast::clear_cache();
-    return 0;
-  } catch (...) {
-    return -1;
-  }
-}
-
-// CUDA through c10's device-guard interface (registered by libc10_cuda when
-// it is loaded), so this file needs no CUDA headers. 0 on success, -1 when
-// CUDA is not available to libtorch or the call failed.
-int bv2w_cuda_set_device(int index) {
-  try {
-    const auto* impl = c10::impl::getDeviceGuardImpl(at::kCUDA);
-    impl->setDevice(at::Device(at::kCUDA, static_cast<c10::DeviceIndex>(index)));
-    return 0;
-  } catch (...) {
-    return -1;
-  }
-}
-
-// libtorch's current CUDA stream of device `index` as a cudaStream_t (null:
-// the legacy default stream). 0 on success, -1 on failure.
-int bv2w_cuda_current_stream(int index, void** out) {
-  try {
-    const auto* impl = c10::impl::getDeviceGuardImpl(at::kCUDA);
-    c10::Stream s = impl->getStream(at::Device(at::kCUDA, static_cast<c10::DeviceIndex>(index)));
-    *out = s.native_handle();
     return 0;
   } catch (...) {
     return -1;

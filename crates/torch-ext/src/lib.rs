@@ -5,11 +5,12 @@
 //!   `ATen/autocast_mode.h` (tch's own `tch::autocast` is CUDA-only and fixed
 //!   to fp16). The safe API is an RAII [`AutocastGuard`] that restores the
 //!   previous state when dropped, also on an early return or a panic.
-//! * [`nccl`]: NCCL loaded at run time with `dlopen` (no link-time
-//!   dependency, so CPU-only machines build and run the same binary).
+//! * [`c10d`]: PyTorch's distributed engine in libtorch (TCPStore, the
+//!   Gloo and NCCL process groups) through a C++ shim, for data-parallel
+//!   training.
 
 pub mod autocast;
-pub mod nccl;
+pub mod c10d;
 
 pub use autocast::{autocast, AutocastDevice, AutocastDtype, AutocastGuard};
 
@@ -19,9 +20,9 @@ pub enum TorchExtError {
     /// libtorch's autocast state could not be read or changed.
     #[error("autocast: {0}")]
     Autocast(String),
-    /// NCCL could not be loaded or one of its calls failed.
-    #[error("nccl: {0}")]
-    Nccl(String),
+    /// A c10d store or collective failed (the C++ exception's message).
+    #[error("c10d: {0}")]
+    C10d(String),
 }
 
 /// Result of this crate.

@@ -1033,6 +1033,12 @@ impl bridgev2w_train::distributed::Collective for AloneCollective {
         let _ = buf.g_mul_scalar_(self.world as f64);
         Ok(())
     }
+    fn all_gather_f64(&mut self, row: &[f64]) -> bridgev2w_train::Result<Vec<Vec<f64>>> {
+        Ok(vec![row.to_vec(); self.world])
+    }
+    fn barrier(&mut self) -> bridgev2w_train::Result<()> {
+        Ok(())
+    }
 }
 
 #[test]

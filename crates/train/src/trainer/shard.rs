@@ -4,8 +4,8 @@
 
 use super::Trainer;
 use crate::data::Batch;
-use crate::{Result, TrainError};
-use tch::{Kind, Tensor};
+use crate::Result;
+use tch::Tensor;
 
 /// The items `rank, rank + world, ...` of a global batch's per-item list
 /// (`(0, 1)`: all of them).
@@ -146,15 +146,13 @@ impl Trainer {
     }
 
     /// Data-parallel runs: replaces every gradient (and the loss values in
-    /// `scalars`) by its mean over the ranks: one flattened f32 buffer,
-    /// scaled by `1 / world` and sum-all-reduced. Every rank holds
-    /// `batch_size / world` items, so this is the gradient of the global
-    /// batch's mean loss. A no-op for one process.
+    /// `scalars`) by its mean over the ranks ([`crate::distributed::average_gradients`]:
+    /// in buckets, after a check that the ranks' gradients agree). A no-op
+    /// for one process.
     pub(super) fn average_gradients(&mut self, scalars: &mut [f64]) -> Result<()> {
         let Some(collective) = self.collective.as_mut() else {
             return Ok(());
         };
-        let world = collective.world() as f64;
         let grads: Vec<Tensor> = self
             .opt
             .params()
@@ -162,32 +160,6 @@ impl Trainer {
             .map(|(_, p)| p.grad())
             .filter(|g| g.defined())
             .collect();
-        let device = self.model.device();
-        let mut parts: Vec<Tensor> = grads
-            .iter()
-            .map(|g| g.to_kind(Kind::Float).reshape(-1).to_device(device))
-            .collect();
-        let sc: Vec<f32> = scalars.iter().map(|&v| v as f32).collect();
-        parts.push(Tensor::from_slice(&sc).to_device(device));
-        let mut flat = tch::no_grad(|| Tensor::cat(&parts, 0) * (1.0 / world)).contiguous();
-        collective.all_reduce_sum(&mut flat)?;
-        tch::no_grad(|| {
-            let mut offset = 0i64;
-            for g in &grads {
-                let n = g.numel() as i64;
-                let chunk = flat.narrow(0, offset, n).view(g.size().as_slice());
-                g.shallow_clone().copy_(&chunk.to_kind(g.kind()));
-                offset += n;
-            }
-            let tail = Vec::<f32>::try_from(
-                &flat
-                    .narrow(0, offset, sc.len() as i64)
-                    .to_device(tch::Device::Cpu),
-            )?;
-            for (v, t) in scalars.iter_mut().zip(tail) {
-                *v = f64::from(t);
-            }
-            Ok::<(), TrainError>(())
-        })
+        crate::distributed::average_gradients(collective.as_mut(), &grads, scalars)
     }
 }
