@@ -190,13 +190,13 @@ lora_alpha = 4.0'
     "$PY" "$HERE/checklist.py" compare-losses "$WORK/run-bf16/metrics.jsonl" "$WORK/run-f32/metrics.jsonl" train-bf16
 }
 
-distributed_one_rank() { # the data-parallel path with one rank (NCCL on CUDA, TCP on the CPU): the same losses as without it
+distributed_one_rank() { # torchrun with one rank (c10d: NCCL on CUDA, Gloo on the CPU): the same losses as without it
     dataset "$WORK/data-9" 9 96 64 2 || return 1
     local tiny='lora_rank = 4
 lora_alpha = 4.0'
     config "$WORK/dp.toml" "$WORK/run-dp" random:tiny "$WORK/data-9" "$DEVICE" off false 5 "$tiny"
     config "$WORK/single.toml" "$WORK/run-single" random:tiny "$WORK/data-9" "$DEVICE" off false 5 "$tiny"
-    RANK=0 WORLD_SIZE=1 LOCAL_RANK=0 MASTER_ADDR=127.0.0.1 MASTER_PORT=29517 \
+    BRIDGEV2W_DIST_TIMEOUT=120 "$PY" -m torch.distributed.run --standalone --nproc-per-node 1 --no-python \
         "$BIN" train "$WORK/dp.toml" --quiet --overwrite || return 1
     "$BIN" train "$WORK/single.toml" --quiet --overwrite || return 1
     "$PY" "$HERE/checklist.py" compare-losses "$WORK/run-dp/metrics.jsonl" "$WORK/run-single/metrics.jsonl" distributed-one-rank

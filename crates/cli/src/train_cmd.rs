@@ -41,14 +41,19 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     if let Some(o) = &args.out {
         cfg.train.out = o.clone();
     }
-    // torchrun-style data parallelism: RANK / WORLD_SIZE / MASTER_ADDR / MASTER_PORT.
+    // Data parallelism from torchrun's variables: RANK / WORLD_SIZE / MASTER_ADDR / MASTER_PORT.
     let dist = DistEnv::from_env()?;
     if let Some(d) = &dist {
         eprintln!(
-            "data-parallel: rank {} of {}, rank 0 at {}",
+            "data-parallel: rank {} of {}, c10d store at {} (hosted by {})",
             d.rank,
             d.world,
-            d.master()
+            d.master(),
+            if d.use_agent_store {
+                "torchrun's agent"
+            } else {
+                "rank 0"
+            }
         );
     }
     let mut trainer = Trainer::new_distributed(cfg, dist).context("setting up training")?;

@@ -188,6 +188,82 @@ fn environment_errors_name_the_variable_and_value() {
     assert!(!out.exists(), "a failed rank wrote {}", out.display());
 }
 
+#[test]
+fn a_killed_rank_or_a_taken_port_stops_with_an_error() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let cfg = setup(d, 2);
+    let long = d.join("long.toml");
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    std::fs::write(&long, text.replace("max_steps = 3", "max_steps = 100000")).expect("write");
+    let port = free_port();
+    let env = |rank| {
+        let mut e = dist_env(rank, 2, port);
+        e.retain(|(k, _)| *k != "BRIDGEV2W_DIST_TIMEOUT");
+        e.push(("BRIDGEV2W_DIST_TIMEOUT", "30".into()));
+        e
+    };
+    let out0 = d.join("dp");
+    let mut r0 = train_cmd(&long, &out0, &env(0))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn rank 0");
+    let mut r1 = train_cmd(&long, &d.join("dp1"), &env(1))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn rank 1");
+    // Both are training once rank 0 has logged a step.
+    let start = Instant::now();
+    while std::fs::read_to_string(out0.join("metrics.jsonl"))
+        .map(|m| m.lines().count())
+        .unwrap_or(0)
+        < 1
+    {
+        assert!(
+            start.elapsed() < Duration::from_secs(180),
+            "no training step within 180 s"
+        );
+        assert!(
+            r0.try_wait().expect("rank 0").is_none(),
+            "rank 0 stopped early"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    r1.kill().expect("kill rank 1");
+    let _ = r1.wait();
+    let killed = Instant::now();
+    while r0.try_wait().expect("rank 0").is_none() {
+        if killed.elapsed() > Duration::from_secs(90) {
+            let _ = r0.kill();
+            panic!("rank 0 still runs 90 s after rank 1 was killed");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let o = r0.wait_with_output().expect("rank 0");
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    eprintln!("rank 0 after rank 1 was killed: {e}");
+    assert!(
+        e.contains("rank 0 of 2") && e.contains("did another rank stop"),
+        "{e}"
+    );
+    // MASTER_PORT taken by another program: rank 0 says so.
+    let taken = std::net::TcpListener::bind("0.0.0.0:0").expect("bind");
+    let port = taken.local_addr().expect("addr").port();
+    let o = train_cmd(&cfg, &d.join("taken"), &dist_env(0, 2, port))
+        .output()
+        .expect("run");
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    eprintln!("rank 0 on a taken port: {e}");
+    assert!(
+        e.contains(&format!("MASTER_PORT={port}")) && e.contains("host the store"),
+        "{e}"
+    );
+}
+
 fn torchrun() -> std::path::PathBuf {
     let t = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../.venv/bin/torchrun");
     assert!(

@@ -332,6 +332,16 @@ impl Backend {
     }
 }
 
+/// How [`ProcessGroup::all_reduce`] combines the ranks' tensors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReduceOp {
+    /// The sum over the ranks.
+    Sum,
+    /// The mean over the ranks (the sum divided by the world size, on every
+    /// backend: Gloo has no native average).
+    Avg,
+}
+
 /// A c10d process group of `world` ranks; collectives must be called in the
 /// same order on every rank.
 #[derive(Debug)]
@@ -444,6 +454,15 @@ impl ProcessGroup {
     /// Sums the contiguous tensor `t` over all ranks, in place.
     pub fn all_reduce_sum(&self, t: &mut Tensor) -> Result<()> {
         self.start_all_reduce_sum(t)?.wait()
+    }
+
+    /// Combines the contiguous tensor `t` over all ranks by `op`, in place.
+    pub fn all_reduce(&self, t: &mut Tensor, op: ReduceOp) -> Result<()> {
+        self.all_reduce_sum(t)?;
+        if op == ReduceOp::Avg {
+            let _ = t.g_div_scalar_(self.world as f64);
+        }
+        Ok(())
     }
 
     /// Replaces `t` on every rank by rank `root`'s `t`.
@@ -584,6 +603,9 @@ mod tests {
                     pg.all_reduce_sum(&mut t).unwrap();
                     // (1 + 2 + 3) * [1, 2, 3]
                     assert_eq!(Vec::<f32>::try_from(&t).unwrap(), vec![6.0, 12.0, 18.0]);
+                    let mut a = Tensor::from_slice(&[rank as f64, 3.0]);
+                    pg.all_reduce(&mut a, ReduceOp::Avg).unwrap();
+                    assert_eq!(Vec::<f64>::try_from(&a).unwrap(), vec![1.0, 3.0]);
                     let mut b = Tensor::from_slice(&[rank as f64; 2]);
                     pg.broadcast(&mut b, 2).unwrap();
                     assert_eq!(Vec::<f64>::try_from(&b).unwrap(), vec![2.0, 2.0]);

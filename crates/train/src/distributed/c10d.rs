@@ -155,19 +155,20 @@ impl C10dCollective {
         )
         .map_err(|e| {
             let role = if is_server {
-                "cannot host the store"
+                "cannot host the store".to_string()
             } else {
-                "cannot reach the store"
+                format!(
+                    "cannot reach the store within {:.0} s (BRIDGEV2W_DIST_TIMEOUT)",
+                    env.timeout.as_secs_f64()
+                )
             };
             TrainError::input(
                 "environment MASTER_ADDR/MASTER_PORT",
                 format!(
-                    "rank {} {role} at MASTER_ADDR={} MASTER_PORT={} within {:.0} s \
-                     (BRIDGEV2W_DIST_TIMEOUT){}: {e}",
+                    "rank {} {role} at MASTER_ADDR={} MASTER_PORT={}{}: {e}",
                     env.rank,
                     env.master_addr,
                     env.master_port,
-                    env.timeout.as_secs_f64(),
                     if env.use_agent_store {
                         ", hosted by torchrun's agent (TORCHELASTIC_USE_AGENT_STORE=True)"
                     } else {
