@@ -75,7 +75,7 @@ for pin in "${pins[@]}"; do
   esac
 done
 pip_install "${small[@]}"
-"$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py, peft; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
+"$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py, peft, av; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
 link_libtorch
 gloo_headers
 cp "$lock" "$stamp"

@@ -307,7 +307,7 @@ fn truncated_mp4_and_unsupported_codec_name_the_file() {
     let out = small_dataset(dir.path());
     let vpath = out.join(format!("videos/{VIDEO_KEY}/chunk-000/file-000.mp4"));
     let bytes = std::fs::read(&vpath).unwrap();
-    // AV1 sample entry.
+    // An HEVC sample entry (AV1 is read since session 22).
     let mut av1 = bytes.clone();
     let pos = av1.windows(4).position(|w| w == b"avc1").unwrap();
     let pos = pos
@@ -316,12 +316,12 @@ fn truncated_mp4_and_unsupported_codec_name_the_file() {
             .windows(4)
             .position(|w| w == b"avc1")
             .unwrap();
-    av1[pos..pos + 4].copy_from_slice(b"av01");
+    av1[pos..pos + 4].copy_from_slice(b"hvc1");
     std::fs::write(&vpath, &av1).unwrap();
     let ds = LeRobotDataset::open(&out).unwrap();
     let msg = ds.read_video(0, VIDEO_KEY).unwrap_err().to_string();
     assert!(
-        msg.contains("unsupported codec") && msg.contains("av01") && msg.contains("file-000.mp4"),
+        msg.contains("unsupported codec") && msg.contains("hvc1") && msg.contains("file-000.mp4"),
         "{msg}"
     );
     // Truncated.

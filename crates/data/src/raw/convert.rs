@@ -78,7 +78,7 @@ pub enum ConvertError {
         /// Camera name.
         camera: String,
         /// Cause (names the file).
-        source: VideoError,
+        source: Box<VideoError>,
     },
     /// Options are invalid.
     #[error("{0}")]
@@ -159,10 +159,10 @@ pub fn render_view(
     q: &[Vec<f64>],
     (width, height): (usize, usize),
 ) -> Result<ViewClip, ConvertError> {
-    let video = decode_mp4(&view.video).map_err(|source| ConvertError::Video {
+    let video = decode_mp4(&view.video).map_err(|e| ConvertError::Video {
         episode: episode.id.clone(),
         camera: view.name.clone(),
-        source,
+        source: Box::new(e),
     })?;
     let inconsistent = |message: String| {
         ConvertError::Raw(RawError::Inconsistent {

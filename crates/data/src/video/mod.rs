@@ -1,8 +1,16 @@
-//! H.264 video in MP4: encoding RGB frames with openh264 (bundled source)
-//! and decoding them back.
+//! Video in MP4: encoding RGB frames as H.264 with openh264 (bundled
+//! source), and decoding what cameras and encoders write: H.264 (openh264:
+//! Baseline, Main and High profiles, CABAC, B-frames) and AV1 ([`av1`], the
+//! pure-Rust port of dav1d: 8/10/12 bit, 4:2:0, 4:2:2, 4:4:4, monochrome),
+//! frames returned in presentation order with their presentation times.
 
-use crate::mp4::{demux, mux_h264, read_file, H264Stream, Mp4Error, VideoTrack};
-use openh264::decoder::Decoder;
+mod av1;
+mod yuv;
+
+use crate::mp4::{
+    demux, mux_h264, read_file, H264Config, H264Stream, Mp4Error, TrackCodec, VideoTrack,
+};
+use openh264::decoder::{Decoder, DecoderConfig, Flush};
 use openh264::encoder::{
     BitRate, Encoder, EncoderConfig, FrameRate, FrameType, QpRange, RateControlMode,
 };
@@ -16,17 +24,31 @@ pub enum VideoError {
     /// Container problem.
     #[error(transparent)]
     Mp4(#[from] Mp4Error),
-    /// The H.264 codec failed.
-    #[error("{path}: H.264 {op} failed at frame {frame}: {message}")]
+    /// The codec failed (a corrupt or truncated stream).
+    #[error("{path}: {codec} {op} failed at frame {frame}: {message}")]
     Codec {
         /// File.
         path: PathBuf,
+        /// "H.264" or "AV1".
+        codec: &'static str,
         /// "encode" or "decode".
         op: &'static str,
         /// Frame index.
         frame: usize,
         /// Codec message.
         message: String,
+    },
+    /// A profile or format of a supported codec that cannot be decoded.
+    #[error("{path}: {codec} {profile} is not supported ({what_is}); re-encode the video, e.g. ffmpeg -c:v libx264 -pix_fmt yuv420p")]
+    UnsupportedProfile {
+        /// File.
+        path: PathBuf,
+        /// "H.264" or "AV1".
+        codec: &'static str,
+        /// The profile or format found.
+        profile: String,
+        /// What is supported.
+        what_is: &'static str,
     },
     /// Bad frame buffer or geometry.
     #[error("{path}: {message}")]
@@ -118,6 +140,7 @@ impl Mp4VideoWriter {
             Encoder::with_api_config(OpenH264API::from_source(), config).map_err(|e| {
                 VideoError::Codec {
                     path: path.to_path_buf(),
+                    codec: "H.264",
                     op: "encode",
                     frame: 0,
                     message: e.to_string(),
@@ -163,6 +186,7 @@ impl Mp4VideoWriter {
         let path = self.path.clone();
         let bs = self.encoder.encode(&yuv).map_err(|e| VideoError::Codec {
             path: path.clone(),
+            codec: "H.264",
             op: "encode",
             frame,
             message: e.to_string(),
@@ -188,6 +212,7 @@ impl Mp4VideoWriter {
         if sample.is_empty() {
             return Err(VideoError::Codec {
                 path,
+                codec: "H.264",
                 op: "encode",
                 frame,
                 message: "the encoder produced no picture (skipped frame)".into(),
@@ -255,34 +280,111 @@ pub struct DecodedVideo {
     pub timestamps_s: Vec<f64>,
 }
 
-/// Reads and decodes every frame of an H.264 MP4 file.
+/// Reads and decodes every frame of an MP4 file (H.264 or AV1).
 pub fn decode_mp4(path: &Path) -> Result<DecodedVideo, VideoError> {
     let data = read_file(path)?;
     let track = demux(path, &data)?;
     decode_track(path, &data, &track)
 }
 
-/// Decodes the samples of `track` (from `data`, the file's bytes).
+/// Decodes the samples of `track` (from `data`, the file's bytes): the
+/// frames in presentation order, with their presentation times.
 pub fn decode_track(
     path: &Path,
     data: &[u8],
     track: &VideoTrack,
 ) -> Result<DecodedVideo, VideoError> {
+    let (w, h) = (usize::from(track.width), usize::from(track.height));
+    let frames = match &track.codec {
+        TrackCodec::H264(config) => decode_h264(path, data, track, config)?,
+        TrackCodec::Av1(config) => av1::decode(path, data, track, config)?,
+    };
+    let n = track.samples.len();
+    if frames.len() != n {
+        return Err(VideoError::Codec {
+            path: path.to_path_buf(),
+            codec: codec_name(&track.codec),
+            op: "decode",
+            frame: frames.len(),
+            message: format!("decoded {} frames from {n} samples", frames.len()),
+        });
+    }
+    // Decoders return frames in presentation order.
+    let mut pts: Vec<i64> = track.samples.iter().map(|s| s.pts).collect();
+    pts.sort_unstable();
+    let timestamps_s = pts
+        .iter()
+        .map(|&p| p as f64 / f64::from(track.timescale.max(1)))
+        .collect();
+    Ok(DecodedVideo {
+        width: w,
+        height: h,
+        frames,
+        timestamps_s,
+    })
+}
+
+fn codec_name(codec: &TrackCodec) -> &'static str {
+    match codec {
+        TrackCodec::H264(_) => "H.264",
+        TrackCodec::Av1(_) => "AV1",
+    }
+}
+
+/// H.264 profiles by `profile_idc`; `Some(true)` for those openh264 decodes.
+fn h264_profile(profile_idc: u8) -> (String, bool) {
+    let (name, ok) = match profile_idc {
+        66 => ("Baseline", true),
+        77 => ("Main", true),
+        100 => ("High", true),
+        88 => ("Extended", false),
+        110 => ("High 10", false),
+        122 => ("High 4:2:2", false),
+        244 => ("High 4:4:4 Predictive", false),
+        44 => ("CAVLC 4:4:4 Intra", false),
+        _ => ("profile", false),
+    };
+    (format!("{name} (profile_idc {profile_idc})"), ok)
+}
+
+/// The H.264 samples of `track` decoded with openh264, in presentation
+/// order (the decoder reorders B-frames; no flush after each packet, the
+/// rest flushed at the end).
+fn decode_h264(
+    path: &Path,
+    data: &[u8],
+    track: &VideoTrack,
+    config: &H264Config,
+) -> Result<Vec<Vec<u8>>, VideoError> {
     let codec_err = |frame: usize, message: String| VideoError::Codec {
         path: path.to_path_buf(),
+        codec: "H.264",
         op: "decode",
         frame,
         message,
     };
-    let mut decoder = Decoder::new().map_err(|e| codec_err(0, e.to_string()))?;
+    let (profile, supported) = h264_profile(config.profile_idc);
+    if !supported {
+        return Err(VideoError::UnsupportedProfile {
+            path: path.to_path_buf(),
+            codec: "H.264",
+            profile,
+            what_is: "8-bit 4:2:0 Baseline, Main and High are",
+        });
+    }
+    let mut decoder = Decoder::with_api_config(
+        OpenH264API::from_source(),
+        DecoderConfig::new().flush_after_decode(Flush::NoFlush),
+    )
+    .map_err(|e| codec_err(0, e.to_string()))?;
     let (w, h) = (usize::from(track.width), usize::from(track.height));
     let mut frames = Vec::with_capacity(track.samples.len());
     let mut header = Vec::new();
-    for ps in track.sps.iter().chain(&track.pps) {
+    for ps in config.sps.iter().chain(&config.pps) {
         header.extend_from_slice(&[0, 0, 0, 1]);
         header.extend_from_slice(ps);
     }
-    let ls = usize::from(track.nal_length_size);
+    let ls = usize::from(config.nal_length_size);
     let push = |frames: &mut Vec<Vec<u8>>,
                 yuv: &openh264::decoder::DecodedYUV<'_>,
                 i: usize|
@@ -341,23 +443,7 @@ pub fn decode_track(
     for yuv in &rest {
         push(&mut frames, yuv, n)?;
     }
-    if frames.len() != n {
-        return Err(codec_err(
-            n,
-            format!("decoded {} frames from {n} samples", frames.len()),
-        ));
-    }
-    let timestamps_s = track
-        .samples
-        .iter()
-        .map(|s| s.dts as f64 / f64::from(track.timescale.max(1)))
-        .collect();
-    Ok(DecodedVideo {
-        width: w,
-        height: h,
-        frames,
-        timestamps_s,
-    })
+    Ok(frames)
 }
 
 /// Peak signal-to-noise ratio (dB) between two 8-bit buffers.
