@@ -1,7 +1,8 @@
 //! DROID raw and AgiBot World readers on episodes written in the exact layouts
 //! by `scripts/fixtures/write_raw_episodes.py` (HDF5 through h5py/libhdf5 in
-//! the project venv); the MP4 videos are written here with the project's
-//! H.264 encoder.
+//! the project venv); the MP4 videos either with the project's H.264
+//! encoder or, as cameras' recordings are, with x264 (High profile,
+//! B-frames) through PyAV.
 
 use bridgev2w_data::lerobot::LeRobotDataset;
 use bridgev2w_data::raw::agibot::{self, AgibotOptions, EpisodeKey};
@@ -20,9 +21,9 @@ fn repo_root() -> PathBuf {
 }
 
 /// Runs the fixture generator into a fresh temp dir, writes the videos it
-/// lists (`frames` frames of a moving gradient each), returns the dir and
-/// `expected.json`.
-fn fixtures() -> (tempfile::TempDir, Value) {
+/// lists (`frames` frames of a moving gradient each; with PyAV's x264 when
+/// `pyav`), returns the dir and `expected.json`.
+fn fixtures(pyav: bool) -> (tempfile::TempDir, Value) {
     let python = repo_root().join(".venv/bin/python");
     assert!(
         python.is_file(),
@@ -33,6 +34,7 @@ fn fixtures() -> (tempfile::TempDir, Value) {
     let status = Command::new(&python)
         .arg(repo_root().join("scripts/fixtures/write_raw_episodes.py"))
         .arg(dir.path())
+        .args(pyav.then_some("--pyav-videos"))
         .status()
         .expect("run python");
     assert!(status.success(), "write_raw_episodes.py failed");
@@ -45,7 +47,13 @@ fn fixtures() -> (tempfile::TempDir, Value) {
         expected["height"].as_u64().expect("h") as usize,
         expected["frames"].as_u64().expect("t") as usize,
     );
-    for v in expected["videos"].as_array().expect("videos") {
+    assert_eq!(expected["videos_written"].as_bool(), Some(pyav));
+    for v in expected["videos"]
+        .as_array()
+        .expect("videos")
+        .iter()
+        .filter(|_| !pyav)
+    {
         write_test_pattern(Path::new(v.as_str().expect("path")), (w, h), t, 15).expect("mp4");
     }
     (dir, expected)
@@ -86,7 +94,28 @@ fn droid_options(dir: &Path, calibration: bool) -> DroidOptions {
 
 #[test]
 fn droid_and_agibot_read_convert_and_fail_clearly() {
-    let (dir, expected) = fixtures();
+    read_convert_and_fail_clearly(false);
+}
+
+#[test]
+fn droid_and_agibot_with_x264_b_frame_videos_from_pyav() {
+    read_convert_and_fail_clearly(true);
+}
+
+fn read_convert_and_fail_clearly(pyav: bool) {
+    let (dir, expected) = fixtures(pyav);
+    // Every video decodes to the moving gradient it was written with.
+    for v in expected["videos"].as_array().expect("videos") {
+        let path = Path::new(v.as_str().expect("path"));
+        let video = bridgev2w_data::video::decode_mp4(path).expect("decode");
+        for (t, f) in video.frames.iter().enumerate() {
+            let want: Vec<u8> = (0..f.len())
+                .map(|i| ((i / 3 % video.width) * 4 + t * 10) as u8)
+                .collect();
+            let psnr = bridgev2w_data::video::psnr_db(f, &want);
+            assert!(psnr > 30.0, "{}: frame {t} at {psnr:.1} dB", path.display());
+        }
+    }
     let d = &expected["droid"];
 
     // --- DROID: values as recorded, per-frame extrinsics, the recorded task.
