@@ -8,7 +8,9 @@
 //!   `data/chunk_index`, `data/file_index`, and per video key
 //!   `videos/<key>/chunk_index`, `file_index`, `from_timestamp`,
 //!   `to_timestamp`), plus the synthetic `split` column.
-//! - `meta/tasks.parquet`: `task_index`, `task`.
+//! - `meta/tasks.parquet`: `task_index`, and the task strings as the pandas
+//!   index (`__index_level_0__`), as LeRobot writes it.
+//! - `meta/stats.json`: LeRobot's normalisation statistics of every feature.
 //! - `data/chunk-000/file-000.parquet`: `index`, `episode_index`,
 //!   `frame_index`, `timestamp`, `task_index`, `observation.state`, `action`.
 //! - `videos/<key>/chunk-000/file-000.mp4`: H.264, episodes concatenated.
@@ -27,6 +29,7 @@ mod columns;
 mod error;
 mod meta;
 mod reader;
+mod stats;
 mod writer;
 
 pub use error::DatasetError;

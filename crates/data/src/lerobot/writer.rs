@@ -115,6 +115,7 @@ pub struct LeRobotV3Writer {
     robot_type: String,
     video: crate::video::Mp4VideoWriter,
     rows: Vec<FrameRow>,
+    pixels: super::stats::PixelStats,
     tasks: Vec<String>,
     episodes: Vec<EpisodeRecord>,
 }
@@ -162,6 +163,7 @@ impl LeRobotV3Writer {
             robot_type: robot_type.into(),
             video,
             rows: Vec::new(),
+            pixels: super::stats::PixelStats::default(),
             tasks: Vec::new(),
             episodes: Vec::new(),
         })
@@ -196,6 +198,7 @@ impl LeRobotV3Writer {
         };
         let start = self.rows.len() as i64;
         for (f, frame) in ep.rgb.iter().enumerate() {
+            self.pixels.add(frame);
             self.video
                 .push(frame, f == 0)
                 .map_err(|source| DatasetError::Video {
@@ -262,6 +265,7 @@ impl LeRobotV3Writer {
         self.write_video(&root)?;
         self.write_tasks(&root)?;
         self.write_episodes(&root)?;
+        self.write_stats(&root)?;
         self.write_info(&root, extra_info)?;
         Ok(root)
     }
@@ -299,13 +303,43 @@ impl LeRobotV3Writer {
         std::fs::write(&vpath, bytes).map_err(io_err(&vpath))
     }
 
-    /// `meta/tasks.parquet`: the task strings by task index.
+    /// `meta/stats.json`: LeRobot's normalisation statistics.
+    fn write_stats(&self, root: &Path) -> Result<(), DatasetError> {
+        let path = root.join("meta/stats.json");
+        let stats = super::stats::stats_json(&self.rows, &self.video_key, &self.pixels);
+        let text =
+            serde_json::to_string_pretty(&stats).map_err(|e| meta_err(&path, e.to_string()))?;
+        std::fs::write(&path, text).map_err(io_err(&path))
+    }
+
+    /// `meta/tasks.parquet`: the task strings by task index, as LeRobot
+    /// writes it (a pandas frame indexed by the task string: the strings in
+    /// `__index_level_0__`, named as the index in the `pandas` schema
+    /// metadata, which `pandas.read_parquet` and so LeRobot read).
     fn write_tasks(&self, root: &Path) -> Result<(), DatasetError> {
         let tasks_path = root.join("meta/tasks.parquet");
-        let schema = Arc::new(Schema::new(vec![
-            Field::new("task_index", DataType::Int64, false),
-            Field::new("task", DataType::Utf8, false),
-        ]));
+        let pandas = json!({
+            "index_columns": ["__index_level_0__"],
+            "column_indexes": [{
+                "name": null, "field_name": null, "pandas_type": "unicode",
+                "numpy_type": "object", "metadata": {"encoding": "UTF-8"}
+            }],
+            "columns": [
+                {"name": "task_index", "field_name": "task_index", "pandas_type": "int64",
+                 "numpy_type": "int64", "metadata": null},
+                {"name": null, "field_name": "__index_level_0__", "pandas_type": "unicode",
+                 "numpy_type": "object", "metadata": null}
+            ],
+            "attributes": {},
+            "creator": {"library": "bridgev2w", "version": env!("CARGO_PKG_VERSION")},
+        });
+        let schema = Arc::new(Schema::new_with_metadata(
+            vec![
+                Field::new("task_index", DataType::Int64, false),
+                Field::new("__index_level_0__", DataType::Utf8, false),
+            ],
+            std::collections::HashMap::from([("pandas".to_string(), pandas.to_string())]),
+        ));
         let batch = RecordBatch::try_new(
             schema,
             vec![
