@@ -2,7 +2,7 @@
 # Creates `.venv-lerobot`, the venv of the LeRobot round-trip tests: the real
 # `lerobot` package (PyPI, pinned in requirements-lerobot-lock.txt) over the
 # project venv's packages (torch, PyAV, numpy: a .pth file puts .venv's
-# site-packages on its path). Run by scripts/setup-venv.sh; idempotent (a venv
+# site-packages on its path). Run by `./run test`; idempotent (a venv
 # whose stamp matches the lock file is kept). Needs .venv first.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

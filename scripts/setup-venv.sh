@@ -51,7 +51,6 @@ gloo_headers() {
 if [[ -x "$venv/bin/python" && -f "$stamp" ]] && cmp -s "$lock" "$stamp"; then
   [[ -e "$venv/libtorch/lib/libtorch_cpu.so" ]] || link_libtorch
   gloo_headers
-  "$root/scripts/setup-lerobot-venv.sh"
   exit 0
 fi
 free_kib="$(df -Pk "$root" | awk 'NR == 2 { print $4 }')"
@@ -80,4 +79,3 @@ pip_install "${small[@]}"
 link_libtorch
 gloo_headers
 cp "$lock" "$stamp"
-"$root/scripts/setup-lerobot-venv.sh"

@@ -116,7 +116,7 @@ fn lerobot_loads_what_synth_writes_and_bridgev2w_trains_on_what_lerobot_writes()
     let python = repo().join(".venv-lerobot/bin/python");
     assert!(
         python.is_file(),
-        "{}: no LeRobot test venv (scripts/setup-venv.sh runs scripts/setup-lerobot-venv.sh)",
+        "{}: no LeRobot test venv (./run test makes it: scripts/setup-lerobot-venv.sh)",
         python.display()
     );
     let dir = tempfile::tempdir().expect("tempdir");

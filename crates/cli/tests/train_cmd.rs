@@ -216,3 +216,90 @@ lr = 1e-4
         );
     }
 }
+
+#[test]
+fn training_logs_read_back_with_tensorboards_own_reader() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let data = d.join("data");
+    synth_tiny(&data);
+    let run_dir = d.join("run");
+    let cfg_path = d.join("train.toml");
+    std::fs::write(
+        &cfg_path,
+        format!(
+            r#"
+{TINY_MODEL_TOML}
+[data]
+dataset = "{}"
+
+[train]
+max_steps = 2
+checkpoint_every = 1
+preview_steps = 2
+warmup_steps = 1
+lr = 1e-4
+"#,
+            s(&data)
+        ),
+    )
+    .expect("write config");
+    ok(&run(&[
+        "train",
+        s(&cfg_path),
+        "--quiet",
+        "--out",
+        s(&run_dir),
+    ]));
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let o = std::process::Command::new(root.join(".venv/bin/python"))
+        .arg(root.join("scripts/fixtures/read_tensorboard.py"))
+        .arg(run_dir.join("tensorboard"))
+        .output()
+        .expect("run read_tensorboard.py");
+    ok(&o);
+    let tb: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
+    let metrics: Vec<serde_json::Value> = std::fs::read_to_string(run_dir.join("metrics.jsonl"))
+        .expect("metrics")
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json line"))
+        .collect();
+    // Every metric, every step, as metrics.jsonl has it (float32 in the log).
+    for key in [
+        "loss",
+        "diffusion",
+        "dynamics",
+        "flow",
+        "lr",
+        "grad_norm",
+        "secs",
+    ] {
+        let series = tb["scalars"][format!("train/{key}")]
+            .as_array()
+            .unwrap_or_else(|| panic!("no train/{key} in {tb}"));
+        assert_eq!(series.len(), metrics.len(), "train/{key}");
+        for (point, m) in series.iter().zip(&metrics) {
+            assert_eq!(point[0], m["step"], "train/{key}");
+            let (got, want) = (
+                point[1].as_f64().expect("value"),
+                m[key].as_f64().expect(key),
+            );
+            assert!(
+                (got - want).abs() <= 1e-6 * want.abs().max(1e-6),
+                "train/{key} at step {}: {got} vs {want}",
+                m["step"]
+            );
+        }
+    }
+    // A preview at each checkpoint: truth over prediction, 9 frames of 96x64.
+    let images = tb["images"]["preview/truth_over_prediction"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no preview in {tb}"));
+    assert_eq!(images.len(), 2);
+    for img in images {
+        assert_eq!(
+            (img[1].as_u64(), img[2].as_u64()),
+            (Some(9 * 96), Some(2 * 64))
+        );
+    }
+}

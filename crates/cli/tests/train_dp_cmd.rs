@@ -126,13 +126,20 @@ fn assert_trained_alike(single: &Path, dp: &Path) {
     assert!(moved, "no LoRA weight moved");
 }
 
+/// A temp folder with the batch-2 config and the single process's 3-step
+/// run of it (the reference of the data-parallel runs).
+fn single_process_run() -> (tempfile::TempDir, std::path::PathBuf, std::path::PathBuf) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = setup(dir.path(), 2);
+    let single = dir.path().join("single");
+    ok(&train_cmd(&cfg, &single, &[]).output().expect("run"));
+    (dir, cfg, single)
+}
+
 #[test]
 fn two_processes_train_like_one_on_the_global_batch() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let (dir, cfg, single) = single_process_run();
     let d = dir.path();
-    let cfg = setup(d, 2);
-    let single = d.join("single");
-    ok(&train_cmd(&cfg, &single, &[]).output().expect("run"));
     let port = free_port();
     let (dp0, dp1) = (d.join("dp"), d.join("dp-rank1"));
     let r0 = train_cmd(&cfg, &dp0, &dist_env(0, 2, port))
@@ -295,11 +302,8 @@ fn torchrun_train(cfg: &Path, out: &Path, launch: &[String]) -> std::process::Ou
 
 #[test]
 fn torchrun_static_and_standalone_train_like_one_process() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let (dir, cfg, single) = single_process_run();
     let d = dir.path();
-    let cfg = setup(d, 2);
-    let single = d.join("single");
-    ok(&train_cmd(&cfg, &single, &[]).output().expect("run"));
     // Static rendezvous: torchrun's agent hosts the TCPStore on MASTER_PORT
     // (TORCHELASTIC_USE_AGENT_STORE=True), which the ranks must not bind.
     let port = free_port();

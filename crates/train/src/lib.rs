@@ -27,6 +27,7 @@ pub mod report;
 pub mod run_dir;
 pub mod score;
 pub mod segmenter;
+pub mod tensorboard;
 pub mod trainer;
 
 /// Errors of the training code.

@@ -10,15 +10,22 @@ use crate::{Result, TrainError};
 use std::path::Path;
 
 /// The files and folders a run writes into `train.out`.
-pub const RUN_FILES: [&str; 4] = ["config.toml", "metrics.jsonl", "checkpoints", "final"];
+pub const RUN_FILES: [&str; 5] = [
+    "config.toml",
+    "metrics.jsonl",
+    "tensorboard",
+    "checkpoints",
+    "final",
+];
 
 /// The `[train]` fields a resumed run may change: where it writes, how far it
 /// goes, how often it checkpoints, the device it runs on, and the test hook.
-const RESUMABLE_CHANGES: [&str; 7] = [
+const RESUMABLE_CHANGES: [&str; 8] = [
     "train.out",
     "train.max_steps",
     "train.epochs",
     "train.checkpoint_every",
+    "train.preview_steps",
     "train.keep_checkpoints",
     "train.inject_nan_at_step",
     "model.device",

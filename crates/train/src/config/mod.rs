@@ -300,6 +300,9 @@ pub struct TrainSection {
     pub ema_decay: f64,
     /// Checkpoint every N steps (0 = only at the end).
     pub checkpoint_every: usize,
+    /// Denoising steps of the preview clip written to the TensorBoard log at
+    /// every checkpoint (prior and BridgeV2W stages; 0 = no preview).
+    pub preview_steps: usize,
     /// Checkpoints kept (older ones deleted; 0 = keep all).
     pub keep_checkpoints: usize,
     /// Testing aid: from this step on, the diffusion loss is multiplied by NaN
@@ -369,6 +372,7 @@ impl Default for TrainSection {
             condition_dropout: 0.1,
             ema_decay: 0.0,
             checkpoint_every: 100,
+            preview_steps: 10,
             keep_checkpoints: 3,
             inject_nan_at_step: None,
             stage: Stage::Bridgev2w,

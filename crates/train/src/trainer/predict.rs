@@ -10,6 +10,47 @@ use bridgev2w_world_model::scheduler::Scheduler;
 use tch::Tensor;
 
 impl Trainer {
+    /// A preview for the training logs: the first clip of step 0's batch,
+    /// ground truth (top row) above the model's prediction (bottom row),
+    /// every frame side by side, as an RGB8 image `(width, height, pixels)`;
+    /// `None` for the autoencoder stage or with `train.preview_steps = 0`.
+    /// Sampled with `preview_steps` steps and seed 0; training itself is
+    /// unaffected (every step reseeds its random draws).
+    pub fn preview(&self) -> Result<Option<(u32, u32, Vec<u8>)>> {
+        let steps = self.cfg.train.preview_steps;
+        if steps == 0 || self.cfg.train.stage == Stage::Vae {
+            return Ok(None);
+        }
+        let b = self.global_batch(0)?;
+        let one = Batch {
+            first_frames: b.first_frames.narrow(0, 0, 1),
+            video: b.video.narrow(0, 0, 1),
+            masks: b.masks.narrow(0, 0, 1),
+            actions: b.actions.narrow(0, 0, 1),
+            episodes: b.episodes.into_iter().take(1).collect(),
+        };
+        let opts = SampleOptions {
+            steps,
+            seed: 0,
+            ..SampleOptions::default()
+        };
+        let pred = self.predict(&one, &opts)?;
+        // [1, 3, T, H, W] x 2 rows -> [3, 2H, T*W] -> [2H, T*W, 3] in 0..255
+        let rows = Tensor::cat(&[one.video.to_device(pred.device()), pred], 3); // [1, 3, T, 2H, W]
+        let (t, h2, w) = (rows.size()[2], rows.size()[3], rows.size()[4]);
+        let grid = rows
+            .squeeze_dim(0)
+            .permute([2, 1, 3, 0]) // [2H, T, W, 3]
+            .reshape([h2, t * w, 3]);
+        let bytes = ((grid.to_device(tch::Device::Cpu).to_kind(tch::Kind::Float) + 1.0) * 127.5)
+            .round()
+            .clamp(0.0, 255.0)
+            .to_kind(tch::Kind::Uint8)
+            .contiguous();
+        let pixels = Vec::<u8>::try_from(&bytes.reshape([-1]))?;
+        Ok(Some(((t * w) as u32, h2 as u32, pixels)))
+    }
+
     /// The model's prediction `[B, 3, T, H, W]` in [-1, 1] for `batch`: from
     /// the first frames (posterior mode) and the run's condition (mask
     /// branch, action MLP, or none for a prior), sampled with `opts`.

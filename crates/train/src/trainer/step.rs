@@ -6,6 +6,7 @@ use super::{check_finite, io_err, StepMetrics, Trainer};
 use crate::config::Stage;
 use crate::data::Batch;
 use crate::run_dir::{self, ExistingRun};
+use crate::tensorboard::SummaryValue;
 use crate::{Result, TrainError};
 use bridgev2w_torch_ext::autocast;
 use std::io::Write;
@@ -77,7 +78,9 @@ impl Trainer {
         }
     }
 
-    /// Trains to [`Self::total_steps`], appending to `OUT/metrics.jsonl`,
+    /// Trains to [`Self::total_steps`], appending to `OUT/metrics.jsonl` and
+    /// to a TensorBoard event file in `OUT/tensorboard/` (every metric as a
+    /// scalar; at each checkpoint a [`Self::preview`] image),
     /// checkpointing every `checkpoint_every` steps and at the end
     /// (`OUT/checkpoints/step-NNNNNNNN`, `OUT/checkpoints/latest`), and
     /// writing `OUT/final/weights.safetensors`. `on_step` sees every step's metrics.
@@ -109,6 +112,7 @@ impl Trainer {
             .append(true)
             .open(&metrics_path)
             .map_err(|e| io_err(&metrics_path, e))?;
+        let mut events = crate::tensorboard::EventWriter::create(&out.join("tensorboard"))?;
         let total = self.total_steps();
         let every = self.cfg.train.checkpoint_every;
         let mut all = Vec::new();
@@ -117,10 +121,21 @@ impl Trainer {
             let line = serde_json::to_string(&m)
                 .map_err(|e| TrainError::input("metrics", e.to_string()))?;
             writeln!(metrics_file, "{line}").map_err(|e| io_err(&metrics_path, e))?;
+            events.write(m.step, &scalars(&m)?)?;
             on_step(&m);
             all.push(m);
             if (every > 0 && self.step % every == 0) || self.step == total {
                 self.save_checkpoint()?;
+                if let Some((width, height, pixels)) = self.preview()? {
+                    let png = bridgev2w_io::png::encode_rgb8(width, height, &pixels);
+                    events.write(
+                        self.step,
+                        &[(
+                            "preview/truth_over_prediction".into(),
+                            SummaryValue::Png { width, height, png },
+                        )],
+                    )?;
+                }
             }
         }
         // The final weights (and backbone) are the averages, if any; the
@@ -140,6 +155,26 @@ impl Trainer {
         }
         Ok(all)
     }
+}
+
+/// Every number of a step's metrics as a `train/<name>` scalar (booleans as
+/// 0 or 1), the step itself aside.
+fn scalars(m: &StepMetrics) -> Result<Vec<(String, SummaryValue)>> {
+    let v = serde_json::to_value(m).map_err(|e| TrainError::input("metrics", e.to_string()))?;
+    let mut out = Vec::new();
+    if let Some(o) = v.as_object() {
+        for (k, x) in o {
+            let value = match x {
+                serde_json::Value::Number(n) => n.as_f64(),
+                serde_json::Value::Bool(b) => Some(f64::from(u8::from(*b))),
+                _ => None,
+            };
+            if let (Some(value), true) = (value, k != "step") {
+                out.push((format!("train/{k}"), SummaryValue::Scalar(value)));
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// Keeps the metrics lines of steps before `step` (a resumed run rewrites the rest).
