@@ -1,0 +1,316 @@
+//! `bridgev2w._core`: the native half of the Python package (`python/`).
+//! Arrays cross as bytes plus shapes; the Python half (`bridgev2w/__init__.py`)
+//! checks dtypes and shapes, names the argument in a `ValueError`, and wraps
+//! the results as numpy arrays. Rendering and inverse kinematics run with the
+//! GIL released, on the embodiment crate's thread pool.
+
+use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, Trajectory};
+use bridgev2w_embodiment::camera::Camera as RsCamera;
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::kinematics::IkOptions;
+use bridgev2w_embodiment::masks::{link_labels, render_trajectory};
+use bridgev2w_embodiment::robot::LoadOptions;
+use bridgev2w_io::frame::RgbFrame;
+use pyo3::create_exception;
+use pyo3::exceptions::{PyException, PyFileNotFoundError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use std::path::PathBuf;
+
+create_exception!(
+    _core,
+    Error,
+    PyException,
+    "An error of bridgev2w (bad robot, camera, actions, ...)."
+);
+
+fn err(e: impl std::fmt::Display) -> PyErr {
+    Error::new_err(e.to_string())
+}
+
+/// A robot: its kinematic tree, link meshes and end effectors.
+#[pyclass(module = "bridgev2w._core", frozen)]
+struct Robot {
+    inner: Embodiment,
+}
+
+#[pymethods]
+impl Robot {
+    /// A built-in robot (`franka`, `agibot-g1`).
+    #[new]
+    fn new(name: &str) -> PyResult<Self> {
+        Embodiment::builtin(name)
+            .map(|inner| Self { inner })
+            .map_err(err)
+    }
+
+    /// A robot from a URDF file; `mesh_paths` are searched for
+    /// `package://` and relative meshes; `ee_links` (one per arm, action
+    /// order) and `gripper_joints` enable end-effector actions.
+    #[staticmethod]
+    #[pyo3(signature = (path, mesh_paths = Vec::new(), ee_links = Vec::new(), gripper_joints = Vec::new()))]
+    fn from_urdf(
+        path: PathBuf,
+        mesh_paths: Vec<PathBuf>,
+        ee_links: Vec<String>,
+        gripper_joints: Vec<String>,
+    ) -> PyResult<Self> {
+        if !path.is_file() {
+            return Err(PyFileNotFoundError::new_err(format!(
+                "{}: no such URDF file",
+                path.display()
+            )));
+        }
+        let options = LoadOptions {
+            mesh_search_paths: mesh_paths,
+            ..LoadOptions::default()
+        };
+        let text = path.to_string_lossy().into_owned();
+        Embodiment::load(&text, &options, &ee_links, &gripper_joints)
+            .map(|inner| Self { inner })
+            .map_err(err)
+    }
+
+    /// The robot's name.
+    #[getter]
+    fn name(&self) -> String {
+        self.inner.robot.name.clone()
+    }
+
+    /// The actuated joints, in the order joint arrays use.
+    #[getter]
+    fn joint_names(&self) -> Vec<String> {
+        self.inner
+            .robot
+            .dof_names()
+            .into_iter()
+            .map(String::from)
+            .collect()
+    }
+
+    /// Values per frame of end-effector actions (7 per arm).
+    #[getter]
+    fn action_dim(&self) -> usize {
+        self.inner.action_dim()
+    }
+
+    /// The home configuration (the IK's first warm start).
+    #[getter]
+    fn home(&self) -> Vec<f64> {
+        self.inner.home.clone()
+    }
+
+    /// `(label, link name)` of every link with geometry; labels are what
+    /// `render(..., labels)` writes.
+    fn link_labels(&self) -> Vec<(u16, String)> {
+        link_labels(&self.inner.robot)
+    }
+
+    /// Joint positions for end-effector `actions` (`[T][7 * arms]`) and a
+    /// residual per frame and arm: `(frame, arm, position_error_m,
+    /// rotation_error_rad, reached)`. Unreached targets are an error unless
+    /// `allow_residual`.
+    #[pyo3(signature = (actions, allow_residual = false))]
+    #[allow(clippy::type_complexity)]
+    fn solve_ik(
+        &self,
+        py: Python<'_>,
+        actions: Vec<Vec<f64>>,
+        allow_residual: bool,
+    ) -> PyResult<(Vec<Vec<f64>>, Vec<(usize, String, f64, f64, bool)>)> {
+        let traj = Trajectory::new("actions", actions)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let e = &self.inner;
+        let (q, residuals) = py
+            .detach(|| {
+                actions_to_joints(
+                    &e.robot,
+                    &e.end_effectors,
+                    &traj,
+                    &e.home,
+                    &IkOptions::default(),
+                    allow_residual,
+                )
+            })
+            .map_err(err)?;
+        let res = residuals
+            .into_iter()
+            .map(|r| {
+                (
+                    r.frame,
+                    r.arm,
+                    r.position_error_m,
+                    r.rotation_error_rad,
+                    r.reached,
+                )
+            })
+            .collect();
+        Ok((q, res))
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Robot({:?}, joints={}, action_dim={})",
+            self.inner.robot.name,
+            self.inner.robot.dof_names().len(),
+            self.inner.action_dim()
+        )
+    }
+}
+
+/// A calibrated camera: pinhole intrinsics, optional distortion, pose.
+#[pyclass(module = "bridgev2w._core", frozen)]
+struct Camera {
+    inner: RsCamera,
+}
+
+#[pymethods]
+impl Camera {
+    /// A camera from its JSON text (the format of `bridgev2w masks
+    /// --camera`); `source` names it in errors.
+    #[staticmethod]
+    #[pyo3(signature = (text, source = "camera JSON"))]
+    fn from_json_str(text: &str, source: &str) -> PyResult<Self> {
+        RsCamera::from_json_str(text, source)
+            .map(|inner| Self { inner })
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+
+    /// A camera from a JSON file.
+    #[staticmethod]
+    fn from_json(path: PathBuf) -> PyResult<Self> {
+        if !path.is_file() {
+            return Err(PyFileNotFoundError::new_err(format!(
+                "{}: no such camera file",
+                path.display()
+            )));
+        }
+        RsCamera::from_json_file(&path)
+            .map(|inner| Self { inner })
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+
+    /// The camera as JSON text.
+    fn to_json(&self) -> String {
+        self.inner.to_json()
+    }
+
+    /// This camera with its intrinsics rescaled to `width` x `height`.
+    fn rescaled(&self, width: u32, height: u32) -> Self {
+        Self {
+            inner: self.inner.rescaled(width, height),
+        }
+    }
+
+    /// `(width, height)` in pixels.
+    #[getter]
+    fn size(&self) -> (u32, u32) {
+        (self.inner.intrinsics.width, self.inner.intrinsics.height)
+    }
+
+    fn __repr__(&self) -> String {
+        let i = &self.inner.intrinsics;
+        format!(
+            "Camera({}x{}, fx={}, fy={}, cx={}, cy={})",
+            i.width, i.height, i.fx, i.fy, i.cx, i.cy
+        )
+    }
+}
+
+/// Renders `joints` (`[T][dof]`) of `robot` through `camera`: the per-link
+/// label maps (`T * H * W` little-endian u16) and, with `depth`, camera-frame
+/// depths (`T * H * W` little-endian f32, inf for background).
+#[pyfunction]
+#[pyo3(signature = (robot, camera, joints, depth = false))]
+fn render<'py>(
+    py: Python<'py>,
+    robot: &Robot,
+    camera: &Camera,
+    joints: Vec<Vec<f64>>,
+    depth: bool,
+) -> PyResult<(Bound<'py, PyBytes>, Option<Bound<'py, PyBytes>>)> {
+    let dof = robot.inner.robot.dof_names().len();
+    if let Some((i, q)) = joints.iter().enumerate().find(|(_, q)| q.len() != dof) {
+        return Err(PyValueError::new_err(format!(
+            "joints: frame {i} has {} values but robot {:?} has {dof} actuated joints ({}); for end-effector poses use actions=",
+            q.len(),
+            robot.inner.robot.name,
+            robot.inner.robot.dof_names().join(", ")
+        )));
+    }
+    // As `bridgev2w masks --joints`: finite values within the joint limits.
+    let traj = Trajectory::new("joints", joints.clone())
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    check_joint_trajectory(&robot.inner.robot, &traj)
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let (r, c) = (&robot.inner.robot, &camera.inner);
+    let frames = py.detach(|| render_trajectory(r, c, &joints, &|| {}));
+    let mut labels = Vec::new();
+    let mut depths = Vec::new();
+    for f in &frames {
+        for l in &f.labels {
+            labels.extend_from_slice(&l.to_le_bytes());
+        }
+        if depth {
+            for d in &f.depth_m {
+                depths.extend_from_slice(&d.to_le_bytes());
+            }
+        }
+    }
+    Ok((
+        PyBytes::new(py, &labels),
+        depth.then(|| PyBytes::new(py, &depths)),
+    ))
+}
+
+fn frame(name: &str, bytes: &[u8], (height, width): (usize, usize)) -> PyResult<RgbFrame> {
+    RgbFrame::from_rgb8(width, height, bytes)
+        .map_err(|e| PyValueError::new_err(format!("{name}: {e}")))
+}
+
+/// PSNR (dB) of two RGB8 frames of `height` x `width` (values in [0, 1]).
+#[pyfunction]
+fn psnr(pred: &[u8], gt: &[u8], height: usize, width: usize) -> PyResult<f64> {
+    let (p, g) = (
+        frame("pred", pred, (height, width))?,
+        frame("gt", gt, (height, width))?,
+    );
+    bridgev2w_eval::video::psnr(&p, &g).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+/// SSIM of two RGB8 frames (Gaussian window, as scikit-image's
+/// `structural_similarity(..., gaussian_weights=True, sigma=1.5,
+/// use_sample_covariance=False, channel_axis=-1, data_range=1)`).
+#[pyfunction]
+fn ssim(pred: &[u8], gt: &[u8], height: usize, width: usize) -> PyResult<f64> {
+    let (p, g) = (
+        frame("pred", pred, (height, width))?,
+        frame("gt", gt, (height, width))?,
+    );
+    bridgev2w_eval::video::ssim(&p, &g).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+/// IoU of two masks (non-zero = inside), 1 when both are empty.
+#[pyfunction]
+fn mask_iou(pred: &[u8], gt: &[u8]) -> PyResult<f64> {
+    bridgev2w_eval::video::mask_iou(pred, gt).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+/// The names of the built-in robots.
+#[pyfunction]
+fn builtin_robots() -> String {
+    bridgev2w_embodiment::embodiment::builtin_names()
+}
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("Error", m.py().get_type::<Error>())?;
+    m.add_class::<Robot>()?;
+    m.add_class::<Camera>()?;
+    m.add_function(wrap_pyfunction!(render, m)?)?;
+    m.add_function(wrap_pyfunction!(psnr, m)?)?;
+    m.add_function(wrap_pyfunction!(ssim, m)?)?;
+    m.add_function(wrap_pyfunction!(mask_iou, m)?)?;
+    m.add_function(wrap_pyfunction!(builtin_robots, m)?)?;
+    Ok(())
+}
