@@ -24,7 +24,7 @@ import numpy as np
 from . import _core, metrics
 from ._core import Error
 
-__all__ = ["Robot", "Camera", "Residual", "render_masks", "metrics", "Error", "builtin_robots"]
+__all__ = ["Robot", "Camera", "Residual", "render_masks", "metrics", "lerobot", "Error", "builtin_robots"]
 
 
 def _float_array(name, value, ndim, last=None):
@@ -181,3 +181,6 @@ def render_masks(robot: Robot, camera: Camera, *, joints=None, actions=None, lab
 def builtin_robots() -> str:
     """The names of the built-in robots."""
     return _core.builtin_robots()
+
+
+from . import lerobot  # noqa: E402  (uses the names above)

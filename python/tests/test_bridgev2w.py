@@ -87,6 +87,32 @@ def test_ik_and_masks_from_actions_match_the_cli():
     assert not res[0].reached and res[0].position_error_m > 1.0
 
 
+def test_lerobot_transform_adds_each_cameras_mask():
+    robot, cam = bw.Robot("franka"), camera()
+    q = robot.home.copy()
+    q[-1] = 0.02
+    masks = bw.lerobot.EmbodimentMasks(robot, {"observation.images.main": cam})
+    # A numpy item with the camera's image at half size: the mask follows the image.
+    item = {"observation.state": q, "observation.images.main": np.zeros((60, 80, 3), np.uint8)}
+    out = masks(item)
+    m = out["observation.images.main.mask"]
+    assert m.shape == (60, 80) and m.dtype == np.uint8
+    assert np.array_equal(m, bw.render_masks(robot, cam.rescaled(80, 60), joints=q[None])[0])
+    # A torch item (LeRobotDataset's): a window of states, a [C, H, W] image.
+    import torch
+
+    window = torch.tensor(np.stack([q, q]), dtype=torch.float32)
+    out = masks({"observation.state": window, "observation.images.main": torch.zeros(3, 120, 160)})
+    t = out["observation.images.main.mask"]
+    assert isinstance(t, torch.Tensor) and tuple(t.shape) == (2, 120, 160)
+    assert np.array_equal(t.numpy()[0], bw.render_masks(robot, cam, joints=q[None].astype(np.float32))[0])
+    try:
+        masks({"action": q})
+        raise AssertionError("an item without a state passed")
+    except ValueError as e:
+        assert "observation.state" in str(e), e
+
+
 def test_metrics_match_closed_forms():
     rng = np.random.default_rng(0)
     gt = rng.integers(0, 256, (3, 24, 32, 3), dtype=np.uint8)
