@@ -21,10 +21,16 @@ from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 
-from . import _core, metrics
-from ._core import Error
+try:  # libtorch first, from the torch the native module was built against
+    import torch  # noqa: F401
+except ImportError:  # the module's rpath names the build's libtorch
+    pass
 
-__all__ = ["Robot", "Camera", "Residual", "render_masks", "metrics", "lerobot", "Error", "builtin_robots"]
+from . import _core, metrics  # noqa: E402
+from ._core import Error  # noqa: E402
+
+__all__ = ["Robot", "Camera", "Residual", "render_masks", "WorldModel", "metrics", "lerobot", "Error",
+           "builtin_robots"]
 
 
 def _float_array(name, value, ndim, last=None):
@@ -176,6 +182,55 @@ def render_masks(robot: Robot, camera: Camera, *, joints=None, actions=None, lab
     if depth:
         return out, np.frombuffer(dep, dtype="<f4").reshape(len(q), h, w).copy()
     return out
+
+
+class WorldModel:
+    """BridgeV2W: from a first frame and the embodiment masks of the actions
+    to the video they cause."""
+
+    def __init__(self, core):
+        self._m = core
+
+    @classmethod
+    def from_pretrained(cls, model, *, weights=None, device: str = "cpu", precision: str = "f32",
+                        seed: int = 0) -> "WorldModel":
+        """``model``: a folder as ``assets/demo-model`` (``backbone/`` and
+        ``bridgev2w.safetensors``), a diffusers CogVideoX-I2V folder or Hub
+        name (from the local Hugging Face cache, offline) with BridgeV2W
+        ``weights``, or ``random:PRESET``. ``device``: ``cpu``, ``cuda``,
+        ``cuda:N`` or ``auto``; ``precision``: ``f32`` or ``bf16``."""
+        return cls(_core.WorldModel.from_pretrained(
+            str(model), None if weights is None else str(weights), device, precision, int(seed)))
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """``(height, width)``."""
+        return self._m.resolution
+
+    @property
+    def clip_frames(self) -> int:
+        """Frames per prediction (masks per call)."""
+        return self._m.clip_frames
+
+    def predict(self, first_frame, masks, *, steps: int = 20, seed: int = 0, guidance: float = 1.0):
+        """The predicted video, uint8 ``[T, H, W, 3]`` (frame 0 is the first
+        frame's reconstruction), from ``first_frame`` uint8 ``[H, W, 3]`` and
+        ``masks`` ``[T, H, W]`` (non-zero = robot), sampled with ``steps``
+        denoising steps from noise seed ``seed``."""
+        h, w = self.resolution
+        t = self.clip_frames
+        f = np.asarray(first_frame)
+        if f.dtype != np.uint8 or f.shape != (h, w, 3):
+            raise ValueError(f"first_frame: expected uint8 [{h}, {w}, 3] for this model, got {f.dtype} {f.shape}")
+        m = np.asarray(masks)
+        if m.shape != (t, h, w):
+            raise ValueError(f"masks: expected [{t}, {h}, {w}] for this model, got shape {m.shape}")
+        video = self._m.predict(np.ascontiguousarray(f).tobytes(), (m != 0).astype(np.uint8).tobytes(),
+                                int(steps), int(seed), float(guidance))
+        return np.frombuffer(video, dtype=np.uint8).reshape(t, h, w, 3).copy()
+
+    def __repr__(self) -> str:
+        return repr(self._m)
 
 
 def builtin_robots() -> str:

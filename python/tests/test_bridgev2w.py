@@ -113,6 +113,45 @@ def test_lerobot_transform_adds_each_cameras_mask():
         assert "observation.state" in str(e), e
 
 
+def test_world_model_predicts_as_the_cli_does():
+    # `bridgev2w predict` initialises a random preset from its --seed.
+    wm = bw.WorldModel.from_pretrained("random:tiny", seed=3)
+    (h, w), t = wm.resolution, wm.clip_frames
+    rng = np.random.default_rng(1)
+    first = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    masks = np.zeros((t, h, w), np.uint8)
+    masks[:, h // 4: h // 2, w // 4: w // 2] = 1
+    video = wm.predict(first, masks, steps=2, seed=3)
+    assert video.dtype == np.uint8 and video.shape == (t, h, w, 3), video.shape
+    tmp = WORK / "predict"
+    tmp.mkdir()
+    import PIL.Image
+
+    PIL.Image.fromarray(first).save(tmp / "first.png")
+    np.save(tmp / "masks.npy", masks)
+    subprocess.run([BIN, "predict", "--model", "random:tiny", "--image", str(tmp / "first.png"),
+                    "--masks", str(tmp / "masks.npy"), "--steps", "2", "--seed", "3",
+                    "--out", str(tmp / "out")], check=True, capture_output=True)
+    cli = np.load(tmp / "out" / "video.npy")
+    diff = np.abs(cli.astype(int) - video.astype(int))
+    assert diff.max() <= 1 and diff.mean() < 0.01, (diff.max(), diff.mean())
+    # The shipped demo model, from its folder.
+    demo = bw.WorldModel.from_pretrained(pathlib.Path(__file__).resolve().parents[2] / "assets" / "demo-model")
+    assert demo.resolution == (64, 96) and demo.clip_frames == 9, demo
+    v = demo.predict(np.zeros((64, 96, 3), np.uint8), np.zeros((9, 64, 96)), steps=1)
+    assert v.shape == (9, 64, 96, 3)
+    try:
+        wm.predict(first[:, :-1], masks)
+        raise AssertionError("a wrong first frame passed")
+    except ValueError as e:
+        assert "first_frame" in str(e), e
+    try:
+        bw.WorldModel.from_pretrained(WORK / "no-model-here")
+        raise AssertionError("a missing model folder passed")
+    except FileNotFoundError as e:
+        assert "no-model-here" in str(e), e
+
+
 def test_metrics_match_closed_forms():
     rng = np.random.default_rng(0)
     gt = rng.integers(0, 256, (3, 24, 32, 3), dtype=np.uint8)

@@ -75,5 +75,5 @@ fn pip_install_python_then_its_tests_pass() {
         .expect("run the package's tests");
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
-    assert!(String::from_utf8_lossy(&o.stdout).contains("5 passed"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("6 passed"));
 }

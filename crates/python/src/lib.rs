@@ -10,7 +10,12 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_embodiment::masks::{link_labels, render_trajectory};
 use bridgev2w_embodiment::robot::LoadOptions;
-use bridgev2w_io::frame::RgbFrame;
+use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions, WorldModel as _};
+use bridgev2w_world_model::spec::ModelSpec;
+use bridgev2w_world_model::video::MaskVideo;
+use bridgev2w_world_model::{ComputeDevice, Precision};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyValueError};
 use pyo3::prelude::*;
@@ -296,6 +301,154 @@ fn mask_iou(pred: &[u8], gt: &[u8]) -> PyResult<f64> {
     bridgev2w_eval::video::mask_iou(pred, gt).map_err(|e| PyValueError::new_err(e.to_string()))
 }
 
+/// The action-conditioned world model: a first frame and the masks of the
+/// actions in, the predicted video out.
+#[pyclass(module = "bridgev2w._core", frozen)]
+struct WorldModel {
+    // tch tensors are Send, not Sync: one prediction at a time per model
+    // (a second Python thread waits, with the GIL released).
+    inner: std::sync::Mutex<BridgeV2W>,
+    resolution: (usize, usize),
+    clip_frames: usize,
+    source: String,
+}
+
+#[pymethods]
+impl WorldModel {
+    /// A model folder as `bridgev2w demo` ships it (`backbone/` and
+    /// `bridgev2w.safetensors`), a diffusers CogVideoX-I2V folder or Hub name
+    /// (with optional BridgeV2W `weights`), or `random:PRESET`.
+    #[staticmethod]
+    #[pyo3(signature = (model, weights = None, device = "cpu", precision = "f32", seed = 0))]
+    fn from_pretrained(
+        py: Python<'_>,
+        model: &str,
+        weights: Option<PathBuf>,
+        device: &str,
+        precision: &str,
+        seed: i64,
+    ) -> PyResult<Self> {
+        let device: ComputeDevice =
+            device
+                .parse()
+                .map_err(|e: bridgev2w_world_model::WorldModelError| {
+                    PyValueError::new_err(format!("device: {e}"))
+                })?;
+        let precision: Precision =
+            precision
+                .parse()
+                .map_err(|e: bridgev2w_world_model::WorldModelError| {
+                    PyValueError::new_err(format!("precision: {e}"))
+                })?;
+        let dir = PathBuf::from(model);
+        let shipped = (dir.join("backbone"), dir.join("bridgev2w.safetensors"));
+        let source = model.to_string();
+        let inner = py.detach(|| {
+            if shipped.0.is_dir() && shipped.1.is_file() && weights.is_none() {
+                BridgeV2W::load(
+                    &shipped.0,
+                    Some(&shipped.1),
+                    None,
+                    BridgeV2WConfig::paper(),
+                    device,
+                    precision,
+                )
+            } else {
+                model.parse::<ModelSpec>().and_then(|spec| {
+                    spec.load_bridge(weights.as_deref(), None, device, precision, seed)
+                })
+            }
+        });
+        // A local path that is not there (not a Hub name OWNER/NAME, not random:).
+        let hub_name = model.split('/').count() == 2 && !model.starts_with(['.', '/']);
+        let inner = inner.map_err(|e| {
+            if !model.starts_with("random:") && !dir.exists() && !hub_name {
+                PyFileNotFoundError::new_err(e.to_string())
+            } else {
+                err(e)
+            }
+        })?;
+        Ok(Self {
+            resolution: inner.resolution(),
+            clip_frames: inner.clip_frames(),
+            inner: std::sync::Mutex::new(inner),
+            source,
+        })
+    }
+
+    /// `(height, width)` the model works at.
+    #[getter]
+    fn resolution(&self) -> (usize, usize) {
+        self.resolution
+    }
+
+    /// Frames per predicted clip (the number of masks it takes).
+    #[getter]
+    fn clip_frames(&self) -> usize {
+        self.clip_frames
+    }
+
+    /// The predicted video (`T * H * W * 3` RGB8 bytes) from the first frame
+    /// (`H * W * 3` RGB8 bytes) and the masks (`T * H * W` bytes, non-zero =
+    /// robot), with `steps` denoising steps from noise seed `seed`.
+    #[pyo3(signature = (first_frame, masks, steps = 20, seed = 0, guidance = 1.0))]
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        first_frame: &[u8],
+        masks: &[u8],
+        steps: usize,
+        seed: u64,
+        guidance: f64,
+    ) -> PyResult<Bound<'py, PyBytes>> {
+        let (h, w) = self.resolution;
+        let t = self.clip_frames;
+        let image = RgbFrame::from_rgb8(w, h, first_frame)
+            .map_err(|e| PyValueError::new_err(format!("first_frame: {e}")))?;
+        if masks.len() != t * h * w {
+            return Err(PyValueError::new_err(format!(
+                "masks: {} values, expected [{t}, {h}, {w}] for this model",
+                masks.len()
+            )));
+        }
+        let masks = MaskVideo {
+            frames: t,
+            height: h,
+            width: w,
+            data: masks.to_vec(),
+        };
+        let opts = PredictOptions {
+            sample: SampleOptions {
+                steps,
+                guidance_scale: guidance,
+                dynamic_cfg: false,
+                seed,
+                first_frame: Default::default(),
+                batch_noise: BatchNoise::Shared,
+            },
+        };
+        let model = &self.inner;
+        let video = py
+            .detach(|| {
+                let m = model
+                    .lock()
+                    .map_err(|_| "an earlier prediction failed mid-way".to_string())?;
+                m.predict(&image, &masks, &opts).map_err(|e| e.to_string())
+            })
+            .map_err(Error::new_err)?;
+        let bytes: Vec<u8> = video.data.iter().map(|&v| u8_from_unit(v)).collect();
+        Ok(PyBytes::new(py, &bytes))
+    }
+
+    fn __repr__(&self) -> String {
+        let (h, w) = self.resolution;
+        format!(
+            "WorldModel({:?}, {} frames at {h}x{w})",
+            self.source, self.clip_frames
+        )
+    }
+}
+
 /// The names of the built-in robots.
 #[pyfunction]
 fn builtin_robots() -> String {
@@ -307,6 +460,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("Error", m.py().get_type::<Error>())?;
     m.add_class::<Robot>()?;
     m.add_class::<Camera>()?;
+    m.add_class::<WorldModel>()?;
     m.add_function(wrap_pyfunction!(render, m)?)?;
     m.add_function(wrap_pyfunction!(psnr, m)?)?;
     m.add_function(wrap_pyfunction!(ssim, m)?)?;
