@@ -183,6 +183,13 @@ pub struct EvalRunArgs {
     /// `cnn` (a small dilated CNN, shape-aware) or `color` (a colour classifier).
     #[arg(long, default_value = "cnn")]
     segmenter: bridgev2w_train::segmenter::SegmenterKind,
+    /// Also write DIR/<split>.gif: the first --grid-clips clips of each split,
+    /// a row each, first frame | masks | prediction | ground truth.
+    #[arg(long, value_name = "DIR")]
+    grids: Option<PathBuf>,
+    /// Clips per grid.
+    #[arg(long, default_value_t = 4)]
+    grid_clips: usize,
 }
 
 /// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
@@ -204,6 +211,8 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
             seed: args.seed,
             max_videos: args.max_videos,
             first_frame: args.first_frame,
+            grid_dir: args.grids.clone(),
+            grid_clips: args.grid_clips,
         },
         weights: args.weights,
         segmenter: args.segmenter,

@@ -86,8 +86,23 @@ lr = 1e-4
         s(&json),
         "--segmenter",
         "color",
+        "--grids",
+        s(&d.join("grids")),
     ]);
     ok(&o);
+    // A grid per split: one clip (--max-videos 1) of 9 frames, first frame |
+    // masks | prediction | ground truth, each 96x64 shown at twice the size.
+    for split in ["test", "unseen_scene"] {
+        let gif = d.join("grids").join(format!("{split}.gif"));
+        let decoder = image::codecs::gif::GifDecoder::new(std::io::BufReader::new(
+            std::fs::File::open(&gif).expect("grid gif"),
+        ))
+        .expect("a GIF");
+        use image::AnimationDecoder;
+        let frames = decoder.into_frames().collect_frames().expect("frames");
+        assert_eq!(frames.len(), 9, "{}", gif.display());
+        assert_eq!(frames[0].buffer().dimensions(), (4 * 96 * 2, 64 * 2));
+    }
     let table = String::from_utf8_lossy(&o.stdout);
     assert!(
         table.contains(

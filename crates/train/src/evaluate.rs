@@ -18,7 +18,7 @@ use bridgev2w_eval::clip::{copy_first_frame, predicted, score_clip};
 use bridgev2w_eval::dynamic::dynamic_region;
 use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
 use bridgev2w_eval::video::{mean_over_videos, video_mask_iou};
-use bridgev2w_io::frame::RgbFrame;
+use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
 use bridgev2w_world_model::pipeline::{FirstFrame, SampleOptions};
 use tch::{Kind, Tensor};
 
@@ -35,6 +35,11 @@ pub struct EvalOptions {
     pub max_videos: usize,
     /// The sampler's first latent frame.
     pub first_frame: FirstFrame,
+    /// Also write `<grid_dir>/<split>.gif`: the first `grid_clips` clips,
+    /// one row each, first frame | masks | prediction | ground truth.
+    pub grid_dir: Option<std::path::PathBuf>,
+    /// Clips in the grid.
+    pub grid_clips: usize,
 }
 
 impl Default for EvalOptions {
@@ -45,6 +50,8 @@ impl Default for EvalOptions {
             seed: 0,
             max_videos: 0,
             first_frame: FirstFrame::Generated,
+            grid_dir: None,
+            grid_clips: 4,
         }
     }
 }
@@ -106,6 +113,55 @@ pub fn color_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
 }
 
 /// `[1, 3, T, H, W]` masks in {-1, 1} to per-frame 0/1 masks.
+/// Grid upscaling: each pixel as `GRID_SCALE` x `GRID_SCALE`.
+const GRID_SCALE: usize = 2;
+
+/// One clip's row of the grid, per frame: first frame | masks | prediction |
+/// ground truth, RGB8, upscaled.
+fn grid_row(gt: &[RgbFrame], pred: &[RgbFrame], masks: &[Vec<u8>]) -> Vec<Vec<u8>> {
+    use bridgev2w_embodiment::overlay::{mask_rgb, side_by_side, upscale};
+    let rgb8 = |f: &RgbFrame| -> Vec<u8> { f.rgb.iter().map(|&v| u8_from_unit(v)).collect() };
+    let (w, h) = (gt[0].width, gt[0].height);
+    let k = GRID_SCALE;
+    let first = upscale(&rgb8(&gt[0]), w, h, k);
+    (0..gt.len().min(pred.len()))
+        .map(|t| {
+            let mask = masks
+                .get(t)
+                .map(|m| mask_rgb(m))
+                .unwrap_or_else(|| vec![0; w * h * 3]);
+            let mask = upscale(&mask, w, h, k);
+            let (p, g) = (
+                upscale(&rgb8(&pred[t]), w, h, k),
+                upscale(&rgb8(&gt[t]), w, h, k),
+            );
+            side_by_side(&[&first, &mask, &p, &g], w * k, h * k)
+        })
+        .collect()
+}
+
+/// The rows stacked top to bottom, frame by frame, as an animated GIF.
+fn write_grid(path: &std::path::Path, rows: &[Vec<Vec<u8>>], (w, h): (usize, usize)) -> Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| {
+            TrainError::input(dir.display().to_string(), format!("cannot create: {e}"))
+        })?;
+    }
+    let t = rows.iter().map(Vec::len).min().unwrap_or(0);
+    let frames: Vec<Vec<u8>> = (0..t)
+        .map(|i| rows.iter().flat_map(|r| r[i].iter().copied()).collect())
+        .collect();
+    let k = GRID_SCALE;
+    bridgev2w_embodiment::overlay::write_gif(
+        path,
+        (4 * w * k) as u32,
+        (rows.len() * h * k) as u32,
+        &frames,
+        4,
+    )
+    .map_err(|e| TrainError::input(path.display().to_string(), e.to_string()))
+}
+
 fn mask_frames(masks: &Tensor) -> Result<Vec<Vec<u8>>> {
     // [1, 3, T, H, W] -> [T, H, W] (channel 0: robot)
     let m = masks
@@ -168,6 +224,7 @@ pub fn evaluate_split(
     // Dynamic-region PSNR of the prediction, the baseline and the VAE.
     let (mut dp, mut dbp, mut dap) = (Vec::new(), Vec::new(), Vec::new());
     let with_masks = segmenter.filter(|_| data.has_masks());
+    let mut grid: Vec<Vec<Vec<u8>>> = Vec::new(); // [clip][frame] -> a row's RGB8 panel strip
     for i in 0..n {
         let batch = data.clips(&[(i, 0)], trainer.model.device())?;
         let pred = trainer.predict(
@@ -183,6 +240,9 @@ pub fn evaluate_split(
         )?;
         let gt = frames(&batch.video)?;
         let pf = frames(&pred)?;
+        if opts.grid_dir.is_some() && i < opts.grid_clips {
+            grid.push(grid_row(&gt, &pf, &mask_frames(&batch.masks)?));
+        }
         let copy = copy_first_frame(&gt).map_err(metric)?;
         let model = &trainer.model;
         let recon = tch::no_grad(|| -> Result<Tensor> {
@@ -223,6 +283,13 @@ pub fn evaluate_split(
             aiou.push(video_mask_iou(&segment(&af)?, gt_masks).map_err(metric)?);
         }
         on_video();
+    }
+    if let (Some(dir), false) = (&opts.grid_dir, grid.is_empty()) {
+        write_grid(
+            &dir.join(format!("{split}.gif")),
+            &grid,
+            (d.width, d.height),
+        )?;
     }
     let mean = |v: &[f64]| mean_over_videos(v).map_err(metric);
     let opt_mean = |v: &[f64]| -> Result<Option<f64>> {
