@@ -69,8 +69,8 @@ enum Command {
 
 fn main() -> Result<()> {
     // libtorch's CPU allocator backs large tensors with transparent huge
-    // pages when THP_MEM_ALLOC_ENABLE=1: fewer page faults (VAE decode 1.18x
-    // at `bench model`'s shapes, docs/benchmarks.md). A user's own setting
+    // pages when THP_MEM_ALLOC_ENABLE=1: fewer page faults (`bench model`
+    // 5-10% faster, medians in docs/benchmarks.md). A user's own setting
     // wins; set before any thread or tensor exists. Child processes (the
     // bench's diffusers peer) inherit it, so comparisons stay like for like.
     if std::env::var_os("THP_MEM_ALLOC_ENABLE").is_none() {
