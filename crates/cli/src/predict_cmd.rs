@@ -61,6 +61,12 @@ pub struct PredictArgs {
     /// CogVideoX's dynamic guidance schedule.
     #[arg(long)]
     dynamic_cfg: bool,
+    /// Where sampling starts, in (0, 1]: 1 from pure noise (diffusers'
+    /// pipeline); s < 1 from the first frame's latent in every frame, noised
+    /// to the level a fraction s from the end (only the last ceil(s * steps)
+    /// steps run).
+    #[arg(long, default_value_t = 1.0)]
+    strength: f64,
     /// The seed of the noise (every clip of a call gets the same: see --batch-size).
     #[arg(long, default_value_t = 42)]
     seed: u64,
@@ -289,6 +295,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
             first_frame: Default::default(),
             // Each clip the noise of a batch of one: its single prediction.
             batch_noise: BatchNoise::Shared,
+            strength: a.strength,
         },
     };
     let batches = clips.len().div_ceil(a.batch_size);

@@ -175,6 +175,11 @@ pub struct EvalRunArgs {
     /// sampler) or `replaced` by the image latent at every step.
     #[arg(long, default_value = "generated")]
     first_frame: bridgev2w_world_model::pipeline::FirstFrame,
+    /// Where sampling starts, in (0, 1]: 1 from pure noise; s < 1 from the
+    /// first frame's latent in every frame, noised to the level a fraction s
+    /// from the end of the steps (only the last ceil(s * steps) steps run).
+    #[arg(long, default_value_t = 1.0)]
+    strength: f64,
     /// The weights to score: `averaged` (the run's moving averages when it
     /// keeps them, `train.ema_decay > 0`; else its parameters) or `raw`.
     #[arg(long, default_value = "averaged")]
@@ -211,6 +216,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
             seed: args.seed,
             max_videos: args.max_videos,
             first_frame: args.first_frame,
+            strength: args.strength,
             grid_dir: args.grids.clone(),
             grid_clips: args.grid_clips,
         },

@@ -35,6 +35,8 @@ pub struct EvalOptions {
     pub max_videos: usize,
     /// The sampler's first latent frame.
     pub first_frame: FirstFrame,
+    /// Where sampling starts ([`SampleOptions::strength`]; 1 = pure noise).
+    pub strength: f64,
     /// Also write `<grid_dir>/<split>.gif`: the first `grid_clips` clips,
     /// one row each, first frame | masks | prediction | ground truth.
     pub grid_dir: Option<std::path::PathBuf>,
@@ -50,6 +52,7 @@ impl Default for EvalOptions {
             seed: 0,
             max_videos: 0,
             first_frame: FirstFrame::Generated,
+            strength: 1.0,
             grid_dir: None,
             grid_clips: 4,
         }
@@ -235,6 +238,7 @@ pub fn evaluate_split(
                 dynamic_cfg: false,
                 seed: opts.seed,
                 first_frame: opts.first_frame,
+                strength: opts.strength,
                 ..SampleOptions::default()
             },
         )?;

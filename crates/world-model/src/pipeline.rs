@@ -103,6 +103,14 @@ pub struct SampleOptions {
     /// How a batch's noise is drawn (initial latents, sampler noise and the
     /// first frame's posterior sample).
     pub batch_noise: BatchNoise,
+    /// Where sampling starts (in (0, 1]). 1: from pure noise at the first
+    /// inference timestep (diffusers' pipeline). `s < 1`: from the first
+    /// frame's latent copied to every latent frame and noised to the level of
+    /// the inference timestep a fraction `s` from the end, running only the
+    /// last `ceil(s * steps)` steps (SDEdit's start, as diffusers' img2img
+    /// `strength`): the static scene starts right and only what moves must be
+    /// drawn.
+    pub strength: f64,
 }
 
 impl Default for SampleOptions {
@@ -114,7 +122,15 @@ impl Default for SampleOptions {
             seed: 42,
             first_frame: FirstFrame::Generated,
             batch_noise: BatchNoise::Independent,
+            strength: 1.0,
         }
+    }
+}
+
+impl SampleOptions {
+    /// The inference steps that run at `strength` (at least one).
+    pub fn steps_run(&self) -> usize {
+        ((self.strength * self.steps as f64).ceil() as usize).clamp(1, self.steps.max(1))
     }
 }
 
@@ -157,15 +173,33 @@ pub fn sample_latents_with_progress(
             format!("shape {:?}: expected [B, F, C, h, w]", image_latents.size()),
         ));
     }
-    let timesteps = scheduler.set_timesteps(opts.steps)?.to_vec();
+    if !(opts.strength > 0.0 && opts.strength <= 1.0) {
+        return Err(WorldModelError::input(
+            "strength",
+            format!("{}: expected a number in (0, 1]", opts.strength),
+        ));
+    }
+    let all_timesteps = scheduler.set_timesteps(opts.steps)?.to_vec();
+    let skipped = all_timesteps.len() - opts.steps_run().min(all_timesteps.len());
+    scheduler.skip_steps(skipped)?;
+    let timesteps = all_timesteps[skipped..].to_vec();
     let (device, kind) = (image_latents.device(), image_latents.kind());
     let shape = image_latents.size();
     let generator_seed = opts.seed as i64;
     tch::manual_seed(generator_seed);
-    let mut latents = opts
-        .batch_noise
-        .randn(&shape, Kind::Float, device)
-        .to_kind(kind);
+    let mut latents = opts.batch_noise.randn(&shape, Kind::Float, device);
+    if skipped > 0 {
+        // [B, 1, C, h, w] -> [B, F, C, h, w]: the first frame's latent in every frame,
+        // noised to the level of the first timestep that runs.
+        let copy = image_latents
+            .narrow(1, 0, 1)
+            .to_kind(Kind::Float)
+            .expand(shape.as_slice(), false)
+            .contiguous();
+        let ts = Tensor::full([shape[0]], timesteps[0], (Kind::Int64, device));
+        latents = scheduler.add_noise(&copy, &latents, &ts)?;
+    }
+    let mut latents = latents.to_kind(kind);
     let n_train = scheduler.config().num_train_timesteps as f64;
     let batch = shape[0];
     let mut noise = |s: &[i64]| opts.batch_noise.randn(s, Kind::Float, device);
@@ -489,6 +523,101 @@ mod tests {
         );
         assert_eq!(counter.ticks.load(SeqCst), 0);
         assert_eq!(counter.finishes.load(SeqCst), 1);
+    }
+
+    /// Records the timesteps and the noisy latents it is called with, and
+    /// predicts like the oracle.
+    struct Recording {
+        oracle: Oracle,
+        calls: std::sync::Mutex<Vec<(i64, Tensor)>>,
+    }
+
+    impl Denoiser for Recording {
+        fn velocity(&self, latent_in: &Tensor, timestep: &Tensor, g: Guidance) -> Result<Tensor> {
+            let c = latent_in.size()[2] / 2;
+            self.calls
+                .lock()
+                .unwrap()
+                .push((timestep.int64_value(&[0]), latent_in.narrow(2, 0, c).copy()));
+            self.oracle.velocity(latent_in, timestep, g)
+        }
+    }
+
+    #[test]
+    fn a_partial_strength_starts_from_the_noised_first_frame() {
+        let mut cfg = SchedulerConfig::cogvideox_5b_i2v();
+        cfg.rescale_betas_zero_snr = false; // keep 1 - a > 0 for the oracle's inversion
+        let alphas = Scheduler::new(cfg.clone())
+            .unwrap()
+            .schedule()
+            .alphas_cumprod
+            .clone();
+        tch::manual_seed(11);
+        let x0 = Tensor::randn([1, 3, 4, 2, 2], (Kind::Float, Device::Cpu));
+        // Image latents: frame 0 set, later frames zeros (first-frame conditioning).
+        let image = Tensor::zeros([1, 3, 4, 2, 2], (Kind::Float, Device::Cpu));
+        let z0 = Tensor::randn([1, 1, 4, 2, 2], (Kind::Float, Device::Cpu));
+        image.narrow(1, 0, 1).copy_(&z0);
+        for kind in [SamplerKind::Ddim, SamplerKind::Dpm] {
+            let all = Scheduler::new(cfg.clone())
+                .unwrap()
+                .set_timesteps(10)
+                .unwrap()
+                .to_vec();
+            for (strength, run) in [(0.5, 5), (0.31, 4), (0.01, 1), (1.0, 10)] {
+                let rec = Recording {
+                    oracle: Oracle {
+                        x0: x0.shallow_clone(),
+                        alphas: alphas.clone(),
+                    },
+                    calls: Default::default(),
+                };
+                let opts = SampleOptions {
+                    steps: 10,
+                    guidance_scale: 1.0,
+                    seed: 9,
+                    strength,
+                    ..SampleOptions::default()
+                };
+                assert_eq!(opts.steps_run(), run);
+                let mut sched = Scheduler::new(cfg.clone()).unwrap().with_kind(kind);
+                let out = sample_latents(&rec, &mut sched, &image, &opts).unwrap();
+                let calls = rec.calls.lock().unwrap();
+                // Only the last `run` timesteps are denoised ...
+                let seen: Vec<i64> = calls.iter().map(|(t, _)| *t).collect();
+                assert_eq!(seen, all[10 - run..], "{kind:?} {strength}");
+                // ... starting from the image latent in every frame, noised to
+                // the first of them (pure noise at strength 1).
+                tch::manual_seed(9);
+                let eps = Tensor::randn([1, 3, 4, 2, 2], (Kind::Float, Device::Cpu));
+                let expected = if run < 10 {
+                    let a = alphas[all[10 - run] as usize];
+                    z0.expand([1, 3, 4, 2, 2], false) * a.sqrt() + eps * (1.0 - a).sqrt()
+                } else {
+                    eps
+                };
+                let start = (&calls[0].1 - expected).abs().max().double_value(&[]);
+                assert!(start < 1e-5, "{kind:?} {strength}: {start}");
+                // A perfect denoiser still ends at its clean sample.
+                let err = (out - &x0).abs().max().double_value(&[]);
+                assert!(err < 1e-3, "{kind:?} {strength}: {err}");
+            }
+        }
+        for bad in [0.0, -0.5, 1.5, f64::NAN] {
+            let opts = SampleOptions {
+                strength: bad,
+                ..SampleOptions::default()
+            };
+            let mut sched = Scheduler::new(cfg.clone()).unwrap();
+            let oracle = Oracle {
+                x0: x0.shallow_clone(),
+                alphas: alphas.clone(),
+            };
+            let e = sample_latents(&oracle, &mut sched, &image, &opts)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("strength") && e.contains("(0, 1]"), "{e}");
+        }
     }
 
     #[test]

@@ -442,6 +442,24 @@ impl Scheduler {
         Ok(&self.timesteps)
     }
 
+    /// Starts the chain at inference step `k` (after [`Scheduler::set_timesteps`]),
+    /// as a chain that starts from a partly noised sample does: the first
+    /// step that runs is then first order.
+    pub fn skip_steps(&mut self, k: usize) -> Result<()> {
+        if k >= self.timesteps.len() {
+            return Err(WorldModelError::input(
+                "skip_steps",
+                format!(
+                    "{k}: expected fewer than the {} inference timesteps",
+                    self.timesteps.len()
+                ),
+            ));
+        }
+        self.step_index = k;
+        self.old_pred_original = None;
+        Ok(())
+    }
+
     /// The inference timesteps (after [`Scheduler::set_timesteps`]).
     pub fn timesteps(&self) -> &[i64] {
         &self.timesteps

@@ -313,6 +313,7 @@ fn opts(seed: u64, guidance_scale: f64) -> PredictOptions {
             seed,
             first_frame: Default::default(),
             batch_noise: BatchNoise::Independent,
+            ..SampleOptions::default()
         },
     }
 }

@@ -54,6 +54,12 @@ pub struct ModelArgs {
     /// alone) or `independent`.
     #[arg(long, default_value = "shared")]
     pub batch_noise: BatchNoise,
+    /// Where a diffusion model's sampling starts, in (0, 1]: 1 from pure
+    /// noise; s < 1 from the first frame's latent in every frame, noised to
+    /// the level a fraction s from the end (only the last ceil(s * steps)
+    /// denoising steps run).
+    #[arg(long, default_value_t = 1.0)]
+    pub strength: f64,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     pub device: ComputeDevice,
@@ -76,6 +82,7 @@ impl From<&ModelArgs> for ModelOptions {
             prompt_embeds: a.prompt_embeds.clone(),
             denoise_steps: a.denoise_steps,
             batch_noise: a.batch_noise,
+            strength: a.strength,
             device: a.device,
             width: a.width,
             height: a.height,

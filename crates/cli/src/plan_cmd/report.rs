@@ -62,6 +62,11 @@ pub struct PlanReportArgs {
     /// `shared` (common random numbers) or `independent`.
     #[arg(long, default_value = "shared")]
     pub batch_noise: BatchNoise,
+    /// Where the diffusion models' sampling starts, in (0, 1]: 1 from pure
+    /// noise; s < 1 from the noised first frame (the last ceil(s * steps)
+    /// denoising steps run).
+    #[arg(long, default_value_t = 1.0)]
+    pub strength: f64,
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
@@ -93,6 +98,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         section: a.section.clone(),
         denoise_steps: a.denoise_steps,
         batch_noise: a.batch_noise,
+        strength: a.strength,
         device: a.device,
         seed: a.seed,
     };

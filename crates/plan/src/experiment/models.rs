@@ -26,6 +26,9 @@ pub struct ModelOptions {
     /// How the noise of a batch of candidates is drawn: shared (common random
     /// numbers, so candidates differ by their actions alone) or independent.
     pub batch_noise: BatchNoise,
+    /// Where a diffusion model's sampling starts ([`SampleOptions::strength`]:
+    /// 1 from pure noise, less from the noised first frame).
+    pub strength: f64,
     /// The device of a diffusion model.
     pub device: ComputeDevice,
     /// Image width of the synthetic world with the perfect model (pixels).
@@ -44,6 +47,7 @@ impl Default for ModelOptions {
             prompt_embeds: None,
             denoise_steps: 4,
             batch_noise: BatchNoise::Shared,
+            strength: 1.0,
             device: ComputeDevice::auto(),
             width: 96,
             height: 64,
@@ -72,6 +76,8 @@ pub enum LoadedModel {
         denoise_steps: usize,
         /// How a batch's noise is drawn.
         batch_noise: BatchNoise,
+        /// Where sampling starts.
+        strength: f64,
     },
 }
 
@@ -96,6 +102,7 @@ impl LoadedModel {
                     model: Box::new(model),
                     denoise_steps: o.denoise_steps,
                     batch_noise: o.batch_noise,
+                    strength: o.strength,
                 }
             }
         })
@@ -145,12 +152,14 @@ impl LoadedModel {
                 model,
                 denoise_steps,
                 batch_noise,
+                strength,
             } => {
                 let predict = PredictOptions {
                     sample: SampleOptions {
                         steps: *denoise_steps,
                         guidance_scale: 1.0,
                         batch_noise: *batch_noise,
+                        strength: *strength,
                         ..SampleOptions::default()
                     },
                 };

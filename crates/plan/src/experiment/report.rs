@@ -59,6 +59,7 @@ impl ReportModel {
             prompt_embeds: None,
             denoise_steps: o.denoise_steps,
             batch_noise: o.batch_noise,
+            strength: o.strength,
             device: o.device,
             width: 96,
             height: 64,
@@ -93,6 +94,8 @@ pub struct PlanReportOptions {
     pub denoise_steps: usize,
     /// How the diffusion models draw a batch's noise.
     pub batch_noise: BatchNoise,
+    /// Where the diffusion models' sampling starts (1 = pure noise).
+    pub strength: f64,
     /// The device of the diffusion models.
     pub device: ComputeDevice,
     /// Seed.
@@ -218,8 +221,10 @@ pub fn plan_report(
             match model {
                 ReportModel::Perfect => String::new(),
                 _ => format!(
-                    " ({} denoising steps, {} noise)",
-                    o.denoise_steps, o.batch_noise
+                    " ({} denoising steps, {} noise{})",
+                    o.denoise_steps,
+                    o.batch_noise,
+                    strength_note(o.strength)
                 ),
             },
             r.markdown()
@@ -284,4 +289,13 @@ fn plan_tables(
         }
     }
     Ok(md)
+}
+
+/// `, strength S` when sampling starts from the noised first frame, else nothing.
+pub(crate) fn strength_note(strength: f64) -> String {
+    if strength < 1.0 {
+        format!(", strength {strength}")
+    } else {
+        String::new()
+    }
 }
