@@ -1,23 +1,33 @@
 """BridgeV2W from Python: pixel-aligned embodiment masks from robot actions
-(any URDF, inverse kinematics, calibrated cameras) and the video metrics of
-the paper, over the project's Rust core (``bridgev2w._core``).
+(any URDF, inverse kinematics, calibrated cameras), the action-conditioned
+world model, the data commands and the video metrics of the paper, over the
+project's Rust core (``bridgev2w._core``).
 
     import bridgev2w as bw
     robot = bw.Robot("franka")                       # or bw.Robot.from_urdf(...)
     cam = bw.Camera.from_json("cam.json")            # or bw.Camera(K=..., world_from_camera=..., size=(w, h))
-    masks = bw.render_masks(robot, cam, joints=q)    # uint8 [T, H, W]
+    masks = bw.render_masks(robot, cam, joints=q)    # uint8 [T, H, W]; q [B, T, dof] gives [B, T, H, W]
     q, residuals = robot.solve_ik(actions)           # [T, dof], one residual per frame and arm
+    wm = bw.WorldModel.from_pretrained("assets/demo-model")
+    video = wm.predict(first_frame, masks, steps=20, seed=0)   # uint8 [T, H, W, 3] (numpy or torch)
+    bw.synth.generate("data", episodes_per_split=(4, 1, 1, 1))
+    bw.convert("raw/droid", "data/droid", format="droid", intrinsics="zed.json")
+    ep = bw.read_episode("data", 0)                  # frames, states, actions, camera, masks
     bw.metrics.psnr(pred, gt)
 
-Arrays are numpy arrays; a wrong dtype or shape is a ``ValueError`` naming
-the argument, a missing file a ``FileNotFoundError``, anything else the
-library refuses a ``bridgev2w.Error``. Rendering and IK release the GIL.
+Arrays are numpy arrays (the world model also takes and returns torch
+tensors); a wrong dtype or shape is a ``ValueError`` naming the argument and
+what was expected, a missing file a ``FileNotFoundError``, anything else the
+library refuses a ``bridgev2w.Error``. Rendering, IK, prediction and the
+data commands release the GIL; batches run on the Rust thread pool.
 """
 
 from __future__ import annotations
 
 import json
-from typing import NamedTuple, Optional, Sequence
+import numbers
+import os
+from typing import NamedTuple, Sequence, Union
 
 import numpy as np
 
@@ -29,22 +39,66 @@ except ImportError:  # the module's rpath names the build's libtorch
 from . import _core, metrics  # noqa: E402
 from ._core import Error  # noqa: E402
 
-__all__ = ["Robot", "Camera", "Residual", "render_masks", "WorldModel", "metrics", "lerobot", "Error",
-           "builtin_robots"]
+__all__ = ["Robot", "Camera", "Residual", "render_masks", "WorldModel", "metrics", "lerobot", "synth",
+           "convert", "ConvertReport", "read_episode", "Episode", "Error", "builtin_robots"]
 
 
-def _float_array(name, value, ndim, last=None):
-    a = np.asarray(value)
+def _is_tensor(x) -> bool:
+    return type(x).__module__.startswith("torch") and hasattr(x, "detach")
+
+
+def _array(name, value):
+    """``value`` as a numpy array (a torch tensor through its CPU copy, zero-copy on the CPU)."""
+    if _is_tensor(value):
+        return value.detach().cpu().numpy()
+    try:
+        return np.asarray(value)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name}: expected an array, got {type(value).__name__} ({e})") from None
+
+
+def _float_array(name, value, ndims, last=None):
+    """A float64 array of ``ndims`` (an int or a tuple of allowed ones) dimensions."""
+    a = _array(name, value)
     if a.dtype.kind not in "fiu":
         raise ValueError(f"{name}: expected a numeric array, got dtype {a.dtype}")
-    if a.ndim != ndim:
-        raise ValueError(f"{name}: expected {ndim} dimensions, got shape {a.shape}")
+    ndims = (ndims,) if isinstance(ndims, int) else tuple(ndims)
+    if a.ndim not in ndims:
+        want = " or ".join(str(n) for n in ndims)
+        raise ValueError(f"{name}: expected {want} dimensions, got shape {a.shape}")
     if last is not None and a.shape[-1] != last:
         raise ValueError(f"{name}: expected {last} values per row, got shape {a.shape}")
+    if a.size == 0:
+        raise ValueError(f"{name}: expected at least one frame, got shape {a.shape}")
     a = a.astype(np.float64)
     if not np.isfinite(a).all():
         raise ValueError(f"{name}: holds NaN or infinite values")
     return a
+
+
+def _int(name, value, lo, hi=None, even=False):
+    """An int within [lo, hi] (and even), else a ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name}: expected an integer, got {value!r}")
+    value = int(value)
+    if value < lo or (hi is not None and value > hi) or (even and value % 2):
+        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise ValueError(f"{name}: {value}, expected an {'even ' if even else ''}integer {rng}")
+    return value
+
+
+def _float(name, value):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _path(name, value, optional=False):
+    if value is None and optional:
+        return None
+    if not isinstance(value, (str, os.PathLike)):
+        raise ValueError(f"{name}: expected a path (str or os.PathLike), got {type(value).__name__}")
+    return os.fspath(value)
 
 
 class Residual(NamedTuple):
@@ -62,6 +116,8 @@ class Robot:
     with :meth:`from_urdf`."""
 
     def __init__(self, name: str = "franka", *, _core_robot=None):
+        if _core_robot is None and not isinstance(name, str):
+            raise ValueError(f"name: expected a built-in robot's name ({builtin_robots()}), got {name!r}")
         self._r = _core_robot if _core_robot is not None else _core.Robot(name)
 
     @classmethod
@@ -70,8 +126,11 @@ class Robot:
         """A robot from a URDF file; ``mesh_paths`` are searched for
         ``package://`` and relative meshes; ``ee_links`` (one per arm, in
         action order) and ``gripper_joints`` enable end-effector actions."""
+        if isinstance(mesh_paths, (str, os.PathLike)):
+            mesh_paths = [mesh_paths]
         return cls(_core_robot=_core.Robot.from_urdf(
-            str(path), [str(p) for p in mesh_paths], list(ee_links), list(gripper_joints)))
+            _path("path", path), [_path("mesh_paths", p) for p in mesh_paths], list(ee_links),
+            list(gripper_joints)))
 
     @property
     def name(self) -> str:
@@ -98,12 +157,18 @@ class Robot:
 
     def solve_ik(self, actions, *, allow_residual: bool = False):
         """Joint positions ``[T, dof]`` for end-effector ``actions``
-        ``[T, action_dim]`` (each frame warm-started from the previous one), and
-        a :class:`Residual` per frame and arm. An unreachable target is a
-        ``bridgev2w.Error`` unless ``allow_residual``."""
-        a = _float_array("actions", actions, 2, self.action_dim)
-        q, res = self._r.solve_ik(a.tolist(), allow_residual)
-        return np.array(q, dtype=np.float64).reshape(len(q), -1), [Residual(*r) for r in res]
+        ``[T, action_dim]`` (each frame warm-started from the previous one),
+        and a :class:`Residual` per frame and arm. A batch of sequences
+        ``[B, T, action_dim]`` gives ``[B, T, dof]`` and a list of residual
+        lists, the sequences solved in parallel on the Rust thread pool. An
+        unreachable target is a ``bridgev2w.Error`` unless ``allow_residual``."""
+        a = _float_array("actions", actions, (2, 3), self.action_dim)
+        single = a.ndim == 2
+        seqs = a[None] if single else a
+        out = self._r.solve_ik(seqs.tolist(), bool(allow_residual))
+        q = np.array([q for q, _ in out], dtype=np.float64).reshape(len(seqs), seqs.shape[1], -1)
+        res = [[Residual(*r) for r in rs] for _, rs in out]
+        return (q[0], res[0]) if single else (q, res)
 
     def __repr__(self) -> str:
         return repr(self._r)
@@ -126,11 +191,12 @@ class Camera:
         pose = _float_array("world_from_camera", world_from_camera, 2)
         if pose.shape != (4, 4):
             raise ValueError(f"world_from_camera: expected a 4x4 matrix, got shape {pose.shape}")
-        if len(size) != 2:
+        if not isinstance(size, (tuple, list)) or len(size) != 2:
             raise ValueError(f"size: expected (width, height), got {size!r}")
+        width, height = _int("size[0] (width)", size[0], 1), _int("size[1] (height)", size[1], 1)
         spec = {
             "fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2],
-            "width": int(size[0]), "height": int(size[1]),
+            "width": width, "height": height,
             "world_from_camera": pose.tolist(),
         }
         if dist is not None:
@@ -144,44 +210,77 @@ class Camera:
     @classmethod
     def from_json(cls, path) -> "Camera":
         """A camera from the JSON file ``bridgev2w masks --camera`` reads."""
-        return cls(_core_camera=_core.Camera.from_json(str(path)))
+        return cls(_core_camera=_core.Camera.from_json(_path("path", path)))
 
     def to_json(self) -> str:
         return self._c.to_json()
 
     def rescaled(self, width: int, height: int) -> "Camera":
         """This camera with its intrinsics scaled to ``width`` x ``height``."""
-        return Camera(_core_camera=self._c.rescaled(int(width), int(height)))
+        return Camera(_core_camera=self._c.rescaled(_int("width", width, 1), _int("height", height, 1)))
 
     @property
     def size(self) -> tuple[int, int]:
+        """``(width, height)`` in pixels."""
         return self._c.size
 
     def __repr__(self) -> str:
         return repr(self._c)
 
 
-def render_masks(robot: Robot, camera: Camera, *, joints=None, actions=None, labels: bool = False,
-                 depth: bool = False, allow_residual: bool = False):
+def render_masks(robot: Robot, camera: Union[Camera, Sequence[Camera]], *, joints=None, actions=None,
+                 labels: bool = False, depth: bool = False, allow_residual: bool = False):
     """The robot's masks as the camera sees them, one per frame: uint8
     ``[T, H, W]`` (1 = robot), or with ``labels=True`` the uint16 per-link
     labels (see :meth:`Robot.link_labels`). Give ``joints`` ``[T, dof]`` or
     end-effector ``actions`` ``[T, action_dim]`` (solved by IK first). With
     ``depth=True`` returns ``(masks, depth)``, depth float32 metres along the
-    camera's z, inf where no robot is."""
+    camera's z, inf where no robot is.
+
+    A batch of sequences, ``joints`` ``[B, T, dof]`` or ``actions`` ``[B, T,
+    action_dim]``, gives ``[B, T, H, W]``: every frame of every sequence is
+    rendered in parallel on the Rust thread pool. ``camera`` is then one
+    camera for all or a list of ``B`` cameras of one size."""
+    if not isinstance(robot, Robot):
+        raise ValueError(f"robot: expected a bridgev2w.Robot, got {type(robot).__name__}")
     if (joints is None) == (actions is None):
         raise ValueError("render_masks: give exactly one of joints= and actions=")
     if actions is not None:
         q, _ = robot.solve_ik(actions, allow_residual=allow_residual)
     else:
-        q = _float_array("joints", joints, 2, len(robot.joint_names))
-    w, h = camera.size
-    lab, dep = _core.render(robot._r, camera._c, q.tolist(), depth)
-    lab = np.frombuffer(lab, dtype="<u2").reshape(len(q), h, w)
-    out = lab.copy() if labels else (lab > 0).astype(np.uint8)
+        q = _float_array("joints", joints, (2, 3), len(robot.joint_names))
+    single = q.ndim == 2
+    seqs = q[None] if single else q
+    if isinstance(camera, Camera):
+        cams = [camera] * len(seqs)
+    elif isinstance(camera, (list, tuple)) and all(isinstance(c, Camera) for c in camera):
+        cams = list(camera)
+        if single or len(cams) != len(seqs):
+            raise ValueError(f"camera: expected one Camera or a list of one per sequence ({len(seqs)} "
+                             f"for joints/actions [B, T, ...]), got {len(cams)}")
+    else:
+        raise ValueError(f"camera: expected a bridgev2w.Camera (or a list of them), got {type(camera).__name__}")
+    w, h = cams[0].size
+    lab, dep = _core.render(robot._r, [c._c for c in cams], seqs.tolist(), bool(depth))
+    shape = (len(seqs), seqs.shape[1], h, w)
+    lab = np.frombuffer(lab, dtype="<u2").reshape(shape)
+    out = lab if labels else (lab > 0).astype(np.uint8)
+    if single:
+        out = out[0]
     if depth:
-        return out, np.frombuffer(dep, dtype="<f4").reshape(len(q), h, w).copy()
+        d = np.frombuffer(dep, dtype="<f4").reshape(shape)
+        return out, (d[0] if single else d)
     return out
+
+
+def _frames(name, a, shape, batch_ndim):
+    """``a`` (uint8 ``shape`` or ``[B, *shape]``) as a contiguous batch."""
+    if a.dtype != np.uint8:
+        raise ValueError(f"{name}: expected uint8 {list(shape)} (or [B, ...]), got dtype {a.dtype}")
+    if a.ndim not in (batch_ndim - 1, batch_ndim) or tuple(a.shape[-len(shape):]) != tuple(shape):
+        raise ValueError(f"{name}: expected {list(shape)} or [B, {', '.join(map(str, shape))}] for this model, "
+                         f"got shape {tuple(a.shape)}")
+    return np.ascontiguousarray(a if a.ndim == batch_ndim else a[None])
 
 
 class WorldModel:
@@ -198,9 +297,11 @@ class WorldModel:
         ``bridgev2w.safetensors``), a diffusers CogVideoX-I2V folder or Hub
         name (from the local Hugging Face cache, offline) with BridgeV2W
         ``weights``, or ``random:PRESET``. ``device``: ``cpu``, ``cuda``,
-        ``cuda:N`` or ``auto``; ``precision``: ``f32`` or ``bf16``."""
+        ``cuda:N`` or ``auto``; ``precision``: ``f32`` or ``bf16``; ``seed``
+        initialises a ``random:`` model (as ``bridgev2w predict --seed``)."""
         return cls(_core.WorldModel.from_pretrained(
-            str(model), None if weights is None else str(weights), device, precision, int(seed)))
+            _path("model", model), _path("weights", weights, optional=True), str(device), str(precision),
+            _int("seed", seed, -2 ** 63, 2 ** 63 - 1)))
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -215,19 +316,47 @@ class WorldModel:
     def predict(self, first_frame, masks, *, steps: int = 20, seed: int = 0, guidance: float = 1.0):
         """The predicted video, uint8 ``[T, H, W, 3]`` (frame 0 is the first
         frame's reconstruction), from ``first_frame`` uint8 ``[H, W, 3]`` and
-        ``masks`` ``[T, H, W]`` (non-zero = robot), sampled with ``steps``
-        denoising steps from noise seed ``seed``."""
+        ``masks`` ``[T, H, W]`` (uint8 or bool, non-zero = robot), sampled
+        with ``steps`` denoising steps from noise seed ``seed``.
+
+        A batch, ``first_frame`` ``[B, H, W, 3]`` and/or ``masks`` ``[B, T,
+        H, W]`` (one side may be unbatched: it is shared), gives ``[B, T, H,
+        W, 3]`` from one batched run of the model; each item is the video a
+        batch of one with the same seed gives. numpy in, numpy out; a torch
+        tensor in (either argument), a torch tensor out, on the first such
+        argument's device. The GIL is released while the model runs."""
         h, w = self.resolution
         t = self.clip_frames
-        f = np.asarray(first_frame)
-        if f.dtype != np.uint8 or f.shape != (h, w, 3):
-            raise ValueError(f"first_frame: expected uint8 [{h}, {w}, 3] for this model, got {f.dtype} {f.shape}")
-        m = np.asarray(masks)
-        if m.shape != (t, h, w):
-            raise ValueError(f"masks: expected [{t}, {h}, {w}] for this model, got shape {m.shape}")
-        video = self._m.predict(np.ascontiguousarray(f).tobytes(), (m != 0).astype(np.uint8).tobytes(),
-                                int(steps), int(seed), float(guidance))
-        return np.frombuffer(video, dtype=np.uint8).reshape(t, h, w, 3).copy()
+        as_torch = next((x for x in (first_frame, masks) if _is_tensor(x)), None)
+        f = _array("first_frame", first_frame)
+        single = f.ndim == 3
+        f = _frames("first_frame", f, (h, w, 3), 4)
+        m = _array("masks", masks)
+        if m.dtype.kind == "f" and np.isin(m, (0.0, 1.0)).all():
+            m = m.astype(np.uint8)
+        if m.dtype.kind not in "biu":
+            raise ValueError(f"masks: expected uint8 or bool masks (0/1), got dtype {m.dtype}")
+        if m.ndim not in (3, 4) or tuple(m.shape[-3:]) != (t, h, w):
+            raise ValueError(f"masks: expected [{t}, {h}, {w}] or [B, {t}, {h}, {w}] for this model, "
+                             f"got shape {tuple(m.shape)}")
+        single = single and m.ndim == 3
+        m = (m if m.ndim == 4 else m[None]) != 0
+        b = max(len(f), len(m))
+        if len(f) not in (1, b) or len(m) not in (1, b):
+            raise ValueError(f"first_frame {len(f)} and masks {len(m)}: expected batches of one size")
+        f = np.broadcast_to(f, (b, h, w, 3))
+        m = np.broadcast_to(m, (b, t, h, w))
+        video = self._m.predict(np.ascontiguousarray(f).tobytes(), m.astype(np.uint8).tobytes(), b,
+                                _int("steps", steps, 1), _int("seed", seed, 0, 2 ** 64 - 1),
+                                _float("guidance", guidance))
+        out = np.frombuffer(video, dtype=np.uint8).reshape(b, t, h, w, 3)
+        if single:
+            out = out[0]
+        if as_torch is not None:
+            import torch
+
+            return torch.from_numpy(out).to(as_torch.device)
+        return out
 
     def __repr__(self) -> str:
         return repr(self._m)
@@ -238,4 +367,5 @@ def builtin_robots() -> str:
     return _core.builtin_robots()
 
 
-from . import lerobot  # noqa: E402  (uses the names above)
+from . import lerobot, synth  # noqa: E402  (use the names above)
+from ._data import ConvertReport, Episode, convert, read_episode  # noqa: E402

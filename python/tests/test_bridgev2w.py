@@ -2,19 +2,25 @@
 code reached another way) and closed forms. Run by
 crates/cli/tests/python_package.rs after `pip install ./python`:
 
-  python python/tests/test_bridgev2w.py BRIDGEV2W_BINARY WORKDIR
+  python python/tests/test_bridgev2w.py BRIDGEV2W_BINARY WORKDIR RAW_FIXTURES
+
+RAW_FIXTURES: the raw DROID/AgiBot episodes of
+scripts/fixtures/write_raw_episodes.py with their videos (written by the
+Rust test).
 """
 
 import json
 import pathlib
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 
 import bridgev2w as bw
 
-BIN, WORK = sys.argv[1], pathlib.Path(sys.argv[2])
+BIN, WORK, RAW = sys.argv[1], pathlib.Path(sys.argv[2]), pathlib.Path(sys.argv[3])
 
 
 def cli_masks(tmp, robot, cam, *, joints=None, actions=None, depth=False):
@@ -166,8 +172,192 @@ def test_metrics_match_closed_forms():
     assert abs(bw.metrics.mask_iou(a, b) - (a & b).sum() / (a | b).sum()) < 1e-12
 
 
+def files(root):
+    """{relative path: bytes} of every file under root."""
+    root = pathlib.Path(root)
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def same_tree(a, b):
+    fa, fb = files(a), files(b)
+    assert sorted(fa) == sorted(fb), (sorted(set(fa) ^ set(fb)))
+    differ = [k for k in fa if fa[k] != fb[k]]
+    assert not differ, f"files differ between {a} and {b}: {differ}"
+    return len(fa)
+
+
+def test_synth_generate_writes_what_the_cli_writes():
+    out = WORK / "synth-py"
+    s = bw.synth.generate(out, episodes_per_split=(2, 1, 0, 1), frames=5, width=32, height=24, seed=4,
+                          tasks=["reach", "push"])
+    assert s.episodes == 4 and s.total_frames == 20, s
+    assert s.episodes_per_split == {"train": 2, "test": 1, "unseen_scene": 1}, s.episodes_per_split
+    assert s.episodes_per_task == {"reach": 2, "push": 2}, s.episodes_per_task
+    assert pathlib.Path(s.out) == out
+    subprocess.run([BIN, "synth", "--out", str(WORK / "synth-cli"), "--episodes-per-split", "2,1,0,1",
+                    "--frames", "5", "--width", "32", "--height", "24", "--seed", "4", "--tasks", "reach,push"],
+                   check=True, capture_output=True)
+    n = same_tree(out, WORK / "synth-cli")
+    assert n > 8, n
+    # Read back: the masks it wrote are what render_masks gives for the
+    # episode's camera and joints (stored as float32: to a few edge pixels).
+    ep = bw.read_episode(out, 3)
+    assert ep.frames.shape == (5, 24, 32, 3) and ep.frames.dtype == np.uint8, ep.frames.shape
+    assert ep.states.shape == (5, 8) and ep.actions.shape == (5, 7) and ep.split == "unseen_scene", ep
+    assert np.array_equal(ep.masks, np.load(out / "masks/episode_000003.npy"))
+    assert ep.camera.size == (32, 24) and ep.key == "observation.images.main"
+    masks = bw.render_masks(bw.Robot("franka"), ep.camera, joints=ep.states)
+    assert bw.metrics.mask_iou(masks, ep.masks) > 0.9, bw.metrics.mask_iou(masks, ep.masks)
+    try:
+        bw.synth.generate(out, episodes_per_split=1, frames=5, width=32, height=24)
+        raise AssertionError("an existing out passed")
+    except FileExistsError as e:
+        assert "synth-py" in str(e), e
+
+
+def test_convert_writes_what_the_cli_writes():
+    droid = RAW / "droid"
+    intr = RAW / "droid_intrinsics.json"
+    r = bw.convert(droid, WORK / "droid-py", format="droid", intrinsics=intr, width=32, height=24)
+    assert (r.episodes, r.views_written, r.skipped) == (1, 2, []), r
+    subprocess.run([BIN, "convert", "--format", "droid", str(droid), "--out", str(WORK / "droid-cli"),
+                    "--intrinsics", str(intr), "--width", "32", "--height", "24"], check=True,
+                   capture_output=True)
+    same_tree(WORK / "droid-py", WORK / "droid-cli")
+    ep = bw.read_episode(WORK / "droid-py", 1)
+    assert ep.frames.shape[1:] == (24, 32, 3) and ep.states.shape[1] == 8, (ep.frames.shape, ep.states.shape)
+    # AgiBot World onto a Robot object, one camera.
+    g1 = bw.Robot("agibot-g1")
+    r = bw.convert(RAW / "agibot", WORK / "g1-py", format="agibot", robot=g1, width=32, height=24,
+                   cameras="head", gripper_range=(0, 120))
+    assert r.episodes == 1 and r.views_written == 1, r
+    subprocess.run([BIN, "convert", "--format", "agibot", str(RAW / "agibot"), "--out", str(WORK / "g1-cli"),
+                    "--width", "32", "--height", "24", "--cameras", "head"], check=True, capture_output=True)
+    same_tree(WORK / "g1-py", WORK / "g1-cli")
+    # A bad episode: an error naming it, or skipped and reported.
+    try:
+        bw.convert(RAW / "droid_bad", WORK / "bad", format="droid", intrinsics=intr, width=32, height=24)
+        raise AssertionError("a bad episode passed")
+    except bw.Error as e:
+        assert "trajectory_length" in str(e) or "NaN" in str(e), e
+    assert not (WORK / "bad").exists(), "nothing half-written"
+    import shutil
+
+    shutil.copytree(droid, WORK / "mixed" / "good")
+    shutil.copytree(RAW / "droid_bad", WORK / "mixed" / "bad")
+    r = bw.convert(WORK / "mixed", WORK / "bad", format="droid", intrinsics=intr, width=32, height=24,
+                   skip_bad=True)
+    assert (r.episodes, r.views_written, len(r.skipped)) == (1, 2, 2), r
+    assert (WORK / "bad" / "skipped.json").is_file()
+
+
+def test_batches_equal_their_single_items():
+    robot, cam = bw.Robot("franka"), camera()
+    t = np.arange(3)[:, None, None]
+    dof = len(robot.joint_names)
+    q = robot.home[None, None, :] + 0.15 * np.sin(0.7 * t + 0.3 * np.arange(4)[None, :, None] + np.arange(dof))
+    q[..., -1] = 0.02
+    masks = bw.render_masks(robot, cam, joints=q)  # [B=3, T=4, H, W]
+    assert masks.shape == (3, 4, 120, 160) and masks.dtype == np.uint8
+    for b in range(3):
+        assert np.array_equal(masks[b], bw.render_masks(robot, cam, joints=q[b])), b
+    # One camera per sequence.
+    other = cam.rescaled(160, 120)
+    labels, depth = bw.render_masks(robot, [cam, other, cam], joints=q, labels=True, depth=True)
+    assert labels.shape == depth.shape == (3, 4, 120, 160) and np.array_equal(labels > 0, masks)
+    # IK of a batch of action sequences, in parallel: as one at a time.
+    a = np.array([[[0.32 + 0.01 * t + 0.02 * b, -0.02, 0.46, np.pi, 0.0, 0.08, 0.2 * t] for t in range(3)]
+                  for b in range(2)])
+    qb, res = robot.solve_ik(a)
+    assert qb.shape == (2, 3, dof) and len(res) == 2 and len(res[1]) == 3
+    for b in range(2):
+        q1, r1 = robot.solve_ik(a[b])
+        assert np.array_equal(q1, qb[b]) and r1 == res[b]
+    mb = bw.render_masks(robot, cam, actions=a)
+    assert np.array_equal(mb[1], bw.render_masks(robot, cam, actions=a[1]))
+
+
+def test_world_model_batches_and_torch_tensors():
+    import torch
+
+    wm = bw.WorldModel.from_pretrained("random:tiny", seed=3)
+    (h, w), t = wm.resolution, wm.clip_frames
+    rng = np.random.default_rng(2)
+    first = rng.integers(0, 256, (2, h, w, 3), dtype=np.uint8)
+    masks = np.zeros((2, t, h, w), np.uint8)
+    masks[0, :, : h // 2] = 1
+    masks[1, :, :, w // 2:] = 1
+    videos = wm.predict(first, masks, steps=2, seed=5)
+    assert videos.shape == (2, t, h, w, 3) and videos.dtype == np.uint8
+    for b in range(2):
+        one = wm.predict(first[b], masks[b], steps=2, seed=5)
+        diff = np.abs(one.astype(int) - videos[b].astype(int))
+        assert diff.max() <= 1 and diff.mean() < 0.01, (b, diff.max(), diff.mean())
+    # One first frame shared by a batch of masks.
+    shared = wm.predict(first[0], masks, steps=2, seed=5)
+    assert shared.shape == (2, t, h, w, 3)
+    assert np.abs(shared[0].astype(int) - videos[0].astype(int)).max() <= 1
+    # torch in, torch out (the same numbers).
+    tv = wm.predict(torch.from_numpy(first[1]), torch.from_numpy(masks[1]).bool(), steps=2, seed=5)
+    assert isinstance(tv, torch.Tensor) and tv.dtype == torch.uint8 and tuple(tv.shape) == (t, h, w, 3)
+    assert np.abs(tv.numpy().astype(int) - videos[1].astype(int)).max() <= 1
+
+
+def test_the_gil_is_released_while_predicting_and_rendering():
+    # A prediction in a thread: the main thread keeps running Python meanwhile.
+    wm = bw.WorldModel.from_pretrained("random:tiny", seed=3)
+    (h, w), t = wm.resolution, wm.clip_frames
+    first = np.zeros((h, w, 3), np.uint8)
+    masks = np.ones((t, h, w), np.uint8)
+    span = {}
+
+    def predict():
+        span["start"] = time.perf_counter()
+        wm.predict(first, masks, steps=3, seed=0)
+        span["end"] = time.perf_counter()
+
+    worker = threading.Thread(target=predict)
+    ticks = []
+    worker.start()
+    while worker.is_alive():
+        ticks.append(time.perf_counter())
+        time.sleep(0.002)
+    worker.join()
+    inside = [x for x in ticks if span["start"] < x < span["end"]]
+    took = span["end"] - span["start"]
+    # With the GIL held for the whole call, no tick could fall inside it.
+    assert took > 0.05 and len(inside) >= 10, (took, len(inside))
+    gaps = np.diff([span["start"], *inside, span["end"]])
+    assert gaps.max() < max(0.5 * took, 0.05), (took, gaps.max())
+
+    # Two threads rendering at once: their calls overlap in time (with the GIL
+    # held, one would wait for the other to finish).
+    robot, cam = bw.Robot("franka"), camera().rescaled(480, 360)
+    q = np.repeat(robot.home[None], 48, axis=0)
+    q[:, 0] = np.linspace(-1, 1, 48)
+    q[:, -1] = 0.02
+    spans = [None, None]
+    barrier = threading.Barrier(2)
+
+    def render(i):
+        barrier.wait()
+        s = time.perf_counter()
+        bw.render_masks(robot, cam, joints=q, depth=True)
+        spans[i] = (s, time.perf_counter())
+
+    threads = [threading.Thread(target=render, args=(i,)) for i in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    (s0, e0), (s1, e1) = spans
+    overlap = min(e0, e1) - max(s0, s1)
+    assert overlap > 0.5 * min(e0 - s0, e1 - s1), (spans, overlap)
+
+
 def test_bad_input_is_a_python_exception_naming_it():
     robot, cam = bw.Robot("franka"), camera()
+    wm = bw.WorldModel.from_pretrained("random:tiny")
     cases = [
         (lambda: bw.render_masks(robot, cam, joints=np.zeros((2, 3))), ValueError, "joints"),
         (lambda: bw.render_masks(robot, cam, joints=np.full((1, len(robot.joint_names)), np.nan)), ValueError, "NaN"),
@@ -180,6 +370,54 @@ def test_bad_input_is_a_python_exception_naming_it():
         (lambda: bw.Robot.from_urdf(WORK / "missing.urdf"), FileNotFoundError, "missing.urdf"),
         (lambda: bw.metrics.psnr(np.zeros((4, 4, 3)), np.zeros((4, 4, 3))), ValueError, "uint8"),
         (lambda: bw.metrics.mask_iou(np.zeros(3), np.zeros(4)), ValueError, "same shape"),
+        # Batches.
+        (lambda: bw.render_masks(robot, [cam, cam], joints=np.zeros((3, 2, 8))), ValueError, "camera"),
+        (lambda: bw.render_masks(robot, [cam, cam.rescaled(80, 60)], joints=np.tile(robot.home, (2, 1, 1))),
+         ValueError, "one size"),
+        (lambda: bw.render_masks(robot, "cam.json", joints=robot.home[None]), ValueError, "camera"),
+        (lambda: bw.render_masks(robot, cam, joints=np.zeros((1, 1, 1, 8))), ValueError, "joints"),
+        (lambda: bw.render_masks(robot, cam, joints=np.array([["a"] * 8])), ValueError, "joints"),
+        (lambda: robot.solve_ik(np.zeros((2, 0, 7))), ValueError, "actions"),
+        # The world model (random:tiny: 9 frames of 64x96).
+        (lambda: wm.predict(np.zeros((64, 96, 3)), np.zeros((9, 64, 96), np.uint8)), ValueError, "first_frame"),
+        (lambda: wm.predict(np.zeros((64, 96, 3), np.uint8), np.zeros((8, 64, 96), np.uint8)), ValueError, "masks"),
+        (lambda: wm.predict(np.zeros((64, 96, 3), np.uint8), np.full((9, 64, 96), 0.5)), ValueError, "masks"),
+        (lambda: wm.predict(np.zeros((2, 64, 96, 3), np.uint8), np.zeros((3, 9, 64, 96), np.uint8)),
+         ValueError, "batches"),
+        (lambda: wm.predict(np.zeros((64, 96, 3), np.uint8), np.zeros((9, 64, 96), np.uint8), steps=0),
+         ValueError, "steps"),
+        (lambda: wm.predict(np.zeros((64, 96, 3), np.uint8), np.zeros((9, 64, 96), np.uint8), guidance="x"),
+         ValueError, "guidance"),
+        (lambda: bw.WorldModel.from_pretrained("random:tiny", device="tpu"), ValueError, "device"),
+        # synth.
+        (lambda: bw.synth.generate(WORK / "s1", frames=1), ValueError, "frames"),
+        (lambda: bw.synth.generate(WORK / "s1", width=33), ValueError, "width"),
+        (lambda: bw.synth.generate(WORK / "s1", height=16.0), ValueError, "height"),
+        (lambda: bw.synth.generate(WORK / "s1", episodes_per_split=(1, 2)), ValueError, "episodes_per_split"),
+        (lambda: bw.synth.generate(WORK / "s1", episodes_per_split=0), ValueError, "episodes_per_split"),
+        (lambda: bw.synth.generate(WORK / "s1", tasks="reach,fly"), ValueError, "tasks"),
+        (lambda: bw.synth.generate(WORK / "s1", fps=0), ValueError, "fps"),
+        (lambda: bw.synth.generate(WORK / "s1", robot="no-such-robot", episodes_per_split=1), bw.Error,
+         "no-such-robot"),
+        (lambda: bw.synth.generate(None), ValueError, "out"),
+        # convert.
+        (lambda: bw.convert(WORK / "no-raw", WORK / "c1", format="agibot"), FileNotFoundError, "no-raw"),
+        (lambda: bw.convert(RAW / "droid", WORK / "c1", format="droid", intrinsics=WORK / "no-intr.json"),
+         FileNotFoundError, "no-intr.json"),
+        (lambda: bw.convert(RAW / "droid", WORK / "c1", format="droid"), ValueError, "intrinsics"),
+        (lambda: bw.convert(RAW / "droid", WORK / "c1", format="rlds"), ValueError, "format"),
+        (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", width=31), ValueError, "width"),
+        (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", gripper_range="abc"), ValueError,
+         "gripper_range"),
+        (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", cameras=[1]), ValueError, "cameras"),
+        (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", robot=WORK / "no.urdf"),
+         FileNotFoundError, "no.urdf"),
+        (lambda: bw.convert(RAW / "agibot", RAW / "droid", format="agibot"), FileExistsError, "droid"),
+        (lambda: bw.convert(RAW / "droid", WORK / "c1", format="agibot"), FileNotFoundError, "proprio_stats"),
+        (lambda: bw.read_episode(WORK / "no-dataset"), FileNotFoundError, "no-dataset"),
+        (lambda: bw.read_episode(WORK / "synth-py", 99), bw.Error, "99"),
+        (lambda: bw.read_episode(WORK / "synth-py", 0, key="observation.images.top"), ValueError, "key"),
+        (lambda: bw.read_episode(WORK / "synth-py", -1), ValueError, "episode"),
     ]
     for call, kind, needle in cases:
         try:
@@ -191,7 +429,7 @@ def test_bad_input_is_a_python_exception_naming_it():
 
 
 if __name__ == "__main__":
-    tests = [v for k, v in sorted(globals().items()) if k.startswith("test_")]
+    tests = [v for k, v in list(globals().items()) if k.startswith("test_")]  # in file order
     for t in tests:
         t()
         print(f"ok {t.__name__}")

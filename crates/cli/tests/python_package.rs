@@ -1,7 +1,12 @@
 //! The Python package (`python/`, PyO3 + maturin): `pip install ./python`
 //! into a fresh venv (numpy from the project venv), then its tests
 //! (`python/tests/test_bridgev2w.py`: masks and IK against `bridgev2w
-//! masks`, metrics against closed forms, bad input as Python exceptions).
+//! masks`, `bw.synth.generate` and `bw.convert` against `bridgev2w synth`
+//! and `convert`, predictions against `bridgev2w predict`, batches against
+//! their single items, the GIL released, metrics against closed forms, bad
+//! input as Python exceptions), then the Python guides' examples
+//! (`docs/guide/python.md`, `docs/guide/own-robot.md`: every ```` ```sh ````
+//! and ```` ```python ```` block, in order, in a sandbox).
 //! The wheel is built in its own target folder (`target/python`): this test
 //! runs inside `cargo test`, which holds the workspace's.
 
@@ -66,14 +71,126 @@ fn pip_install_python_then_its_tests_pass() {
     ok(&install);
     let work = dir.path().join("work");
     std::fs::create_dir(&work).expect("mkdir");
+    let raw = dir.path().join("raw");
+    raw_fixtures(&project_python, &raw);
     let o = Command::new(venv.join("bin/python"))
         .arg(repo().join("python/tests/test_bridgev2w.py"))
         .arg(env!("CARGO_BIN_EXE_bridgev2w"))
         .arg(&work)
+        .arg(&raw)
         .current_dir(dir.path())
         .output()
         .expect("run the package's tests");
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
-    assert!(String::from_utf8_lossy(&o.stdout).contains("6 passed"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("11 passed"));
+    for guide in ["python.md", "own-robot.md"] {
+        run_guide(guide, &venv, &raw);
+    }
+}
+
+/// The raw DROID / AgiBot World episodes of
+/// `scripts/fixtures/write_raw_episodes.py` (HDF5 through the project
+/// venv's h5py) with their videos, in `dir`.
+fn raw_fixtures(python: &Path, dir: &Path) {
+    ok(&Command::new(python)
+        .arg(repo().join("scripts/fixtures/write_raw_episodes.py"))
+        .arg(dir)
+        .output()
+        .expect("write the raw fixtures"));
+    let expected: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("expected.json")).expect("expected.json"),
+    )
+    .expect("json");
+    for v in expected["videos"].as_array().expect("videos") {
+        bridgev2w_data::video::write_test_pattern(
+            Path::new(v.as_str().expect("path")),
+            (64, 48),
+            6,
+            15,
+        )
+        .expect("mp4");
+    }
+}
+
+const FENCE: &str = "```";
+
+/// Runs a guide's ```` ```sh ```` and ```` ```python ```` blocks in order in
+/// a sandbox: the repository's `assets/`, `configs/` and
+/// `crates/embodiment/robots/` linked in, the raw fixtures' DROID episode
+/// as `raw/droid` with its intrinsics as `zed_intrinsics.json`, `bridgev2w`
+/// and the venv's `python` first on `PATH`.
+fn run_guide(name: &str, venv: &Path, raw: &Path) {
+    let text = std::fs::read_to_string(repo().join("docs/guide").join(name)).expect("guide");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let bin = d.join(".bin");
+    std::fs::create_dir(&bin).expect("mkdir");
+    std::os::unix::fs::symlink(env!("CARGO_BIN_EXE_bridgev2w"), bin.join("bridgev2w"))
+        .expect("link bridgev2w");
+    for shared in ["assets", "configs"] {
+        std::os::unix::fs::symlink(repo().join(shared), d.join(shared)).expect("link");
+    }
+    std::fs::create_dir(d.join("raw")).expect("mkdir raw");
+    std::os::unix::fs::symlink(raw.join("droid"), d.join("raw/droid")).expect("link droid");
+    std::os::unix::fs::symlink(
+        raw.join("droid_intrinsics.json"),
+        d.join("zed_intrinsics.json"),
+    )
+    .expect("link intrinsics");
+    std::fs::create_dir_all(d.join("crates/embodiment")).expect("mkdir");
+    std::os::unix::fs::symlink(
+        repo().join("crates/embodiment/robots"),
+        d.join("crates/embodiment/robots"),
+    )
+    .expect("link robots");
+    let path = format!(
+        "{}:{}:{}",
+        bin.display(),
+        venv.join("bin").display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let (mut ran, mut open): (usize, Option<(String, String)>) = (0, None);
+    for line in text.lines() {
+        match (&mut open, line.trim_start().strip_prefix(FENCE)) {
+            (None, Some(info)) => open = Some((info.trim().to_string(), String::new())),
+            (Some(_), Some(_)) => {
+                let (info, body) = open.take().expect("open block");
+                let mut c = match info.as_str() {
+                    "sh" => {
+                        let mut c = Command::new("bash");
+                        c.args(["-euo", "pipefail", "-c"]);
+                        c
+                    }
+                    // The venv's python (first on PATH).
+                    "python" => {
+                        let mut c = Command::new(venv.join("bin/python"));
+                        c.arg("-c");
+                        c
+                    }
+                    _ => continue,
+                };
+                let o = c
+                    .arg(&body)
+                    .current_dir(d)
+                    .env("PATH", &path)
+                    .env("RUST_BACKTRACE", "0")
+                    .output()
+                    .expect("run a block");
+                assert!(
+                    o.status.success(),
+                    "{name}: this block failed:\n{body}\nstdout:\n{}\nstderr:\n{}",
+                    String::from_utf8_lossy(&o.stdout),
+                    String::from_utf8_lossy(&o.stderr)
+                );
+                ran += 1;
+            }
+            (Some((_, body)), None) => {
+                body.push_str(line);
+                body.push('\n');
+            }
+            (None, None) => {}
+        }
+    }
+    assert!(ran >= 2, "{name}: {ran} runnable blocks");
 }

@@ -4,11 +4,19 @@
 //! the results as numpy arrays. Rendering and inverse kinematics run with the
 //! GIL released, on the embodiment crate's thread pool.
 
+use bridgev2w_data::raw::agibot::{self, AgibotOptions};
+use bridgev2w_data::raw::convert::{convert as convert_episodes, ConvertError, ConvertOptions};
+use bridgev2w_data::raw::droid::{self, DroidOptions};
+use bridgev2w_data::raw::RawError;
+use bridgev2w_data::synth::{
+    plan, write_dataset, SynthConfig, SynthError, Task, WriteDatasetError,
+};
 use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, Trajectory};
 use bridgev2w_embodiment::camera::Camera as RsCamera;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_embodiment::masks::{link_labels, render_trajectory};
+use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
 use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
@@ -17,10 +25,11 @@ use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::video::MaskVideo;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use pyo3::create_exception;
-use pyo3::exceptions::{PyException, PyFileNotFoundError, PyValueError};
+use pyo3::exceptions::{PyException, PyFileExistsError, PyFileNotFoundError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::PyBytes;
-use std::path::PathBuf;
+use pyo3::types::{PyByteArray, PyDict};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
 
 create_exception!(
     _core,
@@ -111,46 +120,76 @@ impl Robot {
         link_labels(&self.inner.robot)
     }
 
-    /// Joint positions for end-effector `actions` (`[T][7 * arms]`) and a
-    /// residual per frame and arm: `(frame, arm, position_error_m,
-    /// rotation_error_rad, reached)`. Unreached targets are an error unless
-    /// `allow_residual`.
+    /// Joint positions for a batch of end-effector action sequences
+    /// (`[B][T][7 * arms]`), each warm-started from the home configuration
+    /// and frame to frame, and a residual per frame and arm: `(frame, arm,
+    /// position_error_m, rotation_error_rad, reached)`. The sequences are
+    /// solved in parallel on the Rust thread pool, with the GIL released.
+    /// Unreached targets are an error unless `allow_residual`.
     #[pyo3(signature = (actions, allow_residual = false))]
     #[allow(clippy::type_complexity)]
     fn solve_ik(
         &self,
         py: Python<'_>,
-        actions: Vec<Vec<f64>>,
+        actions: Vec<Vec<Vec<f64>>>,
         allow_residual: bool,
-    ) -> PyResult<(Vec<Vec<f64>>, Vec<(usize, String, f64, f64, bool)>)> {
-        let traj = Trajectory::new("actions", actions)
+    ) -> PyResult<Vec<(Vec<Vec<f64>>, Vec<(usize, String, f64, f64, bool)>)>> {
+        let batched = actions.len() > 1;
+        let name = |b: usize| {
+            if batched {
+                format!("actions[{b}]")
+            } else {
+                "actions".to_string()
+            }
+        };
+        let trajs = actions
+            .into_iter()
+            .enumerate()
+            .map(|(b, a)| Trajectory::new(&name(b), a))
+            .collect::<Result<Vec<_>, _>>()
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let e = &self.inner;
-        let (q, residuals) = py
-            .detach(|| {
-                actions_to_joints(
-                    &e.robot,
-                    &e.end_effectors,
-                    &traj,
-                    &e.home,
-                    &IkOptions::default(),
-                    allow_residual,
-                )
-            })
-            .map_err(err)?;
-        let res = residuals
+        let solved = py.detach(|| {
+            trajs
+                .par_iter()
+                .map(|traj| {
+                    actions_to_joints(
+                        &e.robot,
+                        &e.end_effectors,
+                        traj,
+                        &e.home,
+                        &IkOptions::default(),
+                        allow_residual,
+                    )
+                })
+                .collect::<Vec<_>>()
+        });
+        solved
             .into_iter()
-            .map(|r| {
-                (
-                    r.frame,
-                    r.arm,
-                    r.position_error_m,
-                    r.rotation_error_rad,
-                    r.reached,
-                )
+            .enumerate()
+            .map(|(b, r)| {
+                let (q, residuals) = r.map_err(|e| {
+                    if batched {
+                        err(format!("{}: {e}", name(b)))
+                    } else {
+                        err(e)
+                    }
+                })?;
+                let res = residuals
+                    .into_iter()
+                    .map(|r| {
+                        (
+                            r.frame,
+                            r.arm,
+                            r.position_error_m,
+                            r.rotation_error_rad,
+                            r.reached,
+                        )
+                    })
+                    .collect();
+                Ok((q, res))
             })
-            .collect();
-        Ok((q, res))
+            .collect()
     }
 
     fn __repr__(&self) -> String {
@@ -222,37 +261,74 @@ impl Camera {
     }
 }
 
-/// Renders `joints` (`[T][dof]`) of `robot` through `camera`: the per-link
-/// label maps (`T * H * W` little-endian u16) and, with `depth`, camera-frame
-/// depths (`T * H * W` little-endian f32, inf for background).
+/// Renders a batch of joint sequences (`[B][T][dof]`) of `robot`, sequence
+/// `b` through `cameras[b]` (all of one size): the per-link label maps
+/// (`B * T * H * W` little-endian u16) and, with `depth`, camera-frame depths
+/// (`B * T * H * W` little-endian f32, inf for background). Every frame of
+/// every sequence is rendered in parallel on the Rust thread pool (rayon),
+/// with the GIL released.
 #[pyfunction]
-#[pyo3(signature = (robot, camera, joints, depth = false))]
+#[pyo3(signature = (robot, cameras, joints, depth = false))]
 fn render<'py>(
     py: Python<'py>,
     robot: &Robot,
-    camera: &Camera,
-    joints: Vec<Vec<f64>>,
+    cameras: Vec<PyRef<'py, Camera>>,
+    joints: Vec<Vec<Vec<f64>>>,
     depth: bool,
-) -> PyResult<(Bound<'py, PyBytes>, Option<Bound<'py, PyBytes>>)> {
-    let dof = robot.inner.robot.dof_names().len();
-    if let Some((i, q)) = joints.iter().enumerate().find(|(_, q)| q.len() != dof) {
+) -> PyResult<(Bound<'py, PyByteArray>, Option<Bound<'py, PyByteArray>>)> {
+    if cameras.len() != joints.len() {
         return Err(PyValueError::new_err(format!(
-            "joints: frame {i} has {} values but robot {:?} has {dof} actuated joints ({}); for end-effector poses use actions=",
-            q.len(),
-            robot.inner.robot.name,
-            robot.inner.robot.dof_names().join(", ")
+            "camera: expected one camera or one per sequence ({}), got {}",
+            joints.len(),
+            cameras.len()
         )));
     }
-    // As `bridgev2w masks --joints`: finite values within the joint limits.
-    let traj = Trajectory::new("joints", joints.clone())
-        .map_err(|e| PyValueError::new_err(e.to_string()))?;
-    check_joint_trajectory(&robot.inner.robot, &traj)
-        .map_err(|e| PyValueError::new_err(e.to_string()))?;
-    let (r, c) = (&robot.inner.robot, &camera.inner);
-    let frames = py.detach(|| render_trajectory(r, c, &joints, &|| {}));
-    let mut labels = Vec::new();
-    let mut depths = Vec::new();
-    for f in &frames {
+    let cams: Vec<RsCamera> = cameras.iter().map(|c| c.inner.clone()).collect();
+    if let Some(c) = cams.iter().find(|c| {
+        (c.intrinsics.width, c.intrinsics.height)
+            != (cams[0].intrinsics.width, cams[0].intrinsics.height)
+    }) {
+        return Err(PyValueError::new_err(format!(
+            "camera: expected cameras of one size, got {}x{} and {}x{}",
+            cams[0].intrinsics.width,
+            cams[0].intrinsics.height,
+            c.intrinsics.width,
+            c.intrinsics.height
+        )));
+    }
+    let r = &robot.inner.robot;
+    let dof = r.dof_names().len();
+    let batched = joints.len() > 1;
+    for (b, seq) in joints.iter().enumerate() {
+        let name = if batched {
+            format!("joints[{b}]")
+        } else {
+            "joints".to_string()
+        };
+        if let Some((i, q)) = seq.iter().enumerate().find(|(_, q)| q.len() != dof) {
+            return Err(PyValueError::new_err(format!(
+                "{name}: frame {i} has {} values but robot {:?} has {dof} actuated joints ({}); for end-effector poses use actions=",
+                q.len(),
+                r.name,
+                r.dof_names().join(", ")
+            )));
+        }
+        // As `bridgev2w masks --joints`: finite values within the joint limits.
+        let traj = Trajectory::new(&name, seq.clone())
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        check_joint_trajectory(r, &traj).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    }
+    let frames: Vec<Vec<RenderOutput>> = py.detach(|| {
+        joints
+            .par_iter()
+            .zip(&cams)
+            .map(|(seq, cam)| render_trajectory(r, cam, seq, &|| {}))
+            .collect()
+    });
+    let n: usize = frames.iter().flatten().map(|f| f.labels.len()).sum();
+    let mut labels = Vec::with_capacity(2 * n);
+    let mut depths = Vec::with_capacity(if depth { 4 * n } else { 0 });
+    for f in frames.iter().flatten() {
         for l in &f.labels {
             labels.extend_from_slice(&l.to_le_bytes());
         }
@@ -263,8 +339,8 @@ fn render<'py>(
         }
     }
     Ok((
-        PyBytes::new(py, &labels),
-        depth.then(|| PyBytes::new(py, &depths)),
+        PyByteArray::new(py, &labels),
+        depth.then(|| PyByteArray::new(py, &depths)),
     ))
 }
 
@@ -388,35 +464,67 @@ impl WorldModel {
         self.clip_frames
     }
 
-    /// The predicted video (`T * H * W * 3` RGB8 bytes) from the first frame
-    /// (`H * W * 3` RGB8 bytes) and the masks (`T * H * W` bytes, non-zero =
-    /// robot), with `steps` denoising steps from noise seed `seed`.
-    #[pyo3(signature = (first_frame, masks, steps = 20, seed = 0, guidance = 1.0))]
+    /// The predicted videos (`B * T * H * W * 3` RGB8 bytes) of a batch of
+    /// `batch` first frames (`B * H * W * 3` RGB8 bytes) and mask sequences
+    /// (`B * T * H * W` bytes, non-zero = robot), with `steps` denoising
+    /// steps from noise seed `seed`, in one batch through the model
+    /// (`predict_batch`). Every item gets the noise a batch of one with the
+    /// same seed gets (`BatchNoise::Shared`, as `bridgev2w predict` with
+    /// several clips): its single prediction. The GIL is released while the
+    /// model runs.
+    #[pyo3(signature = (first_frames, masks, batch = 1, steps = 20, seed = 0, guidance = 1.0))]
+    #[allow(clippy::too_many_arguments)]
     fn predict<'py>(
         &self,
         py: Python<'py>,
-        first_frame: &[u8],
+        first_frames: &[u8],
         masks: &[u8],
+        batch: usize,
         steps: usize,
         seed: u64,
         guidance: f64,
-    ) -> PyResult<Bound<'py, PyBytes>> {
+    ) -> PyResult<Bound<'py, PyByteArray>> {
         let (h, w) = self.resolution;
         let t = self.clip_frames;
-        let image = RgbFrame::from_rgb8(w, h, first_frame)
-            .map_err(|e| PyValueError::new_err(format!("first_frame: {e}")))?;
-        if masks.len() != t * h * w {
+        if batch == 0 {
+            return Err(PyValueError::new_err(
+                "first_frame: an empty batch (expected at least one frame)",
+            ));
+        }
+        if first_frames.len() != batch * h * w * 3 {
             return Err(PyValueError::new_err(format!(
-                "masks: {} values, expected [{t}, {h}, {w}] for this model",
+                "first_frame: {} values, expected [{batch}, {h}, {w}, 3] for this model",
+                first_frames.len()
+            )));
+        }
+        if masks.len() != batch * t * h * w {
+            return Err(PyValueError::new_err(format!(
+                "masks: {} values, expected [{batch}, {t}, {h}, {w}] for this model",
                 masks.len()
             )));
         }
-        let masks = MaskVideo {
-            frames: t,
-            height: h,
-            width: w,
-            data: masks.to_vec(),
-        };
+        if steps == 0 {
+            return Err(PyValueError::new_err("steps: expected at least 1"));
+        }
+        if !guidance.is_finite() {
+            return Err(PyValueError::new_err(format!(
+                "guidance: {guidance}, expected a finite number (1 = no guidance)"
+            )));
+        }
+        let images = first_frames
+            .chunks_exact(h * w * 3)
+            .map(|f| RgbFrame::from_rgb8(w, h, f))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| PyValueError::new_err(format!("first_frame: {e}")))?;
+        let mask_videos: Vec<MaskVideo> = masks
+            .chunks_exact(t * h * w)
+            .map(|m| MaskVideo {
+                frames: t,
+                height: h,
+                width: w,
+                data: m.to_vec(),
+            })
+            .collect();
         let opts = PredictOptions {
             sample: SampleOptions {
                 steps,
@@ -424,20 +532,26 @@ impl WorldModel {
                 dynamic_cfg: false,
                 seed,
                 first_frame: Default::default(),
+                // Each item the noise of a batch of one: its single prediction.
                 batch_noise: BatchNoise::Shared,
+                ..SampleOptions::default()
             },
         };
         let model = &self.inner;
-        let video = py
+        let videos = py
             .detach(|| {
                 let m = model
                     .lock()
                     .map_err(|_| "an earlier prediction failed mid-way".to_string())?;
-                m.predict(&image, &masks, &opts).map_err(|e| e.to_string())
+                m.predict_batch(&images, &mask_videos, &opts)
+                    .map_err(|e| e.to_string())
             })
             .map_err(Error::new_err)?;
-        let bytes: Vec<u8> = video.data.iter().map(|&v| u8_from_unit(v)).collect();
-        Ok(PyBytes::new(py, &bytes))
+        let bytes: Vec<u8> = videos
+            .iter()
+            .flat_map(|v| v.data.iter().map(|&x| u8_from_unit(x)))
+            .collect();
+        Ok(PyByteArray::new(py, &bytes))
     }
 
     fn __repr__(&self) -> String {
@@ -447,6 +561,341 @@ impl WorldModel {
             self.source, self.clip_frames
         )
     }
+}
+
+/// An output folder that must not exist yet.
+fn check_new_output(out: &Path) -> PyResult<()> {
+    if out.exists() {
+        return Err(PyFileExistsError::new_err(format!(
+            "{}: already exists; choose another out or remove it",
+            out.display()
+        )));
+    }
+    Ok(())
+}
+
+/// Writes the synthetic tabletop dataset (LeRobot v3.0) of `bridgev2w synth`
+/// to `out` (written to `out.tmp`, then renamed) with the GIL released;
+/// returns its summary as a dict (`out`, `episodes`, `total_frames`,
+/// `episodes_per_split`, `episodes_per_task`, `contact_events`).
+#[pyfunction]
+#[pyo3(signature = (out, robot, episodes_per_split, frames, width, height, fps, seed, tasks))]
+#[allow(clippy::too_many_arguments)]
+fn synth_generate<'py>(
+    py: Python<'py>,
+    out: PathBuf,
+    robot: String,
+    episodes_per_split: [usize; 4],
+    frames: usize,
+    width: u32,
+    height: u32,
+    fps: u32,
+    seed: u64,
+    tasks: Vec<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let tasks = tasks
+        .iter()
+        .map(|t| {
+            Task::parse(t).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "tasks: unknown task {t:?}, expected reach, push, pick_place or play"
+                ))
+            })
+        })
+        .collect::<PyResult<Vec<_>>>()?;
+    let config = SynthConfig {
+        robot,
+        frames,
+        width,
+        height,
+        fps,
+        seed,
+        tasks,
+        episodes_per_split,
+    };
+    config
+        .validate()
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let n = plan(&config).len();
+    if n == 0 {
+        return Err(PyValueError::new_err(
+            "episodes_per_split: no episodes to generate",
+        ));
+    }
+    check_new_output(&out)?;
+    let summary = py
+        .detach(|| write_dataset(&config, &out, &|| {}))
+        .map_err(|e| match e {
+            WriteDatasetError::Exists(p) => PyFileExistsError::new_err(format!(
+                "{}: already exists; choose another out or remove it",
+                p.display()
+            )),
+            WriteDatasetError::Synth(SynthError::Config(m)) => PyValueError::new_err(m),
+            e => err(e),
+        })?;
+    let d = PyDict::new(py);
+    d.set_item("out", summary.out.to_string_lossy().into_owned())?;
+    d.set_item("episodes", n)?;
+    d.set_item("total_frames", summary.total_frames)?;
+    d.set_item("episodes_per_split", summary.episodes_per_split)?;
+    d.set_item("episodes_per_task", summary.episodes_per_task)?;
+    d.set_item("contact_events", summary.contact_events)?;
+    Ok(d)
+}
+
+fn missing(path: &Path, what: &str) -> PyErr {
+    PyFileNotFoundError::new_err(format!("{}: no such {what}", path.display()))
+}
+
+/// Converts raw DROID (`format="droid"`) or AgiBot World (`"agibot"`)
+/// episodes under `src` into a LeRobot v3.0 training dataset at `out` with
+/// `calc` masks of `robot`, as `bridgev2w convert` does, with the GIL
+/// released; returns the report as a dict (`out`, `episodes`,
+/// `views_written`, `skipped` as `(item, error)` pairs, `empty_mask_views`).
+#[pyfunction]
+#[pyo3(signature = (format, src, out, robot, joint_names, width, height, fps, intrinsics, calibration, cameras, gripper_range, split, skip_bad, limit))]
+#[allow(clippy::too_many_arguments)]
+fn convert<'py>(
+    py: Python<'py>,
+    format: &str,
+    src: PathBuf,
+    out: PathBuf,
+    robot: &Robot,
+    joint_names: Option<Vec<String>>,
+    width: usize,
+    height: usize,
+    fps: Option<u32>,
+    intrinsics: Option<PathBuf>,
+    calibration: Option<PathBuf>,
+    cameras: Option<Vec<String>>,
+    gripper_range: (f64, f64),
+    split: String,
+    skip_bad: bool,
+    limit: Option<usize>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let droid = match format {
+        "droid" => true,
+        "agibot" => false,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "format: {other:?}, expected \"droid\" or \"agibot\""
+            )))
+        }
+    };
+    if !src.exists() {
+        return Err(missing(&src, "source folder"));
+    }
+    for p in intrinsics.iter().chain(&calibration) {
+        if !p.is_file() {
+            return Err(missing(p, "file"));
+        }
+    }
+    let intrinsics = match (droid, intrinsics) {
+        (true, Some(p)) => Some(p),
+        (true, None) => {
+            return Err(PyValueError::new_err(
+                "intrinsics: required for DROID (a JSON file of intrinsics per camera serial): neither the raw episodes nor RLDS record them",
+            ))
+        }
+        (false, None) if calibration.is_none() => None,
+        (false, _) => {
+            return Err(PyValueError::new_err(
+                "intrinsics, calibration: apply to DROID; AgiBot World episodes carry their camera parameters",
+            ))
+        }
+    };
+    let (open, closed) = gripper_range;
+    if !(open.is_finite() && closed.is_finite()) || open == closed {
+        return Err(PyValueError::new_err(format!(
+            "gripper_range: ({open}, {closed}), expected two different finite readings (open, closed)"
+        )));
+    }
+    check_new_output(&out)?;
+    let options = ConvertOptions {
+        width,
+        height,
+        fps: fps.unwrap_or(if droid { 15 } else { 30 }),
+        joint_names,
+        skip_bad,
+        split: Some(split),
+        source_format: format.to_string(),
+    };
+    let limit = limit.unwrap_or(usize::MAX);
+    let embodiment = &robot.inner;
+    let run = || -> Result<_, ConvertError> {
+        // Written to OUT.tmp, removed again if the conversion fails.
+        let output = bridgev2w_io::output::OutputDir::create(&out, false)
+            .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
+        let tmp = output.path().to_path_buf();
+        let report = if let Some(intrinsics) = intrinsics {
+            let mut opts = DroidOptions::from_files(&intrinsics, calibration.as_deref())?;
+            if let Some(c) = cameras {
+                opts.roles = c;
+            }
+            let dirs: Vec<PathBuf> = droid::find_episodes(&src)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if dirs.is_empty() {
+                return Err(ConvertError::Options(format!(
+                    "{}: no DROID episodes (directories with trajectory.h5) found",
+                    src.display()
+                )));
+            }
+            let items = dirs
+                .iter()
+                .map(|d| (d.display().to_string(), droid::read_episode(d, &opts)));
+            convert_episodes(items, embodiment, &tmp, &options, &|_| {})?
+        } else {
+            let mut opts = AgibotOptions {
+                gripper_open: open,
+                gripper_closed: closed,
+                ..AgibotOptions::default()
+            };
+            if let Some(c) = cameras {
+                opts.cameras = c;
+            }
+            let keys: Vec<_> = agibot::find_episodes(&src)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if keys.is_empty() {
+                return Err(ConvertError::Options(format!(
+                    "{}: no AgiBot World episodes (proprio_stats/<task>/<episode>/proprio_stats.h5) found",
+                    src.display()
+                )));
+            }
+            let items = keys
+                .iter()
+                .map(|k| (k.to_string(), agibot::read_episode(&src, k, &opts)));
+            convert_episodes(items, embodiment, &tmp, &options, &|_| {})?
+        };
+        output
+            .commit()
+            .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
+        Ok(report)
+    };
+    let report = py.detach(run).map_err(|e| match e {
+        ConvertError::Raw(RawError::Missing { path, what }) => {
+            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
+        }
+        e => err(e),
+    })?;
+    let d = PyDict::new(py);
+    d.set_item("out", out.to_string_lossy().into_owned())?;
+    d.set_item("episodes", report.episodes)?;
+    d.set_item("views_written", report.views_written)?;
+    let skipped: Vec<(String, String)> = report
+        .skipped
+        .into_iter()
+        .map(|s| (s.item, s.error))
+        .collect();
+    d.set_item("skipped", skipped)?;
+    d.set_item("empty_mask_views", report.empty_mask_views)?;
+    Ok(d)
+}
+
+/// One episode of a LeRobot v3.0/v2.1 dataset (what `synth` and `convert`
+/// write, or `LeRobotDataset.create`), read with the GIL released: a dict of
+/// `frames` (`T * H * W * 3` RGB8 bytes of video `key`, default the first),
+/// `shape` (`(T, H, W)`), `states` and `actions` (`[T][n]`), `camera` (the
+/// episode's calibration for `key`, or None), `masks` (`T * H * W` bytes of
+/// `masks/episode_N.npy`, or None), `tasks`, `key` and `split`.
+#[pyfunction]
+#[pyo3(signature = (root, episode, key = None))]
+fn read_episode<'py>(
+    py: Python<'py>,
+    root: PathBuf,
+    episode: i64,
+    key: Option<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    use bridgev2w_data::lerobot::{DatasetError, LeRobotDataset};
+    if !root.join("meta/info.json").is_file() {
+        return Err(missing(
+            &root.join("meta/info.json"),
+            "dataset (meta/info.json)",
+        ));
+    }
+    // A failure to read, or a bad `key` (named in a ValueError).
+    enum Failed {
+        Read(DatasetError),
+        Key(String),
+    }
+    let read = py.detach(|| {
+        let ds = LeRobotDataset::open(&root).map_err(Failed::Read)?;
+        let info = ds.episode(episode).map_err(Failed::Read)?.clone();
+        let key = match key {
+            Some(k) if ds.video_keys.contains(&k) => k,
+            Some(k) => {
+                return Err(Failed::Key(format!(
+                    "{k:?}: no such video in {} (videos: {})",
+                    root.display(),
+                    ds.video_keys.join(", ")
+                )))
+            }
+            None => ds.video_keys.first().cloned().ok_or_else(|| {
+                Failed::Key(format!("{}: the dataset has no videos", root.display()))
+            })?,
+        };
+        // LeRobot's video feature shape: [height, width, channels].
+        let shape = ds.info["features"][&key]["shape"]
+            .as_array()
+            .and_then(|s| Some((s.first()?.as_u64()?, s.get(1)?.as_u64()?)))
+            .ok_or_else(|| {
+                Failed::Read(DatasetError::Field {
+                    path: root.join("meta/info.json"),
+                    episode,
+                    field: format!("features.{key}.shape"),
+                    message: "expected [height, width, channels]".into(),
+                })
+            })?;
+        let rows = ds.read_episode(episode).map_err(Failed::Read)?;
+        let frames = ds.read_video(episode, &key).map_err(Failed::Read)?;
+        let camera = match ds.read_calibration(episode, &key) {
+            Ok(c) => Some(c),
+            Err(DatasetError::MissingCalibration { .. }) => None,
+            Err(e) => return Err(Failed::Read(e)),
+        };
+        let masks = root
+            .join(format!("masks/episode_{episode:06}.npy"))
+            .is_file()
+            .then(|| ds.read_masks(episode))
+            .transpose()
+            .map_err(Failed::Read)?;
+        Ok((
+            rows, frames, shape, camera, masks, info.tasks, key, info.split,
+        ))
+    });
+    let (rows, frames, (h, w), camera, masks, tasks, key, split) = read.map_err(|e| match e {
+        Failed::Read(e) => err(e),
+        Failed::Key(m) => PyValueError::new_err(format!("key: {m}")),
+    })?;
+    let (t, h, w) = (frames.len(), h as usize, w as usize);
+    if frames.iter().any(|f| f.len() != h * w * 3) {
+        return Err(err(format!(
+            "{}: episode {episode}'s {key} frames are not the {h}x{w} of meta/info.json",
+            root.display()
+        )));
+    }
+    let d = PyDict::new(py);
+    d.set_item("frames", PyByteArray::new(py, &frames.concat()))?;
+    d.set_item("shape", (t, h, w))?;
+    let states: Vec<Vec<f32>> = rows.frames.iter().map(|r| r.state.clone()).collect();
+    let actions: Vec<Vec<f32>> = rows.frames.iter().map(|r| r.action.clone()).collect();
+    d.set_item("states", states)?;
+    d.set_item("actions", actions)?;
+    d.set_item(
+        "camera",
+        camera
+            .map(|inner| Camera { inner })
+            .map(|c| Bound::new(py, c))
+            .transpose()?,
+    )?;
+    d.set_item("masks", masks.map(|(_, m)| PyByteArray::new(py, &m)))?;
+    d.set_item("tasks", tasks)?;
+    d.set_item("key", key)?;
+    d.set_item("split", split)?;
+    Ok(d)
 }
 
 /// The names of the built-in robots.
@@ -466,5 +915,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ssim, m)?)?;
     m.add_function(wrap_pyfunction!(mask_iou, m)?)?;
     m.add_function(wrap_pyfunction!(builtin_robots, m)?)?;
+    m.add_function(wrap_pyfunction!(synth_generate, m)?)?;
+    m.add_function(wrap_pyfunction!(convert, m)?)?;
+    m.add_function(wrap_pyfunction!(read_episode, m)?)?;
     Ok(())
 }

@@ -1,0 +1,130 @@
+"""``bw.convert``: raw DROID / AgiBot World episodes to a training dataset,
+as ``bridgev2w convert`` (docs/guide/data.md); ``bw.read_episode``: an
+episode of such a dataset (frames, states, actions, camera, masks) back."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+from . import Camera, Robot, _core, _float, _int, _path
+
+_DEFAULT_ROBOT = {"droid": "franka", "agibot": "agibot-g1"}
+
+
+@dataclass(frozen=True)
+class ConvertReport:
+    """What :func:`convert` did."""
+
+    out: str
+    #: Raw episodes read.
+    episodes: int
+    #: LeRobot episodes written (one per camera of each episode).
+    views_written: int
+    #: ``(item, error)`` of each episode or camera skipped with ``skip_bad``.
+    skipped: list = field(default_factory=list)
+    #: Camera episodes whose masks are empty in every frame (check the calibration).
+    empty_mask_views: list = field(default_factory=list)
+
+
+def _names(name, value):
+    if value is None:
+        return None
+    if isinstance(value, str):
+        value = [v.strip() for v in value.split(",") if v.strip()]
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise ValueError(f"{name}: expected a list of names (or a comma-separated string), got {value!r}")
+    return list(value)
+
+
+def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
+            joint_names: Union[Sequence[str], str, None] = None, width: int = 96, height: int = 64,
+            fps: Optional[int] = None, intrinsics=None, calibration=None,
+            cameras: Union[Sequence[str], str, None] = None, gripper_range=(0.0, 120.0), split: str = "train",
+            skip_bad: bool = False, limit: Optional[int] = None) -> ConvertReport:
+    """Converts raw episodes under ``src`` into a LeRobot v3.0 training
+    dataset at ``out`` (must not exist; written to ``out.tmp``, then
+    renamed): every camera of every episode one episode, frames resized to
+    ``width`` x ``height`` (even), ``calc`` masks rendered from the recorded
+    joints, as ``bridgev2w convert``. Returns a :class:`ConvertReport`.
+
+    ``format``: ``"droid"`` (DROID raw episodes; needs ``intrinsics``, a JSON
+    file of intrinsics per camera serial, and takes ``calibration``
+    overrides; ``cameras`` by role, default ``ext1, ext2``) or ``"agibot"``
+    (AgiBot World; ``cameras`` default ``head``, ``gripper_range`` the
+    (open, closed) readings). ``robot``: a :class:`Robot`, a built-in name
+    or a URDF path (default ``franka`` for DROID, ``agibot-g1`` for AgiBot
+    World); ``joint_names`` the robot's names for the recorded joint columns.
+    ``fps`` defaults to 15 (DROID) or 30 (AgiBot World); ``split`` is
+    recorded for every episode; ``skip_bad`` records failing episodes in
+    ``out/skipped.json`` and goes on; ``limit`` converts at most that many
+    episodes. The GIL is released while it runs.
+
+    A missing ``src``, ``intrinsics`` or ``calibration`` is a
+    ``FileNotFoundError``, an existing ``out`` a ``FileExistsError``, a bad
+    argument a ``ValueError`` naming it, an unreadable episode a
+    ``bridgev2w.Error`` naming the file and field."""
+    if format not in _DEFAULT_ROBOT:
+        raise ValueError(f"format: {format!r}, expected 'droid' or 'agibot'")
+    if robot is None:
+        robot = Robot(_DEFAULT_ROBOT[format])
+    elif isinstance(robot, (str, os.PathLike)):
+        name = os.fspath(robot)
+        robot = Robot(name) if name in _core.builtin_robots().replace(",", " ").split() else Robot.from_urdf(name)
+    elif not isinstance(robot, Robot):
+        raise ValueError(f"robot: expected a bridgev2w.Robot, a built-in name or a URDF path, got {robot!r}")
+    if not isinstance(gripper_range, (list, tuple)) or len(gripper_range) != 2:
+        raise ValueError(f"gripper_range: expected (open, closed) readings, got {gripper_range!r}")
+    grip = (_float("gripper_range[0]", gripper_range[0]), _float("gripper_range[1]", gripper_range[1]))
+    if not isinstance(split, str) or not split:
+        raise ValueError(f"split: expected a split name, got {split!r}")
+    d = _core.convert(
+        format, _path("src", src), _path("out", out), robot._r, _names("joint_names", joint_names),
+        _int("width", width, 2, 4096, even=True), _int("height", height, 2, 4096, even=True),
+        None if fps is None else _int("fps", fps, 1, 2 ** 32 - 1),
+        _path("intrinsics", intrinsics, optional=True), _path("calibration", calibration, optional=True),
+        _names("cameras", cameras), grip, split, bool(skip_bad),
+        None if limit is None else _int("limit", limit, 1))
+    return ConvertReport(**d)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode of a LeRobot dataset, as :func:`read_episode` reads it."""
+
+    #: uint8 ``[T, H, W, 3]``: the decoded video ``key``.
+    frames: np.ndarray
+    #: float32 ``[T, n]``: ``observation.state`` (the robot's joints in what synth and convert write).
+    states: np.ndarray
+    #: float32 ``[T, m]``: ``action`` (end-effector poses, 7 per arm).
+    actions: np.ndarray
+    #: The camera of ``key`` from ``meta/calibration/`` (None when the dataset has none).
+    camera: Optional[Camera]
+    #: uint8 ``[T, H, W]`` from ``masks/episode_N.npy`` (None when the dataset has none).
+    masks: Optional[np.ndarray]
+    tasks: list
+    key: str
+    split: Optional[str]
+
+
+def read_episode(root, episode: int = 0, *, key: Optional[str] = None) -> Episode:
+    """Episode ``episode`` of the LeRobot v3.0/v2.1 dataset at ``root`` (what
+    :func:`bridgev2w.synth.generate` and :func:`convert` write, or LeRobot's
+    own ``LeRobotDataset.create``): its frames of video ``key`` (default the
+    first), states, actions, calibrated camera and masks, read by the same
+    Rust reader ``bridgev2w train`` uses, with the GIL released. A missing
+    dataset is a ``FileNotFoundError``, an unknown ``key`` a ``ValueError``,
+    an unreadable file or a missing episode a ``bridgev2w.Error``."""
+    d = _core.read_episode(_path("root", root), _int("episode", episode, 0), key)
+    t, h, w = d["shape"]
+    masks = d["masks"]
+    return Episode(
+        frames=np.frombuffer(d["frames"], dtype=np.uint8).reshape(t, h, w, 3),
+        states=np.array(d["states"], dtype=np.float32).reshape(t, -1),
+        actions=np.array(d["actions"], dtype=np.float32).reshape(t, -1),
+        camera=None if d["camera"] is None else Camera(_core_camera=d["camera"]),
+        masks=None if masks is None else np.frombuffer(masks, dtype=np.uint8).reshape(t, h, w),
+        tasks=d["tasks"], key=d["key"], split=d["split"])
