@@ -19,7 +19,9 @@
 //! * [`peer`]: the Python peers of the benches (repository root, venvs,
 //!   scripts that print a JSON result);
 //! * [`progress`]: [`progress::Progress`], how a library reports stages,
-//!   steps and notes while it runs (the command-line tool draws the bars).
+//!   steps and notes while it runs (the command-line tool draws the bars);
+//! * `plot` (feature `plot`): the PNG figures of the results files (line
+//!   panels, grouped bars, scatter plots with a fitted line).
 
 pub mod atomic;
 pub mod frame;
@@ -27,6 +29,8 @@ pub mod json;
 pub mod npy;
 pub mod output;
 pub mod peer;
+#[cfg(feature = "plot")]
+pub mod plot;
 pub mod png;
 pub mod progress;
 pub mod sections;

@@ -1,0 +1,187 @@
+//! Line panels: one or more charts side by side (a panel per training
+//! stage, per split), each with its own axes, lines and legend.
+
+use super::{color, padded_range, text_style, tick, Canvas, Figure};
+use plotters::prelude::*;
+
+/// One line of a panel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Line {
+    /// The legend's text (`None`: not in the legend).
+    pub label: Option<String>,
+    /// `(x, y)` points in order; non-finite ones are skipped.
+    pub points: Vec<(f64, f64)>,
+    /// Palette index ([`super::color`]).
+    pub color: usize,
+    /// Drawn dashed (bounds and baselines).
+    pub dashed: bool,
+    /// Drawn thin and light (raw values under a smoothed line).
+    pub faint: bool,
+    /// A marker at every point (few points).
+    pub markers: bool,
+}
+
+impl Line {
+    /// A solid line with a legend entry.
+    pub fn new(label: impl Into<String>, points: Vec<(f64, f64)>, color: usize) -> Self {
+        Self {
+            label: Some(label.into()),
+            points,
+            color,
+            dashed: false,
+            faint: false,
+            markers: false,
+        }
+    }
+}
+
+/// One chart.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Panel {
+    /// Drawn above the chart.
+    pub title: String,
+    /// The x axis's description.
+    pub x_desc: String,
+    /// The y axis's description.
+    pub y_desc: String,
+    /// A logarithmic y axis (points at or below 0 are skipped).
+    pub log_y: bool,
+    /// The lines.
+    pub lines: Vec<Line>,
+}
+
+/// Panels in a grid, row by row.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LineFigure {
+    /// The panels.
+    pub panels: Vec<Panel>,
+    /// Panels per row.
+    pub columns: usize,
+    /// Each panel's size in pixels.
+    pub panel_size: (u32, u32),
+}
+
+impl Figure for LineFigure {
+    fn size(&self) -> (u32, u32) {
+        let cols = self.columns.clamp(1, self.panels.len().max(1));
+        let rows = self.panels.len().div_ceil(cols).max(1);
+        (
+            self.panel_size.0 * cols as u32,
+            self.panel_size.1 * rows as u32,
+        )
+    }
+
+    fn draw(&self, root: &Canvas<'_>, text: bool) -> Result<(), String> {
+        if self.panels.is_empty() {
+            return Err("no panels to draw".into());
+        }
+        let cols = self.columns.clamp(1, self.panels.len());
+        let rows = self.panels.len().div_ceil(cols);
+        let areas = root.split_evenly((rows, cols));
+        for (panel, area) in self.panels.iter().zip(&areas) {
+            draw_panel(panel, area, text)?;
+        }
+        Ok(())
+    }
+}
+
+/// A point as drawn: `y` as its base-10 logarithm on a log axis; `None`
+/// when it cannot be drawn.
+fn drawn(p: (f64, f64), log_y: bool) -> Option<(f64, f64)> {
+    let (x, y) = if log_y {
+        (p.0, if p.1 > 0.0 { p.1.log10() } else { f64::NAN })
+    } else {
+        p
+    };
+    (x.is_finite() && y.is_finite()).then_some((x, y))
+}
+
+fn draw_panel(panel: &Panel, area: &Canvas<'_>, text: bool) -> Result<(), String> {
+    let pts: Vec<Vec<(f64, f64)>> = panel
+        .lines
+        .iter()
+        .map(|l| {
+            l.points
+                .iter()
+                .filter_map(|&p| drawn(p, panel.log_y))
+                .collect()
+        })
+        .collect();
+    let (Some(xr), Some(yr)) = (
+        padded_range(pts.iter().flatten().map(|p| p.0)),
+        padded_range(pts.iter().flatten().map(|p| p.1)),
+    ) else {
+        return Err(format!("panel `{}`: no finite points", panel.title));
+    };
+    let e = |e: DrawingAreaErrorKind<_>| e.to_string();
+    let mut builder = ChartBuilder::on(area);
+    builder.margin(10);
+    if text {
+        builder
+            .caption(&panel.title, text_style(16))
+            .x_label_area_size(40)
+            .y_label_area_size(60);
+    } else {
+        builder.x_label_area_size(8).y_label_area_size(8);
+    }
+    let mut chart = builder
+        .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
+        .map_err(e)?;
+    let log_y = panel.log_y;
+    let y_fmt = move |v: &f64| tick(if log_y { 10f64.powf(*v) } else { *v });
+    let x_fmt = |v: &f64| tick(*v);
+    let mut mesh = chart.configure_mesh();
+    mesh.light_line_style(RGBColor(235, 235, 235))
+        .bold_line_style(RGBColor(215, 215, 215));
+    if text {
+        mesh.label_style(text_style(12))
+            .axis_desc_style(text_style(13))
+            .x_desc(panel.x_desc.as_str())
+            .y_desc(panel.y_desc.as_str())
+            .x_label_formatter(&x_fmt)
+            .y_label_formatter(&y_fmt)
+            .x_labels(6)
+            .y_labels(6);
+    } else {
+        mesh.x_labels(0).y_labels(0);
+    }
+    mesh.draw().map_err(e)?;
+    for (line, pts) in panel.lines.iter().zip(pts) {
+        let c = color(line.color);
+        let style = if line.faint {
+            c.mix(0.3).stroke_width(1)
+        } else {
+            c.stroke_width(2)
+        };
+        let anno = if line.dashed {
+            chart
+                .draw_series(DashedLineSeries::new(pts.clone(), 6, 4, style))
+                .map_err(e)?
+        } else {
+            chart
+                .draw_series(LineSeries::new(pts.clone(), style))
+                .map_err(e)?
+        };
+        if let Some(label) = line.label.as_ref().filter(|_| text) {
+            anno.label(label.as_str()).legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2))
+            });
+        }
+        if line.markers {
+            chart
+                .draw_series(pts.iter().map(|&p| Circle::new(p, 3, c.filled())))
+                .map_err(e)?;
+        }
+    }
+    if text && panel.lines.iter().any(|l| l.label.is_some()) {
+        chart
+            .configure_series_labels()
+            .label_font(text_style(11))
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(200, 200, 200))
+            .position(SeriesLabelPosition::UpperRight)
+            .draw()
+            .map_err(e)?;
+    }
+    Ok(())
+}

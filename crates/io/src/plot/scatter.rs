@@ -1,0 +1,144 @@
+//! Scatter plots with a least-squares line per set of points (policy
+//! evaluation: world-model success against real success, a set per world
+//! model), next to the y = x diagonal of perfect agreement.
+
+use super::{color, text_style, tick, Canvas, Figure};
+use plotters::prelude::*;
+
+/// One set of points, with its fitted line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PointSet {
+    /// The legend's text (e.g. the model and its Pearson r).
+    pub label: String,
+    /// `(x, y)` points.
+    pub points: Vec<(f64, f64)>,
+    /// Palette index ([`super::color`]).
+    pub color: usize,
+}
+
+/// A scatter plot on a square range.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScatterFigure {
+    /// Drawn above the chart.
+    pub title: String,
+    /// The x axis's description.
+    pub x_desc: String,
+    /// The y axis's description.
+    pub y_desc: String,
+    /// The sets.
+    pub sets: Vec<PointSet>,
+    /// The range of both axes.
+    pub range: (f64, f64),
+    /// Size in pixels.
+    pub size: (u32, u32),
+}
+
+/// The least-squares line `y = a + b x` of `points`: `(a, b)`; `None` for
+/// fewer than two points or when every x is the same.
+pub fn least_squares(points: &[(f64, f64)]) -> Option<(f64, f64)> {
+    let n = points.len() as f64;
+    if points.len() < 2 {
+        return None;
+    }
+    let (mx, my) = (
+        points.iter().map(|p| p.0).sum::<f64>() / n,
+        points.iter().map(|p| p.1).sum::<f64>() / n,
+    );
+    let sxx: f64 = points.iter().map(|p| (p.0 - mx).powi(2)).sum();
+    let sxy: f64 = points.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+    (sxx > 1e-12).then(|| {
+        let b = sxy / sxx;
+        (my - b * mx, b)
+    })
+}
+
+impl Figure for ScatterFigure {
+    fn size(&self) -> (u32, u32) {
+        self.size
+    }
+
+    fn draw(&self, root: &Canvas<'_>, text: bool) -> Result<(), String> {
+        if self.sets.iter().all(|s| s.points.is_empty()) {
+            return Err("no points to draw".into());
+        }
+        let e = |e: DrawingAreaErrorKind<_>| e.to_string();
+        let mut builder = ChartBuilder::on(root);
+        builder.margin(12);
+        if text {
+            builder
+                .caption(&self.title, text_style(16))
+                .x_label_area_size(40)
+                .y_label_area_size(60);
+        } else {
+            builder.x_label_area_size(8).y_label_area_size(8);
+        }
+        let (lo, hi) = self.range;
+        let mut chart = builder.build_cartesian_2d(lo..hi, lo..hi).map_err(e)?;
+        let fmt = |v: &f64| tick(*v);
+        let mut mesh = chart.configure_mesh();
+        mesh.light_line_style(RGBColor(235, 235, 235))
+            .bold_line_style(RGBColor(215, 215, 215));
+        if text {
+            mesh.label_style(text_style(12))
+                .axis_desc_style(text_style(13))
+                .x_desc(self.x_desc.as_str())
+                .y_desc(self.y_desc.as_str())
+                .x_label_formatter(&fmt)
+                .y_label_formatter(&fmt)
+                .x_labels(6)
+                .y_labels(6);
+        } else {
+            mesh.x_labels(0).y_labels(0);
+        }
+        mesh.draw().map_err(e)?;
+        let grey = RGBColor(150, 150, 150);
+        let diagonal = chart
+            .draw_series(DashedLineSeries::new(
+                vec![(lo, lo), (hi, hi)],
+                5,
+                5,
+                grey.stroke_width(1),
+            ))
+            .map_err(e)?;
+        if text {
+            diagonal
+                .label("y = x")
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], grey));
+        }
+        for set in &self.sets {
+            let c = color(set.color);
+            if let Some((a, b)) = least_squares(&set.points) {
+                chart
+                    .draw_series(LineSeries::new(
+                        vec![(lo, a + b * lo), (hi, a + b * hi)],
+                        c.stroke_width(2),
+                    ))
+                    .map_err(e)?;
+            }
+            let anno = chart
+                .draw_series(
+                    set.points
+                        .iter()
+                        .filter(|p| p.0.is_finite() && p.1.is_finite())
+                        .map(|&p| Circle::new(p, 5, c.filled())),
+                )
+                .map_err(e)?;
+            if text {
+                anno.label(set.label.as_str()).legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2))
+                });
+            }
+        }
+        if text {
+            chart
+                .configure_series_labels()
+                .label_font(text_style(11))
+                .background_style(WHITE.mix(0.85))
+                .border_style(RGBColor(200, 200, 200))
+                .position(SeriesLabelPosition::UpperLeft)
+                .draw()
+                .map_err(e)?;
+        }
+        Ok(())
+    }
+}
