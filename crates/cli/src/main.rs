@@ -5,6 +5,7 @@ mod convert_cmd;
 mod demo;
 mod eval_cmd;
 mod export_lora_cmd;
+mod grid_cmd;
 mod masks_cmd;
 mod parity_cmd;
 mod plan_cmd;
@@ -57,6 +58,8 @@ enum Command {
     EvalRun(train_cmd::EvalRunArgs),
     /// Write the video-prediction table (paper layout) of several eval-run --json files to docs/results.md.
     EvalReport(report::EvalReportArgs),
+    /// Side-by-side GIFs per split: first frame | masks | each run's prediction | ground truth.
+    EvalGrid(grid_cmd::EvalGridArgs),
     /// Goal-image CEM-MPC planning executed in the synthetic world, vs random actions.
     Plan(plan_cmd::plan::PlanArgs),
     /// Does a model's goal distance order candidate actions as the synthetic world does (Spearman)?
@@ -92,6 +95,7 @@ fn main() -> Result<()> {
         Command::Train(a) => train_cmd::run(&a),
         Command::EvalRun(a) => train_cmd::run_eval_run(&a),
         Command::EvalReport(a) => report::run_eval_report(&a),
+        Command::EvalGrid(a) => grid_cmd::run(&a),
         Command::Plan(a) => plan_cmd::plan::run(&a),
         Command::PlanFidelity(a) => plan_cmd::fidelity::run(&a),
         Command::EvalPolicyRollout(a) => plan_cmd::rollout::run(&a),

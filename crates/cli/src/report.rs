@@ -1,6 +1,8 @@
 //! `bridgev2w eval-report`: the video-prediction table in the paper's layout
 //! from `eval-run --json` files ([`bridgev2w_train::report`]), written to the
-//! `video` section of the results file.
+//! `video` section of the results file, with its figures (PNG, in the
+//! folder named after the results file: `docs/results/figures/` for
+//! `docs/results.md`) and links to `eval-grid`'s side-by-side GIFs.
 
 use anyhow::Result;
 use bridgev2w_io::sections::write_section;
@@ -18,7 +20,18 @@ pub struct EvalReportArgs {
     /// reproduction script.
     #[arg(long)]
     preamble: Option<PathBuf>,
-    /// The results file; only its `video` section is replaced.
+    /// `NAME=DIR`: a training run (a stage of the proof run) whose
+    /// metrics.jsonl is drawn in the loss-curves figure (repeat; panels in
+    /// this order).
+    #[arg(long = "training-run", value_name = "NAME=DIR")]
+    training_runs: Vec<String>,
+    /// `eval-grid`'s folder of side-by-side GIFs (DIR/<split>.gif for every
+    /// split of the entries, drawn with the entries' runs in their order):
+    /// linked from the section.
+    #[arg(long, value_name = "DIR")]
+    grids: Option<PathBuf>,
+    /// The results file; only its `video` section is replaced. The figures
+    /// go to the folder named after it: OUT_WITHOUT_.md/figures/.
     #[arg(long, default_value = "docs/results.md")]
     out: PathBuf,
 }
@@ -28,6 +41,9 @@ impl From<&EvalReportArgs> for VideoReportOptions {
         Self {
             entries: a.entries.clone(),
             preamble: a.preamble.clone(),
+            training_runs: a.training_runs.clone(),
+            grids: a.grids.clone(),
+            results: Some(a.out.clone()),
         }
     }
 }
@@ -36,5 +52,8 @@ impl From<&EvalReportArgs> for VideoReportOptions {
 pub fn run_eval_report(a: &EvalReportArgs) -> Result<()> {
     let md = video_report(&a.into())?;
     write_section(&a.out, "video", &md)?;
+    if let Some(w) = bridgev2w_io::plot::missing_font_warning() {
+        eprintln!("{w}");
+    }
     crate::print_stdout(&md)
 }

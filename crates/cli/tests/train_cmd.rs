@@ -129,16 +129,59 @@ lr = 1e-4
             "{key}: {v}"
         );
     }
+    // PSNR of each predicted frame (8 of the 9), for every method.
+    for key in [
+        "psnr_per_frame",
+        "baseline_psnr_per_frame",
+        "autoencoder_psnr_per_frame",
+    ] {
+        let v = v["splits"][0][key].as_array().expect(key);
+        assert_eq!(v.len(), 8, "{key}");
+        assert!(v.iter().all(|x| x.as_f64().is_some_and(f64::is_finite)));
+    }
+    // Side-by-side videos of two runs (here the same run twice): first frame
+    // | masks | run 1 | run 2 | ground truth.
+    let grids = d.join("docs/results/grids");
+    ok(&run(&[
+        "eval-grid",
+        s(&cfg_path),
+        "--run",
+        s(&run_dir),
+        "--compare",
+        s(&cfg_path),
+        s(&run_dir),
+        "--out",
+        s(&grids),
+        "--splits",
+        "test,unseen_scene",
+        "--clips",
+        "1",
+        "--steps",
+        "1",
+    ]));
+    for split in ["test", "unseen_scene"] {
+        let decoder = image::codecs::gif::GifDecoder::new(std::io::BufReader::new(
+            std::fs::File::open(grids.join(format!("{split}.gif"))).expect("grid gif"),
+        ))
+        .expect("a GIF");
+        use image::AnimationDecoder;
+        let frames = decoder.into_frames().collect_frames().expect("frames");
+        assert_eq!(frames[0].buffer().dimensions(), (5 * 96 * 2, 64 * 2));
+    }
     // The paper-layout table from the JSON, into a section of results.md
-    // that keeps the rest of the file.
+    // that keeps the rest of the file, with its figures next to it.
     let results = d.join("docs/results.md");
-    std::fs::create_dir_all(d.join("docs")).expect("mkdir");
     std::fs::write(&results, "# Results\n\nhand-written notes\n").expect("write");
     let entry = format!("BridgeV2W={}", s(&json));
+    let stage = format!("bridgev2w={}", s(&run_dir));
     ok(&run(&[
         "eval-report",
         "--entry",
         &entry,
+        "--training-run",
+        &stage,
+        "--grids",
+        s(&grids),
         "--out",
         s(&results),
     ]));
@@ -147,9 +190,32 @@ lr = 1e-4
         md.contains("hand-written notes")
             && md.contains("<!-- section: video -->")
             && md.contains("***In-Domain*** (1 videos")
-            && md.contains("| BridgeV2W (step 5) |"),
+            && md.contains("| BridgeV2W (step 5) |")
+            && md.contains("![Training loss per stage](results/figures/loss-curves.png)")
+            && md.contains("![PSNR per predicted frame](results/figures/psnr-per-frame.png)")
+            && md.contains("![test](results/grids/test.gif)"),
         "{md}"
     );
+    for (name, size) in [
+        ("loss-curves.png", (420, 300)),
+        ("psnr-per-frame.png", (840, 300)),
+    ] {
+        let png = image::open(d.join("docs/results/figures").join(name)).expect(name);
+        assert_eq!((png.width(), png.height()), size, "{name}");
+    }
+    let missing = format!("vae={}", s(&d.join("no-such-run")));
+    let o = run(&[
+        "eval-report",
+        "--entry",
+        &entry,
+        "--training-run",
+        &missing,
+        "--out",
+        s(&results),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no-such-run/metrics.jsonl"), "{err}");
     let o = run(&["eval-report", "--entry", "nofile", "--out", s(&results)]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("expected NAME=FILE"));

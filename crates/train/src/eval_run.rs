@@ -9,7 +9,7 @@ use crate::trainer::Trainer;
 use crate::{config::TrainConfig, Result, TrainError};
 use bridgev2w_eval::segment::RobotSegmenter;
 use bridgev2w_io::progress::Progress;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// What to score.
 #[derive(Debug, Clone)]
@@ -44,23 +44,34 @@ pub struct RunEvaluation {
 }
 
 /// `error` with what was being done.
-fn context(what: String) -> impl FnOnce(TrainError) -> TrainError {
+pub(crate) fn context(what: String) -> impl FnOnce(TrainError) -> TrainError {
     move |e| TrainError::Context {
         what,
         source: Box::new(e),
     }
 }
 
+/// Loads a run's model: its configuration, the run folder's latest
+/// checkpoint (or a checkpoint folder), and `weights`. Also says whether the
+/// moving averages are in use.
+pub(crate) fn load_run(config: &Path, run: &Path, weights: RunWeights) -> Result<(Trainer, bool)> {
+    let cfg = TrainConfig::from_file(config)?;
+    let mut trainer = Trainer::new(cfg).map_err(context(format!(
+        "setting up the model of {}",
+        config.display()
+    )))?;
+    trainer
+        .resume(run)
+        .map_err(context(format!("loading the run {}", run.display())))?;
+    let averaged = weights == RunWeights::Averaged && trainer.use_averaged_weights();
+    Ok((trainer, averaged))
+}
+
 /// Loads the run and scores every split. `progress` sees the segmenter's
 /// training and each split's scoring as stages of unknown length (total 0),
 /// a tick per scored video, and notes (which weights, the segmenter's loss).
 pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn Progress) -> Result<RunEvaluation> {
-    let cfg = TrainConfig::from_file(&o.config)?;
-    let mut trainer = Trainer::new(cfg).map_err(context("setting up the run's model".into()))?;
-    trainer
-        .resume(&o.run)
-        .map_err(context(format!("loading the run {}", o.run.display())))?;
-    let averaged = o.weights == RunWeights::Averaged && trainer.use_averaged_weights();
+    let (trainer, averaged) = load_run(&o.config, &o.run, o.weights)?;
     progress.note(&format!(
         "weights: {}",
         if averaged {

@@ -18,7 +18,7 @@ use bridgev2w_eval::clip::{copy_first_frame, predicted, score_clip};
 use bridgev2w_eval::dynamic::dynamic_region;
 use bridgev2w_eval::segment::{ColorSegmenter, RobotSegmenter};
 use bridgev2w_eval::video::{mean_over_videos, video_mask_iou};
-use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::pipeline::{FirstFrame, SampleOptions};
 use tch::{Kind, Tensor};
 
@@ -55,6 +55,21 @@ impl Default for EvalOptions {
             strength: 1.0,
             grid_dir: None,
             grid_clips: 4,
+        }
+    }
+}
+
+impl EvalOptions {
+    /// The sampler's settings.
+    pub fn sample_options(&self) -> SampleOptions {
+        SampleOptions {
+            steps: self.steps,
+            guidance_scale: self.guidance,
+            dynamic_cfg: false,
+            seed: self.seed,
+            first_frame: self.first_frame,
+            strength: self.strength,
+            ..SampleOptions::default()
         }
     }
 }
@@ -96,6 +111,12 @@ pub struct SplitScores {
     pub autoencoder_dynamic_psnr: Option<f64>,
     /// Mask-IoU of the robot segmented in the VAE's reconstructions.
     pub autoencoder_mask_iou: Option<f64>,
+    /// PSNR (dB) of each predicted frame (1, 2, ..), averaged over the videos.
+    pub psnr_per_frame: Vec<f64>,
+    /// The baseline's PSNR of each predicted frame, averaged over the videos.
+    pub baseline_psnr_per_frame: Vec<f64>,
+    /// The VAE ceiling's PSNR of each predicted frame, averaged over the videos.
+    pub autoencoder_psnr_per_frame: Vec<f64>,
 }
 
 /// Bits per channel of the colour segmenter (32 levels).
@@ -116,56 +137,7 @@ pub fn color_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
 }
 
 /// `[1, 3, T, H, W]` masks in {-1, 1} to per-frame 0/1 masks.
-/// Grid upscaling: each pixel as `GRID_SCALE` x `GRID_SCALE`.
-const GRID_SCALE: usize = 2;
-
-/// One clip's row of the grid, per frame: first frame | masks | prediction |
-/// ground truth, RGB8, upscaled.
-fn grid_row(gt: &[RgbFrame], pred: &[RgbFrame], masks: &[Vec<u8>]) -> Vec<Vec<u8>> {
-    use bridgev2w_embodiment::overlay::{mask_rgb, side_by_side, upscale};
-    let rgb8 = |f: &RgbFrame| -> Vec<u8> { f.rgb.iter().map(|&v| u8_from_unit(v)).collect() };
-    let (w, h) = (gt[0].width, gt[0].height);
-    let k = GRID_SCALE;
-    let first = upscale(&rgb8(&gt[0]), w, h, k);
-    (0..gt.len().min(pred.len()))
-        .map(|t| {
-            let mask = masks
-                .get(t)
-                .map(|m| mask_rgb(m))
-                .unwrap_or_else(|| vec![0; w * h * 3]);
-            let mask = upscale(&mask, w, h, k);
-            let (p, g) = (
-                upscale(&rgb8(&pred[t]), w, h, k),
-                upscale(&rgb8(&gt[t]), w, h, k),
-            );
-            side_by_side(&[&first, &mask, &p, &g], w * k, h * k)
-        })
-        .collect()
-}
-
-/// The rows stacked top to bottom, frame by frame, as an animated GIF.
-fn write_grid(path: &std::path::Path, rows: &[Vec<Vec<u8>>], (w, h): (usize, usize)) -> Result<()> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| {
-            TrainError::input(dir.display().to_string(), format!("cannot create: {e}"))
-        })?;
-    }
-    let t = rows.iter().map(Vec::len).min().unwrap_or(0);
-    let frames: Vec<Vec<u8>> = (0..t)
-        .map(|i| rows.iter().flat_map(|r| r[i].iter().copied()).collect())
-        .collect();
-    let k = GRID_SCALE;
-    bridgev2w_embodiment::overlay::write_gif(
-        path,
-        (4 * w * k) as u32,
-        (rows.len() * h * k) as u32,
-        &frames,
-        4,
-    )
-    .map_err(|e| TrainError::input(path.display().to_string(), e.to_string()))
-}
-
-fn mask_frames(masks: &Tensor) -> Result<Vec<Vec<u8>>> {
+pub(crate) fn mask_frames(masks: &Tensor) -> Result<Vec<Vec<u8>>> {
     // [1, 3, T, H, W] -> [T, H, W] (channel 0: robot)
     let m = masks
         .get(0)
@@ -180,7 +152,7 @@ fn mask_frames(masks: &Tensor) -> Result<Vec<Vec<u8>>> {
 }
 
 /// `[1, 3, T, H, W]` in [-1, 1] to metric frames in [0, 1].
-fn frames(video: &Tensor) -> Result<Vec<RgbFrame>> {
+pub(crate) fn frames(video: &Tensor) -> Result<Vec<RgbFrame>> {
     let v = ((video.to_kind(Kind::Float).clamp(-1.0, 1.0) + 1.0) / 2.0)
         .squeeze_dim(0)
         .permute([1, 2, 3, 0]) // [3, T, H, W] -> [T, H, W, 3]
@@ -197,15 +169,8 @@ fn frames(video: &Tensor) -> Result<Vec<RgbFrame>> {
         .collect()
 }
 
-/// Scores `trainer`'s model (as loaded or resumed) on `split` of the run's
-/// primary dataset.
-pub fn evaluate_split(
-    trainer: &Trainer,
-    split: &str,
-    opts: &EvalOptions,
-    segmenter: Option<&dyn RobotSegmenter>,
-    on_video: &dyn Fn(),
-) -> Result<SplitScores> {
+/// `split` of the run's primary dataset, as clips of the run's size.
+pub(crate) fn split_data(trainer: &Trainer, split: &str) -> Result<ClipDataset> {
     let mut spec = trainer
         .cfg
         .data
@@ -215,7 +180,20 @@ pub fn evaluate_split(
         .ok_or_else(|| TrainError::input("data", "no dataset"))?;
     spec.split = split.to_string();
     let d = &trainer.data;
-    let data = ClipDataset::open_sources(&[spec], d.clip_frames, d.height, d.width, 1)?;
+    ClipDataset::open_sources(&[spec], d.clip_frames, d.height, d.width, 1)
+}
+
+/// Scores `trainer`'s model (as loaded or resumed) on `split` of the run's
+/// primary dataset.
+pub fn evaluate_split(
+    trainer: &Trainer,
+    split: &str,
+    opts: &EvalOptions,
+    segmenter: Option<&dyn RobotSegmenter>,
+    on_video: &dyn Fn(),
+) -> Result<SplitScores> {
+    let data = split_data(trainer, split)?;
+    let d = &trainer.data;
     let n = match opts.max_videos {
         0 => data.episodes.len(),
         m => m.min(data.episodes.len()),
@@ -226,26 +204,21 @@ pub fn evaluate_split(
     let (mut ap, mut as_, mut aiou) = (Vec::new(), Vec::new(), Vec::new());
     // Dynamic-region PSNR of the prediction, the baseline and the VAE.
     let (mut dp, mut dbp, mut dap) = (Vec::new(), Vec::new(), Vec::new());
+    // Sums over videos of each predicted frame's PSNR: prediction, baseline, VAE.
+    let mut per_frame: [Vec<f64>; 3] = Default::default();
     let with_masks = segmenter.filter(|_| data.has_masks());
-    let mut grid: Vec<Vec<Vec<u8>>> = Vec::new(); // [clip][frame] -> a row's RGB8 panel strip
+    let mut grid: Vec<crate::grid::GridRow> = Vec::new();
     for i in 0..n {
         let batch = data.clips(&[(i, 0)], trainer.model.device())?;
-        let pred = trainer.predict(
-            &batch,
-            &SampleOptions {
-                steps: opts.steps,
-                guidance_scale: opts.guidance,
-                dynamic_cfg: false,
-                seed: opts.seed,
-                first_frame: opts.first_frame,
-                strength: opts.strength,
-                ..SampleOptions::default()
-            },
-        )?;
+        let pred = trainer.predict(&batch, &opts.sample_options())?;
         let gt = frames(&batch.video)?;
         let pf = frames(&pred)?;
         if opts.grid_dir.is_some() && i < opts.grid_clips {
-            grid.push(grid_row(&gt, &pf, &mask_frames(&batch.masks)?));
+            grid.push(crate::grid::grid_row(
+                &gt,
+                &[&pf],
+                &mask_frames(&batch.masks)?,
+            ));
         }
         let copy = copy_first_frame(&gt).map_err(metric)?;
         let model = &trainer.model;
@@ -262,15 +235,19 @@ pub fn evaluate_split(
         };
         let (gt_p, region_p) = (later(&gt)?, predicted(&region).map_err(metric)?);
         let (pf, copy, af) = (later(&pf)?, later(&copy)?, later(&af)?);
-        for (v, psnr, ssim, dynamic) in [
+        for ((v, psnr, ssim, dynamic), sums) in [
             (&pf, &mut p, &mut s, &mut dp),
             (&copy, &mut bp, &mut bs, &mut dbp),
             (&af, &mut ap, &mut as_, &mut dap),
-        ] {
+        ]
+        .into_iter()
+        .zip(&mut per_frame)
+        {
             let score = score_clip(v, &gt_p, region_p).map_err(metric)?;
             psnr.push(score.psnr);
             ssim.push(score.ssim);
             dynamic.extend(score.dynamic_psnr);
+            add_frame_psnr(sums, v, &gt_p).map_err(metric)?;
         }
         if let Some(seg) = with_masks {
             let gt_masks = mask_frames(&batch.masks)?;
@@ -289,7 +266,7 @@ pub fn evaluate_split(
         on_video();
     }
     if let (Some(dir), false) = (&opts.grid_dir, grid.is_empty()) {
-        write_grid(
+        crate::grid::write_grid(
             &dir.join(format!("{split}.gif")),
             &grid,
             (d.width, d.height),
@@ -303,6 +280,8 @@ pub fn evaluate_split(
             mean(v).map(Some)
         }
     };
+    let [psnr_per_frame, baseline_psnr_per_frame, autoencoder_psnr_per_frame] =
+        per_frame.map(|sums| sums.iter().map(|v| v / n.max(1) as f64).collect());
     Ok(SplitScores {
         split: split.to_string(),
         videos: n,
@@ -319,5 +298,24 @@ pub fn evaluate_split(
         autoencoder_ssim: mean(&as_)?,
         autoencoder_dynamic_psnr: opt_mean(&dap)?,
         autoencoder_mask_iou: opt_mean(&aiou)?,
+        psnr_per_frame,
+        baseline_psnr_per_frame,
+        autoencoder_psnr_per_frame,
     })
+}
+
+/// Adds each frame's PSNR of `video` against `gt` to `sums` (grown to the
+/// clip's length on the first video).
+fn add_frame_psnr(
+    sums: &mut Vec<f64>,
+    video: &[RgbFrame],
+    gt: &[RgbFrame],
+) -> std::result::Result<(), bridgev2w_eval::MetricError> {
+    if sums.len() < video.len() {
+        sums.resize(video.len(), 0.0);
+    }
+    for ((sum, v), g) in sums.iter_mut().zip(video).zip(gt) {
+        *sum += bridgev2w_eval::video::psnr(v, g)?;
+    }
+    Ok(())
 }

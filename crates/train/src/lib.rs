@@ -21,6 +21,7 @@ pub mod ema;
 pub mod eval_run;
 pub mod evaluate;
 pub mod flow;
+pub mod grid;
 pub mod losses;
 pub mod optim;
 pub mod report;

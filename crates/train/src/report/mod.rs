@@ -2,8 +2,13 @@
 //! paper's layout (one block per split, a row per method, next to the
 //! copy-the-first-frame baseline and the VAE's ceiling) from the JSON files
 //! `eval-run --json` writes (a run's [`crate::evaluate::SplitScores`] per
-//! split, with the run's step and sampling settings).
+//! split, with the run's step and sampling settings), with its figures
+//! ([`figures`]: the training loss of each stage, PSNR per predicted frame)
+//! and links to the side-by-side videos (`eval-grid`'s GIFs).
 
+pub mod figures;
+
+use bridgev2w_io::plot::FigureDir;
 use std::path::{Path, PathBuf};
 
 /// Errors of the report: each names the entry, split or file.
@@ -20,6 +25,17 @@ pub enum ReportError {
         /// Why.
         source: std::io::Error,
     },
+    /// A training run's `metrics.jsonl` that cannot be plotted.
+    #[error("{}: {message}", path.display())]
+    Metrics {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// A figure that could not be drawn or written.
+    #[error(transparent)]
+    Plot(#[from] bridgev2w_io::plot::PlotError),
     /// A file that is not an `eval-run --json` file.
     #[error("{}: not an eval-run --json file", path.display())]
     NotRunScores {
@@ -75,6 +91,16 @@ pub struct Scores {
     /// Mask-IoU of the ground truth through the run's VAE.
     #[serde(default)]
     pub autoencoder_mask_iou: Option<f64>,
+    /// PSNR of each predicted frame, averaged over the videos (empty in
+    /// files written before it was scored).
+    #[serde(default)]
+    pub psnr_per_frame: Vec<f64>,
+    /// The baseline's PSNR of each predicted frame.
+    #[serde(default)]
+    pub baseline_psnr_per_frame: Vec<f64>,
+    /// The VAE ceiling's PSNR of each predicted frame.
+    #[serde(default)]
+    pub autoencoder_psnr_per_frame: Vec<f64>,
 }
 
 /// An `eval-run --json` file: a run's scores per split.
@@ -97,6 +123,26 @@ const SPLIT_TITLES: [(&str, &str); 4] = [
     ("train", "Training split"),
 ];
 
+/// The splits of `run` in the paper's order (then the others).
+pub(crate) fn split_order(run: &RunScores) -> Vec<&str> {
+    let mut order: Vec<&str> = run.splits.iter().map(|s| s.split.as_str()).collect();
+    order.sort_by_key(|s| {
+        SPLIT_TITLES
+            .iter()
+            .position(|(k, _)| k == s)
+            .unwrap_or(SPLIT_TITLES.len())
+    });
+    order
+}
+
+/// The paper's title of `split` (the name itself for other splits).
+pub(crate) fn split_title(split: &str) -> &str {
+    SPLIT_TITLES
+        .iter()
+        .find(|(k, _)| *k == split)
+        .map_or(split, |(_, t)| t)
+}
+
 /// One row of a split's block.
 struct Row {
     name: String,
@@ -115,18 +161,8 @@ pub fn video_tables(entries: &[(String, RunScores)]) -> Result<String> {
     let mut md = String::from(
         "| Methods | PSNR ↑ | Dynamic PSNR ↑ | SSIM ↑ | LPIPS ↓ | FVD ↓ | Mask-IoU ↑ |\n|---|---|---|---|---|---|---|\n",
     );
-    let mut order: Vec<&str> = first.splits.iter().map(|s| s.split.as_str()).collect();
-    order.sort_by_key(|s| {
-        SPLIT_TITLES
-            .iter()
-            .position(|(k, _)| k == s)
-            .unwrap_or(SPLIT_TITLES.len())
-    });
-    for split in order {
-        let title = SPLIT_TITLES
-            .iter()
-            .find(|(k, _)| *k == split)
-            .map_or(split, |(_, t)| t);
+    for split in split_order(first) {
+        let title = split_title(split);
         let base = first
             .splits
             .iter()
@@ -237,6 +273,87 @@ pub struct VideoReportOptions {
     pub entries: Vec<String>,
     /// Markdown put before the tables (setup, timings).
     pub preamble: Option<PathBuf>,
+    /// `NAME=DIR` per training run (a stage of the proof run) whose
+    /// `metrics.jsonl` is drawn as loss curves, in this order.
+    pub training_runs: Vec<String>,
+    /// `eval-grid`'s folder of side-by-side GIFs (`<split>.gif` for every
+    /// split of the entries), drawn with the entries' runs in their order.
+    pub grids: Option<PathBuf>,
+    /// The results file the section goes to: the figures are written next
+    /// to it ([`FigureDir::next_to`]) and every link is relative to it.
+    /// `None`: no figures (the grids are then linked from the working folder).
+    pub results: Option<PathBuf>,
+}
+
+/// Parses `NAME=DIR` (a training run's folder).
+pub fn parse_training_run(s: &str) -> Result<(String, PathBuf)> {
+    match s.split_once('=') {
+        Some((name, dir)) if !name.trim().is_empty() && !dir.is_empty() => {
+            Ok((name.trim().to_string(), PathBuf::from(dir)))
+        }
+        _ => Err(ReportError::Invalid(format!(
+            "--training-run {s:?}: expected NAME=DIR (a training run's folder, with metrics.jsonl)"
+        ))),
+    }
+}
+
+/// The figures and the side-by-side videos (markdown), each file written.
+fn figures_section(opts: &VideoReportOptions, entries: &[(String, RunScores)]) -> Result<String> {
+    let mut md = String::new();
+    if let Some(fig) = opts.results.as_deref().map(FigureDir::next_to) {
+        let runs = opts
+            .training_runs
+            .iter()
+            .map(|r| parse_training_run(r))
+            .collect::<Result<Vec<_>>>()?;
+        let mut images = Vec::new();
+        if !runs.is_empty() {
+            figures::loss_curves(&runs, &fig.path("loss-curves.png"))?;
+            let names: Vec<&str> = runs.iter().map(|(n, _)| n.as_str()).collect();
+            images.push(format!(
+                "Training loss of each stage ({}; log scale, a moving average over the faint per-step values):\n\n{}",
+                names.join(", "),
+                fig.image("loss-curves.png", "Training loss per stage")
+            ));
+        }
+        if let Some(psnr) = figures::psnr_figure(entries) {
+            bridgev2w_io::plot::write_png(&fig.path("psnr-per-frame.png"), &psnr)?;
+            images.push(format!(
+                "PSNR of each predicted frame, averaged over the videos, per split (dashed: copying the first frame, and the VAE's ceiling):\n\n{}",
+                fig.image("psnr-per-frame.png", "PSNR per predicted frame")
+            ));
+        }
+        if !images.is_empty() {
+            md += &format!("\n### Figures\n\n{}\n", images.join("\n\n"));
+        }
+    }
+    if let (Some(dir), Some((_, first))) = (&opts.grids, entries.first()) {
+        let names: Vec<&str> = entries.iter().map(|(n, _)| n.as_str()).collect();
+        md += &format!(
+            "\n### Side-by-side videos\n\nThe first clips of each split, a row each: first frame | masks | {} | ground truth (`bridgev2w eval-grid`).\n\n",
+            names.join(" | ")
+        );
+        let results = opts
+            .results
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("results.md"));
+        for split in split_order(first) {
+            let gif = dir.join(format!("{split}.gif"));
+            if !gif.is_file() {
+                return Err(ReportError::Invalid(format!(
+                    "--grids: {} does not exist; draw the grids with `bridgev2w eval-grid --out {}` for the entries' splits",
+                    gif.display(),
+                    dir.display()
+                )));
+            }
+            md += &format!(
+                "**{}**\n\n![{split}]({})\n\n",
+                split_title(split),
+                bridgev2w_io::plot::link_from(&results, &gif)
+            );
+        }
+    }
+    Ok(md)
 }
 
 /// The markdown of the results file's `video` section: the heading, the
@@ -262,6 +379,7 @@ pub fn video_report(opts: &VideoReportOptions) -> Result<String> {
     };
     md += &format!("\nPSNR and SSIM per frame on [0, 1] RGB, averaged over the predicted frames 1..T, then videos (frame 0 is every method's input: copying it would score 100 dB there, and until 2026-11-25 that frame was counted, which put the copy baseline about 8 dB higher). Dynamic PSNR: PSNR pooled over the pixels the motion changes (in frames 1..T, a channel differs from the true first frame by more than 8/255; dilated by 2 px), where copying the first frame knows nothing; averaged over videos. Mask-IoU (x100): the robot segmented in each predicted frame by {segmenter} trained on the training split's frames and ground-truth masks (the paper uses Grounded SAM), against the ground-truth masks; the segmenter's ceiling is its score on the ground-truth frames.");
     md += " LPIPS and FVD need the pretrained AlexNet and I3D weights, which cannot be downloaded here (`bridgev2w eval` computes them from user-supplied weights).\n";
+    md += &figures_section(opts, &entries)?;
     Ok(md)
 }
 
@@ -293,6 +411,9 @@ mod tests {
                     autoencoder_psnr: Some(psnr + 5.0),
                     autoencoder_ssim: Some(0.7),
                     autoencoder_mask_iou: None,
+                    psnr_per_frame: vec![psnr + 2.0, psnr, psnr - 2.0],
+                    baseline_psnr_per_frame: vec![22.0, 20.0, 18.0],
+                    autoencoder_psnr_per_frame: vec![psnr + 5.0; 3],
                 })
                 .collect(),
         }
@@ -354,5 +475,114 @@ mod tests {
             "{md}"
         );
         assert!(!md.contains("Ceiling"), "{md}");
+    }
+
+    /// The PNG at `path`: its size and the share of non-white pixels in
+    /// the middle half (the plot area).
+    pub(crate) fn ink(path: &Path) -> ((u32, u32), f64) {
+        let bytes = std::fs::read(path).unwrap();
+        let (w, h, rgb) = bridgev2w_io::png::decode_rgb8(&bytes).unwrap();
+        let mut inked = 0usize;
+        let mut all = 0usize;
+        for y in h / 4..3 * h / 4 {
+            for x in w / 4..3 * w / 4 {
+                let i = (y * w + x) as usize * 3;
+                all += 1;
+                inked += usize::from(rgb[i..i + 3] != [255, 255, 255]);
+            }
+        }
+        ((w, h), inked as f64 / all as f64)
+    }
+
+    #[test]
+    fn the_section_draws_and_links_its_figures_and_grids() {
+        let tmp = tempfile::tempdir().unwrap();
+        let d = tmp.path();
+        let scores = |name: &str, psnr: f64| {
+            let r = run(psnr, 0.5, 3);
+            let splits: Vec<serde_json::Value> = r
+                .splits
+                .iter()
+                .map(|s| {
+                    serde_json::json!({
+                        "split": s.split, "videos": s.videos, "psnr": s.psnr, "ssim": s.ssim,
+                        "baseline_psnr": s.baseline_psnr, "baseline_ssim": s.baseline_ssim,
+                        "mask_iou": null, "baseline_mask_iou": null, "segmenter_mask_iou": null,
+                        "autoencoder_psnr": s.autoencoder_psnr, "autoencoder_ssim": s.autoencoder_ssim,
+                        "psnr_per_frame": s.psnr_per_frame,
+                        "baseline_psnr_per_frame": s.baseline_psnr_per_frame,
+                        "autoencoder_psnr_per_frame": s.autoencoder_psnr_per_frame,
+                    })
+                })
+                .collect();
+            let f = d.join(format!("{name}.json"));
+            std::fs::write(
+                &f,
+                serde_json::json!({"step": 10, "splits": splits}).to_string(),
+            )
+            .unwrap();
+            format!("{name}={}", f.display())
+        };
+        let stage = |name: &str| {
+            let dir = d.join("runs").join(name);
+            std::fs::create_dir_all(&dir).unwrap();
+            let lines: String = (0..20)
+                .map(|i| {
+                    format!(
+                        "{{\"step\":{i},\"loss\":{},\"diffusion\":{},\"dynamics\":0.1}}\n",
+                        1.0 / (i + 1) as f64 + 0.1,
+                        1.0 / (i + 1) as f64
+                    )
+                })
+                .collect();
+            std::fs::write(dir.join("metrics.jsonl"), lines).unwrap();
+            format!("{name}={}", dir.display())
+        };
+        let grids = d.join("grids");
+        std::fs::create_dir_all(&grids).unwrap();
+        for split in ["test", "unseen_camera"] {
+            std::fs::write(grids.join(format!("{split}.gif")), b"GIF89a").unwrap();
+        }
+        let results = d.join("docs/results.md");
+        let mut opts = VideoReportOptions {
+            entries: vec![scores("A", 25.0), scores("B", 22.0)],
+            preamble: None,
+            training_runs: vec![stage("prior"), stage("bridgev2w")],
+            grids: Some(grids.clone()),
+            results: Some(results.clone()),
+        };
+        let md = video_report(&opts).unwrap();
+        let figs = d.join("docs/results/figures");
+        // Two stages: one row of two 420x300 panels; two splits likewise.
+        for (name, size) in [
+            ("loss-curves.png", (840, 300)),
+            ("psnr-per-frame.png", (840, 300)),
+        ] {
+            let (got, share) = ink(&figs.join(name));
+            assert_eq!(got, size, "{name}");
+            assert!(share > 0.01, "{name}: {share}");
+            assert!(md.contains(&format!("(results/figures/{name})")), "{md}");
+        }
+        assert!(
+            md.contains("first frame | masks | A | B | ground truth"),
+            "{md}"
+        );
+        assert!(md.contains("![test](../grids/test.gif)"), "{md}");
+        assert!(md.find("In-Domain**").unwrap() < md.find("Unseen Camera Viewpoint**").unwrap());
+        // Bad input names the file.
+        std::fs::remove_file(grids.join("test.gif")).unwrap();
+        let e = video_report(&opts).unwrap_err().to_string();
+        assert!(e.contains("test.gif") && e.contains("eval-grid"), "{e}");
+        opts.grids = None;
+        opts.training_runs
+            .push(format!("vae={}", d.join("runs/vae").display()));
+        let e = video_report(&opts).unwrap_err().to_string();
+        assert!(
+            e.contains("vae/metrics.jsonl") && e.contains("does not exist"),
+            "{e}"
+        );
+        opts.training_runs = vec!["vae".into()];
+        let e = video_report(&opts).unwrap_err().to_string();
+        assert!(e.contains("expected NAME=DIR"), "{e}");
     }
 }

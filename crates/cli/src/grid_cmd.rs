@@ -1,0 +1,89 @@
+//! `bridgev2w eval-grid`: side-by-side videos of one or more trained runs
+//! per split ([`bridgev2w_train::grid`]): first frame | masks | each run's
+//! prediction | ground truth, the first clips a row each, as
+//! `OUT/<split>.gif`.
+
+use anyhow::Result;
+use bridgev2w_train::evaluate::EvalOptions;
+use bridgev2w_train::grid::{write_grids, GridOptions, GridRun};
+use std::path::PathBuf;
+
+/// Arguments of `eval-grid`.
+#[derive(Debug, clap::Args)]
+pub struct EvalGridArgs {
+    /// The first run's training configuration (TOML).
+    config: PathBuf,
+    /// The first run's folder (its latest checkpoint) or a checkpoint folder.
+    #[arg(long)]
+    run: PathBuf,
+    /// Another run drawn in the next column (e.g. the ablation next to
+    /// BridgeV2W): its configuration and its folder; repeat for more.
+    #[arg(long, num_args = 2, value_names = ["CONFIG", "RUN"])]
+    compare: Vec<PathBuf>,
+    /// The folder of the GIFs: OUT/<split>.gif.
+    #[arg(long)]
+    out: PathBuf,
+    /// Splits of the runs' dataset, comma-separated.
+    #[arg(long, default_value = "test,unseen_camera,unseen_scene")]
+    splits: String,
+    /// Clips per grid (rows): the first clip of the first episodes.
+    #[arg(long, default_value_t = 4)]
+    clips: usize,
+    /// Denoising steps.
+    #[arg(long, default_value_t = 20)]
+    steps: usize,
+    /// Classifier-free guidance scale (1 = off).
+    #[arg(long, default_value_t = 1.0)]
+    guidance: f64,
+    /// Sampling seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// The first latent frame of the predictions: `generated` or `replaced`.
+    #[arg(long, default_value = "generated")]
+    first_frame: bridgev2w_world_model::pipeline::FirstFrame,
+    /// Where sampling starts, in (0, 1] (1: pure noise; see `eval-run`).
+    #[arg(long, default_value_t = 1.0)]
+    strength: f64,
+    /// The weights of each run: `averaged` or `raw`.
+    #[arg(long, default_value = "averaged")]
+    weights: bridgev2w_train::ema::RunWeights,
+}
+
+/// `bridgev2w eval-grid`.
+pub fn run(a: &EvalGridArgs) -> Result<()> {
+    let mut runs = vec![GridRun {
+        config: a.config.clone(),
+        run: a.run.clone(),
+    }];
+    runs.extend(a.compare.chunks(2).map(|c| GridRun {
+        config: c[0].clone(),
+        run: c[1].clone(),
+    }));
+    let o = GridOptions {
+        runs,
+        splits: a
+            .splits
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .map(String::from)
+            .collect(),
+        clips: a.clips,
+        sampling: EvalOptions {
+            steps: a.steps,
+            guidance: a.guidance,
+            seed: a.seed,
+            first_frame: a.first_frame,
+            strength: a.strength,
+            ..EvalOptions::default()
+        },
+        weights: a.weights,
+        out: a.out.clone(),
+    };
+    let written = write_grids(&o, &crate::progress::TerminalProgress::default())?;
+    let lines: Vec<String> = written
+        .iter()
+        .map(|p| format!("wrote {}", p.display()))
+        .collect();
+    crate::print_stdout(&(lines.join("\n") + "\n"))
+}
