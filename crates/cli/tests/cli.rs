@@ -625,6 +625,18 @@ fn plan_report_models_and_section() {
         text.contains(": perfect\n") && text.contains("| reach | perfect | "),
         "{text}"
     );
+    // The section's figures, in the folder named after the results file.
+    for name in [
+        "planning-small-planner-vs-random.png",
+        "planning-small-policy-evaluation.png",
+    ] {
+        let png = image::open(tmp.path().join("results/figures").join(name)).expect(name);
+        assert!(png.width() > 100 && png.height() > 100, "{name}");
+        assert!(
+            text.contains(&format!("(results/figures/{name})")),
+            "{text}"
+        );
+    }
     // --trials 0: the policy evaluation alone, in its own section.
     let out = words(&format!(
         "plan-report --models perfect --section policies --trials 0 --eval-trials 1 --out {}",

@@ -61,6 +61,9 @@ pub enum PlanError {
     /// A results file could not be written.
     #[error(transparent)]
     File(#[from] bridgev2w_io::FileError),
+    /// A figure of the report that could not be drawn or written.
+    #[error(transparent)]
+    Plot(#[from] bridgev2w_io::plot::PlotError),
     /// The synthetic world failed.
     #[error(transparent)]
     Synth(#[from] bridgev2w_data::synth::SynthError),

@@ -12,7 +12,8 @@ use std::path::PathBuf;
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct PlanReportArgs {
-    /// Output markdown file.
+    /// Output markdown file (only `--section` is replaced). The figures go
+    /// to the folder named after it: OUT_WITHOUT_.md/figures/SECTION-*.png.
     #[arg(long, default_value = "docs/results.md")]
     pub out: PathBuf,
     /// Planning trials per task (0: no planning, only the policy evaluation).
@@ -101,9 +102,13 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         strength: a.strength,
         device: a.device,
         seed: a.seed,
+        results: Some(a.out.clone()),
     };
     let command = std::env::args().collect::<Vec<_>>().join(" ");
     let md = plan_report(&o, &command, &mut progress)?;
     bridgev2w_io::sections::write_section(&a.out, &a.section, &md)?;
+    if let Some(w) = bridgev2w_io::plot::missing_font_warning() {
+        eprintln!("{w}");
+    }
     crate::print_stdout(&md)
 }

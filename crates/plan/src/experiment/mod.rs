@@ -10,7 +10,7 @@
 //! * [`fidelity_study`]: whether a model orders candidate actions as the
 //!   world does ([`fidelity_study()`]);
 //! * [`report`]: all of them as the `planning` sections of `docs/results.md`
-//!   ([`plan_report`]).
+//!   ([`plan_report`]), with their figures ([`report_figures`]).
 //!
 //! The world model of each is named by [`ModelOptions`] and loaded once
 //! ([`LoadedModel`]).
@@ -19,6 +19,7 @@ pub mod fidelity_study;
 mod models;
 pub mod planning;
 pub mod report;
+pub mod report_figures;
 pub mod rollout;
 
 pub use fidelity_study::{fidelity_study, FidelityOptions, FidelityStudy};

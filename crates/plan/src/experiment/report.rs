@@ -100,6 +100,10 @@ pub struct PlanReportOptions {
     pub device: ComputeDevice,
     /// Seed.
     pub seed: u64,
+    /// The results file the section goes to: its figures are written next
+    /// to it (`<results without .md>/figures/<section>-*.png`) and linked
+    /// from the section; `None`: no figures.
+    pub results: Option<PathBuf>,
 }
 
 /// The models of the report from a comma-separated list (or, without one,
@@ -196,9 +200,11 @@ pub fn plan_report(
         96,
         64
     );
+    let mut plans = Vec::new();
     if o.trials > 0 {
-        md += &plan_tables(o, &planners, progress)?;
+        md += &plan_tables(o, &planners, progress, &mut plans)?;
     }
+    let mut evals = Vec::new();
     md += &format!(
         "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). World-model goal progress: the mean over trials of (d_start - d_last) / max(d_start, d_last) for those latent distances (1: at the goal, 0: no nearer, negative: farther); it ranks policies even when no rollout succeeds. Synthetic-world success: the task's state check.\n",
         o.eval_trials
@@ -215,6 +221,7 @@ pub fn plan_report(
         }
         let loaded = LoadedModel::load(options)?;
         let r = rollout_with(&loaded, &ro, progress)?;
+        evals.push((model.label(), r.clone()));
         md += &format!(
             "\n#### Model: {}{}\n\n{}",
             model.label(),
@@ -230,15 +237,20 @@ pub fn plan_report(
             r.markdown()
         );
     }
+    if let Some(results) = &o.results {
+        md += &super::report_figures::figures_section(results, &o.section, &plans, &evals)?;
+    }
     Ok(md)
 }
 
 /// The planning part of the report: the CEM settings and a row per task
-/// and planning model.
+/// and planning model (each row's summary also pushed to `summaries`, with
+/// its model's label).
 fn plan_tables(
     o: &PlanReportOptions,
     planners: &[&(ReportModel, ModelOptions)],
     progress: &mut dyn FnMut(&str),
+    summaries: &mut Vec<(String, super::PlanSummary)>,
 ) -> Result<String> {
     let mut md = format!(
         "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
@@ -286,6 +298,7 @@ fn plan_tables(
                 s.planned_steps,
                 s.seconds
             );
+            summaries.push((planner.label(), s));
         }
     }
     Ok(md)
