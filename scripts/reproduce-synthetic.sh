@@ -12,8 +12,12 @@
 #   4. the mask_action = false ablation (end-effector actions through an MLP)
 #      with the same budget,
 #   5. eval-run of both on test / unseen_camera / unseen_scene (PSNR, SSIM,
-#      Mask-IoU, copy-the-first-frame baseline),
-#   6. eval-report: the table in docs/results.md (section `video`).
+#      Mask-IoU, copy-the-first-frame baseline, PSNR per predicted frame),
+#   6. eval-grid: side-by-side GIFs per split (first frame | masks |
+#      BridgeV2W | ablation | ground truth) in docs/results/grids/,
+#   7. eval-report: the table in docs/results.md (section `video`), with its
+#      figures in docs/results/figures/ (the loss curves of every stage,
+#      PSNR per predicted frame) and links to the GIFs.
 #
 # Usage: scripts/reproduce-synthetic.sh [OUT_DIR]      (default runs/reproduce)
 # Budgets (environment, defaults sized for ~2.5 h on a 2-core CPU):
@@ -235,8 +239,9 @@ train prior vae
 evaluate() { # evaluate NAME: eval-run of OUT/NAME, kept when its run and settings are unchanged
     local name=$1 fp
     # "frames 1..": the scoring protocol (frame 0, the input, not scored
-    # since 2026-11-25); a change of protocol redoes the evaluations.
-    fp=$(fingerprint "eval $name --max-videos $EVAL_VIDEOS --steps $EVAL_STEPS frames 1.." "$OUT/$name.inputs")
+    # since 2026-11-25); "psnr per frame": the JSON's per-frame PSNR (the
+    # figure's, since 2026-11-26); a change of protocol redoes the evaluations.
+    fp=$(fingerprint "eval $name --max-videos $EVAL_VIDEOS --steps $EVAL_STEPS frames 1.. psnr per frame" "$OUT/$name.inputs")
     if [[ -f $OUT/eval-$name.json && $(cat "$OUT/eval-$name.inputs" 2>/dev/null) == "$fp" ]]; then
         echo "== eval $name: done before from the same run and settings, kept"
         return
@@ -252,6 +257,29 @@ train bridgev2w prior
 evaluate bridgev2w
 train ablation-action-mlp prior
 evaluate ablation-action-mlp
+
+# The results' figures and videos go to the folder named after the results
+# file (docs/results/ for docs/results.md): eval-report writes figures/,
+# eval-grid grids/.
+GRIDS="${RESULTS%.md}/grids"
+GRID_CLIPS=4
+grids() { # the side-by-side GIFs, kept when both runs and the settings are unchanged
+    local fp split missing=0
+    fp=$(fingerprint "grid --clips $GRID_CLIPS --steps $EVAL_STEPS" "$OUT/bridgev2w.inputs" "$OUT/ablation-action-mlp.inputs")
+    for split in test unseen_camera unseen_scene; do
+        [[ -f $GRIDS/$split.gif ]] || missing=1
+    done
+    if [[ $missing == 0 && $(cat "$OUT/grids.inputs" 2>/dev/null) == "$fp" ]]; then
+        echo "== grids: done before from the same runs and settings, kept"
+        return
+    fi
+    rm -f "$OUT/grids.inputs"
+    stage grids "$BIN" eval-grid "$OUT/configs/bridgev2w.toml" --run "$OUT/bridgev2w" \
+        --compare "$OUT/configs/ablation-action-mlp.toml" "$OUT/ablation-action-mlp" \
+        --out "$GRIDS" --clips "$GRID_CLIPS" --steps "$EVAL_STEPS"
+    printf '%s\n' "$fp" >"$OUT/grids.inputs"
+}
+grids
 
 PRE="$OUT/preamble.md"
 {
@@ -269,7 +297,11 @@ PRE="$OUT/preamble.md"
 } >"$PRE"
 "$BIN" eval-report --preamble "$PRE" --out "$RESULTS" \
     --entry "BridgeV2W (masks, ControlNet)=$OUT/eval-bridgev2w.json" \
-    --entry "Ablation: actions through an MLP=$OUT/eval-ablation-action-mlp.json"
+    --entry "Ablation: actions through an MLP=$OUT/eval-ablation-action-mlp.json" \
+    --training-run "vae-image=$OUT/vae-image" --training-run "vae=$OUT/vae" \
+    --training-run "prior=$OUT/prior" --training-run "bridgev2w=$OUT/bridgev2w" \
+    --training-run "ablation-action-mlp=$OUT/ablation-action-mlp" \
+    --grids "$GRIDS"
 
 if [[ ${EXPORT_DEMO:-0} == 1 ]]; then
     scripts/export-demo.sh "$OUT"

@@ -48,9 +48,36 @@ gloo_headers() {
   fi
   rm -rf "$tmp"
 }
+dejavu_font() {
+  # The text of the results' figures (eval-report, plan-report draw PNGs with
+  # plotters): DejaVu Sans from the system, else Debian's fonts-dejavu-core
+  # unpacked here without root (crates/io/src/plot/font.rs looks in both, after
+  # BRIDGEV2W_FONT). Without it the figures are drawn without text.
+  [[ -f /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf || -f "$venv/fonts/DejaVuSans.ttf" ]] && return 0
+  local tmp deb ttf=usr/share/fonts/truetype/dejavu/DejaVuSans.ttf
+  tmp="$(mktemp -d)"
+  if ! (cd "$tmp" && apt-get download fonts-dejavu-core >/dev/null 2>&1); then
+    if [[ "$(id -u)" == 0 ]] && command -v apt-get >/dev/null; then
+      apt-get update -qq >/dev/null 2>&1 || true
+      (cd "$tmp" && apt-get download fonts-dejavu-core >/dev/null 2>&1) || true
+    fi
+  fi
+  deb="$(ls "$tmp"/fonts-dejavu-core_*.deb 2>/dev/null | head -n 1)"
+  if [[ -n "$deb" ]] && dpkg-deb -x "$deb" "$tmp/x" && [[ -f "$tmp/x/$ttf" ]]; then
+    mkdir -p "$venv/fonts"
+    cp "$tmp/x/$ttf" "$venv/fonts/DejaVuSans.ttf.tmp"
+    mv "$venv/fonts/DejaVuSans.ttf.tmp" "$venv/fonts/DejaVuSans.ttf"
+  else
+    echo "scripts/setup-venv.sh: could not fetch Debian's fonts-dejavu-core (apt-get download):" \
+      "the figures of eval-report and plan-report will be drawn without text. Install" \
+      "fonts-dejavu-core or set BRIDGEV2W_FONT to a .ttf file." >&2
+  fi
+  rm -rf "$tmp"
+}
 if [[ -x "$venv/bin/python" && -f "$stamp" ]] && cmp -s "$lock" "$stamp"; then
   [[ -e "$venv/libtorch/lib/libtorch_cpu.so" ]] || link_libtorch
   gloo_headers
+  dejavu_font
   exit 0
 fi
 free_kib="$(df -Pk "$root" | awk 'NR == 2 { print $4 }')"
@@ -78,4 +105,5 @@ pip_install "${small[@]}"
 "$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py, peft, av; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
 link_libtorch
 gloo_headers
+dejavu_font
 cp "$lock" "$stamp"

@@ -448,6 +448,12 @@ fn demo_predicts_with_the_shipped_model() {
     let (tmp, out, o) = run_demo(&["--steps", "4"]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("world model"), "{stdout}");
+    // Where the videos are: its own, and the proof run's grids.
+    assert!(
+        stdout.contains(&format!("{}/prediction.mp4 (H.264)", out.display()))
+            && stdout.contains("docs/results/grids/<split>.gif"),
+        "{stdout}"
+    );
     assert_eq!(npy_shape(&out.join("masks.npy")).1, vec![9, 480, 720]);
     let v = bridgev2w_data::video::decode_mp4(&out.join("prediction.mp4")).expect("demo test");
     assert_eq!((v.frames.len(), v.width, v.height), (9, 96, 64));

@@ -14,9 +14,10 @@ fn repo() -> PathBuf {
 }
 
 /// A fake `bridgev2w`: appends `COMMAND NAME` to `calls.log` (`train NAME
-/// --resume` for a resumed run) and makes the files the script checks
-/// (`synth`'s `meta/info.json`, `train`'s `final/weights.safetensors`,
-/// `final/backbone/` and `checkpoints/`).
+/// --resume` for a resumed run, `eval-report --grids DIR`) and makes the
+/// files the script checks (`synth`'s `meta/info.json`, `train`'s
+/// `final/weights.safetensors`, `final/backbone/` and `checkpoints/`,
+/// `eval-grid`'s GIFs).
 const FAKE: &str = r#"#!/usr/bin/env bash
 set -eu
 log="$(dirname "$0")/calls.log"
@@ -35,8 +36,18 @@ eval-run)
     shift
     while [[ $# -gt 0 ]]; do [[ $1 == --json ]] && echo '{}' >"$2"; shift; done
     echo "eval-run" >>"$log" ;;
+eval-grid)
+    shift
+    while [[ $# -gt 0 ]]; do
+        [[ $1 == --out ]] && mkdir -p "$2" && for s in test unseen_camera unseen_scene; do touch "$2/$s.gif"; done
+        shift
+    done
+    echo "eval-grid" >>"$log" ;;
 eval-report)
-    echo "eval-report" >>"$log" ;;
+    shift
+    grids=""
+    while [[ $# -gt 0 ]]; do [[ $1 == --grids ]] && grids=" --grids $2"; shift; done
+    echo "eval-report$grids" >>"$log" ;;
 esac
 "#;
 
@@ -110,15 +121,25 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         ]
     );
     assert_eq!(evaluated(&first), 2, "{first:?}");
+    // The side-by-side GIFs once, next to the results file, and linked.
+    let grids = |calls: &[String]| calls.iter().filter(|c| *c == "eval-grid").count();
+    assert_eq!(grids(&first), 1, "{first:?}");
+    assert_eq!(
+        first.last().map(String::as_str),
+        Some("eval-report --grids results/grids"),
+        "{first:?}"
+    );
     // Same inputs: nothing is trained or evaluated again.
     let second = run(r, &[]);
     assert!(!second.contains(&"synth".to_string()), "{second:?}");
     assert!(trained(&second).is_empty(), "{second:?}");
     assert_eq!(evaluated(&second), 0, "{second:?}");
-    // Another evaluation budget: only the evaluations are redone.
+    assert_eq!(grids(&second), 0, "{second:?}");
+    // Another evaluation budget: only the evaluations and grids are redone.
     let more = run(r, &[("EVAL_STEPS", "3")]);
     assert!(trained(&more).is_empty(), "{more:?}");
     assert_eq!(evaluated(&more), 2, "{more:?}");
+    assert_eq!(grids(&more), 1, "{more:?}");
     // Another prior budget: the prior and both fine-tunings are redone, the
     // autoencoders kept; the old prior is moved aside, not deleted.
     let third = run(r, &[("PRIOR_STEPS", "7")]);

@@ -78,9 +78,10 @@ impl PredictionSummary {
                 self.seconds
             ),
             format!(
-                "  {0}/prediction.mp4, {0}/prediction.gif (first frame | masks | prediction | ground truth), prediction-actions.json, prediction-scores.json",
+                "  the prediction: {0}/prediction.mp4 (H.264) and {0}/prediction.gif (first frame | masks | prediction | ground truth); {0}/prediction-actions.json, {0}/prediction-scores.json",
                 out.display()
             ),
+            "  side-by-side videos of the proof run per split (first frame | masks | BridgeV2W | ablation | ground truth): docs/results/grids/<split>.gif, linked from docs/results.md (bridgev2w eval-grid)".to_string(),
         ]
     }
 }
