@@ -435,6 +435,16 @@ fn the_evaluation_guide_runs() {
         scores["psnr"].as_f64().is_some_and(|p| p > 20.0),
         "{scores}"
     );
+    // The figures and the grid, next to results.md and linked from it.
+    let results = std::fs::read_to_string(d.path().join("results.md")).expect("results");
+    for file in [
+        "results/figures/loss-curves.png",
+        "results/figures/psnr-per-frame.png",
+        "results/grids/test.gif",
+    ] {
+        assert!(d.path().join(file).is_file(), "{file}");
+        assert!(results.contains(&format!("]({file})")), "{file}: {results}");
+    }
 }
 
 #[test]

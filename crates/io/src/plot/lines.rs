@@ -96,6 +96,48 @@ fn drawn(p: (f64, f64), log_y: bool) -> Option<(f64, f64)> {
     (x.is_finite() && y.is_finite()).then_some((x, y))
 }
 
+/// The legend's place: the corner (or side) of the plot that the lines
+/// cross least, judged on points sampled along them.
+fn legend_corner(
+    lines: &[Vec<(f64, f64)>],
+    (x0, x1): (f64, f64),
+    (y0, y1): (f64, f64),
+) -> SeriesLabelPosition {
+    use SeriesLabelPosition as P;
+    // Candidates with their boxes in the unit square (x from the left, y from the bottom).
+    let boxes = [
+        (P::UpperRight, (0.55, 1.0), (0.6, 1.0)),
+        (P::UpperLeft, (0.0, 0.45), (0.6, 1.0)),
+        (P::LowerRight, (0.55, 1.0), (0.0, 0.4)),
+        (P::LowerLeft, (0.0, 0.45), (0.0, 0.4)),
+        (P::MiddleRight, (0.55, 1.0), (0.3, 0.7)),
+        (P::MiddleLeft, (0.0, 0.45), (0.3, 0.7)),
+    ];
+    let unit = |(x, y): (f64, f64)| ((x - x0) / (x1 - x0), (y - y0) / (y1 - y0));
+    let mut samples = Vec::new();
+    for line in lines {
+        for w in line.windows(2) {
+            for k in 0..16 {
+                let t = f64::from(k) / 16.0;
+                samples.push(unit((
+                    w[0].0 + t * (w[1].0 - w[0].0),
+                    w[0].1 + t * (w[1].1 - w[0].1),
+                )));
+            }
+        }
+        samples.extend(line.last().map(|&p| unit(p)));
+    }
+    boxes
+        .into_iter()
+        .min_by_key(|(_, (bx0, bx1), (by0, by1))| {
+            samples
+                .iter()
+                .filter(|(x, y)| (bx0..=bx1).contains(&x) && (by0..=by1).contains(&y))
+                .count()
+        })
+        .map_or(P::UpperRight, |(p, _, _)| p)
+}
+
 fn draw_panel(panel: &Panel, area: &Canvas<'_>, text: bool) -> Result<(), String> {
     let pts: Vec<Vec<(f64, f64)>> = panel
         .lines
@@ -146,7 +188,7 @@ fn draw_panel(panel: &Panel, area: &Canvas<'_>, text: bool) -> Result<(), String
         mesh.x_labels(0).y_labels(0);
     }
     mesh.draw().map_err(e)?;
-    for (line, pts) in panel.lines.iter().zip(pts) {
+    for (line, pts) in panel.lines.iter().zip(&pts) {
         let c = color(line.color);
         let style = if line.faint {
             c.mix(0.3).stroke_width(1)
@@ -179,9 +221,29 @@ fn draw_panel(panel: &Panel, area: &Canvas<'_>, text: bool) -> Result<(), String
             .label_font(text_style(11))
             .background_style(WHITE.mix(0.85))
             .border_style(RGBColor(200, 200, 200))
-            .position(SeriesLabelPosition::UpperRight)
+            .position(legend_corner(&pts, xr, yr))
             .draw()
             .map_err(e)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_legend_goes_where_the_lines_are_not() {
+        // Falling lines fill the upper left and the lower right.
+        let falling = vec![vec![(0.0, 1.0), (1.0, 0.0)]];
+        let at = legend_corner(&falling, (0.0, 1.0), (0.0, 1.0));
+        assert!(matches!(at, SeriesLabelPosition::UpperRight), "{at:?}");
+        // A line along the top and one along the bottom: a middle side.
+        let both = vec![
+            vec![(0.0, 0.95), (1.0, 0.95)],
+            vec![(0.0, 0.05), (1.0, 0.05)],
+        ];
+        let at = legend_corner(&both, (0.0, 1.0), (0.0, 1.0));
+        assert!(matches!(at, SeriesLabelPosition::MiddleRight), "{at:?}");
+    }
 }

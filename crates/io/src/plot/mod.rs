@@ -82,7 +82,7 @@ pub fn write_png_with(path: &Path, figure: &dyn Figure, text: bool) -> Result<()
             message,
         })?;
     }
-    let png = crate::png::encode_rgb8(w, h, &buf);
+    let png = crate::png::encode_rgb8_small(w, h, &buf);
     crate::atomic::write_atomic_creating_dirs(path, &png)?;
     Ok(())
 }
