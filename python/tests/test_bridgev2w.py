@@ -1,18 +1,21 @@
 """Tests of the Python package against the command line (the same Rust
-code reached another way) and closed forms. Run by
+code reached another way) and closed forms. Run with pytest by
 crates/cli/tests/python_package.rs after `pip install ./python`:
 
-  python python/tests/test_bridgev2w.py BRIDGEV2W_BINARY WORKDIR RAW_FIXTURES
+  BRIDGEV2W_BIN=... BRIDGEV2W_TEST_WORK=DIR BRIDGEV2W_TEST_RAW=DIR \
+    python -m pytest python/tests/test_bridgev2w.py
 
-RAW_FIXTURES: the raw DROID/AgiBot episodes of
+BRIDGEV2W_BIN: the `bridgev2w` binary; BRIDGEV2W_TEST_WORK: an empty
+folder; BRIDGEV2W_TEST_RAW: the raw DROID/AgiBot episodes of
 scripts/fixtures/write_raw_episodes.py with their videos (written by the
-Rust test).
+Rust test). The tests run in file order (later ones read what earlier ones
+wrote).
 """
 
 import json
+import os
 import pathlib
 import subprocess
-import sys
 import threading
 import time
 
@@ -20,7 +23,9 @@ import numpy as np
 
 import bridgev2w as bw
 
-BIN, WORK, RAW = sys.argv[1], pathlib.Path(sys.argv[2]), pathlib.Path(sys.argv[3])
+BIN = os.environ["BRIDGEV2W_BIN"]
+WORK = pathlib.Path(os.environ["BRIDGEV2W_TEST_WORK"])
+RAW = pathlib.Path(os.environ["BRIDGEV2W_TEST_RAW"])
 
 
 def cli_masks(tmp, robot, cam, *, joints=None, actions=None, depth=False):
@@ -426,11 +431,3 @@ def test_bad_input_is_a_python_exception_naming_it():
             assert needle in str(e), f"{kind.__name__} without {needle!r}: {e}"
         else:
             raise AssertionError(f"no {kind.__name__} for {needle!r}")
-
-
-if __name__ == "__main__":
-    tests = [v for k, v in list(globals().items()) if k.startswith("test_")]  # in file order
-    for t in tests:
-        t()
-        print(f"ok {t.__name__}")
-    print(f"{len(tests)} passed")

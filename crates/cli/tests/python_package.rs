@@ -74,13 +74,14 @@ fn pip_install_python_then_its_tests_pass() {
     let raw = dir.path().join("raw");
     raw_fixtures(&project_python, &raw);
     let o = Command::new(venv.join("bin/python"))
+        .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
         .arg(repo().join("python/tests/test_bridgev2w.py"))
-        .arg(env!("CARGO_BIN_EXE_bridgev2w"))
-        .arg(&work)
-        .arg(&raw)
+        .env("BRIDGEV2W_BIN", env!("CARGO_BIN_EXE_bridgev2w"))
+        .env("BRIDGEV2W_TEST_WORK", &work)
+        .env("BRIDGEV2W_TEST_RAW", &raw)
         .current_dir(dir.path())
         .output()
-        .expect("run the package's tests");
+        .expect("run the package's tests with pytest");
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
     assert!(String::from_utf8_lossy(&o.stdout).contains("11 passed"));
