@@ -3,6 +3,7 @@
 //! `include/`), with torch-sys's own flags for libtch:
 //!
 //! * `csrc/torch_ext.cpp`: autocast;
+//! * `csrc/cpu_cache.cpp`: a caching CPU allocator;
 //! * `csrc/c10d.cpp`: c10d's TCPStore and Gloo process group. The PyPI wheel
 //!   ships no gloo headers (ProcessGroupGloo.hpp includes them, for pointer
 //!   types only): they are looked for in `BRIDGEV2W_GLOO_INCLUDE`, libtorch's
@@ -40,6 +41,7 @@ fn main() {
     println!("cargo:rerun-if-env-changed=LIBTORCH_CXX11_ABI");
     for f in [
         "csrc/torch_ext.cpp",
+        "csrc/cpu_cache.cpp",
         "csrc/c10d.cpp",
         "csrc/c10d_nccl.cpp",
         "csrc/c10d_shim.h",
@@ -60,7 +62,10 @@ fn main() {
         b
     };
     let mut build = base();
-    build.file("csrc/torch_ext.cpp").file("csrc/c10d.cpp");
+    build
+        .file("csrc/torch_ext.cpp")
+        .file("csrc/cpu_cache.cpp")
+        .file("csrc/c10d.cpp");
     match gloo_include(&real_root) {
         Some(dir) => {
             build.include(dir).define("BV2W_HAVE_GLOO", None);

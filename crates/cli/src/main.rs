@@ -79,6 +79,14 @@ fn main() -> Result<()> {
     if std::env::var_os("THP_MEM_ALLOC_ENABLE").is_none() {
         std::env::set_var("THP_MEM_ALLOC_ENABLE", "1");
     }
+    // Freed tensor memory is kept for reuse instead of going back to the
+    // kernel (which page-faults and zeroes it again on the next forward
+    // pass): BRIDGEV2W_CPU_CACHE_MB caps the free memory it holds (default
+    // 2048; 0 turns it off). Measured in docs/benchmarks.md.
+    match bridgev2w_torch_ext::cpu_cache::limit_from_env().map_err(anyhow::Error::msg)? {
+        0 => {}
+        limit => bridgev2w_torch_ext::cpu_cache::install(limit),
+    }
     let cli = Cli::parse();
     match cli.command {
         Command::Masks(a) => masks_cmd::run(&a),

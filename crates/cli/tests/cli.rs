@@ -729,3 +729,18 @@ fn a_mesh_parser_panic_is_a_clean_error_without_the_panic_message() {
     );
     assert!(!err.contains("panicked at"), "{err}");
 }
+
+#[test]
+fn a_bad_cpu_cache_setting_stops_naming_the_variable() {
+    let bad = bin()
+        .args(["robot-info", "--robot", "franka"])
+        .env("BRIDGEV2W_CPU_CACHE_MB", "lots")
+        .output()
+        .expect("run");
+    assert!(!bad.status.success());
+    let e = stderr(&bad);
+    assert!(
+        e.contains("BRIDGEV2W_CPU_CACHE_MB") && e.contains("lots") && e.contains("megabytes"),
+        "{e}"
+    );
+}

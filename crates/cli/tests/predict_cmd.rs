@@ -40,15 +40,20 @@ fn predict_writes_frames_and_video_deterministically() {
             "cpu".into(),
         ]
     };
-    for out in ["a", "b"] {
-        let a = args(out);
-        let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    // "b" with the caching CPU allocator off (BRIDGEV2W_CPU_CACHE_MB=0):
+    // the allocator changes no result.
+    for (out, cache_mb) in [("a", "2048"), ("b", "0")] {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
+            .args(args(out))
+            .env("BRIDGEV2W_CPU_CACHE_MB", cache_mb)
+            .output()
+            .expect("run bridgev2w");
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
     let va = read_npy(&d.join("a/video.npy")).expect("video a");
     let vb = read_npy(&d.join("b/video.npy")).expect("video b");
     assert_eq!(va.shape, [9, 64, 96, 3]);
-    assert_eq!(va.data, vb.data, "same seed, same video");
+    assert_eq!(va.data, vb.data, "same seed, same video (cache on and off)");
     for i in 0..9 {
         assert!(d.join(format!("a/frames/{i:06}.png")).is_file());
     }

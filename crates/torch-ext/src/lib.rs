@@ -8,9 +8,12 @@
 //! * [`c10d`]: PyTorch's distributed engine in libtorch (TCPStore, the
 //!   Gloo and NCCL process groups) through a C++ shim, for data-parallel
 //!   training.
+//! * [`cpu_cache`]: a caching CPU allocator for libtorch (freed blocks
+//!   reused instead of returned to the kernel and page-faulted in again).
 
 pub mod autocast;
 pub mod c10d;
+pub mod cpu_cache;
 
 pub use autocast::{autocast, AutocastDevice, AutocastDtype, AutocastGuard};
 

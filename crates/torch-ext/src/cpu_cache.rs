@@ -1,0 +1,122 @@
+//! A caching CPU allocator for libtorch (`csrc/cpu_cache.cpp`).
+//!
+//! glibc hands blocks above its mmap threshold back to the kernel when they
+//! are freed, so each forward pass page-faults (and the kernel zeroes) the
+//! memory of its activations again. With the cache installed, freed blocks of
+//! 64 KiB or more are kept in free lists keyed by size class and reused, as
+//! PyTorch's CUDA caching allocator does for device memory. Smaller blocks go
+//! to `malloc` as before.
+//!
+//! The binary installs it at start (see `bridgev2w`'s `main`); a library
+//! embedded in another process (the Python package) leaves libtorch's
+//! allocator alone. Tensors allocated before [`install`] keep their own
+//! deleter, so installing late is safe.
+
+use std::ffi::c_int;
+
+extern "C" {
+    fn bv2w_cpu_cache_install(limit_bytes: u64);
+    fn bv2w_cpu_cache_active() -> c_int;
+    fn bv2w_cpu_cache_stats(hits: *mut u64, misses: *mut u64, cached_bytes: *mut u64);
+    fn bv2w_cpu_cache_release();
+}
+
+/// The cache's counters.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct CacheStats {
+    /// Allocations served from the cache.
+    pub hits: u64,
+    /// Allocations of cached sizes that needed a fresh block.
+    pub misses: u64,
+    /// Bytes held in free blocks now.
+    pub cached_bytes: u64,
+}
+
+/// Makes the caching allocator libtorch's CPU allocator, holding at most
+/// `limit_bytes` of free blocks (beyond it freed blocks are released). A
+/// second call only changes the limit.
+pub fn install(limit_bytes: u64) {
+    // SAFETY: the shim takes a plain integer; it registers a static
+    // allocator once (std::call_once) and sets the limit under a mutex.
+    unsafe { bv2w_cpu_cache_install(limit_bytes) }
+}
+
+/// Whether libtorch's CPU allocator is the caching one.
+pub fn is_active() -> bool {
+    // SAFETY: reads libtorch's allocator registry; no arguments.
+    unsafe { bv2w_cpu_cache_active() != 0 }
+}
+
+/// The cache's counters (zeros before [`install`]).
+pub fn stats() -> CacheStats {
+    let mut s = CacheStats::default();
+    // SAFETY: three valid, exclusive pointers to u64 for the shim to write.
+    unsafe { bv2w_cpu_cache_stats(&mut s.hits, &mut s.misses, &mut s.cached_bytes) };
+    s
+}
+
+/// Frees every cached block (memory back to the system).
+pub fn release() {
+    // SAFETY: no arguments; the shim frees its free lists under its mutex.
+    unsafe { bv2w_cpu_cache_release() }
+}
+
+/// The limit `install_from_env` uses: `BRIDGEV2W_CPU_CACHE_MB` megabytes
+/// (0 = no cache), by default 2048 (2 GiB).
+pub fn limit_from_env() -> Result<u64, String> {
+    match std::env::var("BRIDGEV2W_CPU_CACHE_MB") {
+        Err(_) => Ok(2048 << 20),
+        Ok(v) => v.trim().parse::<u64>().map(|mb| mb << 20).map_err(|_| {
+            format!(
+                "BRIDGEV2W_CPU_CACHE_MB={v:?}: expected whole megabytes (0 turns the cache off)"
+            )
+        }),
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use tch::{Device, Kind, Tensor};
+
+    /// One test (the allocator is process-wide): results equal, blocks reused,
+    /// the limit honoured, release empties the cache.
+    #[test]
+    fn the_cache_reuses_freed_blocks_and_computes_the_same() {
+        tch::manual_seed(0);
+        let a = Tensor::randn([256, 256], (Kind::Float, Device::Cpu));
+        let before = a.matmul(&a).sum(Kind::Double).double_value(&[]);
+        assert!(!is_active());
+        install(64 << 20);
+        assert!(is_active());
+        let s0 = stats();
+        for _ in 0..5 {
+            // 256 KiB results: cached sizes.
+            let c = a.matmul(&a);
+            assert_eq!(c.sum(Kind::Double).double_value(&[]), before);
+        }
+        let s1 = stats();
+        assert!(s1.hits >= s0.hits + 4, "{s0:?} -> {s1:?}");
+        assert!(s1.cached_bytes > 0 && s1.cached_bytes <= 64 << 20, "{s1:?}");
+        // A tensor from before the install is freed by its own deleter.
+        drop(a);
+        // Above the limit nothing is kept.
+        install(0);
+        release();
+        let big = Tensor::zeros([1 << 20], (Kind::Float, Device::Cpu));
+        drop(big);
+        assert_eq!(stats().cached_bytes, 0);
+        install(64 << 20);
+        let big = Tensor::ones([1 << 20], (Kind::Float, Device::Cpu));
+        assert_eq!(big.sum(Kind::Double).double_value(&[]), (1 << 20) as f64);
+        drop(big);
+        assert!(stats().cached_bytes >= 4 << 20);
+        // A reused block is not assumed zeroed by libtorch: zeros() still zeroes.
+        let z = Tensor::zeros([1 << 20], (Kind::Float, Device::Cpu));
+        assert_eq!(z.abs().sum(Kind::Double).double_value(&[]), 0.0);
+        drop(z);
+        release();
+        assert_eq!(stats().cached_bytes, 0);
+    }
+}
