@@ -98,6 +98,38 @@ def test_ik_and_masks_from_actions_match_the_cli():
     assert not res[0].reached and res[0].position_error_m > 1.0
 
 
+def test_a_urdf_robot_gives_the_clis_masks_joints_and_ik_residuals():
+    """A URDF robot (the Franka's URDF file, not the built-in one), actions
+    with an unreachable frame rendered with allow_residual: masks, IK joints
+    and residuals equal `bridgev2w masks --robot URDF --allow-ik-residual`."""
+    urdf = pathlib.Path(__file__).resolve().parents[2] / "crates/embodiment/robots/franka.urdf"
+    robot = bw.Robot.from_urdf(urdf, ee_links=["panda_hand_tcp"], gripper_joints=["panda_finger_joint1"])
+    cam = camera()
+    a = np.array([[0.30 + 0.02 * t, 0.05, 0.45, np.pi, 0.0, 0.1 * t, 0.5] for t in range(4)])
+    a[2, 0] = 2.5  # out of reach
+    q, res = robot.solve_ik(a, allow_residual=True)
+    masks = bw.render_masks(robot, cam, actions=a, allow_residual=True)
+    tmp = WORK / "urdf"
+    tmp.mkdir()
+    cam_path = tmp / "cam.json"
+    cam_path.write_text(cam.to_json())
+    (tmp / "a.json").write_text(json.dumps(a.tolist()))
+    subprocess.run([BIN, "masks", "--robot", str(urdf), "--ee-link", "panda_hand_tcp",
+                    "--gripper-joint", "panda_finger_joint1", "--camera", str(cam_path),
+                    "--width", "160", "--height", "120", "--actions", str(tmp / "a.json"),
+                    "--allow-ik-residual", "--out", str(tmp / "out"), "--no-png"],
+                   check=True, capture_output=True)
+    out = tmp / "out"
+    assert masks.sum() > 500, "the robot is in view"
+    assert np.array_equal(masks, np.load(out / "masks.npy")), "masks differ from the CLI's"
+    assert np.array_equal(q, np.load(out / "joints.npy")), "IK joints differ from the CLI's"
+    report = json.loads((out / "ik.json").read_text())
+    assert report["frames_not_reached"] == [r.frame for r in res if not r.reached] == [2], report
+    cli = [(r["frame"], r["position_error_m"], r["rotation_error_rad"], r["reached"])
+           for r in report["residuals"]]
+    assert cli == [(r.frame, r.position_error_m, r.rotation_error_rad, r.reached) for r in res], (cli, res)
+
+
 def test_lerobot_transform_adds_each_cameras_mask():
     robot, cam = bw.Robot("franka"), camera()
     q = robot.home.copy()

@@ -84,7 +84,7 @@ fn pip_install_python_then_its_tests_pass() {
         .expect("run the package's tests with pytest");
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
-    assert!(String::from_utf8_lossy(&o.stdout).contains("11 passed"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("12 passed"));
     for guide in ["python.md", "own-robot.md"] {
         run_guide(guide, &venv, &raw);
     }
