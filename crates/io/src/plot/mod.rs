@@ -87,6 +87,26 @@ pub fn write_png_with(path: &Path, figure: &dyn Figure, text: bool) -> Result<()
     Ok(())
 }
 
+/// A written figure's size and the share of non-white pixels in its middle
+/// half (the plot area): what a check that a figure is not blank reads.
+pub fn ink_share(path: &Path) -> Result<((u32, u32), f64)> {
+    let bad = |message: String| PlotError::Data {
+        path: path.to_path_buf(),
+        message,
+    };
+    let bytes = std::fs::read(path).map_err(|e| bad(e.to_string()))?;
+    let (w, h, rgb) = crate::png::decode_rgb8(&bytes).map_err(bad)?;
+    let (mut inked, mut all) = (0usize, 0usize);
+    for y in h / 4..3 * h / 4 {
+        for x in w / 4..3 * w / 4 {
+            let i = (y * w + x) as usize * 3;
+            all += 1;
+            inked += usize::from(rgb[i..i + 3] != [255, 255, 255]);
+        }
+    }
+    Ok(((w, h), inked as f64 / all.max(1) as f64))
+}
+
 /// Where a results file's figures go and how the file links them: the
 /// folder named after the file, `figures/` in it (`docs/results.md` ->
 /// `docs/results/figures/`, linked as `results/figures/NAME`).

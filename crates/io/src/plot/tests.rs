@@ -8,21 +8,6 @@ use super::lines::{Line, LineFigure, Panel};
 use super::scatter::{least_squares, PointSet, ScatterFigure};
 use super::*;
 
-/// The PNG at `path`: its size and the share of non-white pixels in the
-/// middle half (the plot area).
-fn ink(path: &Path) -> ((u32, u32), f64) {
-    let (w, h, rgb) = crate::png::decode_rgb8(&std::fs::read(path).unwrap()).unwrap();
-    let (mut inked, mut all) = (0usize, 0usize);
-    for y in h / 4..3 * h / 4 {
-        for x in w / 4..3 * w / 4 {
-            let i = (y * w + x) as usize * 3;
-            all += 1;
-            inked += usize::from(rgb[i..i + 3] != [255, 255, 255]);
-        }
-    }
-    ((w, h), inked as f64 / all as f64)
-}
-
 pub(crate) fn line_figure() -> LineFigure {
     let panel = |title: &str, log_y| Panel {
         title: title.into(),
@@ -97,7 +82,7 @@ fn every_kind_is_written_at_its_size_and_not_blank() {
     for (name, fig, size) in figures {
         let path = tmp.path().join("figures").join(name);
         write_png(&path, fig).unwrap();
-        let (got, share) = ink(&path);
+        let (got, share) = ink_share(&path).unwrap();
         assert_eq!(got, size, "{name}");
         assert!(share > 0.01, "{name}: {share} of the plot area drawn");
     }

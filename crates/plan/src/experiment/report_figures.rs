@@ -146,20 +146,6 @@ mod tests {
         }
     }
 
-    /// The PNG's size and the share of non-white pixels in its middle half.
-    fn ink(path: &Path) -> ((u32, u32), f64) {
-        let (w, h, rgb) = bridgev2w_io::png::decode_rgb8(&std::fs::read(path).unwrap()).unwrap();
-        let (mut inked, mut all) = (0usize, 0usize);
-        for y in h / 4..3 * h / 4 {
-            for x in w / 4..3 * w / 4 {
-                let i = (y * w + x) as usize * 3;
-                all += 1;
-                inked += usize::from(rgb[i..i + 3] != [255, 255, 255]);
-            }
-        }
-        ((w, h), inked as f64 / all as f64)
-    }
-
     #[test]
     fn the_section_draws_and_links_both_figures() {
         let tmp = tempfile::tempdir().unwrap();
@@ -185,7 +171,7 @@ mod tests {
             ("planning-planner-vs-random.png", (640, 400)),
             ("planning-policy-evaluation.png", (520, 480)),
         ] {
-            let (got, share) = ink(&dir.join(name));
+            let (got, share) = bridgev2w_io::plot::ink_share(&dir.join(name)).unwrap();
             assert_eq!(got, size, "{name}");
             assert!(share > 0.01, "{name}: {share}");
             assert!(md.contains(&format!("(results/figures/{name})")), "{md}");

@@ -477,23 +477,6 @@ mod tests {
         assert!(!md.contains("Ceiling"), "{md}");
     }
 
-    /// The PNG at `path`: its size and the share of non-white pixels in
-    /// the middle half (the plot area).
-    pub(crate) fn ink(path: &Path) -> ((u32, u32), f64) {
-        let bytes = std::fs::read(path).unwrap();
-        let (w, h, rgb) = bridgev2w_io::png::decode_rgb8(&bytes).unwrap();
-        let mut inked = 0usize;
-        let mut all = 0usize;
-        for y in h / 4..3 * h / 4 {
-            for x in w / 4..3 * w / 4 {
-                let i = (y * w + x) as usize * 3;
-                all += 1;
-                inked += usize::from(rgb[i..i + 3] != [255, 255, 255]);
-            }
-        }
-        ((w, h), inked as f64 / all as f64)
-    }
-
     #[test]
     fn the_section_draws_and_links_its_figures_and_grids() {
         let tmp = tempfile::tempdir().unwrap();
@@ -558,7 +541,7 @@ mod tests {
             ("loss-curves.png", (840, 300)),
             ("psnr-per-frame.png", (840, 300)),
         ] {
-            let (got, share) = ink(&figs.join(name));
+            let (got, share) = bridgev2w_io::plot::ink_share(&figs.join(name)).unwrap();
             assert_eq!(got, size, "{name}");
             assert!(share > 0.01, "{name}: {share}");
             assert!(md.contains(&format!("(results/figures/{name})")), "{md}");
