@@ -3,6 +3,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+mod common;
+
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_bridgev2w"))
 }
@@ -314,37 +316,11 @@ fn robot_info_prints_joint_order() {
     assert_eq!(v["end_effectors"][1]["arm"], "right");
 }
 
-/// The raw-episode fixtures of `scripts/fixtures/write_raw_episodes.py`
-/// (HDF5 through h5py in the project venv) with their videos written here.
-fn raw_fixtures(dir: &Path) -> serde_json::Value {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let status = Command::new(root.join(".venv/bin/python"))
-        .arg(root.join("scripts/fixtures/write_raw_episodes.py"))
-        .arg(dir)
-        .status()
-        .expect("run the venv python (scripts/setup-venv.sh)");
-    assert!(status.success());
-    let expected: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(dir.join("expected.json")).expect("expected"),
-    )
-    .expect("json");
-    for v in expected["videos"].as_array().expect("videos") {
-        bridgev2w_data::video::write_test_pattern(
-            Path::new(v.as_str().expect("path")),
-            (64, 48),
-            6,
-            15,
-        )
-        .expect("mp4");
-    }
-    expected
-}
-
 #[test]
 fn convert_droid_and_agibot_with_skip_report() {
     let tmp = tempfile::tempdir().expect("tmp");
     let d = tmp.path();
-    raw_fixtures(d);
+    common::raw_fixtures(d);
     // Good and bad DROID episodes together: the bad one is skipped and reported.
     let droid_root = d.join("all_droid");
     std::fs::create_dir_all(&droid_root).expect("mkdir");

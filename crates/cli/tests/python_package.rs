@@ -72,7 +72,7 @@ fn pip_install_python_then_its_tests_pass() {
     let work = dir.path().join("work");
     std::fs::create_dir(&work).expect("mkdir");
     let raw = dir.path().join("raw");
-    raw_fixtures(&project_python, &raw);
+    common::raw_fixtures(&raw);
     let o = Command::new(venv.join("bin/python"))
         .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
         .arg(repo().join("python/tests/test_bridgev2w.py"))
@@ -87,30 +87,6 @@ fn pip_install_python_then_its_tests_pass() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("12 passed"));
     for guide in ["python.md", "own-robot.md"] {
         run_guide(guide, &venv, &raw);
-    }
-}
-
-/// The raw DROID / AgiBot World episodes of
-/// `scripts/fixtures/write_raw_episodes.py` (HDF5 through the project
-/// venv's h5py) with their videos, in `dir`.
-fn raw_fixtures(python: &Path, dir: &Path) {
-    ok(&Command::new(python)
-        .arg(repo().join("scripts/fixtures/write_raw_episodes.py"))
-        .arg(dir)
-        .output()
-        .expect("write the raw fixtures"));
-    let expected: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(dir.join("expected.json")).expect("expected.json"),
-    )
-    .expect("json");
-    for v in expected["videos"].as_array().expect("videos") {
-        bridgev2w_data::video::write_test_pattern(
-            Path::new(v.as_str().expect("path")),
-            (64, 48),
-            6,
-            15,
-        )
-        .expect("mp4");
     }
 }
 

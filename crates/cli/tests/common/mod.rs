@@ -76,3 +76,29 @@ pub fn markdown_files() -> Vec<std::path::PathBuf> {
     }
     out
 }
+
+/// The raw-episode fixtures of `scripts/fixtures/write_raw_episodes.py`
+/// (HDF5 through the project venv's h5py) with their videos, written in
+/// `dir`; returns its `expected.json`.
+pub fn raw_fixtures(dir: &Path) -> serde_json::Value {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    ok(&Command::new(root.join(".venv/bin/python"))
+        .arg(root.join("scripts/fixtures/write_raw_episodes.py"))
+        .arg(dir)
+        .output()
+        .expect("run the venv python (scripts/setup-venv.sh)"));
+    let expected: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("expected.json")).expect("expected.json"),
+    )
+    .expect("json");
+    for v in expected["videos"].as_array().expect("videos") {
+        bridgev2w_data::video::write_test_pattern(
+            Path::new(v.as_str().expect("path")),
+            (64, 48),
+            6,
+            15,
+        )
+        .expect("mp4");
+    }
+    expected
+}
