@@ -6,10 +6,10 @@ use crate::ema::RunWeights;
 use crate::evaluate::{color_segmenter, evaluate_split, EvalOptions, SplitScores};
 use crate::segmenter::{CnnSegmenter, SegmenterKind, SegmenterOptions};
 use crate::trainer::Trainer;
-use crate::{config::TrainConfig, Result, TrainError};
+use crate::{Result, TrainError};
 use bridgev2w_eval::segment::RobotSegmenter;
 use bridgev2w_io::progress::Progress;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// What to score.
 #[derive(Debug, Clone)]
@@ -43,35 +43,11 @@ pub struct RunEvaluation {
     pub rows: Vec<SplitScores>,
 }
 
-/// `error` with what was being done.
-pub(crate) fn context(what: String) -> impl FnOnce(TrainError) -> TrainError {
-    move |e| TrainError::Context {
-        what,
-        source: Box::new(e),
-    }
-}
-
-/// Loads a run's model: its configuration, the run folder's latest
-/// checkpoint (or a checkpoint folder), and `weights`. Also says whether the
-/// moving averages are in use.
-pub(crate) fn load_run(config: &Path, run: &Path, weights: RunWeights) -> Result<(Trainer, bool)> {
-    let cfg = TrainConfig::from_file(config)?;
-    let mut trainer = Trainer::new(cfg).map_err(context(format!(
-        "setting up the model of {}",
-        config.display()
-    )))?;
-    trainer
-        .resume(run)
-        .map_err(context(format!("loading the run {}", run.display())))?;
-    let averaged = weights == RunWeights::Averaged && trainer.use_averaged_weights();
-    Ok((trainer, averaged))
-}
-
 /// Loads the run and scores every split. `progress` sees the segmenter's
 /// training and each split's scoring as stages of unknown length (total 0),
 /// a tick per scored video, and notes (which weights, the segmenter's loss).
 pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn Progress) -> Result<RunEvaluation> {
-    let (trainer, averaged) = load_run(&o.config, &o.run, o.weights)?;
+    let (trainer, averaged) = Trainer::load_run(&o.config, &o.run, o.weights)?;
     progress.note(&format!(
         "weights: {}",
         if averaged {
@@ -87,7 +63,7 @@ pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn Progress) -> Result<RunEv
         SegmenterKind::Cnn => {
             progress.start(0, "training the robot segmenter");
             let s = CnnSegmenter::fit(&trainer.data, &SegmenterOptions::default())
-                .map_err(context("training the robot segmenter".into()));
+                .map_err(TrainError::context("training the robot segmenter".into()));
             progress.finish();
             let s = s?;
             if let Some(s) = &s {
@@ -99,7 +75,7 @@ pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn Progress) -> Result<RunEv
             s.map(|s| Box::new(s) as Box<dyn RobotSegmenter>)
         }
         SegmenterKind::Color => color_segmenter(&trainer.data)
-            .map_err(context("fitting the robot segmenter".into()))?
+            .map_err(TrainError::context("fitting the robot segmenter".into()))?
             .map(|s| Box::new(s) as Box<dyn RobotSegmenter>),
     };
     if segmenter.is_none() {
@@ -111,7 +87,7 @@ pub fn evaluate_run(o: &EvalRunOptions, progress: &dyn Progress) -> Result<RunEv
         let scores = evaluate_split(&trainer, split, &o.sampling, segmenter.as_deref(), &|| {
             progress.tick()
         })
-        .map_err(context(format!("split {split}")));
+        .map_err(TrainError::context(format!("split {split}")));
         progress.finish();
         rows.push(scores?);
     }

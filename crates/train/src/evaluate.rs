@@ -207,14 +207,14 @@ pub fn evaluate_split(
     // Sums over videos of each predicted frame's PSNR: prediction, baseline, VAE.
     let mut per_frame: [Vec<f64>; 3] = Default::default();
     let with_masks = segmenter.filter(|_| data.has_masks());
-    let mut grid: Vec<crate::grid::GridRow> = Vec::new();
+    let mut grid: Vec<crate::grid::image::GridRow> = Vec::new();
     for i in 0..n {
         let batch = data.clips(&[(i, 0)], trainer.model.device())?;
         let pred = trainer.predict(&batch, &opts.sample_options())?;
         let gt = frames(&batch.video)?;
         let pf = frames(&pred)?;
         if opts.grid_dir.is_some() && i < opts.grid_clips {
-            grid.push(crate::grid::grid_row(
+            grid.push(crate::grid::image::grid_row(
                 &gt,
                 &[&pf],
                 &mask_frames(&batch.masks)?,
@@ -266,7 +266,7 @@ pub fn evaluate_split(
         on_video();
     }
     if let (Some(dir), false) = (&opts.grid_dir, grid.is_empty()) {
-        crate::grid::write_grid(
+        crate::grid::image::write_grid(
             &dir.join(format!("{split}.gif")),
             &grid,
             (d.width, d.height),

@@ -95,5 +95,15 @@ impl TrainError {
     }
 }
 
+impl TrainError {
+    /// Wraps an error with what was being done.
+    pub(crate) fn context(what: String) -> impl FnOnce(TrainError) -> TrainError {
+        move |e| TrainError::Context {
+            what,
+            source: Box::new(e),
+        }
+    }
+}
+
 /// Result of the training code.
 pub type Result<T> = std::result::Result<T, TrainError>;

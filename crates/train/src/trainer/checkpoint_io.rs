@@ -3,13 +3,31 @@
 //! backbone of the `vae` and `prior` stages.
 
 use super::{io_err, Trainer};
-use crate::config::Stage;
+use crate::config::{Stage, TrainConfig};
+use crate::ema::RunWeights;
 use crate::run_dir::ExistingRun;
 use crate::{Result, TrainError};
 use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};
 
 impl Trainer {
+    /// Loads a run's model: its configuration, the run folder's latest
+    /// checkpoint (or a checkpoint folder), and `weights`. Also says whether
+    /// the moving averages are in use.
+    pub fn load_run(config: &Path, run: &Path, weights: RunWeights) -> Result<(Trainer, bool)> {
+        let cfg = TrainConfig::from_file(config)?;
+        let mut trainer = Trainer::new(cfg).map_err(TrainError::context(format!(
+            "setting up the model of {}",
+            config.display()
+        )))?;
+        trainer.resume(run).map_err(TrainError::context(format!(
+            "loading the run {}",
+            run.display()
+        )))?;
+        let averaged = weights == RunWeights::Averaged && trainer.use_averaged_weights();
+        Ok((trainer, averaged))
+    }
+
     /// Writes the backbone (diffusers folder) after a `vae` or `prior` stage.
     /// After `vae`, the latent `scaling_factor` is re-estimated as
     /// `1 / std` of posterior means over up to 8 training batches, so the

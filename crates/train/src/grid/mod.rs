@@ -3,71 +3,16 @@
 //! (`eval-run --grids` with one run; `eval-grid` with BridgeV2W next to
 //! its ablation).
 
+pub mod image;
+
+use self::image::{grid_row, write_grid, GridRow};
 use crate::ema::RunWeights;
-use crate::eval_run::{context, load_run};
 use crate::evaluate::{frames, mask_frames, split_data, EvalOptions};
 use crate::trainer::Trainer;
 use crate::{Result, TrainError};
-use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
+use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_io::progress::Progress;
-use std::path::{Path, PathBuf};
-
-/// One clip's row of a grid: per frame, the RGB8 strip of its panels.
-pub(crate) type GridRow = Vec<Vec<u8>>;
-
-/// Grid upscaling: each pixel as `GRID_SCALE` x `GRID_SCALE`.
-pub const GRID_SCALE: usize = 2;
-
-/// One clip's row of the grid, per frame: first frame | masks | each
-/// prediction | ground truth, RGB8, upscaled.
-pub(crate) fn grid_row(gt: &[RgbFrame], preds: &[&[RgbFrame]], masks: &[Vec<u8>]) -> GridRow {
-    use bridgev2w_embodiment::overlay::{mask_rgb, side_by_side, upscale};
-    let rgb8 = |f: &RgbFrame| -> Vec<u8> { f.rgb.iter().map(|&v| u8_from_unit(v)).collect() };
-    let (w, h) = (gt[0].width, gt[0].height);
-    let k = GRID_SCALE;
-    let first = upscale(&rgb8(&gt[0]), w, h, k);
-    let t_max = preds.iter().map(|p| p.len()).fold(gt.len(), usize::min);
-    (0..t_max)
-        .map(|t| {
-            let mask = masks
-                .get(t)
-                .map(|m| mask_rgb(m))
-                .unwrap_or_else(|| vec![0; w * h * 3]);
-            let mut panels = vec![first.clone(), upscale(&mask, w, h, k)];
-            panels.extend(preds.iter().map(|p| upscale(&rgb8(&p[t]), w, h, k)));
-            panels.push(upscale(&rgb8(&gt[t]), w, h, k));
-            let refs: Vec<&[u8]> = panels.iter().map(Vec::as_slice).collect();
-            side_by_side(&refs, w * k, h * k)
-        })
-        .collect()
-}
-
-/// The rows stacked top to bottom, frame by frame, as an animated GIF;
-/// `(w, h)` is a panel's size before upscaling.
-pub(crate) fn write_grid(path: &Path, rows: &[GridRow], (w, h): (usize, usize)) -> Result<()> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| {
-            TrainError::input(dir.display().to_string(), format!("cannot create: {e}"))
-        })?;
-    }
-    let t = rows.iter().map(Vec::len).min().unwrap_or(0);
-    let frames: Vec<Vec<u8>> = (0..t)
-        .map(|i| rows.iter().flat_map(|r| r[i].iter().copied()).collect())
-        .collect();
-    let k = GRID_SCALE;
-    let row_width = frames
-        .first()
-        .map_or(0, |f| f.len() / rows.len().max(1) / (h * k * 3));
-    debug_assert_eq!(row_width % (w * k), 0);
-    bridgev2w_embodiment::overlay::write_gif(
-        path,
-        row_width as u32,
-        (rows.len() * h * k) as u32,
-        &frames,
-        4,
-    )
-    .map_err(|e| TrainError::input(path.display().to_string(), e.to_string()))
-}
+use std::path::PathBuf;
 
 /// A run of the grid: its training configuration and its folder (latest
 /// checkpoint) or a checkpoint folder.
@@ -110,7 +55,7 @@ pub fn write_grids(o: &GridOptions, progress: &dyn Progress) -> Result<Vec<PathB
     let trainers = o
         .runs
         .iter()
-        .map(|r| load_run(&r.config, &r.run, o.weights).map(|(t, _)| t))
+        .map(|r| Trainer::load_run(&r.config, &r.run, o.weights).map(|(t, _)| t))
         .collect::<Result<Vec<Trainer>>>()?;
     let mut written = Vec::new();
     for split in &o.splits {
@@ -118,7 +63,7 @@ pub fn write_grids(o: &GridOptions, progress: &dyn Progress) -> Result<Vec<PathB
         let path = o.out.join(format!("{split}.gif"));
         let r = split_grid(o, &trainers, split, progress)
             .and_then(|(rows, size)| write_grid(&path, &rows, size))
-            .map_err(context(format!("split {split}")));
+            .map_err(TrainError::context(format!("split {split}")));
         progress.finish();
         r?;
         written.push(path);
