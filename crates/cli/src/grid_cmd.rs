@@ -4,7 +4,6 @@
 //! `OUT/<split>.gif`.
 
 use anyhow::Result;
-use bridgev2w_train::evaluate::EvalOptions;
 use bridgev2w_train::grid::{write_grids, GridOptions, GridRun};
 use std::path::PathBuf;
 
@@ -29,21 +28,8 @@ pub struct EvalGridArgs {
     /// Clips per grid (rows): the first clip of the first episodes.
     #[arg(long, default_value_t = 4)]
     clips: usize,
-    /// Denoising steps.
-    #[arg(long, default_value_t = 20)]
-    steps: usize,
-    /// Classifier-free guidance scale (1 = off).
-    #[arg(long, default_value_t = 1.0)]
-    guidance: f64,
-    /// Sampling seed.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
-    /// The first latent frame of the predictions: `generated` or `replaced`.
-    #[arg(long, default_value = "generated")]
-    first_frame: bridgev2w_world_model::pipeline::FirstFrame,
-    /// Where sampling starts, in (0, 1] (1: pure noise; see `eval-run`).
-    #[arg(long, default_value_t = 1.0)]
-    strength: f64,
+    #[command(flatten)]
+    sampling: crate::train_cmd::SamplingArgs,
     /// The weights of each run: `averaged` or `raw`.
     #[arg(long, default_value = "averaged")]
     weights: bridgev2w_train::ema::RunWeights,
@@ -69,14 +55,7 @@ pub fn run(a: &EvalGridArgs) -> Result<()> {
             .map(String::from)
             .collect(),
         clips: a.clips,
-        sampling: EvalOptions {
-            steps: a.steps,
-            guidance: a.guidance,
-            seed: a.seed,
-            first_frame: a.first_frame,
-            strength: a.strength,
-            ..EvalOptions::default()
-        },
+        sampling: a.sampling.eval_options(),
         weights: a.weights,
         out: a.out.clone(),
     };

@@ -147,6 +147,43 @@ pub fn run(args: &TrainArgs) -> Result<()> {
 }
 
 /// Arguments of `eval-run`.
+/// The sampling flags of `eval-run` and `eval-grid`.
+#[derive(Debug, clap::Args)]
+pub struct SamplingArgs {
+    /// Denoising steps.
+    #[arg(long, default_value_t = 20)]
+    steps: usize,
+    /// Classifier-free guidance scale (1 = off).
+    #[arg(long, default_value_t = 1.0)]
+    guidance: f64,
+    /// Sampling seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// The first latent frame of the predictions: `generated` (diffusers'
+    /// sampler) or `replaced` by the image latent at every step.
+    #[arg(long, default_value = "generated")]
+    first_frame: bridgev2w_world_model::pipeline::FirstFrame,
+    /// Where sampling starts, in (0, 1]: 1 from pure noise; s < 1 from the
+    /// first frame's latent in every frame, noised to the level a fraction s
+    /// from the end of the steps (only the last ceil(s * steps) steps run).
+    #[arg(long, default_value_t = 1.0)]
+    strength: f64,
+}
+
+impl SamplingArgs {
+    /// The evaluation's sampling options (no grid, all videos).
+    pub fn eval_options(&self) -> EvalOptions {
+        EvalOptions {
+            steps: self.steps,
+            guidance: self.guidance,
+            seed: self.seed,
+            first_frame: self.first_frame,
+            strength: self.strength,
+            ..EvalOptions::default()
+        }
+    }
+}
+
 #[derive(Debug, clap::Args)]
 pub struct EvalRunArgs {
     /// The run's training configuration (TOML).
@@ -157,29 +194,14 @@ pub struct EvalRunArgs {
     /// Splits of the run's dataset to score, comma-separated.
     #[arg(long, default_value = "test,unseen_camera,unseen_scene")]
     splits: String,
-    /// Denoising steps.
-    #[arg(long, default_value_t = 20)]
-    steps: usize,
-    /// Classifier-free guidance scale (1 = off).
-    #[arg(long, default_value_t = 1.0)]
-    guidance: f64,
+    #[command(flatten)]
+    sampling: SamplingArgs,
     /// At most this many videos per split (0 = all).
     #[arg(long, default_value_t = 0)]
     max_videos: usize,
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
     /// Also write the scores as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
-    /// The first latent frame of the predictions: `generated` (diffusers'
-    /// sampler) or `replaced` by the image latent at every step.
-    #[arg(long, default_value = "generated")]
-    first_frame: bridgev2w_world_model::pipeline::FirstFrame,
-    /// Where sampling starts, in (0, 1]: 1 from pure noise; s < 1 from the
-    /// first frame's latent in every frame, noised to the level a fraction s
-    /// from the end of the steps (only the last ceil(s * steps) steps run).
-    #[arg(long, default_value_t = 1.0)]
-    strength: f64,
     /// The weights to score: `averaged` (the run's moving averages when it
     /// keeps them, `train.ema_decay > 0`; else its parameters) or `raw`.
     #[arg(long, default_value = "averaged")]
@@ -211,14 +233,10 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
             .map(String::from)
             .collect(),
         sampling: EvalOptions {
-            steps: args.steps,
-            guidance: args.guidance,
-            seed: args.seed,
             max_videos: args.max_videos,
-            first_frame: args.first_frame,
-            strength: args.strength,
             grid_dir: args.grids.clone(),
             grid_clips: args.grid_clips,
+            ..args.sampling.eval_options()
         },
         weights: args.weights,
         segmenter: args.segmenter,
