@@ -1,0 +1,339 @@
+//! The data commands over the library crates: `synth.generate`, `convert`
+//! and `read_episode` (the GIL released while they run).
+
+use super::*;
+
+/// An output folder that must not exist yet.
+fn check_new_output(out: &Path) -> PyResult<()> {
+    if out.exists() {
+        return Err(PyFileExistsError::new_err(format!(
+            "{}: already exists; choose another out or remove it",
+            out.display()
+        )));
+    }
+    Ok(())
+}
+
+/// Writes the synthetic tabletop dataset (LeRobot v3.0) of `bridgev2w synth`
+/// to `out` (written to `out.tmp`, then renamed) with the GIL released;
+/// returns its summary as a dict (`out`, `episodes`, `total_frames`,
+/// `episodes_per_split`, `episodes_per_task`, `contact_events`).
+#[pyfunction]
+#[pyo3(signature = (out, robot, episodes_per_split, frames, width, height, fps, seed, tasks))]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn synth_generate<'py>(
+    py: Python<'py>,
+    out: PathBuf,
+    robot: String,
+    episodes_per_split: [usize; 4],
+    frames: usize,
+    width: u32,
+    height: u32,
+    fps: u32,
+    seed: u64,
+    tasks: Vec<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let tasks = tasks
+        .iter()
+        .map(|t| {
+            Task::parse(t).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "tasks: unknown task {t:?}, expected reach, push, pick_place or play"
+                ))
+            })
+        })
+        .collect::<PyResult<Vec<_>>>()?;
+    let config = SynthConfig {
+        robot,
+        frames,
+        width,
+        height,
+        fps,
+        seed,
+        tasks,
+        episodes_per_split,
+    };
+    config
+        .validate()
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let n = plan(&config).len();
+    if n == 0 {
+        return Err(PyValueError::new_err(
+            "episodes_per_split: no episodes to generate",
+        ));
+    }
+    check_new_output(&out)?;
+    let summary = py
+        .detach(|| write_dataset(&config, &out, &|| {}))
+        .map_err(|e| match e {
+            WriteDatasetError::Exists(p) => PyFileExistsError::new_err(format!(
+                "{}: already exists; choose another out or remove it",
+                p.display()
+            )),
+            WriteDatasetError::Synth(SynthError::Config(m)) => PyValueError::new_err(m),
+            e => err(e),
+        })?;
+    let d = PyDict::new(py);
+    d.set_item("out", summary.out.to_string_lossy().into_owned())?;
+    d.set_item("episodes", n)?;
+    d.set_item("total_frames", summary.total_frames)?;
+    d.set_item("episodes_per_split", summary.episodes_per_split)?;
+    d.set_item("episodes_per_task", summary.episodes_per_task)?;
+    d.set_item("contact_events", summary.contact_events)?;
+    Ok(d)
+}
+
+fn missing(path: &Path, what: &str) -> PyErr {
+    PyFileNotFoundError::new_err(format!("{}: no such {what}", path.display()))
+}
+
+/// Converts raw DROID (`format="droid"`) or AgiBot World (`"agibot"`)
+/// episodes under `src` into a LeRobot v3.0 training dataset at `out` with
+/// `calc` masks of `robot`, as `bridgev2w convert` does, with the GIL
+/// released; returns the report as a dict (`out`, `episodes`,
+/// `views_written`, `skipped` as `(item, error)` pairs, `empty_mask_views`).
+#[pyfunction]
+#[pyo3(signature = (format, src, out, robot, joint_names, width, height, fps, intrinsics, calibration, cameras, gripper_range, split, skip_bad, limit))]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn convert<'py>(
+    py: Python<'py>,
+    format: &str,
+    src: PathBuf,
+    out: PathBuf,
+    robot: &Robot,
+    joint_names: Option<Vec<String>>,
+    width: usize,
+    height: usize,
+    fps: Option<u32>,
+    intrinsics: Option<PathBuf>,
+    calibration: Option<PathBuf>,
+    cameras: Option<Vec<String>>,
+    gripper_range: (f64, f64),
+    split: String,
+    skip_bad: bool,
+    limit: Option<usize>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let droid = match format {
+        "droid" => true,
+        "agibot" => false,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "format: {other:?}, expected \"droid\" or \"agibot\""
+            )))
+        }
+    };
+    if !src.exists() {
+        return Err(missing(&src, "source folder"));
+    }
+    for p in intrinsics.iter().chain(&calibration) {
+        if !p.is_file() {
+            return Err(missing(p, "file"));
+        }
+    }
+    let intrinsics = match (droid, intrinsics) {
+        (true, Some(p)) => Some(p),
+        (true, None) => {
+            return Err(PyValueError::new_err(
+                "intrinsics: required for DROID (a JSON file of intrinsics per camera serial): neither the raw episodes nor RLDS record them",
+            ))
+        }
+        (false, None) if calibration.is_none() => None,
+        (false, _) => {
+            return Err(PyValueError::new_err(
+                "intrinsics, calibration: apply to DROID; AgiBot World episodes carry their camera parameters",
+            ))
+        }
+    };
+    let (open, closed) = gripper_range;
+    if !(open.is_finite() && closed.is_finite()) || open == closed {
+        return Err(PyValueError::new_err(format!(
+            "gripper_range: ({open}, {closed}), expected two different finite readings (open, closed)"
+        )));
+    }
+    check_new_output(&out)?;
+    let options = ConvertOptions {
+        width,
+        height,
+        fps: fps.unwrap_or(if droid { 15 } else { 30 }),
+        joint_names,
+        skip_bad,
+        split: Some(split),
+        source_format: format.to_string(),
+    };
+    let limit = limit.unwrap_or(usize::MAX);
+    let embodiment = &robot.inner;
+    let run = || -> Result<_, ConvertError> {
+        // Written to OUT.tmp, removed again if the conversion fails.
+        let output = bridgev2w_io::output::OutputDir::create(&out, false)
+            .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
+        let tmp = output.path().to_path_buf();
+        let report = if let Some(intrinsics) = intrinsics {
+            let mut opts = DroidOptions::from_files(&intrinsics, calibration.as_deref())?;
+            if let Some(c) = cameras {
+                opts.roles = c;
+            }
+            let dirs: Vec<PathBuf> = droid::find_episodes(&src)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if dirs.is_empty() {
+                return Err(ConvertError::Options(format!(
+                    "{}: no DROID episodes (directories with trajectory.h5) found",
+                    src.display()
+                )));
+            }
+            let items = dirs
+                .iter()
+                .map(|d| (d.display().to_string(), droid::read_episode(d, &opts)));
+            convert_episodes(items, embodiment, &tmp, &options, &|_| {})?
+        } else {
+            let mut opts = AgibotOptions {
+                gripper_open: open,
+                gripper_closed: closed,
+                ..AgibotOptions::default()
+            };
+            if let Some(c) = cameras {
+                opts.cameras = c;
+            }
+            let keys: Vec<_> = agibot::find_episodes(&src)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if keys.is_empty() {
+                return Err(ConvertError::Options(format!(
+                    "{}: no AgiBot World episodes (proprio_stats/<task>/<episode>/proprio_stats.h5) found",
+                    src.display()
+                )));
+            }
+            let items = keys
+                .iter()
+                .map(|k| (k.to_string(), agibot::read_episode(&src, k, &opts)));
+            convert_episodes(items, embodiment, &tmp, &options, &|_| {})?
+        };
+        output
+            .commit()
+            .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
+        Ok(report)
+    };
+    let report = py.detach(run).map_err(|e| match e {
+        ConvertError::Raw(RawError::Missing { path, what }) => {
+            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
+        }
+        e => err(e),
+    })?;
+    let d = PyDict::new(py);
+    d.set_item("out", out.to_string_lossy().into_owned())?;
+    d.set_item("episodes", report.episodes)?;
+    d.set_item("views_written", report.views_written)?;
+    let skipped: Vec<(String, String)> = report
+        .skipped
+        .into_iter()
+        .map(|s| (s.item, s.error))
+        .collect();
+    d.set_item("skipped", skipped)?;
+    d.set_item("empty_mask_views", report.empty_mask_views)?;
+    Ok(d)
+}
+
+/// One episode of a LeRobot v3.0/v2.1 dataset (what `synth` and `convert`
+/// write, or `LeRobotDataset.create`), read with the GIL released: a dict of
+/// `frames` (`T * H * W * 3` RGB8 bytes of video `key`, default the first),
+/// `shape` (`(T, H, W)`), `states` and `actions` (`[T][n]`), `camera` (the
+/// episode's calibration for `key`, or None), `masks` (`T * H * W` bytes of
+/// `masks/episode_N.npy`, or None), `tasks`, `key` and `split`.
+#[pyfunction]
+#[pyo3(signature = (root, episode, key = None))]
+pub(crate) fn read_episode<'py>(
+    py: Python<'py>,
+    root: PathBuf,
+    episode: i64,
+    key: Option<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    use bridgev2w_data::lerobot::{DatasetError, LeRobotDataset};
+    if !root.join("meta/info.json").is_file() {
+        return Err(missing(
+            &root.join("meta/info.json"),
+            "dataset (meta/info.json)",
+        ));
+    }
+    // A failure to read, or a bad `key` (named in a ValueError).
+    enum Failed {
+        Read(DatasetError),
+        Key(String),
+    }
+    let read = py.detach(|| {
+        let ds = LeRobotDataset::open(&root).map_err(Failed::Read)?;
+        let info = ds.episode(episode).map_err(Failed::Read)?.clone();
+        let key = match key {
+            Some(k) if ds.video_keys.contains(&k) => k,
+            Some(k) => {
+                return Err(Failed::Key(format!(
+                    "{k:?}: no such video in {} (videos: {})",
+                    root.display(),
+                    ds.video_keys.join(", ")
+                )))
+            }
+            None => ds.video_keys.first().cloned().ok_or_else(|| {
+                Failed::Key(format!("{}: the dataset has no videos", root.display()))
+            })?,
+        };
+        // LeRobot's video feature shape: [height, width, channels].
+        let shape = ds.info["features"][&key]["shape"]
+            .as_array()
+            .and_then(|s| Some((s.first()?.as_u64()?, s.get(1)?.as_u64()?)))
+            .ok_or_else(|| {
+                Failed::Read(DatasetError::Field {
+                    path: root.join("meta/info.json"),
+                    episode,
+                    field: format!("features.{key}.shape"),
+                    message: "expected [height, width, channels]".into(),
+                })
+            })?;
+        let rows = ds.read_episode(episode).map_err(Failed::Read)?;
+        let frames = ds.read_video(episode, &key).map_err(Failed::Read)?;
+        let camera = match ds.read_calibration(episode, &key) {
+            Ok(c) => Some(c),
+            Err(DatasetError::MissingCalibration { .. }) => None,
+            Err(e) => return Err(Failed::Read(e)),
+        };
+        let masks = root
+            .join(format!("masks/episode_{episode:06}.npy"))
+            .is_file()
+            .then(|| ds.read_masks(episode))
+            .transpose()
+            .map_err(Failed::Read)?;
+        Ok((
+            rows, frames, shape, camera, masks, info.tasks, key, info.split,
+        ))
+    });
+    let (rows, frames, (h, w), camera, masks, tasks, key, split) = read.map_err(|e| match e {
+        Failed::Read(e) => err(e),
+        Failed::Key(m) => PyValueError::new_err(format!("key: {m}")),
+    })?;
+    let (t, h, w) = (frames.len(), h as usize, w as usize);
+    if frames.iter().any(|f| f.len() != h * w * 3) {
+        return Err(err(format!(
+            "{}: episode {episode}'s {key} frames are not the {h}x{w} of meta/info.json",
+            root.display()
+        )));
+    }
+    let d = PyDict::new(py);
+    d.set_item("frames", PyByteArray::new(py, &frames.concat()))?;
+    d.set_item("shape", (t, h, w))?;
+    let states: Vec<Vec<f32>> = rows.frames.iter().map(|r| r.state.clone()).collect();
+    let actions: Vec<Vec<f32>> = rows.frames.iter().map(|r| r.action.clone()).collect();
+    d.set_item("states", states)?;
+    d.set_item("actions", actions)?;
+    d.set_item(
+        "camera",
+        camera
+            .map(|inner| Camera { inner })
+            .map(|c| Bound::new(py, c))
+            .transpose()?,
+    )?;
+    d.set_item("masks", masks.map(|(_, m)| PyByteArray::new(py, &m)))?;
+    d.set_item("tasks", tasks)?;
+    d.set_item("key", key)?;
+    d.set_item("split", split)?;
+    Ok(d)
+}
