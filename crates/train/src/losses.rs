@@ -38,6 +38,50 @@ pub fn diffusion_loss(
     Ok((z0 - x0).square().mean(Kind::Float))
 }
 
+/// [`diffusion_loss`] with a weight per latent pixel: `mean(w (z0 - x0_hat)^2)`
+/// with `weights` broadcasting over the latents (e.g. `[B, t, 1, h, w]` from
+/// [`motion_weights`]). All-ones weights give [`diffusion_loss`].
+pub fn weighted_diffusion_loss(
+    z0: &Tensor,
+    z_t: &Tensor,
+    v_pred: &Tensor,
+    alpha_bar: &Tensor,
+    weights: &Tensor,
+) -> Result<Tensor> {
+    same_shape("diffusion loss (z0, z_t)", z0, z_t)?;
+    same_shape("diffusion loss (z0, v_pred)", z0, v_pred)?;
+    let x0 = predicted_x0(z_t, v_pred, alpha_bar);
+    Ok(((z0 - x0).square() * weights).mean(Kind::Float))
+}
+
+/// Loss weights `[B, t, 1, h, w]` for latents of `latent` = `[B, t, C, h, w]`:
+/// `1 + weight` on the latent pixels the robot covers, 1 elsewhere. `masks`
+/// are the mask videos `[B, 3, T, H, W]` in {-1, 1}; a pixel is the robot's
+/// in frame `f` when any channel is > 0 there, or in the first frame (the
+/// pixels it leaves change too). The silhouettes are max-pooled to the latent
+/// grid (`T -> t`, `H x W -> h x w`) and dilated by one latent pixel.
+pub fn motion_weights(masks: &Tensor, latent: &[i64], weight: f64) -> Result<Tensor> {
+    let ms = masks.size();
+    if ms.len() != 5 || latent.len() != 5 || ms[0] != latent[0] {
+        return Err(TrainError::input(
+            "motion weights",
+            format!(
+                "masks {ms:?} and latents {latent:?}: expected [B, 3, T, H, W] and [B, t, C, h, w]"
+            ),
+        ));
+    }
+    let (t, h, w) = (latent[1], latent[3], latent[4]);
+    let m = masks
+        .amax([1i64].as_slice(), true)
+        .gt(0.0)
+        .to_kind(Kind::Float); // [B, 1, T, H, W]
+    let m = m.maximum(&m.narrow(2, 0, 1)); // with the first frame's silhouette
+    let (m, _) = m.adaptive_max_pool3d([t, h, w]); // [B, 1, t, h, w]
+    let m = m.max_pool3d([1, 3, 3], [1, 1, 1], [0, 1, 1], [1, 1, 1], false);
+    let m = m.permute([0, 2, 1, 3, 4]); // [B, t, 1, h, w]
+    Ok(m * weight + 1.0)
+}
+
 /// The dynamics-consistency loss over latent frames (`[B, F, ...]`, frames on
 /// dimension 1):
 /// `sum_{j=1..K} 1/(F - j) sum_{t=0..F-1-j} mean(((p_{t+j} - p_t) - (g_{t+j} - g_t))^2)`.
@@ -84,6 +128,60 @@ mod tests {
     fn randn(shape: &[i64], seed: i64) -> Tensor {
         tch::manual_seed(seed);
         Tensor::randn(shape, (Kind::Float, Device::Cpu))
+    }
+
+    #[test]
+    fn motion_weights_cover_the_silhouettes_of_the_frame_and_the_first_frame() {
+        // One clip of 3 frames, 8 x 8 pixels, latents at half the size.
+        let masks = Tensor::full([1, 3, 3, 8, 8], -1.0, (Kind::Float, Device::Cpu));
+        // Frame 0: the robot at pixel (0, 0); frame 2: at pixel (7, 7), one channel only.
+        let _ = masks
+            .get(0)
+            .narrow(1, 0, 1)
+            .narrow(2, 0, 1)
+            .narrow(3, 0, 1)
+            .fill_(1.0);
+        let _ = masks
+            .get(0)
+            .narrow(0, 1, 1)
+            .narrow(1, 2, 1)
+            .narrow(2, 7, 1)
+            .narrow(3, 7, 1)
+            .fill_(1.0);
+        let w = motion_weights(&masks, &[1, 3, 4, 4, 4], 3.0).unwrap();
+        assert_eq!(w.size(), vec![1, 3, 1, 4, 4]);
+        let at = |f: i64, y: i64, x: i64| w.double_value(&[0, f, 0, y, x]);
+        // The first frame's cell (0, 0) and its one-cell dilation, in every frame.
+        for f in 0..3 {
+            for (y, x) in [(0, 0), (1, 1), (0, 1)] {
+                assert_eq!(at(f, y, x), 4.0, "frame {f} ({y}, {x})");
+            }
+            assert_eq!(at(f, 2, 0), 1.0, "frame {f} (2, 0)");
+        }
+        // Frame 2's own cell (3, 3) and its dilation, only in frame 2.
+        assert_eq!(at(2, 3, 3), 4.0);
+        assert_eq!(at(2, 2, 2), 4.0);
+        assert_eq!(at(1, 3, 3), 1.0);
+        assert_eq!(at(0, 2, 2), 1.0);
+        // Weighted count: frame 0 and 1 four cells, frame 2 4 + 4 cells, at weight 3.
+        let total = w.sum(Kind::Float).double_value(&[]);
+        assert_eq!(total, 48.0 + 3.0 * (4.0 + 4.0 + 8.0));
+        assert!(motion_weights(&masks, &[1, 3, 4, 4], 3.0).is_err());
+    }
+
+    #[test]
+    fn weighted_diffusion_loss_closed_form() {
+        let z0 = Tensor::from_slice(&[1.0f32, 2.0]).view([1, 1, 2, 1, 1]);
+        let zt = Tensor::from_slice(&[0.0f32, 0.0]).view([1, 1, 2, 1, 1]);
+        let v = Tensor::from_slice(&[-1.0f32, 0.0]).view([1, 1, 2, 1, 1]);
+        let a = Tensor::from_slice(&[0.75f32]).view([1, 1, 1, 1, 1]);
+        // x0_hat = -sqrt(0.25) v = [0.5, 0]: errors 0.25 and 4.
+        let w = Tensor::from_slice(&[3.0f32]).view([1, 1, 1, 1, 1]);
+        let l = weighted_diffusion_loss(&z0, &zt, &v, &a, &w).unwrap();
+        assert!((l.double_value(&[]) - 3.0 * (0.25 + 4.0) / 2.0).abs() < 1e-6);
+        let plain = diffusion_loss(&z0, &zt, &v, &a).unwrap();
+        let ones = weighted_diffusion_loss(&z0, &zt, &v, &a, &w.ones_like()).unwrap();
+        assert_eq!(plain.double_value(&[]), ones.double_value(&[]));
     }
 
     #[test]

@@ -298,6 +298,12 @@ pub struct TrainSection {
     /// final weights (and a trained backbone) are the averages; `eval-run`
     /// scores them unless told `--weights raw`.
     pub ema_decay: f64,
+    /// Extra weight of the diffusion loss where the robot is
+    /// ([`crate::losses::motion_weights`]): each latent pixel counts
+    /// `1 + w` times where the robot's silhouette in that frame or in the
+    /// first frame covers it (dilated by one latent pixel), once elsewhere.
+    /// 0 = the paper's plain mean (the default).
+    pub motion_loss_weight: f64,
     /// Checkpoint every N steps (0 = only at the end).
     pub checkpoint_every: usize,
     /// Denoising steps of the preview clip written to the TensorBoard log at
@@ -371,6 +377,7 @@ impl Default for TrainSection {
             image_noise_log_std: 0.5,
             condition_dropout: 0.1,
             ema_decay: 0.0,
+            motion_loss_weight: 0.0,
             checkpoint_every: 100,
             preview_steps: 10,
             keep_checkpoints: 3,
@@ -539,6 +546,7 @@ impl TrainConfig {
             ("train.grad_clip", t.grad_clip),
             ("train.lambda_dyn", t.lambda_dyn),
             ("train.lambda_flow", t.lambda_flow),
+            ("train.motion_loss_weight", t.motion_loss_weight),
         ] {
             if !v.is_finite() || v < 0.0 {
                 return bad(name, format!("{v}: expected a finite value >= 0"));

@@ -106,6 +106,17 @@ fn sizes_beyond_the_limits_name_the_field() {
             .to_string();
         assert!(e.contains("train.ema_decay") && e.contains("[0, 1)"), "{e}");
     }
+    for w in ["-1.0", "nan", "inf"] {
+        let e = TrainConfig::from_toml(&format!("{base}[train]\nmotion_loss_weight = {w}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("train.motion_loss_weight") && e.contains(">= 0"),
+            "{e}"
+        );
+    }
+    let c = TrainConfig::from_toml(&format!("{base}[train]\nmotion_loss_weight = 4.0\n")).unwrap();
+    assert_eq!(c.train.motion_loss_weight, 4.0);
 }
 
 #[test]

@@ -7,7 +7,9 @@ use crate::augment::{recolor, ColorDraw};
 use crate::config::Stage;
 use crate::data::{rng_for, seed_for, Batch};
 use crate::flow::{flow_loss, flow_weight};
-use crate::losses::{diffusion_loss, dynamics_loss, predicted_x0};
+use crate::losses::{
+    diffusion_loss, dynamics_loss, motion_weights, predicted_x0, weighted_diffusion_loss,
+};
 use crate::Result;
 use bridgev2w_io::seed::box_muller;
 use bridgev2w_torch_ext::{AutocastDevice, AutocastGuard};
@@ -145,7 +147,16 @@ impl Trainer {
         };
         let v = v.to_kind(Kind::Float);
         let alpha = self.scheduler.alpha_bar_like(&timesteps, &z0)?;
-        let diff = diffusion_loss(&z0, &x_t, &v, &alpha)?;
+        let diff = if t.motion_loss_weight > 0.0 {
+            let w = motion_weights(
+                &batch.masks.to_device(z0.device()),
+                &z0.size(),
+                t.motion_loss_weight,
+            )?;
+            weighted_diffusion_loss(&z0, &x_t, &v, &alpha, &w)?
+        } else {
+            diffusion_loss(&z0, &x_t, &v, &alpha)?
+        };
         let diff = if t.inject_nan_at_step.is_some_and(|n| step >= n) {
             diff * f64::NAN
         } else {
