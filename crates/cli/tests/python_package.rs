@@ -76,6 +76,7 @@ fn pip_install_python_then_its_tests_pass() {
     let o = Command::new(venv.join("bin/python"))
         .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
         .arg(repo().join("python/tests/test_bridgev2w.py"))
+        .arg(repo().join("python/tests/test_wandb_export.py"))
         .env("BRIDGEV2W_BIN", env!("CARGO_BIN_EXE_bridgev2w"))
         .env("BRIDGEV2W_TEST_WORK", &work)
         .env("BRIDGEV2W_TEST_RAW", &raw)
@@ -84,7 +85,7 @@ fn pip_install_python_then_its_tests_pass() {
         .expect("run the package's tests with pytest");
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
-    assert!(String::from_utf8_lossy(&o.stdout).contains("12 passed"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("14 passed"));
     for guide in ["python.md", "own-robot.md"] {
         run_guide(guide, &venv, &raw);
     }
