@@ -14,6 +14,8 @@ project's Rust core (``bridgev2w._core``).
     bw.convert("raw/droid", "data/droid", format="droid", intrinsics="zed.json")
     ep = bw.read_episode("data", 0)                  # frames, states, actions, camera, masks
     bw.metrics.psnr(pred, gt)
+    # Rerun recordings (.rrd) of masks, predictions and episodes: bridgev2w.rerun
+    # (python -m bridgev2w.rerun masks|predict|view ...; docs/guide/rerun.md)
 
 Arrays are numpy arrays (the world model also takes and returns torch
 tensors); a wrong dtype or shape is a ``ValueError`` naming the argument and
@@ -27,7 +29,7 @@ from __future__ import annotations
 import json
 import numbers
 import os
-from typing import NamedTuple, Sequence, Union
+from typing import NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 
@@ -111,6 +113,20 @@ class Residual(NamedTuple):
     reached: bool
 
 
+class LinkMesh(NamedTuple):
+    """A link's visual geometry, as :meth:`Robot.link_meshes` gives it."""
+
+    name: str
+    #: The value ``render_masks(..., labels=True)`` writes for this link.
+    label: int
+    #: RGB8: the label's colour in the overlays of ``bridgev2w masks``.
+    color: tuple
+    #: float32 ``[N, 3]``: metres, in the link frame.
+    vertices: np.ndarray
+    #: uint32 ``[M, 3]``: vertex indices.
+    triangles: np.ndarray
+
+
 class Robot:
     """A robot: a built-in one by name (``franka``, ``agibot-g1``), or a URDF
     with :meth:`from_urdf`."""
@@ -154,6 +170,28 @@ class Robot:
     def link_labels(self) -> dict[int, str]:
         """The link of each label value that ``render_masks(..., labels=True)`` writes."""
         return dict(self._r.link_labels())
+
+    def link_meshes(self) -> list["LinkMesh"]:
+        """The visual mesh of every link with geometry (the links of
+        :meth:`link_labels`, in that order) as a :class:`LinkMesh`: vertices
+        float32 ``[N, 3]`` in metres in the link frame, triangles uint32 ``[M, 3]``."""
+        out = []
+        for name, label, color, v, t in self._r.link_meshes():
+            out.append(LinkMesh(name, int(label), tuple(color), np.frombuffer(v, dtype="<f4").reshape(-1, 3),
+                                np.frombuffer(t, dtype="<u4").reshape(-1, 3)))
+        return out
+
+    def link_poses(self, joints) -> np.ndarray:
+        """Forward kinematics: ``world_from_link`` float64 ``[T, L, 4, 4]``
+        ("world" is the robot's base frame) of the ``L`` links of
+        :meth:`link_meshes`, in that order, for ``joints`` ``[T, dof]`` (a
+        single frame ``[dof]`` gives ``[L, 4, 4]``), checked as
+        :func:`render_masks` checks them (finite, within the joint limits)."""
+        q = _float_array("joints", joints, (1, 2), len(self.joint_names))
+        single = q.ndim == 1
+        q = q[None] if single else q
+        poses = np.frombuffer(self._r.link_poses(q.tolist()), dtype="<f8").reshape(len(q), -1, 4, 4)
+        return poses[0] if single else poses
 
     def solve_ik(self, actions, *, allow_residual: bool = False):
         """Joint positions ``[T, dof]`` for end-effector ``actions``
@@ -223,6 +261,23 @@ class Camera:
     def size(self) -> tuple[int, int]:
         """``(width, height)`` in pixels."""
         return self._c.size
+
+    @property
+    def K(self) -> np.ndarray:
+        """The pinhole intrinsics, float64 3x3 (pixel centres at integer coordinates)."""
+        fx, fy, cx, cy = self._c.intrinsics
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def world_from_camera(self) -> np.ndarray:
+        """The pose, float64 4x4 (OpenCV camera axes: x right, y down, z forward)."""
+        return np.array(self._c.world_from_camera, dtype=np.float64)
+
+    @property
+    def dist(self) -> Optional[np.ndarray]:
+        """The distortion ``(k1, k2, p1, p2, k3)``, or None for an ideal pinhole."""
+        d = self._c.distortion
+        return None if d is None else np.array(d, dtype=np.float64)
 
     def __repr__(self) -> str:
         return repr(self._c)
@@ -360,6 +415,14 @@ class WorldModel:
 
     def __repr__(self) -> str:
         return repr(self._m)
+
+
+def read_trajectory(path) -> np.ndarray:
+    """The rows of a joint or action file as ``bridgev2w masks --joints`` and
+    ``--actions`` read it (a JSON array of arrays, a CSV with an optional
+    header row, or a 1-D/2-D ``.npy``): float64 ``[T, n]``. A missing file is
+    a ``FileNotFoundError``, a malformed one a ``ValueError`` naming it."""
+    return np.array(_core.read_trajectory(_path("path", path)), dtype=np.float64)
 
 
 def builtin_robots() -> str:

@@ -15,7 +15,8 @@ use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, T
 use bridgev2w_embodiment::camera::Camera as RsCamera;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
-use bridgev2w_embodiment::masks::{link_labels, render_trajectory};
+use bridgev2w_embodiment::masks::{label_of_link, link_labels, render_trajectory};
+use bridgev2w_embodiment::overlay::label_color;
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
 use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
@@ -120,6 +121,86 @@ impl Robot {
     /// `render(..., labels)` writes.
     fn link_labels(&self) -> Vec<(u16, String)> {
         link_labels(&self.inner.robot)
+    }
+
+    /// The visual mesh of every link with geometry, in the order of
+    /// `link_labels`: `(link name, label, colour, vertices, triangles)`, the
+    /// colour RGB8 as the overlays of `bridgev2w masks` draw the label, vertices
+    /// `V * 3` little-endian f32 (metres, in the link frame), triangles
+    /// `M * 3` little-endian u32 (vertex indices).
+    #[allow(clippy::type_complexity)]
+    fn link_meshes<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> Vec<(
+        String,
+        u16,
+        [u8; 3],
+        Bound<'py, PyByteArray>,
+        Bound<'py, PyByteArray>,
+    )> {
+        self.inner
+            .robot
+            .links
+            .iter()
+            .enumerate()
+            .filter_map(|(i, l)| l.mesh.as_ref().map(|m| (i, l, m)))
+            .map(|(i, l, m)| {
+                let vertices: Vec<u8> = m
+                    .vertices
+                    .iter()
+                    .flat_map(|p| [p.x, p.y, p.z])
+                    .flat_map(f32::to_le_bytes)
+                    .collect();
+                let triangles: Vec<u8> = m
+                    .triangles
+                    .iter()
+                    .flatten()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect();
+                let label = label_of_link(i);
+                (
+                    l.name.clone(),
+                    label,
+                    label_color(label).map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8),
+                    PyByteArray::new(py, &vertices),
+                    PyByteArray::new(py, &triangles),
+                )
+            })
+            .collect()
+    }
+
+    /// Forward kinematics of a joint sequence (`[T][dof]`, checked as
+    /// `render` checks it): `world_from_link` of every link with geometry
+    /// (the order of `link_meshes`) at every frame, `T * L * 16` little-endian
+    /// f64 (row-major 4x4 matrices). Frames run in parallel on the Rust
+    /// thread pool with the GIL released.
+    fn link_poses<'py>(
+        &self,
+        py: Python<'py>,
+        joints: Vec<Vec<f64>>,
+    ) -> PyResult<Bound<'py, PyByteArray>> {
+        let r = &self.inner.robot;
+        let joints = vec![joints];
+        check_joints(r, &joints)?;
+        let with_mesh: Vec<usize> = r
+            .links
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| l.mesh.is_some())
+            .map(|(i, _)| i)
+            .collect();
+        let bytes: Vec<u8> = py.detach(|| {
+            let poses = r.trajectory_link_poses(&joints[0]);
+            poses
+                .iter()
+                .flat_map(|frame| with_mesh.iter().map(move |&i| frame[i].to_homogeneous()))
+                // nalgebra stores column-major: transpose to write rows.
+                .flat_map(|m| m.transpose().as_slice().to_vec())
+                .flat_map(f64::to_le_bytes)
+                .collect()
+        });
+        Ok(PyByteArray::new(py, &bytes))
     }
 
     /// Joint positions for a batch of end-effector action sequences
@@ -254,6 +335,30 @@ impl Camera {
         (self.inner.intrinsics.width, self.inner.intrinsics.height)
     }
 
+    /// `(fx, fy, cx, cy)` in pixels (pixel centres at integer coordinates).
+    #[getter]
+    fn intrinsics(&self) -> (f64, f64, f64, f64) {
+        let i = &self.inner.intrinsics;
+        (i.fx, i.fy, i.cx, i.cy)
+    }
+
+    /// The pose, a row-major 4x4 rigid transform (OpenCV camera axes).
+    #[getter]
+    fn world_from_camera(&self) -> [[f64; 4]; 4] {
+        let m = self.inner.world_from_camera.to_homogeneous();
+        std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+    }
+
+    /// The distortion `(k1, k2, p1, p2, k3)`, or None for an ideal pinhole.
+    #[getter]
+    fn distortion(&self) -> Option<[f64; 5]> {
+        self.inner
+            .intrinsics
+            .distortion
+            .as_ref()
+            .map(|d| d.coefficients())
+    }
+
     fn __repr__(&self) -> String {
         let i = &self.inner.intrinsics;
         format!(
@@ -261,6 +366,34 @@ impl Camera {
             i.width, i.height, i.fx, i.fy, i.cx, i.cy
         )
     }
+}
+
+/// Checks a batch of joint sequences (`[B][T][dof]`) as `bridgev2w masks
+/// --joints` does: `dof` finite values per frame within the joint limits; a
+/// `ValueError` naming `joints` (`joints[b]` in a batch), the frame and joint.
+fn check_joints(r: &bridgev2w_embodiment::robot::Robot, joints: &[Vec<Vec<f64>>]) -> PyResult<()> {
+    let dof = r.dof_names().len();
+    let batched = joints.len() > 1;
+    for (b, seq) in joints.iter().enumerate() {
+        let name = if batched {
+            format!("joints[{b}]")
+        } else {
+            "joints".to_string()
+        };
+        if let Some((i, q)) = seq.iter().enumerate().find(|(_, q)| q.len() != dof) {
+            return Err(PyValueError::new_err(format!(
+                "{name}: frame {i} has {} values but robot {:?} has {dof} actuated joints ({}); for end-effector poses use actions=",
+                q.len(),
+                r.name,
+                r.dof_names().join(", ")
+            )));
+        }
+        // As `bridgev2w masks --joints`: finite values within the joint limits.
+        let traj = Trajectory::new(&name, seq.clone())
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        check_joint_trajectory(r, &traj).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    }
+    Ok(())
 }
 
 /// Renders a batch of joint sequences (`[B][T][dof]`) of `robot`, sequence
@@ -299,27 +432,7 @@ fn render<'py>(
         )));
     }
     let r = &robot.inner.robot;
-    let dof = r.dof_names().len();
-    let batched = joints.len() > 1;
-    for (b, seq) in joints.iter().enumerate() {
-        let name = if batched {
-            format!("joints[{b}]")
-        } else {
-            "joints".to_string()
-        };
-        if let Some((i, q)) = seq.iter().enumerate().find(|(_, q)| q.len() != dof) {
-            return Err(PyValueError::new_err(format!(
-                "{name}: frame {i} has {} values but robot {:?} has {dof} actuated joints ({}); for end-effector poses use actions=",
-                q.len(),
-                r.name,
-                r.dof_names().join(", ")
-            )));
-        }
-        // As `bridgev2w masks --joints`: finite values within the joint limits.
-        let traj = Trajectory::new(&name, seq.clone())
-            .map_err(|e| PyValueError::new_err(e.to_string()))?;
-        check_joint_trajectory(r, &traj).map_err(|e| PyValueError::new_err(e.to_string()))?;
-    }
+    check_joints(r, &joints)?;
     let frames: Vec<Vec<RenderOutput>> = py.detach(|| {
         joints
             .par_iter()
@@ -565,6 +678,22 @@ impl WorldModel {
     }
 }
 
+/// The rows of a joint or action file as `bridgev2w masks --joints` and
+/// `--actions` read it (JSON array of arrays, CSV with an optional header
+/// row, or a 1-D/2-D `.npy`): `[T][n]`, every row of one length, finite.
+#[pyfunction]
+fn read_trajectory(path: PathBuf) -> PyResult<Vec<Vec<f64>>> {
+    if !path.is_file() {
+        return Err(PyFileNotFoundError::new_err(format!(
+            "{}: no such joint or action file",
+            path.display()
+        )));
+    }
+    Trajectory::read(&path)
+        .map(|t| t.rows)
+        .map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
 /// The names of the built-in robots.
 #[pyfunction]
 fn builtin_robots() -> String {
@@ -582,6 +711,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ssim, m)?)?;
     m.add_function(wrap_pyfunction!(mask_iou, m)?)?;
     m.add_function(wrap_pyfunction!(builtin_robots, m)?)?;
+    m.add_function(wrap_pyfunction!(read_trajectory, m)?)?;
     m.add_function(wrap_pyfunction!(data::synth_generate, m)?)?;
     m.add_function(wrap_pyfunction!(data::convert, m)?)?;
     m.add_function(wrap_pyfunction!(data::read_episode, m)?)?;
