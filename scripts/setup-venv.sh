@@ -3,8 +3,9 @@
 # what the `world-model` crate links through tch) and diffusers (the reference for
 # parity fixtures). Idempotent: a venv whose stamp matches the lock file is kept.
 #
-# Disk: the venv takes about 4.5 GiB (torch's CUDA libraries are most of it: the
-# PyPI torch wheel for Linux needs them even to run on the CPU). Packages are
+# Disk: the venv takes about 5 GiB (torch's CUDA libraries are most of it: the
+# PyPI torch wheel for Linux needs them even to run on the CPU; rerun-sdk and
+# pyarrow, for the Rerun recordings, 0.7 GiB). Packages are
 # installed from the pinned closure in requirements-lock.txt without resolving,
 # the large wheels one per pip call, so at most one downloaded wheel sits on disk
 # beside the installed tree.
@@ -14,7 +15,7 @@ venv="$root/.venv"
 lock="$root/scripts/requirements-lock.txt"
 stamp="$venv/.bridgev2w-requirements"
 # What a fresh install needs free (KiB): the installed tree plus the largest wheel.
-need_kib=$((4800 * 1024))
+need_kib=$((5500 * 1024))
 link_libtorch() {
   # tch links the libtorch inside the wheel; .cargo/config.toml points LIBTORCH here.
   local torch_dir
@@ -97,12 +98,12 @@ mapfile -t pins < <(grep -v -E '^[[:space:]]*(#|$)' "$lock")
 small=()
 for pin in "${pins[@]}"; do
   case "$pin" in
-    torch==* | nvidia-*) pip_install "$pin" ;;
+    torch==* | nvidia-* | rerun-sdk==* | pyarrow==*) pip_install "$pin" ;;
     *) small+=("$pin") ;;
   esac
 done
 pip_install "${small[@]}"
-"$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py, peft, av; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
+"$venv/bin/python" -c "import torch, diffusers, torchvision, transformers, lpips, h5py, peft, av, rerun; print('venv ready: torch', torch.__version__, 'diffusers', diffusers.__version__)"
 link_libtorch
 gloo_headers
 dejavu_font

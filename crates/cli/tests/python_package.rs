@@ -4,9 +4,11 @@
 //! masks`, `bw.synth.generate` and `bw.convert` against `bridgev2w synth`
 //! and `convert`, predictions against `bridgev2w predict`, batches against
 //! their single items, the GIL released, metrics against closed forms, bad
-//! input as Python exceptions), then the Python guides' examples
-//! (`docs/guide/python.md`, `docs/guide/own-robot.md`: every ```` ```sh ````
-//! and ```` ```python ```` block, in order, in a sandbox).
+//! input as Python exceptions; `python/tests/test_rerun.py`: the Rerun
+//! recordings of `bridgev2w.rerun` reloaded with the Rerun SDK), then the
+//! Python guides' examples (`docs/guide/python.md`, `own-robot.md`,
+//! `rerun.md`: every ```` ```sh ```` and ```` ```python ```` block, in order,
+//! in a sandbox).
 //! The wheel is built in its own target folder (`target/python`): this test
 //! runs inside `cargo test`, which holds the workspace's.
 
@@ -86,7 +88,20 @@ fn pip_install_python_then_its_tests_pass() {
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
     assert!(String::from_utf8_lossy(&o.stdout).contains("14 passed"));
-    for guide in ["python.md", "own-robot.md"] {
+    // bridgev2w.rerun: its recordings reloaded with the Rerun SDK (rerun-sdk
+    // from the project venv).
+    let o = Command::new(venv.join("bin/python"))
+        .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
+        .arg(repo().join("python/tests/test_rerun.py"))
+        .env("BRIDGEV2W_BIN", env!("CARGO_BIN_EXE_bridgev2w"))
+        .env("BRIDGEV2W_TEST_WORK", &work)
+        .current_dir(dir.path())
+        .output()
+        .expect("run the Rerun recordings' tests with pytest");
+    eprintln!("{}", String::from_utf8_lossy(&o.stdout));
+    ok(&o);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("7 passed"));
+    for guide in ["python.md", "own-robot.md", "rerun.md"] {
         run_guide(guide, &venv, &raw);
     }
 }
