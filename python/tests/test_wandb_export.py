@@ -6,6 +6,7 @@ compared with the run's metrics.jsonl. Run by crates/cli/tests/python_package.rs
 (BRIDGEV2W_BIN as in test_bridgev2w.py).
 """
 
+import collections
 import json
 import os
 import pathlib
@@ -94,10 +95,15 @@ def test_offline_export_replays_every_metric_and_preview(run_dir):
     local = wx.export_run(run_dir, project="bridgev2w-test", mode="offline", dir=run_dir.parent / "wb")
     files = list(local.glob("run-*.wandb"))
     assert len(files) == 1, f"{local}: {list(local.iterdir())}"
-    rows = history(wandb_records(files[0]))
+    records = wandb_records(files[0])
+    rows = history(records)
     metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    # What was read from TensorBoard, then what W&B wrote (told apart on failure).
+    events = wx.read_events(run_dir)
+    assert sorted(events.scalars) == [m["step"] for m in metrics], (events.steps, metrics)
+    kinds = collections.Counter(r.WhichOneof("record_type") for r in records)
     scalar_rows = [r for r in rows if "train/loss" in r]
-    assert [r["_step"] for r in scalar_rows] == [m["step"] for m in metrics]
+    assert [r["_step"] for r in scalar_rows] == [m["step"] for m in metrics], (kinds, rows)
     for row, m in zip(scalar_rows, metrics):
         for key in ("loss", "diffusion", "dynamics", "lr", "grad_norm", "secs"):
             # float32 in the TensorBoard log
