@@ -67,6 +67,11 @@ pub struct PredictArgs {
     /// steps run).
     #[arg(long, default_value_t = 1.0)]
     strength: f64,
+    /// Keep the static scene (beyond the paper): outside the region the
+    /// robot's masks have swept so far, dilated by this many pixels, each
+    /// predicted frame is the first frame. Off when not given.
+    #[arg(long, value_name = "MARGIN_PX")]
+    keep_static: Option<u32>,
     /// The seed of the noise (every clip of a call gets the same: see --batch-size).
     #[arg(long, default_value_t = 42)]
     seed: u64,
@@ -296,6 +301,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
             // Each clip the noise of a batch of one: its single prediction.
             batch_noise: BatchNoise::Shared,
             strength: a.strength,
+            keep_static_margin_px: a.keep_static,
         },
     };
     let batches = clips.len().div_ceil(a.batch_size);

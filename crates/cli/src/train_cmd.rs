@@ -168,6 +168,11 @@ pub struct SamplingArgs {
     /// from the end of the steps (only the last ceil(s * steps) steps run).
     #[arg(long, default_value_t = 1.0)]
     strength: f64,
+    /// Keep the static scene (beyond the paper): outside the region the
+    /// robot's masks have swept so far, dilated by this many pixels, each
+    /// predicted frame is the first frame. Off when not given.
+    #[arg(long, value_name = "MARGIN_PX")]
+    keep_static: Option<u32>,
 }
 
 impl SamplingArgs {
@@ -179,6 +184,7 @@ impl SamplingArgs {
             seed: self.seed,
             first_frame: self.first_frame,
             strength: self.strength,
+            keep_static_margin_px: self.keep_static,
             ..EvalOptions::default()
         }
     }

@@ -6,7 +6,7 @@ use std::path::Path;
 
 mod common;
 
-use common::{run, s};
+use common::{ok, run, s};
 
 #[test]
 fn predict_writes_frames_and_video_deterministically() {
@@ -405,4 +405,74 @@ fn predict_batches_clips_as_their_single_predictions() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--batch-size"), "{err}");
     assert!(!d.join("bad").exists() && !d.join("bad.tmp").exists());
+}
+
+/// `--keep-static MARGIN_PX`: outside the region the masks have swept in
+/// frames 0..=t (dilated by the margin) frame t is the first frame, byte for
+/// byte; inside it, the prediction without the option (same seed).
+#[test]
+fn predict_keeps_the_static_scene_outside_the_swept_region() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let img = image::RgbImage::from_fn(96, 64, |x, y| image::Rgb([x as u8, y as u8, 128]));
+    img.save(d.join("first.png")).expect("png");
+    let masks = box_masks(3);
+    write_npy(&d.join("masks.npy"), &[9, 64, 96], &masks).expect("npy");
+    let (first, mask_file) = (d.join("first.png"), d.join("masks.npy"));
+    let run_predict = |out: &str, extra: &[&str]| {
+        let mut args = vec![
+            "predict",
+            "--model",
+            "random:tiny",
+            "--image",
+            s(&first),
+            "--masks",
+            s(&mask_file),
+            "--steps",
+            "2",
+            "--device",
+            "cpu",
+            "--out",
+        ];
+        let out = d.join(out);
+        args.push(s(&out));
+        args.extend_from_slice(extra);
+        ok(&run(&args));
+        read_npy(&out.join("video.npy")).expect("video").data
+    };
+    let kept = run_predict("kept", &["--keep-static", "1"]);
+    let free = run_predict("free", &[]);
+    let (mut outside, mut inside) = (0, 0);
+    for t in 0..9usize {
+        for y in 0..64usize {
+            for x in 0..96usize {
+                // Swept: a robot pixel of frames 0..=t within 1 pixel (square).
+                let swept = (0..=t).any(|u| {
+                    (y.saturating_sub(1)..=(y + 1).min(63)).any(|yy| {
+                        (x.saturating_sub(1)..=(x + 1).min(95))
+                            .any(|xx| masks[(u * 64 + yy) * 96 + xx] != 0)
+                    })
+                });
+                for c in 0..3 {
+                    let i = ((t * 64 + y) * 96 + x) * 3 + c;
+                    if swept {
+                        assert_eq!(kept[i], free[i], "frame {t} ({y}, {x}) inside");
+                        inside += 1;
+                    } else {
+                        let want = f64::from(img.get_pixel(x as u32, y as u32)[c]);
+                        assert_eq!(kept[i], want, "frame {t} ({y}, {x}) outside");
+                        outside += 1;
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        inside > 0 && outside > inside,
+        "{inside} inside, {outside} outside"
+    );
+    assert!(
+        kept.iter().zip(&free).any(|(a, b)| a != b),
+        "random weights predict noise: the static scene must differ"
+    );
 }

@@ -37,6 +37,9 @@ pub struct EvalOptions {
     pub first_frame: FirstFrame,
     /// Where sampling starts ([`SampleOptions::strength`]; 1 = pure noise).
     pub strength: f64,
+    /// Keep the static scene outside the robot's swept region, this many
+    /// pixels around it ([`SampleOptions::keep_static_margin_px`]; `None`: off).
+    pub keep_static_margin_px: Option<u32>,
     /// Also write `<grid_dir>/<split>.gif`: the first `grid_clips` clips,
     /// one row each, first frame | masks | prediction | ground truth.
     pub grid_dir: Option<std::path::PathBuf>,
@@ -53,6 +56,7 @@ impl Default for EvalOptions {
             max_videos: 0,
             first_frame: FirstFrame::Generated,
             strength: 1.0,
+            keep_static_margin_px: None,
             grid_dir: None,
             grid_clips: 4,
         }
@@ -69,6 +73,7 @@ impl EvalOptions {
             seed: self.seed,
             first_frame: self.first_frame,
             strength: self.strength,
+            keep_static_margin_px: self.keep_static_margin_px,
             ..SampleOptions::default()
         }
     }

@@ -23,6 +23,7 @@ pub mod parity;
 pub mod pipeline;
 pub mod scheduler;
 pub mod spec;
+pub mod static_scene;
 pub mod transformer;
 pub mod vae;
 pub mod video;

@@ -111,6 +111,11 @@ pub struct SampleOptions {
     /// `strength`): the static scene starts right and only what moves must be
     /// drawn.
     pub strength: f64,
+    /// Keep the static scene (beyond the paper; [`crate::static_scene`]):
+    /// outside the region the robot has swept in frames `0..=t`, dilated by
+    /// this many pixels, frame `t` is the first frame. `None`: every pixel
+    /// is the model's (diffusers' pipeline).
+    pub keep_static_margin_px: Option<u32>,
 }
 
 impl Default for SampleOptions {
@@ -123,6 +128,7 @@ impl Default for SampleOptions {
             first_frame: FirstFrame::Generated,
             batch_noise: BatchNoise::Independent,
             strength: 1.0,
+            keep_static_margin_px: None,
         }
     }
 }

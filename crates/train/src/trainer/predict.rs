@@ -7,6 +7,7 @@ use crate::Result;
 use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{sample_latents, Denoiser, Guidance, SampleOptions};
 use bridgev2w_world_model::scheduler::Scheduler;
+use bridgev2w_world_model::static_scene::keep_static;
 use tch::Tensor;
 
 impl Trainer {
@@ -82,7 +83,16 @@ impl Trainer {
             };
             let mut scheduler = Scheduler::new(model.scheduler.clone())?;
             let z = sample_latents(&denoiser, &mut scheduler, &img, opts)?;
-            Ok(model.decode_latents(&z)?.clamp(-1.0, 1.0))
+            let video = model.decode_latents(&z)?.clamp(-1.0, 1.0); // [B, 3, T, H, W]
+            Ok(match opts.keep_static_margin_px {
+                Some(margin) => keep_static(
+                    &video,
+                    &batch.first_frames.to_device(video.device()),
+                    &batch.masks.to_device(video.device()),
+                    margin,
+                )?,
+                None => video,
+            })
         })
     }
 }

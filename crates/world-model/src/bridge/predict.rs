@@ -13,6 +13,7 @@ use crate::pipeline::{
     check_batch, sample_latents_with_progress, Denoiser, Guidance, PredictOptions, WorldModel,
 };
 use crate::scheduler::Scheduler;
+use crate::static_scene::keep_static;
 use crate::video::{image_to_tensor, MaskVideo, Video};
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_io::progress::{Progress, Silent};
@@ -85,6 +86,18 @@ impl BridgeV2W {
         let control = self.control_latents(&mask_videos, &image_latents)?;
         let latents = self.sample_with_progress(&image_latents, &control, opts, progress)?;
         let videos = self.decode_latents(&latents)?; // [B, 3, T, H, W]
+        let videos = match opts.sample.keep_static_margin_px {
+            Some(margin) => {
+                let first = first_frames
+                    .iter()
+                    .map(|f| image_to_tensor(f, Device::Cpu, Kind::Float)) // [1, 3, H, W]
+                    .collect::<Result<Vec<_>>>()?;
+                let first = Tensor::cat(&first, 0).to_device(videos.device()); // [B, 3, H, W]
+                let masks = mask_videos.to_device(videos.device());
+                keep_static(&videos, &first, &masks, margin)?
+            }
+            None => videos,
+        };
         (0..videos.size()[0])
             .map(|i| Video::from_tensor(&videos.get(i)))
             .collect()
