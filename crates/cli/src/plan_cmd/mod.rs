@@ -60,6 +60,11 @@ pub struct ModelArgs {
     /// denoising steps run).
     #[arg(long, default_value_t = 1.0)]
     pub strength: f64,
+    /// Keep the static scene of a diffusion model's predictions (beyond the
+    /// paper): outside the region the candidate's masks have swept so far,
+    /// dilated by this many pixels, each frame is the first frame.
+    #[arg(long, value_name = "MARGIN_PX")]
+    pub keep_static: Option<u32>,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     pub device: ComputeDevice,
@@ -83,6 +88,7 @@ impl From<&ModelArgs> for ModelOptions {
             denoise_steps: a.denoise_steps,
             batch_noise: a.batch_noise,
             strength: a.strength,
+            keep_static_margin_px: a.keep_static,
             device: a.device,
             width: a.width,
             height: a.height,

@@ -68,6 +68,11 @@ pub struct PlanReportArgs {
     /// denoising steps run).
     #[arg(long, default_value_t = 1.0)]
     pub strength: f64,
+    /// Keep the static scene of the diffusion models' predictions (beyond
+    /// the paper): outside the region the masks have swept so far, dilated
+    /// by this many pixels, each frame is the first frame.
+    #[arg(long, value_name = "MARGIN_PX")]
+    pub keep_static: Option<u32>,
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
@@ -100,6 +105,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         denoise_steps: a.denoise_steps,
         batch_noise: a.batch_noise,
         strength: a.strength,
+        keep_static_margin_px: a.keep_static,
         device: a.device,
         seed: a.seed,
         results: Some(a.out.clone()),

@@ -29,6 +29,10 @@ pub struct ModelOptions {
     /// Where a diffusion model's sampling starts ([`SampleOptions::strength`]:
     /// 1 from pure noise, less from the noised first frame).
     pub strength: f64,
+    /// Keep the static scene of a diffusion model's predictions outside the
+    /// robot's swept region, this many pixels around it
+    /// ([`SampleOptions::keep_static_margin_px`]; `None`: off).
+    pub keep_static_margin_px: Option<u32>,
     /// The device of a diffusion model.
     pub device: ComputeDevice,
     /// Image width of the synthetic world with the perfect model (pixels).
@@ -48,6 +52,7 @@ impl Default for ModelOptions {
             denoise_steps: 4,
             batch_noise: BatchNoise::Shared,
             strength: 1.0,
+            keep_static_margin_px: None,
             device: ComputeDevice::auto(),
             width: 96,
             height: 64,
@@ -78,6 +83,8 @@ pub enum LoadedModel {
         batch_noise: BatchNoise,
         /// Where sampling starts.
         strength: f64,
+        /// The static scene kept outside the swept region (margin in pixels).
+        keep_static_margin_px: Option<u32>,
     },
 }
 
@@ -103,6 +110,7 @@ impl LoadedModel {
                     denoise_steps: o.denoise_steps,
                     batch_noise: o.batch_noise,
                     strength: o.strength,
+                    keep_static_margin_px: o.keep_static_margin_px,
                 }
             }
         })
@@ -153,6 +161,7 @@ impl LoadedModel {
                 denoise_steps,
                 batch_noise,
                 strength,
+                keep_static_margin_px,
             } => {
                 let predict = PredictOptions {
                     sample: SampleOptions {
@@ -160,6 +169,7 @@ impl LoadedModel {
                         guidance_scale: 1.0,
                         batch_noise: *batch_noise,
                         strength: *strength,
+                        keep_static_margin_px: *keep_static_margin_px,
                         ..SampleOptions::default()
                     },
                 };

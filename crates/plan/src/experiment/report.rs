@@ -60,6 +60,7 @@ impl ReportModel {
             denoise_steps: o.denoise_steps,
             batch_noise: o.batch_noise,
             strength: o.strength,
+            keep_static_margin_px: o.keep_static_margin_px,
             device: o.device,
             width: 96,
             height: 64,
@@ -96,6 +97,9 @@ pub struct PlanReportOptions {
     pub batch_noise: BatchNoise,
     /// Where the diffusion models' sampling starts (1 = pure noise).
     pub strength: f64,
+    /// The static scene of the diffusion models' predictions kept outside
+    /// the robot's swept region (margin in pixels; `None`: off).
+    pub keep_static_margin_px: Option<u32>,
     /// The device of the diffusion models.
     pub device: ComputeDevice,
     /// Seed.
@@ -231,7 +235,7 @@ pub fn plan_report(
                     " ({} denoising steps, {} noise{})",
                     o.denoise_steps,
                     o.batch_noise,
-                    strength_note(o.strength)
+                    strength_note(o.strength, o.keep_static_margin_px)
                 ),
             },
             r.markdown()
@@ -304,11 +308,16 @@ fn plan_tables(
     Ok(md)
 }
 
-/// `, strength S` when sampling starts from the noised first frame, else nothing.
-pub(crate) fn strength_note(strength: f64) -> String {
+/// `, strength S` when sampling starts from the noised first frame, and
+/// `, the static scene kept outside the swept region (+N px)` when
+/// predictions keep it; else nothing.
+pub(crate) fn strength_note(strength: f64, keep_static_margin_px: Option<u32>) -> String {
+    let mut note = String::new();
     if strength < 1.0 {
-        format!(", strength {strength}")
-    } else {
-        String::new()
+        note += &format!(", strength {strength}");
     }
+    if let Some(m) = keep_static_margin_px {
+        note += &format!(", the static scene kept outside the swept region (+{m} px)");
+    }
+    note
 }
