@@ -108,6 +108,9 @@ pub struct Scores {
 pub struct RunScores {
     /// The run's training step.
     pub step: usize,
+    /// The run folder scored (absent in files written before it was recorded).
+    #[serde(default)]
+    pub run: Option<String>,
     /// Denoising steps per prediction.
     pub sampling_steps: Option<usize>,
     /// The robot segmenter of Mask-IoU (`cnn` or `color`).
@@ -328,7 +331,14 @@ fn figures_section(opts: &VideoReportOptions, entries: &[(String, RunScores)]) -
         }
     }
     if let (Some(dir), Some((_, first))) = (&opts.grids, entries.first()) {
-        let names: Vec<&str> = entries.iter().map(|(n, _)| n.as_str()).collect();
+        // eval-grid draws each run once: entries scoring the same run (e.g.
+        // with other sampling options) share the column of the first of them.
+        let mut runs_seen = std::collections::HashSet::new();
+        let names: Vec<&str> = entries
+            .iter()
+            .filter(|(_, s)| s.run.as_ref().is_none_or(|r| runs_seen.insert(r.clone())))
+            .map(|(n, _)| n.as_str())
+            .collect();
         md += &format!(
             "\n### Side-by-side videos\n\nThe first clips of each split, a row each: first frame | masks | {} | ground truth (`bridgev2w eval-grid`).\n\n",
             names.join(" | ")
@@ -390,6 +400,7 @@ mod tests {
 
     fn run(psnr: f64, iou: f64, videos: usize) -> RunScores {
         RunScores {
+            run: None,
             step: 10,
             sampling_steps: Some(20),
             segmenter: Some("cnn".into()),
@@ -481,7 +492,7 @@ mod tests {
     fn the_section_draws_and_links_its_figures_and_grids() {
         let tmp = tempfile::tempdir().unwrap();
         let d = tmp.path();
-        let scores = |name: &str, psnr: f64| {
+        let scores = |name: &str, psnr: f64, run_dir: &str| {
             let r = run(psnr, 0.5, 3);
             let splits: Vec<serde_json::Value> = r
                 .splits
@@ -501,7 +512,7 @@ mod tests {
             let f = d.join(format!("{name}.json"));
             std::fs::write(
                 &f,
-                serde_json::json!({"step": 10, "splits": splits}).to_string(),
+                serde_json::json!({"step": 10, "run": run_dir, "splits": splits}).to_string(),
             )
             .unwrap();
             format!("{name}={}", f.display())
@@ -528,7 +539,12 @@ mod tests {
         }
         let results = d.join("docs/results.md");
         let mut opts = VideoReportOptions {
-            entries: vec![scores("A", 25.0), scores("B", 22.0)],
+            // A2 scores A's run another way: one column in the grids.
+            entries: vec![
+                scores("A", 25.0, "runs/a"),
+                scores("A2", 24.0, "runs/a"),
+                scores("B", 22.0, "runs/b"),
+            ],
             preamble: None,
             training_runs: vec![stage("prior"), stage("bridgev2w")],
             grids: Some(grids.clone()),
