@@ -32,10 +32,19 @@ pub fn diffusion_loss(
     v_pred: &Tensor,
     alpha_bar: &Tensor,
 ) -> Result<Tensor> {
+    Ok(x0_squared_error(z0, z_t, v_pred, alpha_bar)?.mean(Kind::Float))
+}
+
+/// `(z0 - x0_hat)^2` per element, the shapes checked.
+fn x0_squared_error(
+    z0: &Tensor,
+    z_t: &Tensor,
+    v_pred: &Tensor,
+    alpha_bar: &Tensor,
+) -> Result<Tensor> {
     same_shape("diffusion loss (z0, z_t)", z0, z_t)?;
     same_shape("diffusion loss (z0, v_pred)", z0, v_pred)?;
-    let x0 = predicted_x0(z_t, v_pred, alpha_bar);
-    Ok((z0 - x0).square().mean(Kind::Float))
+    Ok((z0 - predicted_x0(z_t, v_pred, alpha_bar)).square())
 }
 
 /// [`diffusion_loss`] with a weight per latent pixel: `mean(w (z0 - x0_hat)^2)`
@@ -48,10 +57,7 @@ pub fn weighted_diffusion_loss(
     alpha_bar: &Tensor,
     weights: &Tensor,
 ) -> Result<Tensor> {
-    same_shape("diffusion loss (z0, z_t)", z0, z_t)?;
-    same_shape("diffusion loss (z0, v_pred)", z0, v_pred)?;
-    let x0 = predicted_x0(z_t, v_pred, alpha_bar);
-    Ok(((z0 - x0).square() * weights).mean(Kind::Float))
+    Ok((x0_squared_error(z0, z_t, v_pred, alpha_bar)? * weights).mean(Kind::Float))
 }
 
 /// Loss weights `[B, t, 1, h, w]` for latents of `latent` = `[B, t, C, h, w]`:
