@@ -26,7 +26,7 @@ import pytest
 
 import bridgev2w as bw
 from bridgev2w import rerun as bwr
-from bridgev2w._rerun_cli import main
+from bridgev2w.rerun.__main__ import main
 
 BIN = os.environ["BRIDGEV2W_BIN"]
 WORK = pathlib.Path(os.environ["BRIDGEV2W_TEST_WORK"]) / "rerun"

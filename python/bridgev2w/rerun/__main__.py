@@ -20,8 +20,8 @@ import sys
 
 import numpy as np
 
-from . import Camera, Error, Robot, WorldModel
-from . import rerun as bwr
+from .. import Camera, Error, Robot, WorldModel
+from .. import rerun as bwr
 
 
 def _robot(a) -> Robot:
@@ -194,3 +194,7 @@ def main(argv=None) -> int:
         return 1
     print(f"wrote {rec.out}: {rec.frames} frames, {len(rec.entities)} entities (rerun {rec.out} opens it)")
     return 0
+
+
+if __name__ == "__main__":  # python -m bridgev2w.rerun
+    sys.exit(main())

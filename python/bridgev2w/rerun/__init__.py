@@ -32,12 +32,11 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import sys
 from typing import NamedTuple, Optional, Union
 
 import numpy as np
 
-from . import Camera, Robot, _array, _float_array, _int, _path, builtin_robots, read_episode, read_trajectory, \
+from .. import Camera, Robot, _array, _float_array, _int, _path, builtin_robots, read_episode, read_trajectory, \
     render_masks
 
 #: The one timeline of every recording: the frame index.
@@ -440,9 +439,3 @@ def record_episode(out, dataset, episode: int = 0, *, robot: Union[Robot, str, N
         _log_series(w, "joints", q, robot.joint_names)
         _log_series(w, "actions", a, action_names(a.shape[1]))
         return w.commit(t, overwrite)
-
-
-if __name__ == "__main__":  # python -m bridgev2w.rerun
-    from ._rerun_cli import main
-
-    sys.exit(main())
