@@ -120,7 +120,9 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
             "ablation-action-mlp"
         ]
     );
-    assert_eq!(evaluated(&first), 2, "{first:?}");
+    // BridgeV2W with the static scene kept (the default KEEP_STATIC=0) and
+    // with every pixel generated, then the ablation.
+    assert_eq!(evaluated(&first), 3, "{first:?}");
     // The side-by-side GIFs once, next to the results file, and linked.
     let grids = |calls: &[String]| calls.iter().filter(|c| *c == "eval-grid").count();
     assert_eq!(grids(&first), 1, "{first:?}");
@@ -138,8 +140,14 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     // Another evaluation budget: only the evaluations and grids are redone.
     let more = run(r, &[("EVAL_STEPS", "3")]);
     assert!(trained(&more).is_empty(), "{more:?}");
-    assert_eq!(evaluated(&more), 2, "{more:?}");
+    assert_eq!(evaluated(&more), 3, "{more:?}");
     assert_eq!(grids(&more), 1, "{more:?}");
+    // Without keeping the static scene: the two kept evaluations and the
+    // grids are redone, the row of every pixel generated is not needed.
+    let plain = run(r, &[("EVAL_STEPS", "3"), ("KEEP_STATIC", "")]);
+    assert!(trained(&plain).is_empty(), "{plain:?}");
+    assert_eq!(evaluated(&plain), 2, "{plain:?}");
+    assert_eq!(grids(&plain), 1, "{plain:?}");
     // Another prior budget: the prior and both fine-tunings are redone, the
     // autoencoders kept; the old prior is moved aside, not deleted.
     let third = run(r, &[("PRIOR_STEPS", "7")]);
@@ -147,7 +155,7 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         trained(&third),
         ["prior", "bridgev2w", "ablation-action-mlp"]
     );
-    assert_eq!(evaluated(&third), 2, "{third:?}");
+    assert_eq!(evaluated(&third), 3, "{third:?}");
     // The wall-time table keeps the stages kept from earlier runs, once each.
     let timings = fs::read_to_string(r.join("runs/r/timings.tsv")).expect("timings");
     let stages: Vec<&str> = timings
