@@ -65,7 +65,7 @@ fn too_little_disk_is_refused_before_anything_is_installed() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(
-        err.contains("1024 MiB free") && err.contains("needs about 4800 MiB"),
+        err.contains("1024 MiB free") && err.contains("needs about 5500 MiB"),
         "{err}"
     );
     assert!(err.contains("cargo clean"), "{err}");
