@@ -188,7 +188,7 @@ impl FidelityStudy {
             o.frames_per_action,
             o.model.denoise_steps,
             o.model.batch_noise,
-            crate::experiment::report::strength_note(o.model.strength, o.model.keep_static_margin_px),
+            crate::experiment::report::sampling_note(o.model.strength, o.model.keep_static_margin_px),
             o.trials,
         )
     }

@@ -235,7 +235,7 @@ pub fn plan_report(
                     " ({} denoising steps, {} noise{})",
                     o.denoise_steps,
                     o.batch_noise,
-                    strength_note(o.strength, o.keep_static_margin_px)
+                    sampling_note(o.strength, o.keep_static_margin_px)
                 ),
             },
             r.markdown()
@@ -308,10 +308,11 @@ fn plan_tables(
     Ok(md)
 }
 
-/// `, strength S` when sampling starts from the noised first frame, and
+/// The sampler's departures from the defaults: `, strength S` when sampling
+/// starts from the noised first frame, and
 /// `, the static scene kept outside the swept region (+N px)` when
 /// predictions keep it; else nothing.
-pub(crate) fn strength_note(strength: f64, keep_static_margin_px: Option<u32>) -> String {
+pub(crate) fn sampling_note(strength: f64, keep_static_margin_px: Option<u32>) -> String {
     let mut note = String::new();
     if strength < 1.0 {
         note += &format!(", strength {strength}");
