@@ -95,16 +95,19 @@ def export_run(
     entity: str | None = None,
     mode: str = "offline",
     dir: str | os.PathLike | None = None,
+    events: RunEvents | None = None,
 ) -> Path:
     """Replays the run folder ``run``'s TensorBoard events into one W&B run.
 
     Returns the W&B run's local folder (``DIR/wandb/offline-run-*`` in offline
-    mode). ``name`` defaults to the run folder's name, ``dir`` to the run folder.
+    mode). ``name`` defaults to the run folder's name, ``dir`` to the run folder;
+    ``events``: the run's events when already read (``read_events(run)``).
     """
     if mode not in MODES:
         raise ValueError(f"mode: {mode!r}: expected one of {', '.join(MODES)}")
     run = Path(run)
-    events = read_events(run)
+    if events is None:
+        events = read_events(run)
     config = _config(run)
     try:
         import wandb
@@ -153,15 +156,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--offline", action="store_true", help="write an offline run for a later `wandb sync`")
     a = p.parse_args(argv)
     try:
+        events = read_events(a.run)
         local = export_run(
             a.run, project=a.project, name=a.name, entity=a.entity,
-            mode="offline" if a.offline else "online", dir=a.dir,
+            mode="offline" if a.offline else "online", dir=a.dir, events=events,
         )
     except (FileNotFoundError, ValueError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    n = len(read_events(a.run).steps)
-    print(f"exported {n} step(s) of {a.run} to {local}")
+    print(f"exported {len(events.steps)} step(s) of {a.run} to {local}")
     if a.offline:
         print(f"upload it with: wandb sync {local}")
     return 0
