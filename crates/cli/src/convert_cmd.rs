@@ -2,10 +2,11 @@
 //! training dataset with `calc` embodiment masks (one episode per camera).
 
 use crate::masks_cmd::progress_bar;
-use anyhow::{bail, Context, Result};
-use bridgev2w_data::raw::agibot::{self, AgibotOptions};
-use bridgev2w_data::raw::convert::{convert, ConvertOptions};
-use bridgev2w_data::raw::droid::{self, DroidOptions};
+use anyhow::{bail, Result};
+use bridgev2w_data::raw::agibot::AgibotOptions;
+use bridgev2w_data::raw::convert::ConvertOptions;
+use bridgev2w_data::raw::droid::DroidOptions;
+use bridgev2w_data::raw::source::{convert_source, ConvertProgress, RawSource};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::robot::LoadOptions;
 use std::path::PathBuf;
@@ -85,9 +86,6 @@ fn list(s: &Option<String>) -> Option<Vec<String>> {
 }
 
 pub fn run(args: &ConvertArgs) -> Result<()> {
-    // Written to OUT.tmp, removed again if the conversion fails.
-    let output = bridgev2w_io::output::OutputDir::create(&args.out, false).context("--out")?;
-    let tmp = output.path().to_path_buf();
     let robot = args.robot.clone().unwrap_or_else(|| {
         match args.format {
             Format::Droid => "franka",
@@ -113,8 +111,7 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         split: Some(args.split.clone()),
         source_format: format!("{:?}", args.format).to_lowercase(),
     };
-    let limit = args.limit.unwrap_or(usize::MAX);
-    let report = match args.format {
+    let source = match args.format {
         Format::Droid => {
             let intrinsics = args.intrinsics.as_deref().ok_or_else(|| {
                 anyhow::anyhow!("--intrinsics FILE is required for DROID: neither the raw episodes nor RLDS record camera intrinsics")
@@ -123,23 +120,10 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
             if let Some(c) = list(&args.cameras) {
                 opts.roles = c;
             }
-            let dirs: Vec<PathBuf> = droid::find_episodes(&args.src)?
-                .into_iter()
-                .take(limit)
-                .collect();
-            if dirs.is_empty() {
-                bail!(
-                    "{}: no DROID episodes (directories with trajectory.h5) found",
-                    args.src.display()
-                );
+            RawSource::Droid {
+                root: args.src.clone(),
+                options: opts,
             }
-            let pb = progress_bar(dirs.len(), "converting episodes");
-            let items = dirs
-                .iter()
-                .map(|d| (d.display().to_string(), droid::read_episode(d, &opts)));
-            let r = convert(items, &embodiment, &tmp, &options, &|_| pb.inc(1));
-            pb.finish_and_clear();
-            r?
         }
         Format::Agibot => {
             if args.intrinsics.is_some() || args.calibration.is_some() {
@@ -165,23 +149,34 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
             if let Some(c) = list(&args.cameras) {
                 opts.cameras = c;
             }
-            let keys: Vec<_> = agibot::find_episodes(&args.src)?
-                .into_iter()
-                .take(limit)
-                .collect();
-            if keys.is_empty() {
-                bail!("{}: no AgiBot World episodes (proprio_stats/<task>/<episode>/proprio_stats.h5) found", args.src.display());
+            RawSource::Agibot {
+                root: args.src.clone(),
+                options: opts,
             }
-            let pb = progress_bar(keys.len(), "converting episodes");
-            let items = keys
-                .iter()
-                .map(|k| (k.to_string(), agibot::read_episode(&args.src, k, &opts)));
-            let r = convert(items, &embodiment, &tmp, &options, &|_| pb.inc(1));
-            pb.finish_and_clear();
-            r?
         }
     };
-    output.commit()?;
+    let pb = std::sync::OnceLock::new();
+    let report = convert_source(
+        &source,
+        args.limit,
+        &embodiment,
+        &args.out,
+        &options,
+        &|p| match p {
+            ConvertProgress::Found(n) => {
+                let _ = pb.set(progress_bar(n, "converting episodes"));
+            }
+            ConvertProgress::Done(_) => {
+                if let Some(pb) = pb.get() {
+                    pb.inc(1);
+                }
+            }
+        },
+    );
+    if let Some(pb) = pb.get() {
+        pb.finish_and_clear();
+    }
+    let report = report?;
     let mut text = format!(
         "wrote {} (LeRobot v3.0): {} episodes read, {} camera episodes of {}x{} with calc masks, robot {}\n",
         args.out.display(),

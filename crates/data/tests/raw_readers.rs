@@ -8,6 +8,7 @@ use bridgev2w_data::lerobot::LeRobotDataset;
 use bridgev2w_data::raw::agibot::{self, AgibotOptions, EpisodeKey};
 use bridgev2w_data::raw::convert::{convert, resize_rgb, ConvertOptions};
 use bridgev2w_data::raw::droid::{self, DroidOptions};
+use bridgev2w_data::raw::source::{convert_source, ConvertProgress, RawSource};
 use bridgev2w_data::raw::RawError;
 use bridgev2w_data::video::write_test_pattern;
 use bridgev2w_embodiment::camera::world_from_camera_from_xyz_rpy;
@@ -415,6 +416,60 @@ fn read_convert_and_fail_clearly(pyav: bool) {
     let ds = LeRobotDataset::open(&out).expect("open g1");
     let (_, masks) = ds.read_masks(0).expect("masks");
     assert!(masks.contains(&1));
+
+    // The whole workflow in one call (what `convert` and `bw.convert` run):
+    // find, limit, convert into OUT.tmp, rename.
+    let whole = ConvertOptions {
+        width: 32,
+        height: 24,
+        fps: 15,
+        joint_names: None,
+        skip_bad: false,
+        split: None,
+        source_format: "droid".into(),
+    };
+    let source = RawSource::Droid {
+        root: dir.path().join("droid"),
+        options: droid_options(dir.path(), false),
+    };
+    let events = std::sync::Mutex::new(Vec::new());
+    let out = dir.path().join("whole");
+    let progress = |p: ConvertProgress| {
+        if let Ok(mut e) = events.lock() {
+            e.push(format!("{p:?}"));
+        }
+    };
+    let report =
+        convert_source(&source, Some(1), &franka, &out, &whole, &progress).expect("convert_source");
+    assert_eq!((report.episodes, report.views_written), (1, 2));
+    let seen = events.lock().expect("events").clone();
+    assert_eq!(seen.len(), 2, "{seen:?}");
+    assert_eq!(seen[0], "Found(1)");
+    assert!(seen[1].starts_with("Done("), "{seen:?}");
+    assert_eq!(LeRobotDataset::open(&out).expect("open").episodes.len(), 2);
+    // An existing output is kept and named.
+    let err = convert_source(&source, None, &franka, &out, &whole, &|_| {}).expect_err("exists");
+    assert!(err.to_string().contains("already exists"), "{err}");
+    assert_eq!(LeRobotDataset::open(&out).expect("kept").episodes.len(), 2);
+    // A source without episodes is refused, naming it, and leaves nothing.
+    let empty = dir.path().join("no_episodes");
+    std::fs::create_dir(&empty).expect("mkdir");
+    let source = RawSource::Droid {
+        root: empty.clone(),
+        options: droid_options(dir.path(), false),
+    };
+    let out = dir.path().join("from_empty");
+    let err = convert_source(&source, None, &franka, &out, &whole, &|_| {}).expect_err("empty");
+    assert!(
+        err.to_string().contains("no DROID episodes") && err.to_string().contains("no_episodes"),
+        "{err}"
+    );
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .expect("ls")
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with("from_empty"))
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
 }
 
 fn copy_tree(from: &Path, to: &Path) {

@@ -160,67 +160,36 @@ pub(crate) fn convert<'py>(
         split: Some(split),
         source_format: format.to_string(),
     };
-    let limit = limit.unwrap_or(usize::MAX);
-    let embodiment = &robot.inner;
-    let run = || -> Result<_, ConvertError> {
-        // Written to OUT.tmp, removed again if the conversion fails.
-        let output = bridgev2w_io::output::OutputDir::create(&out, false)
-            .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
-        let tmp = output.path().to_path_buf();
-        let report = if let Some(intrinsics) = intrinsics {
-            let mut opts = DroidOptions::from_files(&intrinsics, calibration.as_deref())?;
+    let to_py = |e: ConvertError| match e {
+        ConvertError::Raw(RawError::Missing { path, what }) => {
+            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
+        }
+        e => err(e),
+    };
+    let source = match intrinsics {
+        Some(intrinsics) => {
+            let mut options = DroidOptions::from_files(&intrinsics, calibration.as_deref())
+                .map_err(|e| to_py(e.into()))?;
             if let Some(c) = cameras {
-                opts.roles = c;
+                options.roles = c;
             }
-            let dirs: Vec<PathBuf> = droid::find_episodes(&src)?
-                .into_iter()
-                .take(limit)
-                .collect();
-            if dirs.is_empty() {
-                return Err(ConvertError::Options(format!(
-                    "{}: no DROID episodes (directories with trajectory.h5) found",
-                    src.display()
-                )));
-            }
-            let items = dirs
-                .iter()
-                .map(|d| (d.display().to_string(), droid::read_episode(d, &opts)));
-            convert_episodes(items, embodiment, &tmp, &options, &|_| {})?
-        } else {
-            let mut opts = AgibotOptions {
+            RawSource::Droid { root: src, options }
+        }
+        None => {
+            let mut options = AgibotOptions {
                 gripper_open: open,
                 gripper_closed: closed,
                 ..AgibotOptions::default()
             };
             if let Some(c) = cameras {
-                opts.cameras = c;
+                options.cameras = c;
             }
-            let keys: Vec<_> = agibot::find_episodes(&src)?
-                .into_iter()
-                .take(limit)
-                .collect();
-            if keys.is_empty() {
-                return Err(ConvertError::Options(format!(
-                    "{}: no AgiBot World episodes (proprio_stats/<task>/<episode>/proprio_stats.h5) found",
-                    src.display()
-                )));
-            }
-            let items = keys
-                .iter()
-                .map(|k| (k.to_string(), agibot::read_episode(&src, k, &opts)));
-            convert_episodes(items, embodiment, &tmp, &options, &|_| {})?
-        };
-        output
-            .commit()
-            .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
-        Ok(report)
-    };
-    let report = py.detach(run).map_err(|e| match e {
-        ConvertError::Raw(RawError::Missing { path, what }) => {
-            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
+            RawSource::Agibot { root: src, options }
         }
-        e => err(e),
-    })?;
+    };
+    let embodiment = &robot.inner;
+    let run = || convert_source(&source, limit, embodiment, &out, &options, &|_| {});
+    let report = py.detach(run).map_err(to_py)?;
     let d = PyDict::new(py);
     d.set_item("out", out.to_string_lossy().into_owned())?;
     d.set_item("episodes", report.episodes)?;

@@ -4,9 +4,10 @@
 //! the results as numpy arrays. Rendering and inverse kinematics run with the
 //! GIL released, on the embodiment crate's thread pool.
 
-use bridgev2w_data::raw::agibot::{self, AgibotOptions};
-use bridgev2w_data::raw::convert::{convert as convert_episodes, ConvertError, ConvertOptions};
-use bridgev2w_data::raw::droid::{self, DroidOptions};
+use bridgev2w_data::raw::agibot::AgibotOptions;
+use bridgev2w_data::raw::convert::{ConvertError, ConvertOptions};
+use bridgev2w_data::raw::droid::DroidOptions;
+use bridgev2w_data::raw::source::{convert_source, RawSource};
 use bridgev2w_data::raw::RawError;
 use bridgev2w_data::synth::{
     plan, write_dataset, SynthConfig, SynthError, Task, WriteDatasetError,

@@ -16,6 +16,7 @@ pub mod agibot;
 pub mod convert;
 pub mod droid;
 pub mod h5;
+pub mod source;
 
 use bridgev2w_embodiment::actions::gripper_to_joint;
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};

@@ -1,0 +1,97 @@
+//! A raw source folder to a training dataset in one call: find its episodes
+//! (DROID or AgiBot World layout), keep the first `limit`, refuse a source
+//! without any, convert them into a temporary folder next to `out` and rename
+//! it into place (nothing is left behind when the conversion fails). The
+//! `convert` command and the Python package's `bw.convert` both call
+//! [`convert_source`].
+
+use super::agibot::{self, AgibotOptions};
+use super::convert::{convert, ConvertError, ConvertOptions, ConvertReport};
+use super::droid::{self, DroidOptions};
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_io::output::OutputDir;
+use std::path::{Path, PathBuf};
+
+/// A raw source: its root folder, its layout and the layout's options.
+#[derive(Debug, Clone)]
+pub enum RawSource {
+    /// DROID raw episodes under `root` (directories with `trajectory.h5`).
+    Droid {
+        /// Searched for episodes.
+        root: PathBuf,
+        /// Cameras and calibration.
+        options: DroidOptions,
+    },
+    /// An AgiBot World root (`proprio_stats/<task>/<episode>/...`).
+    Agibot {
+        /// The dataset's root.
+        root: PathBuf,
+        /// Cameras and gripper readings.
+        options: AgibotOptions,
+    },
+}
+
+/// Progress of [`convert_source`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConvertProgress<'a> {
+    /// The episodes to convert were found (after the limit).
+    Found(usize),
+    /// One episode (its id) was converted or skipped.
+    Done(&'a str),
+}
+
+/// Converts the episodes of `source` (at most `limit`) into a LeRobot v3.0
+/// dataset at `out`, which must not exist; see the module documentation.
+pub fn convert_source(
+    source: &RawSource,
+    limit: Option<usize>,
+    embodiment: &Embodiment,
+    out: &Path,
+    options: &ConvertOptions,
+    progress: &dyn Fn(ConvertProgress),
+) -> Result<ConvertReport, ConvertError> {
+    let limit = limit.unwrap_or(usize::MAX);
+    let output = OutputDir::create(out, false).map_err(|e| ConvertError::Options(e.to_string()))?;
+    let tmp = output.path().to_path_buf();
+    let on_item = |id: &str| progress(ConvertProgress::Done(id));
+    let report = match source {
+        RawSource::Droid { root, options: o } => {
+            let dirs: Vec<PathBuf> = droid::find_episodes(root)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if dirs.is_empty() {
+                return Err(ConvertError::Options(format!(
+                    "{}: no DROID episodes (directories with trajectory.h5) found",
+                    root.display()
+                )));
+            }
+            progress(ConvertProgress::Found(dirs.len()));
+            let items = dirs
+                .iter()
+                .map(|d| (d.display().to_string(), droid::read_episode(d, o)));
+            convert(items, embodiment, &tmp, options, &on_item)?
+        }
+        RawSource::Agibot { root, options: o } => {
+            let keys: Vec<_> = agibot::find_episodes(root)?
+                .into_iter()
+                .take(limit)
+                .collect();
+            if keys.is_empty() {
+                return Err(ConvertError::Options(format!(
+                    "{}: no AgiBot World episodes (proprio_stats/<task>/<episode>/proprio_stats.h5) found",
+                    root.display()
+                )));
+            }
+            progress(ConvertProgress::Found(keys.len()));
+            let items = keys
+                .iter()
+                .map(|k| (k.to_string(), agibot::read_episode(root, k, o)));
+            convert(items, embodiment, &tmp, options, &on_item)?
+        }
+    };
+    output
+        .commit()
+        .map_err(|e| ConvertError::Options(e.to_string()))?;
+    Ok(report)
+}
