@@ -77,10 +77,7 @@ pub fn motion_weights(masks: &Tensor, latent: &[i64], weight: f64) -> Result<Ten
         ));
     }
     let (t, h, w) = (latent[1], latent[3], latent[4]);
-    let m = masks
-        .amax([1i64].as_slice(), true)
-        .gt(0.0)
-        .to_kind(Kind::Float); // [B, 1, T, H, W]
+    let m = bridgev2w_world_model::static_scene::robot_silhouettes(masks); // [B, 1, T, H, W]
     let m = m.maximum(&m.narrow(2, 0, 1)); // with the first frame's silhouette
     let (m, _) = m.adaptive_max_pool3d([t, h, w]); // [B, 1, t, h, w]
     let m = m.max_pool3d([1, 3, 3], [1, 1, 1], [0, 1, 1], [1, 1, 1], false);

@@ -12,6 +12,16 @@
 use crate::error::{Result, WorldModelError};
 use tch::{Kind, Tensor};
 
+/// The robot's silhouette per frame, `[B, 1, T, H, W]` (1 where any
+/// channel of the mask videos `[B, 3, T, H, W]` in {-1, 1} is > 0, else 0):
+/// the one definition the swept region and the training's motion weights use.
+pub fn robot_silhouettes(masks: &Tensor) -> Tensor {
+    masks
+        .amax([1i64].as_slice(), true)
+        .gt(0.0)
+        .to_kind(Kind::Float)
+}
+
 /// The swept region `[B, 1, T, H, W]` (1 inside, 0 outside) of mask videos
 /// `[B, 3, T, H, W]` in {-1, 1}: a pixel is inside at frame `t` when any
 /// channel of any frame `0..=t` is > 0 within `margin_px` pixels (a square
@@ -26,10 +36,7 @@ pub fn swept_region(masks: &Tensor, margin_px: u32) -> Result<Tensor> {
     }
     // A margin beyond the frame covers it all: clamp it to the frame's size.
     let m = i64::from(margin_px).min(size[3].max(size[4]));
-    let robot = masks
-        .amax([1i64].as_slice(), true)
-        .gt(0.0)
-        .to_kind(Kind::Float); // [B, 1, T, H, W]
+    let robot = robot_silhouettes(masks); // [B, 1, T, H, W]
     let (so_far, _) = robot.cummax(2); // the union over frames 0..=t
     Ok(so_far.max_pool3d(
         [1, 2 * m + 1, 2 * m + 1],
