@@ -82,17 +82,18 @@ impl BridgeV2W {
             mask_videos.push(m.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, T, H, W]
         }
         let mask_videos = Tensor::cat(&mask_videos, 0); // [B, 3, T, H, W]
-        let image_latents = self.batch_image_latents(first_frames, opts)?;
+        let first = first_frames
+            .iter()
+            .map(|f| image_to_tensor(f, Device::Cpu, Kind::Float)) // [1, 3, H, W]
+            .collect::<Result<Vec<_>>>()?;
+        let first = Tensor::cat(&first, 0); // [B, 3, H, W]
+        let image_latents = self.batch_image_latents(first_frames, &first, opts)?;
         let control = self.control_latents(&mask_videos, &image_latents)?;
         let latents = self.sample_with_progress(&image_latents, &control, opts, progress)?;
         let videos = self.decode_latents(&latents)?; // [B, 3, T, H, W]
         let videos = match opts.sample.keep_static_margin_px {
             Some(margin) => {
-                let first = first_frames
-                    .iter()
-                    .map(|f| image_to_tensor(f, Device::Cpu, Kind::Float)) // [1, 3, H, W]
-                    .collect::<Result<Vec<_>>>()?;
-                let first = Tensor::cat(&first, 0).to_device(videos.device()); // [B, 3, H, W]
+                let first = first.to_device(videos.device()); // [B, 3, H, W]
                 let masks = mask_videos.to_device(videos.device());
                 keep_static(&videos, &first, &masks, margin)?
             }
@@ -103,29 +104,26 @@ impl BridgeV2W {
             .collect()
     }
 
-    /// The image latents `[B, t, C, h, w]` of a batch's first frames, the
-    /// posterior sampled with the options' seed and batch noise. A frame
-    /// that every item shares is encoded once and its posterior expanded:
-    /// the same latents as encoding it `B` times.
+    /// The image latents `[B, t, C, h, w]` of a batch's first frames
+    /// (`images`: the same frames as a tensor `[B, 3, H, W]`), the posterior
+    /// sampled with the options' seed and batch noise. A frame that every
+    /// item shares is encoded once and its posterior expanded: the same
+    /// latents as encoding it `B` times.
     fn batch_image_latents(
         &self,
         first_frames: &[RgbFrame],
+        images: &Tensor,
         opts: &PredictOptions,
     ) -> Result<Tensor> {
         let b = first_frames.len();
         let post = match first_frames.split_first() {
             Some((first, rest)) if rest.iter().all(|f| f == first) => {
-                let x = image_to_tensor(first, Device::Cpu, Kind::Float)?; // [1, 3, H, W]
-                self.vae.encode(&x.unsqueeze(2))?.repeat_batch(b as i64)? // [B, C, 1, h, w]
+                // [1, 3, H, W] -> [1, 3, 1, H, W]
+                let x = images.narrow(0, 0, 1).unsqueeze(2);
+                self.vae.encode(&x)?.repeat_batch(b as i64)? // [B, C, 1, h, w]
             }
-            _ => {
-                let images = first_frames
-                    .iter()
-                    .map(|f| image_to_tensor(f, Device::Cpu, Kind::Float)) // [1, 3, H, W]
-                    .collect::<Result<Vec<_>>>()?;
-                // [B, 3, H, W] -> [B, 3, 1, H, W]
-                self.vae.encode(&Tensor::cat(&images, 0).unsqueeze(2))?
-            }
+            // [B, 3, H, W] -> [B, 3, 1, H, W]
+            _ => self.vae.encode(&images.unsqueeze(2))?,
         };
         let z = self.posterior_latents(&post, Some(opts.sample.seed), opts.sample.batch_noise)?;
         let (t, _, _) = self.latent_geometry();
