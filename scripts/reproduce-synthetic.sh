@@ -245,11 +245,10 @@ train() { # train NAME UPSTREAM...: trains unless OUT/NAME/final exists; resumes
 train vae-image
 train vae vae-image
 train prior vae
-evaluate() { # evaluate NAME [JSON_NAME SAMPLING...]: eval-run of OUT/NAME into OUT/eval-JSON_NAME.json, kept when its run and settings are unchanged
-    local name=$1 json=${2:-$1} fp
-    shift $(($# < 2 ? $# : 2))
+evaluate() { # evaluate NAME JSON_NAME [SAMPLING...]: eval-run of OUT/NAME with the sampling flags into OUT/eval-JSON_NAME.json, kept when its run and settings are unchanged
+    local name=$1 json=$2 fp
+    shift 2
     local sampling=("$@")
-    [[ $json == "$name" ]] && sampling=("${KEEP_ARGS[@]}")
     # "frames 1..": the scoring protocol (frame 0, the input, not scored
     # since 2026-11-25); "psnr per frame": the JSON's per-frame PSNR (the
     # figure's, since 2026-11-26); a change of protocol redoes the evaluations.
@@ -266,10 +265,10 @@ evaluate() { # evaluate NAME [JSON_NAME SAMPLING...]: eval-run of OUT/NAME into 
 # BridgeV2W is trained and scored before the ablation, so that a cut run
 # has the main result first.
 train bridgev2w prior
-evaluate bridgev2w
+evaluate bridgev2w bridgev2w "${KEEP_ARGS[@]}"
 [[ -n $KEEP_STATIC ]] && evaluate bridgev2w bridgev2w-generated
 train ablation-action-mlp prior
-evaluate ablation-action-mlp
+evaluate ablation-action-mlp ablation-action-mlp "${KEEP_ARGS[@]}"
 
 # The results' figures and videos go to the folder named after the results
 # file (docs/results/ for docs/results.md): eval-report writes figures/,
