@@ -62,7 +62,16 @@ impl Figure for ScatterFigure {
             return Err("no points to draw".into());
         }
         let e = |e: DrawingAreaErrorKind<_>| e.to_string();
-        let mut builder = ChartBuilder::on(root);
+        // The legend goes in a strip below the chart, so that it never hides
+        // a point: a row for the diagonal and one per set.
+        let strip = if text {
+            LEGEND_ROW_PX * (self.sets.len() as u32 + 1) + 8
+        } else {
+            0
+        };
+        let height = root.dim_in_pixel().1;
+        let (plot, legend) = root.split_vertically(height.saturating_sub(strip));
+        let mut builder = ChartBuilder::on(&plot);
         builder.margin(12);
         if text {
             builder
@@ -92,7 +101,7 @@ impl Figure for ScatterFigure {
         }
         mesh.draw().map_err(e)?;
         let grey = RGBColor(150, 150, 150);
-        let diagonal = chart
+        chart
             .draw_series(DashedLineSeries::new(
                 vec![(lo, lo), (hi, hi)],
                 5,
@@ -100,11 +109,6 @@ impl Figure for ScatterFigure {
                 grey.stroke_width(1),
             ))
             .map_err(e)?;
-        if text {
-            diagonal
-                .label("y = x")
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], grey));
-        }
         for set in &self.sets {
             let c = color(set.color);
             if let Some((a, b)) = least_squares(&set.points) {
@@ -115,7 +119,7 @@ impl Figure for ScatterFigure {
                     ))
                     .map_err(e)?;
             }
-            let anno = chart
+            chart
                 .draw_series(
                     set.points
                         .iter()
@@ -123,22 +127,34 @@ impl Figure for ScatterFigure {
                         .map(|&p| Circle::new(p, 5, c.filled())),
                 )
                 .map_err(e)?;
-            if text {
-                anno.label(set.label.as_str()).legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2))
-                });
-            }
         }
         if text {
-            chart
-                .configure_series_labels()
-                .label_font(text_style(11))
-                .background_style(WHITE.mix(0.85))
-                .border_style(RGBColor(200, 200, 200))
-                .position(SeriesLabelPosition::UpperLeft)
-                .draw()
-                .map_err(e)?;
+            let rows = std::iter::once(("y = x (dashed): perfect agreement", grey, 1)).chain(
+                self.sets
+                    .iter()
+                    .map(|s| (s.label.as_str(), color(s.color), 2)),
+            );
+            for (i, (label, c, width)) in rows.enumerate() {
+                let y = 4 + LEGEND_ROW_PX as i32 * i as i32 + LEGEND_ROW_PX as i32 / 2;
+                legend
+                    .draw(&PathElement::new(
+                        vec![(LEGEND_X_PX, y), (LEGEND_X_PX + 18, y)],
+                        c.stroke_width(width),
+                    ))
+                    .map_err(e)?;
+                legend
+                    .draw(&Text::new(
+                        label.to_string(),
+                        (LEGEND_X_PX + 26, y - 6),
+                        text_style(11),
+                    ))
+                    .map_err(e)?;
+            }
         }
         Ok(())
     }
 }
+
+/// The height of one legend row and the legend's left edge (pixels).
+const LEGEND_ROW_PX: u32 = 18;
+const LEGEND_X_PX: i32 = 72;

@@ -118,3 +118,46 @@ fn the_fitted_line_is_least_squares() {
     assert_eq!(least_squares(&[(0.5, 0.0), (0.5, 1.0)]), None);
     assert_eq!(least_squares(&[(0.5, 0.0)]), None);
 }
+
+#[test]
+fn the_scatter_legend_is_a_strip_below_the_chart() {
+    // A set's colour appears in the legend strip (its line), and a point in
+    // the chart's top-left corner, where the legend used to sit, is drawn.
+    if !matches!(text_font(), Ok(Some(_))) {
+        return; // no legend without a font (tests/plot_without_font.rs)
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("scatter.png");
+    let mut fig = scatter_figure();
+    fig.size = (320, 320);
+    fig.sets[0].points = vec![(0.0, 1.0), (1.0, 0.0)];
+    fig.sets.push(PointSet {
+        label: "trained (r = 0)".into(),
+        points: vec![(0.0, 0.5)],
+        color: 1,
+    });
+    write_png(&path, &fig).unwrap();
+    let (w, h, rgb) = crate::png::decode_rgb8(&std::fs::read(&path).unwrap()).unwrap();
+    let c = color(1);
+    let has = |ys: std::ops::Range<u32>, xs: std::ops::Range<u32>| {
+        ys.clone().any(|y| {
+            xs.clone().any(|x| {
+                let i = (y * w + x) as usize * 3;
+                rgb[i..i + 3] == [c.0, c.1, c.2]
+            })
+        })
+    };
+    let strip = 3 * 18 + 8;
+    assert!(
+        has(h - strip..h, 0..w),
+        "no legend line in the bottom strip"
+    );
+    let c0 = color(0);
+    let top_left = (0..h / 3).any(|y| {
+        (0..w / 3).any(|x| {
+            let i = (y * w + x) as usize * 3;
+            rgb[i..i + 3] == [c0.0, c0.1, c0.2]
+        })
+    });
+    assert!(top_left, "the point at (0, 1) is hidden");
+}
