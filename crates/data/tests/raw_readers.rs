@@ -449,7 +449,10 @@ fn read_convert_and_fail_clearly(pyav: bool) {
     assert_eq!(LeRobotDataset::open(&out).expect("open").episodes.len(), 2);
     // An existing output is kept and named.
     let err = convert_source(&source, None, &franka, &out, &whole, &|_| {}).expect_err("exists");
-    assert!(err.to_string().contains("already exists"), "{err}");
+    assert!(
+        err.to_string().starts_with("out: ") && err.to_string().contains("already exists"),
+        "{err}"
+    );
     assert_eq!(LeRobotDataset::open(&out).expect("kept").episodes.len(), 2);
     // A source without episodes is refused, naming it, and leaves nothing.
     let empty = dir.path().join("no_episodes");

@@ -51,7 +51,8 @@ pub fn convert_source(
     progress: &dyn Fn(ConvertProgress),
 ) -> Result<ConvertReport, ConvertError> {
     let limit = limit.unwrap_or(usize::MAX);
-    let output = OutputDir::create(out, false).map_err(|e| ConvertError::Options(e.to_string()))?;
+    let output =
+        OutputDir::create(out, false).map_err(|e| ConvertError::Options(format!("out: {e}")))?;
     let tmp = output.path().to_path_buf();
     let on_item = |id: &str| progress(ConvertProgress::Done(id));
     let report = match source {
@@ -92,6 +93,6 @@ pub fn convert_source(
     };
     output
         .commit()
-        .map_err(|e| ConvertError::Options(e.to_string()))?;
+        .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
     Ok(report)
 }
