@@ -22,7 +22,7 @@
 # Usage: scripts/reproduce-synthetic.sh [OUT_DIR]      (default runs/reproduce)
 # Budgets (environment, defaults sized for ~2.5 h on a 2-core CPU):
 #   VAE_IMAGE_STEPS VAE_STEPS PRIOR_STEPS FT_STEPS EVAL_VIDEOS EVAL_STEPS RESULTS
-#   EPISODES TASKS PRESET IMAGE_CONDITIONING
+#   EPISODES TASKS PRESET IMAGE_CONDITIONING MASK_CODING
 # Rerunning resumes: a finished stage is kept, a cut one resumes from its last
 # checkpoint. Each stage records a fingerprint of its inputs (its config and
 # the fingerprints of the stages it starts from) in OUT/NAME.inputs; a stage
@@ -78,6 +78,15 @@ INFLATE=false
 # copying the static scene is local; a measured deviation from CogVideoX) or
 # first_frame (CogVideoX-I2V: latent frame 0, the rest zero).
 IMAGE_CONDITIONING=${IMAGE_CONDITIONING:-every_frame}
+# How BridgeV2W's masks fill the mask branch's three channels: binary (the
+# paper's silhouette) or links (link-coded from the dataset's labels/, beyond
+# the paper). Only a non-binary coding is written into the config, so runs
+# made before this setting keep their fingerprints.
+MASK_CODING=${MASK_CODING:-binary}
+case $MASK_CODING in
+binary | links) ;;
+*) echo "error: MASK_CODING=$MASK_CODING: expected binary or links" >&2; exit 1 ;;
+esac
 
 BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
 if [[ -z ${BRIDGEV2W:-} ]]; then
@@ -164,10 +173,12 @@ checkpoint_every = 500
 EOF
 
 finetune_config() { # finetune_config OUT MASK_ACTION
+    local coding=""
+    [[ $2 == true && $MASK_CODING != binary ]] && coding="mask_coding = \"$MASK_CODING\""$'\n'
     cat <<EOF
 [model]
 backbone = "$OUT/prior/final/backbone"
-lora_rank = 64
+${coding}lora_rank = 64
 lora_alpha = 64
 controlnet_layers = 2
 action_hidden = 128
@@ -204,6 +215,13 @@ fresh() { # fresh NAME FP: moves OUT/NAME aside when it was made from other inpu
 
 SYNTH_ARGS=(--episodes-per-split "$EPISODES" --frames 17 --tasks "$TASKS")
 fresh synth "$(fingerprint "synth ${SYNTH_ARGS[*]}")"
+if [[ -f $OUT/synth/meta/info.json && $MASK_CODING == links && ! -d $OUT/synth/labels ]]; then
+    # Written before synth stored link labels: the same arguments give the
+    # same episodes, now with labels/ (its fingerprint, and every stage
+    # trained on it, stay valid).
+    echo "== synth: no link labels (written by an older bridgev2w); writing it again"
+    rm -rf "$OUT/synth"
+fi
 if [[ ! -f $OUT/synth/meta/info.json ]]; then
     rm -rf "$OUT/synth"
     stage synth "$BIN" synth --out "$OUT/synth" "${SYNTH_ARGS[@]}"

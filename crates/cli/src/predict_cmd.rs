@@ -150,18 +150,27 @@ fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<Mask
             path.display()
         );
     }
-    // Binary masks only: labels (uint16) or soft masks (float) would be
-    // read as "non-zero = robot" without a word.
-    if arr.descr != "|u1" && arr.descr != "|b1" {
-        bail!(
-            "--masks {}: dtype {}, expected uint8 or bool binary masks (0/1 or 0/255) as `bridgev2w masks` writes in masks.npy",
+    // Binary masks (uint8 or bool, 0/1 or 0/255: masks.npy of `bridgev2w
+    // masks`; a grey value is refused) or link labels (uint16 up to 255: its
+    // labels.npy, which a `links` model needs and a binary one reads as the
+    // silhouette). Soft (float) masks would be read as "non-zero = robot"
+    // without a word: refused.
+    let data = match arr.descr.as_str() {
+        "|u1" | "|b1" => arr
+            .binary_mask()
+            .map_err(|m| anyhow::anyhow!("--masks {}: {m}", path.display()))?,
+        "<u2" => match arr.data.iter().find(|&&v| v > 255.0) {
+            Some(v) => bail!(
+                "--masks {}: link label {v}, expected labels up to 255",
+                path.display()
+            ),
+            None => arr.data.iter().map(|&v| v as u8).collect(),
+        },
+        other => bail!(
+            "--masks {}: dtype {other}, expected uint8 or bool binary masks (0/1 or 0/255, masks.npy of `bridgev2w masks`) or uint16 link labels (its labels.npy)",
             path.display(),
-            arr.descr
-        );
-    }
-    let data = arr
-        .binary_mask()
-        .map_err(|m| anyhow::anyhow!("--masks {}: {m}", path.display()))?;
+        ),
+    };
     Ok(MaskVideo {
         frames,
         height: h,

@@ -88,7 +88,16 @@ fn predict_writes_frames_and_video_deterministically() {
         err.contains("[9, 32, 48]") && err.contains("--width 96 --height 64"),
         "{err}"
     );
-    // Soft (float) or label (uint16) masks are refused, not thresholded.
+    // Soft (float) masks are refused, not thresholded; link labels (uint16,
+    // labels.npy) are the silhouette for this binary model: the same video.
+    let labels: Vec<u16> = masks.iter().map(|&v| u16::from(v) * 7).collect();
+    write_npy(&d.join("labels.npy"), &[9, 64, 96], &labels).expect("npy");
+    let mut a = args("l");
+    a[6] = s(&d.join("labels.npy")).into();
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let vl = read_npy(&d.join("l/video.npy")).expect("labels video");
+    assert_eq!(vl.data, va.data, "labels predict what the binary masks do");
     let soft: Vec<f32> = masks.iter().map(|&v| f32::from(v) * 0.5).collect();
     write_npy(&d.join("soft.npy"), &[9, 64, 96], &soft).expect("npy");
     let mut a = args("e");

@@ -24,7 +24,7 @@ log="$(dirname "$0")/calls.log"
 case $1 in
 synth)
     out=$3
-    mkdir -p "$out/meta" && touch "$out/meta/info.json"
+    mkdir -p "$out/meta" "$out/labels" && touch "$out/meta/info.json"
     echo "synth" >>"$log" ;;
 train)
     out=$(sed -n 's/^out = "\(.*\)"$/\1/p' "$2")
@@ -216,6 +216,34 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         prior.contains("\ntransformer = \"small2x-wide\"\nlora_rank"),
         "{prior}"
     );
+    // Link-coded masks: only BridgeV2W is fine-tuned again (the ablation
+    // has no masks), with the coding in its config; the binary config has no
+    // such line (the fingerprints of earlier runs).
+    let wide = [("PRIOR_STEPS", "8"), ("PRESET", "small2x-wide")];
+    let bw = || fs::read_to_string(r.join("runs/r/configs/bridgev2w.toml")).expect("config");
+    assert!(!bw().contains("mask_coding"), "{}", bw());
+    let links = run(r, &[wide[0], wide[1], ("MASK_CODING", "links")]);
+    assert_eq!(trained(&links), ["bridgev2w"], "{links:?}");
+    assert!(bw().contains("\nmask_coding = \"links\"\n"), "{}", bw());
+    let ablation =
+        fs::read_to_string(r.join("runs/r/configs/ablation-action-mlp.toml")).expect("ablation");
+    assert!(!ablation.contains("mask_coding"), "{ablation}");
+    // A dataset written before synth stored link labels is written again
+    // (same arguments, same episodes): nothing trained on it is redone.
+    fs::remove_dir_all(r.join("runs/r/synth/labels")).expect("rm labels");
+    let rewritten = run(r, &[wide[0], wide[1], ("MASK_CODING", "links")]);
+    assert_eq!(rewritten[0], "synth", "{rewritten:?}");
+    assert!(trained(&rewritten).is_empty(), "{rewritten:?}");
+    // An unknown coding is refused before anything runs.
+    let o = Command::new("bash")
+        .arg(r.join("scripts/reproduce-synthetic.sh"))
+        .arg("runs/r")
+        .env("BRIDGEV2W", r.join("bridgev2w"))
+        .env("MASK_CODING", "depth")
+        .output()
+        .expect("run bash");
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("MASK_CODING=depth"));
     // Another dataset: everything is redone.
     let fourth = run(r, &[("PRIOR_STEPS", "7"), ("EPISODES", "9,1,1,1")]);
     assert_eq!(fourth[0], "synth");

@@ -167,6 +167,56 @@ pub fn calc_masks(
     })
 }
 
+/// The dataset's link labels of `episode` (`labels/episode_XXXXXX.npy`,
+/// uint8 `[T, H, W]`, 0 = background, else the link's label, as `bridgev2w
+/// synth` writes them), when it has them. They must have `masks`' shape and
+/// cover exactly its robot pixels; anything else is an error naming the file.
+pub fn read_link_labels(
+    ds: &LeRobotDataset,
+    episode: i64,
+    masks: &EpisodeMasks,
+) -> Result<Option<Vec<u8>>, DatasetError> {
+    let path = ds.root.join(format!("labels/episode_{episode:06}.npy"));
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let a = read_npy(&path).map_err(|e| field_err(&path, episode, "labels", e.to_string()))?;
+    let shape = [masks.frames, masks.height, masks.width];
+    if a.descr != "|u1" || a.shape != shape {
+        return Err(field_err(
+            &path,
+            episode,
+            "labels",
+            format!(
+                "{} {:?}: expected uint8 link labels of the masks' shape {shape:?}",
+                a.descr, a.shape
+            ),
+        ));
+    }
+    let labels: Vec<u8> = a.data.iter().map(|&v| v as u8).collect();
+    if let Some(i) = labels
+        .iter()
+        .zip(&masks.data)
+        .position(|(&l, &m)| (l != 0) != (m != 0))
+    {
+        let px = masks.height * masks.width;
+        return Err(field_err(
+            &path,
+            episode,
+            "labels",
+            format!(
+                "frame {} pixel ({}, {}) (x, y): label {} but mask {}: the labels must cover exactly the masks' robot pixels",
+                i / px,
+                i % masks.width,
+                (i % px) / masks.width,
+                labels[i],
+                masks.data[i]
+            ),
+        ));
+    }
+    Ok(Some(labels))
+}
+
 /// The `seg` masks of `episode`: the PNG frames of `dir/episode_XXXXXX/`
 /// (sorted by name, any bit depth or colour type; non-zero = robot), which
 /// must number `frames` and share one size.

@@ -343,6 +343,51 @@ fn truncated_mp4_and_unsupported_codec_name_the_file() {
 }
 
 #[test]
+fn link_labels_are_stored_next_to_the_masks_and_must_match_them() {
+    use bridgev2w_data::clip_masks::{read_link_labels, EpisodeMasks};
+    use bridgev2w_io::npy::write_npy;
+    let dir = tempfile::tempdir().unwrap();
+    let out = small_dataset(dir.path());
+    let ds = LeRobotDataset::open(&out).unwrap();
+    let (shape, data) = ds.read_masks(0).unwrap();
+    let masks = EpisodeMasks {
+        frames: shape[0],
+        height: shape[1],
+        width: shape[2],
+        data,
+    };
+    let labels = read_link_labels(&ds, 0, &masks)
+        .unwrap()
+        .expect("synth writes labels");
+    assert_eq!(labels.len(), masks.data.len());
+    assert!(labels
+        .iter()
+        .zip(&masks.data)
+        .all(|(&l, &m)| (l != 0) == (m != 0)));
+    assert!(
+        labels.iter().any(|&l| l > 1),
+        "link labels, not a binary mask"
+    );
+    // A label where the mask has background is refused, naming the pixel.
+    let path = out.join("labels/episode_000000.npy");
+    let i = masks.data.iter().position(|&m| m == 0).unwrap();
+    let mut bad = labels.clone();
+    bad[i] = 5;
+    write_npy(&path, &shape, &bad).unwrap();
+    let msg = read_link_labels(&ds, 0, &masks).unwrap_err().to_string();
+    assert!(
+        msg.contains("episode_000000.npy") && msg.contains("label 5 but mask 0"),
+        "{msg}"
+    );
+    // Of another shape: refused; absent: none.
+    write_npy(&path, &[1, shape[1], shape[2]], &bad[..shape[1] * shape[2]]).unwrap();
+    let msg = read_link_labels(&ds, 0, &masks).unwrap_err().to_string();
+    assert!(msg.contains("the masks' shape"), "{msg}");
+    std::fs::remove_file(&path).unwrap();
+    assert_eq!(read_link_labels(&ds, 0, &masks).unwrap(), None);
+}
+
+#[test]
 fn stored_masks_with_an_empty_dimension_or_grey_values_are_refused() {
     use bridgev2w_io::npy::write_npy;
     let dir = tempfile::tempdir().unwrap();

@@ -137,10 +137,14 @@ fn gt_masks_equal_the_masks_renderer() {
         let frames = render_trajectory(&w.embodiment.robot, &e.camera, &e.joints, &|| {});
         assert_eq!(frames.len(), e.masks.len());
         let mut covered = 0;
-        for (f, m) in frames.iter().zip(&e.masks) {
+        for ((f, m), l) in frames.iter().zip(&e.masks).zip(&e.labels) {
             assert_eq!(&f.mask(), m);
+            let want: Vec<u8> = f.labels.iter().map(|&v| v as u8).collect();
+            assert_eq!(&want, l, "{robot}: the link labels are the renderer's");
             covered += f.coverage();
         }
+        let links: std::collections::BTreeSet<u8> = e.labels.iter().flatten().copied().collect();
+        assert!(links.len() > 3, "{robot}: several links in view: {links:?}");
         assert!(covered > 0, "{robot}: the robot is never visible");
     }
 }

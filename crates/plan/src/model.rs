@@ -294,7 +294,9 @@ impl<M: ?Sized> MaskConditioned<'_, M> {
             self.camera.intrinsics.height as usize,
             self.camera.intrinsics.width as usize,
         );
-        let data: Vec<u8> = labels.iter().flatten().map(|&l| u8::from(l != 0)).collect();
+        // Link labels (at most 255): the binary coding reads them as the
+        // silhouette, `links` as they are.
+        let data: Vec<u8> = labels.iter().flatten().map(|&l| l.min(255) as u8).collect();
         let last = all.pop().unwrap_or_default();
         Ok((
             MaskVideo {

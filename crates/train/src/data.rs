@@ -7,9 +7,10 @@
 //! resumed run sees the same data.
 
 use crate::{Result, TrainError};
-use bridgev2w_data::clip_masks::{calc_masks, seg_masks, EpisodeMasks};
+use bridgev2w_data::clip_masks::{calc_masks, read_link_labels, seg_masks, EpisodeMasks};
 use bridgev2w_data::lerobot::LeRobotDataset;
 use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_world_model::mask_coding::MaskCoding;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -65,8 +66,12 @@ pub struct Episode {
     pub width: usize,
     /// RGB8 `[T, H, W, 3]`.
     pub rgb: Vec<u8>,
-    /// Masks `[T, H, W]` 0/1, when the dataset has them.
+    /// Masks `[T, H, W]`, when the dataset has them: 0 background, else
+    /// robot; the link's label where the dataset has link labels
+    /// (`labels/episode_*.npy`, see [`Episode::link_labels`]), else 1.
     pub masks: Option<Vec<u8>>,
+    /// Whether `masks` holds link labels.
+    pub link_labels: bool,
     /// Actions `[T, A]`.
     pub actions: Vec<f32>,
     /// Index of the source (in [`ClipDataset::sources`]) it comes from.
@@ -80,7 +85,8 @@ pub struct Batch {
     pub first_frames: Tensor,
     /// Videos `[B, 3, T, H, W]` in [-1, 1].
     pub video: Tensor,
-    /// Mask videos `[B, 3, T, H, W]` in {-1, 1} (zeros when the dataset has no masks).
+    /// Mask videos `[B, 3, T, H, W]` in [-1, 1], coded by the dataset's
+    /// [`ClipDataset::mask_coding`] (zeros when the dataset has no masks).
     pub masks: Tensor,
     /// Actions `[B, T, A]`.
     pub actions: Tensor,
@@ -105,6 +111,8 @@ pub struct ClipDataset {
     pub clips_per_video: usize,
     /// `(name, weight)` per source.
     pub sources: Vec<(String, f64)>,
+    /// How batches code the masks (the model's `mask_coding`; binary when opened).
+    pub mask_coding: MaskCoding,
 }
 
 /// A well-mixed seed per (seed, epoch/step, purpose).
@@ -228,7 +236,24 @@ impl ClipDataset {
             width,
             clips_per_video,
             sources,
+            mask_coding: MaskCoding::Binary,
         })
+    }
+
+    /// Sets the batches' mask coding; [`MaskCoding::Links`] needs link labels
+    /// in every episode (an error names the first dataset without them).
+    pub fn set_mask_coding(&mut self, coding: MaskCoding) -> Result<()> {
+        if coding == MaskCoding::Links {
+            if let Some(e) = self.episodes.iter().find(|e| !e.link_labels) {
+                let (name, _) = &self.sources[e.source];
+                return Err(TrainError::input(
+                    format!("dataset {name} episode {}", e.index),
+                    format!("no link labels (labels/episode_{:06}.npy, which `bridgev2w synth` writes): model.mask_coding = \"links\" needs them; use \"binary\"", e.index),
+                ));
+            }
+        }
+        self.mask_coding = coding;
+        Ok(())
     }
 
     /// The episodes of one source and their action size.
@@ -318,6 +343,16 @@ impl ClipDataset {
                 }
                 rgb.extend_from_slice(f);
             }
+            // The dataset's link labels, where it has them, in place of 0/1.
+            let (masks, link_labels) = match (masks, &spec.masks) {
+                (Some(m), MaskKind::Calc { .. }) => {
+                    match read_link_labels(&ds, idx, &m).map_err(derr)? {
+                        Some(data) => (Some(EpisodeMasks { data, ..m }), true),
+                        None => (Some(m), false),
+                    }
+                }
+                (m, _) => (m, false),
+            };
             let masks = match masks {
                 Some(m) => {
                     if m.frames != t {
@@ -359,6 +394,7 @@ impl ClipDataset {
                 width: w,
                 rgb,
                 masks,
+                link_labels,
                 actions: rows.iter().flat_map(|r| r.action.iter().copied()).collect(),
                 source,
             });
@@ -529,10 +565,10 @@ impl ClipDataset {
                     } else {
                         m
                     };
-                    // robot = 1, background = -1, on 3 channels: [3, T, H, W]
-                    (m.gt(0.5).to_kind(Kind::Float) * 2.0 - 1.0)
+                    // labels [T, 1, H, W] -> coded channels [T, 3, H, W] -> [3, T, H, W]
+                    self.mask_coding
+                        .code(&m, 1)
                         .permute([1, 0, 2, 3])
-                        .expand([3, tf, h, w], false)
                         .contiguous()
                 }
                 None => Tensor::zeros([3, tf, h, w], (Kind::Float, Device::Cpu)),
@@ -635,6 +671,7 @@ mod tests {
                 width: w,
                 rgb: (0..t * h * w * 3).map(|k| (k % 251) as u8).collect(),
                 masks: Some((0..t * h * w).map(|k| (k % 2) as u8).collect()),
+                link_labels: false,
                 actions: (0..t * 7).map(|k| k as f32).collect(),
                 source: 0,
             })
@@ -647,6 +684,7 @@ mod tests {
             width: 12,
             clips_per_video: 1,
             sources: vec![("fake".into(), 1.0)],
+            mask_coding: MaskCoding::Binary,
         }
     }
 
@@ -669,6 +707,47 @@ mod tests {
         assert_eq!(a.first_frames.size(), [2, 3, 8, 12]);
         let mx = a.masks.abs().min().double_value(&[]);
         assert_eq!(mx, 1.0); // masks are exactly +-1
+    }
+
+    #[test]
+    fn link_coded_batches_need_labels_and_code_each_link() {
+        let mut d = fake(2);
+        let err = d
+            .set_mask_coding(MaskCoding::Links)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            err.contains("episode 0") && err.contains("labels/episode_000000.npy"),
+            "{err}"
+        );
+        for e in &mut d.episodes {
+            // labels 0 (background), 3, 4 in turn
+            e.masks = e.masks.take().map(|m| {
+                m.iter()
+                    .enumerate()
+                    .map(|(k, &v)| if v == 0 { 0 } else { 3 + (k / 2 % 2) as u8 })
+                    .collect()
+            });
+            e.link_labels = true;
+        }
+        d.set_mask_coding(MaskCoding::Links).expect("labelled");
+        let b = d.clips(&[(0, 0)], Device::Cpu).expect("batch"); // [1, 3, 5, 8, 12]
+        assert_eq!(b.masks.size(), [1, 3, 5, 8, 12]);
+        let at = |c: i64, y: i64, x: i64| b.masks.double_value(&[0, c, 0, y, x]) as f32;
+        // Source pixel (0, 0) is background, (0, 1) label 3, (0, 3) label 4,
+        // each 2x2 pixels after the resize to 8x12.
+        assert_eq!([at(0, 0, 0), at(1, 0, 0), at(2, 0, 0)], [-1.0, -1.0, -1.0]);
+        assert_eq!([at(0, 0, 2), at(2, 0, 2)], [1.0, 1.0]);
+        assert!((at(1, 0, 2) - (-1.0 + 6.0 / 15.0)).abs() < 1e-6);
+        assert_eq!([at(0, 0, 6), at(2, 0, 6)], [1.0, -1.0]);
+        assert!((at(1, 0, 6) - (-1.0 + 8.0 / 15.0)).abs() < 1e-6);
+        // The binary coding of the same labels is the silhouette on 3 channels.
+        d.set_mask_coding(MaskCoding::Binary).expect("binary");
+        let b = d.clips(&[(0, 0)], Device::Cpu).expect("batch");
+        for c in 0..3 {
+            assert_eq!(b.masks.double_value(&[0, c, 0, 0, 6]), 1.0);
+        }
     }
 
     #[test]

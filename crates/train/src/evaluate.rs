@@ -141,7 +141,8 @@ pub fn color_segmenter(data: &ClipDataset) -> Result<Option<ColorSegmenter>> {
     Ok((!frames.is_empty()).then_some(seg))
 }
 
-/// `[1, 3, T, H, W]` masks in {-1, 1} to per-frame 0/1 masks.
+/// `[1, 3, T, H, W]` coded masks to per-frame 0/1 masks (channel 0 is the
+/// silhouette in every [`bridgev2w_world_model::mask_coding::MaskCoding`]).
 pub(crate) fn mask_frames(masks: &Tensor) -> Result<Vec<Vec<u8>>> {
     // [1, 3, T, H, W] -> [T, H, W] (channel 0: robot)
     let m = masks
@@ -185,7 +186,9 @@ pub(crate) fn split_data(trainer: &Trainer, split: &str) -> Result<ClipDataset> 
         .ok_or_else(|| TrainError::input("data", "no dataset"))?;
     spec.split = split.to_string();
     let d = &trainer.data;
-    ClipDataset::open_sources(&[spec], d.clip_frames, d.height, d.width, 1)
+    let mut split = ClipDataset::open_sources(&[spec], d.clip_frames, d.height, d.width, 1)?;
+    split.set_mask_coding(d.mask_coding)?;
+    Ok(split)
 }
 
 /// Scores `trainer`'s model (as loaded or resumed) on `split` of the run's

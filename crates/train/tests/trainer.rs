@@ -1091,3 +1091,36 @@ fn data_parallel_shards_see_the_global_batch_draws() {
         );
     }
 }
+
+#[test]
+fn link_coded_masks_train_from_the_datasets_labels_and_need_them() {
+    use bridgev2w_world_model::bridge::MaskCoding;
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(&tmp.path().join("run"));
+    c.model.mask_coding = MaskCoding::Links;
+    let t = Trainer::new(c.clone()).unwrap();
+    assert_eq!(t.model.config().mask_coding, MaskCoding::Links);
+    let batch = t.batch(0).unwrap();
+    // Channel 0 is the silhouette (+-1); channel 1 codes the link, so robot
+    // pixels take values strictly between -1 and 1 as well.
+    let silhouette = batch.masks.select(1, 0);
+    assert_eq!(silhouette.abs().min().double_value(&[]), 1.0);
+    let ramp = batch.masks.select(1, 1);
+    let inside = ramp.gt(-0.99).logical_and(&ramp.lt(0.99));
+    assert!(inside.any().int64_value(&[]) == 1, "no link-coded pixel");
+    // A dataset without labels/ is refused by name.
+    let copy = tmp.path().join("nolabels");
+    copy_dir(dataset(), &copy);
+    std::fs::remove_dir_all(copy.join("labels")).unwrap();
+    c.data.dataset = copy;
+    c.train.out = tmp.path().join("run2");
+    let e = Trainer::new(c)
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+    assert!(
+        e.contains("labels/episode_") && e.contains("mask_coding"),
+        "{e}"
+    );
+}

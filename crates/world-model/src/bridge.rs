@@ -47,9 +47,13 @@ pub struct BridgeV2WConfig {
     pub lora: Option<LoraConfig>,
     /// Where the image latent enters the conditioning channels.
     pub image_conditioning: ImageConditioning,
+    /// How the masks fill the mask branch's three channels (weights files
+    /// from before this setting read as the paper's binary masks).
+    pub mask_coding: MaskCoding,
 }
 
 pub use crate::conditioning::ImageConditioning;
+pub use crate::mask_coding::MaskCoding;
 
 impl Default for BridgeV2WConfig {
     fn default() -> Self {
@@ -67,6 +71,7 @@ impl BridgeV2WConfig {
             controlnet: ControlNetConfig::default(),
             lora: Some(LoraConfig::paper()),
             image_conditioning: ImageConditioning::FirstFrame,
+            mask_coding: MaskCoding::Binary,
         }
     }
 
@@ -83,6 +88,7 @@ impl BridgeV2WConfig {
                 alpha: 4.0,
             }),
             image_conditioning: ImageConditioning::FirstFrame,
+            mask_coding: MaskCoding::Binary,
         }
     }
 

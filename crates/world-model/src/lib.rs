@@ -17,6 +17,7 @@ pub mod error;
 pub mod hub;
 pub mod lora;
 pub mod lora_export;
+pub mod mask_coding;
 pub mod named;
 pub mod nets;
 pub mod parity;

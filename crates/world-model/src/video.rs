@@ -4,6 +4,8 @@
 //! conversions are the free functions [`validate_image`] and [`image_to_tensor`].
 
 use crate::error::{Result, WorldModelError};
+use crate::mask_coding::labels_tensor;
+pub use crate::mask_coding::MaskCoding;
 use bridgev2w_io::frame::RgbFrame;
 use tch::{Device, Kind, Tensor};
 
@@ -20,7 +22,9 @@ pub struct Video {
     pub data: Vec<f32>,
 }
 
-/// A binary embodiment-mask sequence, `[T, H, W]`, values 0 or 1.
+/// An embodiment-mask sequence, `[T, H, W]`: 0 = background, else robot
+/// (binary masks 1; link-labelled ones the link's label, for
+/// [`MaskCoding::Links`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MaskVideo {
     /// Frames.
@@ -85,21 +89,13 @@ impl MaskVideo {
         )
     }
 
-    /// The paper's mask conditioning video: `[1, 3, T, H, W]`, robot = 1, background = -1.
-    pub fn to_tensor(&self, device: Device, kind: Kind) -> Result<Tensor> {
+    /// The mask conditioning video `[1, 3, T, H, W]` in `coding`'s channels
+    /// (the paper's, [`MaskCoding::Binary`]: robot = 1, background = -1).
+    pub fn to_tensor(&self, coding: MaskCoding, device: Device, kind: Kind) -> Result<Tensor> {
         self.validate()?;
         let (t, h, w) = (self.frames as i64, self.height as i64, self.width as i64);
-        let binary: Vec<f32> = self
-            .data
-            .iter()
-            .map(|&m| if m != 0 { 1.0 } else { -1.0 })
-            .collect();
-        Ok(Tensor::from_slice(&binary)
-            .reshape([1, 1, t, h, w]) // [1, 1, T, H, W]
-            .expand([1, 3, t, h, w], false) // [1, 3, T, H, W]
-            .contiguous()
-            .to_device(device)
-            .to_kind(kind))
+        let labels = labels_tensor(&self.data, t, h, w); // [1, 1, T, H, W]
+        Ok(coding.code(&labels, 1).to_device(device).to_kind(kind)) // [1, 3, T, H, W]
     }
 }
 
@@ -208,7 +204,9 @@ mod tests {
             width: 2,
             data: vec![0, 1],
         };
-        let t = m.to_tensor(Device::Cpu, Kind::Float).unwrap();
+        let t = m
+            .to_tensor(MaskCoding::Binary, Device::Cpu, Kind::Float)
+            .unwrap();
         assert_eq!(t.size(), [1, 3, 1, 1, 2]);
         assert_eq!(
             Vec::<f32>::try_from(t.flatten(0, -1)).unwrap(),

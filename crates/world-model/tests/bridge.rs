@@ -7,7 +7,7 @@
 mod common;
 
 use bridgev2w_io::frame::RgbFrame;
-use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig, ImageConditioning};
+use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig, ImageConditioning, MaskCoding};
 use bridgev2w_world_model::controlnet::ControlNetConfig;
 use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
@@ -739,4 +739,40 @@ fn image_conditioning_pads_or_repeats_and_travels_with_the_backbone() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("first_frame, every_frame"), "{e}");
+}
+
+#[test]
+fn link_coded_masks_travel_with_the_weights_and_refuse_binary_masks() {
+    let links = BridgeV2WConfig {
+        mask_coding: MaskCoding::Links,
+        ..BridgeV2WConfig::tiny()
+    };
+    let m = tiny(links, 31);
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("links.safetensors");
+    m.save_weights(&weights).unwrap();
+    let read = BridgeV2W::weights_config(&weights)
+        .unwrap()
+        .expect("config");
+    assert_eq!(read.mask_coding, MaskCoding::Links);
+    // Binary masks are refused by name; labels (two links) predict.
+    let binary = masks(0);
+    let e = m
+        .predict(&image(1), &binary, &opts(1, 1.0))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("mask_coding") && e.contains("labels.npy"), "{e}");
+    let mut labelled = binary.clone();
+    for (i, v) in labelled.data.iter_mut().enumerate() {
+        if *v != 0 {
+            *v = 2 + (i % 96 >= 30) as u8;
+        }
+    }
+    let a = m.predict(&image(1), &labelled, &opts(1, 1.0)).unwrap();
+    assert_eq!(a.frames, 9);
+    // The binary model reads the same labels as their silhouette.
+    let b = tiny(BridgeV2WConfig::tiny(), 31);
+    let from_labels = b.predict(&image(1), &labelled, &opts(1, 1.0)).unwrap();
+    let from_masks = b.predict(&image(1), &binary, &opts(1, 1.0)).unwrap();
+    assert_eq!(from_labels, from_masks);
 }

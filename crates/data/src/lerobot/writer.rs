@@ -97,6 +97,9 @@ pub struct WriterEpisode<'a> {
     pub rgb: &'a [Vec<u8>],
     /// Masks `[T, H, W]` (0/1), written to `masks/episode_XXXXXX.npy`.
     pub masks: Option<&'a [Vec<u8>]>,
+    /// Link labels `[T, H, W]` (0 = background, else the link's label; robot
+    /// pixels exactly the masks'), written to `labels/episode_XXXXXX.npy`.
+    pub labels: Option<&'a [Vec<u8>]>,
     /// Camera calibration (synthetic extra).
     pub camera: Option<&'a Camera>,
 }
@@ -169,6 +172,40 @@ impl LeRobotV3Writer {
         })
     }
 
+    /// Writes per-frame `[H, W]` maps (masks or labels) as
+    /// `FIELD/episode_XXXXXX.npy`, uint8 `[T, H, W]`.
+    fn write_frames_npy(
+        &self,
+        field: &str,
+        index: i64,
+        frames: &[Vec<u8>],
+    ) -> Result<(), DatasetError> {
+        let px = self.width * self.height;
+        if let Some((f, m)) = frames.iter().enumerate().find(|(_, m)| m.len() != px) {
+            return Err(DatasetError::Field {
+                path: self.root.clone(),
+                episode: index,
+                field: field.into(),
+                message: format!(
+                    "frame {f} has {} values, the video {}x{} (WxH) has {px} pixels",
+                    m.len(),
+                    self.width,
+                    self.height
+                ),
+            });
+        }
+        let path = self.root.join(format!("{field}/episode_{index:06}.npy"));
+        if let Some(d) = path.parent() {
+            std::fs::create_dir_all(d).map_err(io_err(d))?;
+        }
+        write_npy(
+            &path,
+            &[frames.len(), self.height, self.width],
+            &frames.concat(),
+        )
+        .map_err(|e| meta_err(&path, e.to_string()))
+    }
+
     /// Appends one episode; returns its index.
     pub fn add_episode(&mut self, ep: WriterEpisode<'_>) -> Result<i64, DatasetError> {
         let index = self.episodes.len() as i64;
@@ -217,22 +254,10 @@ impl LeRobotV3Writer {
             });
         }
         if let Some(masks) = ep.masks {
-            let mut flat = Vec::with_capacity(t * self.width * self.height);
-            for m in masks {
-                flat.extend_from_slice(m);
-            }
-            let path = self.root.join(format!("masks/episode_{index:06}.npy"));
-            if let Some(d) = path.parent() {
-                std::fs::create_dir_all(d).map_err(io_err(d))?;
-            }
-            if flat.len() != masks.len() * self.width * self.height {
-                return Err(bad(
-                    "masks",
-                    "mask frames do not match the video size".into(),
-                ));
-            }
-            write_npy(&path, &[masks.len(), self.height, self.width], &flat)
-                .map_err(|e| meta_err(&path, e.to_string()))?;
+            self.write_frames_npy("masks", index, masks)?;
+        }
+        if let Some(labels) = ep.labels {
+            self.write_frames_npy("labels", index, labels)?;
         }
         if let Some(cam) = ep.camera {
             let path = self

@@ -297,6 +297,7 @@ pub fn convert(
                     actions: actions.clone(),
                     rgb: &clip.rgb,
                     masks: Some(&clip.masks),
+                    labels: None,
                     camera: view.is_static().then_some(&clip.cameras[0]),
                 })?;
                 report.views_written += 1;

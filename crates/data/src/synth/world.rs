@@ -53,6 +53,9 @@ pub struct Episode {
     pub rgb: Vec<Vec<u8>>,
     /// Per frame: embodiment mask (0/1), `height * width`.
     pub masks: Vec<Vec<u8>>,
+    /// Per frame: link labels (0 = background, else the link's label,
+    /// `bridgev2w_embodiment::masks::label_of_link`, at most 255), `height * width`.
+    pub labels: Vec<Vec<u8>>,
     /// Per frame: end-effector actions, 7 per arm.
     pub actions: Vec<Vec<f64>>,
     /// Per frame: joint positions (URDF actuated order).
@@ -230,6 +233,10 @@ impl World {
             .iter()
             .map(|l| l.iter().map(|&v| u8::from(v != 0)).collect())
             .collect();
+        let labels = labels
+            .iter()
+            .map(|l| l.iter().map(|&v| v.min(255) as u8).collect())
+            .collect();
         let meshes: Vec<TriMesh> = meta.objects.iter().map(|o| o.shape.mesh()).collect();
         let _ = ee;
         let rgb = joints
@@ -242,6 +249,7 @@ impl World {
             camera,
             rgb,
             masks,
+            labels,
             actions,
             joints,
             object_poses,

@@ -116,6 +116,7 @@ pub fn write_dataset(
                 actions: f32s(&e.actions),
                 rgb: &e.rgb,
                 masks: Some(&e.masks),
+                labels: Some(&e.labels),
                 camera: Some(&e.camera),
             })?;
             *summary

@@ -14,7 +14,7 @@
 
 use crate::data::{MaskKind, SourceSpec};
 use crate::{Result, TrainError};
-use bridgev2w_world_model::bridge::ImageConditioning;
+use bridgev2w_world_model::bridge::{ImageConditioning, MaskCoding};
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use serde::{Deserialize, Serialize};
@@ -66,6 +66,10 @@ pub struct ModelSection {
     /// `first_frame` (CogVideoX-I2V) or `every_frame` (for backbones trained
     /// here from scratch; the prior and the fine-tuning must agree).
     pub image_conditioning: ImageConditioning,
+    /// How the masks fill the mask branch's three channels: `binary` (the
+    /// paper's) or `links` (link-coded, beyond the paper: needs the
+    /// datasets' link labels, `labels/episode_*.npy` of `bridgev2w synth`).
+    pub mask_coding: MaskCoding,
     /// A transformer preset (`small2x-wide`, `small2x`, `small`, `tiny`, ...)
     /// with fresh random weights in place of the backbone folder's
     /// transformer; the VAE and scheduler still come from the folder. For a
@@ -86,6 +90,7 @@ impl Default for ModelSection {
             device: bridgev2w_world_model::DeviceSpec::Cpu,
             action_hidden: 256,
             image_conditioning: ImageConditioning::FirstFrame,
+            mask_coding: MaskCoding::Binary,
             transformer: None,
         }
     }

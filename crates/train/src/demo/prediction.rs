@@ -142,7 +142,8 @@ pub fn predict(o: &DemoOptions, out: &Path) -> Result<PredictionSummary, DemoErr
         frames,
         height: h,
         width: w,
-        data: episode.masks[..frames].concat(),
+        // Link labels: the binary coding reads them as the silhouette.
+        data: episode.labels[..frames].concat(),
     };
     let opts = PredictOptions {
         sample: SampleOptions {

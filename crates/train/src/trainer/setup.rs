@@ -129,7 +129,7 @@ impl Trainer {
                 if d.width == 0 { w } else { d.width },
             )
         };
-        let data = ClipDataset::open_sources(
+        let mut data = ClipDataset::open_sources(
             &cfg.data.sources()?,
             frames,
             height,
@@ -141,6 +141,9 @@ impl Trainer {
                 format!("dataset {}", cfg.data.dataset.display()),
                 "mask conditioning needs masks for every episode: masks/episode_*.npy, data.robot to render calc masks, or data.masks = \"seg\"",
             ));
+        }
+        if cfg.ablation.mask_action && cfg.train.stage == Stage::Bridgev2w {
+            data.set_mask_coding(cfg.model.mask_coding)?;
         }
         let mut model = build_model(&cfg, device, frames, height, width)?;
         let tf_cfg = model.transformer.model.config().clone();
@@ -277,6 +280,7 @@ fn build_model(
             },
             lora,
             image_conditioning: cfg.model.image_conditioning,
+            mask_coding: cfg.model.mask_coding,
         })
     };
     let model = if let Some((vae, tf)) = random_preset(&cfg.model.backbone)? {

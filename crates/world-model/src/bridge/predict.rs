@@ -79,7 +79,8 @@ impl BridgeV2W {
         let mut mask_videos = Vec::with_capacity(masks.len());
         for (f, m) in first_frames.iter().zip(masks) {
             self.check_inputs(f, m)?;
-            mask_videos.push(m.to_tensor(Device::Cpu, Kind::Float)?); // [1, 3, T, H, W]
+            let coding = self.cfg.mask_coding;
+            mask_videos.push(m.to_tensor(coding, Device::Cpu, Kind::Float)?); // [1, 3, T, H, W]
         }
         let mask_videos = Tensor::cat(&mask_videos, 0); // [B, 3, T, H, W]
         let first = first_frames
@@ -150,7 +151,7 @@ impl BridgeV2W {
                 ),
             ));
         }
-        Ok(())
+        self.cfg.mask_coding.check_values(&masks.data, "masks")
     }
 }
 
