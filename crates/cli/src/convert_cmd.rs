@@ -28,9 +28,13 @@ pub struct ConvertArgs {
     format: Format,
     /// Source: a DROID directory (searched for episodes) or an AgiBot World root.
     src: PathBuf,
-    /// Output dataset directory (must not exist; written to DIR.tmp, then renamed).
+    /// Output dataset directory (must not exist unless --overwrite; written to
+    /// DIR.tmp, then renamed).
     #[arg(long)]
     out: PathBuf,
+    /// Replace an existing --out (once the new dataset is complete).
+    #[arg(long)]
+    overwrite: bool,
     /// Robot: built-in name or URDF file (default: franka for DROID, agibot-g1 for AgiBot World).
     #[arg(long)]
     robot: Option<String>,
@@ -110,6 +114,7 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         skip_bad: args.skip_bad,
         split: Some(args.split.clone()),
         source_format: format!("{:?}", args.format).to_lowercase(),
+        overwrite: args.overwrite,
     };
     let source = match args.format {
         Format::Droid => {

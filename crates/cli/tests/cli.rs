@@ -365,9 +365,20 @@ fn convert_droid_and_agibot_with_skip_report() {
     );
     assert!(out.join("meta/info.json").is_file() && out.join("skipped.json").is_file());
     assert!(out.join("masks/episode_000001.npy").is_file());
-    // Refuses to overwrite.
+    // Refuses to overwrite, and names the flag that does.
+    std::fs::write(out.join("notes.txt"), "mine").expect("write");
     let o = run(&skip);
-    assert!(stderr(&o).contains("already exists"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("already exists") && stderr(&o).contains("--overwrite"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(out.join("notes.txt").is_file());
+    let mut replace = skip.clone();
+    replace.push("--overwrite");
+    let o = run(&replace);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!out.join("notes.txt").exists() && out.join("meta/info.json").is_file());
     // DROID needs intrinsics.
     let o = run(&[
         "convert",

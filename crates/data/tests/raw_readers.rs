@@ -308,6 +308,7 @@ fn read_convert_and_fail_clearly(pyav: bool) {
         skip_bad: true,
         split: Some("train".into()),
         source_format: "droid".into(),
+        overwrite: false,
     };
     let items = [found[0].clone(), dir.path().join("droid_bad/nan")]
         .into_iter()
@@ -427,6 +428,7 @@ fn read_convert_and_fail_clearly(pyav: bool) {
         skip_bad: false,
         split: None,
         source_format: "droid".into(),
+        overwrite: false,
     };
     let source = RawSource::Droid {
         root: dir.path().join("droid"),
@@ -454,6 +456,18 @@ fn read_convert_and_fail_clearly(pyav: bool) {
         "{err}"
     );
     assert_eq!(LeRobotDataset::open(&out).expect("kept").episodes.len(), 2);
+    // ... or replaced whole when asked (nothing of the old one is left).
+    std::fs::write(out.join("notes.txt"), "mine").expect("write");
+    let replace = ConvertOptions {
+        overwrite: true,
+        ..whole.clone()
+    };
+    convert_source(&source, None, &franka, &out, &replace, &|_| {}).expect("overwrite");
+    assert!(!out.join("notes.txt").exists());
+    assert_eq!(
+        LeRobotDataset::open(&out).expect("replaced").episodes.len(),
+        2
+    );
     // A source without episodes is refused, naming it, and leaves nothing.
     let empty = dir.path().join("no_episodes");
     std::fs::create_dir(&empty).expect("mkdir");

@@ -159,6 +159,7 @@ pub(crate) fn convert<'py>(
         skip_bad,
         split: Some(split),
         source_format: format.to_string(),
+        overwrite: false,
     };
     let to_py = |e: ConvertError| match e {
         ConvertError::Raw(RawError::Missing { path, what }) => {

@@ -36,6 +36,9 @@ pub struct ConvertOptions {
     pub split: Option<String>,
     /// The source format's name (recorded in `meta/info.json`).
     pub source_format: String,
+    /// Replace an existing output ([`crate::raw::source::convert_source`]
+    /// replaces it when the new one is complete, not before).
+    pub overwrite: bool,
 }
 
 /// One item that was skipped, and why.

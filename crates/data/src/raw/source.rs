@@ -41,7 +41,8 @@ pub enum ConvertProgress<'a> {
 }
 
 /// Converts the episodes of `source` (at most `limit`) into a LeRobot v3.0
-/// dataset at `out`, which must not exist; see the module documentation.
+/// dataset at `out`, which must not exist unless `options.overwrite`; see
+/// the module documentation.
 pub fn convert_source(
     source: &RawSource,
     limit: Option<usize>,
@@ -51,8 +52,8 @@ pub fn convert_source(
     progress: &dyn Fn(ConvertProgress),
 ) -> Result<ConvertReport, ConvertError> {
     let limit = limit.unwrap_or(usize::MAX);
-    let output =
-        OutputDir::create(out, false).map_err(|e| ConvertError::Options(format!("out: {e}")))?;
+    let output = OutputDir::create(out, options.overwrite)
+        .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
     let tmp = output.path().to_path_buf();
     let on_item = |id: &str| progress(ConvertProgress::Done(id));
     let report = match source {
