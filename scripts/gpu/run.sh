@@ -5,12 +5,13 @@
 # failing one; OUT gets logs/, metrics/, items.tsv, summary.json and
 # summary.md (the table for docs/benchmarks.md).
 #
-# Usage: [OUT=DIR] scripts/gpu/run.sh [--dry-run] [PART...]
+# Usage: [OUT=DIR] scripts/gpu/run.sh [--dry-run] [PART|ITEM...]
 #   PART: smoke (environment, predict on CUDA vs the CPU, bf16 training,
 #         one-rank data parallelism; about 3 min on an H100), speed (bench
 #         model at 5B-I2V shapes vs diffusers, a full 50-step predict; about
 #         6 min), training (one full-size training step, planning cost;
 #         about 5 min); default: all three, in that order.
+#   ITEM: one item by name (e.g. planning-cost), to rerun it alone.
 #   --dry-run: the same items on the CPU at tiny shapes (the test suite runs
 #         it, so the checklist cannot rot between GPU loans); CUDA-only items
 #         are reported "skipped: no CUDA device".
@@ -26,11 +27,28 @@ ROOT=$PWD
 HERE=$ROOT/scripts/gpu
 DRY=0
 PARTS=()
+# The items: part, name, time limit (s), needs CUDA, function.
+ITEMS="smoke environment 60 0 environment
+smoke predict-random-tiny 150 0 predict_random_tiny
+smoke predict-demo-model 150 0 predict_demo_model
+smoke train-bf16 240 0 train_bf16
+smoke distributed-one-rank 150 0 distributed_one_rank
+speed bench-model 300 0 bench_model
+speed predict-full 240 1 predict_full
+training train-step-full 300 1 train_step_full
+training planning-cost 240 0 planning_cost"
 for a in "$@"; do
     case $a in
         --dry-run) DRY=1 ;;
         smoke|speed|training) PARTS+=("$a") ;;
-        *) echo "run.sh: unknown argument $a (expected --dry-run, smoke, speed or training)" >&2; exit 2 ;;
+        *)
+            if grep -q "^[a-z]* $a " <<< "$ITEMS"; then
+                PARTS+=("$a")
+            else
+                echo "run.sh: unknown argument $a (expected --dry-run, a part: smoke, speed, training, or an item: $(cut -d' ' -f2 <<< "$ITEMS" | tr '\n' ' '))" >&2
+                exit 2
+            fi
+            ;;
     esac
 done
 ((${#PARTS[@]})) || PARTS=(smoke speed training)
@@ -233,7 +251,7 @@ planning_cost() { # the cost of CEM's batched candidate predictions: one CEM ite
         set -- $pair
         local t0=$(now)
         "$BIN" plan --task reach --trials 1 --model "$([[ $DRY == 1 ]] && echo random || echo "$BIG")" \
-            --device "$DEVICE" --samples "$1" --elites 1 --iters 1 --horizon 1 --max-steps 1 \
+            --device "$DEVICE" --precision "$BIG_PRECISION" --max-batch 2 --samples "$1" --elites 1 --iters 1 --horizon 1 --max-steps 1 \
             --denoise-steps "$2" --waypoints 0 || return 1
         "$PY" "$HERE/checklist.py" record-seconds planning-cost "seconds_${1}_candidates_${2}_steps" "$(since "$t0")"
     done
@@ -241,24 +259,11 @@ planning_cost() { # the cost of CEM's batched candidate predictions: one CEM ite
 export -f environment predict_random_tiny predict_demo_model train_bf16 distributed_one_rank \
     bench_model predict_full train_step_full planning_cost gpu_poll
 
+# Each part's items in order, or a single item by name, in the order given.
 for part in "${PARTS[@]}"; do
-    case $part in
-        smoke)
-            item environment 60 0 environment
-            item predict-random-tiny 150 0 predict_random_tiny
-            item predict-demo-model 150 0 predict_demo_model
-            item train-bf16 240 0 train_bf16
-            item distributed-one-rank 150 0 distributed_one_rank
-            ;;
-        speed)
-            item bench-model 300 0 bench_model
-            item predict-full 240 1 predict_full
-            ;;
-        training)
-            item train-step-full 300 1 train_step_full
-            item planning-cost 240 0 planning_cost
-            ;;
-    esac
+    while read -r p name limit needs_cuda fn; do
+        [[ $p == "$part" || $name == "$part" ]] && item "$name" "$limit" "$needs_cuda" "$fn" < /dev/null
+    done <<< "$ITEMS"
 done
 "${CHECK[@]}" summary "$OUT" > /dev/null
 echo "run.sh: $OUT/summary.md" >&2

@@ -312,6 +312,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
             strength: a.strength,
             keep_static_margin_px: a.keep_static,
         },
+        max_batch: None,
     };
     let batches = clips.len().div_ceil(a.batch_size);
     eprintln!(

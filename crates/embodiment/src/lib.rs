@@ -18,6 +18,5 @@ pub mod kinematics;
 pub mod masks;
 pub mod mesh;
 pub mod overlay;
-pub mod quiet_panic;
 pub mod raster;
 pub mod robot;

@@ -20,6 +20,9 @@
 //!   scripts that print a JSON result);
 //! * [`progress`]: [`progress::Progress`], how a library reports stages,
 //!   steps and notes while it runs (the command-line tool draws the bars);
+//! * [`quiet_panic`]: code that may panic (third-party parsers, libtorch
+//!   ops, which panic on a device's out-of-memory) run so that the panic
+//!   becomes an error value;
 //! * `plot` (feature `plot`): the PNG figures of the results files (line
 //!   panels, grouped bars, scatter plots with a fitted line).
 
@@ -33,6 +36,7 @@ pub mod peer;
 pub mod plot;
 pub mod png;
 pub mod progress;
+pub mod quiet_panic;
 pub mod sections;
 pub mod seed;
 

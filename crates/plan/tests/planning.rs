@@ -292,6 +292,7 @@ fn franka_model(counting: &CountingModel) -> (MaskConditioned<'_, CountingModel>
     let hold = obs.ee.to_vec();
     let predict = PredictOptions {
         sample: SampleOptions::default(),
+        max_batch: None,
     };
     let m = MaskConditioned::new(counting, e, 0, cam, hold, predict).unwrap();
     (m, obs)

@@ -652,6 +652,7 @@ impl WorldModel {
                 batch_noise: BatchNoise::Shared,
                 ..SampleOptions::default()
             },
+            max_batch: None,
         };
         let model = &self.inner;
         let videos = py

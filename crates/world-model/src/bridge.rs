@@ -10,7 +10,7 @@
 
 use crate::checkpoint::{PipelineFolder, PromptEmbedding};
 use crate::controlnet::{ControlNet, ControlNetConfig};
-use crate::device::{ComputeDevice, Precision};
+use crate::device::{move_to_device, ComputeDevice, Precision};
 use crate::error::{Result, WorldModelError};
 use crate::lora::LoraConfig;
 use crate::pipeline::BatchNoise;
@@ -205,7 +205,8 @@ impl BridgeV2W {
             .next()
             .map(|t| t.kind())
             .unwrap_or(Kind::Float);
-        let mut adapters = VarStore::new(device);
+        // Built on the host, then moved (see `move_to_device`).
+        let mut adapters = VarStore::new(tch::Device::Cpu);
         let controlnet =
             ControlNet::new(&tf_cfg, &cfg.controlnet, &(adapters.root() / "controlnet"))?;
         if let Some(lora) = cfg.lora {
@@ -217,6 +218,7 @@ impl BridgeV2W {
         if kind != Kind::Float {
             adapters.set_kind(kind);
         }
+        move_to_device(&mut adapters, device);
         transformer.vs.freeze();
         vae_vs.freeze();
         let prompt = prompt.embeds.to_device(device).to_kind(kind);
@@ -267,12 +269,14 @@ impl BridgeV2W {
         seed: i64,
     ) -> Result<Self> {
         tch::manual_seed(seed);
-        let mut vae_vs = VarStore::new(device.check_available()?.to_tch());
+        let device = device.check_available()?;
+        let mut vae_vs = VarStore::new(tch::Device::Cpu);
         let vae = AutoencoderKLCogVideoX::new(vae_cfg, vae_vs.root())?;
         crate::vae::init_like_pytorch(&vae_vs);
         if precision == Precision::Bf16 && !vae_cfg.force_upcast {
             vae_vs.bfloat16();
         }
+        move_to_device(&mut vae_vs, device.to_tch());
         let transformer = LoadedTransformer::random(tf_cfg, device, precision)?;
         let prompt = PromptEmbedding::zeros(tf_cfg.max_text_seq_length, tf_cfg.text_embed_dim);
         Self::assemble(cfg, vae_vs, vae, transformer, scheduler, prompt)
@@ -294,12 +298,13 @@ impl BridgeV2W {
         let device = device.check_available()?;
         let vae_dir = folder.component_dir("vae");
         let vae_cfg = VaeConfig::from_file(&vae_dir.join("config.json"))?;
-        let mut vae_vs = VarStore::new(device.to_tch());
+        let mut vae_vs = VarStore::new(tch::Device::Cpu);
         let vae = AutoencoderKLCogVideoX::new(&vae_cfg, vae_vs.root())?;
         crate::weights::load_component(&vae_vs, &vae_dir)?;
         if precision == Precision::Bf16 && !vae_cfg.force_upcast {
             vae_vs.bfloat16();
         }
+        move_to_device(&mut vae_vs, device.to_tch());
         let transformer =
             LoadedTransformer::load(&folder.component_dir("transformer"), device, precision)?;
         let tf_cfg = transformer.model.config().clone();

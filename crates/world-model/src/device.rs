@@ -51,6 +51,19 @@ impl ComputeDevice {
     }
 }
 
+/// Moves the variables of `vs`, built and initialised on the host, onto
+/// `device`. Models are built this way so that (as in diffusers, whose
+/// random weights and noise come from the CPU generator) a seed gives the
+/// same weights on every device, and so that the GPU never holds the f32
+/// copy of weights meant for bf16 (whose freed blocks the caching allocator
+/// would keep reserved).
+pub fn move_to_device(vs: &mut tch::nn::VarStore, device: tch::Device) {
+    if vs.device() != device {
+        let _guard = tch::no_grad_guard();
+        vs.set_device(device);
+    }
+}
+
 impl fmt::Display for ComputeDevice {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {

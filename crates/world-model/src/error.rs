@@ -84,6 +84,14 @@ pub enum WorldModelError {
     /// An error from libtorch.
     #[error("libtorch: {0}")]
     Torch(#[from] tch::TchError),
+    /// The device ran out of memory during an operation.
+    #[error("out of device memory while {during}: {figures}\nLower the batch (predict --batch-size, plan --max-batch), use --precision bf16, or keep the VAE tiled")]
+    OutOfMemory {
+        /// What was running, with its shapes.
+        during: String,
+        /// libtorch's account: the allocation that failed and the memory in use.
+        figures: String,
+    },
     /// A model name is neither a local folder nor in the Hugging Face cache.
     #[error("model {name}: not found (offline); looked at:\n  - {}\nGive a diffusers folder, or download it first (e.g. `huggingface-cli download {name}`; HF_HUB_CACHE or HF_HOME name the cache)", looked.join("\n  - "))]
     ModelNotFound {
@@ -113,6 +121,36 @@ impl WorldModelError {
             path: dir.to_path_buf(),
             source: Box::new(self),
         }
+    }
+
+    /// An out-of-memory error from libtorch as [`Self::OutOfMemory`] while
+    /// `during()` (what ran, with its shapes); other errors unchanged.
+    pub fn on_out_of_memory(self, during: impl FnOnce() -> String) -> Self {
+        match self {
+            Self::Torch(e) if e.to_string().contains("out of memory") => {
+                let text = e.to_string();
+                // libtorch's first line holds the figures; the rest is its backtrace.
+                let figures = text
+                    .lines()
+                    .find(|l| l.contains("out of memory"))
+                    .unwrap_or(&text)
+                    .trim()
+                    .trim_start_matches("Internal torch error: ")
+                    .to_owned();
+                Self::OutOfMemory {
+                    during: during(),
+                    figures,
+                }
+            }
+            other => other,
+        }
+    }
+
+    /// A caught panic's message as an error: libtorch's (an op that failed,
+    /// such as an allocation) as [`Self::Torch`], so that
+    /// [`Self::on_out_of_memory`] recognises it; others as an internal error.
+    pub fn from_panic(message: String) -> Self {
+        Self::Torch(tch::TchError::Torch(message))
     }
 
     pub(crate) fn io(path: impl Into<PathBuf>, error: std::io::Error) -> Self {

@@ -70,19 +70,23 @@ crate::named_enum!(BatchNoise, WorldModelError, WorldModelError::input, "batch_n
 });
 
 impl BatchNoise {
-    /// Standard normal noise of `shape` `[B, ...]`, drawn from libtorch's
-    /// global generator: `B` draws, or one draw expanded to `B` when shared
-    /// (the same values as a batch of one).
+    /// Standard normal noise of `shape` `[B, ...]` on `device`, drawn from
+    /// libtorch's global CPU generator (as diffusers' `randn_tensor` with a
+    /// CPU generator: one seed, the same noise on every device): `B` draws,
+    /// or one draw expanded to `B` when shared (the same values as a batch
+    /// of one).
     pub fn randn(self, shape: &[i64], kind: Kind, device: tch::Device) -> Tensor {
+        let host = (kind, tch::Device::Cpu);
         match (self, shape.split_first()) {
             (Self::Shared, Some((&b, rest))) if b > 1 => {
                 let one: Vec<i64> = std::iter::once(1).chain(rest.iter().copied()).collect();
                 // [1, ...] -> [B, ...]
-                Tensor::randn(one.as_slice(), (kind, device))
+                Tensor::randn(one.as_slice(), host)
+                    .to_device(device)
                     .expand(shape, false)
                     .contiguous()
             }
-            _ => Tensor::randn(shape, (kind, device)),
+            _ => Tensor::randn(shape, host).to_device(device),
         }
     }
 }
@@ -288,10 +292,16 @@ pub fn check_batch(first_frames: &[RgbFrame], masks: &[MaskVideo]) -> Result<()>
 }
 
 /// Options of one prediction.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct PredictOptions {
     /// Sampling options.
     pub sample: SampleOptions,
+    /// At most this many clips go through the model at once (`None`: a
+    /// whole batch at once): a larger batch runs in chunks of this size,
+    /// which bounds the device memory of a planner's candidates. With shared
+    /// batch noise the results are those of one call; with independent
+    /// noise, chunk `k` draws from seed `seed + k`.
+    pub max_batch: Option<usize>,
 }
 
 /// An action-conditioned world model: from the current frame and the embodiment masks

@@ -315,6 +315,7 @@ fn opts(seed: u64, guidance_scale: f64) -> PredictOptions {
             batch_noise: BatchNoise::Independent,
             ..SampleOptions::default()
         },
+        max_batch: None,
     }
 }
 
@@ -353,6 +354,7 @@ fn predict_follows_the_world_model_contract() {
             batch_noise: BatchNoise::Shared,
             ..opts(seed, 2.0).sample
         },
+        max_batch: None,
     };
     let moved_alone = m.predict(&image(1), &masks(20), &shared(3)).unwrap();
     assert!(

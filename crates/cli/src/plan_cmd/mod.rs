@@ -12,7 +12,7 @@ use bridgev2w_plan::choice::PlanModel;
 use bridgev2w_plan::experiment::planning::{CemSizes, GoalOptions};
 use bridgev2w_plan::experiment::ModelOptions;
 use bridgev2w_world_model::pipeline::BatchNoise;
-use bridgev2w_world_model::ComputeDevice;
+use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
 pub(crate) fn parse_task(s: &str) -> Result<Task, String> {
@@ -68,6 +68,15 @@ pub struct ModelArgs {
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     pub device: ComputeDevice,
+    /// Precision of a diffusion model: f32 or bf16 (bf16 halves the memory
+    /// of a GPU run).
+    #[arg(long, default_value = "f32")]
+    pub precision: Precision,
+    /// At most this many candidates through a diffusion model at once (all
+    /// of a CEM iteration's by default): a smaller batch bounds the device
+    /// memory; with shared batch noise the plan is the same.
+    #[arg(long, value_name = "N")]
+    pub max_batch: Option<usize>,
     /// Image width of the synthetic world with the perfect model (pixels, even).
     #[arg(long, default_value_t = 96)]
     pub width: u32,
@@ -90,6 +99,8 @@ impl From<&ModelArgs> for ModelOptions {
             strength: a.strength,
             keep_static_margin_px: a.keep_static,
             device: a.device,
+            precision: a.precision,
+            max_batch: a.max_batch,
             width: a.width,
             height: a.height,
             clip_frames: a.clip_frames,

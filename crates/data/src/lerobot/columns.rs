@@ -15,7 +15,7 @@ pub(super) fn read_batches(path: &Path) -> Result<Vec<RecordBatch>, DatasetError
     let file_len = file.metadata().map_err(io_err(path))?.len();
     // The parquet decoder asserts things of the data it reads (a dictionary
     // page before dictionary-encoded pages, ...): a corrupt file can panic it.
-    bridgev2w_embodiment::quiet_panic::catch_quiet(|| {
+    bridgev2w_io::quiet_panic::catch_quiet(|| {
         let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(path))?;
         check_column_chunks(path, builder.metadata(), file_len)?;
         let reader = builder.build().map_err(pq_err(path))?;

@@ -32,7 +32,7 @@
 //! `tests/data/mesh/regressions/`.
 
 use super::TriMesh;
-use crate::quiet_panic::catch_quiet;
+use bridgev2w_io::quiet_panic::catch_quiet;
 use nalgebra::{Matrix4, Point3};
 use std::fmt;
 use std::path::{Path, PathBuf};

@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 pub(super) fn parse_urdf(text: &str, source_name: &str) -> Result<urdf_rs::Robot, RobotError> {
     // The XML parsers are third-party code: turn any panic into an error.
-    let result = crate::quiet_panic::catch_quiet(|| urdf_rs::read_from_string(text));
+    let result = bridgev2w_io::quiet_panic::catch_quiet(|| urdf_rs::read_from_string(text));
     match result {
         Ok(Ok(robot)) => Ok(robot),
         Ok(Err(e)) => Err(RobotError::Parse {

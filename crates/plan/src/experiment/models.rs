@@ -35,6 +35,11 @@ pub struct ModelOptions {
     pub keep_static_margin_px: Option<u32>,
     /// The device of a diffusion model.
     pub device: ComputeDevice,
+    /// The precision of a diffusion model's weights and activations.
+    pub precision: Precision,
+    /// At most this many candidates through a diffusion model at once
+    /// (`None`: all of a CEM iteration's at once): bounds device memory.
+    pub max_batch: Option<usize>,
     /// Image width of the synthetic world with the perfect model (pixels).
     pub width: u32,
     /// Image height of the synthetic world with the perfect model (pixels).
@@ -54,6 +59,8 @@ impl Default for ModelOptions {
             strength: 1.0,
             keep_static_margin_px: None,
             device: ComputeDevice::auto(),
+            precision: Precision::F32,
+            max_batch: None,
             width: 96,
             height: 64,
             clip_frames: 9,
@@ -85,6 +92,8 @@ pub enum LoadedModel {
         strength: f64,
         /// The static scene kept outside the swept region (margin in pixels).
         keep_static_margin_px: Option<u32>,
+        /// At most this many candidates per model call.
+        max_batch: Option<usize>,
     },
 }
 
@@ -102,7 +111,7 @@ impl LoadedModel {
                     o.weights.as_deref(),
                     o.prompt_embeds.as_deref(),
                     o.device,
-                    Precision::F32,
+                    o.precision,
                     0,
                 )?;
                 Self::Diffusion {
@@ -111,6 +120,7 @@ impl LoadedModel {
                     batch_noise: o.batch_noise,
                     strength: o.strength,
                     keep_static_margin_px: o.keep_static_margin_px,
+                    max_batch: o.max_batch,
                 }
             }
         })
@@ -162,6 +172,7 @@ impl LoadedModel {
                 batch_noise,
                 strength,
                 keep_static_margin_px,
+                max_batch,
             } => {
                 let predict = PredictOptions {
                     sample: SampleOptions {
@@ -172,6 +183,7 @@ impl LoadedModel {
                         keep_static_margin_px: *keep_static_margin_px,
                         ..SampleOptions::default()
                     },
+                    max_batch: *max_batch,
                 };
                 let wrapped = MaskConditioned::new(
                     model.as_ref(),

@@ -65,6 +65,7 @@ impl ReportModel {
             width: 96,
             height: 64,
             clip_frames: 9,
+            ..ModelOptions::default()
         })
     }
 }

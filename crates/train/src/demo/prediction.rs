@@ -154,6 +154,7 @@ pub fn predict(o: &DemoOptions, out: &Path) -> Result<PredictionSummary, DemoErr
             first_frame: o.first_frame,
             ..SampleOptions::default()
         },
+        max_batch: None,
     };
     let video = model.predict(&image, &masks, &opts)?;
     let px = h * w * 3;

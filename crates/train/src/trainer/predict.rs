@@ -4,6 +4,7 @@ use super::Trainer;
 use crate::config::Stage;
 use crate::data::Batch;
 use crate::Result;
+use bridgev2w_torch_ext::autocast;
 use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{sample_latents, Denoiser, Guidance, SampleOptions};
 use bridgev2w_world_model::scheduler::Scheduler;
@@ -82,7 +83,11 @@ impl Trainer {
                 extra: &extra,
             };
             let mut scheduler = Scheduler::new(model.scheduler.clone())?;
-            let z = sample_latents(&denoiser, &mut scheduler, &img, opts)?;
+            // In the training's autocast: a frozen backbone may be stored
+            // in its dtype (see the trainer's setup).
+            let z = autocast(model.device(), self.autocast, || {
+                sample_latents(&denoiser, &mut scheduler, &img, opts)
+            })??;
             let video = model.decode_latents(&z)?.clamp(-1.0, 1.0); // [B, 3, T, H, W]
             Ok(match opts.keep_static_margin_px {
                 Some(margin) => keep_static(

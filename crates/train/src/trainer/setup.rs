@@ -196,11 +196,20 @@ impl Trainer {
                 }
             }
         }
-        if (train_backbone && stage == Stage::Bridgev2w) || stage == Stage::Prior {
+        let backbone_trained =
+            (train_backbone && stage == Stage::Bridgev2w) || stage == Stage::Prior;
+        if backbone_trained {
             model.transformer.vs.unfreeze();
             for (name, t) in model.transformer.vs.variables() {
                 params.push((format!("backbone.{name}"), t));
             }
+        } else if let Some(dtype) = autocast {
+            // The frozen backbone kept in the autocast dtype, as diffusers'
+            // training scripts keep it in their weight dtype: its products
+            // run in that dtype anyway, and its weights take half the memory
+            // (11 GB less at 5B). The trained adapters stay f32.
+            let _guard = tch::no_grad_guard();
+            model.transformer.vs.set_kind(dtype.kind());
         }
         let opt = AdamW::new(
             params,

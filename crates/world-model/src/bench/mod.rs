@@ -139,9 +139,10 @@ pub fn time_model(
             .map(|_| ())
     })?;
     drop(tf);
-    let mut vs = VarStore::new(dev);
+    let mut vs = VarStore::new(tch::Device::Cpu);
     let vae = AutoencoderKLCogVideoX::new(vae_cfg, vs.root())?;
     vs.set_kind(kind);
+    crate::device::move_to_device(&mut vs, dev);
     let video =
         Tensor::rand([1, 3, shape.frames, shape.height, shape.width], (kind, dev)) * 2.0 - 1.0;
     let latents = Tensor::randn([1, vae_cfg.latent_channels, lf, lh, lw], (kind, dev));

@@ -10,7 +10,8 @@
 use super::BridgeV2W;
 use crate::error::{Result, WorldModelError};
 use crate::pipeline::{
-    check_batch, sample_latents_with_progress, Denoiser, Guidance, PredictOptions, WorldModel,
+    check_batch, sample_latents_with_progress, BatchNoise, Denoiser, Guidance, PredictOptions,
+    WorldModel,
 };
 use crate::scheduler::Scheduler;
 use crate::static_scene::keep_static;
@@ -75,6 +76,48 @@ impl BridgeV2W {
                 "no frames: expected at least one (frame, masks) pair",
             ));
         }
+        if let Some(max) = opts.max_batch {
+            if max == 0 {
+                return Err(WorldModelError::input(
+                    "max_batch",
+                    "0: expected at least 1 clip per model call",
+                ));
+            }
+            if first_frames.len() > max {
+                return self.predict_in_chunks(first_frames, masks, opts, max, progress);
+            }
+        }
+        // libtorch's ops panic on a device's out-of-memory: caught and
+        // reported with what ran.
+        bridgev2w_io::quiet_panic::catch_quiet(|| {
+            self.predict_batch_at_once(first_frames, masks, opts, progress)
+        })
+        .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
+        .map_err(|e| {
+                e.on_out_of_memory(|| {
+                    format!(
+                        "predicting {} clip(s) of {} frames at {}x{} ({:?} on {:?}, {} denoising steps, guidance {})",
+                        first_frames.len(),
+                        self.cfg.frames,
+                        self.cfg.height,
+                        self.cfg.width,
+                        self.kind,
+                        self.device,
+                        opts.sample.steps_run(),
+                        opts.sample.guidance_scale
+                    )
+                })
+            })
+    }
+
+    /// [`Self::predict_batch_with_progress`] for one chunk.
+    fn predict_batch_at_once(
+        &self,
+        first_frames: &[RgbFrame],
+        masks: &[MaskVideo],
+        opts: &PredictOptions,
+        progress: &dyn Progress,
+    ) -> Result<Vec<Video>> {
         let _guard = tch::no_grad_guard();
         let mut mask_videos = Vec::with_capacity(masks.len());
         for (f, m) in first_frames.iter().zip(masks) {
@@ -103,6 +146,28 @@ impl BridgeV2W {
         (0..videos.size()[0])
             .map(|i| Video::from_tensor(&videos.get(i)))
             .collect()
+    }
+
+    /// [`Self::predict_batch_with_progress`] in chunks of at most `max`
+    /// clips; chunk `k` draws independent noise from seed `seed + k`.
+    fn predict_in_chunks(
+        &self,
+        first_frames: &[RgbFrame],
+        masks: &[MaskVideo],
+        opts: &PredictOptions,
+        max: usize,
+        progress: &dyn Progress,
+    ) -> Result<Vec<Video>> {
+        let mut videos = Vec::with_capacity(first_frames.len());
+        for (k, (frames, masks)) in first_frames.chunks(max).zip(masks.chunks(max)).enumerate() {
+            let mut chunk = opts.clone();
+            chunk.max_batch = None;
+            if chunk.sample.batch_noise == BatchNoise::Independent {
+                chunk.sample.seed = opts.sample.seed.wrapping_add(k as u64);
+            }
+            videos.extend(self.predict_batch_with_progress(frames, masks, &chunk, progress)?);
+        }
+        Ok(videos)
     }
 
     /// The image latents `[B, t, C, h, w]` of a batch's first frames

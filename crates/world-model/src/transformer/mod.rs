@@ -382,22 +382,26 @@ impl LoadedTransformer {
         device: ComputeDevice,
         precision: Precision,
     ) -> Result<Self> {
-        let mut vs = VarStore::new(device.check_available()?.to_tch());
+        let device = device.check_available()?.to_tch();
+        let mut vs = VarStore::new(tch::Device::Cpu);
         let model = CogVideoXTransformer3DModel::new(cfg, &vs.root())?;
         if precision == Precision::Bf16 {
             vs.bfloat16();
         }
+        crate::device::move_to_device(&mut vs, device);
         Ok(Self { vs, model })
     }
 
     /// Loads `dir/config.json` and the weights (strict key match).
     pub fn load(dir: &Path, device: ComputeDevice, precision: Precision) -> Result<Self> {
         let cfg = TransformerConfig::from_file(&dir.join("config.json"))?;
-        let mut me = Self::random(&cfg, device, Precision::F32)?;
+        let device = device.check_available()?;
+        let mut me = Self::random(&cfg, ComputeDevice::Cpu, Precision::F32)?;
         load_component(&me.vs, dir)?;
         if precision == Precision::Bf16 {
             me.vs.bfloat16();
         }
+        crate::device::move_to_device(&mut me.vs, device.to_tch());
         me.vs.freeze();
         Ok(me)
     }

@@ -24,48 +24,6 @@ fn sincos_1d(dim: usize, pos: &[f64]) -> Vec<Vec<f64>> {
         .collect()
 }
 
-/// The 3D sin-cos embedding `[T * H * W, dim]` (tokens frame-major, then
-/// rows, then columns): a quarter of the channels for time, then three
-/// quarters for space (half from x, half from y), as diffusers'
-/// `get_3d_sincos_pos_embed` (positions in f32, embedding in f64).
-pub fn sincos_3d(
-    dim: usize,
-    grid_w: usize,
-    grid_h: usize,
-    frames: usize,
-    spatial_scale: f64,
-    temporal_scale: f64,
-) -> Vec<Vec<f64>> {
-    let spatial_dim = 3 * dim / 4;
-    let temporal_dim = dim / 4;
-    // Positions are f32 in diffusers (arange / scale), promoted to f64.
-    let xs: Vec<f64> = (0..grid_w)
-        .map(|x| f64::from(x as f32 / spatial_scale as f32))
-        .collect();
-    let ys: Vec<f64> = (0..grid_h)
-        .map(|y| f64::from(y as f32 / spatial_scale as f32))
-        .collect();
-    let ts: Vec<f64> = (0..frames)
-        .map(|t| f64::from(t as f32 / temporal_scale as f32))
-        .collect();
-    let ex = sincos_1d(spatial_dim / 2, &xs);
-    let ey = sincos_1d(spatial_dim / 2, &ys);
-    let et = sincos_1d(temporal_dim, &ts);
-    let mut out = Vec::with_capacity(frames * grid_h * grid_w);
-    for t in &et {
-        for y in &ey {
-            for x in &ex {
-                let mut row = Vec::with_capacity(dim);
-                row.extend_from_slice(t);
-                row.extend_from_slice(x);
-                row.extend_from_slice(y);
-                out.push(row);
-            }
-        }
-    }
-    out
-}
-
 /// The patch embedding's joint (text + video) sin-cos positions
 /// `[1, max_text_seq_length + F * h * w, D]` (zeros over the text tokens) for
 /// `frames` latent frames of `h x w` patches.
@@ -76,24 +34,48 @@ pub fn joint_sincos(
     w: i64,
     device: Device,
 ) -> Tensor {
-    let d = cfg.inner_dim() as usize;
-    let emb = sincos_3d(
-        d,
-        w as usize,
-        h as usize,
-        frames as usize,
-        cfg.spatial_interpolation_scale,
-        cfg.temporal_interpolation_scale,
+    let d = cfg.inner_dim();
+    let (spatial_dim, temporal_dim) = (3 * d / 4, d / 4);
+    // Positions are f32 in diffusers (arange / scale), promoted to f64.
+    let positions = |n: i64, scale: f64| -> Vec<f64> {
+        (0..n).map(|i| f64::from(i as f32 / scale as f32)).collect()
+    };
+    // The per-axis tables are small ([n, dim] in f64, rounded to f32 once as
+    // diffusers' result is); the [N, D] embedding is broadcast from them on
+    // `device` (built on the host it cost a third of a 5B forward).
+    let table = |dim: i64, pos: Vec<f64>| -> Tensor {
+        let n = pos.len() as i64;
+        let rows = sincos_1d(dim as usize, &pos);
+        let flat: Vec<f32> = rows.iter().flatten().map(|&v| v as f32).collect();
+        Tensor::from_slice(&flat).view([n, dim]).to_device(device) // [n, dim]
+    };
+    let et = table(
+        temporal_dim,
+        positions(frames, cfg.temporal_interpolation_scale),
     );
-    let text = cfg.max_text_seq_length as usize;
-    let mut flat = vec![0f64; (text + emb.len()) * d];
-    for (i, row) in emb.iter().enumerate() {
-        flat[(text + i) * d..(text + i + 1) * d].copy_from_slice(row);
-    }
-    Tensor::from_slice(&flat)
-        .view([1, (text + emb.len()) as i64, d as i64]) // [1, L + N, D]
-        .to_kind(Kind::Float)
-        .to_device(device)
+    let ex = table(
+        spatial_dim / 2,
+        positions(w, cfg.spatial_interpolation_scale),
+    );
+    let ey = table(
+        spatial_dim / 2,
+        positions(h, cfg.spatial_interpolation_scale),
+    );
+    // [T, dt], [W, dx], [H, dy] -> [T, H, W, dt + dx + dy]: time, then x, then y.
+    let video = Tensor::cat(
+        &[
+            et.view([frames, 1, 1, temporal_dim])
+                .expand([frames, h, w, temporal_dim], false),
+            ex.view([1, 1, w, spatial_dim / 2])
+                .expand([frames, h, w, spatial_dim / 2], false),
+            ey.view([1, h, 1, spatial_dim / 2])
+                .expand([frames, h, w, spatial_dim / 2], false),
+        ],
+        -1,
+    )
+    .view([frames * h * w, d]); // [N, D]
+    let text = Tensor::zeros([cfg.max_text_seq_length, d], (Kind::Float, device));
+    Tensor::cat(&[text, video], 0).unsqueeze(0) // [1, L + N, D]
 }
 
 /// The rotary embedding of the video tokens: `cos`, `sin` `[N, head_dim]`.
@@ -270,6 +252,68 @@ mod tests {
         assert_eq!(resize_crop_region(15, 22, 45, 30), ((0, 0), (30, 44)));
         // Square grid into 45x30: height-limited, width 30 centred (left 7.5 -> 8).
         assert_eq!(resize_crop_region(10, 10, 45, 30), ((0, 8), (30, 38)));
+    }
+
+    /// Reference: the 3D sin-cos embedding `[T * H * W, dim]` (tokens frame-major, then
+    /// rows, then columns): a quarter of the channels for time, then three
+    /// quarters for space (half from x, half from y), as diffusers'
+    /// `get_3d_sincos_pos_embed` (positions in f32, embedding in f64).
+    fn sincos_3d(
+        dim: usize,
+        grid_w: usize,
+        grid_h: usize,
+        frames: usize,
+        spatial_scale: f64,
+        temporal_scale: f64,
+    ) -> Vec<Vec<f64>> {
+        let spatial_dim = 3 * dim / 4;
+        let temporal_dim = dim / 4;
+        // Positions are f32 in diffusers (arange / scale), promoted to f64.
+        let xs: Vec<f64> = (0..grid_w)
+            .map(|x| f64::from(x as f32 / spatial_scale as f32))
+            .collect();
+        let ys: Vec<f64> = (0..grid_h)
+            .map(|y| f64::from(y as f32 / spatial_scale as f32))
+            .collect();
+        let ts: Vec<f64> = (0..frames)
+            .map(|t| f64::from(t as f32 / temporal_scale as f32))
+            .collect();
+        let ex = sincos_1d(spatial_dim / 2, &xs);
+        let ey = sincos_1d(spatial_dim / 2, &ys);
+        let et = sincos_1d(temporal_dim, &ts);
+        let mut out = Vec::with_capacity(frames * grid_h * grid_w);
+        for t in &et {
+            for y in &ey {
+                for x in &ex {
+                    let mut row = Vec::with_capacity(dim);
+                    row.extend_from_slice(t);
+                    row.extend_from_slice(x);
+                    row.extend_from_slice(y);
+                    out.push(row);
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn joint_sincos_is_the_reference_embedding_after_the_text_zeros() {
+        let mut cfg = TransformerConfig::cogvideox_2b();
+        cfg.num_attention_heads = 2;
+        cfg.attention_head_dim = 8; // inner dim 16
+        cfg.max_text_seq_length = 3;
+        cfg.spatial_interpolation_scale = 1.875;
+        cfg.temporal_interpolation_scale = 1.0;
+        let got = joint_sincos(&cfg, 2, 3, 4, Device::Cpu);
+        assert_eq!(got.size(), [1, 3 + 2 * 3 * 4, 16]);
+        let want = sincos_3d(16, 4, 3, 2, 1.875, 1.0);
+        let text = got.narrow(1, 0, 3);
+        assert_eq!(text.abs().max().double_value(&[]), 0.0);
+        for (i, row) in want.iter().enumerate() {
+            let row32: Vec<f32> = row.iter().map(|&v| v as f32).collect();
+            let got_row = Vec::<f32>::try_from(got.get(0).get(3 + i as i64)).unwrap();
+            assert_eq!(got_row, row32, "token {i}");
+        }
     }
 
     #[test]

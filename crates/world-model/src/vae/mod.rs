@@ -128,10 +128,11 @@ impl AutoencoderKLCogVideoX {
     pub fn load(dir: &Path, device: ComputeDevice, precision: Precision) -> Result<Self> {
         let device = device.check_available()?;
         let cfg = VaeConfig::from_file(&dir.join("config.json"))?;
-        let mut vs = VarStore::new(device.to_tch());
+        let mut vs = VarStore::new(tch::Device::Cpu);
         let model = Self::new(&cfg, vs.root())?;
         vs.set_kind(precision.kind());
         crate::weights::load_component(&vs, dir)?;
+        crate::device::move_to_device(&mut vs, device.to_tch());
         vs.freeze();
         Ok(model)
     }

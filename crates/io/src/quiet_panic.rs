@@ -1,4 +1,5 @@
-//! Third-party parsers that may panic on malformed input, run so that a
+//! Code that may panic (third-party parsers on malformed input, libtorch
+//! ops on a device's out-of-memory), run so that a
 //! panic becomes an error value without "thread 'main' panicked at ..."
 //! on stderr: a process-wide panic hook stays silent for panics raised inside
 //! [`catch_quiet`] on the current thread and forwards every other panic to
