@@ -371,8 +371,12 @@ class WorldModel:
     def predict(self, first_frame, masks, *, steps: int = 20, seed: int = 0, guidance: float = 1.0):
         """The predicted video, uint8 ``[T, H, W, 3]`` (frame 0 is the first
         frame's reconstruction), from ``first_frame`` uint8 ``[H, W, 3]`` and
-        ``masks`` ``[T, H, W]`` (uint8 or bool, non-zero = robot), sampled
-        with ``steps`` denoising steps from noise seed ``seed``.
+        ``masks`` ``[T, H, W]``, sampled with ``steps`` denoising steps from
+        noise seed ``seed``. Masks are link labels (integers 0..255: 0 the
+        background, l the link labelled l, as ``render_masks`` and
+        ``bridgev2w masks`` write them) or bool / 0-1 masks; a model with
+        binary mask coding sees robot vs background, one with link-coded masks
+        (``model.mask_coding = "links"``) needs the labels.
 
         A batch, ``first_frame`` ``[B, H, W, 3]`` and/or ``masks`` ``[B, T,
         H, W]`` (one side may be unbatched: it is shared), gives ``[B, T, H,
@@ -390,12 +394,14 @@ class WorldModel:
         if m.dtype.kind == "f" and np.isin(m, (0.0, 1.0)).all():
             m = m.astype(np.uint8)
         if m.dtype.kind not in "biu":
-            raise ValueError(f"masks: expected uint8 or bool masks (0/1), got dtype {m.dtype}")
+            raise ValueError(f"masks: expected link labels (integers 0..255) or bool masks, got dtype {m.dtype}")
+        if m.dtype.kind != "b" and m.size and (m.min() < 0 or m.max() > 255):
+            raise ValueError(f"masks: link labels must lie in 0..255, got values {m.min()}..{m.max()}")
         if m.ndim not in (3, 4) or tuple(m.shape[-3:]) != (t, h, w):
             raise ValueError(f"masks: expected [{t}, {h}, {w}] or [B, {t}, {h}, {w}] for this model, "
                              f"got shape {tuple(m.shape)}")
         single = single and m.ndim == 3
-        m = (m if m.ndim == 4 else m[None]) != 0
+        m = m if m.ndim == 4 else m[None]
         b = max(len(f), len(m))
         if len(f) not in (1, b) or len(m) not in (1, b):
             raise ValueError(f"first_frame {len(f)} and masks {len(m)}: expected batches of one size")

@@ -178,6 +178,18 @@ def test_world_model_predicts_as_the_cli_does():
     cli = np.load(tmp / "out" / "video.npy")
     diff = np.abs(cli.astype(int) - video.astype(int))
     assert diff.max() <= 1 and diff.mean() < 0.01, (diff.max(), diff.mean())
+    # Link labels pass through as labels: a binary-coded model sees robot vs
+    # background, so labels give the video their silhouette gives.
+    labels = masks * 7
+    labels[:, h // 4: h // 3] = 3
+    labels[:, h // 4: h // 3, : w // 4] = 0
+    assert (wm.predict(first, labels, steps=2, seed=3) == wm.predict(first, labels != 0, steps=2, seed=3)).all()
+    for bad in (masks.astype(np.int32) * 300, masks.astype(np.int16) - 1):
+        try:
+            wm.predict(first, bad)
+            raise AssertionError("labels outside 0..255 passed")
+        except ValueError as e:
+            assert "0..255" in str(e), e
     # The shipped demo model, from its folder.
     demo = bw.WorldModel.from_pretrained(pathlib.Path(__file__).resolve().parents[2] / "assets" / "demo-model")
     assert demo.resolution == (64, 96) and demo.clip_frames == 9, demo

@@ -71,3 +71,25 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
         "{md}"
     );
 }
+
+#[test]
+fn the_gpu_checklist_refuses_an_unknown_item_and_names_the_items() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = Command::new("bash")
+        .arg(root.join("scripts/gpu/run.sh"))
+        .args(["--dry-run", "planing-cost"])
+        .env("OUT", out.path())
+        .env("BRIDGEV2W", env!("CARGO_BIN_EXE_bridgev2w"))
+        .current_dir(&root)
+        .output()
+        .expect("run scripts/gpu/run.sh");
+    assert_eq!(o.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("planing-cost")
+            && stderr.contains("planning-cost")
+            && stderr.contains("smoke"),
+        "{stderr}"
+    );
+}

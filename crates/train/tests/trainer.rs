@@ -997,6 +997,30 @@ fn bf16_autocast_on_cpu_trains_close_to_f32_and_keeps_f32_state() {
             assert_eq!(t.kind(), Kind::Float, "{name}");
         }
     }
+    // The frozen backbone is stored in bf16 (half the memory), the f32 run's
+    // in f32; the trained adapters stay f32 in both.
+    for (name, t) in bf16_run.model.transformer.vs.variables() {
+        assert_eq!(t.kind(), Kind::BFloat16, "frozen backbone {name}");
+    }
+    for (name, t) in f32_run.model.transformer.vs.variables() {
+        assert_eq!(t.kind(), Kind::Float, "f32 backbone {name}");
+    }
+    for (name, t) in bf16_run.model.adapters.variables() {
+        assert_eq!(t.kind(), Kind::Float, "adapter {name}");
+    }
+    // Sampling (previews, evaluation) runs in the training's autocast, so
+    // the bf16 backbone predicts from f32 inputs.
+    let batch = bf16_run.batch(0).unwrap();
+    let video = bf16_run
+        .predict(
+            &batch,
+            &bridgev2w_world_model::pipeline::SampleOptions {
+                steps: 2,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+    assert!(video.isfinite().all().int64_value(&[]) == 1);
     // And the updates follow the f32 run's closely.
     let mut num = 0.0;
     let mut den = 0.0;

@@ -199,3 +199,40 @@ impl From<bridgev2w_io::FileError> for WorldModelError {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_out_of_memory_names_what_ran_and_keeps_libtorchs_figures() {
+        // libtorch's message as a caught panic of an op carries it.
+        let torch = "Internal torch error: CUDA out of memory. Tried to allocate 10.55 GiB. GPU 0 has a total capacity of 139.80 GiB of which 10.40 GiB is free.\nException raised from malloc at CUDACachingAllocator.cpp:1574 (most recent call first):\nframe #0: ...";
+        let e = WorldModelError::from_panic(torch.to_owned())
+            .on_out_of_memory(|| "predicting 4 clip(s) of 25 frames at 480x720".to_owned());
+        let text = e.to_string();
+        assert!(matches!(e, WorldModelError::OutOfMemory { .. }), "{text}");
+        assert!(
+            text.contains("predicting 4 clip(s) of 25 frames at 480x720"),
+            "{text}"
+        );
+        assert!(
+            text.contains("Tried to allocate 10.55 GiB") && text.contains("139.80 GiB"),
+            "{text}"
+        );
+        assert!(
+            !text.contains("frame #0") && !text.contains("Internal torch error"),
+            "{text}"
+        );
+        assert!(
+            text.contains("--max-batch") && text.contains("bf16"),
+            "{text}"
+        );
+        // Other errors pass unchanged, and `during` is not evaluated for them.
+        let other = WorldModelError::from_panic("shape mismatch".to_owned())
+            .on_out_of_memory(|| unreachable!("only for out-of-memory"));
+        assert!(matches!(other, WorldModelError::Torch(_)), "{other}");
+        let input = WorldModelError::input("x", "bad").on_out_of_memory(|| unreachable!());
+        assert!(matches!(input, WorldModelError::Input { .. }));
+    }
+}

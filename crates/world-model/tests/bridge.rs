@@ -371,6 +371,34 @@ fn predict_follows_the_world_model_contract() {
     assert!(close(&batch[0].data, &v1.data) < 1e-4);
     assert!(close(&batch[1].data, &moved.data) < 1e-4);
     assert!(close(&batch[2].data, &batch[0].data) < 1e-5);
+    // In chunks of at most two clips (a planner's memory bound): with shared
+    // noise, the same videos as one call.
+    let chunked = m
+        .predict_batch(
+            &[image(1), image(1), image(1)],
+            &[masks(0), masks(20), masks(0)],
+            &PredictOptions {
+                max_batch: Some(2),
+                ..shared(3)
+            },
+        )
+        .unwrap();
+    assert_eq!(chunked.len(), 3);
+    for (c, b) in chunked.iter().zip(&batch) {
+        assert!(close(&c.data, &b.data) < 1e-5, "chunked vs one call");
+    }
+    let e = m
+        .predict_batch(
+            &[image(1)],
+            &[masks(0)],
+            &PredictOptions {
+                max_batch: Some(0),
+                ..shared(3)
+            },
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("max_batch") && e.contains("at least 1"), "{e}");
     assert!("shared".parse::<BatchNoise>().unwrap() == BatchNoise::Shared);
     let e = "common".parse::<BatchNoise>().unwrap_err().to_string();
     assert!(e.contains("batch_noise") && e.contains("shared"), "{e}");
