@@ -146,9 +146,9 @@ impl WorldModelError {
         }
     }
 
-    /// A caught panic's message as an error: libtorch's (an op that failed,
-    /// such as an allocation) as [`Self::Torch`], so that
-    /// [`Self::on_out_of_memory`] recognises it; others as an internal error.
+    /// A caught panic's message as an error ([`Self::Torch`]: libtorch's ops
+    /// panic with its message, e.g. on a failed allocation, which
+    /// [`Self::on_out_of_memory`] then recognises).
     pub fn from_panic(message: String) -> Self {
         Self::Torch(tch::TchError::Torch(message))
     }

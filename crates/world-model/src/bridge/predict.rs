@@ -93,21 +93,21 @@ impl BridgeV2W {
             self.predict_batch_at_once(first_frames, masks, opts, progress)
         })
         .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
-        .map_err(|e| {
-                e.on_out_of_memory(|| {
-                    format!(
-                        "predicting {} clip(s) of {} frames at {}x{} ({:?} on {:?}, {} denoising steps, guidance {})",
-                        first_frames.len(),
-                        self.cfg.frames,
-                        self.cfg.height,
-                        self.cfg.width,
-                        self.kind,
-                        self.device,
-                        opts.sample.steps_run(),
-                        opts.sample.guidance_scale
-                    )
-                })
-            })
+        .map_err(|e| e.on_out_of_memory(|| self.describe_batch(first_frames.len(), opts)))
+    }
+
+    /// What a prediction of `clips` clips runs, for error messages.
+    fn describe_batch(&self, clips: usize, opts: &PredictOptions) -> String {
+        format!(
+            "predicting {clips} clip(s) of {} frames at {}x{} ({:?} on {:?}, {} denoising steps, guidance {})",
+            self.cfg.frames,
+            self.cfg.height,
+            self.cfg.width,
+            self.kind,
+            self.device,
+            opts.sample.steps_run(),
+            opts.sample.guidance_scale
+        )
     }
 
     /// [`Self::predict_batch_with_progress`] for one chunk.
