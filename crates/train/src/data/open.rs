@@ -248,7 +248,10 @@ impl ClipDataset {
 /// Masks of another size than the video's `(h, w)` are resized, but only
 /// when they have its aspect ratio (within 2 %): anything else (e.g. masks
 /// stored `[T, W, H]`) would be stretched into garbage.
-pub(super) fn check_mask_aspect(m: &EpisodeMasks, (h, w): (usize, usize)) -> std::result::Result<(), String> {
+pub(super) fn check_mask_aspect(
+    m: &EpisodeMasks,
+    (h, w): (usize, usize),
+) -> std::result::Result<(), String> {
     if (m.height, m.width) == (h, w) {
         return Ok(());
     }
