@@ -7,18 +7,23 @@
 use std::path::Path;
 use std::process::Command;
 
-#[test]
-fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
+/// `scripts/gpu/run.sh ARGS` with this build's binary, its output in `out`.
+fn run_checklist(out: &Path, args: &[&str]) -> std::process::Output {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let out = tempfile::tempdir().expect("tempdir");
-    let o = Command::new("bash")
+    Command::new("bash")
         .arg(root.join("scripts/gpu/run.sh"))
-        .arg("--dry-run")
-        .env("OUT", out.path())
+        .args(args)
+        .env("OUT", out)
         .env("BRIDGEV2W", env!("CARGO_BIN_EXE_bridgev2w"))
         .current_dir(&root)
         .output()
-        .expect("run scripts/gpu/run.sh");
+        .expect("run scripts/gpu/run.sh")
+}
+
+#[test]
+fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = run_checklist(out.path(), &["--dry-run"]);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
     let text = std::fs::read_to_string(out.path().join("summary.json")).expect("summary.json");
@@ -74,16 +79,8 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
 
 #[test]
 fn the_gpu_checklist_refuses_an_unknown_item_and_names_the_items() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let out = tempfile::tempdir().expect("tempdir");
-    let o = Command::new("bash")
-        .arg(root.join("scripts/gpu/run.sh"))
-        .args(["--dry-run", "planing-cost"])
-        .env("OUT", out.path())
-        .env("BRIDGEV2W", env!("CARGO_BIN_EXE_bridgev2w"))
-        .current_dir(&root)
-        .output()
-        .expect("run scripts/gpu/run.sh");
+    let o = run_checklist(out.path(), &["--dry-run", "planing-cost"]);
     assert_eq!(o.status.code(), Some(2));
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(
