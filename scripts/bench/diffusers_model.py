@@ -35,6 +35,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--vae-tiling", action="store_true", help="vae.enable_tiling() (default tiles)")
     args = ap.parse_args()
 
     import torch
@@ -83,6 +84,8 @@ def main() -> int:
     del transformer
 
     vae = AutoencoderKLCogVideoX(**vcfg).to(dev, dtype).eval()
+    if args.vae_tiling:
+        vae.enable_tiling()
     video = torch.rand(1, 3, args.frames, args.height, args.width, device=dev, dtype=dtype) * 2 - 1
     latents = torch.randn(1, vcfg.get("latent_channels", 16), lat_f, lat_h, lat_w, device=dev, dtype=dtype)
     with torch.no_grad():

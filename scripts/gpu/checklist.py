@@ -84,10 +84,18 @@ def compare_losses(a, b, name):
 
 def step_seconds(path, name):
     with open(path) as f:
-        secs = [json.loads(line)["secs"] for line in f if line.strip()]
+        rows = [json.loads(line) for line in f if line.strip()]
+    secs = [r["secs"] for r in rows]
     # The first step carries the warm-up (allocator, kernels): left out when there are more.
     timed = secs[1:] if len(secs) > 1 else secs
-    record(name, steps=len(secs), median_step_seconds=statistics.median(timed) if timed else None)
+    record(
+        name,
+        steps=len(secs),
+        median_step_seconds=statistics.median(timed) if timed else None,
+        # > 0 when the flow loss ran (its weight is 0 before e_switch).
+        max_flow_weight=max((r.get("flow_weight", 0.0) for r in rows), default=None),
+        finite_losses=all(math.isfinite(r["loss"]) for r in rows),
+    )
 
 
 def peak_mib(path, name):

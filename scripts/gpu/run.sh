@@ -8,9 +8,10 @@
 # Usage: [OUT=DIR] scripts/gpu/run.sh [--dry-run] [PART|ITEM...]
 #   PART: smoke (environment, predict on CUDA vs the CPU, bf16 training,
 #         one-rank data parallelism; about 3 min on an H100), speed (bench
-#         model at 5B-I2V shapes vs diffusers, a full 50-step predict; about
-#         6 min), training (one full-size training step, planning cost;
-#         about 5 min); default: all three, in that order.
+#         model at 5B-I2V shapes vs diffusers, the tiled VAE, a full 50-step
+#         predict; about 8 min), training (full-size training steps without
+#         and with the flow loss, planning cost; about 8 min); default: all
+#         three, in that order.
 #   ITEM: one item by name (e.g. planning-cost), to rerun it alone.
 #   --dry-run: the same items on the CPU at tiny shapes (the test suite runs
 #         it, so the checklist cannot rot between GPU loans); CUDA-only items
@@ -34,8 +35,10 @@ smoke predict-demo-model 150 0 predict_demo_model
 smoke train-bf16 240 0 train_bf16
 smoke distributed-one-rank 150 0 distributed_one_rank
 speed bench-model 300 0 bench_model
+speed bench-vae-tiled 240 0 bench_vae_tiled
 speed predict-full 240 1 predict_full
 training train-step-full 300 1 train_step_full
+training train-step-flow 300 1 train_step_flow
 training planning-cost 240 0 planning_cost"
 for a in "$@"; do
     case $a in
@@ -226,6 +229,13 @@ bench_model() { # one CFG denoising step and the VAE, this crate vs diffusers, s
     "$PY" "$HERE/checklist.py" bench-table "$WORK/bench-model.txt" bench-model
 }
 
+bench_vae_tiled() { # the VAE with spatial tiling (as predict runs it above 256x256), both sides
+    # One transformer block: the VAE rows are the point.
+    gpu_poll bench-vae-tiled "$BIN" bench model $(sed 's/--layers [0-9]*/--layers 1/' <<< "$BENCH_ARGS") \
+        --vae-tiling --device "$DEVICE" \
+        --python "$PY" --repo "$ROOT" | tee "$WORK/bench-vae-tiled.txt" || return 1
+    "$PY" "$HERE/checklist.py" bench-table "$WORK/bench-vae-tiled.txt" bench-vae-tiled
+}
 predict_full() { # one 50-step prediction at the full size, random weights
     inputs "$WORK/in-25" 25 720 480 || return 1
     local t0=$(now)
@@ -244,6 +254,17 @@ lora_alpha = 64.0"
     "$PY" "$HERE/checklist.py" step-seconds "$WORK/run-full/metrics.jsonl" train-step-full
 }
 
+train_step_flow() { # the same with the flow loss on from the first step (e_switch 0):
+    # the decode of the predicted frames and the flow pass (the Lucas-Kanade
+    # stand-in; RAFT needs weights the GPU machine cannot download)
+    dataset "$WORK/data-25" 25 720 480 1 || return 1
+    config "$WORK/flow.toml" "$WORK/run-flow" "$BIG" "$WORK/data-25" "$DEVICE" bf16 true 3 \
+        "lora_rank = 64
+lora_alpha = 64.0"
+    echo "e_switch = 0" >> "$WORK/flow.toml"
+    gpu_poll train-step-flow "$BIN" train "$WORK/flow.toml" --quiet --overwrite || return 1
+    "$PY" "$HERE/checklist.py" step-seconds "$WORK/run-flow/metrics.jsonl" train-step-flow
+}
 planning_cost() { # the cost of CEM's batched candidate predictions: one CEM iteration
     # of S candidates at 4 and at 20 denoising steps (seconds per planned action
     # at S 64 / T 3 scale with the candidates and the steps; the model load is in)
@@ -257,7 +278,7 @@ planning_cost() { # the cost of CEM's batched candidate predictions: one CEM ite
     done
 }
 export -f environment predict_random_tiny predict_demo_model train_bf16 distributed_one_rank \
-    bench_model predict_full train_step_full planning_cost gpu_poll
+    bench_model bench_vae_tiled predict_full train_step_full train_step_flow planning_cost gpu_poll
 
 # Each part's items in order, or a single item by name, in the order given.
 for part in "${PARTS[@]}"; do

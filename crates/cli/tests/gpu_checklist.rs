@@ -42,11 +42,12 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
         "train-bf16",
         "distributed-one-rank",
         "bench-model",
+        "bench-vae-tiled",
         "planning-cost",
     ] {
         assert_eq!(item(name)["status"], "ok", "{name}: {text}\n{stderr}");
     }
-    for name in ["predict-full", "train-step-full"] {
+    for name in ["predict-full", "train-step-full", "train-step-flow"] {
         assert_eq!(item(name)["status"], "skipped: no CUDA device", "{name}");
     }
     assert_eq!(summary["environment"]["mode"], "dry-run");

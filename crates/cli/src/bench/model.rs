@@ -45,6 +45,10 @@ pub struct ModelBench {
     /// Repository root (holds scripts/bench/); default: found from the current directory.
     #[arg(long)]
     repo: Option<PathBuf>,
+    /// Time the VAE with spatial tiling on both sides (diffusers'
+    /// `enable_tiling()`, default tiles), as `predict` runs it above 256x256.
+    #[arg(long)]
+    vae_tiling: bool,
 }
 
 impl From<&ModelBench> for ModelBenchOptions {
@@ -62,6 +66,7 @@ impl From<&ModelBench> for ModelBenchOptions {
             diffusers: !a.no_diffusers,
             python: a.python.clone(),
             repo: a.repo.clone(),
+            vae_tiling: a.vae_tiling,
         }
     }
 }

@@ -40,6 +40,8 @@ pub struct ModelBenchOptions {
     /// Repository root (holds `scripts/bench/`); default: found from the
     /// current directory.
     pub repo: Option<PathBuf>,
+    /// Time the VAE with spatial tiling (both sides).
+    pub vae_tiling: bool,
 }
 
 impl Default for ModelBenchOptions {
@@ -57,6 +59,7 @@ impl Default for ModelBenchOptions {
             diffusers: true,
             python: None,
             repo: None,
+            vae_tiling: false,
         }
     }
 }
@@ -120,6 +123,8 @@ impl fmt::Display for ModelBenchReport {
         )?;
         let (ours, theirs) = (&self.bridgev2w, self.diffusers.as_ref());
         let forward = format!("transformer forward (b{})", s.batch);
+        let tiled = if s.vae_tiling { " (tiled)" } else { "" };
+        let (encode, decode) = (format!("VAE encode{tiled}"), format!("VAE decode{tiled}"));
         let rows = [
             (
                 forward.as_str(),
@@ -127,12 +132,12 @@ impl fmt::Display for ModelBenchReport {
                 theirs.map(|t| t.transformer_forward_s),
             ),
             (
-                "VAE encode",
+                encode.as_str(),
                 ours.vae_encode_s,
                 theirs.map(|t| t.vae_encode_s),
             ),
             (
-                "VAE decode",
+                decode.as_str(),
                 ours.vae_decode_s,
                 theirs.map(|t| t.vae_decode_s),
             ),
@@ -220,6 +225,7 @@ pub fn bench_model(
         width: a.width,
         text_len: tf.max_text_seq_length,
         batch: a.batch,
+        vae_tiling: a.vae_tiling,
     };
     let gpu = match a.device {
         ComputeDevice::Cuda(i) => Some(i),
@@ -305,6 +311,7 @@ mod tests {
                 width: 192,
                 text_len: 226,
                 batch: 2,
+                vae_tiling: false,
             },
             precision: Precision::F32,
             device: ComputeDevice::Cpu,
@@ -330,6 +337,12 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("bridgev2w n/a, diffusers 12 MiB"), "{text}");
+        report.shape.vae_tiling = true;
+        let text = report.to_string();
+        assert!(
+            text.contains("VAE decode (tiled)              4.000        8.000      2.00x"),
+            "{text}"
+        );
         assert!(
             text.ends_with("could not be queried on this machine)\n"),
             "{text}"

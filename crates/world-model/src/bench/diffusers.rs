@@ -72,7 +72,8 @@ impl DiffusersPeer {
                 .args(["--repeat", &repeat.to_string()])
                 .args(["--batch", &shape.batch.to_string()])
                 .args(["--threads", &torch_threads().to_string()])
-                .args(["--dtype", dtype, "--device", &device.to_string()]),
+                .args(["--dtype", dtype, "--device", &device.to_string()])
+                .args(shape.vae_tiling.then_some("--vae-tiling")),
             SCRIPT,
         )?;
         Ok(ModelTimings {

@@ -52,6 +52,9 @@ pub struct ModelBenchShape {
     /// Transformer batch: 2 is one denoising step with classifier-free
     /// guidance (conditional and unconditional halves in one forward).
     pub batch: i64,
+    /// The VAE runs with spatial tiling (diffusers' `enable_tiling()`, default
+    /// tile sizes), as `predict` does above 256x256.
+    pub vae_tiling: bool,
 }
 
 /// Seconds (best of `repeat`, after a warm-up) of each operation.
@@ -140,7 +143,10 @@ pub fn time_model(
     })?;
     drop(tf);
     let mut vs = VarStore::new(tch::Device::Cpu);
-    let vae = AutoencoderKLCogVideoX::new(vae_cfg, vs.root())?;
+    let mut vae = AutoencoderKLCogVideoX::new(vae_cfg, vs.root())?;
+    if shape.vae_tiling {
+        vae.enable_tiling(crate::vae::TilingOptions::default())?;
+    }
     vs.set_kind(kind);
     crate::device::move_to_device(&mut vs, dev);
     let video =
