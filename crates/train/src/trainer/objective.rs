@@ -177,11 +177,31 @@ impl Trainer {
         };
         let mut flow = 0.0;
         let total = if fw > 0.0 {
-            let decoded = model.decode_latents_with_grad(&x0)?.clamp(-1.0, 1.0);
-            let gt = batch.video.to_device(decoded.device());
-            let fl = flow_loss(self.estimator.as_ref(), &decoded, &gt, &self.flow_cfg)?;
+            // The decode runs without autograd and the flow loss's gradient
+            // is pushed back through it batch by batch (exact, and bounded
+            // in memory: see `vae::DecodeRecord`); `pushed` carries it into x0.
+            let (decoded, record) = model.decode_latents_recorded(&x0)?;
+            let leaf = decoded.detach().set_requires_grad(true);
+            let gt = batch.video.to_device(leaf.device());
+            let fl = flow_loss(
+                self.estimator.as_ref(),
+                &leaf.clamp(-1.0, 1.0),
+                &gt,
+                &self.flow_cfg,
+            )?;
             flow = fl.double_value(&[]);
             check_finite(step, "flow", flow)?;
+            let grad_video = Tensor::f_run_backward(&[&fl], &[&leaf], false, false)?.remove(0);
+            // Undefined when no pixel moves in either video (nothing to push back).
+            let grad_video = if grad_video.defined() {
+                grad_video
+            } else {
+                leaf.zeros_like()
+            };
+            let grad_x0 = model.decode_latents_backward(&record, &grad_video, x0.kind())?;
+            let pushed = (&x0 * grad_x0).sum(Kind::Float);
+            // The value of the flow loss, the gradient of it through x0.
+            let fl = &pushed - pushed.detach() + fl.detach();
             total + fl * fw
         } else {
             total

@@ -114,6 +114,27 @@ pub struct DecoderCache {
     conv_out: Option<Tensor>,
 }
 
+impl DecoderCache {
+    /// Every cached tensor, in a fixed order (the one [`Self::map`] visits).
+    pub fn tensors(&self) -> Vec<&Tensor> {
+        let mut all: Vec<&Tensor> = self.conv_in.iter().collect();
+        all.extend(self.mid_block.tensors());
+        all.extend(self.up_blocks.iter().flat_map(BlockCache::tensors));
+        all.extend(self.conv_out.iter());
+        all
+    }
+
+    /// The same cache with `f` applied to every tensor, in [`Self::tensors`]' order.
+    pub fn map(&self, f: &mut dyn FnMut(&Tensor) -> Tensor) -> Self {
+        Self {
+            conv_in: self.conv_in.as_ref().map(&mut *f),
+            mid_block: self.mid_block.map(f),
+            up_blocks: self.up_blocks.iter().map(|b| b.map(f)).collect(),
+            conv_out: self.conv_out.as_ref().map(&mut *f),
+        }
+    }
+}
+
 /// diffusers' `CogVideoXDecoder3D`: `conv_in`, `mid_block`, `up_blocks.i` (the first
 /// `log2(temporal_compression_ratio)` doubling time, all but the last doubling space),
 /// `norm_out`, SiLU, `conv_out`; every norm is a spatial norm conditioned on the

@@ -15,6 +15,7 @@
 
 mod coder;
 mod config;
+mod decode_backward;
 mod init;
 pub mod layers;
 mod posterior;
@@ -30,6 +31,7 @@ use tch::{Kind, Tensor};
 
 pub use coder::{DecoderCache, EncoderCache};
 pub use config::{VaeConfig, DOWN_BLOCK_TYPE, UP_BLOCK_TYPE};
+pub use decode_backward::DecodeRecord;
 pub use init::{inflate_image_weights, init_like_pytorch};
 pub use posterior::Posterior;
 pub use tiling::{Tiling, TilingOptions};
@@ -317,12 +319,7 @@ impl AutoencoderKLCogVideoX {
         let mut cache: Option<DecoderCache> = None;
         let mut parts = Vec::new();
         for (start, end) in frame_batches(z.size()[2], self.num_latent_frames_batch_size) {
-            let chunk = z.narrow(2, start, end - start);
-            let chunk = match &self.post_quant_conv {
-                Some(conv) => conv.forward(&chunk)?,
-                None => chunk,
-            };
-            let (h, c) = self.decoder.forward(&chunk, cache.as_ref())?;
+            let (h, c) = self.decode_batch(&z.narrow(2, start, end - start), cache.as_ref())?;
             cache = Some(c);
             parts.push(h);
         }

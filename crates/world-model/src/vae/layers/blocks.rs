@@ -51,6 +51,21 @@ pub struct ResnetCache {
     conv2: Option<Tensor>,
 }
 
+impl ResnetCache {
+    /// Every cached tensor, in a fixed order (the one [`Self::map`] visits).
+    pub fn tensors(&self) -> Vec<&Tensor> {
+        self.conv1.iter().chain(self.conv2.iter()).collect()
+    }
+
+    /// The same cache with `f` applied to every tensor, in [`Self::tensors`]' order.
+    pub fn map(&self, f: &mut dyn FnMut(&Tensor) -> Tensor) -> Self {
+        Self {
+            conv1: self.conv1.as_ref().map(&mut *f),
+            conv2: self.conv2.as_ref().map(&mut *f),
+        }
+    }
+}
+
 /// diffusers' `CogVideoXResnetBlock3D` without time embedding (`temb_channels = 0`, as
 /// everywhere in the VAE): `norm1 -> act -> conv1 -> norm2 -> act -> conv2` plus the
 /// input, through a 1×1×1 `conv_shortcut` when the channel counts differ.
@@ -155,6 +170,20 @@ impl ResnetBlock3D {
 #[derive(Debug, Default)]
 pub struct BlockCache {
     resnets: Vec<ResnetCache>,
+}
+
+impl BlockCache {
+    /// Every cached tensor, resnet by resnet (the order [`Self::map`] visits).
+    pub fn tensors(&self) -> Vec<&Tensor> {
+        self.resnets.iter().flat_map(ResnetCache::tensors).collect()
+    }
+
+    /// The same cache with `f` applied to every tensor, in [`Self::tensors`]' order.
+    pub fn map(&self, f: &mut dyn FnMut(&Tensor) -> Tensor) -> Self {
+        Self {
+            resnets: self.resnets.iter().map(|r| r.map(f)).collect(),
+        }
+    }
 }
 
 fn resnets_forward(
