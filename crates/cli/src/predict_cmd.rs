@@ -179,9 +179,6 @@ fn read_masks(path: &Path, frames: usize, (h, w): (usize, usize)) -> Result<Mask
     })
 }
 
-/// Frames with more pixels than this use VAE tiling unless `--no-vae-tiling`.
-const TILING_MIN_PIXELS: usize = 256 * 256;
-
 /// One clip of a call: its masks and the subfolder of --out it goes to
 /// (`None`: --out itself, the single-clip layout).
 #[derive(Debug, Clone, PartialEq)]
@@ -292,7 +289,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
     let mut model = load_model(a)?;
     let res = model.resolution();
     // Memory-motivated, as diffusers' CogVideoX examples: tile frames above 256x256.
-    if !a.no_vae_tiling && res.0 * res.1 > TILING_MIN_PIXELS {
+    if !a.no_vae_tiling && res.0 * res.1 > bridgev2w_world_model::vae::TILING_MIN_PIXELS {
         model.vae.enable_tiling(TilingOptions::default())?;
     }
     let image = read_image(&a.image, res)?;

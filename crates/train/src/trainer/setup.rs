@@ -146,6 +146,15 @@ impl Trainer {
             data.set_mask_coding(cfg.model.mask_coding)?;
         }
         let mut model = build_model(&cfg, device, frames, height, width)?;
+        if cfg.train.stage != Stage::Vae
+            && height * width > bridgev2w_world_model::vae::TILING_MIN_PIXELS
+        {
+            // As `predict` runs the VAE at these sizes: the clips' encoding
+            // and the flow loss's decode in tiles (memory).
+            model
+                .vae
+                .enable_tiling(bridgev2w_world_model::vae::TilingOptions::default())?;
+        }
         let tf_cfg = model.transformer.model.config().clone();
         let train_backbone =
             cfg.model.train_backbone || !cfg.ablation.pretrained || cfg.model.transformer.is_some();

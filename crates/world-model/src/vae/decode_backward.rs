@@ -11,33 +11,67 @@
 //! result is the exact gradient of `sum(decode(z) * grad_video)` with respect
 //! to `z` (the same as autograd through [`AutoencoderKLCogVideoX::decode_with_grad`],
 //! up to float rounding), holding one batch's activations at a time, at the
-//! price of a second decoder pass.
+//! price of a second decoder pass. With tiling enabled (as `predict` runs the
+//! VAE above 256x256), each spatial tile keeps its own record and the
+//! blending's gradient comes from autograd: then one tile's batch at a time.
 
+use super::tiling::tiled;
 use super::{check_rank5, frame_batches, AutoencoderKLCogVideoX, DecoderCache};
 use crate::error::{Result, WorldModelError};
+use std::cell::RefCell;
 use tch::{Kind, Tensor};
 
 /// What [`AutoencoderKLCogVideoX::decode_recorded`] keeps for
 /// [`AutoencoderKLCogVideoX::decode_backward`].
 #[derive(Debug)]
 pub struct DecodeRecord {
-    /// The latents in the model's dtype, `[B, C, t, h, w]`.
-    z: Tensor,
     /// The dtype of the caller's latents (the gradient's).
     kind: Kind,
+    /// The latents' shape.
+    latent_shape: Vec<i64>,
+    /// The decoded video's shape.
+    video_shape: Vec<i64>,
+    /// Untiled or tiled.
+    form: Form,
+}
+
+#[derive(Debug)]
+enum Form {
+    /// The whole frame at once.
+    Whole(BatchRecord),
+    /// Spatial tiles: the blended video (with autograd back to each tile's
+    /// output, a leaf) and each tile's record.
+    Tiled {
+        video: Tensor,
+        tiles: Vec<TileRecord>,
+    },
+}
+
+/// One spatial tile: its latent origin, its output leaf and its record.
+#[derive(Debug)]
+struct TileRecord {
+    origin: (i64, i64),
+    output: Tensor,
+    record: BatchRecord,
+}
+
+/// One decode over latent-frame batches.
+#[derive(Debug)]
+struct BatchRecord {
+    /// The latents in the model's dtype, `[B, C, t, h, w]`.
+    z: Tensor,
     /// The latent-frame batches, `(start, end)`.
     batches: Vec<(i64, i64)>,
     /// The cache each batch started from (`None` for the first).
     caches: Vec<Option<DecoderCache>>,
     /// The pixel frames each batch produced.
     frames: Vec<i64>,
-    /// The decoded video's shape.
-    video_shape: Vec<i64>,
 }
 
 impl AutoencoderKLCogVideoX {
-    /// [`Self::decode`] (untiled, the whole batch at once) that also returns
-    /// the record [`Self::decode_backward`] needs.
+    /// [`Self::decode`] (the whole batch at once; tiled when tiling is on and
+    /// the latents exceed a tile) that also returns the record
+    /// [`Self::decode_backward`] needs.
     pub fn decode_recorded(&self, latents: &Tensor) -> Result<(Tensor, DecodeRecord)> {
         check_rank5(
             latents,
@@ -46,8 +80,41 @@ impl AutoencoderKLCogVideoX {
             "latent_channels",
         )?;
         super::check_finite(latents, "latents")?;
+        let z = tch::no_grad(|| self.to_model(&latents.detach()));
+        let s = z.size();
+        let (video, form) = if self.tiles_latents(s[3], s[4]) {
+            let tiles = RefCell::new(Vec::new());
+            // Autograd on for the blending only (each tile's decode runs without).
+            let video = tch::with_grad(|| {
+                tiled(&z, &self.decode_geometry(), |tile, origin| {
+                    let (out, record) = self.decode_batches(tile)?;
+                    let output = out.set_requires_grad(true);
+                    tiles.borrow_mut().push(TileRecord {
+                        origin,
+                        output: output.shallow_clone(),
+                        record,
+                    });
+                    Ok(output)
+                })
+            })?;
+            let tiles = tiles.into_inner();
+            (video.detach(), Form::Tiled { video, tiles })
+        } else {
+            let (video, record) = self.decode_batches(&z)?;
+            (video, Form::Whole(record))
+        };
+        let record = DecodeRecord {
+            kind: latents.kind(),
+            latent_shape: s,
+            video_shape: video.size(),
+            form,
+        };
+        Ok((video, record))
+    }
+
+    /// The batches of one (untiled) decode, without autograd, recorded.
+    fn decode_batches(&self, z: &Tensor) -> Result<(Tensor, BatchRecord)> {
         let _guard = tch::no_grad_guard();
-        let z = self.to_model(&latents.detach());
         let batches = frame_batches(z.size()[2], self.num_latent_frames_batch_size);
         let (mut cache, mut caches, mut parts) = (None, Vec::new(), Vec::new());
         for &(start, end) in &batches {
@@ -57,13 +124,11 @@ impl AutoencoderKLCogVideoX {
         }
         let frames = parts.iter().map(|p| p.size()[2]).collect();
         let video = Tensor::f_cat(&parts, 2)?;
-        let record = DecodeRecord {
-            z,
-            kind: latents.kind(),
+        let record = BatchRecord {
+            z: z.shallow_clone(),
             batches,
             caches,
             frames,
-            video_shape: video.size(),
         };
         Ok((video, record))
     }
@@ -84,6 +149,37 @@ impl AutoencoderKLCogVideoX {
                 ),
             ));
         }
+        let grad = match &record.form {
+            Form::Whole(r) => self.batches_backward(r, grad_video)?,
+            Form::Tiled { video, tiles } => {
+                let outputs: Vec<&Tensor> = tiles.iter().map(|t| &t.output).collect();
+                let objective = (video * grad_video.to_kind(video.kind())).sum(Kind::Float);
+                // The blending's adjoint: each tile output's share of the gradient.
+                let tile_grads =
+                    tch::with_grad(|| Tensor::f_run_backward(&[objective], &outputs, true, false))?;
+                let grad = Tensor::zeros(
+                    record.latent_shape.as_slice(),
+                    (Kind::Float, grad_video.device()),
+                );
+                for (tile, g) in tiles.iter().zip(tile_grads) {
+                    if !g.defined() {
+                        continue; // a tile the crop dropped entirely
+                    }
+                    let gz = self.batches_backward(&tile.record, &g)?;
+                    let s = gz.size();
+                    let (i, j) = tile.origin;
+                    let mut view = grad.narrow(3, i, s[3]).narrow(4, j, s[4]);
+                    view += gz.to_kind(Kind::Float);
+                }
+                grad
+            }
+        };
+        Ok(grad.to_kind(record.kind))
+    }
+
+    /// [`Self::decode_backward`] of one untiled decode: the gradient with
+    /// respect to its latents (model dtype).
+    fn batches_backward(&self, record: &BatchRecord, grad_video: &Tensor) -> Result<Tensor> {
         let mut offsets = Vec::with_capacity(record.frames.len());
         let mut at = 0;
         for f in &record.frames {
@@ -138,7 +234,7 @@ impl AutoencoderKLCogVideoX {
             grad_cache = g_cache;
         }
         grads.reverse();
-        Ok(Tensor::f_cat(&grads, 2)?.to_kind(record.kind))
+        Ok(Tensor::f_cat(&grads, 2)?)
     }
 
     /// `post_quant_conv`, then the decoder on one latent-frame batch.

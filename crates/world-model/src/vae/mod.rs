@@ -32,6 +32,11 @@ use tch::{Kind, Tensor};
 pub use coder::{DecoderCache, EncoderCache};
 pub use config::{VaeConfig, DOWN_BLOCK_TYPE, UP_BLOCK_TYPE};
 pub use decode_backward::DecodeRecord;
+
+/// Frames with more pixels than this are run through the VAE in tiles by
+/// `predict` and training (memory; diffusers' CogVideoX examples tile above
+/// 256x256).
+pub const TILING_MIN_PIXELS: usize = 256 * 256;
 pub use init::{inflate_image_weights, init_like_pytorch};
 pub use posterior::Posterior;
 pub use tiling::{Tiling, TilingOptions};
@@ -304,10 +309,7 @@ impl AutoencoderKLCogVideoX {
     /// diffusers' `_decode`: one sample (or the whole batch), tiled or in frame batches.
     fn decode_one(&self, z: &Tensor) -> Result<Tensor> {
         let s = z.size();
-        if self.use_tiling
-            && (s[4] > self.tiling.tile_latent_min_width
-                || s[3] > self.tiling.tile_latent_min_height)
-        {
+        if self.tiles_latents(s[3], s[4]) {
             return self.tiled_decode(z);
         }
         self.decode_frames(z)

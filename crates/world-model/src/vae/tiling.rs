@@ -162,13 +162,20 @@ impl AutoencoderKLCogVideoX {
             out_tile_h: t.tile_latent_min_height,
             out_tile_w: t.tile_latent_min_width,
         };
-        tiled(x, &geometry, |tile| self.encode_frames(tile))
+        tiled(x, &geometry, |tile, _| self.encode_frames(tile))
     }
 
     /// diffusers' `tiled_decode`.
     pub(super) fn tiled_decode(&self, z: &Tensor) -> Result<Tensor> {
+        tiled(z, &self.decode_geometry(), |tile, _| {
+            self.decode_frames(tile)
+        })
+    }
+
+    /// The tiles of [`Self::tiled_decode`].
+    pub(super) fn decode_geometry(&self) -> TileGeometry {
         let t = &self.tiling;
-        let geometry = TileGeometry {
+        TileGeometry {
             tile_h: t.tile_latent_min_height,
             tile_w: t.tile_latent_min_width,
             stride_h: tile_stride(t.tile_latent_min_height, t.tile_overlap_factor_height),
@@ -177,8 +184,14 @@ impl AutoencoderKLCogVideoX {
             blend_w: (t.tile_sample_min_width as f64 * t.tile_overlap_factor_width) as i64,
             out_tile_h: t.tile_sample_min_height,
             out_tile_w: t.tile_sample_min_width,
-        };
-        tiled(z, &geometry, |tile| self.decode_frames(tile))
+        }
+    }
+
+    /// Whether [`Self::decode`] tiles latents of this spatial size.
+    pub(super) fn tiles_latents(&self, height: i64, width: i64) -> bool {
+        self.use_tiling
+            && (width > self.tiling.tile_latent_min_width
+                || height > self.tiling.tile_latent_min_height)
     }
 }
 
@@ -188,7 +201,7 @@ fn tile_stride(size: i64, overlap: f64) -> i64 {
 }
 
 /// Tile sizes of the input and output side of a tiled encode or decode.
-struct TileGeometry {
+pub(super) struct TileGeometry {
     /// Input tile size.
     tile_h: i64,
     tile_w: i64,
@@ -203,10 +216,15 @@ struct TileGeometry {
     out_tile_w: i64,
 }
 
-/// Runs `f` on overlapping tiles of `x [B, C, T, H, W]`, blends each output tile with
+/// Runs `f` on overlapping tiles of `x [B, C, T, H, W]` (with each tile's
+/// origin, row and column), blends each output tile with
 /// its upper and left neighbours (already blended, as diffusers modifies its tiles in
 /// place), keeps the first `out_tile - blend` rows/columns of each and concatenates.
-fn tiled(x: &Tensor, g: &TileGeometry, f: impl Fn(&Tensor) -> Result<Tensor>) -> Result<Tensor> {
+pub(super) fn tiled(
+    x: &Tensor,
+    g: &TileGeometry,
+    mut f: impl FnMut(&Tensor, (i64, i64)) -> Result<Tensor>,
+) -> Result<Tensor> {
     let s = x.size();
     let (height, width) = (s[3], s[4]);
     let mut rows: Vec<Vec<Tensor>> = Vec::new();
@@ -219,7 +237,7 @@ fn tiled(x: &Tensor, g: &TileGeometry, f: impl Fn(&Tensor) -> Result<Tensor>) ->
             let tile =
                 x.narrow(3, i, g.tile_h.min(height - i))
                     .narrow(4, j, g.tile_w.min(width - j));
-            row.push(f(&tile)?);
+            row.push(f(&tile, (i, j))?);
             j += g.stride_w;
         }
         rows.push(row);
