@@ -20,7 +20,7 @@
 #      PSNR per predicted frame) and links to the GIFs.
 #
 # Usage: scripts/reproduce-synthetic.sh [OUT_DIR]      (default runs/reproduce)
-# Budgets (environment, defaults sized for ~2.5 h on a 2-core CPU):
+# Budgets (environment, defaults sized for ~2.8 h on a 2-core CPU):
 #   VAE_IMAGE_STEPS VAE_STEPS PRIOR_STEPS FT_STEPS EVAL_VIDEOS EVAL_STEPS RESULTS
 #   EPISODES TASKS PRESET IMAGE_CONDITIONING MASK_CODING
 # Rerunning resumes: a finished stage is kept, a cut one resumes from its last
@@ -37,7 +37,7 @@ ROOT=$PWD
 OUT=${1:-runs/reproduce}
 VAE_IMAGE_STEPS=${VAE_IMAGE_STEPS:-2500}
 VAE_STEPS=${VAE_STEPS:-300}
-PRIOR_STEPS=${PRIOR_STEPS:-4000}
+PRIOR_STEPS=${PRIOR_STEPS:-3000}
 FT_STEPS=${FT_STEPS:-2000}
 EVAL_VIDEOS=${EVAL_VIDEOS:-12}
 # Denoising steps of the evaluation: 2, chosen on the training split (the
@@ -60,8 +60,9 @@ EPISODES=${EPISODES:-240,12,12,12}
 TASKS=${TASKS:-reach,push,pick_place,play,play,play}
 # The VAE/transformer presets: small2x (2x space, no time compression,
 # patches of 4, a transformer 128 wide), small2x-wide (the same, 256 wide)
-# or small (4x space and time, patches of 2).
-PRESET=${PRESET:-small2x}
+# or small (4x space and time, patches of 2). small2x-wide is the default
+# since session 28 (the link-coded wide model, docs/results.md).
+PRESET=${PRESET:-small2x-wide}
 # The autoencoder stages depend only on the VAE, which small2x and
 # small2x-wide share: their runs are shared (a small2x-wide prior takes a
 # fresh transformer of its preset, model.transformer; the others keep the
@@ -81,8 +82,9 @@ IMAGE_CONDITIONING=${IMAGE_CONDITIONING:-every_frame}
 # How BridgeV2W's masks fill the mask branch's three channels: binary (the
 # paper's silhouette) or links (link-coded from the dataset's labels/, beyond
 # the paper). Only a non-binary coding is written into the config, so runs
-# made before this setting keep their fingerprints.
-MASK_CODING=${MASK_CODING:-binary}
+# made before this setting keep their fingerprints. links is the default
+# since session 28 (+2.3 to +2.9 dB over binary masks, docs/results.md).
+MASK_CODING=${MASK_CODING:-links}
 case $MASK_CODING in
 binary | links) ;;
 *) echo "error: MASK_CODING=$MASK_CODING: expected binary or links" >&2; exit 1 ;;

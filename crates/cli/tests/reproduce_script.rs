@@ -201,37 +201,39 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         trained(&shorter),
         ["prior", "bridgev2w", "ablation-action-mlp"]
     );
-    // Another transformer width: the autoencoders (the same VAE) are kept,
-    // the prior is a fresh transformer of that preset (small2x's prior keeps
-    // its backbone's own, as before model.transformer existed).
-    let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
-    assert!(!prior.contains("transformer ="), "{prior}");
-    let wide = run(r, &[("PRIOR_STEPS", "8"), ("PRESET", "small2x-wide")]);
-    assert_eq!(
-        trained(&wide),
-        ["prior", "bridgev2w", "ablation-action-mlp"]
-    );
+    // The default recipe: the wide transformer (a fresh one for the prior,
+    // model.transformer) and link-coded masks for BridgeV2W only.
     let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
     assert!(
         prior.contains("\ntransformer = \"small2x-wide\"\nlora_rank"),
         "{prior}"
     );
-    // Link-coded masks: only BridgeV2W is fine-tuned again (the ablation
-    // has no masks), with the coding in its config; the binary config has no
-    // such line (the fingerprints of earlier runs).
-    let wide = [("PRIOR_STEPS", "8"), ("PRESET", "small2x-wide")];
     let bw = || fs::read_to_string(r.join("runs/r/configs/bridgev2w.toml")).expect("config");
-    assert!(!bw().contains("mask_coding"), "{}", bw());
-    let links = run(r, &[wide[0], wide[1], ("MASK_CODING", "links")]);
-    assert_eq!(trained(&links), ["bridgev2w"], "{links:?}");
-    assert!(bw().contains("\nmask_coding = \"links\"\n"), "{}", bw());
     let ablation =
-        fs::read_to_string(r.join("runs/r/configs/ablation-action-mlp.toml")).expect("ablation");
-    assert!(!ablation.contains("mask_coding"), "{ablation}");
+        || fs::read_to_string(r.join("runs/r/configs/ablation-action-mlp.toml")).expect("ablation");
+    assert!(bw().contains("\nmask_coding = \"links\"\n"), "{}", bw());
+    assert!(!ablation().contains("mask_coding"), "{}", ablation());
+    // Another transformer width: the autoencoders (the same VAE) are kept,
+    // the prior of small2x keeps its backbone's own transformer.
+    let narrow = [("PRIOR_STEPS", "8"), ("PRESET", "small2x")];
+    let run_narrow = |coding: &str| run(r, &[narrow[0], narrow[1], ("MASK_CODING", coding)]);
+    assert_eq!(
+        trained(&run_narrow("links")),
+        ["prior", "bridgev2w", "ablation-action-mlp"]
+    );
+    let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
+    assert!(!prior.contains("transformer ="), "{prior}");
+    // The paper's binary masks: only BridgeV2W is fine-tuned again (the
+    // ablation has no masks), and its config has no coding line (the
+    // fingerprints of runs made before the setting existed).
+    let binary = run_narrow("binary");
+    assert_eq!(trained(&binary), ["bridgev2w"], "{binary:?}");
+    assert!(!bw().contains("mask_coding"), "{}", bw());
+    assert_eq!(trained(&run_narrow("links")), ["bridgev2w"]);
     // A dataset written before synth stored link labels is written again
     // (same arguments, same episodes): nothing trained on it is redone.
     fs::remove_dir_all(r.join("runs/r/synth/labels")).expect("rm labels");
-    let rewritten = run(r, &[wide[0], wide[1], ("MASK_CODING", "links")]);
+    let rewritten = run_narrow("links");
     assert_eq!(rewritten[0], "synth", "{rewritten:?}");
     assert!(trained(&rewritten).is_empty(), "{rewritten:?}");
     // An unknown coding is refused before anything runs.
