@@ -3,7 +3,10 @@
 # as the shipped demo model, assets/demo-model (the default model of
 # `bridgev2w demo`): the prior's backbone folder, the fine-tuned weights and
 # the fine-tuning config with paths relative to the repository root.
-# Called by reproduce-synthetic.sh with EXPORT_DEMO=1.
+# Called by reproduce-synthetic.sh with EXPORT_DEMO=1. The weights are
+# stored in float16 (half the size in git; the loaders cast to the model's
+# dtype), their safetensors metadata (the mask coding) kept; HALF_WEIGHTS=0
+# keeps them as trained (float32).
 #
 # Usage: scripts/export-demo.sh [OUT_DIR]      (default runs/reproduce)
 set -euo pipefail
@@ -26,5 +29,21 @@ cp "$OUT/bridgev2w/final/weights.safetensors" assets/demo-model.tmp/bridgev2w.sa
     sed -e "s|\"$OUT/prior/final/backbone\"|\"assets/demo-model/backbone\"|" \
         -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w.toml"
 } >assets/demo-model.tmp/train-config.toml
+PY=${PYTHON:-.venv/bin/python}
+if [[ ${HALF_WEIGHTS:-1} != 0 ]]; then
+[[ -x $PY ]] || { echo "error: $PY not found: run scripts/setup-venv.sh first" >&2; exit 1; }
+"$PY" - assets/demo-model.tmp <<'PYTHON'
+import pathlib, sys
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+for path in sorted(pathlib.Path(sys.argv[1]).rglob("*.safetensors")):
+    with safe_open(str(path), "pt") as f:
+        meta = f.metadata()
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    half = {k: t.half() if t.dtype == torch.float32 else t for k, t in tensors.items()}
+    save_file(half, str(path), metadata=meta)
+PYTHON
+fi
 rm -rf assets/demo-model && mv assets/demo-model.tmp assets/demo-model
 du -sh assets/demo-model

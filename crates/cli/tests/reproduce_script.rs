@@ -256,7 +256,8 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
 fn the_exported_demo_config_names_repository_paths() {
     let root = sandbox();
     let r = root.path();
-    run(r, &[("EXPORT_DEMO", "1")]);
+    // The fake's weights are empty files: kept as they are, not halved.
+    run(r, &[("EXPORT_DEMO", "1"), ("HALF_WEIGHTS", "0")]);
     let cfg = fs::read_to_string(r.join("assets/demo-model/train-config.toml")).expect("config");
     assert!(
         cfg.contains("backbone = \"assets/demo-model/backbone\""),
