@@ -16,7 +16,7 @@
 //! blending's gradient comes from autograd: then one tile's batch at a time.
 
 use super::tiling::tiled;
-use super::{check_rank5, frame_batches, AutoencoderKLCogVideoX, DecoderCache};
+use super::{frame_batches, AutoencoderKLCogVideoX, DecoderCache};
 use crate::error::{Result, WorldModelError};
 use std::cell::RefCell;
 use tch::{Kind, Tensor};
@@ -73,13 +73,7 @@ impl AutoencoderKLCogVideoX {
     /// the latents exceed a tile) that also returns the record
     /// [`Self::decode_backward`] needs.
     pub fn decode_recorded(&self, latents: &Tensor) -> Result<(Tensor, DecodeRecord)> {
-        check_rank5(
-            latents,
-            "latents",
-            self.cfg.latent_channels,
-            "latent_channels",
-        )?;
-        super::check_finite(latents, "latents")?;
+        self.check_latents(latents)?;
         let z = tch::no_grad(|| self.to_model(&latents.detach()));
         let s = z.size();
         let (video, form) = if self.tiles_latents(s[3], s[4]) {

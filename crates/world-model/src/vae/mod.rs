@@ -219,16 +219,11 @@ impl AutoencoderKLCogVideoX {
 
     /// [`Self::decode`] with autograd on: gradients flow from the decoded
     /// video back into `latents` (and into the decoder's parameters when they
-    /// are trainable; frozen otherwise).
-    /// Training's flow loss decodes predicted latents through this.
+    /// are trainable; frozen otherwise). The `vae` stage's reconstruction
+    /// loss decodes through this; the flow loss through
+    /// [`Self::decode_recorded`] (bounded memory).
     pub fn decode_with_grad(&self, latents: &Tensor) -> Result<Tensor> {
-        check_rank5(
-            latents,
-            "latents",
-            self.cfg.latent_channels,
-            "latent_channels",
-        )?;
-        check_finite(latents, "latents")?;
+        self.check_latents(latents)?;
         let z = self.to_model(latents);
         let b = z.size()[0];
         if self.use_slicing && b > 1 {
@@ -326,6 +321,19 @@ impl AutoencoderKLCogVideoX {
             parts.push(h);
         }
         Ok(Tensor::f_cat(&parts, 2)?)
+    }
+}
+
+impl AutoencoderKLCogVideoX {
+    /// Latents to decode: `[B, latent_channels, t, h, w]`, finite.
+    fn check_latents(&self, latents: &Tensor) -> Result<()> {
+        check_rank5(
+            latents,
+            "latents",
+            self.cfg.latent_channels,
+            "latent_channels",
+        )?;
+        check_finite(latents, "latents")
     }
 }
 

@@ -107,93 +107,77 @@ fn config_parses_diffusers_json() {
     assert_eq!(cfg, VaeConfig::cogvideox_5b_i2v());
 }
 
-#[test]
-fn decode_backward_matches_autograd_through_the_whole_decode() {
-    tch::manual_seed(3);
-    let cfg = VaeConfig::tiny();
-    let vs = VarStore::new(tch::Device::Cpu);
-    let vae = AutoencoderKLCogVideoX::new(&cfg, vs.root()).expect("vae");
-    init_like_pytorch(&vs);
-    // 5 latent frames: three batches (1, 2, 2) linked by the conv caches.
-    let z = Tensor::randn(
-        [1, cfg.latent_channels, 5, 3, 4],
-        (Kind::Float, tch::Device::Cpu),
-    );
-    let (video, record) = vae.decode_recorded(&z).expect("recorded");
-    let plain = vae.decode(&z).expect("decode");
+/// `decode_recorded` + `decode_backward` against `decode` and autograd
+/// through `decode_with_grad` on `z`: the same video, the same gradient of
+/// `sum(video * g)` (within 1e-5 of its largest value). Returns `g` and the
+/// reference gradient.
+fn check_decode_backward(vae: &AutoencoderKLCogVideoX, z: &Tensor) -> (Tensor, Tensor) {
+    let max = |t: Tensor| f64::try_from(t.abs().max()).expect("max");
+    let (video, record) = vae.decode_recorded(z).expect("recorded");
+    let plain = vae.decode(z).expect("decode");
     assert_eq!(video.size(), plain.size());
-    assert!(f64::try_from((&video - &plain).abs().max()).expect("max") < 1e-6);
+    assert!(max(&video - &plain) < 1e-6);
     let g = Tensor::randn(video.size(), (Kind::Float, tch::Device::Cpu));
     let ours = vae.decode_backward(&record, &g).expect("backward");
     let leaf = z.detach().set_requires_grad(true);
     let out = vae.decode_with_grad(&leaf).expect("with grad");
-    let reference = Tensor::run_backward(&[(&out * &g).sum(Kind::Float)], &[&leaf], false, false);
-    let reference = &reference[0];
+    let objective = (&out * &g).sum(Kind::Float);
+    let reference = Tensor::run_backward(&[objective], &[&leaf], false, false).remove(0);
     assert_eq!(ours.size(), z.size());
-    let err = f64::try_from((&ours - reference).abs().max()).expect("max");
-    let scale = f64::try_from(reference.abs().max()).expect("max");
+    let (err, scale) = (max(&ours - &reference), max(reference.shallow_clone()));
     assert!(
         scale > 0.0 && err <= 1e-5 * scale,
         "max error {err} of {scale}"
-    );
-    // Without the caches' gradients, the earlier batches' latents would
-    // miss the later frames' share: each batch's gradient depends on them.
-    let first = record_free_first_batch_gradient(&vae, &z, &g);
-    let diff = f64::try_from((&first - reference.narrow(2, 0, 1)).abs().max()).expect("max");
-    assert!(
-        diff > 1e-4 * scale,
-        "the caches carried no gradient ({diff})"
     );
     let e = vae
         .decode_backward(&record, &g.narrow(2, 0, 2))
         .expect_err("wrong shape")
         .to_string();
     assert!(e.contains("expected the decoded video's"), "{e}");
+    (g, reference)
 }
 
-/// The first batch's gradient from its own frames only (no cache gradient).
-fn record_free_first_batch_gradient(
-    vae: &AutoencoderKLCogVideoX,
-    z: &Tensor,
-    g: &Tensor,
-) -> Tensor {
+/// A `VaeConfig::tiny()` VAE with PyTorch's initialisation from `seed`.
+fn tiny_vae(seed: i64) -> (VarStore, AutoencoderKLCogVideoX) {
+    tch::manual_seed(seed);
+    let vs = VarStore::new(tch::Device::Cpu);
+    let vae = AutoencoderKLCogVideoX::new(&VaeConfig::tiny(), vs.root()).expect("vae");
+    init_like_pytorch(&vs);
+    (vs, vae)
+}
+
+#[test]
+fn decode_backward_matches_autograd_through_the_whole_decode() {
+    let (_vs, vae) = tiny_vae(3);
+    let c = VaeConfig::tiny().latent_channels;
+    // 5 latent frames: three batches (1, 2, 2) linked by the conv caches.
+    let z = Tensor::randn([1, c, 5, 3, 4], (Kind::Float, tch::Device::Cpu));
+    let (g, reference) = check_decode_backward(&vae, &z);
+    // Without the caches' gradients, the first batch's latents would miss
+    // the later frames' share of their gradient.
     let leaf = z.narrow(2, 0, 1).detach().set_requires_grad(true);
     let out = vae.decode_with_grad(&leaf).expect("first batch");
-    let frames = out.size()[2];
-    let objective = (&out * g.narrow(2, 0, frames)).sum(Kind::Float);
-    Tensor::run_backward(&[objective], &[&leaf], false, false).remove(0)
+    let objective = (&out * g.narrow(2, 0, out.size()[2])).sum(Kind::Float);
+    let own = Tensor::run_backward(&[objective], &[&leaf], false, false).remove(0);
+    let diff = f64::try_from((own - reference.narrow(2, 0, 1)).abs().max()).expect("max");
+    let scale = f64::try_from(reference.abs().max()).expect("max");
+    assert!(
+        diff > 1e-4 * scale,
+        "the caches carried no gradient ({diff})"
+    );
 }
 
 #[test]
 fn tiled_decode_backward_matches_autograd_through_the_tiled_decode() {
-    tch::manual_seed(4);
-    let cfg = VaeConfig::tiny();
-    let vs = VarStore::new(tch::Device::Cpu);
-    let mut vae = AutoencoderKLCogVideoX::new(&cfg, vs.root()).expect("vae");
-    init_like_pytorch(&vs);
+    let (_vs, mut vae) = tiny_vae(4);
     vae.enable_tiling(TilingOptions {
         tile_sample_min_height: Some(24),
         tile_sample_min_width: Some(32),
         ..TilingOptions::default()
     })
     .expect("tiling");
+    let c = VaeConfig::tiny().latent_channels;
     // 4x6 latents in 3x4 tiles: overlapping tiles in both directions.
-    let z = Tensor::randn(
-        [1, cfg.latent_channels, 3, 4, 6],
-        (Kind::Float, tch::Device::Cpu),
-    );
-    let (video, record) = vae.decode_recorded(&z).expect("recorded");
-    let plain = vae.decode(&z).expect("decode");
-    assert!(f64::try_from((&video - &plain).abs().max()).expect("max") < 1e-6);
-    let g = Tensor::randn(video.size(), (Kind::Float, tch::Device::Cpu));
-    let ours = vae.decode_backward(&record, &g).expect("backward");
-    let leaf = z.detach().set_requires_grad(true);
-    let out = vae.decode_with_grad(&leaf).expect("with grad");
-    let reference = Tensor::run_backward(&[(&out * &g).sum(Kind::Float)], &[&leaf], false, false);
-    let err = f64::try_from((&ours - &reference[0]).abs().max()).expect("max");
-    let scale = f64::try_from(reference[0].abs().max()).expect("max");
-    assert!(
-        scale > 0.0 && err <= 1e-5 * scale,
-        "max error {err} of {scale}"
-    );
+    let z = Tensor::randn([1, c, 3, 4, 6], (Kind::Float, tch::Device::Cpu));
+    let _ = check_decode_backward(&vae, &z);
 }
