@@ -103,7 +103,7 @@ EOF
 bridgev2w masks --robot franka --camera camera.json --joints joints.json --width 96 --height 64 \
   --out masks-out --no-png >/dev/null
 bridgev2w predict --model assets/demo-model/backbone --weights assets/demo-model/bridgev2w.safetensors \
-  --image first.png --masks masks-out/masks.npy --steps 4 --guidance 1 --seed 0 --device cpu --out pred 2>/dev/null
+  --image first.png --masks masks-out/labels.npy --steps 4 --guidance 1 --seed 0 --device cpu --out pred 2>/dev/null
 python -m bridgev2w.rerun predict --video pred --masks masks-out/labels.npy --robot franka \
   --truth truth.npy --image first.png --rerun prediction.rrd
 for name in episode masks prediction; do

@@ -193,8 +193,17 @@ def test_world_model_predicts_as_the_cli_does():
     # The shipped demo model, from its folder.
     demo = bw.WorldModel.from_pretrained(pathlib.Path(__file__).resolve().parents[2] / "assets" / "demo-model")
     assert demo.resolution == (64, 96) and demo.clip_frames == 9, demo
-    v = demo.predict(np.zeros((64, 96, 3), np.uint8), np.zeros((9, 64, 96)), steps=1)
+    # It reads link-coded masks: labels pass, binary masks are refused by name.
+    lab = np.zeros((9, 64, 96), np.uint8)
+    lab[:, 20:40, 30:50] = 3
+    v = demo.predict(np.zeros((64, 96, 3), np.uint8), lab, steps=1)
     assert v.shape == (9, 64, 96, 3)
+    refused = None
+    try:
+        demo.predict(np.zeros((64, 96, 3), np.uint8), lab != 0, steps=1)
+    except Exception as e:  # the model's own error (bridgev2w's exception type)
+        refused = str(e)
+    assert refused is not None and "link-coded" in refused, refused
     try:
         wm.predict(first[:, :-1], masks)
         raise AssertionError("a wrong first frame passed")

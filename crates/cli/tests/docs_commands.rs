@@ -383,15 +383,17 @@ fn the_masks_guide_runs() {
 fn the_world_model_guide_runs() {
     let d = run_guide("world-model.md", |d| {
         frames(0)[0].save(d.join("first.png")).expect("png");
+        // Link labels (the shipped model is link-coded): a block of two
+        // links, 3 above 4, moving right.
         let mut masks = vec![0u8; 9 * 64 * 96];
         for t in 0..9 {
             for y in 20..44 {
                 for x in 30 + 2 * t..50 + 2 * t {
-                    masks[(t * 64 + y) * 96 + x] = 1;
+                    masks[(t * 64 + y) * 96 + x] = if y < 32 { 3 } else { 4 };
                 }
             }
         }
-        bridgev2w_io::npy::write_npy(&d.join("masks.npy"), &[9, 64, 96], &masks).expect("npy");
+        bridgev2w_io::npy::write_npy(&d.join("labels.npy"), &[9, 64, 96], &masks).expect("npy");
         // The batch example's folder: the same masks, and an arm moving back.
         std::fs::create_dir_all(d.join("clips")).expect("clips");
         bridgev2w_io::npy::write_npy(&d.join("clips/reach.npy"), &[9, 64, 96], &masks)
