@@ -155,13 +155,14 @@ environment() {
         "$(cat "$ROOT/gpu-bundle/commit" 2>/dev/null || git -C "$ROOT" rev-parse HEAD 2>/dev/null || echo unknown)"
 }
 
-predict_pair() { # NAME MODEL [WEIGHTS]: the same prediction on DEVICE and on the CPU
+predict_pair() { # NAME MODEL [WEIGHTS]: the same prediction on DEVICE and on the CPU (from link
+    # labels: the shipped model is link-coded; a binary model reads their silhouette)
     local name=$1 model=$2 weights=${3:-}
     inputs "$WORK/in-9" 9 96 64 || return 1
     local extra=(); [[ -n $weights ]] && extra=(--weights "$weights")
     for dev in "$DEVICE" cpu; do
         local t0=$(now)
-        "$BIN" predict --model "$model" "${extra[@]}" --image "$WORK/in-9/first.png" --masks "$WORK/in-9/masks.npy" \
+        "$BIN" predict --model "$model" "${extra[@]}" --image "$WORK/in-9/first.png" --masks "$WORK/in-9/labels.npy" \
             --steps 4 --guidance 1 --seed 0 --device "$dev" --out "$WORK/$name-$dev" --overwrite || return 1
         "$PY" "$HERE/checklist.py" record-seconds "$name" "${dev%%:*}_seconds" "$(since "$t0")"
     done

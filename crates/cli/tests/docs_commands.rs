@@ -383,9 +383,9 @@ fn the_masks_guide_runs() {
 fn the_world_model_guide_runs() {
     let d = run_guide("world-model.md", |d| {
         frames(0)[0].save(d.join("first.png")).expect("png");
-        // Link labels (the shipped model is link-coded): a block of two
-        // links, 3 above 4, moving right.
-        let mut masks = vec![0u8; 9 * 64 * 96];
+        // Link labels (uint16, as `bridgev2w masks` writes them; the shipped
+        // model is link-coded): a block of two links, 3 above 4, moving right.
+        let mut masks = vec![0u16; 9 * 64 * 96];
         for t in 0..9 {
             for y in 20..44 {
                 for x in 30 + 2 * t..50 + 2 * t {
@@ -398,7 +398,7 @@ fn the_world_model_guide_runs() {
         std::fs::create_dir_all(d.join("clips")).expect("clips");
         bridgev2w_io::npy::write_npy(&d.join("clips/reach.npy"), &[9, 64, 96], &masks)
             .expect("npy");
-        let wave: Vec<u8> = (0..9)
+        let wave: Vec<u16> = (0..9)
             .rev()
             .flat_map(|t| masks[t * 64 * 96..(t + 1) * 64 * 96].to_vec())
             .collect();
