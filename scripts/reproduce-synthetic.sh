@@ -297,7 +297,7 @@ GRIDS="${RESULTS%.md}/grids"
 GRID_CLIPS=4
 grids() { # the side-by-side GIFs, kept when both runs and the settings are unchanged
     local fp split missing=0
-    fp=$(fingerprint "grid --clips $GRID_CLIPS --steps $EVAL_STEPS ${KEEP_ARGS[*]}" "$OUT/bridgev2w.inputs" "$OUT/ablation-action-mlp.inputs")
+    fp=$(fingerprint "grid --out $GRIDS --clips $GRID_CLIPS --steps $EVAL_STEPS ${KEEP_ARGS[*]}" "$OUT/bridgev2w.inputs" "$OUT/ablation-action-mlp.inputs")
     for split in test unseen_camera unseen_scene; do
         [[ -f $GRIDS/$split.gif ]] || missing=1
     done

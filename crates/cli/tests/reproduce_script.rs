@@ -142,6 +142,12 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     assert!(trained(&more).is_empty(), "{more:?}");
     assert_eq!(evaluated(&more), 3, "{more:?}");
     assert_eq!(grids(&more), 1, "{more:?}");
+    // Another results file: its own grids are drawn (the grids of the
+    // other file's folder are not taken for them), nothing else is redone.
+    let elsewhere = run(r, &[("EVAL_STEPS", "3"), ("RESULTS", "other.md")]);
+    assert!(trained(&elsewhere).is_empty(), "{elsewhere:?}");
+    assert_eq!(evaluated(&elsewhere), 0, "{elsewhere:?}");
+    assert_eq!(grids(&elsewhere), 1, "{elsewhere:?}");
     // Without keeping the static scene: the two kept evaluations and the
     // grids are redone, the row of every pixel generated is not needed.
     let plain = run(r, &[("EVAL_STEPS", "3"), ("KEEP_STATIC", "")]);
