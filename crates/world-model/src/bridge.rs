@@ -679,8 +679,9 @@ impl BridgeV2W {
         grad_video: &Tensor,
         latents_kind: Kind,
     ) -> Result<Tensor> {
-        let g = self.vae.decode_backward(record, grad_video)?; // [B, C, t, h, w]
-                                                               // The chain rule through `unscale_latents` (a scale) and the permute.
+        // [B, C, t, h, w]; then the chain rule through `unscale_latents` (a
+        // scale) and the permute.
+        let g = self.vae.decode_backward(record, grad_video)?;
         let g = self.vae.unscale_latents(&g).permute([0, 2, 1, 3, 4]); // [B, F, C, h, w]
         Ok(g.to_kind(latents_kind))
     }

@@ -18,7 +18,6 @@
 use super::tiling::tiled;
 use super::{frame_batches, AutoencoderKLCogVideoX, DecoderCache};
 use crate::error::{Result, WorldModelError};
-use std::cell::RefCell;
 use tch::{Kind, Tensor};
 
 /// What [`AutoencoderKLCogVideoX::decode_recorded`] keeps for
@@ -77,13 +76,13 @@ impl AutoencoderKLCogVideoX {
         let z = tch::no_grad(|| self.to_model(&latents.detach()));
         let s = z.size();
         let (video, form) = if self.tiles_latents(s[3], s[4]) {
-            let tiles = RefCell::new(Vec::new());
+            let mut tiles = Vec::new();
             // Autograd on for the blending only (each tile's decode runs without).
             let video = tch::with_grad(|| {
                 tiled(&z, &self.decode_geometry(), |tile, origin| {
                     let (out, record) = self.decode_batches(tile)?;
                     let output = out.set_requires_grad(true);
-                    tiles.borrow_mut().push(TileRecord {
+                    tiles.push(TileRecord {
                         origin,
                         output: output.shallow_clone(),
                         record,
@@ -91,7 +90,6 @@ impl AutoencoderKLCogVideoX {
                     Ok(output)
                 })
             })?;
-            let tiles = tiles.into_inner();
             (video.detach(), Form::Tiled { video, tiles })
         } else {
             let (video, record) = self.decode_batches(&z)?;
