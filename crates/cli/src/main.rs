@@ -82,11 +82,16 @@ fn main() -> Result<()> {
     // Freed tensor memory is kept for reuse instead of going back to the
     // kernel (which page-faults and zeroes it again on the next forward
     // pass): BRIDGEV2W_CPU_CACHE_MB caps the free memory it holds (default
-    // 2048; 0 turns it off). Measured in docs/benchmarks.md.
+    // a quarter of the memory within 2-8 GiB; 0 turns it off). Measured in
+    // docs/benchmarks.md.
     match bridgev2w_torch_ext::cpu_cache::limit_from_env().map_err(anyhow::Error::msg)? {
         0 => {}
         limit => bridgev2w_torch_ext::cpu_cache::install(limit),
     }
+    // bf16 linear layers and convolutions on a CPU without bf16 arithmetic
+    // run widened to f32 (several times faster there; docs/benchmarks.md):
+    // BRIDGEV2W_CPU_BF16=auto|native|f32, default auto.
+    bridgev2w_world_model::cpu_bf16::init_from_env().map_err(anyhow::Error::msg)?;
     let cli = Cli::parse();
     match cli.command {
         Command::Masks(a) => masks_cmd::run(&a),

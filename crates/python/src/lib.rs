@@ -704,6 +704,9 @@ fn builtin_robots() -> String {
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    // The binary's start-up setting (bf16 layers widened to f32 on a CPU
+    // without bf16 arithmetic), with BRIDGEV2W_CPU_BF16 read the same way.
+    bridgev2w_world_model::cpu_bf16::init_from_env().map_err(Error::new_err)?;
     m.add("Error", m.py().get_type::<Error>())?;
     m.add_class::<Robot>()?;
     m.add_class::<Camera>()?;

@@ -13,8 +13,11 @@
 // (raw_deleter is set). Blocks of 2 MiB or more are 2 MiB-aligned and
 // advised as transparent huge pages, as libtorch's own allocator does with
 // THP_MEM_ALLOC_ENABLE=1. The cache holds at most `limit` bytes of free
-// blocks (beyond it a freed block is released); a failed allocation releases
-// the whole cache and tries once more.
+// blocks: a freed block that would exceed it releases the least recently
+// freed blocks first (so blocks of sizes an earlier phase used, the
+// transformer's before the VAE's, make room for the current phase's instead
+// of filling the cache for good); a failed allocation releases the whole
+// cache and tries once more.
 
 #include <c10/core/Allocator.h>
 #include <c10/core/CPUAllocator.h>
@@ -27,8 +30,8 @@
 #include <cstdlib>
 #include <cstring>
 #include <mutex>
+#include <deque>
 #include <map>
-#include <vector>
 
 namespace {
 
@@ -52,18 +55,59 @@ struct Stats {
   std::atomic<uint64_t> misses{0};
 };
 
+// A free block and when it was freed (a global counter).
+struct Entry {
+  void* base;
+  uint64_t seq;
+};
+
 struct Cache {
   std::mutex mu;
-  std::map<size_t, std::vector<void*>> free_blocks;  // size class -> bases
+  // size class -> its free blocks, oldest first.
+  std::map<size_t, std::deque<Entry>> free_blocks;
+  // when freed -> size class, over every free block: the oldest comes first.
+  std::map<uint64_t, size_t> by_age;
+  uint64_t next_seq = 0;
   size_t cached_bytes = 0;
   size_t limit = 0;
   Stats stats;
 
+  // The most recently freed block of the first class in [cls, max_cls], or
+  // nullptr. Caller holds mu.
+  void* take(size_t cls, size_t max_cls) {
+    auto it = free_blocks.lower_bound(cls);
+    if (it == free_blocks.end() || it->first > max_cls) return nullptr;
+    Entry e = it->second.back();
+    it->second.pop_back();
+    by_age.erase(e.seq);
+    cached_bytes -= it->first;
+    if (it->second.empty()) free_blocks.erase(it);
+    return e.base;
+  }
+
+  // Releases the least recently freed blocks until `room` more bytes fit
+  // under the limit (or nothing is left). Caller holds mu.
+  void evict_for(size_t room) {
+    while (!by_age.empty() && cached_bytes + room > limit) {
+      auto oldest = by_age.begin();
+      size_t cls = oldest->second;
+      auto it = free_blocks.find(cls);
+      // The class's oldest block is the oldest overall of that class.
+      Entry e = it->second.front();
+      it->second.pop_front();
+      if (it->second.empty()) free_blocks.erase(it);
+      by_age.erase(oldest);
+      cached_bytes -= cls;
+      std::free(e.base);
+    }
+  }
+
   void release_all() {
     std::lock_guard<std::mutex> g(mu);
     for (auto& kv : free_blocks)
-      for (void* p : kv.second) std::free(p);
+      for (const Entry& e : kv.second) std::free(e.base);
     free_blocks.clear();
+    by_age.clear();
     cached_bytes = 0;
   }
 };
@@ -96,8 +140,11 @@ void delete_block(void* data) {
   Cache* c = cache();
   {
     std::lock_guard<std::mutex> g(c->mu);
-    if (c->cached_bytes + cls <= c->limit) {
-      c->free_blocks[cls].push_back(base);
+    if (cls <= c->limit) {
+      c->evict_for(cls);
+      uint64_t seq = c->next_seq++;
+      c->free_blocks[cls].push_back({base, seq});
+      c->by_age.emplace(seq, cls);
       c->cached_bytes += cls;
       return;
     }
@@ -114,14 +161,7 @@ struct CachingCpuAllocator final : public c10::Allocator {
       std::lock_guard<std::mutex> g(c->mu);
       // Best fit: the smallest free class at least `cls`, at most a quarter
       // larger (the block keeps its own class in its header).
-      auto it = c->free_blocks.lower_bound(cls);
-      while (it != c->free_blocks.end() && it->second.empty()) ++it;
-      if (it != c->free_blocks.end() && it->first <= cls + cls / 4) {
-        base = it->second.back();
-        it->second.pop_back();
-        c->cached_bytes -= it->first;
-        if (it->second.empty()) c->free_blocks.erase(it);
-      }
+      base = c->take(cls, cls + cls / 4);
     }
     if (base != nullptr) {
       c->stats.hits++;
@@ -158,6 +198,7 @@ void bv2w_cpu_cache_install(uint64_t limit_bytes) {
   {
     std::lock_guard<std::mutex> g(cache()->mu);
     cache()->limit = static_cast<size_t>(limit_bytes);
+    cache()->evict_for(0);
   }
   std::call_once(once, [] {
     static CachingCpuAllocator alloc;

@@ -33,8 +33,8 @@ pub struct CacheStats {
 }
 
 /// Makes the caching allocator libtorch's CPU allocator, holding at most
-/// `limit_bytes` of free blocks (beyond it freed blocks are released). A
-/// second call only changes the limit.
+/// `limit_bytes` of free blocks (beyond it the least recently freed ones are
+/// released). A second call only changes the limit.
 pub fn install(limit_bytes: u64) {
     // SAFETY: the shim takes a plain integer; it registers a static
     // allocator once (std::call_once) and sets the limit under a mutex.
@@ -62,10 +62,10 @@ pub fn release() {
 }
 
 /// The limit `install_from_env` uses: `BRIDGEV2W_CPU_CACHE_MB` megabytes
-/// (0 = no cache), by default 2048 (2 GiB).
+/// (0 = no cache), by default [`default_limit`].
 pub fn limit_from_env() -> Result<u64, String> {
     match std::env::var("BRIDGEV2W_CPU_CACHE_MB") {
-        Err(_) => Ok(2048 << 20),
+        Err(_) => Ok(default_limit(physical_memory_bytes())),
         Ok(v) => v.trim().parse::<u64>().map(|mb| mb << 20).map_err(|_| {
             format!(
                 "BRIDGEV2W_CPU_CACHE_MB={v:?}: expected whole megabytes (0 turns the cache off)"
@@ -74,14 +74,44 @@ pub fn limit_from_env() -> Result<u64, String> {
     }
 }
 
+/// The default limit for a machine with `physical` bytes of memory (`None`:
+/// unknown): a quarter of it, at least 2 GiB and at most 8 GiB. A VAE decode
+/// of the bench's default shapes keeps about 4 GiB of blocks in flight
+/// (`docs/benchmarks.md`: with 2 GiB it ran about a fifth slower).
+pub fn default_limit(physical: Option<u64>) -> u64 {
+    const GIB: u64 = 1 << 30;
+    physical.map_or(2 * GIB, |m| (m / 4).clamp(2 * GIB, 8 * GIB))
+}
+
+/// `MemTotal` of `/proc/meminfo`, where there is one.
+fn physical_memory_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib << 10)
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
     use tch::{Device, Kind, Tensor};
 
+    #[test]
+    fn the_default_limit_is_a_quarter_of_memory_within_bounds() {
+        const GIB: u64 = 1 << 30;
+        assert_eq!(default_limit(Some(24 * GIB)), 6 * GIB);
+        assert_eq!(default_limit(Some(4 * GIB)), 2 * GIB);
+        assert_eq!(default_limit(Some(512 * GIB)), 8 * GIB);
+        assert_eq!(default_limit(None), 2 * GIB);
+        if cfg!(target_os = "linux") {
+            assert!(physical_memory_bytes().is_some_and(|m| m > GIB));
+        }
+    }
+
     /// One test (the allocator is process-wide): results equal, blocks reused,
-    /// the limit honoured, release empties the cache.
+    /// the limit honoured by releasing the oldest free blocks, release empties
+    /// the cache.
     #[test]
     fn the_cache_reuses_freed_blocks_and_computes_the_same() {
         tch::manual_seed(0);
@@ -116,6 +146,25 @@ mod tests {
         let z = Tensor::zeros([1 << 20], (Kind::Float, Device::Cpu));
         assert_eq!(z.abs().sum(Kind::Double).double_value(&[]), 0.0);
         drop(z);
+        // Over the limit the least recently freed blocks make room: of an
+        // 8 MiB and then a 6 MiB block under a 12 MiB limit, the 6 MiB one
+        // stays (before, the later block was the one let go).
+        install(12 << 20);
+        release();
+        let a8 = Tensor::ones([2 << 20], (Kind::Float, Device::Cpu));
+        let b6 = Tensor::ones([3 << 19], (Kind::Float, Device::Cpu));
+        drop(a8);
+        assert!(stats().cached_bytes >= 8 << 20);
+        drop(b6);
+        let s = stats();
+        assert!(
+            s.cached_bytes >= 6 << 20 && s.cached_bytes <= 12 << 20,
+            "{s:?}"
+        );
+        let b6 = Tensor::empty([3 << 19], (Kind::Float, Device::Cpu));
+        assert!(stats().hits > s.hits, "the 6 MiB block was kept: {s:?}");
+        drop(b6);
+        assert!(stats().cached_bytes <= 12 << 20);
         release();
         assert_eq!(stats().cached_bytes, 0);
     }

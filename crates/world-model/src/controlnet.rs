@@ -95,7 +95,7 @@ pub struct ControlNet {
     /// latents ++ image latents).
     pub patch_embed: PatchEmbed,
     blocks: Vec<CogVideoXBlock>,
-    out_projectors: Vec<nn::Linear>,
+    out_projectors: Vec<crate::cpu_bf16::Linear>,
 }
 
 impl ControlNet {
@@ -119,7 +119,7 @@ impl ControlNet {
             nn::LinearConfig::default()
         };
         let out_projectors = (0..cfg.num_layers)
-            .map(|i| nn::linear(p / "out_projectors" / i, d, d, proj_cfg))
+            .map(|i| crate::cpu_bf16::Linear(nn::linear(p / "out_projectors" / i, d, d, proj_cfg)))
             .collect();
         Ok(Self {
             cfg: cfg.clone(),

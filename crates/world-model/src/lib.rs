@@ -12,6 +12,7 @@ pub mod bridge;
 pub mod checkpoint;
 pub mod conditioning;
 pub mod controlnet;
+pub mod cpu_bf16;
 pub mod device;
 pub mod error;
 pub mod hub;

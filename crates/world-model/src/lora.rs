@@ -185,7 +185,7 @@ impl LoraLinear {
 
     /// `x W^T + b (+ scale x A^T B^T)` for `x [..., in]`.
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        let y = x.linear(&self.weight, self.bias.as_ref());
+        let y = crate::cpu_bf16::linear(x, &self.weight, self.bias.as_ref());
         match (&self.adapter, self.merged) {
             (Some(a), false) => y + a.delta(x),
             _ => y,

@@ -96,6 +96,9 @@ pub struct ModelBenchReport {
     pub diffusers: Option<ModelTimings>,
     /// Peak GPU memory (on CUDA only).
     pub gpu_peak_mib: Option<GpuPeakMib>,
+    /// How this crate ran bf16 linear layers and convolutions (bf16 on the
+    /// CPU only; diffusers always runs libtorch's own bf16 kernels).
+    pub cpu_bf16: Option<crate::cpu_bf16::Bf16Compute>,
 }
 
 impl fmt::Display for ModelBenchReport {
@@ -116,6 +119,20 @@ impl fmt::Display for ModelBenchReport {
             self.device,
             self.threads
         )?;
+        match self.cpu_bf16 {
+            Some(crate::cpu_bf16::Bf16Compute::F32) => writeln!(
+                f,
+                "bf16 linear layers and convolutions: bridgev2w widens them to f32 (no AVX512-BF16 \
+                 on this CPU; {}=native for libtorch's own), diffusers runs libtorch's",
+                crate::cpu_bf16::ENV
+            )?,
+            Some(mode) => writeln!(
+                f,
+                "bf16 linear layers and convolutions: {mode} on both sides ({})",
+                crate::cpu_bf16::ENV
+            )?,
+            None => {}
+        }
         writeln!(
             f,
             "{:<24} {:>12} {:>12} {:>10}",
@@ -264,6 +281,8 @@ pub fn bench_model(
             bridgev2w: our_peak,
             diffusers: their_peak,
         }),
+        cpu_bf16: (a.precision == Precision::Bf16 && a.device == ComputeDevice::Cpu)
+            .then(crate::cpu_bf16::mode),
     })
 }
 
@@ -319,6 +338,7 @@ mod tests {
             bridgev2w: t.clone(),
             diffusers: None,
             gpu_peak_mib: None,
+            cpu_bf16: None,
         };
         let text = report.to_string();
         assert_eq!(text.lines().count(), 5, "{text}");
@@ -347,5 +367,16 @@ mod tests {
             text.ends_with("could not be queried on this machine)\n"),
             "{text}"
         );
+        // bf16 on the CPU says how this crate computed it.
+        report.cpu_bf16 = Some(crate::cpu_bf16::Bf16Compute::F32);
+        let text = report.to_string();
+        assert!(
+            text.lines()
+                .nth(1)
+                .is_some_and(|l| l.contains("widens them to f32")),
+            "{text}"
+        );
+        report.cpu_bf16 = Some(crate::cpu_bf16::Bf16Compute::Native);
+        assert!(report.to_string().contains("native on both sides"));
     }
 }

@@ -2,6 +2,7 @@
 
 use super::config::TransformerConfig;
 use super::positions::{apply_rotary, joint_sincos, Rotary};
+use crate::cpu_bf16::Linear;
 use crate::error::{Result, WorldModelError};
 use crate::lora::{LoraConfig, LoraLinear};
 use tch::nn::{self, Module};
@@ -48,9 +49,9 @@ impl LayerNorm {
 }
 
 /// A plain linear layer in diffusers' layout (`weight` `[out, in]`, `bias`).
-fn linear(p: nn::Path, i: i64, o: i64, bias: bool) -> nn::Linear {
+fn linear(p: nn::Path, i: i64, o: i64, bias: bool) -> Linear {
     let bound = 1.0 / (i as f64).sqrt();
-    nn::linear(
+    Linear(nn::linear(
         p,
         i,
         o,
@@ -65,7 +66,7 @@ fn linear(p: nn::Path, i: i64, o: i64, bias: bool) -> nn::Linear {
             }),
             bias,
         },
-    )
+    ))
 }
 
 /// diffusers' `get_timestep_embedding` (f32): `[B, dim]`.
@@ -97,8 +98,8 @@ pub fn timestep_embedding(
 /// `TimestepEmbedding`: `linear_1`, SiLU, `linear_2`.
 #[derive(Debug)]
 pub struct TimestepMlp {
-    linear_1: nn::Linear,
-    linear_2: nn::Linear,
+    linear_1: Linear,
+    linear_2: Linear,
 }
 
 impl TimestepMlp {
@@ -121,8 +122,8 @@ impl TimestepMlp {
 #[derive(Debug)]
 pub struct PatchEmbed {
     proj_conv: Option<nn::Conv2D>,
-    proj_linear: Option<nn::Linear>,
-    text_proj: nn::Linear,
+    proj_linear: Option<Linear>,
+    text_proj: Linear,
     learned_pos: Option<Tensor>,
     cfg: TransformerConfig,
     in_channels: i64,
@@ -272,7 +273,7 @@ impl PatchEmbed {
 /// `CogVideoXLayerNormZero`: SiLU + `linear` to six modulations, shared `norm`.
 #[derive(Debug)]
 pub struct LayerNormZero {
-    linear: nn::Linear,
+    linear: Linear,
     norm: LayerNorm,
 }
 
@@ -397,8 +398,8 @@ impl Attention {
 /// The tanh-GELU feed-forward (`ff.net.0.proj`, `ff.net.2`).
 #[derive(Debug)]
 pub struct FeedForward {
-    proj: nn::Linear,
-    out: nn::Linear,
+    proj: Linear,
+    out: Linear,
 }
 
 impl FeedForward {
@@ -474,9 +475,9 @@ impl CogVideoXBlock {
 #[derive(Debug)]
 pub struct OutputHead {
     norm_final: LayerNorm,
-    norm_out_linear: nn::Linear,
+    norm_out_linear: Linear,
     norm_out_norm: LayerNorm,
-    proj_out: nn::Linear,
+    proj_out: Linear,
 }
 
 impl OutputHead {

@@ -104,13 +104,12 @@ impl SafeConv3d {
     }
 
     fn conv(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(x.f_conv3d(
+        Ok(crate::cpu_bf16::conv3d(
+            x,
             &self.weight,
             Some(&self.bias),
             self.stride,
             self.padding,
-            [1, 1, 1],
-            1,
         )?)
     }
 
@@ -124,16 +123,14 @@ impl SafeConv3d {
         let w = self
             .weight
             .f_sum_dim_intlist(2, false, self.weight.kind())?;
-        Ok(frame
-            .f_conv2d(
-                &w,
-                Some(&self.bias),
-                [self.stride[1], self.stride[2]],
-                [self.padding[1], self.padding[2]],
-                [1, 1],
-                1,
-            )?
-            .f_unsqueeze(2)?) // [B, Cout, H', W'] -> [B, Cout, 1, H', W']
+        Ok(crate::cpu_bf16::conv2d(
+            frame,
+            &w,
+            Some(&self.bias),
+            [self.stride[1], self.stride[2]],
+            [self.padding[1], self.padding[2]],
+        )?
+        .f_unsqueeze(2)?) // [B, Cout, H', W'] -> [B, Cout, 1, H', W']
     }
 
     /// `[B, Cin, T, H, W] -> [B, Cout, T', H', W']`.

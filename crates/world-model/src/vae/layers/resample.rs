@@ -46,13 +46,12 @@ impl FrameConv2d {
     /// `[B, Cin, T, H, W] -> [B, Cout, T, H', W']`.
     pub(super) fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (images, b, t) = frames_to_images(x)?;
-        let out = images.f_conv2d(
+        let out = crate::cpu_bf16::conv2d(
+            &images,
             &self.weight,
             Some(&self.bias),
             [self.stride, self.stride],
             [self.padding, self.padding],
-            [1, 1],
-            1,
         )?;
         images_to_frames(&out, b, t)
     }

@@ -1,0 +1,323 @@
+//! bf16 matrix products and convolutions on CPUs without bf16 arithmetic.
+//!
+//! On an x86 CPU without AVX512-BF16 (and so without AMX), libtorch's bf16
+//! GEMMs and oneDNN's bf16 convolutions emulate the format: on this project's
+//! 2-core machine (an Intel Xeon whose hypervisor hides both) a bf16 GEMM of
+//! the transformer's feed-forward shape ran at 61 GFLOP/s against 284 in f32,
+//! and a 3x3x3 VAE convolution 4.5 to 5.3 times slower than in f32
+//! (`docs/benchmarks.md`). There the model's linear layers and convolutions
+//! widen their bf16 operands to f32 (exactly), compute in f32 and round the
+//! result to bf16: what a native bf16 kernel computes (products of bf16
+//! values accumulated in f32), up to the order of summation. Activations and
+//! weights stay bf16 between the layers, so memory is that of bf16.
+//!
+//! The mode is process-wide: [`Bf16Compute::Auto`] (the default) widens only
+//! where the CPU has no AVX512-BF16; `BRIDGEV2W_CPU_BF16=native|f32|auto`
+//! chooses ([`init_from_env`], which the binary calls at start-up), or
+//! [`set`]. CUDA tensors, f32 tensors and an active autocast region are left
+//! to libtorch.
+
+use std::str::FromStr;
+use std::sync::atomic::{AtomicU8, Ordering};
+use tch::{nn, Device, Kind, TchError, Tensor};
+
+/// The environment variable [`init_from_env`] reads.
+pub const ENV: &str = "BRIDGEV2W_CPU_BF16";
+
+/// How bf16 linear layers and convolutions run on the CPU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Bf16Compute {
+    /// `F32` where the CPU has no bf16 arithmetic (no AVX512-BF16), else `Native`.
+    #[default]
+    Auto,
+    /// libtorch's own bf16 kernels.
+    Native,
+    /// Operands widened to f32, the result rounded back to bf16.
+    F32,
+}
+
+impl FromStr for Bf16Compute {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "auto" => Ok(Self::Auto),
+            "native" => Ok(Self::Native),
+            "f32" => Ok(Self::F32),
+            _ => Err(format!(
+                "{ENV}={s:?}: expected auto, native or f32 (how bf16 linear layers and \
+                 convolutions run on the CPU)"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for Bf16Compute {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Auto => "auto",
+            Self::Native => "native",
+            Self::F32 => "f32",
+        })
+    }
+}
+
+impl Bf16Compute {
+    /// `Auto` decided for this CPU (`Native` or `F32`).
+    pub fn resolve(self) -> Self {
+        match self {
+            Self::Auto if cpu_has_bf16_arithmetic() => Self::Native,
+            Self::Auto => Self::F32,
+            other => other,
+        }
+    }
+}
+
+/// Whether the CPU has bf16 arithmetic that libtorch's kernels use
+/// (AVX512-BF16; every CPU with AMX has it too). `true` off x86-64, where
+/// nothing here second-guesses libtorch.
+pub fn cpu_has_bf16_arithmetic() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512bf16")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        true
+    }
+}
+
+// 0: not resolved yet; otherwise 1 + the resolved mode (Native 1, F32 2).
+static MODE: AtomicU8 = AtomicU8::new(0);
+
+/// Sets the process-wide mode.
+pub fn set(mode: Bf16Compute) {
+    let code = match mode.resolve() {
+        Bf16Compute::F32 => 2,
+        _ => 1,
+    };
+    MODE.store(code, Ordering::Relaxed);
+}
+
+/// Sets the mode from [`ENV`] (unset: `Auto`); an unknown value is an error
+/// naming the variable, the value and the choices.
+pub fn init_from_env() -> Result<Bf16Compute, String> {
+    let mode = match std::env::var(ENV) {
+        Ok(v) => v.parse()?,
+        Err(_) => Bf16Compute::Auto,
+    };
+    set(mode);
+    Ok(mode.resolve())
+}
+
+/// The mode in effect (`Native` or `F32`); `Auto` for this CPU until [`set`].
+pub fn mode() -> Bf16Compute {
+    match MODE.load(Ordering::Relaxed) {
+        1 => Bf16Compute::Native,
+        2 => Bf16Compute::F32,
+        _ => {
+            set(Bf16Compute::Auto);
+            mode()
+        }
+    }
+}
+
+/// Whether an op on `x` widens in `mode`: a CPU bf16 tensor in `F32` mode.
+fn widens_in(mode: Bf16Compute, x: &Tensor) -> bool {
+    x.kind() == Kind::BFloat16 && x.device() == Device::Cpu && mode.resolve() == Bf16Compute::F32
+}
+
+fn widens(x: &Tensor) -> bool {
+    widens_in(mode(), x)
+}
+
+fn f32(t: &Tensor) -> Tensor {
+    t.to_kind(Kind::Float)
+}
+
+/// `x W^T + b` (`weight [out, in]`), widened on a CPU without bf16 arithmetic.
+pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Tensor {
+    linear_widened(widens(x), x, weight, bias)
+}
+
+fn linear_widened(widen: bool, x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Tensor {
+    if widen {
+        f32(x)
+            .linear(&f32(weight), bias.map(f32).as_ref())
+            .to_kind(Kind::BFloat16)
+    } else {
+        x.linear(weight, bias)
+    }
+}
+
+/// A 3-D convolution (libtorch's `conv3d` arguments), widened on a CPU
+/// without bf16 arithmetic.
+pub fn conv3d(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: [i64; 3],
+    padding: [i64; 3],
+) -> Result<Tensor, TchError> {
+    conv3d_widened(widens(x), x, weight, bias, stride, padding)
+}
+
+fn conv3d_widened(
+    widen: bool,
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: [i64; 3],
+    padding: [i64; 3],
+) -> Result<Tensor, TchError> {
+    if widen {
+        f32(x)
+            .f_conv3d(
+                &f32(weight),
+                bias.map(f32).as_ref(),
+                stride,
+                padding,
+                [1, 1, 1],
+                1,
+            )?
+            .f_to_kind(Kind::BFloat16)
+    } else {
+        x.f_conv3d(weight, bias, stride, padding, [1, 1, 1], 1)
+    }
+}
+
+/// A 2-D convolution (libtorch's `conv2d` arguments), widened on a CPU
+/// without bf16 arithmetic.
+pub fn conv2d(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: [i64; 2],
+    padding: [i64; 2],
+) -> Result<Tensor, TchError> {
+    conv2d_widened(widens(x), x, weight, bias, stride, padding)
+}
+
+fn conv2d_widened(
+    widen: bool,
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: [i64; 2],
+    padding: [i64; 2],
+) -> Result<Tensor, TchError> {
+    if widen {
+        f32(x)
+            .f_conv2d(
+                &f32(weight),
+                bias.map(f32).as_ref(),
+                stride,
+                padding,
+                [1, 1],
+                1,
+            )?
+            .f_to_kind(Kind::BFloat16)
+    } else {
+        x.f_conv2d(weight, bias, stride, padding, [1, 1], 1)
+    }
+}
+
+/// tch's [`nn::Linear`] (same parameters, `weight` and `bias`) whose forward
+/// goes through [`linear`].
+#[derive(Debug)]
+pub struct Linear(pub nn::Linear);
+
+impl nn::Module for Linear {
+    fn forward(&self, x: &Tensor) -> Tensor {
+        linear(x, &self.0.ws, self.0.bs.as_ref())
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn widened_ops_equal_f32_rounded_and_native_bf16_closely() {
+        tch::manual_seed(3);
+        let bf = |t: Tensor| t.to_kind(Kind::BFloat16);
+        let x = bf(Tensor::randn([4, 37, 64], (Kind::Float, Device::Cpu)));
+        let w = bf(Tensor::randn([48, 64], (Kind::Float, Device::Cpu)) * 0.1);
+        let b = bf(Tensor::randn([48], (Kind::Float, Device::Cpu)));
+        let v = bf(Tensor::randn([1, 8, 5, 12, 10], (Kind::Float, Device::Cpu)));
+        let k3 = bf(Tensor::randn([6, 8, 3, 3, 3], (Kind::Float, Device::Cpu)) * 0.1);
+        let k2 = bf(Tensor::randn([6, 8, 3, 3], (Kind::Float, Device::Cpu)) * 0.1);
+        let cb = bf(Tensor::randn([6], (Kind::Float, Device::Cpu)));
+        let img = v.select(2, 0);
+
+        assert!(widens_in(Bf16Compute::F32, &x));
+        assert!(!widens_in(Bf16Compute::Native, &x));
+        assert!(
+            !widens_in(Bf16Compute::F32, &f32(&x)),
+            "f32 tensors are left alone"
+        );
+        let lin = linear_widened(true, &x, &w, Some(&b));
+        let c3 = conv3d_widened(true, &v, &k3, Some(&cb), [1, 2, 1], [0, 1, 1]).unwrap();
+        let c2 = conv2d_widened(true, &img, &k2, Some(&cb), [1, 1], [1, 1]).unwrap();
+        for t in [&lin, &c3, &c2] {
+            assert_eq!(t.kind(), Kind::BFloat16);
+        }
+        // The reference: the same op in f32 on the widened operands, rounded once.
+        let lin_ref = bf(f32(&x).linear(&f32(&w), Some(&f32(&b))));
+        let c3_ref = bf(f32(&v).conv3d(
+            &f32(&k3),
+            Some(&f32(&cb)),
+            [1, 2, 1],
+            [0, 1, 1],
+            [1, 1, 1],
+            1,
+        ));
+        let c2_ref = bf(f32(&img).conv2d(&f32(&k2), Some(&f32(&cb)), [1, 1], [1, 1], [1, 1], 1));
+        assert!(lin.equal(&lin_ref));
+        assert!(c3.equal(&c3_ref));
+        assert!(c2.equal(&c2_ref));
+
+        // libtorch's bf16 kernels: the same products, summed in another order
+        // (and, for some, rounded in between): within a few bf16 ulps.
+        let lin_n = linear_widened(false, &x, &w, Some(&b));
+        let c3_n = conv3d_widened(false, &v, &k3, Some(&cb), [1, 2, 1], [0, 1, 1]).unwrap();
+        assert!(lin_n.equal(&x.linear(&w, Some(&b))));
+        for (a, r) in [(&lin_n, &lin_ref), (&c3_n, &c3_ref)] {
+            let err = (f32(a) - f32(r)).abs().max().double_value(&[]);
+            let scale = f32(r).abs().max().double_value(&[]);
+            assert!(err <= 0.02 * scale, "native vs widened: {err} of {scale}");
+        }
+    }
+
+    #[test]
+    fn auto_follows_the_cpu() {
+        let expect = if cpu_has_bf16_arithmetic() {
+            Bf16Compute::Native
+        } else {
+            Bf16Compute::F32
+        };
+        assert_eq!(Bf16Compute::Auto.resolve(), expect);
+        // The process-wide default (no test sets another mode).
+        assert_eq!(mode(), expect);
+    }
+
+    #[test]
+    fn modes_parse_and_bad_values_name_the_variable() {
+        assert_eq!("auto".parse::<Bf16Compute>().unwrap(), Bf16Compute::Auto);
+        assert_eq!(
+            " Native".parse::<Bf16Compute>().unwrap(),
+            Bf16Compute::Native
+        );
+        assert_eq!("f32".parse::<Bf16Compute>().unwrap(), Bf16Compute::F32);
+        let err = "fast".parse::<Bf16Compute>().unwrap_err();
+        assert!(
+            err.contains(ENV) && err.contains("\"fast\"") && err.contains("native"),
+            "{err}"
+        );
+        for m in [Bf16Compute::Auto, Bf16Compute::Native, Bf16Compute::F32] {
+            assert_eq!(m.to_string().parse::<Bf16Compute>().unwrap(), m);
+        }
+        assert_ne!(Bf16Compute::Native.resolve(), Bf16Compute::Auto);
+        assert_ne!(Bf16Compute::Auto.resolve(), Bf16Compute::Auto);
+    }
+}

@@ -1,0 +1,85 @@
+#!/usr/bin/env python3
+"""Where diffusers' CogVideoX spends a forward pass on this CPU: torch.profiler's
+table of ATen ops (self time) for one transformer forward, VAE encode or VAE
+decode at `bridgev2w bench model`'s default shapes (2B width, 8 blocks, 9 frames
+at 128x192), and the GEMM rate of the feed-forward's shape.
+
+The same libtorch kernels run under this crate's model, so the table says what
+any implementation at these shapes is made of (docs/benchmarks.md).
+
+    .venv/bin/python scripts/bench/profile_diffusers.py transformer --dtype f32
+    .venv/bin/python scripts/bench/profile_diffusers.py decode --dtype bf16
+"""
+
+import argparse
+import sys
+import time
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm"])
+    ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--rows", type=int, default=12, help="ops in the table")
+    args = ap.parse_args()
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    dtype = torch.float32 if args.dtype == "f32" else torch.bfloat16
+    torch.manual_seed(0)
+
+    if args.part == "gemm":
+        # The feed-forward's first projection: 514 tokens x 1920 -> 7680.
+        a = torch.randn(514, 1920, dtype=dtype)
+        b = torch.randn(1920, 7680, dtype=dtype)
+        for _ in range(3):
+            a @ b
+        n = 20
+        t0 = time.perf_counter()
+        for _ in range(n):
+            a @ b
+        s = (time.perf_counter() - t0) / n
+        print(f"gemm 514x1920x7680 {args.dtype}: {s * 1e3:.1f} ms, {2 * 514 * 1920 * 7680 / s / 1e9:.0f} GFLOP/s")
+        return 0
+
+    if args.part == "transformer":
+        from diffusers import CogVideoXTransformer3DModel
+
+        model = CogVideoXTransformer3DModel(
+            num_attention_heads=30, attention_head_dim=64, num_layers=8,
+            sample_width=24, sample_height=16, sample_frames=9,
+        ).to(dtype).eval()
+        x = torch.randn(1, 3, 16, 16, 24, dtype=dtype)
+        text = torch.randn(1, 226, 4096, dtype=dtype)
+        ts = torch.full((1,), 500)
+
+        def run():
+            model(hidden_states=x, encoder_hidden_states=text, timestep=ts, return_dict=False)
+    else:
+        from diffusers import AutoencoderKLCogVideoX
+
+        vae = AutoencoderKLCogVideoX().to(dtype).eval()
+        latents = torch.randn(1, 16, 3, 16, 24, dtype=dtype)
+        video = torch.rand(1, 3, 9, 128, 192, dtype=dtype) * 2 - 1
+
+        def run():
+            if args.part == "encode":
+                vae.encode(video)
+            else:
+                vae.decode(latents)
+
+    with torch.no_grad():
+        run()  # warm-up
+        t0 = time.perf_counter()
+        run()
+        print(f"{args.part} {args.dtype}: {time.perf_counter() - t0:.3f} s (one run, unprofiled)")
+        with torch.profiler.profile() as prof:
+            run()
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
