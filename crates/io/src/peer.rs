@@ -15,8 +15,11 @@ pub const REPO_MARKER: &str = "scripts/bench/pybullet_masks.py";
 #[derive(Debug, thiserror::Error)]
 pub enum PeerError {
     /// No repository root above the current directory.
-    #[error("cannot find {REPO_MARKER} above the current directory: run from the repository or pass --repo")]
-    NoRepo,
+    #[error("{}: not inside a bridgev2w repository (no folder above it holds {REPO_MARKER}, which marks the root that holds the benches' Python peers): run from the repository or pass --repo", cwd.display())]
+    NoRepo {
+        /// The directory searched from.
+        cwd: PathBuf,
+    },
     /// The current directory cannot be read.
     #[error("current directory: {0}")]
     CurrentDir(#[source] std::io::Error),
@@ -91,7 +94,7 @@ pub fn find_repo(explicit: Option<&Path>) -> Result<PathBuf> {
     cwd.ancestors()
         .find(|d| d.join(REPO_MARKER).is_file())
         .map(Path::to_path_buf)
-        .ok_or(PeerError::NoRepo)
+        .ok_or(PeerError::NoRepo { cwd: cwd.clone() })
 }
 
 /// The bench venv's python (`.venv-bench`, with pybullet, numpy and
@@ -223,6 +226,27 @@ impl PeerOutput {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn no_repository_names_the_folder_and_the_way_out() {
+        let e = PeerError::NoRepo {
+            cwd: PathBuf::from("/tmp/elsewhere"),
+        };
+        let msg = e.to_string();
+        assert!(
+            msg.starts_with("/tmp/elsewhere: not inside a bridgev2w repository"),
+            "{msg}"
+        );
+        assert!(
+            msg.contains(REPO_MARKER) && msg.ends_with("pass --repo"),
+            "{msg}"
+        );
+        // An explicit root is taken as given.
+        assert_eq!(
+            find_repo(Some(Path::new("/r"))).expect("explicit"),
+            PathBuf::from("/r")
+        );
+    }
 
     #[test]
     fn peer_output_is_the_last_json_line() {

@@ -119,18 +119,28 @@ impl SafeConv3d {
     /// convolution with the taps' weights summed: a third of the
     /// arithmetic of the 3-D one for a `3³` kernel.
     fn forward_repeated_frame(&self, frame: &Tensor) -> Result<Tensor> {
+        // [B, Cout, H', W'] -> [B, Cout, 1, H', W']
+        Ok(self
+            .conv_taps(frame, 0, self.time_kernel(), true)?
+            .f_unsqueeze(2)?)
+    }
+
+    /// The temporal taps `first..end` of the kernel applied to one frame, as
+    /// one 2-D convolution with those taps' weights summed:
+    /// `[B, Cin, H, W] -> [B, Cout, H', W']` (the bias only `with_bias`).
+    fn conv_taps(&self, frame: &Tensor, first: i64, end: i64, with_bias: bool) -> Result<Tensor> {
         // [Cout, Cin, kt, kh, kw] -> [Cout, Cin, kh, kw]
         let w = self
             .weight
+            .narrow(2, first, end - first)
             .f_sum_dim_intlist(2, false, self.weight.kind())?;
         Ok(crate::cpu_bf16::conv2d(
             frame,
             &w,
-            Some(&self.bias),
+            with_bias.then_some(&self.bias),
             [self.stride[1], self.stride[2]],
             [self.padding[1], self.padding[2]],
-        )?
-        .f_unsqueeze(2)?) // [B, Cout, H', W'] -> [B, Cout, 1, H', W']
+        )?)
     }
 
     /// `[B, Cin, T, H, W] -> [B, Cout, T', H', W']`.
@@ -207,6 +217,10 @@ impl CausalConv3d {
             let out = self.conv.forward_repeated_frame(&x.f_squeeze_dim(2)?)?;
             return Ok((out, Some(new_cache)));
         }
+        let t = x.size()[2];
+        if cache.is_none() && t >= k - 1 && self.conv.padding[0] == 0 && self.conv.stride[0] == 1 {
+            return self.forward_first_batch(x);
+        }
         let front = match cache {
             Some(c) => c.shallow_clone(),
             // [B, C, 1, H, W] -> [B, C, k - 1, H, W]: the first frame, k - 1 times.
@@ -218,6 +232,36 @@ impl CausalConv3d {
         // A copy, so the cache does not keep the whole padded input alive.
         let new_cache = padded.narrow(2, t - (k - 1), k - 1).copy();
         Ok((self.conv.forward(&padded)?, Some(new_cache)))
+    }
+
+    /// The first frame batch (no cache, `T >= k - 1` frames) without building
+    /// the time-padded input. With the first frame `k - 1` times in front,
+    /// output frame `o < k - 1` sees the first frame through its taps
+    /// `0..=k-1-o` (one 2-D convolution with those taps summed) and frame
+    /// `o + j - k + 1` through tap `j` above that; the frames from `k - 1` on
+    /// are the 3-D convolution of the input without padding. The same sums
+    /// as diffusers' padded convolution, in another order, with fewer
+    /// products: `k - 1` frames' taps on a repeated frame are added once.
+    fn forward_first_batch(&self, x: &Tensor) -> Result<(Tensor, Option<Tensor>)> {
+        let (k, t) = (self.time_kernel, x.size()[2]);
+        let first = x.f_select(2, 0)?; // [B, Cin, H, W]
+        let mut parts = Vec::with_capacity(k as usize);
+        for o in 0..(k - 1) {
+            let mut y = self.conv.conv_taps(&first, 0, k - o, true)?;
+            for j in (k - o)..k {
+                let frame = x.f_select(2, o + j - k + 1)?;
+                // In place on a convolution's output (not needed by its backward).
+                let _ = y.f_add_(&self.conv.conv_taps(&frame, j, j + 1, false)?)?;
+            }
+            parts.push(y.f_unsqueeze(2)?); // [B, Cout, H', W'] -> [B, Cout, 1, H', W']
+        }
+        if t > k - 1 {
+            parts.push(self.conv.forward(x)?); // [B, Cout, T - k + 1, H', W']
+        }
+        let out = Tensor::f_cat(&parts, 2)?; // [B, Cout, T, H', W']
+                                             // The padded input's last k - 1 frames: the input's own (T >= k - 1).
+        let new_cache = x.narrow(2, t - (k - 1), k - 1).copy();
+        Ok((out, Some(new_cache)))
     }
 }
 

@@ -70,6 +70,23 @@ fn one_frame_causal_conv_matches_the_time_padded_3d_conv() {
 }
 
 #[test]
+fn first_batch_causal_conv_matches_the_time_padded_3d_conv() {
+    let (_vs, conv) = random_conv(2, 4);
+    for t in [2, 3, 5] {
+        let x = Tensor::randn([2, 3, t, 6, 7], (Kind::Float, Device::Cpu));
+        let (fast, cache) = conv.forward(&x, None).unwrap();
+        // diffusers' way: the first frame twice in front, one 3-D convolution.
+        let padded = Tensor::cat(&[x.narrow(2, 0, 1).repeat([1, 1, 2, 1, 1]), x.copy()], 2);
+        let slow = conv.conv.forward(&padded).unwrap();
+        assert_eq!(fast.size(), slow.size(), "T = {t}");
+        let scale = slow.abs().max().double_value(&[]);
+        let diff = (&fast - &slow).abs().max().double_value(&[]);
+        assert!(diff <= 1e-6 * scale, "T = {t}: {diff} of {scale}");
+        assert!(cache.unwrap().equal(&padded.narrow(2, t, 2)), "T = {t}");
+    }
+}
+
+#[test]
 fn time_pooling_is_avg_pool3d_and_runs_in_bf16_on_the_cpu() {
     tch::manual_seed(3);
     let mut vs = nn::VarStore::new(Device::Cpu);
