@@ -158,31 +158,7 @@ pub fn conv3d(
     stride: [i64; 3],
     padding: [i64; 3],
 ) -> Result<Tensor, TchError> {
-    conv3d_widened(widens(x), x, weight, bias, stride, padding)
-}
-
-fn conv3d_widened(
-    widen: bool,
-    x: &Tensor,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    stride: [i64; 3],
-    padding: [i64; 3],
-) -> Result<Tensor, TchError> {
-    if widen {
-        f32(x)
-            .f_conv3d(
-                &f32(weight),
-                bias.map(f32).as_ref(),
-                stride,
-                padding,
-                [1, 1, 1],
-                1,
-            )?
-            .f_to_kind(Kind::BFloat16)
-    } else {
-        x.f_conv3d(weight, bias, stride, padding, [1, 1, 1], 1)
-    }
+    conv_widened(widens(x), x, weight, bias, stride, padding)
 }
 
 /// A 2-D convolution (libtorch's `conv2d` arguments), widened on a CPU
@@ -194,30 +170,26 @@ pub fn conv2d(
     stride: [i64; 2],
     padding: [i64; 2],
 ) -> Result<Tensor, TchError> {
-    conv2d_widened(widens(x), x, weight, bias, stride, padding)
+    conv_widened(widens(x), x, weight, bias, stride, padding)
 }
 
-fn conv2d_widened(
+/// A convolution in N spatial dimensions (dilation 1, one group), widened
+/// when `widen`.
+fn conv_widened<const N: usize>(
     widen: bool,
     x: &Tensor,
     weight: &Tensor,
     bias: Option<&Tensor>,
-    stride: [i64; 2],
-    padding: [i64; 2],
+    stride: [i64; N],
+    padding: [i64; N],
 ) -> Result<Tensor, TchError> {
+    let run = |x: &Tensor, w: &Tensor, b: Option<&Tensor>| {
+        x.f_convolution(w, b, stride, padding, [1i64; N], false, [0i64; N], 1)
+    };
     if widen {
-        f32(x)
-            .f_conv2d(
-                &f32(weight),
-                bias.map(f32).as_ref(),
-                stride,
-                padding,
-                [1, 1],
-                1,
-            )?
-            .f_to_kind(Kind::BFloat16)
+        run(&f32(x), &f32(weight), bias.map(f32).as_ref())?.f_to_kind(Kind::BFloat16)
     } else {
-        x.f_conv2d(weight, bias, stride, padding, [1, 1], 1)
+        run(x, weight, bias)
     }
 }
 
@@ -257,8 +229,8 @@ mod tests {
             "f32 tensors are left alone"
         );
         let lin = linear_widened(true, &x, &w, Some(&b));
-        let c3 = conv3d_widened(true, &v, &k3, Some(&cb), [1, 2, 1], [0, 1, 1]).unwrap();
-        let c2 = conv2d_widened(true, &img, &k2, Some(&cb), [1, 1], [1, 1]).unwrap();
+        let c3 = conv_widened(true, &v, &k3, Some(&cb), [1, 2, 1], [0, 1, 1]).unwrap();
+        let c2 = conv_widened(true, &img, &k2, Some(&cb), [1, 1], [1, 1]).unwrap();
         for t in [&lin, &c3, &c2] {
             assert_eq!(t.kind(), Kind::BFloat16);
         }
@@ -280,7 +252,7 @@ mod tests {
         // libtorch's bf16 kernels: the same products, summed in another order
         // (and, for some, rounded in between): within a few bf16 ulps.
         let lin_n = linear_widened(false, &x, &w, Some(&b));
-        let c3_n = conv3d_widened(false, &v, &k3, Some(&cb), [1, 2, 1], [0, 1, 1]).unwrap();
+        let c3_n = conv_widened(false, &v, &k3, Some(&cb), [1, 2, 1], [0, 1, 1]).unwrap();
         assert!(lin_n.equal(&x.linear(&w, Some(&b))));
         for (a, r) in [(&lin_n, &lin_ref), (&c3_n, &c3_ref)] {
             let err = (f32(a) - f32(r)).abs().max().double_value(&[]);
