@@ -91,7 +91,7 @@ fn main() -> Result<()> {
     // bf16 linear layers and convolutions on a CPU without bf16 arithmetic
     // run widened to f32 (several times faster there; docs/benchmarks.md):
     // BRIDGEV2W_CPU_BF16=auto|native|f32, default auto.
-    bridgev2w_world_model::cpu_bf16::init_from_env().map_err(anyhow::Error::msg)?;
+    bridgev2w_world_model::cpu_bf16::init_from_env()?;
     let cli = Cli::parse();
     match cli.command {
         Command::Masks(a) => masks_cmd::run(&a),

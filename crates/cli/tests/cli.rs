@@ -732,3 +732,30 @@ fn a_bad_cpu_cache_setting_stops_naming_the_variable() {
         "{e}"
     );
 }
+
+#[test]
+fn a_bad_cpu_bf16_setting_stops_naming_the_variable_and_the_choices() {
+    let run = |v: &str| {
+        bin()
+            .args(["robot-info", "--robot", "franka"])
+            .env("BRIDGEV2W_CPU_BF16", v)
+            .output()
+            .expect("run")
+    };
+    let bad = run("fast");
+    assert!(!bad.status.success());
+    let e = stderr(&bad);
+    assert!(
+        e.contains("BRIDGEV2W_CPU_BF16")
+            && e.contains("\"fast\"")
+            && e.contains("auto, native, f32"),
+        "{e}"
+    );
+    for good in ["auto", "native", " f32 "] {
+        assert!(
+            run(good).status.success(),
+            "{good:?}: {}",
+            stderr(&run(good))
+        );
+    }
+}

@@ -706,7 +706,7 @@ fn builtin_robots() -> String {
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     // The binary's start-up setting (bf16 layers widened to f32 on a CPU
     // without bf16 arithmetic), with BRIDGEV2W_CPU_BF16 read the same way.
-    bridgev2w_world_model::cpu_bf16::init_from_env().map_err(Error::new_err)?;
+    bridgev2w_world_model::cpu_bf16::init_from_env().map_err(|e| Error::new_err(e.to_string()))?;
     m.add("Error", m.py().get_type::<Error>())?;
     m.add_class::<Robot>()?;
     m.add_class::<Camera>()?;

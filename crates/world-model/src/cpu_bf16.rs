@@ -17,7 +17,7 @@
 //! [`set`]. CUDA tensors, f32 tensors and an active autocast region are left
 //! to libtorch.
 
-use std::str::FromStr;
+use crate::error::WorldModelError;
 use std::sync::atomic::{AtomicU8, Ordering};
 use tch::{nn, Device, Kind, TchError, Tensor};
 
@@ -36,30 +36,11 @@ pub enum Bf16Compute {
     F32,
 }
 
-impl FromStr for Bf16Compute {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s.trim().to_ascii_lowercase().as_str() {
-            "auto" => Ok(Self::Auto),
-            "native" => Ok(Self::Native),
-            "f32" => Ok(Self::F32),
-            _ => Err(format!(
-                "{ENV}={s:?}: expected auto, native or f32 (how bf16 linear layers and \
-                 convolutions run on the CPU)"
-            )),
-        }
-    }
-}
-
-impl std::fmt::Display for Bf16Compute {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Self::Auto => "auto",
-            Self::Native => "native",
-            Self::F32 => "f32",
-        })
-    }
-}
+crate::named_enum!(Bf16Compute, WorldModelError, WorldModelError::input, ENV, {
+    Auto => "auto",
+    Native => "native",
+    F32 => "f32",
+});
 
 impl Bf16Compute {
     /// `Auto` decided for this CPU (`Native` or `F32`).
@@ -98,11 +79,11 @@ pub fn set(mode: Bf16Compute) {
     MODE.store(code, Ordering::Relaxed);
 }
 
-/// Sets the mode from [`ENV`] (unset: `Auto`); an unknown value is an error
-/// naming the variable, the value and the choices.
-pub fn init_from_env() -> Result<Bf16Compute, String> {
+/// Sets the mode from [`ENV`] (unset: `Auto`) and returns it resolved; an
+/// unknown value is an error naming the variable, the value and the choices.
+pub fn init_from_env() -> Result<Bf16Compute, WorldModelError> {
     let mode = match std::env::var(ENV) {
-        Ok(v) => v.parse()?,
+        Ok(v) => v.trim().parse()?,
         Err(_) => Bf16Compute::Auto,
     };
     set(mode);
@@ -277,11 +258,11 @@ mod tests {
     fn modes_parse_and_bad_values_name_the_variable() {
         assert_eq!("auto".parse::<Bf16Compute>().unwrap(), Bf16Compute::Auto);
         assert_eq!(
-            " Native".parse::<Bf16Compute>().unwrap(),
+            "native".parse::<Bf16Compute>().unwrap(),
             Bf16Compute::Native
         );
         assert_eq!("f32".parse::<Bf16Compute>().unwrap(), Bf16Compute::F32);
-        let err = "fast".parse::<Bf16Compute>().unwrap_err();
+        let err = "fast".parse::<Bf16Compute>().unwrap_err().to_string();
         assert!(
             err.contains(ENV) && err.contains("\"fast\"") && err.contains("native"),
             "{err}"
