@@ -258,8 +258,9 @@ impl CausalConv3d {
         if t > k - 1 {
             parts.push(self.conv.forward(x)?); // [B, Cout, T - k + 1, H', W']
         }
-        let out = Tensor::f_cat(&parts, 2)?; // [B, Cout, T, H', W']
-                                             // The padded input's last k - 1 frames: the input's own (T >= k - 1).
+        // [B, Cout, T, H', W']
+        let out = Tensor::f_cat(&parts, 2)?;
+        // The padded input's last k - 1 frames: the input's own (T >= k - 1).
         let new_cache = x.narrow(2, t - (k - 1), k - 1).copy();
         Ok((out, Some(new_cache)))
     }
