@@ -92,7 +92,7 @@ struct Cache {
       auto oldest = by_age.begin();
       size_t cls = oldest->second;
       auto it = free_blocks.find(cls);
-      // The class's oldest block is the oldest overall of that class.
+      // The oldest block overall is its class's oldest: the front.
       Entry e = it->second.front();
       it->second.pop_front();
       if (it->second.empty()) free_blocks.erase(it);
