@@ -76,8 +76,8 @@ pub fn limit_from_env() -> Result<u64, String> {
 
 /// The default limit for a machine with `physical` bytes of memory (`None`:
 /// unknown): a quarter of it, at least 2 GiB and at most 8 GiB. A VAE decode
-/// of the bench's default shapes keeps about 4 GiB of blocks in flight
-/// (`docs/benchmarks.md`: with 2 GiB it ran about a fifth slower).
+/// at `bench model`'s default shapes ran as fast with 4 GiB as with 8, and
+/// about 14% slower with 2 (`docs/benchmarks.md`).
 pub fn default_limit(physical: Option<u64>) -> u64 {
     const GIB: u64 = 1 << 30;
     physical.map_or(2 * GIB, |m| (m / 4).clamp(2 * GIB, 8 * GIB))

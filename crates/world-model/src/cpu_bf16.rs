@@ -14,8 +14,10 @@
 //! The mode is process-wide: [`Bf16Compute::Auto`] (the default) widens only
 //! where the CPU has no AVX512-BF16; `BRIDGEV2W_CPU_BF16=native|f32|auto`
 //! chooses ([`init_from_env`], which the binary calls at start-up), or
-//! [`set`]. CUDA tensors, f32 tensors and an active autocast region are left
-//! to libtorch.
+//! [`set`]. CUDA tensors and f32 tensors are left alone. Inside a CPU
+//! autocast region libtorch casts a layer's operands back to bf16 itself, so
+//! there (training with `autocast = "bf16"` on the CPU) the widening gains
+//! nothing.
 
 use crate::error::WorldModelError;
 use std::sync::atomic::{AtomicU8, Ordering};
@@ -130,26 +132,15 @@ fn linear_widened(widen: bool, x: &Tensor, weight: &Tensor, bias: Option<&Tensor
     }
 }
 
-/// A 3-D convolution (libtorch's `conv3d` arguments), widened on a CPU
-/// without bf16 arithmetic.
-pub fn conv3d(
+/// A convolution in N = 2 or 3 spatial dimensions (libtorch's `conv2d` /
+/// `conv3d` with dilation 1 and one group), widened on a CPU without bf16
+/// arithmetic.
+pub fn conv<const N: usize>(
     x: &Tensor,
     weight: &Tensor,
     bias: Option<&Tensor>,
-    stride: [i64; 3],
-    padding: [i64; 3],
-) -> Result<Tensor, TchError> {
-    conv_widened(widens(x), x, weight, bias, stride, padding)
-}
-
-/// A 2-D convolution (libtorch's `conv2d` arguments), widened on a CPU
-/// without bf16 arithmetic.
-pub fn conv2d(
-    x: &Tensor,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    stride: [i64; 2],
-    padding: [i64; 2],
+    stride: [i64; N],
+    padding: [i64; N],
 ) -> Result<Tensor, TchError> {
     conv_widened(widens(x), x, weight, bias, stride, padding)
 }

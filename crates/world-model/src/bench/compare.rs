@@ -122,8 +122,8 @@ impl fmt::Display for ModelBenchReport {
         match self.cpu_bf16 {
             Some(crate::cpu_bf16::Bf16Compute::F32) => writeln!(
                 f,
-                "bf16 linear layers and convolutions: bridgev2w widens them to f32 (no AVX512-BF16 \
-                 on this CPU; {}=native for libtorch's own), diffusers runs libtorch's",
+                "bf16 linear layers and convolutions: bridgev2w widens them to f32 (the default \
+                 without AVX512-BF16; {}=native for libtorch's own), diffusers runs libtorch's",
                 crate::cpu_bf16::ENV
             )?,
             Some(mode) => writeln!(

@@ -104,7 +104,7 @@ impl SafeConv3d {
     }
 
     fn conv(&self, x: &Tensor) -> Result<Tensor> {
-        Ok(crate::cpu_bf16::conv3d(
+        Ok(crate::cpu_bf16::conv(
             x,
             &self.weight,
             Some(&self.bias),
@@ -134,7 +134,7 @@ impl SafeConv3d {
             .weight
             .narrow(2, first, end - first)
             .f_sum_dim_intlist(2, false, self.weight.kind())?;
-        Ok(crate::cpu_bf16::conv2d(
+        Ok(crate::cpu_bf16::conv(
             frame,
             &w,
             with_bias.then_some(&self.bias),

@@ -46,7 +46,7 @@ impl FrameConv2d {
     /// `[B, Cin, T, H, W] -> [B, Cout, T, H', W']`.
     pub(super) fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (images, b, t) = frames_to_images(x)?;
-        let out = crate::cpu_bf16::conv2d(
+        let out = crate::cpu_bf16::conv(
             &images,
             &self.weight,
             Some(&self.bias),
