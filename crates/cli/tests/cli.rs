@@ -694,6 +694,26 @@ fn plan_fidelity_of_the_perfect_model() {
         "{}",
         stderr(&out)
     );
+    // A diffusion model's goal distances on the image pyramid, said in the
+    // section; an unknown goal latent is refused with the choices.
+    let out = words(&format!(
+        "plan-fidelity --model random --trials 1 --candidates 3 --denoise-steps 1 \
+         --goal-latent pyramid --device cpu --out {}",
+        md.display()
+    ));
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&md).expect("plan-fidelity test");
+    assert!(
+        text.contains("goal distances on a Gaussian pyramid of the image")
+            && text.contains("| random | "),
+        "{text}"
+    );
+    let out = words("plan-fidelity --model random --goal-latent vae");
+    let e = stderr(&out);
+    assert!(
+        !out.status.success() && e.contains("goal latent") && e.contains("model, pyramid"),
+        "{e}"
+    );
 }
 
 #[test]

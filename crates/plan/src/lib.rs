@@ -26,6 +26,7 @@ pub mod choice;
 pub mod error;
 pub mod experiment;
 pub mod fidelity;
+pub mod goal_latent;
 pub mod model;
 pub mod mpc;
 pub mod policy;

@@ -2,6 +2,7 @@
 //! observations out, plus the latent encoder used for goal distances.
 
 use crate::error::{check_finite, PlanError, Result};
+use crate::goal_latent::{pyramid_latent, GoalLatent};
 use crate::{EeAction, Observation};
 use bridgev2w_embodiment::actions::{actions_to_joints, Trajectory};
 use bridgev2w_embodiment::camera::Camera;
@@ -215,6 +216,8 @@ pub struct MaskConditioned<'m, M: ?Sized> {
     pub predict: PredictOptions,
     /// IK settings.
     pub ik: IkOptions,
+    /// The latent of goal distances ([`ActionWorldModel::encode`]).
+    pub goal_latent: GoalLatent,
 }
 
 impl<M: ?Sized> std::fmt::Debug for MaskConditioned<'_, M> {
@@ -222,6 +225,7 @@ impl<M: ?Sized> std::fmt::Debug for MaskConditioned<'_, M> {
         f.debug_struct("MaskConditioned")
             .field("arm", &self.arm)
             .field("predict", &self.predict)
+            .field("goal_latent", &self.goal_latent)
             .finish_non_exhaustive()
     }
 }
@@ -265,6 +269,7 @@ impl<'m, M: WorldModel + ?Sized> MaskConditioned<'m, M> {
                 restarts: 2,
                 ..IkOptions::default()
             },
+            goal_latent: GoalLatent::Model,
         })
     }
 }
@@ -335,6 +340,7 @@ impl<M: WorldModel + ?Sized> ActionWorldModel for MaskConditioned<'_, M> {
             hold: self.hold.clone(),
             predict: self.predict.clone(),
             ik: self.ik.clone(),
+            goal_latent: self.goal_latent,
         };
         let prepared: Vec<(Vec<EeAction>, MaskVideo, Vec<f64>)> = sequences
             .par_iter()
@@ -366,7 +372,13 @@ impl<M: WorldModel + ?Sized> ActionWorldModel for MaskConditioned<'_, M> {
     }
 
     fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>> {
-        Ok(self.model.encode_image(image)?)
+        match self.goal_latent {
+            GoalLatent::Model => Ok(self.model.encode_image(image)?),
+            GoalLatent::Pyramid => {
+                check_image_size(image, self.resolution())?;
+                Ok(pyramid_latent(image))
+            }
+        }
     }
 }
 

@@ -8,6 +8,7 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::xyz_rpy_from_pose;
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::cem::{CemConfig, GripperMode};
+use bridgev2w_plan::goal_latent::{pyramid_latent, GoalLatent};
 use bridgev2w_plan::model::{
     expand_waypoints, pad_to_clip, ActionWorldModel, MaskConditioned, Workspace,
 };
@@ -719,4 +720,26 @@ fn tcp_rotation_error_is_the_angle_to_the_expert_final_orientation() {
     let e = inst.tcp_rotation_error_rad(&world, &state);
     assert!((e - 0.3).abs() < 1e-9, "{e}");
     assert!((inst.error_m(&world, &state) - position_m).abs() < 1e-9);
+}
+
+#[test]
+fn the_goal_latent_is_the_models_encoder_or_the_image_pyramid() {
+    let counting = CountingModel {
+        calls: Mutex::new(vec![]),
+    };
+    let (mut m, obs) = franka_model(&counting);
+    // The default is the model's own encoder (the paper's VAE latent).
+    assert_eq!(m.goal_latent, GoalLatent::Model);
+    assert_eq!(m.encode(&obs.image).unwrap(), obs.image.rgb);
+    m.goal_latent = GoalLatent::Pyramid;
+    let pyramid = m.encode(&obs.image).unwrap();
+    assert_eq!(pyramid, pyramid_latent(&obs.image));
+    assert_ne!(pyramid.len(), obs.image.rgb.len());
+    // An image of another size is refused, not measured.
+    let small = RgbFrame {
+        height: 12,
+        width: 16,
+        rgb: vec![0.5; 12 * 16 * 3],
+    };
+    assert!(m.encode(&small).is_err());
 }

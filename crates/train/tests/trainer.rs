@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used)]
 
 use bridgev2w_data::synth::{write_dataset, SynthConfig};
-use bridgev2w_train::config::{Stage, TrainConfig};
+use bridgev2w_train::config::{Stage, TrainConfig, VaeParts};
 use bridgev2w_train::trainer::{resolve_checkpoint, Trainer};
 use bridgev2w_train::TrainError;
 use bridgev2w_world_model::bridge::ImageConditioning;
@@ -710,6 +710,43 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     c.train.stage = Stage::Prior;
     let e = Trainer::new(c).unwrap_err().to_string();
     assert!(e.contains("train.inflate_image_vae"), "{e}");
+
+    // A decoder-only stage from it: only the decoder trains, the encoder
+    // (and so the latents every later stage was trained on) stays as loaded.
+    let mut c = config(&tmp.path().join("vae-decoder"));
+    c.model.backbone = backbone.display().to_string();
+    (c.data.frames, c.data.height, c.data.width) = (9, 64, 96);
+    (c.train.stage, c.train.vae_parts) = (Stage::Vae, VaeParts::Decoder);
+    (
+        c.train.max_steps,
+        c.train.lr,
+        c.train.warmup_steps,
+        c.train.checkpoint_every,
+    ) = (3, 2e-3, 0, 0);
+    let mut t = Trainer::new(c).unwrap();
+    assert!(t
+        .opt
+        .params()
+        .iter()
+        .all(|(n, _)| n.starts_with("vae.decoder.")));
+    let before: Vec<(String, tch::Tensor)> = t
+        .model
+        .vae_vs
+        .variables()
+        .into_iter()
+        .map(|(n, v)| (n, v.detach().copy()))
+        .collect();
+    t.run(&mut |_| {}).unwrap();
+    let after = t.model.vae_vs.variables();
+    let mut changed = 0;
+    for (n, v) in &before {
+        if n.starts_with("encoder.") {
+            assert!(v.equal(&after[n]), "{n} moved");
+        } else if !v.equal(&after[n]) {
+            changed += 1;
+        }
+    }
+    assert!(changed > 4, "{changed} decoder tensors trained");
 
     let mut c = config(&tmp.path().join("prior"));
     c.model.backbone = backbone.display().to_string();

@@ -11,6 +11,7 @@ use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_plan::choice::PlanModel;
 use bridgev2w_plan::experiment::planning::{CemSizes, GoalOptions};
 use bridgev2w_plan::experiment::ModelOptions;
+use bridgev2w_plan::goal_latent::GoalLatent;
 use bridgev2w_world_model::pipeline::BatchNoise;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
@@ -65,6 +66,12 @@ pub struct ModelArgs {
     /// dilated by this many pixels, each frame is the first frame.
     #[arg(long, value_name = "MARGIN_PX")]
     pub keep_static: Option<u32>,
+    /// Where goal distances are measured: `model` (a diffusion model's VAE
+    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
+    /// perfect model's latent: it keeps growing with the arm's displacement
+    /// where a fine latent is flat; beyond the paper).
+    #[arg(long, default_value = "model")]
+    pub goal_latent: GoalLatent,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     pub device: ComputeDevice,
@@ -98,6 +105,7 @@ impl From<&ModelArgs> for ModelOptions {
             batch_noise: a.batch_noise,
             strength: a.strength,
             keep_static_margin_px: a.keep_static,
+            goal_latent: a.goal_latent,
             device: a.device,
             precision: a.precision,
             max_batch: a.max_batch,

@@ -6,6 +6,7 @@ use anyhow::Result;
 use bridgev2w_data::synth::Task;
 use bridgev2w_plan::experiment::report::report_models;
 use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
+use bridgev2w_plan::goal_latent::GoalLatent;
 use bridgev2w_world_model::pipeline::BatchNoise;
 use bridgev2w_world_model::ComputeDevice;
 use std::path::PathBuf;
@@ -73,6 +74,12 @@ pub struct PlanReportArgs {
     /// by this many pixels, each frame is the first frame.
     #[arg(long, value_name = "MARGIN_PX")]
     pub keep_static: Option<u32>,
+    /// Where goal distances are measured: `model` (a diffusion model's VAE
+    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
+    /// perfect model's latent: it keeps growing with the arm's displacement
+    /// where a fine latent is flat; beyond the paper).
+    #[arg(long, default_value = "model")]
+    pub goal_latent: GoalLatent,
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
@@ -106,6 +113,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         batch_noise: a.batch_noise,
         strength: a.strength,
         keep_static_margin_px: a.keep_static,
+        goal_latent: a.goal_latent,
         device: a.device,
         seed: a.seed,
         results: Some(a.out.clone()),

@@ -179,7 +179,7 @@ impl FidelityStudy {
             table += &row("perfect (the same candidates)", &self.perfect_rows);
         }
         format!(
-            "## Does the model's goal distance order actions as the world does?\n\nProduced by `{command}` ({:.0} s). Per trial (a `{}` task instance of split `{}`, its first goal image), {} candidate actions (translation ~ N(0, {} m) per axis from the start pose, in the workspace, {} clip frames each) are scored by the model (latent L1 of its predicted terminal frame to the goal, as the planner does; a diffusion model samples with {} denoising steps and {} noise across the candidates{}) and by the synthetic world (the same latent L1 of the frame the world renders), and compared by Spearman's rank correlation, mean ± std over {} trials. CEM keeps the lowest-cost candidates, so it can only plan as well as *model vs distance* allows. The latent is the model's own: a diffusion model's VAE posterior mean, the perfect model's Gaussian image pyramid.\n\n| model | model vs real cost | real cost vs TCP distance | model cost vs TCP distance |\n|---|---|---|---|\n{table}",
+            "## Does the model's goal distance order actions as the world does?\n\nProduced by `{command}` ({:.0} s). Per trial (a `{}` task instance of split `{}`, its first goal image), {} candidate actions (translation ~ N(0, {} m) per axis from the start pose, in the workspace, {} clip frames each) are scored by the model (latent L1 of its predicted terminal frame to the goal, as the planner does; a diffusion model samples with {} denoising steps and {} noise across the candidates{}) and by the synthetic world (the same latent L1 of the frame the world renders), and compared by Spearman's rank correlation, mean ± std over {} trials. CEM keeps the lowest-cost candidates, so it can only plan as well as *model vs distance* allows. The latent is a diffusion model's VAE posterior mean unless said otherwise, the perfect model's Gaussian image pyramid.\n\n| model | model vs real cost | real cost vs TCP distance | model cost vs TCP distance |\n|---|---|---|---|\n{table}",
             self.seconds,
             o.task.name(),
             o.split.name(),
@@ -188,7 +188,11 @@ impl FidelityStudy {
             o.frames_per_action,
             o.model.denoise_steps,
             o.model.batch_noise,
-            crate::experiment::report::sampling_note(o.model.strength, o.model.keep_static_margin_px),
+            crate::experiment::report::sampling_note(
+                o.model.strength,
+                o.model.keep_static_margin_px,
+                o.model.goal_latent,
+            ),
             o.trials,
         )
     }

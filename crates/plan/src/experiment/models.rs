@@ -3,6 +3,7 @@
 //! and start pose) as an [`ActionWorldModel`].
 
 use crate::choice::PlanModel;
+use crate::goal_latent::GoalLatent;
 use crate::model::{ActionWorldModel, MaskConditioned};
 use crate::synthetic::{PerfectWorldModel, TaskInstance};
 use crate::Result;
@@ -33,6 +34,9 @@ pub struct ModelOptions {
     /// robot's swept region, this many pixels around it
     /// ([`SampleOptions::keep_static_margin_px`]; `None`: off).
     pub keep_static_margin_px: Option<u32>,
+    /// The latent of a diffusion model's goal distances (the perfect model's
+    /// is always its pyramid).
+    pub goal_latent: GoalLatent,
     /// The device of a diffusion model.
     pub device: ComputeDevice,
     /// The precision of a diffusion model's weights and activations.
@@ -58,6 +62,7 @@ impl Default for ModelOptions {
             batch_noise: BatchNoise::Shared,
             strength: 1.0,
             keep_static_margin_px: None,
+            goal_latent: GoalLatent::Model,
             device: ComputeDevice::auto(),
             precision: Precision::F32,
             max_batch: None,
@@ -92,6 +97,8 @@ pub enum LoadedModel {
         strength: f64,
         /// The static scene kept outside the swept region (margin in pixels).
         keep_static_margin_px: Option<u32>,
+        /// The latent of goal distances.
+        goal_latent: GoalLatent,
         /// At most this many candidates per model call.
         max_batch: Option<usize>,
     },
@@ -120,6 +127,7 @@ impl LoadedModel {
                     batch_noise: o.batch_noise,
                     strength: o.strength,
                     keep_static_margin_px: o.keep_static_margin_px,
+                    goal_latent: o.goal_latent,
                     max_batch: o.max_batch,
                 }
             }
@@ -172,6 +180,7 @@ impl LoadedModel {
                 batch_noise,
                 strength,
                 keep_static_margin_px,
+                goal_latent,
                 max_batch,
             } => {
                 let predict = PredictOptions {
@@ -185,7 +194,7 @@ impl LoadedModel {
                     },
                     max_batch: *max_batch,
                 };
-                let wrapped = MaskConditioned::new(
+                let mut wrapped = MaskConditioned::new(
                     model.as_ref(),
                     world.embodiment.clone(),
                     inst.expert.meta.arm,
@@ -193,6 +202,7 @@ impl LoadedModel {
                     inst.expert.actions[0].clone(),
                     predict,
                 )?;
+                wrapped.goal_latent = *goal_latent;
                 f(&wrapped)
             }
         }

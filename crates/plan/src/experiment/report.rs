@@ -5,6 +5,7 @@ use super::planning::{plan_with, CemSizes, GoalOptions, PlanOptions};
 use super::rollout::{rollout_with, RolloutOptions};
 use super::{LoadedModel, ModelOptions};
 use crate::choice::PlanModel;
+use crate::goal_latent::GoalLatent;
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::Task;
 use bridgev2w_world_model::pipeline::BatchNoise;
@@ -61,6 +62,7 @@ impl ReportModel {
             batch_noise: o.batch_noise,
             strength: o.strength,
             keep_static_margin_px: o.keep_static_margin_px,
+            goal_latent: o.goal_latent,
             device: o.device,
             width: 96,
             height: 64,
@@ -101,6 +103,8 @@ pub struct PlanReportOptions {
     /// The static scene of the diffusion models' predictions kept outside
     /// the robot's swept region (margin in pixels; `None`: off).
     pub keep_static_margin_px: Option<u32>,
+    /// The latent of the diffusion models' goal distances.
+    pub goal_latent: GoalLatent,
     /// The device of the diffusion models.
     pub device: ComputeDevice,
     /// Seed.
@@ -236,7 +240,7 @@ pub fn plan_report(
                     " ({} denoising steps, {} noise{})",
                     o.denoise_steps,
                     o.batch_noise,
-                    sampling_note(o.strength, o.keep_static_margin_px)
+                    sampling_note(o.strength, o.keep_static_margin_px, o.goal_latent)
                 ),
             },
             r.markdown()
@@ -309,17 +313,25 @@ fn plan_tables(
     Ok(md)
 }
 
-/// The sampler's departures from the defaults: `, strength S` when sampling
-/// starts from the noised first frame, and
+/// A diffusion model's departures from the defaults: `, strength S` when
+/// sampling starts from the noised first frame,
 /// `, the static scene kept outside the swept region (+N px)` when
-/// predictions keep it; else nothing.
-pub(crate) fn sampling_note(strength: f64, keep_static_margin_px: Option<u32>) -> String {
+/// predictions keep it, and `, goal distances on a Gaussian pyramid of the
+/// image` when they are not measured in the VAE's latent; else nothing.
+pub(crate) fn sampling_note(
+    strength: f64,
+    keep_static_margin_px: Option<u32>,
+    goal_latent: GoalLatent,
+) -> String {
     let mut note = String::new();
     if strength < 1.0 {
         note += &format!(", strength {strength}");
     }
     if let Some(m) = keep_static_margin_px {
         note += &format!(", the static scene kept outside the swept region (+{m} px)");
+    }
+    if goal_latent == GoalLatent::Pyramid {
+        note += ", goal distances on a Gaussian pyramid of the image";
     }
     note
 }

@@ -339,6 +339,11 @@ pub struct TrainSection {
     /// and clip training starts from the image autoencoder applied frame by
     /// frame. Useful only without time compression (e.g. `small2x`).
     pub inflate_image_vae: bool,
+    /// `vae` stage: which parts train. `all` (encoder and decoder) or
+    /// `decoder` (the encoder frozen: its latents, and so every model trained
+    /// on them, stay valid while the reconstruction improves; Stable
+    /// Diffusion's fine-tuned decoders were made this way).
+    pub vae_parts: VaeParts,
     /// Per-block gradient checkpointing of the backbone transformer
     /// (`bridgev2w` and `prior` stages): blocks run without autograd graphs
     /// and are recomputed one at a time in the backward pass. Same
@@ -391,6 +396,7 @@ impl Default for TrainSection {
             kl_weight: 1e-4,
             color_augment: false,
             inflate_image_vae: false,
+            vae_parts: VaeParts::All,
             gradient_checkpointing: false,
             autocast: Autocast::Auto,
         }
@@ -432,6 +438,33 @@ bridgev2w_world_model::named_enum!(Autocast, TrainError, TrainError::input, "tra
     Bf16 => "bf16",
     Off => "off",
 });
+
+/// Which parts of the VAE a `vae` stage trains (`train.vae_parts`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VaeParts {
+    /// Encoder and decoder.
+    #[default]
+    All,
+    /// The decoder (and `post_quant_conv`); the encoder frozen.
+    Decoder,
+}
+
+bridgev2w_world_model::named_enum!(VaeParts, TrainError, TrainError::input, "train.vae_parts", {
+    All => "all",
+    Decoder => "decoder",
+});
+
+impl VaeParts {
+    /// Whether the VAE variable `name` (its checkpoint key, e.g.
+    /// `decoder.conv_in.conv.weight`) trains.
+    pub fn trains(self, name: &str) -> bool {
+        match self {
+            Self::All => true,
+            Self::Decoder => name.starts_with("decoder.") || name.starts_with("post_quant_conv."),
+        }
+    }
+}
 
 /// What a run trains (`train.stage`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -593,6 +626,21 @@ impl TrainConfig {
                     "true with stage \"{}\": it starts a \"vae\" stage from an image autoencoder",
                     t.stage
                 ),
+            );
+        }
+        if t.vae_parts != VaeParts::All && t.stage != Stage::Vae {
+            return bad(
+                "train.vae_parts",
+                format!(
+                    "\"{}\" with stage \"{}\": it chooses what a \"vae\" stage trains",
+                    t.vae_parts, t.stage
+                ),
+            );
+        }
+        if t.vae_parts == VaeParts::Decoder && t.inflate_image_vae {
+            return bad(
+                "train.vae_parts",
+                "\"decoder\" with inflate_image_vae = true: inflating rewrites the encoder that \"decoder\" keeps".into(),
             );
         }
         if self.data.clips_per_video == 0 {

@@ -100,6 +100,29 @@ fn sizes_beyond_the_limits_name_the_field() {
         "{e}"
     );
     assert_eq!(Stage::Vae.to_string(), "vae");
+    // vae_parts: only a vae stage, and never with the inflation that
+    // rewrites the encoder it keeps.
+    let c = TrainConfig::from_toml(&format!(
+        "{base}[train]\nstage = \"vae\"\nvae_parts = \"decoder\"\n"
+    ))
+    .unwrap();
+    assert_eq!(c.train.vae_parts, VaeParts::Decoder);
+    assert!(VaeParts::Decoder.trains("decoder.conv_in.conv.weight"));
+    assert!(!VaeParts::Decoder.trains("encoder.conv_in.conv.weight"));
+    for (extra, want) in [
+        ("vae_parts = \"decoder\"\n", "with stage \"bridgev2w\""),
+        (
+            "stage = \"vae\"\nvae_parts = \"decoder\"\ninflate_image_vae = true\n",
+            "inflate_image_vae = true",
+        ),
+        ("stage = \"vae\"\nvae_parts = \"encoder\"\n", "encoder"),
+    ] {
+        let e = TrainConfig::from_toml(&format!("{base}[train]\n{extra}"))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("vae_parts") && e.contains(want), "{extra}: {e}");
+    }
     for d in ["1.0", "-0.1", "nan"] {
         let e = TrainConfig::from_toml(&format!("{base}[train]\nema_decay = {d}\n"))
             .unwrap_err()

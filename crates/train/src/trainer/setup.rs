@@ -195,7 +195,11 @@ impl Trainer {
             }
             model.vae_vs.unfreeze();
             for (name, t) in model.vae_vs.variables() {
-                params.push((format!("vae.{name}"), t));
+                if cfg.train.vae_parts.trains(&name) {
+                    params.push((format!("vae.{name}"), t));
+                } else {
+                    let _ = t.set_requires_grad(false);
+                }
             }
         }
         if let Some(vs) = &action_vs {
