@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Exports the fine-tuned BridgeV2W of a `scripts/reproduce-synthetic.sh` run
 # as the shipped demo model, assets/demo-model (the default model of
-# `bridgev2w demo`): the prior's backbone folder, the fine-tuned weights and
+# `bridgev2w demo`): the backbone folder of the decoder stage (the prior's
+# transformer with the decoder trained further), the fine-tuned weights and
 # the fine-tuning config with paths relative to the repository root.
 # Called by reproduce-synthetic.sh with EXPORT_DEMO=1. The weights are
 # stored in float16 (half the size in git; the loaders cast to the model's
@@ -13,21 +14,23 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 OUT=${1:-runs/reproduce}
-for f in "$OUT/prior/final/backbone" "$OUT/bridgev2w/final/weights.safetensors" "$OUT/configs/bridgev2w.toml"; do
+for f in "$OUT/vae-decoder/final/backbone" "$OUT/bridgev2w/final/weights.safetensors" "$OUT/configs/bridgev2w-eval.toml"; do
     [[ -e $f ]] || { echo "error: $f is missing: run scripts/reproduce-synthetic.sh $OUT first" >&2; exit 1; }
 done
 rm -rf assets/demo-model.tmp
 mkdir -p assets/demo-model.tmp
-cp -r "$OUT/prior/final/backbone" assets/demo-model.tmp/backbone
+cp -r "$OUT/vae-decoder/final/backbone" assets/demo-model.tmp/backbone
 cp "$OUT/bridgev2w/final/weights.safetensors" assets/demo-model.tmp/bridgev2w.safetensors
 # The config as it stands, paths relative to the repository root: the
 # backbone is the exported one, the dataset and run folders the
 # reproduction's (rerun the script to recreate them).
 {
     echo "# BridgeV2W fine-tuning config of this model (scripts/reproduce-synthetic.sh $OUT);"
-    echo "# paths are relative to the repository root."
-    sed -e "s|\"$OUT/prior/final/backbone\"|\"assets/demo-model/backbone\"|" \
-        -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w.toml"
+    echo "# paths are relative to the repository root. The fine-tuning itself ran over the"
+    echo "# prior's backbone, which differs from this one only in the decoder (the stage"
+    echo "# vae-decoder trained it further; the encoder, the latents and the transformer are the same)."
+    sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"assets/demo-model/backbone\"|" \
+        -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w-eval.toml"
 } >assets/demo-model.tmp/train-config.toml
 PY=${PYTHON:-.venv/bin/python}
 if [[ ${HALF_WEIGHTS:-1} != 0 ]]; then

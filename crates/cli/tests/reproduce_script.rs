@@ -116,6 +116,7 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
             "vae-image",
             "vae",
             "prior",
+            "vae-decoder",
             "bridgev2w",
             "ablation-action-mlp"
         ]
@@ -154,12 +155,38 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     assert!(trained(&plain).is_empty(), "{plain:?}");
     assert_eq!(evaluated(&plain), 2, "{plain:?}");
     assert_eq!(grids(&plain), 1, "{plain:?}");
+    // A larger decoder budget: the decoder stage continues from its
+    // checkpoints; the fine-tunings (trained over the prior's backbone) are
+    // kept, every evaluation and the grids (made with its decoder) redone.
+    let decoder = run(
+        r,
+        &[
+            ("EVAL_STEPS", "3"),
+            ("KEEP_STATIC", ""),
+            ("DECODER_STEPS", "500"),
+        ],
+    );
+    assert_eq!(trained(&decoder), ["vae-decoder --resume"], "{decoder:?}");
+    assert_eq!(evaluated(&decoder), 2, "{decoder:?}");
+    assert_eq!(grids(&decoder), 1, "{decoder:?}");
+    let eval_cfg = fs::read_to_string(r.join("runs/r/configs/bridgev2w-eval.toml")).expect("eval");
+    assert!(
+        eval_cfg.contains("backbone = \"runs/r/vae-decoder/final/backbone\"")
+            && !eval_cfg.contains("prior/final"),
+        "{eval_cfg}"
+    );
+    let dec_cfg = fs::read_to_string(r.join("runs/r/configs/vae-decoder.toml")).expect("decoder");
+    assert!(
+        dec_cfg.contains("backbone = \"runs/r/prior/final/backbone\"")
+            && dec_cfg.contains("vae_parts = \"decoder\""),
+        "{dec_cfg}"
+    );
     // Another prior budget: the prior and both fine-tunings are redone, the
     // autoencoders kept; the old prior is moved aside, not deleted.
     let third = run(r, &[("PRIOR_STEPS", "7")]);
     assert_eq!(
         trained(&third),
-        ["prior", "bridgev2w", "ablation-action-mlp"]
+        ["prior", "vae-decoder", "bridgev2w", "ablation-action-mlp"]
     );
     assert_eq!(evaluated(&third), 3, "{third:?}");
     // The wall-time table keeps the stages kept from earlier runs, once each.
@@ -198,14 +225,19 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     let longer = run(r, &[("PRIOR_STEPS", "9")]);
     assert_eq!(
         trained(&longer),
-        ["prior --resume", "bridgev2w", "ablation-action-mlp"]
+        [
+            "prior --resume",
+            "vae-decoder",
+            "bridgev2w",
+            "ablation-action-mlp"
+        ]
     );
     assert_eq!(stale_priors(), before, "the prior was moved aside");
     // A smaller one cannot continue: the prior is redone from scratch.
     let shorter = run(r, &[("PRIOR_STEPS", "8")]);
     assert_eq!(
         trained(&shorter),
-        ["prior", "bridgev2w", "ablation-action-mlp"]
+        ["prior", "vae-decoder", "bridgev2w", "ablation-action-mlp"]
     );
     // The default recipe: the wide transformer (a fresh one for the prior,
     // model.transformer) and link-coded masks for BridgeV2W only.
@@ -225,7 +257,7 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     let run_narrow = |coding: &str| run(r, &[narrow[0], narrow[1], ("MASK_CODING", coding)]);
     assert_eq!(
         trained(&run_narrow("links")),
-        ["prior", "bridgev2w", "ablation-action-mlp"]
+        ["prior", "vae-decoder", "bridgev2w", "ablation-action-mlp"]
     );
     let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
     assert!(!prior.contains("transformer ="), "{prior}");
@@ -255,7 +287,7 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     // Another dataset: everything is redone.
     let fourth = run(r, &[("PRIOR_STEPS", "7"), ("EPISODES", "9,1,1,1")]);
     assert_eq!(fourth[0], "synth");
-    assert_eq!(trained(&fourth).len(), 5, "{fourth:?}");
+    assert_eq!(trained(&fourth).len(), 6, "{fourth:?}");
 }
 
 #[test]

@@ -747,6 +747,15 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
         }
     }
     assert!(changed > 4, "{changed} decoder tensors trained");
+    // ... and with it the latent scale the later stages were trained with.
+    let scale_of = |dir: &Path| {
+        let text = std::fs::read_to_string(dir.join("vae/config.json")).unwrap();
+        serde_json::from_str::<serde_json::Value>(&text).unwrap()["scaling_factor"]
+            .as_f64()
+            .unwrap()
+    };
+    let decoder_backbone = tmp.path().join("vae-decoder/final/backbone");
+    assert_eq!(scale_of(&decoder_backbone), scale_of(&backbone));
 
     let mut c = config(&tmp.path().join("prior"));
     c.model.backbone = backbone.display().to_string();

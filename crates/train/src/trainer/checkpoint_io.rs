@@ -3,7 +3,7 @@
 //! backbone of the `vae` and `prior` stages.
 
 use super::{io_err, Trainer};
-use crate::config::{Stage, TrainConfig};
+use crate::config::{Stage, TrainConfig, VaeParts};
 use crate::ema::RunWeights;
 use crate::run_dir::ExistingRun;
 use crate::{Result, TrainError};
@@ -32,14 +32,16 @@ impl Trainer {
     /// After `vae`, the latent `scaling_factor` is re-estimated as
     /// `1 / std` of posterior means over up to 8 training batches, so the
     /// diffusion stages see latents of unit scale (as Stable Diffusion and
-    /// CogVideoX set it). Written to a temporary folder, then renamed.
+    /// CogVideoX set it); a decoder-only stage (`vae_parts = "decoder"`)
+    /// keeps the loaded scale with the encoder. Written to a temporary
+    /// folder, then renamed.
     pub fn save_trained_backbone(&self, dir: &Path) -> Result<()> {
         let tmp = PathBuf::from(format!("{}.tmp", dir.display()));
         if tmp.exists() {
             std::fs::remove_dir_all(&tmp).map_err(|e| io_err(&tmp, e))?;
         }
         self.model.save_backbone(&tmp)?;
-        if self.cfg.train.stage == Stage::Vae {
+        if self.cfg.train.stage == Stage::Vae && self.cfg.train.vae_parts == VaeParts::All {
             let mut sum = 0f64;
             let mut sq = 0f64;
             let mut n = 0f64;
