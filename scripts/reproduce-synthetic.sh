@@ -204,12 +204,12 @@ checkpoint_every = 100
 color_augment = true
 EOF
 
-finetune_config() { # finetune_config OUT MASK_ACTION
-    local coding=""
+finetune_config() { # finetune_config OUT MASK_ACTION [BACKBONE]: BACKBONE defaults to the prior's
+    local coding="" backbone=${3:-$OUT/prior/final/backbone}
     [[ $2 == true && $MASK_CODING != binary ]] && coding="mask_coding = \"$MASK_CODING\""$'\n'
     cat <<EOF
 [model]
-backbone = "$OUT/prior/final/backbone"
+backbone = "$backbone"
 ${coding}lora_rank = 64
 lora_alpha = 64
 controlnet_layers = 2
@@ -232,10 +232,9 @@ finetune_config "$OUT/bridgev2w" true >"$OUT/configs/bridgev2w.toml"
 finetune_config "$OUT/ablation-action-mlp" false >"$OUT/configs/ablation-action-mlp.toml"
 # The evaluations' configs: the fine-tuning configs over the decoder stage's
 # backbone (the same latents, the better decoder).
-for name in bridgev2w ablation-action-mlp; do
-    sed "s|^backbone = \"$OUT/prior/final/backbone\"$|backbone = \"$OUT/vae-decoder/final/backbone\"|" \
-        "$OUT/configs/$name.toml" >"$OUT/configs/$name-eval.toml"
-done
+finetune_config "$OUT/bridgev2w" true "$OUT/vae-decoder/final/backbone" >"$OUT/configs/bridgev2w-eval.toml"
+finetune_config "$OUT/ablation-action-mlp" false "$OUT/vae-decoder/final/backbone" \
+    >"$OUT/configs/ablation-action-mlp-eval.toml"
 
 fingerprint() { # fingerprint TEXT FILE...: 16 hex digits of TEXT and the files
     { printf '%s\n' "$1"; shift; cat "$@"; } | sha256sum | cut -c1-16
