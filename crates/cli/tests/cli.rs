@@ -529,11 +529,16 @@ fn demo_prediction_beats_copying_the_first_frame() {
 #[test]
 fn plan_with_the_perfect_model_and_bad_plan_options() {
     let words = |line: &str| run(&line.split_whitespace().collect::<Vec<_>>());
-    // A tiny run: 1 trial, 8 samples, 1 iteration, 2 actions.
-    let out = words(
+    // A tiny run: 1 trial, 8 samples, 1 iteration, 2 actions, the view
+    // limited and traced.
+    let tmp = tempfile::tempdir().expect("plan test");
+    let trace = tmp.path().join("trace");
+    let line = format!(
         "plan --task reach --model perfect --trials 1 --samples 8 --elites 2 --iters 1 \
-         --max-steps 2 --waypoints 1 --episode-frames 9",
+         --max-steps 2 --waypoints 1 --episode-frames 9 --view-margin 0.1 --trace {}",
+        trace.display()
     );
+    let out = words(&line);
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
@@ -544,6 +549,41 @@ fn plan_with_the_perfect_model_and_bad_plan_options() {
         "{stdout}"
     );
     assert!(stderr.contains("reach trial 0: planner"), "{stderr}");
+    // The trace: a JSON line per trial, a row per executed step, and a
+    // filmstrip of 3 frames (96 wide, 2-pixel gaps) by one row per step.
+    let jsonl = std::fs::read_to_string(trace.join("trials.jsonl")).expect("trace");
+    let t: serde_json::Value = serde_json::from_str(jsonl.trim()).expect("one JSON line");
+    assert_eq!(t["trial"], 0);
+    assert_eq!(t["task"], "reach");
+    let steps = t["steps"].as_array().expect("steps");
+    assert!(!steps.is_empty() && steps.len() <= 2, "{t}");
+    for s in steps {
+        assert!(
+            s["observed_cost"].as_f64().is_some_and(f64::is_finite),
+            "{s}"
+        );
+        assert!(s["task_error_m"].as_f64().is_some(), "{s}");
+        assert_eq!(s["ee"].as_array().map(Vec::len), Some(7), "{s}");
+    }
+    assert_eq!(t["goal_tcp_m"].as_array().map(Vec::len), Some(4), "{t}");
+    let png = std::fs::read(trace.join("trial-0.png")).expect("filmstrip");
+    let (w, h, _) = bridgev2w_io::png::decode_rgb8(&png).expect("PNG");
+    let rows = steps.len() as u32;
+    assert_eq!((w, h), (3 * 96 + 4, rows * 64 + (rows - 1) * 2));
+    // A trace is never overwritten.
+    let out = words(&line);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && e.contains("--trace") && e.contains("already exists"),
+        "{e}"
+    );
+    // A margin that leaves nothing of the image.
+    let out = words("plan --task reach --model perfect --trials 1 --view-margin 0.6");
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && e.contains("--view-margin") && e.contains("0.6"),
+        "{e}"
+    );
     // k > S.
     let out = words("plan --task reach --model perfect --samples 4 --elites 8");
     let e = String::from_utf8_lossy(&out.stderr);
@@ -553,7 +593,6 @@ fn plan_with_the_perfect_model_and_bad_plan_options() {
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && e.contains("fly"), "{e}");
     // A trained-model folder without its files, before any planning.
-    let tmp = tempfile::tempdir().expect("plan test");
     let out = words(&format!(
         "plan-report --tasks reach --trials 1 --trained {}",
         tmp.path().display()

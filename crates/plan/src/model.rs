@@ -160,6 +160,83 @@ impl Workspace {
     }
 }
 
+/// Keeps the end effector inside the camera's view: a goal image says
+/// nothing about a gripper the camera cannot see, and a distance between
+/// images can prefer a gripper out of view to one at the wrong place (the
+/// planner's trace showed searches leaving the top of the image). The TCP
+/// must project at least `margin_px` pixels inside the image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewLimit {
+    /// The calibrated camera of the observations.
+    pub camera: Camera,
+    /// Margin inside the image's edges (pixels).
+    pub margin_px: f64,
+}
+
+impl ViewLimit {
+    /// Checks that the margin is finite and leaves some of the image.
+    pub fn validate(&self) -> Result<()> {
+        let k = &self.camera.intrinsics;
+        let half = f64::from(k.width.min(k.height)) / 2.0;
+        if self.margin_px.is_finite() && (0.0..half).contains(&self.margin_px) {
+            Ok(())
+        } else {
+            Err(PlanError::input(
+                "view margin",
+                format!(
+                    "{} px: expected at least 0 and less than half the image's smaller side ({half} px)",
+                    self.margin_px
+                ),
+            ))
+        }
+    }
+
+    /// How far (pixels) the TCP of `a` projects outside the image shrunk
+    /// by the margin: 0 inside, infinite behind the camera.
+    pub fn outside_px(&self, a: &EeAction) -> f64 {
+        let k = &self.camera.intrinsics;
+        let Some(p) = self
+            .camera
+            .project(&nalgebra::Point3::new(a[0], a[1], a[2]))
+        else {
+            return f64::INFINITY;
+        };
+        let m = self.margin_px;
+        let dx = (m - p.x).max(p.x - (f64::from(k.width) - m)).max(0.0);
+        let dy = (m - p.y).max(p.y - (f64::from(k.height) - m)).max(0.0);
+        dx.hypot(dy)
+    }
+
+    /// `to` if its TCP is in view (or no farther out than `from`'s);
+    /// otherwise the point on the way from `from` to `to` (position only)
+    /// where the TCP reaches the view's edge (bisection). Along a straight
+    /// move the distance outside the view is convex, so the points no
+    /// farther out than `from` are an interval that starts at `from`.
+    pub fn constrain(&self, from: &EeAction, to: &EeAction) -> EeAction {
+        let limit = self.outside_px(from).max(0.0);
+        if self.outside_px(to) <= limit {
+            return *to;
+        }
+        let at = |t: f64| {
+            let mut a = *to;
+            for i in 0..3 {
+                a[i] = from[i] + t * (to[i] - from[i]);
+            }
+            a
+        };
+        let (mut lo, mut hi) = (0.0, 1.0);
+        for _ in 0..30 {
+            let mid = 0.5 * (lo + hi);
+            if self.outside_px(&at(mid)) <= limit {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        at(lo)
+    }
+}
+
 /// Expands waypoints into clip frames: `frames_per_action` frames per
 /// waypoint, interpolating the pose (linear translation, slerp rotation)
 /// from the previous waypoint (the first from `start`), the gripper at the
@@ -421,6 +498,64 @@ mod tests {
             ..w
         };
         assert!(nan.validate().is_err());
+    }
+
+    /// A camera 1 m above the origin looking down, 100x80 pixels.
+    fn down_camera() -> Camera {
+        let k = bridgev2w_embodiment::camera::Intrinsics::centered(100.0, 100, 80);
+        Camera::look_at(
+            k,
+            nalgebra::Point3::new(0.0, 0.0, 1.0),
+            nalgebra::Point3::origin(),
+            nalgebra::Vector3::new(0.0, 1.0, 0.0),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn the_view_limit_stops_a_move_at_the_edge_of_the_view() {
+        let v = ViewLimit {
+            camera: down_camera(),
+            margin_px: 10.0,
+        };
+        v.validate().unwrap();
+        // At z = 0 (1 m away, f = 100 px, centre 49.5 px) 1 px is 1 cm:
+        // x = 0.405 m projects onto the margin's edge at 90 px.
+        let from = [0.0, 0.0, 0.0, 0.1, 0.2, 0.3, 1.0];
+        let inside = [0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(v.outside_px(&inside), 0.0);
+        assert_eq!(v.constrain(&from, &inside), inside);
+        let out = [0.6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        assert!(
+            (v.outside_px(&out) - 19.5).abs() < 1e-6,
+            "{}",
+            v.outside_px(&out)
+        );
+        let c = v.constrain(&from, &out);
+        assert!((c[0] - 0.405).abs() < 1e-6, "{c:?}");
+        assert_eq!(c[3..], out[3..], "orientation and gripper are the target's");
+        assert!(v.outside_px(&c) < 1e-6);
+        // Behind the camera: infinitely far out, never reached.
+        assert!(v
+            .outside_px(&[0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 0.0])
+            .is_infinite());
+        // Starting outside, a move that goes no farther out is kept, one
+        // that goes farther out stops where it started to.
+        let far = [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let back = [0.45, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(v.constrain(&far, &back), back);
+        let c = v.constrain(&far, &[0.7, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        assert!((c[0] - 0.5).abs() < 1e-6, "{c:?}");
+        for bad in [-1.0, 40.0, f64::NAN] {
+            let e = ViewLimit {
+                margin_px: bad,
+                ..v.clone()
+            }
+            .validate()
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("view margin") && e.contains("40 px"), "{e}");
+        }
     }
 
     #[test]

@@ -6,7 +6,8 @@
 use crate::cem::{optimize, CemConfig, GripperMode};
 use crate::error::{check_finite, PlanError, Result};
 use crate::model::{
-    apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel, Workspace,
+    apply_increment, check_image_size, expand_waypoints, latent_l1, ActionWorldModel, ViewLimit,
+    Workspace,
 };
 use crate::{EeAction, Observation};
 use bridgev2w_data::synth::Task;
@@ -98,6 +99,9 @@ pub struct MpcConfig {
     pub subgoal_patience: usize,
     /// Planned (and random-baseline) positions are clamped into this box.
     pub workspace: Option<Workspace>,
+    /// Planned (and random-baseline) moves stop where the TCP would leave
+    /// the camera's view.
+    pub view: Option<ViewLimit>,
     /// Execute the best evaluated candidate instead of the refined mean
     /// (the paper executes the mean). Near the goal the mean of spread
     /// elites can step away from a goal the best sample already holds.
@@ -119,6 +123,7 @@ impl Default for MpcConfig {
             patience: 2,
             subgoal_patience: 2,
             workspace: None,
+            view: None,
             execute_best: false,
             switch_after_goal: 0,
         }
@@ -131,6 +136,9 @@ impl MpcConfig {
         self.cem.validate()?;
         if let Some(w) = &self.workspace {
             w.validate()?;
+        }
+        if let Some(v) = &self.view {
+            v.validate()?;
         }
         if self.frames_per_action == 0 || self.max_steps == 0 {
             return Err(PlanError::Invalid(
@@ -147,9 +155,12 @@ impl MpcConfig {
         Ok(())
     }
 
-    /// `a` clamped into the workspace, if one is set.
-    pub fn clamp(&self, a: &EeAction) -> EeAction {
-        self.workspace.as_ref().map_or(*a, |w| w.clamp(a))
+    /// The move from `from` toward `to` as the limits allow: `to` clamped
+    /// into the workspace, if one is set, then stopped where the TCP would
+    /// leave the view, if that is limited.
+    pub fn constrain(&self, from: &EeAction, to: &EeAction) -> EeAction {
+        let a = self.workspace.as_ref().map_or(*to, |w| w.clamp(to));
+        self.view.as_ref().map_or(a, |v| v.constrain(from, &a))
     }
 }
 
@@ -161,6 +172,11 @@ pub trait Environment {
     fn execute(&mut self, actions: &[EeAction]) -> Result<Observation>;
     /// Whether the goal is reached (ends the episode early).
     fn goal_reached(&self) -> bool;
+    /// The task's error in metres where the environment knows it (a
+    /// simulator; a real robot does not): recorded in the planner's trace.
+    fn task_error_m(&self) -> Option<f64> {
+        None
+    }
 }
 
 impl Environment for crate::synthetic::SyntheticEnv<'_> {
@@ -173,6 +189,9 @@ impl Environment for crate::synthetic::SyntheticEnv<'_> {
     fn goal_reached(&self) -> bool {
         self.success()
     }
+    fn task_error_m(&self) -> Option<f64> {
+        Some(self.instance.error_m(self.world, &self.state))
+    }
 }
 
 /// One planning cycle's result.
@@ -182,6 +201,8 @@ pub struct PlanStep {
     pub waypoints: Vec<EeAction>,
     /// Best predicted cost per CEM iteration.
     pub best_cost_per_iteration: Vec<f64>,
+    /// The model's predicted frame of the lowest-cost candidate.
+    pub best_prediction: Option<RgbFrame>,
 }
 
 /// Scores action sequences: the latent mean L1 distance of each predicted
@@ -215,23 +236,36 @@ pub fn plan_once<M: ActionWorldModel + ?Sized>(
             .iter()
             .zip(&c.gripper)
             .map(|(inc, &g)| {
-                cur = cfg.clamp(&apply_increment(&cur, inc, g));
+                cur = cfg.constrain(&cur, &apply_increment(&cur, inc, g));
                 cur
             })
             .collect::<Vec<_>>()
     };
+    // The lowest-cost prediction seen (the executed one with `execute_best`).
+    let mut best_prediction: Option<(f64, RgbFrame)> = None;
     let mut evaluate = |cands: &[crate::cem::Candidate]| {
         let seqs: Vec<Vec<EeAction>> = cands
             .iter()
             .map(|c| expand_waypoints(&obs.ee, &to_waypoints(c), cfg.frames_per_action))
             .collect();
-        score_sequences(model, obs, &seqs, goal_latent)
+        let predicted = model.rollout_batch(obs, &seqs)?;
+        let costs = predicted
+            .iter()
+            .map(|o| latent_l1(&model.encode(&o.image)?, goal_latent))
+            .collect::<Result<Vec<f64>>>()?;
+        for (o, &c) in predicted.into_iter().zip(&costs) {
+            if best_prediction.as_ref().is_none_or(|(b, _)| c < *b) {
+                best_prediction = Some((c, o.image));
+            }
+        }
+        Ok(costs)
     };
     let r = optimize(&cfg.cem, gripper, rng, &mut evaluate)?;
     let chosen = if cfg.execute_best { &r.best.0 } else { &r.plan };
     Ok(PlanStep {
         waypoints: to_waypoints(chosen),
         best_cost_per_iteration: r.best_cost_per_iteration,
+        best_prediction: best_prediction.map(|(_, image)| image),
     })
 }
 
@@ -244,6 +278,34 @@ pub struct MpcOutcome {
     pub reached: bool,
     /// Observed latent distance to the final goal after each step.
     pub final_goal_distance: Vec<f64>,
+    /// What each executed step did, in order.
+    pub trace: Vec<MpcTraceStep>,
+}
+
+/// One executed MPC step, as the planner saw it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct MpcTraceStep {
+    /// Index of the goal image pursued (0: the first waypoint or subgoal).
+    pub goal: usize,
+    /// The executed waypoint (absolute end-effector action).
+    pub action: EeAction,
+    /// The observed end-effector pose after the step (xyz metres, rpy
+    /// radians, gripper).
+    pub ee: EeAction,
+    /// The model's predicted cost of the best candidate (last CEM iteration).
+    pub predicted_cost: f64,
+    /// The observed latent distance to the pursued goal after the step.
+    pub observed_cost: f64,
+    /// Consecutive stalled steps after this one (0: it made progress).
+    pub stalls: usize,
+    /// The task's error after the step, where the environment knows it.
+    pub task_error_m: Option<f64>,
+    /// The model's predicted frame of the lowest-cost candidate.
+    #[serde(skip)]
+    pub predicted: Option<RgbFrame>,
+    /// The observed frame after the step.
+    #[serde(skip)]
+    pub observed: RgbFrame,
 }
 
 /// Runs CEM-MPC: per cycle plan toward the current goal, execute the first
@@ -281,6 +343,7 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
     let mut stage = 0;
     let mut prev_dist = latent_l1(&model.encode(&obs.image)?, &latents[stage])?;
     let mut final_goal_distance = Vec::new();
+    let mut trace = Vec::new();
     let mut steps = 0;
     let mut stalls = 0;
     let last = latents.len() - 1;
@@ -310,6 +373,21 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
         } else {
             stalls = 0;
         }
+        trace.push(MpcTraceStep {
+            goal: stage,
+            action: first,
+            ee: obs.ee,
+            predicted_cost: plan
+                .best_cost_per_iteration
+                .last()
+                .copied()
+                .unwrap_or(f64::NAN),
+            observed_cost: dist,
+            stalls,
+            task_error_m: env.task_error_m(),
+            predicted: plan.best_prediction.clone(),
+            observed: obs.image.clone(),
+        });
         prev_dist = prev_dist.min(dist);
         let patience = if stage < last {
             cfg.subgoal_patience
@@ -347,6 +425,7 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
         steps,
         reached: env.goal_reached(),
         final_goal_distance,
+        trace,
     })
 }
 
@@ -386,6 +465,9 @@ pub fn run_random<E: Environment>(
     if let Some(w) = &cfg.workspace {
         w.validate()?;
     }
+    if let Some(v) = &cfg.view {
+        v.validate()?;
+    }
     let dist = vec![crate::cem::StepDistribution::initial(&cfg.cem)];
     let active = if cfg.cem.translation_only {
         [true, true, true, false, false, false]
@@ -400,7 +482,10 @@ pub fn run_random<E: Environment>(
     let mut steps = 0;
     while steps < cfg.max_steps && !env.goal_reached() {
         let c = crate::cem::sample_candidate(&dist, &active, &cfg.cem, gripper, rng);
-        let next = cfg.clamp(&apply_increment(&obs.ee, &c.increments[0], c.gripper[0]));
+        let next = cfg.constrain(
+            &obs.ee,
+            &apply_increment(&obs.ee, &c.increments[0], c.gripper[0]),
+        );
         obs = env.execute(&expand_waypoints(&obs.ee, &[next], cfg.frames_per_action))?;
         steps += 1;
     }
@@ -408,6 +493,7 @@ pub fn run_random<E: Environment>(
         steps,
         reached: env.goal_reached(),
         final_goal_distance: Vec::new(),
+        trace: Vec::new(),
     })
 }
 

@@ -122,6 +122,21 @@ impl TaskInstance {
             .collect()
     }
 
+    /// World positions (metres) of the expert's TCP at each goal image.
+    pub fn goal_tcp_m(&self, world: &World) -> Vec<[f64; 3]> {
+        self.goal_frames
+            .iter()
+            .filter_map(|&f| self.expert.joints.get(f))
+            .map(|q| {
+                let t = world
+                    .world_from_tcp(&self.expert.meta, q)
+                    .translation
+                    .vector;
+                [t.x, t.y, t.z]
+            })
+            .collect()
+    }
+
     /// The acting arm's expert actions.
     pub fn expert_actions(&self) -> Vec<EeAction> {
         let arm = self.expert.meta.arm;

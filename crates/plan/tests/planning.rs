@@ -10,7 +10,7 @@ use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::cem::{CemConfig, GripperMode};
 use bridgev2w_plan::goal_latent::{pyramid_latent, GoalLatent};
 use bridgev2w_plan::model::{
-    expand_waypoints, pad_to_clip, ActionWorldModel, MaskConditioned, Workspace,
+    expand_waypoints, pad_to_clip, ActionWorldModel, MaskConditioned, ViewLimit, Workspace,
 };
 use bridgev2w_plan::mpc::{
     plan_once, run_mpc, run_random, score_sequences, select_proposal, Environment, MpcConfig,
@@ -742,4 +742,72 @@ fn the_goal_latent_is_the_models_encoder_or_the_image_pyramid() {
         rgb: vec![0.5; 12 * 16 * 3],
     };
     assert!(m.encode(&small).is_err());
+}
+
+/// Records every executed frame of a synthetic-world episode.
+struct RecordingSynth<'w> {
+    inner: SyntheticEnv<'w>,
+    executed: Vec<EeAction>,
+}
+
+impl Environment for RecordingSynth<'_> {
+    fn observe(&self) -> Result<Observation> {
+        Ok(self.inner.observe())
+    }
+    fn execute(&mut self, a: &[EeAction]) -> Result<Observation> {
+        self.executed.extend_from_slice(a);
+        self.inner.execute(a)
+    }
+    fn goal_reached(&self) -> bool {
+        self.inner.success()
+    }
+}
+
+/// The view limit keeps every executed TCP position in the camera's view
+/// (no farther out than the start), where random moves leave it.
+#[test]
+fn the_view_limit_keeps_the_tcp_in_view() {
+    let world = small_world(9);
+    let cfg = MpcConfig {
+        cem: CemConfig {
+            init_translation_std_m: 0.15,
+            ..CemConfig::default()
+        },
+        max_steps: 20,
+        ..MpcConfig::default()
+    };
+    let (mut left_without, mut worst_with) = (0.0f64, 0.0f64);
+    for i in 0..3 {
+        let inst = TaskInstance::new(&world, Split::Test, i, Task::Reach).unwrap();
+        let view = ViewLimit {
+            camera: inst.expert.camera.clone(),
+            margin_px: 3.0,
+        };
+        let start = SyntheticEnv::new(&world, inst.clone()).observe().ee;
+        let limit = view.outside_px(&start);
+        for limited in [false, true] {
+            let cfg = MpcConfig {
+                view: limited.then(|| view.clone()),
+                ..cfg.clone()
+            };
+            let mut env = RecordingSynth {
+                inner: SyntheticEnv::new(&world, inst.clone()),
+                executed: Vec::new(),
+            };
+            run_random(&mut env, &cfg, &mut ChaCha8Rng::seed_from_u64(i as u64)).unwrap();
+            assert_eq!(env.executed.len(), 40);
+            let out = env
+                .executed
+                .iter()
+                .map(|a| view.outside_px(a) - limit)
+                .fold(0.0f64, f64::max);
+            if limited {
+                worst_with = worst_with.max(out);
+            } else {
+                left_without = left_without.max(out);
+            }
+        }
+    }
+    assert!(worst_with < 1e-6, "{worst_with} px beyond the start");
+    assert!(left_without > 3.0, "{left_without} px");
 }

@@ -37,6 +37,10 @@ pub struct PlanFidelityArgs {
     /// Seed of the world and the candidates.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Keep the candidates' TCP in the camera's view, this fraction of the
+    /// image's smaller side from its edges (as `plan --view-margin`).
+    #[arg(long)]
+    pub view_margin: Option<f64>,
     /// Also write the table to this markdown file (its `planning-fidelity`
     /// section), e.g. docs/results.md.
     #[arg(long)]
@@ -55,6 +59,7 @@ pub fn run(a: &PlanFidelityArgs) -> Result<()> {
         frames_per_action: a.frames_per_action,
         split: a.split,
         seed: a.seed,
+        view_margin: a.view_margin,
     };
     let study = fidelity_study(&o, &mut progress)?;
     let md = study.markdown(&std::env::args().collect::<Vec<_>>().join(" "));

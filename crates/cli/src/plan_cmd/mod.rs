@@ -130,6 +130,11 @@ pub struct GoalArgs {
     /// The same for subgoals and waypoints: then switch to the next goal.
     #[arg(long, default_value_t = 1)]
     pub subgoal_patience: usize,
+    /// Keep the TCP inside the camera's view, this fraction of the image's
+    /// smaller side from its edges (a goal image says nothing about a
+    /// gripper out of view). Not given: no limit.
+    #[arg(long)]
+    pub view_margin: Option<f64>,
 }
 
 impl From<&GoalArgs> for GoalOptions {
@@ -138,6 +143,7 @@ impl From<&GoalArgs> for GoalOptions {
             waypoints: a.waypoints,
             patience: a.patience,
             subgoal_patience: a.subgoal_patience,
+            view_margin: a.view_margin,
         }
     }
 }

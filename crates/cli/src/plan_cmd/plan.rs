@@ -62,6 +62,13 @@ pub struct PlanArgs {
     /// Seed of the world and the planner.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Write the planner's trace into this new folder: trials.jsonl (per
+    /// trial and executed step: goal pursued, action, observed pose,
+    /// predicted and observed cost, stalls, task error; the goals' expert
+    /// TCP positions) and trial-N.png (a row per step: goal, the model's
+    /// prediction of the best candidate, the observed frame).
+    #[arg(long)]
+    pub trace: Option<std::path::PathBuf>,
 }
 
 impl From<&PlanArgs> for PlanOptions {
@@ -85,6 +92,7 @@ impl From<&PlanArgs> for PlanOptions {
             split: a.split,
             episode_frames: a.episode_frames,
             seed: a.seed,
+            trace: a.trace.clone(),
         }
     }
 }

@@ -3,6 +3,7 @@
 //! first iteration draws them, scored by the model and by the synthetic
 //! world, compared by Spearman's rank correlation.
 
+use super::planning::GoalOptions;
 use super::{mean_std, trial_seed, LoadedModel, ModelOptions};
 use crate::cem::standard_normal;
 use crate::fidelity::{rank_fidelity, RankFidelity};
@@ -36,6 +37,9 @@ pub struct FidelityOptions {
     pub split: Split,
     /// Seed of the world and the candidates.
     pub seed: u64,
+    /// Keep the candidates' TCP in the camera's view, as the planner does
+    /// with the same setting ([`super::planning::GoalOptions::view_margin`]).
+    pub view_margin: Option<f64>,
 }
 
 impl Default for FidelityOptions {
@@ -51,6 +55,7 @@ impl Default for FidelityOptions {
             frames_per_action: 2,
             split: Split::Test,
             seed: 0,
+            view_margin: None,
         }
     }
 }
@@ -86,6 +91,11 @@ pub fn fidelity_study(
             "expected a positive number of metres",
         ));
     }
+    let view_options = GoalOptions {
+        view_margin: o.view_margin,
+        ..GoalOptions::default()
+    };
+    view_options.validate()?;
     let loaded = LoadedModel::load(&o.model)?;
     let world = loaded.world(25, o.seed)?;
     let t0 = Instant::now();
@@ -101,6 +111,7 @@ pub fn fidelity_study(
         let goal_ee = inst.expert_actions()[inst.goal_frames[0]];
         let obs = SyntheticEnv::new(&world, inst.clone()).observe();
         let workspace = inst.workspace(&world);
+        let view = view_options.view_limit(&inst.expert.camera);
         let mut rng = ChaCha8Rng::seed_from_u64(trial_seed(o.seed, trial as u64));
         let std = o.translation_std_m;
         let normal = |rng: &mut ChaCha8Rng| std * standard_normal(rng);
@@ -114,7 +125,8 @@ pub fn fidelity_study(
                     0.0,
                     0.0,
                 ];
-                workspace.clamp(&apply_increment(&obs.ee, &inc, obs.ee[6]))
+                let a = workspace.clamp(&apply_increment(&obs.ee, &inc, obs.ee[6]));
+                view.as_ref().map_or(a, |v| v.constrain(&obs.ee, &a))
             })
             .collect();
         let real = PerfectWorldModel {
@@ -179,12 +191,15 @@ impl FidelityStudy {
             table += &row("perfect (the same candidates)", &self.perfect_rows);
         }
         format!(
-            "## Does the model's goal distance order actions as the world does?\n\nProduced by `{command}` ({:.0} s). Per trial (a `{}` task instance of split `{}`, its first goal image), {} candidate actions (translation ~ N(0, {} m) per axis from the start pose, in the workspace, {} clip frames each) are scored by the model (latent L1 of its predicted terminal frame to the goal, as the planner does; a diffusion model samples with {} denoising steps and {} noise across the candidates{}) and by the synthetic world (the same latent L1 of the frame the world renders), and compared by Spearman's rank correlation, mean ± std over {} trials. CEM keeps the lowest-cost candidates, so it can only plan as well as *model vs distance* allows. The latent is a diffusion model's VAE posterior mean unless said otherwise, the perfect model's Gaussian image pyramid.\n\n| model | model vs real cost | real cost vs TCP distance | model cost vs TCP distance |\n|---|---|---|---|\n{table}",
+            "## Does the model's goal distance order actions as the world does?\n\nProduced by `{command}` ({:.0} s). Per trial (a `{}` task instance of split `{}`, its first goal image), {} candidate actions (translation ~ N(0, {} m) per axis from the start pose, in the workspace{}, {} clip frames each) are scored by the model (latent L1 of its predicted terminal frame to the goal, as the planner does; a diffusion model samples with {} denoising steps and {} noise across the candidates{}) and by the synthetic world (the same latent L1 of the frame the world renders), and compared by Spearman's rank correlation, mean ± std over {} trials. CEM keeps the lowest-cost candidates, so it can only plan as well as *model vs distance* allows. The latent is a diffusion model's VAE posterior mean unless said otherwise, the perfect model's Gaussian image pyramid.\n\n| model | model vs real cost | real cost vs TCP distance | model cost vs TCP distance |\n|---|---|---|---|\n{table}",
             self.seconds,
             o.task.name(),
             o.split.name(),
             o.candidates,
             o.translation_std_m,
+            o.view_margin.map_or(String::new(), |f| format!(
+                ", the TCP kept in the camera's view ({f} of the image's smaller side from its edges, as `plan --view-margin {f}`)"
+            )),
             o.frames_per_action,
             o.model.denoise_steps,
             o.model.batch_noise,

@@ -3,13 +3,17 @@
 
 use super::{trial_seed, LoadedModel, ModelOptions};
 use crate::cem::{CemConfig, RotationSearch};
-use crate::mpc::{run_mpc, run_random, GripperChoice, MpcConfig};
+use crate::model::ViewLimit;
+use crate::mpc::{run_mpc, run_random, GripperChoice, MpcConfig, MpcTraceStep};
 use crate::synthetic::{SyntheticEnv, TaskInstance};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
+use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_io::frame::RgbFrame;
+use bridgev2w_io::output::OutputDir;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use std::path::PathBuf;
 use std::time::Instant;
 
 /// The CEM sizes of an experiment.
@@ -54,6 +58,9 @@ pub struct GoalOptions {
     pub patience: usize,
     /// The same for subgoals and waypoints: then switch to the next goal.
     pub subgoal_patience: usize,
+    /// Keep the TCP inside the camera's view, this fraction of the image's
+    /// smaller side from its edges ([`ViewLimit`]); `None`: no limit.
+    pub view_margin: Option<f64>,
 }
 
 impl Default for GoalOptions {
@@ -62,6 +69,31 @@ impl Default for GoalOptions {
             waypoints: 2,
             patience: 4,
             subgoal_patience: 1,
+            view_margin: None,
+        }
+    }
+}
+
+impl GoalOptions {
+    /// The view limit of `view_margin` for observations by `camera`.
+    pub fn view_limit(&self, camera: &Camera) -> Option<ViewLimit> {
+        self.view_margin.map(|f| {
+            let k = &camera.intrinsics;
+            ViewLimit {
+                camera: camera.clone(),
+                margin_px: f * f64::from(k.width.min(k.height)),
+            }
+        })
+    }
+
+    /// Checks the settings.
+    pub fn validate(&self) -> Result<()> {
+        match self.view_margin {
+            Some(f) if !(f.is_finite() && (0.0..0.5).contains(&f)) => Err(PlanError::input(
+                "--view-margin",
+                format!("{f}: expected a fraction of the image's smaller side in [0, 0.5)"),
+            )),
+            _ => Ok(()),
         }
     }
 }
@@ -105,6 +137,28 @@ pub struct PlanOptions {
     pub episode_frames: usize,
     /// Seed of the world and the planner.
     pub seed: u64,
+    /// Write the planner's trace into this new folder: `trials.jsonl`, one
+    /// JSON line per trial ([`TrialTrace`]), and `trial-N.png` per trial, a
+    /// row per executed step: the goal image pursued, the model's
+    /// prediction of the lowest-cost candidate, the observed frame.
+    pub trace: Option<PathBuf>,
+}
+
+/// One planned trial, step by step (`bridgev2w plan --trace FILE`).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct TrialTrace {
+    /// Task.
+    pub task: Task,
+    /// Trial (task instance index of the split).
+    pub trial: usize,
+    /// The task succeeded.
+    pub success: bool,
+    /// Final task error (metres).
+    pub error_m: f64,
+    /// World positions (metres) of the expert's TCP at each goal image.
+    pub goal_tcp_m: Vec<[f64; 3]>,
+    /// The executed steps.
+    pub steps: Vec<MpcTraceStep>,
 }
 
 impl PlanOptions {
@@ -129,6 +183,7 @@ impl PlanOptions {
             split: Split::Test,
             episode_frames: 25,
             seed: 0,
+            trace: None,
         }
     }
 
@@ -157,6 +212,7 @@ impl PlanOptions {
             ..MpcConfig::default()
         };
         cfg.cem.validate()?;
+        self.goals.validate()?;
         Ok(cfg)
     }
 }
@@ -213,6 +269,7 @@ pub fn plan_summary(o: &PlanOptions, progress: &mut dyn FnMut(&str)) -> Result<P
     if o.trials == 0 {
         return Err(PlanError::input("--trials", "must be at least 1"));
     }
+
     let cfg = o.mpc_config()?;
     let loaded = LoadedModel::load(&o.model)?;
     plan_with(&loaded, o, &cfg, progress)
@@ -230,6 +287,14 @@ pub(crate) fn plan_with(
     let (mut planned, mut random) = (0, 0);
     let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);
     let (mut planned_rot, mut random_rot) = (0.0, 0.0);
+    let mut traces = Vec::new();
+    let trace_dir = o
+        .trace
+        .as_deref()
+        .map(|p| {
+            OutputDir::create(p, false).map_err(|e| PlanError::input("--trace", e.to_string()))
+        })
+        .transpose()?;
     for trial in 0..o.trials {
         let mut inst = TaskInstance::new(&world, o.split, trial, o.task)?;
         if !o.single_goal {
@@ -249,6 +314,7 @@ pub(crate) fn plan_with(
         if !o.no_workspace {
             cfg.workspace = Some(inst.workspace(&world));
         }
+        cfg.view = o.goals.view_limit(&inst.expert.camera);
         let mut env = SyntheticEnv::new(&world, inst.clone());
         let out = loaded.with_model(&world, &inst, &mut |m| {
             run_mpc(
@@ -261,6 +327,19 @@ pub(crate) fn plan_with(
         })?;
         let ok = env.success();
         let err = inst.error_m(&world, &env.state);
+        if let Some(dir) = &trace_dir {
+            let png = filmstrip(&goals, &out.trace);
+            let path = dir.path().join(format!("trial-{trial}.png"));
+            bridgev2w_io::atomic::write_atomic(&path, &png)?;
+            traces.push(TrialTrace {
+                task: o.task,
+                trial,
+                success: ok,
+                error_m: err,
+                goal_tcp_m: inst.goal_tcp_m(&world),
+                steps: out.trace.clone(),
+            });
+        }
         let rot = inst.tcp_rotation_error_rad(&world, &env.state);
         let mut base = SyntheticEnv::new(&world, inst.clone());
         run_random(&mut base, &cfg, &mut ChaCha8Rng::seed_from_u64(seed))?;
@@ -286,6 +365,11 @@ pub(crate) fn plan_with(
         random_rot += rrot;
         steps += out.steps as f64;
     }
+    if let Some(dir) = trace_dir {
+        write_traces(&dir.path().join("trials.jsonl"), &traces)?;
+        dir.commit()
+            .map_err(|e| PlanError::input("--trace", e.to_string()))?;
+    }
     let n = o.trials as f64;
     Ok(PlanSummary {
         task: o.task,
@@ -299,4 +383,43 @@ pub(crate) fn plan_with(
         planned_steps: steps / n,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// Writes one JSON line per trial (atomically).
+fn write_traces(path: &std::path::Path, traces: &[TrialTrace]) -> Result<()> {
+    let mut text = String::new();
+    for t in traces {
+        let line = serde_json::to_string(t)
+            .map_err(|e| PlanError::Invalid(format!("trace of trial {}: {e}", t.trial)))?;
+        text.push_str(&line);
+        text.push('\n');
+    }
+    bridgev2w_io::atomic::write_atomic(path, text.as_bytes())?;
+    Ok(())
+}
+
+/// A PNG with a row per executed step: the goal image pursued, the model's
+/// prediction of the lowest-cost candidate (grey where there is none), the
+/// observed frame; 2-pixel white gaps.
+fn filmstrip(goals: &[RgbFrame], steps: &[MpcTraceStep]) -> Vec<u8> {
+    const GAP: usize = 2;
+    let (h, w) = goals.first().map_or((1, 1), |g| (g.height, g.width));
+    let rows = steps.len().max(1);
+    let (width, height) = (3 * w + 2 * GAP, rows * h + (rows - 1) * GAP);
+    let mut px = vec![255u8; width * height * 3];
+    let mut blit = |row: usize, col: usize, frame: Option<&RgbFrame>| {
+        let rgb = frame
+            .filter(|f| f.height == h && f.width == w)
+            .map_or_else(|| vec![128u8; h * w * 3], RgbFrame::to_rgb8);
+        for y in 0..h {
+            let dst = ((row * (h + GAP) + y) * width + col * (w + GAP)) * 3;
+            px[dst..dst + w * 3].copy_from_slice(&rgb[y * w * 3..(y + 1) * w * 3]);
+        }
+    };
+    for (row, s) in steps.iter().enumerate() {
+        blit(row, 0, goals.get(s.goal));
+        blit(row, 1, s.predicted.as_ref());
+        blit(row, 2, Some(&s.observed));
+    }
+    bridgev2w_io::png::encode_rgb8(width as u32, height as u32, &px)
 }
