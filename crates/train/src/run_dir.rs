@@ -91,6 +91,13 @@ fn check_same_run(out: &Path, cfg: &TrainConfig) -> Result<()> {
     let Ok(text) = std::fs::read_to_string(&path) else {
         return Ok(());
     };
+    // Read through this version's configuration first, so that a setting
+    // added since the run was made (absent there) takes its default, which
+    // is the earlier behaviour; a file this version cannot read is compared
+    // as written.
+    let text = TrainConfig::from_toml(&text)
+        .and_then(|c| c.to_toml())
+        .unwrap_or(text);
     let old: toml::Table = toml::from_str(&text)
         .map_err(|e| TrainError::input(path.display().to_string(), e.to_string()))?;
     let new: toml::Table =
@@ -183,6 +190,32 @@ mod tests {
         claim(dir.path(), &cfg(dir.path()), ExistingRun::Overwrite).unwrap();
         assert!(held_run_files(dir.path()).is_empty());
         assert!(dir.path().join("notes.txt").exists());
+    }
+
+    /// A run written before a setting existed (its `config.toml` without
+    /// it) continues under the setting's default, and not under another
+    /// value.
+    #[test]
+    fn a_setting_added_since_the_run_takes_its_default() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = cfg(dir.path());
+        let text = c.to_toml().unwrap();
+        let older: String = text
+            .lines()
+            .filter(|l| !l.starts_with("vae_parts ="))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        assert_ne!(older, text, "the test needs a defaulted setting to drop");
+        std::fs::write(dir.path().join("config.toml"), older).unwrap();
+        let mut longer = c.clone();
+        longer.train.max_steps += 100;
+        claim(dir.path(), &longer, ExistingRun::Continue).unwrap();
+        let mut other = c.clone();
+        other.train.lr *= 2.0;
+        let e = claim(dir.path(), &other, ExistingRun::Continue)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("train.lr"), "{e}");
     }
 
     #[test]
