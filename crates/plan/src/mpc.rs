@@ -213,11 +213,22 @@ pub fn score_sequences<M: ActionWorldModel + ?Sized>(
     sequences: &[Vec<EeAction>],
     goal_latent: &[f32],
 ) -> Result<Vec<f64>> {
+    Ok(predict_and_score(model, start, sequences, goal_latent)?.1)
+}
+
+/// [`score_sequences`] with the predicted observations it scored.
+fn predict_and_score<M: ActionWorldModel + ?Sized>(
+    model: &M,
+    start: &Observation,
+    sequences: &[Vec<EeAction>],
+    goal_latent: &[f32],
+) -> Result<(Vec<Observation>, Vec<f64>)> {
     let predicted = model.rollout_batch(start, sequences)?;
-    predicted
+    let costs = predicted
         .iter()
         .map(|o| latent_l1(&model.encode(&o.image)?, goal_latent))
-        .collect()
+        .collect::<Result<_>>()?;
+    Ok((predicted, costs))
 }
 
 /// One CEM planning cycle from `obs` toward `goal_latent`.
@@ -248,11 +259,7 @@ pub fn plan_once<M: ActionWorldModel + ?Sized>(
             .iter()
             .map(|c| expand_waypoints(&obs.ee, &to_waypoints(c), cfg.frames_per_action))
             .collect();
-        let predicted = model.rollout_batch(obs, &seqs)?;
-        let costs = predicted
-            .iter()
-            .map(|o| latent_l1(&model.encode(&o.image)?, goal_latent))
-            .collect::<Result<Vec<f64>>>()?;
+        let (predicted, costs) = predict_and_score(model, obs, &seqs, goal_latent)?;
         for (o, &c) in predicted.into_iter().zip(&costs) {
             if best_prediction.as_ref().is_none_or(|(b, _)| c < *b) {
                 best_prediction = Some((c, o.image));

@@ -269,7 +269,6 @@ pub fn plan_summary(o: &PlanOptions, progress: &mut dyn FnMut(&str)) -> Result<P
     if o.trials == 0 {
         return Err(PlanError::input("--trials", "must be at least 1"));
     }
-
     let cfg = o.mpc_config()?;
     let loaded = LoadedModel::load(&o.model)?;
     plan_with(&loaded, o, &cfg, progress)
