@@ -613,7 +613,8 @@ fn plan_report_with_the_shipped_trained_model() {
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo-model");
     let line = format!(
         "plan-report --tasks reach --trials 1 --samples 4 --elites 2 --iters 1 --max-steps 1 \
-         --waypoints 0 --eval-trials 1 --denoise-steps 1 --trained {} --out {}",
+         --waypoints 0 --eval-trials 1 --denoise-steps 1 --plan-clip-frames 3 --trained {} \
+         --out {}",
         model.display(),
         md.display()
     );
@@ -622,6 +623,11 @@ fn plan_report_with_the_shipped_trained_model() {
     let text = std::fs::read_to_string(&md).expect("plan-report test");
     assert!(text.contains("| reach | perfect | "), "{text}");
     assert!(text.contains("| reach | trained (`"), "{text}");
+    // The planners predicted 3-frame clips (the model trained on 9).
+    assert!(
+        text.contains("each candidate predicted as a clip of 3 frames"),
+        "{text}"
+    );
     assert!(text.contains("#### Model: perfect"), "{text}");
     assert!(
         text.contains("#### Model: trained (`")
@@ -746,6 +752,13 @@ fn plan_fidelity_of_the_perfect_model() {
         text.contains("goal distances on a Gaussian pyramid of the image")
             && text.contains("| random | "),
         "{text}"
+    );
+    // A clip the random model's VAE cannot decode (it compresses time 4x).
+    let out = words("plan-fidelity --model random --clip-frames 4 --device cpu");
+    let e = stderr(&out);
+    assert!(
+        !out.status.success() && e.contains("frames") && e.contains("4k + 1"),
+        "{e}"
     );
     let out = words("plan-fidelity --model random --goal-latent vae");
     let e = stderr(&out);

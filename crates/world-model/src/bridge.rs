@@ -349,6 +349,21 @@ impl BridgeV2W {
         &self.cfg
     }
 
+    /// Predicts clips of `frames` frames from now on instead of the frames
+    /// the model was trained on (beyond the paper: a planner that scores one
+    /// action of 2 frames needs a clip of 3, a third of the tokens of 9).
+    /// The transformer's rotary or sin-cos positions follow the clip;
+    /// `frames` must suit the VAE's time compression as a config's must.
+    pub fn set_clip_frames(&mut self, frames: usize) -> Result<()> {
+        let cfg = BridgeV2WConfig {
+            frames,
+            ..self.cfg.clone()
+        };
+        cfg.validate(self.vae.config(), self.transformer.model.config())?;
+        self.cfg = cfg;
+        Ok(())
+    }
+
     /// The tch device the model runs on.
     pub fn device(&self) -> Device {
         self.device

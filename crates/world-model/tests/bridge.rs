@@ -806,3 +806,43 @@ fn link_coded_masks_travel_with_the_weights_and_refuse_binary_masks() {
     let from_masks = b.predict(&image(1), &binary, &opts(1, 1.0)).unwrap();
     assert_eq!(from_labels, from_masks);
 }
+
+#[test]
+fn the_clip_length_can_change_where_the_vae_allows_it() {
+    let mut m = tiny(BridgeV2WConfig::tiny(), 21);
+    perturb_projections(&m);
+    // The tiny VAE compresses time 4x: 5 frames are 2 latent frames (an even
+    // count its decoder cannot return), 4 frames no 4k + 1; both refused by
+    // name, the model left as it was.
+    for bad in [0, 4, 5] {
+        let e = m.set_clip_frames(bad).unwrap_err().to_string();
+        assert!(e.contains("frames") && e.contains(&bad.to_string()), "{e}");
+        assert_eq!(m.clip_frames(), 9);
+    }
+    m.set_clip_frames(17).unwrap();
+    assert_eq!(m.clip_frames(), 17);
+    let long = |offset| {
+        let short = masks(offset);
+        let mut data = short.data.clone();
+        data.extend_from_slice(&short.data[..8 * 64 * 96]);
+        MaskVideo {
+            frames: 17,
+            data,
+            ..short
+        }
+    };
+    let v = m.predict(&image(1), &long(0), &opts(3, 1.0)).unwrap();
+    assert_eq!((v.frames, v.height, v.width), (17, 64, 96));
+    assert!(v.data.iter().all(|x| x.is_finite()));
+    let moved = m.predict(&image(1), &long(20), &opts(3, 1.0)).unwrap();
+    assert!(v != moved, "the masks still steer the longer clip");
+    // A clip of the old length is now refused, naming both shapes.
+    let e = m
+        .predict(&image(1), &masks(0), &opts(3, 1.0))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("[9, 64, 96]") && e.contains("[17, 64, 96]"),
+        "{e}"
+    );
+}

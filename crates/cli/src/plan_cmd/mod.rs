@@ -90,9 +90,12 @@ pub struct ModelArgs {
     /// Image height of the synthetic world with the perfect model (pixels, even).
     #[arg(long, default_value_t = 64)]
     pub height: u32,
-    /// Clip frames of the perfect model.
-    #[arg(long, default_value_t = 9)]
-    pub clip_frames: usize,
+    /// Frames of each predicted clip (default: the model's own, 9 for the
+    /// perfect model, a diffusion model's training clip). A planned action
+    /// needs one more than its frames; a shorter clip is cheaper (beyond
+    /// the paper).
+    #[arg(long, value_name = "N")]
+    pub clip_frames: Option<usize>,
 }
 
 impl From<&ModelArgs> for ModelOptions {

@@ -83,6 +83,12 @@ pub struct PlanReportArgs {
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
+    /// Frames of each clip the planning models predict (default: the
+    /// model's own; a planned action needs one more than its frames, and a
+    /// shorter clip is cheaper; beyond the paper). Policy evaluation keeps
+    /// the model's own clip.
+    #[arg(long, value_name = "N")]
+    pub plan_clip_frames: Option<usize>,
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -115,6 +121,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         keep_static_margin_px: a.keep_static,
         goal_latent: a.goal_latent,
         device: a.device,
+        plan_clip_frames: a.plan_clip_frames,
         seed: a.seed,
         results: Some(a.out.clone()),
     };

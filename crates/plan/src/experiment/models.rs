@@ -48,9 +48,16 @@ pub struct ModelOptions {
     pub width: u32,
     /// Image height of the synthetic world with the perfect model (pixels).
     pub height: u32,
-    /// Clip frames of the perfect model.
-    pub clip_frames: usize,
+    /// Frames of each predicted clip (`None`: the model's own, 9 for the
+    /// perfect model, a diffusion model's training clip). A planned action
+    /// of `frames_per_action` x `horizon` frames needs only one more: a
+    /// shorter clip is cheaper (beyond the paper).
+    pub clip_frames: Option<usize>,
 }
+
+/// The perfect model's clip frames unless [`ModelOptions::clip_frames`] says
+/// otherwise.
+pub const PERFECT_CLIP_FRAMES: usize = 9;
 
 impl Default for ModelOptions {
     fn default() -> Self {
@@ -68,7 +75,7 @@ impl Default for ModelOptions {
             max_batch: None,
             width: 96,
             height: 64,
-            clip_frames: 9,
+            clip_frames: None,
         }
     }
 }
@@ -111,16 +118,19 @@ impl LoadedModel {
             PlanModel::Perfect => Self::Perfect {
                 width: o.width,
                 height: o.height,
-                clip_frames: o.clip_frames,
+                clip_frames: o.clip_frames.unwrap_or(PERFECT_CLIP_FRAMES),
             },
             PlanModel::World(spec) => {
-                let model = spec.load_bridge(
+                let mut model = spec.load_bridge(
                     o.weights.as_deref(),
                     o.prompt_embeds.as_deref(),
                     o.device,
                     o.precision,
                     0,
                 )?;
+                if let Some(frames) = o.clip_frames {
+                    model.set_clip_frames(frames)?;
+                }
                 Self::Diffusion {
                     model: Box::new(model),
                     denoise_steps: o.denoise_steps,

@@ -66,7 +66,6 @@ impl ReportModel {
             device: o.device,
             width: 96,
             height: 64,
-            clip_frames: 9,
             ..ModelOptions::default()
         })
     }
@@ -107,6 +106,9 @@ pub struct PlanReportOptions {
     pub goal_latent: GoalLatent,
     /// The device of the diffusion models.
     pub device: ComputeDevice,
+    /// Frames of each clip the planning models predict (`None`: the
+    /// model's own); policy evaluation keeps the model's own.
+    pub plan_clip_frames: Option<usize>,
     /// Seed.
     pub seed: u64,
     /// The results file the section goes to: its figures are written next
@@ -262,7 +264,7 @@ fn plan_tables(
     summaries: &mut Vec<(String, super::PlanSummary)>,
 ) -> Result<String> {
     let mut md = format!(
-        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}{}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
+        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), each preceded by {} waypoint images (evenly spaced expert frames); a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}{}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         o.trials,
         o.cem.samples,
         o.cem.elites,
@@ -272,6 +274,9 @@ fn plan_tables(
         o.max_steps,
         if o.cem.keep_elites { ", elites carried over (iCEM)" } else { "" },
         if o.cem.execute_best { ", the best candidate executed" } else { ", the refined mean executed" },
+        o.plan_clip_frames.map_or(String::new(), |n| format!(
+            ", each candidate predicted as a clip of {n} frames"
+        )),
         o.goals.waypoints,
         o.goals.subgoal_patience,
         o.goals.patience,
@@ -281,13 +286,21 @@ fn plan_tables(
     );
     let loaded = planners
         .iter()
-        .map(|(_, options)| LoadedModel::load(options))
+        .map(|(_, options)| {
+            LoadedModel::load(&ModelOptions {
+                clip_frames: o.plan_clip_frames,
+                ..options.clone()
+            })
+        })
         .collect::<Result<Vec<_>>>()?;
     for &task in &o.tasks {
         for (&(planner, options), loaded) in planners.iter().zip(&loaded) {
             let po = PlanOptions {
                 trials: o.trials,
-                model: options.clone(),
+                model: ModelOptions {
+                    clip_frames: o.plan_clip_frames,
+                    ..options.clone()
+                },
                 cem: o.cem.clone(),
                 max_steps: o.max_steps,
                 translation_std_m: o.translation_std_m,
