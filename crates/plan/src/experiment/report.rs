@@ -284,23 +284,23 @@ fn plan_tables(
             "; planned and random moves stop where the TCP would come within {f} of the image's smaller side of its edges (kept in the camera's view)"
         ))
     );
-    let loaded = planners
+    // The planners' model options: the report's, with the planning clip.
+    let planning: Vec<ModelOptions> = planners
         .iter()
-        .map(|(_, options)| {
-            LoadedModel::load(&ModelOptions {
-                clip_frames: o.plan_clip_frames,
-                ..options.clone()
-            })
+        .map(|(_, options)| ModelOptions {
+            clip_frames: o.plan_clip_frames,
+            ..options.clone()
         })
+        .collect();
+    let loaded = planning
+        .iter()
+        .map(LoadedModel::load)
         .collect::<Result<Vec<_>>>()?;
     for &task in &o.tasks {
-        for (&(planner, options), loaded) in planners.iter().zip(&loaded) {
+        for ((&(planner, _), options), loaded) in planners.iter().zip(&planning).zip(&loaded) {
             let po = PlanOptions {
                 trials: o.trials,
-                model: ModelOptions {
-                    clip_frames: o.plan_clip_frames,
-                    ..options.clone()
-                },
+                model: options.clone(),
                 cem: o.cem.clone(),
                 max_steps: o.max_steps,
                 translation_std_m: o.translation_std_m,
