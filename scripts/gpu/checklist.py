@@ -9,6 +9,7 @@ the GPU image has them):
                                     nvidia-smi poll wrote (MiB)
   record-seconds NAME KEY SECONDS   one timing figure
   bench-table LOG NAME              the timings of `bench model`
+  flow-row LOG NAME MODE            one mode's row of `bench flow`
   environment MODE COMMIT           the device, torch, the commit, the date
   summary OUT                       OUT/items.tsv + OUT/metrics/*.json ->
                                     OUT/summary.json and OUT/summary.md
@@ -126,6 +127,24 @@ def bench_table(log, name):
     record(name, **figures)
 
 
+def flow_row(log, name, mode):
+    with open(log) as f:
+        for line in f:
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if len(cells) == 5 and cells[0] == mode:
+                peak = cells[2].split()[0]
+                record(
+                    name,
+                    **{
+                        f"{mode}_seconds": float(cells[1]),
+                        f"{mode}_peak_mib": None if peak == "not" else float(peak),
+                        f"{mode}_loss": float(cells[3]),
+                    },
+                )
+                return
+    raise SystemExit(f"{log}: no row for {mode}")
+
+
 def record_seconds(name, key, seconds):
     record(name, **{key: float(seconds)})
 
@@ -199,6 +218,7 @@ def main():
         "environment": environment,
         "record-seconds": record_seconds,
         "bench-table": bench_table,
+        "flow-row": flow_row,
         "summary": summary,
     }[cmd](*args)
 

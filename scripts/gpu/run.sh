@@ -10,7 +10,8 @@
 #         one-rank data parallelism; about 3 min on an H100), speed (bench
 #         model at 5B-I2V shapes vs diffusers, the tiled VAE, a full 50-step
 #         predict; about 8 min), training (full-size training steps without
-#         and with the flow loss, planning cost; about 8 min); default: all
+#         and with the flow loss, the flow loss's backward through the VAE
+#         by mode, planning cost; about 9 min); default: all
 #         three, in that order.
 #   ITEM: one item by name (e.g. planning-cost), to rerun it alone.
 #   --dry-run: the same items on the CPU at tiny shapes (the test suite runs
@@ -39,6 +40,7 @@ speed bench-vae-tiled 240 0 bench_vae_tiled
 speed predict-full 240 1 predict_full
 training train-step-full 300 1 train_step_full
 training train-step-flow 300 1 train_step_flow
+training bench-flow 300 0 bench_flow
 training planning-cost 240 0 planning_cost"
 for a in "$@"; do
     case $a in
@@ -90,9 +92,11 @@ fi
 if [[ $DRY == 1 ]]; then
     BIG=random:tiny; BIG_PRECISION=f32; TRAIN_STEPS=3; PLAN_SAMPLES=4
     BENCH=(--style 5b-i2v --layers 1 --frames 1 --height 32 --width 48 --precision f32)
+    FLOW=(--vae tiny --frames 9 --height 64 --width 96 --tile 48x40 --precision f32)
 else
     BIG=random:cogvideox-5b-i2v; BIG_PRECISION=bf16; TRAIN_STEPS=20; PLAN_SAMPLES=4
     BENCH=(--style 5b-i2v --layers 42 --frames 25 --height 480 --width 720 --precision bf16 --batch 2)
+    FLOW=(--vae cogvideox --frames 25 --height 480 --width 720 --tile 240x360 --precision bf16)
 fi
 
 # item NAME LIMIT_S NEEDS_CUDA FUNCTION: runs FUNCTION with its output in
@@ -116,7 +120,7 @@ item() {
     echo "   $name: $status" >&2
 }
 export BIN PY DEVICE DRY WORK BIG BIG_PRECISION TRAIN_STEPS PLAN_SAMPLES ROOT HERE
-export BENCH_ARGS="${BENCH[*]}"
+export BENCH_ARGS="${BENCH[*]}" FLOW_ARGS="${FLOW[*]}"
 
 # gpu_poll NAME COMMAND...: runs COMMAND while nvidia-smi records the used
 # memory, then records the peak as NAME's peak_gpu_memory_mib.
@@ -266,6 +270,16 @@ lora_alpha = 64.0"
     gpu_poll train-step-flow "$BIN" train "$WORK/flow.toml" --quiet --overwrite || return 1
     "$PY" "$HERE/checklist.py" step-seconds "$WORK/run-flow/metrics.jsonl" train-step-flow
 }
+bench_flow() { # the flow loss's decode and gradient through the VAE at full size,
+    # batch by batch (training without checkpointing) and unit by unit (with
+    # it): one process per mode, so that each peak starts from an empty
+    # CUDA caching allocator
+    for mode in recorded stepwise; do
+        "$BIN" bench flow $FLOW_ARGS --device "$DEVICE" --modes "$mode" \
+            | tee "$WORK/bench-flow-$mode.txt" || return 1
+        "$PY" "$HERE/checklist.py" flow-row "$WORK/bench-flow-$mode.txt" bench-flow "$mode" || return 1
+    done
+}
 planning_cost() { # the cost of CEM's batched candidate predictions: one CEM iteration
     # of S candidates at 4 and at 20 denoising steps (seconds per planned action
     # at S 64 / T 3 scale with the candidates and the steps; the model load is in)
@@ -279,7 +293,7 @@ planning_cost() { # the cost of CEM's batched candidate predictions: one CEM ite
     done
 }
 export -f environment predict_random_tiny predict_demo_model train_bf16 distributed_one_rank \
-    bench_model bench_vae_tiled predict_full train_step_full train_step_flow planning_cost gpu_poll
+    bench_model bench_vae_tiled predict_full train_step_full train_step_flow bench_flow planning_cost gpu_poll
 
 # Each part's items in order, or a single item by name, in the order given.
 for part in "${PARTS[@]}"; do

@@ -43,6 +43,7 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
         "distributed-one-rank",
         "bench-model",
         "bench-vae-tiled",
+        "bench-flow",
         "planning-cost",
     ] {
         assert_eq!(item(name)["status"], "ok", "{name}: {text}\n{stderr}");
@@ -70,6 +71,19 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
             && bench["vae_decode_speedup"].as_f64().is_some(),
         "{bench}"
     );
+    // Both replays of the flow loss's backward, each with its time, its
+    // memory (the caching allocator's peak on the CPU) and the same loss.
+    let flow = &item("bench-flow")["metrics"];
+    for mode in ["recorded", "stepwise"] {
+        assert!(
+            flow[format!("{mode}_seconds")]
+                .as_f64()
+                .is_some_and(|s| s > 0.0)
+                && flow[format!("{mode}_peak_mib")].as_f64().is_some(),
+            "{flow}"
+        );
+    }
+    assert_eq!(flow["recorded_loss"], flow["stepwise_loss"], "{flow}");
     let md = std::fs::read_to_string(out.path().join("summary.md")).expect("summary.md");
     assert!(
         md.contains("| predict-full | skipped: no CUDA device |")

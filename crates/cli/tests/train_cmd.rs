@@ -384,3 +384,56 @@ lr = 1e-4
         );
     }
 }
+
+/// `bench flow` on the tiny VAE: every replay of the flow loss's backward
+/// gives autograd's loss and gradient (to float rounding), the batch-by-batch
+/// replay in less memory than autograd through the whole decode, and the
+/// unit-by-unit one in less again (the caching allocator's peaks).
+#[test]
+fn bench_flow_replays_give_autograds_gradient_in_less_memory() {
+    let o = common::run(&[
+        "bench", "flow", "--vae", "tiny", "--frames", "17", "--height", "64", "--width", "96",
+    ]);
+    common::ok(&o);
+    let text = String::from_utf8_lossy(&o.stdout).to_string();
+    let row = |mode: &str| -> Vec<String> {
+        let line = text
+            .lines()
+            .find(|l| l.starts_with(&format!("| {mode} |")))
+            .unwrap_or_else(|| panic!("no {mode} row in {text}"));
+        line.trim_matches('|')
+            .split('|')
+            .map(|c| c.trim().to_owned())
+            .collect()
+    };
+    let peak = |mode: &str| -> f64 {
+        row(mode)[2]
+            .split_whitespace()
+            .next()
+            .and_then(|p| p.parse().ok())
+            .unwrap_or_else(|| panic!("{text}"))
+    };
+    for mode in ["recorded", "stepwise"] {
+        assert_eq!(row(mode)[3], row("autograd")[3], "the same loss: {text}");
+        let err: f64 = row(mode)[4].parse().expect("gradient error");
+        assert!(err < 1e-5, "{mode}: gradient error {err}: {text}");
+    }
+    assert!(
+        peak("stepwise") < peak("recorded") && peak("recorded") < peak("autograd"),
+        "{text}"
+    );
+}
+
+#[test]
+fn bench_flow_refuses_tiles_that_do_not_join() {
+    let o = common::run(&["bench", "flow", "--vae", "tiny", "--tile", "64x96"]);
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("tile: 64x96 px") && e.contains("would not join") && e.contains("240x360"),
+        "{e}"
+    );
+    let o = common::run(&["bench", "flow", "--tile", "240"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("HEIGHTxWIDTH"), "{e}");
+}

@@ -53,6 +53,12 @@ size_t size_class(size_t n) {
 struct Stats {
   std::atomic<uint64_t> hits{0};
   std::atomic<uint64_t> misses{0};
+  // Bytes of the blocks handed out and not yet freed (size classes, header
+  // included; every block this allocator made, cached size or not), and the
+  // most there were since the last reset: CPU counterparts of CUDA's
+  // memory_allocated / max_memory_allocated.
+  std::atomic<uint64_t> live{0};
+  std::atomic<uint64_t> peak{0};
 };
 
 // A free block and when it was freed (a global counter).
@@ -133,6 +139,7 @@ void delete_block(void* data) {
   void* base = static_cast<char*>(data) - kHeader;
   size_t cls = 0;
   std::memcpy(&cls, base, sizeof(cls));
+  cache()->stats.live.fetch_sub(cls);
   if (cls < kMinCached) {
     std::free(base);
     return;
@@ -165,6 +172,8 @@ struct CachingCpuAllocator final : public c10::Allocator {
     }
     if (base != nullptr) {
       c->stats.hits++;
+      // A free block up to a quarter larger: it keeps its own class.
+      std::memcpy(&cls, base, sizeof(cls));
     } else {
       if (cls >= kMinCached) c->stats.misses++;
       base = fresh_block(cls);
@@ -175,6 +184,10 @@ struct CachingCpuAllocator final : public c10::Allocator {
       TORCH_CHECK(base != nullptr, "bridgev2w CPU allocator: out of memory allocating ", n,
                   " bytes");
       std::memcpy(base, &cls, sizeof(cls));
+    }
+    uint64_t now = c->stats.live.fetch_add(cls) + cls;
+    uint64_t peak = c->stats.peak.load();
+    while (now > peak && !c->stats.peak.compare_exchange_weak(peak, now)) {
     }
     void* data = static_cast<char*>(base) + kHeader;
     return {data, data, &delete_block, c10::Device(c10::DeviceType::CPU)};
@@ -223,5 +236,18 @@ void bv2w_cpu_cache_stats(uint64_t* hits, uint64_t* misses, uint64_t* cached_byt
 
 // Frees every cached block.
 void bv2w_cpu_cache_release() { cache()->release_all(); }
+
+// Bytes of blocks in use now and at most since the last reset.
+void bv2w_cpu_cache_memory(uint64_t* live, uint64_t* peak) {
+  Cache* c = cache();
+  *live = c->stats.live.load();
+  *peak = c->stats.peak.load();
+}
+
+// Starts a new peak from the bytes in use now.
+void bv2w_cpu_cache_reset_peak() {
+  Cache* c = cache();
+  c->stats.peak.store(c->stats.live.load());
+}
 
 }  // extern "C"

@@ -19,6 +19,8 @@ extern "C" {
     fn bv2w_cpu_cache_active() -> c_int;
     fn bv2w_cpu_cache_stats(hits: *mut u64, misses: *mut u64, cached_bytes: *mut u64);
     fn bv2w_cpu_cache_release();
+    fn bv2w_cpu_cache_memory(live: *mut u64, peak: *mut u64);
+    fn bv2w_cpu_cache_reset_peak();
 }
 
 /// The cache's counters.
@@ -59,6 +61,33 @@ pub fn stats() -> CacheStats {
 pub fn release() {
     // SAFETY: no arguments; the shim frees its free lists under its mutex.
     unsafe { bv2w_cpu_cache_release() }
+}
+
+/// Memory in use through the caching allocator: blocks handed out and not
+/// freed (their size classes, so a little above the tensors' bytes; tensors
+/// allocated before [`install`] are not counted). The CPU counterpart of
+/// CUDA's `memory_allocated` / `max_memory_allocated`: what a computation
+/// needs, without the cache's free blocks or the process's other memory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct MemoryStats {
+    /// Bytes in use now.
+    pub live_bytes: u64,
+    /// The most bytes in use at once since [`reset_peak`] (or the start).
+    pub peak_bytes: u64,
+}
+
+/// The bytes in use now and their peak (zeros before [`install`]).
+pub fn memory() -> MemoryStats {
+    let mut m = MemoryStats::default();
+    // SAFETY: two valid, exclusive pointers to u64 for the shim to write.
+    unsafe { bv2w_cpu_cache_memory(&mut m.live_bytes, &mut m.peak_bytes) };
+    m
+}
+
+/// Starts a new peak from the bytes in use now.
+pub fn reset_peak() {
+    // SAFETY: no arguments; atomics in the shim.
+    unsafe { bv2w_cpu_cache_reset_peak() }
 }
 
 /// The limit `install_from_env` uses: `BRIDGEV2W_CPU_CACHE_MB` megabytes
@@ -167,5 +196,29 @@ mod tests {
         assert!(stats().cached_bytes <= 12 << 20);
         release();
         assert_eq!(stats().cached_bytes, 0);
+        // Memory in use: a 16 MiB tensor counts while it lives, its peak
+        // stays after it is freed, and a reset starts from what is in use.
+        reset_peak();
+        let m0 = memory();
+        let t = Tensor::ones([4 << 20], (Kind::Float, Device::Cpu));
+        let m1 = memory();
+        assert!(
+            m1.live_bytes >= m0.live_bytes + (16 << 20),
+            "{m0:?} -> {m1:?}"
+        );
+        drop(t);
+        let m2 = memory();
+        assert!(
+            m2.live_bytes + (16 << 20) <= m1.live_bytes,
+            "{m1:?} -> {m2:?}"
+        );
+        assert!(
+            m2.peak_bytes >= m0.live_bytes + (16 << 20),
+            "{m0:?} -> {m2:?}"
+        );
+        reset_peak();
+        let m3 = memory();
+        assert!(m3.peak_bytes < m2.peak_bytes, "{m2:?} -> {m3:?}");
+        assert!(m3.peak_bytes >= m3.live_bytes, "{m3:?}");
     }
 }

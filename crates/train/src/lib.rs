@@ -15,6 +15,7 @@ pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod data;
+pub mod decoded_flow;
 pub mod demo;
 pub mod distributed;
 pub mod ema;

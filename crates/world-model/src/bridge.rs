@@ -672,35 +672,6 @@ impl BridgeV2W {
         self.vae.decode(&z.to_kind(Kind::Float))
     }
 
-    /// [`Self::decode_latents`] for the flow loss: the video (without
-    /// autograd) and the record [`Self::decode_latents_backward`] pushes a
-    /// gradient back through, one latent-frame batch at a time (a whole
-    /// decode under autograd does not fit a GPU at 5B sizes).
-    pub fn decode_latents_recorded(
-        &self,
-        latents: &Tensor,
-    ) -> Result<(Tensor, crate::vae::DecodeRecord)> {
-        let z = self
-            .vae
-            .unscale_latents(&latents.detach().permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
-        self.vae.decode_recorded(&z.to_kind(Kind::Float))
-    }
-
-    /// The gradient with respect to the latents `[B, F, C, h, w]` given to
-    /// [`Self::decode_latents_recorded`] of `sum(video * grad_video)`.
-    pub fn decode_latents_backward(
-        &self,
-        record: &crate::vae::DecodeRecord,
-        grad_video: &Tensor,
-        latents_kind: Kind,
-    ) -> Result<Tensor> {
-        // [B, C, t, h, w]; then the chain rule through `unscale_latents` (a
-        // scale) and the permute.
-        let g = self.vae.decode_backward(record, grad_video)?;
-        let g = self.vae.unscale_latents(&g).permute([0, 2, 1, 3, 4]); // [B, F, C, h, w]
-        Ok(g.to_kind(latents_kind))
-    }
-
     /// The compute dtype of the backbone.
     pub fn kind(&self) -> Kind {
         self.kind

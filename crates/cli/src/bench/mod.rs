@@ -2,6 +2,7 @@
 //! subcommand turns its flags into the library bench's options, runs it and
 //! prints its report.
 
+mod flow;
 mod kinematics;
 mod loader;
 mod masks;
@@ -25,6 +26,10 @@ pub enum BenchCommand {
     /// Clip loader throughput (clips/s): decoding + masks (stored, rendered calc,
     /// cached calc) and batch assembly, on a dataset or a generated synthetic one.
     Loader(loader::LoaderBench),
+    /// The flow loss's decode and gradient through the VAE: autograd through the
+    /// whole decode vs the recorded batch-by-batch backward, whole or unit by unit;
+    /// seconds and peak memory.
+    Flow(flow::FlowBench),
 }
 
 pub fn run(cmd: &BenchCommand) -> Result<()> {
@@ -34,5 +39,6 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Metrics(a) => metrics::run(a),
         BenchCommand::Model(a) => model::run(a),
         BenchCommand::Loader(a) => loader::run(a),
+        BenchCommand::Flow(a) => flow::run(a),
     }
 }

@@ -6,7 +6,8 @@ use super::{check_finite, Losses, Trainer};
 use crate::augment::{recolor, ColorDraw};
 use crate::config::Stage;
 use crate::data::{rng_for, seed_for, Batch};
-use crate::flow::{flow_loss, flow_weight};
+use crate::decoded_flow::{decoded_flow_loss, FlowBackward};
+use crate::flow::flow_weight;
 use crate::losses::{
     diffusion_loss, dynamics_loss, motion_weights, predicted_x0, weighted_diffusion_loss,
 };
@@ -178,30 +179,23 @@ impl Trainer {
         let mut flow = 0.0;
         let total = if fw > 0.0 {
             // The decode runs without autograd and the flow loss's gradient
-            // is pushed back through it batch by batch (exact, and bounded
-            // in memory: see `vae::DecodeRecord`); `pushed` carries it into x0.
-            let (decoded, record) = model.decode_latents_recorded(&x0)?;
-            let leaf = decoded.detach().set_requires_grad(true);
-            let gt = batch.video.to_device(leaf.device());
-            let fl = flow_loss(
+            // is pushed back through it batch by batch, unit by unit with
+            // gradient checkpointing (exact, and bounded in memory: see
+            // `decoded_flow`).
+            let z = model
+                .vae
+                .unscale_latents(&x0.permute([0, 2, 1, 3, 4])) // [B, C, t, h, w]
+                .to_kind(Kind::Float);
+            let fl = decoded_flow_loss(
+                &model.vae,
+                &z,
+                &batch.video,
                 self.estimator.as_ref(),
-                &leaf.clamp(-1.0, 1.0),
-                &gt,
                 &self.flow_cfg,
+                FlowBackward::for_training(t.gradient_checkpointing),
             )?;
             flow = fl.double_value(&[]);
             check_finite(step, "flow", flow)?;
-            let grad_video = Tensor::f_run_backward(&[&fl], &[&leaf], false, false)?.remove(0);
-            // Undefined when no pixel moves in either video (nothing to push back).
-            let grad_video = if grad_video.defined() {
-                grad_video
-            } else {
-                leaf.zeros_like()
-            };
-            let grad_x0 = model.decode_latents_backward(&record, &grad_video, x0.kind())?;
-            let pushed = (&x0 * grad_x0).sum(Kind::Float);
-            // The value of the flow loss, the gradient of it through x0.
-            let fl = &pushed - pushed.detach() + fl.detach();
             total + fl * fw
         } else {
             total

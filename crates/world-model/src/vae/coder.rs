@@ -2,8 +2,8 @@
 //! each run on one frame batch at a time with the conv cache of the previous batch.
 
 use super::layers::{
-    Activation, BlockCache, CausalConv3d, DownBlock3D, GroupNorm, MidBlock3D, SpatialNorm3D,
-    UpBlock3D,
+    Activation, BlockCache, CausalConv3d, DownBlock3D, GroupNorm, MidBlock3D, ResnetBlock3D,
+    ResnetCache, SpatialNorm3D, UpBlock3D, Upsample3D,
 };
 use super::VaeConfig;
 use crate::error::Result;
@@ -105,33 +105,112 @@ impl Encoder3D {
     }
 }
 
-/// The conv cache of the decoder between frame batches.
+/// The conv cache of the decoder between frame batches: one entry per
+/// [unit](Decoder3D::unit_count) of the decoder, in order.
 #[derive(Debug, Default)]
 pub struct DecoderCache {
-    conv_in: Option<Tensor>,
-    mid_block: BlockCache,
-    up_blocks: Vec<BlockCache>,
-    conv_out: Option<Tensor>,
+    units: Vec<UnitCache>,
 }
 
 impl DecoderCache {
-    /// Every cached tensor, in a fixed order (the one [`Self::map`] visits).
+    /// Every cached tensor, in a fixed order (the one [`Self::map`] visits):
+    /// unit by unit.
     pub fn tensors(&self) -> Vec<&Tensor> {
-        let mut all: Vec<&Tensor> = self.conv_in.iter().collect();
-        all.extend(self.mid_block.tensors());
-        all.extend(self.up_blocks.iter().flat_map(BlockCache::tensors));
-        all.extend(self.conv_out.iter());
-        all
+        self.units.iter().flat_map(UnitCache::tensors).collect()
     }
 
     /// The same cache with `f` applied to every tensor, in [`Self::tensors`]' order.
     pub fn map(&self, f: &mut dyn FnMut(&Tensor) -> Tensor) -> Self {
         Self {
-            conv_in: self.conv_in.as_ref().map(&mut *f),
-            mid_block: self.mid_block.map(f),
-            up_blocks: self.up_blocks.iter().map(|b| b.map(f)).collect(),
-            conv_out: self.conv_out.as_ref().map(&mut *f),
+            units: self.units.iter().map(|u| u.map(f)).collect(),
         }
+    }
+
+    /// Unit `k`'s part.
+    pub(super) fn unit(&self, k: usize) -> Option<&UnitCache> {
+        self.units.get(k)
+    }
+}
+
+/// The conv cache of one decoder unit: a causal convolution's, a resnet's,
+/// or none (an upsampler).
+#[derive(Debug)]
+pub(super) enum UnitCache {
+    Conv(Option<Tensor>),
+    Resnet(ResnetCache),
+    Empty,
+}
+
+impl UnitCache {
+    /// Its tensors, in a fixed order.
+    pub(super) fn tensors(&self) -> Vec<&Tensor> {
+        match self {
+            Self::Conv(c) => c.iter().collect(),
+            Self::Resnet(r) => r.tensors(),
+            Self::Empty => Vec::new(),
+        }
+    }
+
+    /// The same cache with `f` applied to every tensor, in [`Self::tensors`]' order.
+    pub(super) fn map(&self, f: &mut dyn FnMut(&Tensor) -> Tensor) -> Self {
+        match self {
+            Self::Conv(c) => Self::Conv(c.as_ref().map(f)),
+            Self::Resnet(r) => Self::Resnet(r.map(f)),
+            Self::Empty => Self::Empty,
+        }
+    }
+
+    fn conv(&self) -> Option<&Tensor> {
+        match self {
+            Self::Conv(c) => c.as_ref(),
+            _ => None,
+        }
+    }
+
+    fn resnet(&self) -> Option<&ResnetCache> {
+        match self {
+            Self::Resnet(r) => Some(r),
+            _ => None,
+        }
+    }
+}
+
+/// One unit of the decoder's forward pass, the granularity at which
+/// [`super::DecodeRecord`]'s stepwise replay checkpoints a frame batch.
+enum Unit<'a> {
+    /// `conv_in` (on the latent).
+    ConvIn(&'a CausalConv3d),
+    /// One resnet of the mid block or of an up block.
+    Resnet(&'a ResnetBlock3D),
+    /// An up block's upsampler.
+    Upsample(&'a Upsample3D),
+    /// `norm_out`, SiLU, `conv_out`.
+    Out(&'a SpatialNorm3D, &'a CausalConv3d),
+}
+
+impl Unit<'_> {
+    fn forward(
+        &self,
+        h: &Tensor,
+        zq: &Tensor,
+        cache: Option<&UnitCache>,
+    ) -> Result<(Tensor, UnitCache)> {
+        Ok(match self {
+            Self::ConvIn(conv) => {
+                let (h, c) = conv.forward(h, cache.and_then(UnitCache::conv))?;
+                (h, UnitCache::Conv(c))
+            }
+            Self::Resnet(r) => {
+                let (h, c) = r.forward(h, Some(zq), cache.and_then(UnitCache::resnet))?;
+                (h, UnitCache::Resnet(c))
+            }
+            Self::Upsample(u) => (u.forward(h)?, UnitCache::Empty),
+            Self::Out(norm, conv) => {
+                let h = norm.forward(h, zq)?.silu();
+                let (h, c) = conv.forward(&h, cache.and_then(UnitCache::conv))?;
+                (h, UnitCache::Conv(c))
+            }
+        })
     }
 }
 
@@ -191,6 +270,44 @@ impl Decoder3D {
         }
     }
 
+    /// The units of the forward pass, in order: `conv_in`, the mid block's
+    /// resnets, each up block's resnets and upsampler, the output.
+    fn units(&self) -> Vec<Unit<'_>> {
+        let mut units = vec![Unit::ConvIn(&self.conv_in)];
+        units.extend(self.mid_block.resnets().iter().map(Unit::Resnet));
+        for block in &self.up_blocks {
+            units.extend(block.resnets().iter().map(Unit::Resnet));
+            units.extend(block.upsampler().map(Unit::Upsample));
+        }
+        units.push(Unit::Out(&self.norm_out, &self.conv_out));
+        units
+    }
+
+    /// The number of units [`Self::forward`] runs in order.
+    pub(super) fn unit_count(&self) -> usize {
+        self.units().len()
+    }
+
+    /// Unit `k` of [`Self::forward`] on its input `h` (unit 0's is the
+    /// latent), conditioned on the latent `zq`, continuing `cache` (the
+    /// unit's part of the previous batch's): its output and its new cache.
+    pub(super) fn unit_forward(
+        &self,
+        k: usize,
+        h: &Tensor,
+        zq: &Tensor,
+        cache: Option<&UnitCache>,
+    ) -> Result<(Tensor, UnitCache)> {
+        let units = self.units();
+        let unit = units.get(k).ok_or_else(|| {
+            crate::error::WorldModelError::input(
+                "decoder unit",
+                format!("{k}: the decoder has {} units", units.len()),
+            )
+        })?;
+        unit.forward(h, zq, cache)
+    }
+
     /// `[B, latent_channels, t, h, w] -> [B, out_channels, T, 8h, 8w]` for one frame
     /// batch, with the cache for the next batch.
     pub fn forward(
@@ -198,25 +315,13 @@ impl Decoder3D {
         z: &Tensor,
         cache: Option<&DecoderCache>,
     ) -> Result<(Tensor, DecoderCache)> {
-        let mut new_cache = DecoderCache::default();
-        let (h, c) = self
-            .conv_in
-            .forward(z, cache.and_then(|c| c.conv_in.as_ref()))?;
-        new_cache.conv_in = c;
-        let (mut h, c) = self
-            .mid_block
-            .forward(&h, Some(z), cache.map(|c| &c.mid_block))?;
-        new_cache.mid_block = c;
-        for (i, block) in self.up_blocks.iter().enumerate() {
-            let (out, c) = block.forward(&h, z, cache.and_then(|c| c.up_blocks.get(i)))?;
+        let mut h = z.shallow_clone();
+        let mut units = Vec::new();
+        for (k, unit) in self.units().iter().enumerate() {
+            let (out, c) = unit.forward(&h, z, cache.and_then(|c| c.unit(k)))?;
             h = out;
-            new_cache.up_blocks.push(c);
+            units.push(c);
         }
-        let h = self.norm_out.forward(&h, z)?.silu();
-        let (h, c) = self
-            .conv_out
-            .forward(&h, cache.and_then(|c| c.conv_out.as_ref()))?;
-        new_cache.conv_out = c;
-        Ok((h, new_cache))
+        Ok((h, DecoderCache { units }))
     }
 }

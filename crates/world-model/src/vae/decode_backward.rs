@@ -20,6 +20,21 @@ use super::{frame_batches, AutoencoderKLCogVideoX, DecoderCache};
 use crate::error::{Result, WorldModelError};
 use tch::{Kind, Tensor};
 
+/// How [`AutoencoderKLCogVideoX::decode_backward`] replays one frame batch
+/// (of one tile) under autograd.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum BatchReplay {
+    /// The whole decoder at once: every activation of the batch kept until
+    /// its backward pass.
+    #[default]
+    Whole,
+    /// Unit by unit (`conv_in`, each resnet, each upsampler, the output):
+    /// one more decoder pass keeps only each unit's input, then each unit is
+    /// replayed under autograd alone, from the last. For the full-size flow
+    /// loss, where one batch's activations are themselves too large.
+    Stepwise,
+}
+
 /// What [`AutoencoderKLCogVideoX::decode_recorded`] keeps for
 /// [`AutoencoderKLCogVideoX::decode_backward`].
 #[derive(Debug)]
@@ -130,7 +145,12 @@ impl AutoencoderKLCogVideoX {
     /// (see the module docs). `grad_video` has the decoded video's shape; the
     /// result the latents' shape and dtype. The decoder's own parameters get
     /// no gradient.
-    pub fn decode_backward(&self, record: &DecodeRecord, grad_video: &Tensor) -> Result<Tensor> {
+    pub fn decode_backward(
+        &self,
+        record: &DecodeRecord,
+        grad_video: &Tensor,
+        replay: BatchReplay,
+    ) -> Result<Tensor> {
         if grad_video.size() != record.video_shape {
             return Err(WorldModelError::input(
                 "grad_video",
@@ -142,7 +162,7 @@ impl AutoencoderKLCogVideoX {
             ));
         }
         let grad = match &record.form {
-            Form::Whole(r) => self.batches_backward(r, grad_video)?,
+            Form::Whole(r) => self.batches_backward(r, grad_video, replay)?,
             Form::Tiled { video, tiles } => {
                 let outputs: Vec<&Tensor> = tiles.iter().map(|t| &t.output).collect();
                 let objective = (video * grad_video.to_kind(video.kind())).sum(Kind::Float);
@@ -157,7 +177,7 @@ impl AutoencoderKLCogVideoX {
                     if !g.defined() {
                         continue; // a tile the crop dropped entirely
                     }
-                    let gz = self.batches_backward(&tile.record, &g)?;
+                    let gz = self.batches_backward(&tile.record, &g, replay)?;
                     let s = gz.size();
                     let (i, j) = tile.origin;
                     let mut view = grad.narrow(3, i, s[3]).narrow(4, j, s[4]);
@@ -171,7 +191,12 @@ impl AutoencoderKLCogVideoX {
 
     /// [`Self::decode_backward`] of one untiled decode: the gradient with
     /// respect to its latents (model dtype).
-    fn batches_backward(&self, record: &BatchRecord, grad_video: &Tensor) -> Result<Tensor> {
+    fn batches_backward(
+        &self,
+        record: &BatchRecord,
+        grad_video: &Tensor,
+        replay: BatchReplay,
+    ) -> Result<Tensor> {
         let mut offsets = Vec::with_capacity(record.frames.len());
         let mut at = 0;
         for f in &record.frames {
@@ -184,49 +209,157 @@ impl AutoencoderKLCogVideoX {
         let mut grad_cache: Option<Vec<Tensor>> = None;
         for j in (0..n).rev() {
             let (start, end) = record.batches[j];
-            let (g_z, g_cache) = tch::with_grad(|| -> Result<(Tensor, Option<Vec<Tensor>>)> {
-                let z = record
-                    .z
-                    .narrow(2, start, end - start)
-                    .detach()
-                    .set_requires_grad(true);
-                let cache_in = record.caches[j]
-                    .as_ref()
-                    .map(|c| c.map(&mut |t| t.detach().set_requires_grad(true)));
-                let (out, cache_out) = self.decode_batch(&z, cache_in.as_ref())?;
-                let g = grad_video.narrow(2, offsets[j], record.frames[j]);
-                let mut objective = (&out * g.to_kind(out.kind())).sum(Kind::Float);
-                if let Some(gc) = &grad_cache {
-                    let written = cache_out.tensors();
-                    if written.len() != gc.len() {
-                        return Err(WorldModelError::input(
-                            "decode record",
-                            format!(
-                                "batch {j} wrote {} cache tensors, the next batch read {}",
-                                written.len(),
-                                gc.len()
-                            ),
-                        ));
-                    }
-                    for (t, g) in written.into_iter().zip(gc) {
-                        if g.defined() {
-                            objective += (t * g.to_kind(t.kind())).sum(Kind::Float);
-                        }
-                    }
+            let z = record.z.narrow(2, start, end - start);
+            let g = grad_video.narrow(2, offsets[j], record.frames[j]);
+            let cache_in = record.caches[j].as_ref();
+            let (g_z, g_cache) = match replay {
+                BatchReplay::Whole => {
+                    self.batch_backward_whole(&z, cache_in, &g, grad_cache.as_deref())
                 }
-                let mut inputs = vec![z];
-                if let Some(c) = &cache_in {
-                    inputs.extend(c.tensors().into_iter().map(Tensor::shallow_clone));
+                BatchReplay::Stepwise => {
+                    self.batch_backward_stepwise(&z, cache_in, &g, grad_cache.as_deref())
                 }
-                let mut all = Tensor::f_run_backward(&[objective], &inputs, false, false)?;
-                let g_cache = cache_in.is_some().then(|| all.split_off(1));
-                Ok((all.remove(0), g_cache))
-            })?;
+            }?;
             grads.push(g_z);
             grad_cache = g_cache;
         }
         grads.reverse();
         Ok(Tensor::f_cat(&grads, 2)?)
+    }
+
+    /// One batch under autograd: the gradients of `sum(out * g_out) +
+    /// sum(cache_out * g_cache_out)` with respect to the batch's latents and
+    /// (when it continued one) its starting cache, in `tensors()` order.
+    fn batch_backward_whole(
+        &self,
+        z: &Tensor,
+        cache_in: Option<&DecoderCache>,
+        g_out: &Tensor,
+        g_cache_out: Option<&[Tensor]>,
+    ) -> Result<(Tensor, Option<Vec<Tensor>>)> {
+        tch::with_grad(|| {
+            let z = z.detach().set_requires_grad(true);
+            let cache_in = cache_in.map(|c| c.map(&mut |t| t.detach().set_requires_grad(true)));
+            let (out, cache_out) = self.decode_batch(&z, cache_in.as_ref())?;
+            let mut objective = (&out * g_out.to_kind(out.kind())).sum(Kind::Float);
+            if let Some(gc) = g_cache_out {
+                if let Some(c) = cache_objective(&cache_out.tensors(), gc)? {
+                    objective += c;
+                }
+            }
+            let mut inputs = vec![z];
+            if let Some(c) = &cache_in {
+                inputs.extend(c.tensors().into_iter().map(Tensor::shallow_clone));
+            }
+            let mut all = Tensor::f_run_backward(&[objective], &inputs, false, false)?;
+            let g_cache = cache_in.is_some().then(|| all.split_off(1));
+            Ok((all.remove(0), g_cache))
+        })
+    }
+
+    /// [`Self::batch_backward_whole`] checkpointed inside the batch: the
+    /// decoder's units (`conv_in`, each resnet, each upsampler, the output)
+    /// run once without autograd, keeping only each unit's input; then each
+    /// unit is run again under autograd from the last to the first and its
+    /// gradient pushed through it alone. The same gradient (up to float
+    /// rounding), holding one unit's activations at a time instead of the
+    /// whole decoder's, for one more decoder pass.
+    fn batch_backward_stepwise(
+        &self,
+        z: &Tensor,
+        cache_in: Option<&DecoderCache>,
+        g_out: &Tensor,
+        g_cache_out: Option<&[Tensor]>,
+    ) -> Result<(Tensor, Option<Vec<Tensor>>)> {
+        let decoder = &self.decoder;
+        let n = decoder.unit_count();
+        // zq: the decoder's input latent (after `post_quant_conv`), which every
+        // spatial norm reads; inputs[k]: unit k's input (inputs[0] is zq).
+        let (zq, inputs) = tch::no_grad(|| -> Result<_> {
+            let zq = self.post_quant(z)?;
+            let mut inputs = Vec::with_capacity(n);
+            let mut h = zq.shallow_clone();
+            for k in 0..n {
+                let (out, _) =
+                    decoder.unit_forward(k, &h, &zq, cache_in.and_then(|c| c.unit(k)))?;
+                inputs.push(std::mem::replace(&mut h, out));
+            }
+            Ok((zq, inputs))
+        })?;
+        // The written caches' gradients are taken from the end, unit by unit.
+        let mut g_cache_end = g_cache_out.map_or(0, <[Tensor]>::len);
+        let mut g_h = g_out.shallow_clone();
+        let mut g_zq = Tensor::zeros_like(&zq).to_kind(Kind::Float);
+        let mut g_cache_units: Vec<Vec<Tensor>> = Vec::with_capacity(n);
+        for k in (0..n).rev() {
+            let (g_input, g_zq_k, g_cache_k) = tch::with_grad(|| -> Result<_> {
+                let h = inputs[k].detach().set_requires_grad(true);
+                let zq_leaf = zq.detach().set_requires_grad(true);
+                let unit_in = cache_in
+                    .and_then(|c| c.unit(k))
+                    .map(|u| u.map(&mut |t| t.detach().set_requires_grad(true)));
+                let (out, written) = decoder.unit_forward(k, &h, &zq_leaf, unit_in.as_ref())?;
+                let mut objective = (&out * g_h.to_kind(out.kind())).sum(Kind::Float);
+                if let Some(gc) = g_cache_out {
+                    let written = written.tensors();
+                    if written.len() > g_cache_end {
+                        return Err(cache_mismatch(written.len(), g_cache_end));
+                    }
+                    let start = g_cache_end - written.len();
+                    if let Some(c) = cache_objective(&written, &gc[start..g_cache_end])? {
+                        objective += c;
+                    }
+                    g_cache_end = start;
+                }
+                let mut leaves = vec![h, zq_leaf];
+                if let Some(u) = &unit_in {
+                    leaves.extend(u.tensors().into_iter().map(Tensor::shallow_clone));
+                }
+                let mut all = Tensor::f_run_backward(&[objective], &leaves, false, false)?;
+                let g_cache = all.split_off(2);
+                let g_zq_k = all.pop().unwrap_or_default();
+                let g_input = all.pop().unwrap_or_default();
+                Ok((g_input, g_zq_k, g_cache))
+            })?;
+            if g_zq_k.defined() {
+                g_zq += g_zq_k.to_kind(Kind::Float);
+            }
+            g_cache_units.push(g_cache_k);
+            g_h = g_input;
+        }
+        if g_cache_end != 0 {
+            return Err(cache_mismatch(
+                g_cache_out.map_or(0, <[Tensor]>::len) - g_cache_end,
+                g_cache_out.map_or(0, <[Tensor]>::len),
+            ));
+        }
+        // Unit 0's input is zq itself.
+        if g_h.defined() {
+            g_zq += g_h.to_kind(Kind::Float);
+        }
+        // Through `post_quant_conv` (when there is one) to the latents.
+        let g_z = match &self.post_quant_conv {
+            None => g_zq.to_kind(z.kind()),
+            Some(_) => tch::with_grad(|| -> Result<Tensor> {
+                let leaf = z.detach().set_requires_grad(true);
+                let out = self.post_quant(&leaf)?;
+                let objective = (&out * g_zq.to_kind(out.kind())).sum(Kind::Float);
+                Ok(Tensor::f_run_backward(&[objective], &[&leaf], false, false)?.remove(0))
+            })?,
+        };
+        let g_cache = cache_in.is_some().then(|| {
+            g_cache_units.reverse();
+            g_cache_units.into_iter().flatten().collect()
+        });
+        Ok((g_z, g_cache))
+    }
+
+    /// `post_quant_conv` when the VAE has one.
+    fn post_quant(&self, z: &Tensor) -> Result<Tensor> {
+        Ok(match &self.post_quant_conv {
+            Some(conv) => conv.forward(z)?,
+            None => z.shallow_clone(),
+        })
     }
 
     /// `post_quant_conv`, then the decoder on one latent-frame batch.
@@ -235,10 +368,32 @@ impl AutoencoderKLCogVideoX {
         z: &Tensor,
         cache: Option<&DecoderCache>,
     ) -> Result<(Tensor, DecoderCache)> {
-        let z = match &self.post_quant_conv {
-            Some(conv) => conv.forward(z)?,
-            None => z.shallow_clone(),
-        };
-        self.decoder.forward(&z, cache)
+        self.decoder.forward(&self.post_quant(z)?, cache)
     }
+}
+
+/// `sum(written_i * g_i)` over a batch's written caches and their gradients
+/// (an undefined gradient: the cache was not read); `None` when none is defined.
+fn cache_objective(written: &[&Tensor], grads: &[Tensor]) -> Result<Option<Tensor>> {
+    if written.len() != grads.len() {
+        return Err(cache_mismatch(written.len(), grads.len()));
+    }
+    let mut sum: Option<Tensor> = None;
+    for (t, g) in written.iter().zip(grads) {
+        if g.defined() {
+            let term = (*t * g.to_kind(t.kind())).sum(Kind::Float);
+            sum = Some(match sum {
+                Some(s) => s + term,
+                None => term,
+            });
+        }
+    }
+    Ok(sum)
+}
+
+fn cache_mismatch(written: usize, read: usize) -> WorldModelError {
+    WorldModelError::input(
+        "decode record",
+        format!("the batch wrote {written} cache tensors, the next batch read {read}"),
+    )
 }

@@ -31,7 +31,7 @@ use tch::{Kind, Tensor};
 
 pub use coder::{DecoderCache, EncoderCache};
 pub use config::{VaeConfig, DOWN_BLOCK_TYPE, UP_BLOCK_TYPE};
-pub use decode_backward::DecodeRecord;
+pub use decode_backward::{BatchReplay, DecodeRecord};
 
 /// Frames with more pixels than this are run through the VAE in tiles by
 /// `predict` and training (memory; diffusers' CogVideoX examples tile above

@@ -107,10 +107,10 @@ fn config_parses_diffusers_json() {
     assert_eq!(cfg, VaeConfig::cogvideox_5b_i2v());
 }
 
-/// `decode_recorded` + `decode_backward` against `decode` and autograd
-/// through `decode_with_grad` on `z`: the same video, the same gradient of
-/// `sum(video * g)` (within 1e-5 of its largest value). Returns `g` and the
-/// reference gradient.
+/// `decode_recorded` + `decode_backward` (both batch replays) against
+/// `decode` and autograd through `decode_with_grad` on `z`: the same video,
+/// the same gradient of `sum(video * g)` (within 1e-5 of its largest value).
+/// Returns `g` and the reference gradient.
 fn check_decode_backward(vae: &AutoencoderKLCogVideoX, z: &Tensor) -> (Tensor, Tensor) {
     let max = |t: Tensor| f64::try_from(t.abs().max()).expect("max");
     let (video, record) = vae.decode_recorded(z).expect("recorded");
@@ -118,19 +118,21 @@ fn check_decode_backward(vae: &AutoencoderKLCogVideoX, z: &Tensor) -> (Tensor, T
     assert_eq!(video.size(), plain.size());
     assert!(max(&video - &plain) < 1e-6);
     let g = Tensor::randn(video.size(), (Kind::Float, tch::Device::Cpu));
-    let ours = vae.decode_backward(&record, &g).expect("backward");
     let leaf = z.detach().set_requires_grad(true);
     let out = vae.decode_with_grad(&leaf).expect("with grad");
     let objective = (&out * &g).sum(Kind::Float);
     let reference = Tensor::run_backward(&[objective], &[&leaf], false, false).remove(0);
-    assert_eq!(ours.size(), z.size());
-    let (err, scale) = (max(&ours - &reference), max(reference.shallow_clone()));
-    assert!(
-        scale > 0.0 && err <= 1e-5 * scale,
-        "max error {err} of {scale}"
-    );
+    for replay in [BatchReplay::Whole, BatchReplay::Stepwise] {
+        let ours = vae.decode_backward(&record, &g, replay).expect("backward");
+        assert_eq!(ours.size(), z.size());
+        let (err, scale) = (max(&ours - &reference), max(reference.shallow_clone()));
+        assert!(
+            scale > 0.0 && err <= 1e-5 * scale,
+            "{replay:?}: max error {err} of {scale}"
+        );
+    }
     let e = vae
-        .decode_backward(&record, &g.narrow(2, 0, 2))
+        .decode_backward(&record, &g.narrow(2, 0, 2), BatchReplay::Stepwise)
         .expect_err("wrong shape")
         .to_string();
     assert!(e.contains("expected the decoded video's"), "{e}");

@@ -187,6 +187,33 @@ impl AutoencoderKLCogVideoX {
         }
     }
 
+    /// Whether tiled decoding joins its tiles exactly: in both directions
+    /// the latent stride between tiles, in pixels, equals the pixels each
+    /// tile keeps (its size less the rows blended into the next). Otherwise
+    /// the decoded video is larger than the latents' size in pixels, as
+    /// with diffusers' `tiled_decode`; the default tiles (half the config's
+    /// sample size, 240x360 for CogVideoX) join.
+    pub fn tiles_join(&self) -> bool {
+        let t = &self.tiling;
+        let s = self.cfg.spatial_compression();
+        [
+            (
+                t.tile_latent_min_height,
+                t.tile_sample_min_height,
+                t.tile_overlap_factor_height,
+            ),
+            (
+                t.tile_latent_min_width,
+                t.tile_sample_min_width,
+                t.tile_overlap_factor_width,
+            ),
+        ]
+        .into_iter()
+        .all(|(latent, sample, overlap)| {
+            tile_stride(latent, overlap) * s == sample - (sample as f64 * overlap) as i64
+        })
+    }
+
     /// Whether [`Self::decode`] tiles latents of this spatial size.
     pub(super) fn tiles_latents(&self, height: i64, width: i64) -> bool {
         self.use_tiling

@@ -296,10 +296,15 @@ impl MidBlock3D {
     ) -> Result<(Tensor, BlockCache)> {
         resnets_forward(&self.resnets, x, zq, cache)
     }
+
+    /// The resnets, in order.
+    pub fn resnets(&self) -> &[ResnetBlock3D] {
+        &self.resnets
+    }
 }
 
 /// diffusers' `CogVideoXUpBlock3D` (decoder): spatially normalized resnets, then an
-/// optional upsampler.
+/// optional upsampler. The decoder runs them unit by unit (`coder::Decoder3D`).
 #[derive(Debug)]
 pub struct UpBlock3D {
     resnets: Vec<ResnetBlock3D>,
@@ -338,18 +343,13 @@ impl UpBlock3D {
         Self { resnets, upsampler }
     }
 
-    /// Runs the block on one frame batch conditioned on the latent `zq`.
-    pub fn forward(
-        &self,
-        x: &Tensor,
-        zq: &Tensor,
-        cache: Option<&BlockCache>,
-    ) -> Result<(Tensor, BlockCache)> {
-        let (h, cache) = resnets_forward(&self.resnets, x, Some(zq), cache)?;
-        let h = match &self.upsampler {
-            Some(u) => u.forward(&h)?,
-            None => h,
-        };
-        Ok((h, cache))
+    /// The resnets, in order.
+    pub fn resnets(&self) -> &[ResnetBlock3D] {
+        &self.resnets
+    }
+
+    /// The upsampler, when the block has one.
+    pub fn upsampler(&self) -> Option<&Upsample3D> {
+        self.upsampler.as_ref()
     }
 }

@@ -1,0 +1,70 @@
+//! `bridgev2w bench flow`: flags of [`bridgev2w_train::bench::flow`].
+
+use anyhow::{bail, Result};
+use bridgev2w_train::bench::flow::FlowBenchVae;
+use bridgev2w_train::bench::{bench_flow, FlowBenchOptions};
+use bridgev2w_train::decoded_flow::FlowBackward;
+use bridgev2w_world_model::{ComputeDevice, Precision};
+
+#[derive(Debug, clap::Args)]
+pub struct FlowBench {
+    /// VAE preset with random weights: cogvideox (2B and 5B's architecture), tiny, small, small2x.
+    #[arg(long, default_value = "cogvideox")]
+    vae: FlowBenchVae,
+    /// Pixel frames (the VAE's 4k + 1 for cogvideox). The defaults run in
+    /// about a minute on 2 cores; the full size is `--frames 25 --height 480
+    /// --width 720 --tile 240x360 --precision bf16 --device cuda`.
+    #[arg(long, default_value_t = 17)]
+    frames: i64,
+    #[arg(long, default_value_t = 128)]
+    height: i64,
+    #[arg(long, default_value_t = 192)]
+    width: i64,
+    /// Spatial tiles of HxW pixels (training tiles above 256x256 with the
+    /// VAE's default tiles, half its sample size); default: whole frames.
+    #[arg(long, value_parser = parse_tile)]
+    tile: Option<(i64, i64)>,
+    /// f32 or bf16.
+    #[arg(long, default_value = "f32")]
+    precision: Precision,
+    /// cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: ComputeDevice,
+    /// The modes, comma-separated, in order (the first one's gradient is the reference).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "autograd,recorded,stepwise"
+    )]
+    modes: Vec<FlowBackward>,
+}
+
+fn parse_tile(text: &str) -> Result<(i64, i64)> {
+    let parsed = text
+        .split_once('x')
+        .and_then(|(h, w)| Some((h.trim().parse::<i64>().ok()?, w.trim().parse::<i64>().ok()?)));
+    match parsed {
+        Some((h, w)) if h > 0 && w > 0 => Ok((h, w)),
+        _ => bail!("{text:?}: expected HEIGHTxWIDTH in pixels, e.g. 240x360"),
+    }
+}
+
+impl From<&FlowBench> for FlowBenchOptions {
+    fn from(a: &FlowBench) -> Self {
+        Self {
+            vae: a.vae,
+            frames: a.frames,
+            height: a.height,
+            width: a.width,
+            tile: a.tile,
+            precision: a.precision,
+            device: a.device,
+            modes: a.modes.clone(),
+        }
+    }
+}
+
+pub fn run(a: &FlowBench) -> Result<()> {
+    let report = bench_flow(&a.into())?;
+    crate::print_stdout(&report.to_string())
+}

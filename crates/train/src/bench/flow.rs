@@ -1,0 +1,300 @@
+//! `bench flow`: the fine-tuning stage's flow loss at a clip size (the decode
+//! of the predicted latents, the flow of both videos, the gradient back
+//! through the decoder), once per [`FlowBackward`] mode on the same random
+//! VAE, latents and video: seconds, peak memory, and each mode's gradient
+//! against the first mode's. Autograd through the whole decode is the peer
+//! the recorded modes are measured against.
+//!
+//! Peak memory is the most memory in use at once above what was in use when
+//! the mode started: on the CPU from the caching allocator's counters
+//! ([`cpu_cache::memory`], installed by the `bridgev2w` binary; tensors only,
+//! not the process), on CUDA from `nvidia-smi` (the device's used memory, so
+//! the CUDA caching allocator's reserve is in it).
+
+use crate::decoded_flow::{decoded_flow_loss, FlowBackward};
+use crate::flow::{FlowLossConfig, LucasKanade};
+use crate::{Result, TrainError};
+use bridgev2w_torch_ext::cpu_cache;
+use bridgev2w_world_model::bench::gpu_memory::{with_gpu_peak, NVIDIA_SMI};
+use bridgev2w_world_model::vae::{
+    init_like_pytorch, AutoencoderKLCogVideoX, TilingOptions, VaeConfig,
+};
+use bridgev2w_world_model::{ComputeDevice, Precision};
+use std::fmt;
+use std::time::Instant;
+use tch::nn::VarStore;
+use tch::{Kind, Tensor};
+
+/// The VAE of `bench flow`: random weights of one of the presets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FlowBenchVae {
+    /// CogVideoX's VAE (2B and 5B share the architecture): 4 blocks of
+    /// 128-512 channels, 8x space, 4x time.
+    #[default]
+    Cogvideox,
+    /// The same architecture with a few channels (tests).
+    Tiny,
+    /// The synthetic proof's `small` (4x space and time).
+    Small,
+    /// The synthetic proof's `small2x` (2x space, no time compression).
+    Small2x,
+}
+bridgev2w_world_model::named_enum!(FlowBenchVae, TrainError, TrainError::input, "vae", {
+    Cogvideox => "cogvideox",
+    Tiny => "tiny",
+    Small => "small",
+    Small2x => "small2x",
+});
+
+impl FlowBenchVae {
+    /// The preset's config.
+    pub fn config(self) -> VaeConfig {
+        match self {
+            Self::Cogvideox => VaeConfig::cogvideox_5b_i2v(),
+            Self::Tiny => VaeConfig::tiny(),
+            Self::Small => VaeConfig::small(),
+            Self::Small2x => VaeConfig::small_2x(),
+        }
+    }
+}
+
+/// What `bench flow` measures.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FlowBenchOptions {
+    /// The VAE preset (random weights, PyTorch's initialisation, seed 0).
+    pub vae: FlowBenchVae,
+    /// Pixel frames of the clip (the VAE's `kt + 1`).
+    pub frames: i64,
+    /// Pixel height.
+    pub height: i64,
+    /// Pixel width.
+    pub width: i64,
+    /// Spatial tiles of this many pixels (height, width), as training and
+    /// `predict` tile above 256x256; `None`: whole frames.
+    pub tile: Option<(i64, i64)>,
+    /// The VAE's precision.
+    pub precision: Precision,
+    /// Where it runs.
+    pub device: ComputeDevice,
+    /// The modes, in order; the first one's gradient is the reference.
+    pub modes: Vec<FlowBackward>,
+}
+
+impl Default for FlowBenchOptions {
+    fn default() -> Self {
+        Self {
+            vae: FlowBenchVae::Cogvideox,
+            frames: 17,
+            height: 128,
+            width: 192,
+            tile: None,
+            precision: Precision::F32,
+            device: ComputeDevice::Cpu,
+            modes: vec![
+                FlowBackward::Autograd,
+                FlowBackward::Recorded,
+                FlowBackward::Stepwise,
+            ],
+        }
+    }
+}
+
+/// One mode's measurement.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FlowBenchRow {
+    /// The mode.
+    pub mode: FlowBackward,
+    /// Seconds for the loss and its gradient.
+    pub seconds: f64,
+    /// Peak memory above the start, MiB (`None` where it cannot be read:
+    /// a CPU without the caching allocator, a GPU without `nvidia-smi`).
+    pub peak_mib: Option<f64>,
+    /// The flow loss's value.
+    pub loss: f64,
+    /// `max |g - g_ref| / max |g_ref|` against the first mode's gradient.
+    pub gradient_error: f64,
+}
+
+/// The measurements of `bench flow`; `Display` prints them as a table.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FlowBenchReport {
+    /// The options measured.
+    pub options: FlowBenchOptions,
+    /// The latents' shape `[B, C, t, h, w]`.
+    pub latent_shape: Vec<i64>,
+    /// One row per mode, in the options' order.
+    pub rows: Vec<FlowBenchRow>,
+}
+
+fn input(what: &str, message: String) -> TrainError {
+    TrainError::input(what, message)
+}
+
+/// Runs every mode of `options` once on the same random VAE, latents and
+/// ground-truth video.
+pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
+    let o = options;
+    if o.modes.is_empty() {
+        return Err(input("modes", "none given: expected at least one".into()));
+    }
+    let cfg = o.vae.config();
+    let (kt, s) = (
+        cfg.temporal_compression_ratio as i64,
+        cfg.spatial_compression(),
+    );
+    if o.frames < 2 || (o.frames - 1) % kt != 0 {
+        return Err(input(
+            "frames",
+            format!(
+                "{}: expected {kt}k + 1 and at least 2 (a flow needs two frames)",
+                o.frames
+            ),
+        ));
+    }
+    for (name, side) in [("height", o.height), ("width", o.width)] {
+        if side < s || side % s != 0 {
+            return Err(input(
+                name,
+                format!(
+                    "{side}: expected a positive multiple of {s} (the VAE's spatial compression)"
+                ),
+            ));
+        }
+    }
+    let device = o.device.check_available()?;
+    let dev = device.to_tch();
+    tch::manual_seed(0);
+    let mut vs = VarStore::new(tch::Device::Cpu);
+    let mut vae = AutoencoderKLCogVideoX::new(&cfg, vs.root())?;
+    init_like_pytorch(&vs);
+    if let Some((h, w)) = o.tile {
+        vae.enable_tiling(TilingOptions {
+            tile_sample_min_height: Some(h),
+            tile_sample_min_width: Some(w),
+            ..TilingOptions::default()
+        })?;
+        if !vae.tiles_join() {
+            return Err(input(
+                "tile",
+                format!(
+                    "{h}x{w} px: the tiles would not join exactly (their latent strides differ \
+                     from the pixels each keeps, and the decoded video would come out larger \
+                     than {}x{}): expected latent tiles (pixels / {s}) of a multiple of 6 high \
+                     and 5 wide, as CogVideoX's 240x360",
+                    o.height, o.width
+                ),
+            ));
+        }
+    }
+    vs.set_kind(o.precision.kind());
+    vs.freeze();
+    bridgev2w_world_model::device::move_to_device(&mut vs, dev);
+    let latent_shape = vec![
+        1,
+        cfg.latent_channels,
+        (o.frames - 1) / kt + 1,
+        o.height / s,
+        o.width / s,
+    ];
+    // Latents from the host generator (the same on every device); a ground
+    // truth whose content moves one pixel right per frame, so its flow is
+    // not zero.
+    let z = Tensor::randn(latent_shape.as_slice(), (Kind::Float, tch::Device::Cpu)).to_device(dev);
+    let still = Tensor::rand(
+        [1, 3, 1, o.height, o.width],
+        (Kind::Float, tch::Device::Cpu),
+    );
+    let frames: Vec<Tensor> = (0..o.frames).map(|t| still.roll([t], [4])).collect();
+    let gt = (Tensor::cat(&frames, 2) * 2.0 - 1.0).to_device(dev);
+    let estimator = LucasKanade::default();
+    let flow_cfg = FlowLossConfig::default();
+    let gpu = match device {
+        ComputeDevice::Cuda(i) => Some(i),
+        ComputeDevice::Cpu => None,
+    };
+    let mut rows = Vec::with_capacity(o.modes.len());
+    let mut reference: Option<Tensor> = None;
+    for &mode in &o.modes {
+        let leaf = z.detach().set_requires_grad(true);
+        cpu_cache::reset_peak();
+        let live0 = cpu_cache::memory().live_bytes;
+        let t0 = Instant::now();
+        let ((loss, grad), gpu_peak) = with_gpu_peak(NVIDIA_SMI, gpu, || -> Result<_> {
+            let loss = decoded_flow_loss(&vae, &leaf, &gt, &estimator, &flow_cfg, mode)?;
+            let grad = Tensor::f_run_backward(&[&loss], &[&leaf], false, false)?.remove(0);
+            if let Some(i) = gpu {
+                tch::Cuda::synchronize(i as i64);
+            }
+            Ok((loss.double_value(&[]), grad))
+        })?;
+        let seconds = t0.elapsed().as_secs_f64();
+        let peak_mib = match gpu {
+            Some(_) => gpu_peak.map(|m| m as f64),
+            None => cpu_cache::is_active().then(|| {
+                (cpu_cache::memory().peak_bytes.saturating_sub(live0)) as f64 / (1 << 20) as f64
+            }),
+        };
+        let grad = grad.to_kind(Kind::Float).to_device(tch::Device::Cpu);
+        let gradient_error = match &reference {
+            None => 0.0,
+            Some(r) => {
+                let scale = r.abs().max().double_value(&[]).max(f64::MIN_POSITIVE);
+                (&grad - r).abs().max().double_value(&[]) / scale
+            }
+        };
+        if reference.is_none() {
+            reference = Some(grad);
+        }
+        rows.push(FlowBenchRow {
+            mode,
+            seconds,
+            peak_mib,
+            loss,
+            gradient_error,
+        });
+    }
+    Ok(FlowBenchReport {
+        options: o.clone(),
+        latent_shape,
+        rows,
+    })
+}
+
+impl fmt::Display for FlowBenchReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let o = &self.options;
+        let tiles = match o.tile {
+            Some((h, w)) => format!("tiles of {h}x{w} px"),
+            None => "whole frames".to_owned(),
+        };
+        writeln!(
+            f,
+            "flow loss through the decoder: VAE {}, {} frames at {}x{} ({tiles}), latents {:?}, {:?} on {:?}, Lucas-Kanade flow",
+            o.vae, o.frames, o.height, o.width, self.latent_shape, o.precision, o.device
+        )?;
+        let memory = match o.device {
+            ComputeDevice::Cpu => "peak tensor memory above the start (caching allocator)",
+            ComputeDevice::Cuda(_) => "peak device memory above the start (nvidia-smi)",
+        };
+        writeln!(
+            f,
+            "| mode | seconds | {memory}, MiB | loss | gradient vs {} |",
+            self.rows[0].mode
+        )?;
+        writeln!(f, "|---|---|---|---|---|")?;
+        let first_peak = self.rows[0].peak_mib;
+        for r in &self.rows {
+            let peak = match (r.peak_mib, first_peak) {
+                (Some(p), Some(p0)) if p0 > 0.0 => format!("{p:.0} ({:.2}x)", p / p0),
+                (Some(p), _) => format!("{p:.0}"),
+                (None, _) => "not measured".to_owned(),
+            };
+            writeln!(
+                f,
+                "| {} | {:.2} | {peak} | {:.6} | {:.1e} |",
+                r.mode, r.seconds, r.loss, r.gradient_error
+            )?;
+        }
+        Ok(())
+    }
+}
