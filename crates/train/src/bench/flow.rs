@@ -295,6 +295,14 @@ impl fmt::Display for FlowBenchReport {
                 r.mode, r.seconds, r.loss, r.gradient_error
             )?;
         }
+        if matches!(o.device, ComputeDevice::Cuda(_)) && self.rows.len() > 1 {
+            writeln!(
+                f,
+                "note: on CUDA a mode's peak is above the device memory in use when it started, \
+                 which includes what the caching allocator kept from the modes before it: \
+                 run one mode per process (--modes NAME) to compare peaks"
+            )?;
+        }
         Ok(())
     }
 }
