@@ -14,6 +14,11 @@
 //! price of a second decoder pass. With tiling enabled (as `predict` runs the
 //! VAE above 256x256), each spatial tile keeps its own record and the
 //! blending's gradient comes from autograd: then one tile's batch at a time.
+//! [`BatchReplay::Stepwise`] checkpoints inside a batch as well: its decoder
+//! units (`conv_in`, each resnet, each upsampler, the output) run once more
+//! without autograd keeping only their inputs, then one at a time under
+//! autograd from the last, so that one unit's activations are held at a
+//! time, for a third decoder pass.
 
 use super::tiling::tiled;
 use super::{frame_batches, AutoencoderKLCogVideoX, DecoderCache};
@@ -275,7 +280,7 @@ impl AutoencoderKLCogVideoX {
         let n = decoder.unit_count();
         // zq: the decoder's input latent (after `post_quant_conv`), which every
         // spatial norm reads; inputs[k]: unit k's input (inputs[0] is zq).
-        let (zq, inputs) = tch::no_grad(|| -> Result<_> {
+        let (zq, mut inputs) = tch::no_grad(|| -> Result<_> {
             let zq = self.post_quant(z)?;
             let mut inputs = Vec::with_capacity(n);
             let mut h = zq.shallow_clone();
@@ -292,8 +297,12 @@ impl AutoencoderKLCogVideoX {
         let mut g_zq = Tensor::zeros_like(&zq).to_kind(Kind::Float);
         let mut g_cache_units: Vec<Vec<Tensor>> = Vec::with_capacity(n);
         for k in (0..n).rev() {
+            // Unit k's input, let go once it is replayed.
+            let input = inputs.pop().ok_or_else(|| {
+                WorldModelError::input("decode record", format!("unit {k}: no input recorded"))
+            })?;
             let (g_input, g_zq_k, g_cache_k) = tch::with_grad(|| -> Result<_> {
-                let h = inputs[k].detach().set_requires_grad(true);
+                let h = input.detach().set_requires_grad(true);
                 let zq_leaf = zq.detach().set_requires_grad(true);
                 let unit_in = cache_in
                     .and_then(|c| c.unit(k))
