@@ -9,7 +9,8 @@ the GPU image has them):
                                     nvidia-smi poll wrote (MiB)
   record-seconds NAME KEY SECONDS   one timing figure
   bench-table LOG NAME              the timings of `bench model`
-  flow-row LOG NAME MODE            one mode's row of `bench flow`
+  flow-row LOG NAME MODE [LABEL]    one mode's row of `bench flow` (keys
+                                    LABEL_seconds, ...; LABEL defaults to MODE)
   environment MODE COMMIT           the device, torch, the commit, the date
   summary OUT                       OUT/items.tsv + OUT/metrics/*.json ->
                                     OUT/summary.json and OUT/summary.md
@@ -127,7 +128,8 @@ def bench_table(log, name):
     record(name, **figures)
 
 
-def flow_row(log, name, mode):
+def flow_row(log, name, mode, label=None):
+    label = label or mode
     with open(log) as f:
         for line in f:
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
@@ -136,9 +138,9 @@ def flow_row(log, name, mode):
                 record(
                     name,
                     **{
-                        f"{mode}_seconds": float(cells[1]),
-                        f"{mode}_peak_mib": None if peak == "not" else float(peak),
-                        f"{mode}_loss": float(cells[3]),
+                        f"{label}_seconds": float(cells[1]),
+                        f"{label}_peak_mib": None if peak == "not" else float(peak),
+                        f"{label}_loss": float(cells[3]),
                     },
                 )
                 return

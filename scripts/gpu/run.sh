@@ -11,7 +11,7 @@
 #         model at 5B-I2V shapes vs diffusers, the tiled VAE, a full 50-step
 #         predict; about 8 min), training (full-size training steps without
 #         and with the flow loss, the flow loss's backward through the VAE
-#         by mode, planning cost; about 9 min); default: all
+#         by mode and with RAFT large, planning cost; about 10 min); default: all
 #         three, in that order.
 #   ITEM: one item by name (e.g. planning-cost), to rerun it alone.
 #   --dry-run: the same items on the CPU at tiny shapes (the test suite runs
@@ -93,10 +93,12 @@ if [[ $DRY == 1 ]]; then
     BIG=random:tiny; BIG_PRECISION=f32; TRAIN_STEPS=3; PLAN_SAMPLES=4
     BENCH=(--style 5b-i2v --layers 1 --frames 1 --height 32 --width 48 --precision f32)
     FLOW=(--vae tiny --frames 9 --height 64 --width 96 --tile 48x40 --precision f32)
+    FLOW_RAFT=(--flow raft_small --raft-iterations 2)
 else
     BIG=random:cogvideox-5b-i2v; BIG_PRECISION=bf16; TRAIN_STEPS=20; PLAN_SAMPLES=4
     BENCH=(--style 5b-i2v --layers 42 --frames 25 --height 480 --width 720 --precision bf16 --batch 2)
     FLOW=(--vae cogvideox --frames 25 --height 480 --width 720 --tile 240x360 --precision bf16)
+    FLOW_RAFT=(--flow raft_large --raft-iterations 12)
 fi
 
 # item NAME LIMIT_S NEEDS_CUDA FUNCTION: runs FUNCTION with its output in
@@ -120,7 +122,7 @@ item() {
     echo "   $name: $status" >&2
 }
 export BIN PY DEVICE DRY WORK BIG BIG_PRECISION TRAIN_STEPS PLAN_SAMPLES ROOT HERE
-export BENCH_ARGS="${BENCH[*]}" FLOW_ARGS="${FLOW[*]}"
+export BENCH_ARGS="${BENCH[*]}" FLOW_ARGS="${FLOW[*]}" FLOW_RAFT_ARGS="${FLOW_RAFT[*]}"
 
 # gpu_poll NAME COMMAND...: runs COMMAND while nvidia-smi records the used
 # memory, then records the peak as NAME's peak_gpu_memory_mib.
@@ -272,12 +274,16 @@ lora_alpha = 64.0"
 }
 bench_flow() { # the flow loss's decode and gradient through the VAE at full size,
     # batch by batch (training without checkpointing) and unit by unit (with
-    # it): one process per mode, so that each peak starts from an empty
-    # CUDA caching allocator
-    for mode in recorded stepwise; do
-        "$BIN" bench flow $FLOW_ARGS --device "$DEVICE" --modes "$mode" \
-            | tee "$WORK/bench-flow-$mode.txt" || return 1
-        "$PY" "$HERE/checklist.py" flow-row "$WORK/bench-flow-$mode.txt" bench-flow "$mode" || return 1
+    # it), with the Lucas-Kanade stand-in, then unit by unit with RAFT large
+    # (random weights: its cost at full size): one process each, so that
+    # each peak starts from an empty CUDA caching allocator
+    for run in "recorded recorded" "stepwise stepwise" "stepwise stepwise_raft"; do
+        set -- $run
+        local extra=""
+        [[ $2 == *_raft ]] && extra=$FLOW_RAFT_ARGS
+        "$BIN" bench flow $FLOW_ARGS $extra --device "$DEVICE" --modes "$1" \
+            | tee "$WORK/bench-flow-$2.txt" || return 1
+        "$PY" "$HERE/checklist.py" flow-row "$WORK/bench-flow-$2.txt" bench-flow "$1" "$2" || return 1
     done
 }
 planning_cost() { # the cost of CEM's batched candidate predictions: one CEM iteration

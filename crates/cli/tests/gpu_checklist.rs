@@ -72,9 +72,10 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
         "{bench}"
     );
     // Both replays of the flow loss's backward, each with its time, its
-    // memory (the caching allocator's peak on the CPU) and the same loss.
+    // memory (the caching allocator's peak on the CPU) and the same loss,
+    // and the stepwise one with RAFT.
     let flow = &item("bench-flow")["metrics"];
-    for mode in ["recorded", "stepwise"] {
+    for mode in ["recorded", "stepwise", "stepwise_raft"] {
         assert!(
             flow[format!("{mode}_seconds")]
                 .as_f64()

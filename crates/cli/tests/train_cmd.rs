@@ -436,4 +436,10 @@ fn bench_flow_refuses_tiles_that_do_not_join() {
     let o = common::run(&["bench", "flow", "--tile", "240"]);
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("HEIGHTxWIDTH"), "{e}");
+    let o = common::run(&["bench", "flow", "--flow", "raft"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("\"raft\"") && e.contains("raft_large"),
+        "{e}"
+    );
 }

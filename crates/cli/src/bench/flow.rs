@@ -1,7 +1,7 @@
 //! `bridgev2w bench flow`: flags of [`bridgev2w_train::bench::flow`].
 
 use anyhow::{bail, Result};
-use bridgev2w_train::bench::flow::FlowBenchVae;
+use bridgev2w_train::bench::flow::{FlowBenchEstimator, FlowBenchVae};
 use bridgev2w_train::bench::{bench_flow, FlowBenchOptions};
 use bridgev2w_train::decoded_flow::FlowBackward;
 use bridgev2w_world_model::{ComputeDevice, Precision};
@@ -37,6 +37,13 @@ pub struct FlowBench {
         default_value = "autograd,recorded,stepwise"
     )]
     modes: Vec<FlowBackward>,
+    /// Flow estimator: lucas_kanade (the CPU stand-in), raft_small or
+    /// raft_large (random weights: the cost, not the flow, is measured).
+    #[arg(long, default_value = "lucas_kanade")]
+    flow: FlowBenchEstimator,
+    /// RAFT's refinement iterations.
+    #[arg(long, default_value_t = 12)]
+    raft_iterations: usize,
 }
 
 fn parse_tile(text: &str) -> Result<(i64, i64)> {
@@ -60,6 +67,8 @@ impl From<&FlowBench> for FlowBenchOptions {
             precision: a.precision,
             device: a.device,
             modes: a.modes.clone(),
+            estimator: a.flow,
+            raft_iterations: a.raft_iterations,
         }
     }
 }

@@ -3,7 +3,10 @@
 //! through the decoder), once per [`FlowBackward`] mode on the same random
 //! VAE, latents and video: seconds, peak memory, and each mode's gradient
 //! against the first mode's. Autograd through the whole decode is the peer
-//! the recorded modes are measured against.
+//! the recorded modes are measured against. The flow is the Lucas-Kanade
+//! stand-in or RAFT (small or large) with random weights: its cost, not its
+//! flow, is the point. In bf16 each mode runs under bf16 autocast, as the
+//! training step runs it.
 //!
 //! Peak memory is the most memory in use at once above what was in use when
 //! the mode started: on the CPU from the caching allocator's counters
@@ -12,10 +15,11 @@
 //! the CUDA caching allocator's reserve is in it).
 
 use crate::decoded_flow::{decoded_flow_loss, FlowBackward};
-use crate::flow::{FlowLossConfig, LucasKanade};
+use crate::flow::{FlowEstimator, FlowLossConfig, LucasKanade, RaftFlow};
 use crate::{Result, TrainError};
-use bridgev2w_torch_ext::cpu_cache;
+use bridgev2w_torch_ext::{autocast, cpu_cache, AutocastDtype};
 use bridgev2w_world_model::bench::gpu_memory::{with_gpu_peak, NVIDIA_SMI};
+use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
 use bridgev2w_world_model::vae::{
     init_like_pytorch, AutoencoderKLCogVideoX, TilingOptions, VaeConfig,
 };
@@ -58,6 +62,23 @@ impl FlowBenchVae {
     }
 }
 
+/// The flow estimator of `bench flow`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FlowBenchEstimator {
+    /// The differentiable Lucas-Kanade stand-in (CPU training's).
+    #[default]
+    LucasKanade,
+    /// RAFT small, random weights.
+    RaftSmall,
+    /// RAFT large (the paper's), random weights.
+    RaftLarge,
+}
+bridgev2w_world_model::named_enum!(FlowBenchEstimator, TrainError, TrainError::input, "flow", {
+    LucasKanade => "lucas_kanade",
+    RaftSmall => "raft_small",
+    RaftLarge => "raft_large",
+});
+
 /// What `bench flow` measures.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FlowBenchOptions {
@@ -78,6 +99,10 @@ pub struct FlowBenchOptions {
     pub device: ComputeDevice,
     /// The modes, in order; the first one's gradient is the reference.
     pub modes: Vec<FlowBackward>,
+    /// The flow estimator.
+    pub estimator: FlowBenchEstimator,
+    /// RAFT's refinement iterations (torchvision's default 12).
+    pub raft_iterations: usize,
 }
 
 impl Default for FlowBenchOptions {
@@ -95,6 +120,8 @@ impl Default for FlowBenchOptions {
                 FlowBackward::Recorded,
                 FlowBackward::Stepwise,
             ],
+            estimator: FlowBenchEstimator::LucasKanade,
+            raft_iterations: 12,
         }
     }
 }
@@ -120,6 +147,8 @@ pub struct FlowBenchRow {
 pub struct FlowBenchReport {
     /// The options measured.
     pub options: FlowBenchOptions,
+    /// The estimator's name (with RAFT's iterations).
+    pub estimator: String,
     /// The latents' shape `[B, C, t, h, w]`.
     pub latent_shape: Vec<i64>,
     /// One row per mode, in the options' order.
@@ -206,7 +235,29 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
     );
     let frames: Vec<Tensor> = (0..o.frames).map(|t| still.roll([t], [4])).collect();
     let gt = (Tensor::cat(&frames, 2) * 2.0 - 1.0).to_device(dev);
-    let estimator = LucasKanade::default();
+    let estimator: Box<dyn FlowEstimator> = match o.estimator {
+        FlowBenchEstimator::LucasKanade => Box::new(LucasKanade::default()),
+        FlowBenchEstimator::RaftSmall | FlowBenchEstimator::RaftLarge => {
+            if o.raft_iterations == 0 {
+                return Err(input("raft iterations", "0: expected at least 1".into()));
+            }
+            let cfg = if o.estimator == FlowBenchEstimator::RaftSmall {
+                RaftConfig::small()
+            } else {
+                RaftConfig::large()
+            };
+            Box::new(RaftFlow {
+                raft: Raft::new(cfg, device)?,
+                iterations: o.raft_iterations,
+            })
+        }
+    };
+    let estimator_name = match o.estimator {
+        FlowBenchEstimator::LucasKanade => estimator.name(),
+        _ => format!("{}, {} iterations", estimator.name(), o.raft_iterations),
+    };
+    // Training runs the flow loss under autocast in bf16.
+    let autocast_dtype = (o.precision == Precision::Bf16).then_some(AutocastDtype::BFloat16);
     let flow_cfg = FlowLossConfig::default();
     let gpu = match device {
         ComputeDevice::Cuda(i) => Some(i),
@@ -220,7 +271,9 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
         let live0 = cpu_cache::memory().live_bytes;
         let t0 = Instant::now();
         let ((loss, grad), gpu_peak) = with_gpu_peak(NVIDIA_SMI, gpu, || -> Result<_> {
-            let loss = decoded_flow_loss(&vae, &leaf, &gt, &estimator, &flow_cfg, mode)?;
+            let loss = autocast(dev, autocast_dtype, || {
+                decoded_flow_loss(&vae, &leaf, &gt, estimator.as_ref(), &flow_cfg, mode)
+            })??;
             let grad = Tensor::f_run_backward(&[&loss], &[&leaf], false, false)?.remove(0);
             if let Some(i) = gpu {
                 tch::Cuda::synchronize(i as i64);
@@ -255,6 +308,7 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
     }
     Ok(FlowBenchReport {
         options: o.clone(),
+        estimator: estimator_name,
         latent_shape,
         rows,
     })
@@ -269,8 +323,8 @@ impl fmt::Display for FlowBenchReport {
         };
         writeln!(
             f,
-            "flow loss through the decoder: VAE {}, {} frames at {}x{} ({tiles}), latents {:?}, {:?} on {:?}, Lucas-Kanade flow",
-            o.vae, o.frames, o.height, o.width, self.latent_shape, o.precision, o.device
+            "flow loss through the decoder: VAE {}, {} frames at {}x{} ({tiles}), latents {:?}, {:?} on {:?}, flow: {}",
+            o.vae, o.frames, o.height, o.width, self.latent_shape, o.precision, o.device, self.estimator
         )?;
         let memory = match o.device {
             ComputeDevice::Cpu => "peak tensor memory above the start (caching allocator)",
