@@ -61,8 +61,9 @@ impl FlowBackward {
 /// (`[B, 3, T, H, W]` in `[-1, 1]`): a scalar whose value is the loss and
 /// whose gradient with respect to `z` is the loss's, by `how`. The decoded
 /// video is clamped to `[-1, 1]` before the flow is estimated, as the
-/// predicted frames are elsewhere. The decoder's own parameters get no
-/// gradient either way.
+/// predicted frames are elsewhere. The recorded modes give the decoder's
+/// own parameters no gradient; autograd does where they require one (the
+/// VAE is frozen in training).
 pub fn decoded_flow_loss(
     vae: &AutoencoderKLCogVideoX,
     z: &Tensor,
