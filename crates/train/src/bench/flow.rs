@@ -155,16 +155,15 @@ pub struct FlowBenchReport {
     pub rows: Vec<FlowBenchRow>,
 }
 
-fn input(what: &str, message: String) -> TrainError {
-    TrainError::input(what, message)
-}
-
 /// Runs every mode of `options` once on the same random VAE, latents and
 /// ground-truth video.
 pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
     let o = options;
     if o.modes.is_empty() {
-        return Err(input("modes", "none given: expected at least one".into()));
+        return Err(TrainError::input(
+            "modes",
+            "none given: expected at least one",
+        ));
     }
     let cfg = o.vae.config();
     let (kt, s) = (
@@ -172,7 +171,7 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
         cfg.spatial_compression(),
     );
     if o.frames < 2 || (o.frames - 1) % kt != 0 {
-        return Err(input(
+        return Err(TrainError::input(
             "frames",
             format!(
                 "{}: expected {kt}k + 1 and at least 2 (a flow needs two frames)",
@@ -182,7 +181,7 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
     }
     for (name, side) in [("height", o.height), ("width", o.width)] {
         if side < s || side % s != 0 {
-            return Err(input(
+            return Err(TrainError::input(
                 name,
                 format!(
                     "{side}: expected a positive multiple of {s} (the VAE's spatial compression)"
@@ -203,7 +202,7 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
             ..TilingOptions::default()
         })?;
         if !vae.tiles_join() {
-            return Err(input(
+            return Err(TrainError::input(
                 "tile",
                 format!(
                     "{h}x{w} px: the tiles would not join exactly (their latent strides differ \
@@ -239,7 +238,10 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
         FlowBenchEstimator::LucasKanade => Box::new(LucasKanade::default()),
         FlowBenchEstimator::RaftSmall | FlowBenchEstimator::RaftLarge => {
             if o.raft_iterations == 0 {
-                return Err(input("raft iterations", "0: expected at least 1".into()));
+                return Err(TrainError::input(
+                    "raft iterations",
+                    "0: expected at least 1",
+                ));
             }
             let cfg = if o.estimator == FlowBenchEstimator::RaftSmall {
                 RaftConfig::small()
