@@ -2,7 +2,7 @@
 
 use crate::progress::TerminalProgress;
 use anyhow::Result;
-use bridgev2w_world_model::bench::{bench_model, ModelBenchOptions};
+use bridgev2w_world_model::bench::{bench_model, ModelBenchOptions, ModelStyle};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -10,7 +10,7 @@ use std::path::PathBuf;
 pub struct ModelBench {
     /// Architecture family: `2b` (sin-cos positions) or `5b-i2v` (RoPE, learned positions, I2V input).
     #[arg(long, default_value = "2b")]
-    style: String,
+    style: ModelStyle,
     /// Transformer blocks (the full models have 30 / 42).
     #[arg(long, default_value_t = 8)]
     layers: i64,
@@ -54,7 +54,7 @@ pub struct ModelBench {
 impl From<&ModelBench> for ModelBenchOptions {
     fn from(a: &ModelBench) -> Self {
         Self {
-            style: a.style.clone(),
+            style: a.style,
             layers: a.layers,
             frames: a.frames,
             height: a.height,

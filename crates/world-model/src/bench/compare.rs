@@ -11,12 +11,37 @@ use bridgev2w_io::progress::Progress;
 use std::fmt;
 use std::path::PathBuf;
 
+/// The CogVideoX architecture family `bench model` builds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModelStyle {
+    /// CogVideoX-2B: sin-cos positions, its VAE.
+    Cogvideox2b,
+    /// CogVideoX-5B-I2V: RoPE, learned positions, the I2V input, its VAE.
+    Cogvideox5bI2v,
+}
+crate::named_enum!(ModelStyle, BenchError, BenchError::input, "--style", {
+    Cogvideox2b => "2b",
+    Cogvideox5bI2v => "5b-i2v",
+});
+
+impl ModelStyle {
+    /// The family's transformer and VAE configs (full size).
+    pub fn configs(self) -> (TransformerConfig, VaeConfig) {
+        match self {
+            Self::Cogvideox2b => (TransformerConfig::cogvideox_2b(), VaeConfig::cogvideox_2b()),
+            Self::Cogvideox5bI2v => (
+                TransformerConfig::cogvideox_5b_i2v(),
+                VaeConfig::cogvideox_5b_i2v(),
+            ),
+        }
+    }
+}
+
 /// What `bench model` builds and times.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelBenchOptions {
-    /// Architecture family: `2b` (sin-cos positions) or `5b-i2v` (RoPE,
-    /// learned positions, I2V input).
-    pub style: String,
+    /// Architecture family.
+    pub style: ModelStyle,
     /// Transformer blocks.
     pub layers: i64,
     /// Pixel frames (`4k + 1`).
@@ -47,7 +72,7 @@ pub struct ModelBenchOptions {
 impl Default for ModelBenchOptions {
     fn default() -> Self {
         Self {
-            style: "2b".into(),
+            style: ModelStyle::Cogvideox2b,
             layers: 8,
             frames: 9,
             height: 128,
@@ -77,7 +102,7 @@ pub struct GpuPeakMib {
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelBenchReport {
     /// Architecture family.
-    pub style: String,
+    pub style: ModelStyle,
     /// The transformer that was timed.
     pub transformer: TransformerConfig,
     /// The VAE that was timed.
@@ -195,15 +220,7 @@ pub fn bench_configs(
     options: &ModelBenchOptions,
 ) -> Result<(TransformerConfig, VaeConfig), BenchError> {
     let a = options;
-    let mut tf = match a.style.as_str() {
-        "2b" => TransformerConfig::cogvideox_2b(),
-        "5b-i2v" => TransformerConfig::cogvideox_5b_i2v(),
-        other => {
-            return Err(BenchError::Invalid(format!(
-                "--style {other}: expected 2b or 5b-i2v"
-            )))
-        }
-    };
+    let (mut tf, vae) = a.style.configs();
     if a.layers < 1 {
         return Err(BenchError::Invalid(format!(
             "--layers {}: expected >= 1",
@@ -220,11 +237,6 @@ pub fn bench_configs(
         tf.sample_width = a.width / s;
     }
     tf.sample_frames = tf.sample_frames.max(a.frames);
-    let vae = if a.style == "2b" {
-        VaeConfig::cogvideox_2b()
-    } else {
-        VaeConfig::cogvideox_5b_i2v()
-    };
     Ok((tf, vae))
 }
 
@@ -268,7 +280,7 @@ pub fn bench_model(
         (None, None)
     };
     Ok(ModelBenchReport {
-        style: a.style.clone(),
+        style: a.style,
         transformer: tf,
         vae,
         shape,
@@ -292,17 +304,18 @@ mod tests {
 
     #[test]
     fn configs_check_the_style_and_layers() {
-        let mut o = ModelBenchOptions {
-            style: "x".into(),
-            ..ModelBenchOptions::default()
-        };
-        let e = bench_configs(&o).expect_err("style");
-        assert_eq!(e.to_string(), "--style x: expected 2b or 5b-i2v");
-        o.style = "2b".into();
+        let e = "x".parse::<ModelStyle>().expect_err("style").to_string();
+        assert_eq!(e, "--style: \"x\": expected one of 2b, 5b-i2v");
+        assert_eq!(
+            "5b-i2v".parse::<ModelStyle>().ok(),
+            Some(ModelStyle::Cogvideox5bI2v)
+        );
+        let mut o = ModelBenchOptions::default();
+        assert_eq!(o.style.to_string(), "2b");
         o.layers = 0;
         let e = bench_configs(&o).expect_err("layers");
         assert_eq!(e.to_string(), "--layers 0: expected >= 1");
-        o.style = "5b-i2v".into();
+        o.style = ModelStyle::Cogvideox5bI2v;
         o.layers = 2;
         let (tf, _) = bench_configs(&o).expect("5b");
         assert_eq!(
@@ -321,7 +334,7 @@ mod tests {
             vae_decode_s: 4.0,
         };
         let mut report = ModelBenchReport {
-            style: o.style.clone(),
+            style: o.style,
             transformer,
             vae,
             shape: ModelBenchShape {

@@ -10,7 +10,9 @@ pub mod compare;
 pub mod diffusers;
 pub mod gpu_memory;
 
-pub use compare::{bench_configs, bench_model, GpuPeakMib, ModelBenchOptions, ModelBenchReport};
+pub use compare::{
+    bench_configs, bench_model, GpuPeakMib, ModelBenchOptions, ModelBenchReport, ModelStyle,
+};
 pub use diffusers::DiffusersPeer;
 
 use crate::device::{ComputeDevice, Precision};
@@ -36,6 +38,14 @@ pub enum BenchError {
     /// A config file for the peer could not be written.
     #[error(transparent)]
     File(#[from] bridgev2w_io::FileError),
+}
+
+impl BenchError {
+    /// An option's bad value: `field` names it, `message` says what was
+    /// given and what is expected.
+    pub(crate) fn input(field: &str, message: impl std::fmt::Display) -> Self {
+        Self::Invalid(format!("{field}: {message}"))
+    }
 }
 
 /// What is timed: one clip of `frames` pixel frames at `height` x `width`.
