@@ -106,6 +106,11 @@ pub struct MpcConfig {
     /// (the paper executes the mean). Near the goal the mean of spread
     /// elites can step away from a goal the best sample already holds.
     pub execute_best: bool,
+    /// Actions of the chosen plan executed before planning again, 1 to the
+    /// horizon (the paper executes 1). With a horizon of `n` actions and
+    /// `n` executed, one search pays for `n` actions and the whole executed
+    /// chunk is what its terminal frame was scored on.
+    pub execute_actions: usize,
     /// Index of the goal whose end triggers the gripper heuristic's
     /// switch (the grasp): goals up to it are pursued with `approach`,
     /// later ones with `after_switch`. 0 without waypoint goals.
@@ -125,6 +130,7 @@ impl Default for MpcConfig {
             workspace: None,
             view: None,
             execute_best: false,
+            execute_actions: 1,
             switch_after_goal: 0,
         }
     }
@@ -145,6 +151,7 @@ impl MpcConfig {
                 "frames per action and max steps must be at least 1".into(),
             ));
         }
+        self.check_execute_actions()?;
         if self.cem.horizon * self.frames_per_action > clip_frames.saturating_sub(1) {
             return Err(PlanError::ClipTooShort {
                 actions: self.cem.horizon,
@@ -153,6 +160,20 @@ impl MpcConfig {
             });
         }
         Ok(())
+    }
+
+    /// Checks that 1 to the horizon's actions are executed per search.
+    pub fn check_execute_actions(&self) -> Result<()> {
+        if (1..=self.cem.horizon).contains(&self.execute_actions) {
+            return Ok(());
+        }
+        Err(PlanError::input(
+            "executed actions",
+            format!(
+                "{}: expected 1 to the horizon ({})",
+                self.execute_actions, self.cem.horizon
+            ),
+        ))
     }
 
     /// The move from `from` toward `to` as the limits allow: `to` clamped
@@ -294,7 +315,8 @@ pub struct MpcOutcome {
 pub struct MpcTraceStep {
     /// Index of the goal image pursued (0: the first waypoint or subgoal).
     pub goal: usize,
-    /// The executed waypoint (absolute end-effector action).
+    /// The executed waypoint (absolute end-effector action; the last of
+    /// the step's, when a step executes several).
     pub action: EeAction,
     /// The observed end-effector pose after the step (xyz metres, rpy
     /// radians, gripper).
@@ -368,10 +390,17 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
     };
     while steps < cfg.max_steps && !env.goal_reached() {
         let plan = plan_once(model, &obs, &latents[stage], cfg, gripper_for(stage), rng)?;
-        let first = plan.waypoints[0];
-        let frames = expand_waypoints(&obs.ee, &[first], cfg.frames_per_action);
+        // The first `execute_actions` of the plan, as many as the steps left.
+        let n = cfg
+            .execute_actions
+            .min(plan.waypoints.len())
+            .min(cfg.max_steps - steps)
+            .max(1);
+        let executed = &plan.waypoints[..n];
+        let last_executed = executed[n - 1];
+        let frames = expand_waypoints(&obs.ee, executed, cfg.frames_per_action);
         obs = env.execute(&frames)?;
-        steps += 1;
+        steps += n;
         let z = model.encode(&obs.image)?;
         let dist = latent_l1(&z, &latents[stage])?;
         final_goal_distance.push(latent_l1(&z, &latents[last])?);
@@ -382,7 +411,7 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
         }
         trace.push(MpcTraceStep {
             goal: stage,
-            action: first,
+            action: last_executed,
             ee: obs.ee,
             predicted_cost: plan
                 .best_cost_per_iteration

@@ -220,6 +220,104 @@ fn cem_mpc_on_an_analytic_model_converges_to_the_goal() {
     assert!(!r.reached);
 }
 
+/// An environment that records every executed chunk of frames.
+struct ChunkEnv {
+    inner: PositionEnv,
+    chunks: Vec<Vec<EeAction>>,
+}
+
+impl Environment for ChunkEnv {
+    fn observe(&self) -> Result<Observation> {
+        self.inner.observe()
+    }
+    fn execute(&mut self, a: &[EeAction]) -> Result<Observation> {
+        self.chunks.push(a.to_vec());
+        self.inner.execute(a)
+    }
+    fn goal_reached(&self) -> bool {
+        self.inner.goal_reached()
+    }
+}
+
+#[test]
+fn executing_several_planned_actions_per_search() {
+    let target = [0.3, -0.2, 0.1];
+    let model = position_model();
+    let start = [0.0, 0.0, 0.0, std::f64::consts::PI, 0.0, 0.0, 0.0];
+    let goal = position_image(&[target[0], target[1], target[2], 0.0, 0.0, 0.0, 0.0]);
+    let cfg = MpcConfig {
+        cem: CemConfig {
+            samples: 32,
+            elites: 4,
+            iterations: 3,
+            horizon: 3,
+            init_translation_std_m: 0.05,
+            ..CemConfig::default()
+        },
+        execute_best: true,
+        execute_actions: 3,
+        max_steps: 7,
+        patience: 100,
+        ..MpcConfig::default()
+    };
+    let mut env = ChunkEnv {
+        inner: PositionEnv { ee: start, target },
+        chunks: vec![],
+    };
+    let out = run_mpc(
+        &model,
+        &mut env,
+        &[goal],
+        &cfg,
+        &mut ChaCha8Rng::seed_from_u64(1),
+    )
+    .unwrap();
+    // 3 + 3 + 1 actions (the last search executes the one step left), each
+    // of `frames_per_action` frames; one trace step per search.
+    let lens: Vec<usize> = env.chunks.iter().map(Vec::len).collect();
+    let fpa = cfg.frames_per_action;
+    assert_eq!(lens, vec![3 * fpa, 3 * fpa, fpa], "{lens:?}");
+    assert_eq!(out.steps, 7);
+    assert_eq!(out.trace.len(), 3);
+    // A chunk ends at the last action it executed, and the next search
+    // starts there.
+    for (step, chunk) in out.trace.iter().zip(&env.chunks) {
+        assert_eq!(step.action, *chunk.last().unwrap());
+        assert_eq!(step.ee, *chunk.last().unwrap());
+    }
+    // Chunks of the plan make progress toward the goal like single steps.
+    let dist = |a: &EeAction| {
+        (0..3)
+            .map(|i| (a[i] - target[i]).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    };
+    assert!(
+        dist(&env.inner.ee) < 0.5 * dist(&start),
+        "{:?}",
+        env.inner.ee
+    );
+    // 0 or more than the horizon: a clear error naming the setting.
+    for bad in [0, 4] {
+        let e = run_mpc(
+            &model,
+            &mut PositionEnv { ee: start, target },
+            &[position_image(&start)],
+            &MpcConfig {
+                execute_actions: bad,
+                ..cfg.clone()
+            },
+            &mut ChaCha8Rng::seed_from_u64(1),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("executed actions") && e.contains("horizon (3)"),
+            "{e}"
+        );
+    }
+}
+
 /// A world model that records the batch size of every call.
 struct CountingModel {
     calls: Mutex<Vec<usize>>,

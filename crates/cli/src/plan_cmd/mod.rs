@@ -176,6 +176,12 @@ pub struct CemArgs {
     /// refined mean's (the paper executes the mean).
     #[arg(long)]
     pub execute_best: bool,
+    /// Actions of the chosen plan executed before planning again, 1 to the
+    /// horizon (the paper: 1). With `--horizon N --execute-actions N` one
+    /// search pays for N actions, each chunk judged by its terminal frame
+    /// (beyond the paper).
+    #[arg(long, default_value_t = 1)]
+    pub execute_actions: usize,
 }
 
 impl From<&CemArgs> for CemSizes {
@@ -187,6 +193,7 @@ impl From<&CemArgs> for CemSizes {
             horizon: a.horizon,
             keep_elites: a.keep_elites,
             execute_best: a.execute_best,
+            execute_actions: a.execute_actions,
         }
     }
 }

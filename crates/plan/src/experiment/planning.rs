@@ -32,6 +32,9 @@ pub struct CemSizes {
     /// Execute the best evaluated candidate's first action instead of the
     /// refined mean's (the paper executes the mean).
     pub execute_best: bool,
+    /// Actions of the chosen plan executed before planning again (1 to
+    /// `horizon`; the paper executes 1).
+    pub execute_actions: usize,
 }
 
 impl Default for CemSizes {
@@ -44,6 +47,7 @@ impl Default for CemSizes {
             horizon: 1,
             keep_elites: false,
             execute_best: false,
+            execute_actions: 1,
         }
     }
 }
@@ -207,12 +211,14 @@ impl PlanOptions {
             max_steps: self.max_steps,
             gripper: self.gripper.policy(self.task),
             execute_best: self.cem.execute_best,
+            execute_actions: self.cem.execute_actions,
             patience: self.goals.patience,
             subgoal_patience: self.goals.subgoal_patience,
             ..MpcConfig::default()
         };
         cfg.cem.validate()?;
         self.goals.validate()?;
+        cfg.check_execute_actions()?;
         Ok(cfg)
     }
 }

@@ -273,7 +273,12 @@ fn plan_tables(
         o.translation_std_m,
         o.max_steps,
         if o.cem.keep_elites { ", elites carried over (iCEM)" } else { "" },
-        if o.cem.execute_best { ", the best candidate executed" } else { ", the refined mean executed" },
+        match (o.cem.execute_best, o.cem.execute_actions) {
+            (true, 1) => ", the best candidate executed".to_string(),
+            (false, 1) => ", the refined mean executed".to_string(),
+            (true, n) => format!(", the best candidate's first {n} actions executed per search"),
+            (false, n) => format!(", the refined mean's first {n} actions executed per search"),
+        },
         o.plan_clip_frames.map_or(String::new(), |n| format!(
             ", each candidate predicted as a clip of {n} frames"
         )),
