@@ -310,6 +310,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
             keep_static_margin_px: a.keep_static,
         },
         max_batch: None,
+        ..PredictOptions::default()
     };
     let batches = clips.len().div_ceil(a.batch_size);
     eprintln!(

@@ -392,6 +392,7 @@ fn franka_model(counting: &CountingModel) -> (MaskConditioned<'_, CountingModel>
     let predict = PredictOptions {
         sample: SampleOptions::default(),
         max_batch: None,
+        ..PredictOptions::default()
     };
     let m = MaskConditioned::new(counting, e, 0, cam, hold, predict).unwrap();
     (m, obs)

@@ -653,6 +653,7 @@ impl WorldModel {
                 ..SampleOptions::default()
             },
             max_batch: None,
+            ..PredictOptions::default()
         };
         let model = &self.inner;
         let videos = py

@@ -1,7 +1,9 @@
 //! Where a planning batch's time goes: one batch of candidates through a
 //! BridgeV2W model in the stages of `predict_batch` (first-frame encode, the
-//! masks' VAE encode, one transformer + ControlNet call, the VAE decode),
-//! each timed alone, medians of the repeats after a warm-up.
+//! masks' VAE encode, one transformer + ControlNet call, the VAE decode of
+//! every frame, and of the last latent-frame batch alone as
+//! `--decode-frames last` does), each timed alone, medians of the repeats
+//! after a warm-up. The total counts the full decode.
 //!
 //!     cargo run --release -p bridgev2w-world-model --example planning_stages -- \
 //!         MODEL_DIR WEIGHTS [BATCH=16] [REPEATS=5] [f32|bf16]
@@ -51,7 +53,8 @@ fn main() -> Result<(), Box<dyn Error>> {
         "first-frame encode",
         "mask encode",
         "transformer + ControlNet",
-        "decode",
+        "decode (all frames)",
+        "decode (last batch)",
     ];
     let mut times = vec![Vec::new(); names.len()];
     for rep in 0..=repeats {
@@ -71,6 +74,9 @@ fn main() -> Result<(), Box<dyn Error>> {
         let clock = Instant::now();
         let _video = model.decode_latents(&velocity)?; // [B, 3, T, H, W]
         stage.push(clock.elapsed().as_secs_f64());
+        let clock = Instant::now();
+        let _last = model.decode_latents_last(&velocity)?; // [B, 3, T', H, W]
+        stage.push(clock.elapsed().as_secs_f64());
         if rep > 0 {
             for (all, s) in times.iter_mut().zip(stage) {
                 all.push(s);
@@ -78,7 +84,7 @@ fn main() -> Result<(), Box<dyn Error>> {
         }
     }
     let medians: Vec<f64> = times.into_iter().map(median).collect();
-    let total: f64 = medians.iter().sum();
+    let total: f64 = medians[..4].iter().sum();
     println!(
         "{batch} candidates, {t} frames at {h}x{w}, {precision:?}, {} threads, median of {repeats}:",
         tch::get_num_threads()
@@ -90,6 +96,13 @@ fn main() -> Result<(), Box<dyn Error>> {
         "  {:<26} {total:7.3} s  ({:.3} s per candidate)",
         "total",
         total / batch as f64
+    );
+    let last = total - medians[3] + medians[4];
+    println!(
+        "  {:<26} {last:7.3} s  ({:.3} s per candidate, {:.2}x the total)",
+        "total, last batch decoded",
+        last / batch as f64,
+        last / total
     );
     Ok(())
 }

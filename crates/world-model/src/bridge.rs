@@ -672,6 +672,14 @@ impl BridgeV2W {
         self.vae.decode(&z.to_kind(Kind::Float))
     }
 
+    /// [`Self::decode_latents`] of the VAE's last latent-frame batch only
+    /// ([`crate::vae::AutoencoderKLCogVideoX::decode_last_batch`]): the
+    /// clip's last frames `[B, 3, T', H, W]`.
+    pub fn decode_latents_last(&self, latents: &Tensor) -> Result<Tensor> {
+        let z = self.vae.unscale_latents(&latents.permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
+        self.vae.decode_last_batch(&z.to_kind(Kind::Float))
+    }
+
     /// The compute dtype of the backbone.
     pub fn kind(&self) -> Kind {
         self.kind

@@ -50,6 +50,26 @@ crate::named_enum!(FirstFrame, WorldModelError, WorldModelError::input, "first_f
     Replaced => "replaced",
 });
 
+/// Which frames of a predicted clip are decoded.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DecodeFrames {
+    /// Every frame (the video).
+    #[default]
+    All,
+    /// Only the VAE decoder's last latent-frame batch
+    /// ([`crate::vae::AutoencoderKLCogVideoX::decode_last_batch`]): the
+    /// clip's last frames, for a planner that scores the last one. Exact for
+    /// a still clip, an approximation otherwise (a planned action's clip
+    /// ends with hold frames); beyond the paper.
+    Last,
+}
+
+crate::named_enum!(DecodeFrames, WorldModelError, WorldModelError::input, "decode frames", {
+    All => "all",
+    Last => "last",
+});
+
 /// How the noise of a batch is drawn.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -302,6 +322,9 @@ pub struct PredictOptions {
     /// batch noise the results are those of one call; with independent
     /// noise, chunk `k` draws from seed `seed + k`.
     pub max_batch: Option<usize>,
+    /// Which frames are decoded: all, or only the last few (a returned
+    /// [`crate::video::Video`] then holds those frames alone).
+    pub decode_frames: DecodeFrames,
 }
 
 /// An action-conditioned world model: from the current frame and the embodiment masks

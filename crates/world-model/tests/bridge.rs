@@ -9,7 +9,9 @@ mod common;
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig, ImageConditioning, MaskCoding};
 use bridgev2w_world_model::controlnet::ControlNetConfig;
-use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions, WorldModel};
+use bridgev2w_world_model::pipeline::{
+    BatchNoise, DecodeFrames, PredictOptions, SampleOptions, WorldModel,
+};
 use bridgev2w_world_model::scheduler::SchedulerConfig;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use bridgev2w_world_model::vae::VaeConfig;
@@ -316,6 +318,7 @@ fn opts(seed: u64, guidance_scale: f64) -> PredictOptions {
             ..SampleOptions::default()
         },
         max_batch: None,
+        ..PredictOptions::default()
     }
 }
 
@@ -355,6 +358,7 @@ fn predict_follows_the_world_model_contract() {
             ..opts(seed, 2.0).sample
         },
         max_batch: None,
+        ..PredictOptions::default()
     };
     let moved_alone = m.predict(&image(1), &masks(20), &shared(3)).unwrap();
     assert!(
@@ -399,6 +403,44 @@ fn predict_follows_the_world_model_contract() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("max_batch") && e.contains("at least 1"), "{e}");
+    // Only the last latent-frame batch decoded (a planner's last frame; the
+    // VAE's own test covers a clip of several batches): this model's 3
+    // latent frames are one decode batch, so the whole clip, the same
+    // videos. Not with keep_static, which needs every frame.
+    let last = |o: PredictOptions| PredictOptions {
+        decode_frames: DecodeFrames::Last,
+        ..o
+    };
+    let tails = m
+        .predict_batch(
+            &[image(1), image(1)],
+            &[masks(0), masks(20)],
+            &last(shared(3)),
+        )
+        .unwrap();
+    for (tail, full) in tails.iter().zip(&batch) {
+        assert_eq!(tail.frames, full.frames);
+        assert!(close(&tail.data, &full.data) < 1e-5);
+    }
+    let e = m
+        .predict_batch(
+            &[image(1)],
+            &[masks(0)],
+            &last(PredictOptions {
+                sample: SampleOptions {
+                    keep_static_margin_px: Some(2),
+                    ..shared(3).sample
+                },
+                ..shared(3)
+            }),
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("decode_frames") && e.contains("keep_static"),
+        "{e}"
+    );
+    assert!("last".parse::<DecodeFrames>().unwrap() == DecodeFrames::Last);
     assert!("shared".parse::<BatchNoise>().unwrap() == BatchNoise::Shared);
     let e = "common".parse::<BatchNoise>().unwrap_err().to_string();
     assert!(e.contains("batch_noise") && e.contains("shared"), "{e}");
@@ -845,4 +887,51 @@ fn the_clip_length_can_change_where_the_vae_allows_it() {
         e.contains("[9, 64, 96]") && e.contains("[17, 64, 96]"),
         "{e}"
     );
+}
+
+#[test]
+fn decoding_the_last_batch_gives_the_clips_last_frames() {
+    // A VAE that does not compress time: 9 latent frames, decode batches
+    // (0..3), (3..5), (5..7), (7..9).
+    let m = BridgeV2W::random(
+        BridgeV2WConfig::tiny(),
+        &VaeConfig {
+            temporal_compression_ratio: 1.0,
+            ..VaeConfig::tiny()
+        },
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        21,
+    )
+    .unwrap();
+    perturb_projections(&m);
+    let o = PredictOptions {
+        sample: SampleOptions {
+            batch_noise: BatchNoise::Shared,
+            ..opts(4, 1.0).sample
+        },
+        ..PredictOptions::default()
+    };
+    let frames = [image(1), image(1)];
+    let masks = [masks(0), masks(20)];
+    let full = m.predict_batch(&frames, &masks, &o).unwrap();
+    let last = m
+        .predict_batch(
+            &frames,
+            &masks,
+            &PredictOptions {
+                decode_frames: DecodeFrames::Last,
+                ..o.clone()
+            },
+        )
+        .unwrap();
+    // The decode's last two frames, approximated (the VAE's own test:
+    // exact for a still clip); a random model's clips are anything but.
+    for (l, f) in last.iter().zip(&full) {
+        assert_eq!((f.frames, l.frames), (9, 2));
+        assert_eq!((l.height, l.width), (f.height, f.width));
+        assert!(l.data.iter().all(|v| (0.0..=1.0).contains(v)));
+    }
+    assert!(last[0] != last[1], "other masks, other frames");
 }

@@ -12,7 +12,7 @@ use bridgev2w_plan::choice::PlanModel;
 use bridgev2w_plan::experiment::planning::{CemSizes, GoalOptions};
 use bridgev2w_plan::experiment::ModelOptions;
 use bridgev2w_plan::goal_latent::GoalLatent;
-use bridgev2w_world_model::pipeline::BatchNoise;
+use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -96,6 +96,12 @@ pub struct ModelArgs {
     /// the paper).
     #[arg(long, value_name = "N")]
     pub clip_frames: Option<usize>,
+    /// Which frames of a diffusion model's predictions are decoded: `all`,
+    /// or `last` (only the VAE decoder's last batch of latent frames: the
+    /// planner scores the clip's last frame; without the earlier frames'
+    /// conv cache, an approximation; beyond the paper).
+    #[arg(long, default_value = "all")]
+    pub decode_frames: DecodeFrames,
 }
 
 impl From<&ModelArgs> for ModelOptions {
@@ -115,6 +121,7 @@ impl From<&ModelArgs> for ModelOptions {
             width: a.width,
             height: a.height,
             clip_frames: a.clip_frames,
+            decode_frames: a.decode_frames,
         }
     }
 }

@@ -7,7 +7,7 @@ use bridgev2w_data::synth::Task;
 use bridgev2w_plan::experiment::report::report_models;
 use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
 use bridgev2w_plan::goal_latent::GoalLatent;
-use bridgev2w_world_model::pipeline::BatchNoise;
+use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
 use bridgev2w_world_model::ComputeDevice;
 use std::path::PathBuf;
 
@@ -89,6 +89,12 @@ pub struct PlanReportArgs {
     /// the model's own clip.
     #[arg(long, value_name = "N")]
     pub plan_clip_frames: Option<usize>,
+    /// Which frames of the diffusion models' predictions are decoded: `all`,
+    /// or `last` (only the VAE decoder's last batch of latent frames, for
+    /// planning and policy evaluation, which score the last frame; an
+    /// approximation; beyond the paper).
+    #[arg(long, default_value = "all")]
+    pub decode_frames: DecodeFrames,
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -122,6 +128,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         goal_latent: a.goal_latent,
         device: a.device,
         plan_clip_frames: a.plan_clip_frames,
+        decode_frames: a.decode_frames,
         seed: a.seed,
         results: Some(a.out.clone()),
     };

@@ -207,6 +207,7 @@ impl FidelityStudy {
                 o.model.strength,
                 o.model.keep_static_margin_px,
                 o.model.goal_latent,
+                o.model.decode_frames,
             ),
             o.trials,
         )

@@ -9,7 +9,7 @@ use crate::synthetic::{PerfectWorldModel, TaskInstance};
 use crate::Result;
 use bridgev2w_data::synth::{SynthConfig, World};
 use bridgev2w_world_model::bridge::BridgeV2W;
-use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions};
+use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames, PredictOptions, SampleOptions};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -53,6 +53,10 @@ pub struct ModelOptions {
     /// of `frames_per_action` x `horizon` frames needs only one more: a
     /// shorter clip is cheaper (beyond the paper).
     pub clip_frames: Option<usize>,
+    /// Which frames of a diffusion model's predictions are decoded: all, or
+    /// the last few only (the planner scores the last frame; beyond the
+    /// paper, see [`DecodeFrames::Last`]).
+    pub decode_frames: DecodeFrames,
 }
 
 /// The perfect model's clip frames unless [`ModelOptions::clip_frames`] says
@@ -76,6 +80,7 @@ impl Default for ModelOptions {
             width: 96,
             height: 64,
             clip_frames: None,
+            decode_frames: DecodeFrames::All,
         }
     }
 }
@@ -108,6 +113,8 @@ pub enum LoadedModel {
         goal_latent: GoalLatent,
         /// At most this many candidates per model call.
         max_batch: Option<usize>,
+        /// Which frames are decoded.
+        decode_frames: DecodeFrames,
     },
 }
 
@@ -139,6 +146,7 @@ impl LoadedModel {
                     keep_static_margin_px: o.keep_static_margin_px,
                     goal_latent: o.goal_latent,
                     max_batch: o.max_batch,
+                    decode_frames: o.decode_frames,
                 }
             }
         })
@@ -192,6 +200,7 @@ impl LoadedModel {
                 keep_static_margin_px,
                 goal_latent,
                 max_batch,
+                decode_frames,
             } => {
                 let predict = PredictOptions {
                     sample: SampleOptions {
@@ -203,6 +212,7 @@ impl LoadedModel {
                         ..SampleOptions::default()
                     },
                     max_batch: *max_batch,
+                    decode_frames: *decode_frames,
                 };
                 let mut wrapped = MaskConditioned::new(
                     model.as_ref(),

@@ -8,7 +8,7 @@ use crate::choice::PlanModel;
 use crate::goal_latent::GoalLatent;
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::Task;
-use bridgev2w_world_model::pipeline::BatchNoise;
+use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
 use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
 use bridgev2w_world_model::ComputeDevice;
 use std::path::PathBuf;
@@ -64,6 +64,7 @@ impl ReportModel {
             keep_static_margin_px: o.keep_static_margin_px,
             goal_latent: o.goal_latent,
             device: o.device,
+            decode_frames: o.decode_frames,
             width: 96,
             height: 64,
             ..ModelOptions::default()
@@ -109,6 +110,9 @@ pub struct PlanReportOptions {
     /// Frames of each clip the planning models predict (`None`: the
     /// model's own); policy evaluation keeps the model's own.
     pub plan_clip_frames: Option<usize>,
+    /// Which frames of the diffusion models' predictions are decoded
+    /// (planning and policy evaluation alike).
+    pub decode_frames: DecodeFrames,
     /// Seed.
     pub seed: u64,
     /// The results file the section goes to: its figures are written next
@@ -242,7 +246,12 @@ pub fn plan_report(
                     " ({} denoising steps, {} noise{})",
                     o.denoise_steps,
                     o.batch_noise,
-                    sampling_note(o.strength, o.keep_static_margin_px, o.goal_latent)
+                    sampling_note(
+                        o.strength,
+                        o.keep_static_margin_px,
+                        o.goal_latent,
+                        o.decode_frames
+                    )
                 ),
             },
             r.markdown()
@@ -338,11 +347,14 @@ fn plan_tables(
 /// sampling starts from the noised first frame,
 /// `, the static scene kept outside the swept region (+N px)` when
 /// predictions keep it, and `, goal distances on a Gaussian pyramid of the
-/// image` when they are not measured in the VAE's latent; else nothing.
+/// image` when they are not measured in the VAE's latent, and `, only the
+/// last latent-frame batch decoded` with [`DecodeFrames::Last`]; else
+/// nothing.
 pub(crate) fn sampling_note(
     strength: f64,
     keep_static_margin_px: Option<u32>,
     goal_latent: GoalLatent,
+    decode_frames: DecodeFrames,
 ) -> String {
     let mut note = String::new();
     if strength < 1.0 {
@@ -353,6 +365,9 @@ pub(crate) fn sampling_note(
     }
     if goal_latent == GoalLatent::Pyramid {
         note += ", goal distances on a Gaussian pyramid of the image";
+    }
+    if decode_frames == DecodeFrames::Last {
+        note += ", only the last latent-frame batch decoded";
     }
     note
 }

@@ -155,6 +155,7 @@ pub fn predict(o: &DemoOptions, out: &Path) -> Result<PredictionSummary, DemoErr
             ..SampleOptions::default()
         },
         max_batch: None,
+        ..PredictOptions::default()
     };
     let video = model.predict(&image, &masks, &opts)?;
     let px = h * w * 3;

@@ -10,8 +10,8 @@
 use super::BridgeV2W;
 use crate::error::{Result, WorldModelError};
 use crate::pipeline::{
-    check_batch, sample_latents_with_progress, BatchNoise, Denoiser, Guidance, PredictOptions,
-    WorldModel,
+    check_batch, sample_latents_with_progress, BatchNoise, DecodeFrames, Denoiser, Guidance,
+    PredictOptions, WorldModel,
 };
 use crate::scheduler::Scheduler;
 use crate::static_scene::keep_static;
@@ -119,6 +119,12 @@ impl BridgeV2W {
         progress: &dyn Progress,
     ) -> Result<Vec<Video>> {
         let _guard = tch::no_grad_guard();
+        if opts.decode_frames == DecodeFrames::Last && opts.sample.keep_static_margin_px.is_some() {
+            return Err(WorldModelError::input(
+                "decode_frames",
+                "last with keep_static: keeping the static scene needs every frame decoded (decode all)",
+            ));
+        }
         let mut mask_videos = Vec::with_capacity(masks.len());
         for (f, m) in first_frames.iter().zip(masks) {
             self.check_inputs(f, m)?;
@@ -134,7 +140,10 @@ impl BridgeV2W {
         let image_latents = self.batch_image_latents(first_frames, &first, opts)?;
         let control = self.control_latents(&mask_videos, &image_latents)?;
         let latents = self.sample_with_progress(&image_latents, &control, opts, progress)?;
-        let videos = self.decode_latents(&latents)?; // [B, 3, T, H, W]
+        let videos = match opts.decode_frames {
+            DecodeFrames::All => self.decode_latents(&latents)?, // [B, 3, T, H, W]
+            DecodeFrames::Last => self.decode_latents_last(&latents)?, // [B, 3, T', H, W]
+        };
         let videos = match opts.sample.keep_static_margin_px {
             Some(margin) => {
                 let first = first.to_device(videos.device()); // [B, 3, H, W]

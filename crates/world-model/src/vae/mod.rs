@@ -217,6 +217,24 @@ impl AutoencoderKLCogVideoX {
         self.decode_with_grad(latents)
     }
 
+    /// Decodes only the last of the decoder's latent-frame batches of
+    /// `latents` `[B, latent_channels, t, h, w]` (the frames of
+    /// [`frame_batches`]' last batch: 2 latent frames when `t` > 2), without
+    /// the earlier batches' conv cache: the causal convolutions repeat the
+    /// batch's first frame where they would have seen the frames before it.
+    /// The last frames of [`Self::decode`] exactly for a still clip, an
+    /// approximation otherwise (the earlier frames reach the last ones only
+    /// through the caches), at the cost of the last batch alone.
+    pub fn decode_last_batch(&self, latents: &Tensor) -> Result<Tensor> {
+        self.check_latents(latents)?;
+        let t = latents.size()[2];
+        let (start, end) = frame_batches(t, self.num_latent_frames_batch_size)
+            .last()
+            .copied()
+            .unwrap_or((0, t));
+        self.decode(&latents.narrow(2, start, end - start)) // [B, C, T', H, W]
+    }
+
     /// [`Self::decode`] with autograd on: gradients flow from the decoded
     /// video back into `latents` (and into the decoder's parameters when they
     /// are trainable; frozen otherwise). The `vae` stage's reconstruction

@@ -183,3 +183,36 @@ fn tiled_decode_backward_matches_autograd_through_the_tiled_decode() {
     let z = Tensor::randn([1, c, 3, 4, 6], (Kind::Float, tch::Device::Cpu));
     let _ = check_decode_backward(&vae, &z);
 }
+
+#[test]
+fn the_last_batch_alone_is_the_decode_of_a_still_clip_and_close_otherwise() {
+    let (_vs, vae) = tiny_vae(5);
+    let c = VaeConfig::tiny().latent_channels;
+    let cpu = (Kind::Float, tch::Device::Cpu);
+    let diff = |a: &Tensor, b: &Tensor| f64::try_from((a - b).abs().max()).expect("max");
+    // 5 latent frames: batches (0..3), (3..5); the last one alone.
+    let moving = Tensor::randn([2, c, 5, 3, 4], cpu);
+    let full = vae.decode(&moving).expect("decode");
+    let last = vae.decode_last_batch(&moving).expect("last batch");
+    let (t_full, t_last) = (full.size()[2], last.size()[2]);
+    assert!(t_last < t_full, "{t_last} of {t_full} frames");
+    assert_eq!(last.size()[..2], full.size()[..2]);
+    assert_eq!(last.size()[3..], full.size()[3..]);
+    let tail = |v: &Tensor| v.narrow(2, t_full - t_last, t_last);
+    // A still clip: the frames the causal convolutions repeat are the ones
+    // the conv cache would have held, so the last frames are the decode's.
+    let still = moving.narrow(2, 2, 1).repeat([1, 1, 5, 1, 1]);
+    let (full_still, last_still) = (
+        vae.decode(&still).expect("decode"),
+        vae.decode_last_batch(&still).expect("last batch"),
+    );
+    let d = diff(&tail(&full_still), &last_still);
+    assert!(d < 1e-4, "{d}");
+    // A clip in motion: an approximation, not the same frames.
+    let d = diff(&tail(&full), &last);
+    assert!(d > 1e-3, "{d}");
+    // Bad latents: the decoder's own error.
+    assert!(vae
+        .decode_last_batch(&Tensor::zeros([1, c + 1, 5, 3, 4], cpu))
+        .is_err());
+}
