@@ -37,6 +37,44 @@ pub fn image_from_rgb8(rgb: &[u8], height: usize, width: usize) -> RgbFrame {
     }
 }
 
+/// Where waypoint goal images go between the key goals
+/// ([`TaskInstance::with_waypoints`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum WaypointSpacing {
+    /// This many per segment, evenly spaced in time (expert frames).
+    Frames(usize),
+    /// About one every this many metres of the expert's commanded TCP path,
+    /// evenly along the path (beyond the paper): a long, fast motion (the
+    /// approach from the home pose) gets several, a short one none, and
+    /// none is farther from the next than about this.
+    PathM(f64),
+}
+
+impl WaypointSpacing {
+    /// Checks that a path spacing is a positive, finite length.
+    pub fn validate(&self) -> Result<()> {
+        match *self {
+            Self::PathM(m) if !(m.is_finite() && m > 0.0) => Err(PlanError::input(
+                "--waypoint-every-m",
+                format!("{m}: expected a positive length in metres"),
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// The spacing in words, for reports.
+    pub fn describe(&self) -> String {
+        match *self {
+            Self::Frames(n) => {
+                format!("each preceded by {n} waypoint images (evenly spaced expert frames)")
+            }
+            Self::PathM(m) => format!(
+                "each preceded by waypoint images about every {m} m of the expert's TCP path"
+            ),
+        }
+    }
+}
+
 /// One task instance: the scripted expert episode and its goals.
 #[derive(Debug, Clone)]
 pub struct TaskInstance {
@@ -78,20 +116,52 @@ impl TaskInstance {
         })
     }
 
-    /// Inserts `per_segment` evenly spaced expert frames as waypoint goals
-    /// before every key goal (between the start, or the previous key goal,
-    /// and it). A goal image says little about a gripper far from it (out
-    /// of view, or no overlap with its goal pose even at coarse blur), so a
-    /// long motion is planned through nearer waypoints. Idempotent only on
-    /// a fresh instance: the key goals are the current `goal_frames`.
-    pub fn with_waypoints(mut self, per_segment: usize) -> Self {
+    /// Inserts waypoint goals (expert frames) before every key goal,
+    /// between the start (or the previous key goal) and it, placed as
+    /// `spacing` says. A goal image says little about a gripper far from it
+    /// (out of view, or no overlap with its goal pose even at coarse blur),
+    /// so a long motion is planned through nearer waypoints. Idempotent only
+    /// on a fresh instance: the key goals are the current `goal_frames`.
+    pub fn with_waypoints(mut self, spacing: WaypointSpacing) -> Result<Self> {
+        spacing.validate()?;
+        // Cumulative length (metres) of the expert's commanded TCP path.
+        let xyz: Vec<[f64; 3]> = self
+            .expert_actions()
+            .iter()
+            .map(|a| [a[0], a[1], a[2]])
+            .collect();
+        let mut path_m = vec![0.0];
+        for w in xyz.windows(2) {
+            let step = (0..3).map(|i| (w[1][i] - w[0][i]).powi(2)).sum::<f64>();
+            path_m.push(path_m[path_m.len() - 1] + step.sqrt());
+        }
         let mut frames = Vec::new();
         let mut first_key = None;
         let mut prev = 0usize;
         for &key in &self.goal_frames {
-            let span = key.saturating_sub(prev);
-            for j in 1..=per_segment {
-                let f = prev + (span * j + per_segment.div_ceil(2)) / (per_segment + 1);
+            let inner: Vec<usize> = match spacing {
+                WaypointSpacing::Frames(n) => {
+                    let span = key.saturating_sub(prev);
+                    (1..=n)
+                        .map(|j| prev + (span * j + n.div_ceil(2)) / (n + 1))
+                        .collect()
+                }
+                WaypointSpacing::PathM(every_m) => {
+                    let (p0, p1) = (path_m[prev.min(key)], path_m[key]);
+                    let n = ((p1 - p0) / every_m).ceil().max(1.0) as usize - 1;
+                    (1..=n)
+                        .filter_map(|j| {
+                            let want_m = p0 + (p1 - p0) * j as f64 / (n + 1) as f64;
+                            (prev..=key).min_by(|&a, &b| {
+                                (path_m[a] - want_m)
+                                    .abs()
+                                    .total_cmp(&(path_m[b] - want_m).abs())
+                            })
+                        })
+                        .collect()
+                }
+            };
+            for f in inner {
                 if f > prev && f < key && frames.last() != Some(&f) {
                     frames.push(f);
                 }
@@ -102,7 +172,7 @@ impl TaskInstance {
         }
         self.first_key_goal = first_key.unwrap_or(0);
         self.goal_frames = frames;
-        self
+        Ok(self)
     }
 
     /// `(height, width)` of the episode's images.

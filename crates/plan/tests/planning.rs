@@ -16,7 +16,7 @@ use bridgev2w_plan::mpc::{
     plan_once, run_mpc, run_random, score_sequences, select_proposal, Environment, MpcConfig,
 };
 use bridgev2w_plan::policy::{rollout_in_model, Policy};
-use bridgev2w_plan::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance};
+use bridgev2w_plan::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance, WaypointSpacing};
 use bridgev2w_plan::{EeAction, Observation, PlanError, Result};
 use bridgev2w_world_model::pipeline::{PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::video::{MaskVideo, Video};
@@ -640,7 +640,8 @@ fn perfect_model_planning_reaches_more_often_than_random() {
     for i in 0..4 {
         let inst = TaskInstance::new(&world, Split::Test, i, Task::Reach)
             .unwrap()
-            .with_waypoints(2);
+            .with_waypoints(WaypointSpacing::Frames(2))
+            .unwrap();
         let goals = inst.goal_images();
         let model = PerfectWorldModel {
             world: &world,
@@ -789,7 +790,10 @@ fn waypoints_are_expert_frames_before_each_key_goal() {
     let keys = inst.goal_frames.clone();
     assert_eq!(keys, vec![12, 24]);
     assert_eq!(inst.first_key_goal, 0);
-    let wp = inst.clone().with_waypoints(2);
+    let wp = inst
+        .clone()
+        .with_waypoints(WaypointSpacing::Frames(2))
+        .unwrap();
     // Start 0 -> 4, 8 -> key 12 -> 16, 20 -> key 24.
     assert_eq!(wp.goal_frames, vec![4, 8, 12, 16, 20, 24]);
     // Play episodes have no goal: refused with a clear error.
@@ -797,12 +801,83 @@ fn waypoints_are_expert_frames_before_each_key_goal() {
     assert!(e.to_string().contains("task play has no goal"), "{e}");
     assert_eq!(wp.first_key_goal, 2);
     assert_eq!(wp.goal_images().len(), 6);
-    let none = inst.clone().with_waypoints(0);
+    let none = inst
+        .clone()
+        .with_waypoints(WaypointSpacing::Frames(0))
+        .unwrap();
     assert_eq!(none.goal_frames, keys);
     // More waypoints than frames between the goals: no duplicates.
-    let dense = inst.with_waypoints(30);
+    let dense = inst.with_waypoints(WaypointSpacing::Frames(30)).unwrap();
     assert_eq!(dense.goal_frames, (1..=24).collect::<Vec<_>>());
     assert_eq!(dense.first_key_goal, 11);
+}
+
+#[test]
+fn path_spaced_waypoints_keep_every_goal_near_the_next() {
+    let world = small_world(25);
+    let inst = TaskInstance::new(&world, Split::Train, 0, Task::Push).unwrap();
+    let keys = inst.goal_frames.clone();
+    // The expert's commanded TCP path, cumulated per frame (metres).
+    let xyz: Vec<[f64; 3]> = inst
+        .expert_actions()
+        .iter()
+        .map(|a| [a[0], a[1], a[2]])
+        .collect();
+    let steps_m: Vec<f64> = xyz
+        .windows(2)
+        .map(|w| {
+            (0..3)
+                .map(|i| (w[1][i] - w[0][i]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .collect();
+    let along_m = |a: usize, b: usize| steps_m[a..b].iter().sum::<f64>();
+    let every_m = 0.08;
+    let wp = inst
+        .clone()
+        .with_waypoints(WaypointSpacing::PathM(every_m))
+        .unwrap();
+    // Every key goal is kept, in order, and the grasp key is where it was.
+    assert_eq!(wp.goal_frames.last(), keys.last());
+    assert_eq!(wp.goal_frames[wp.first_key_goal], keys[0]);
+    assert!(wp.goal_frames.windows(2).all(|w| w[0] < w[1]));
+    // No goal is farther along the path from the previous one (the start
+    // first) than the spacing plus one frame's step.
+    let longest_step_m = steps_m.iter().cloned().fold(0.0, f64::max);
+    let mut prev = 0;
+    for &f in &wp.goal_frames {
+        let gap_m = along_m(prev, f);
+        assert!(
+            gap_m <= every_m + longest_step_m + 1e-9,
+            "{:?}: {prev} -> {f} is {gap_m} m",
+            wp.goal_frames
+        );
+        prev = f;
+    }
+    // The long approach to the push's end gets more waypoints than evenly
+    // spaced frames would give it, the short lift after it fewer.
+    let before_key = wp.first_key_goal;
+    assert!(along_m(0, keys[0]) > 3.0 * every_m);
+    assert!(before_key > 2, "{:?}", wp.goal_frames);
+    // A spacing longer than the whole path adds nothing.
+    let none = inst
+        .clone()
+        .with_waypoints(WaypointSpacing::PathM(10.0))
+        .unwrap();
+    assert_eq!(none.goal_frames, keys);
+    // A spacing that is not a positive length is refused by its flag.
+    for bad in [0.0, -0.1, f64::NAN] {
+        let e = inst
+            .clone()
+            .with_waypoints(WaypointSpacing::PathM(bad))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--waypoint-every-m") && e.contains("positive"),
+            "{e}"
+        );
+    }
 }
 
 #[test]

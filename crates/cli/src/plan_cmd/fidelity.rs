@@ -28,6 +28,10 @@ pub struct PlanFidelityArgs {
     /// goal is the first goal image, as the planner's first one.
     #[arg(long, default_value_t = 2)]
     pub waypoints: usize,
+    /// Instead of `--waypoints`: a waypoint goal about every this many
+    /// metres of the expert's TCP path (as `plan`).
+    #[arg(long, conflicts_with = "waypoints")]
+    pub waypoint_every_m: Option<f64>,
     /// Clip frames per action.
     #[arg(long, default_value_t = 2)]
     pub frames_per_action: usize,
@@ -55,7 +59,7 @@ pub fn run(a: &PlanFidelityArgs) -> Result<()> {
         model: (&a.model).into(),
         candidates: a.candidates,
         translation_std_m: a.translation_std_m,
-        waypoints: a.waypoints,
+        waypoints: super::waypoint_spacing(a.waypoints, a.waypoint_every_m),
         frames_per_action: a.frames_per_action,
         split: a.split,
         seed: a.seed,

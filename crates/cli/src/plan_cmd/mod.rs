@@ -12,6 +12,7 @@ use bridgev2w_plan::choice::PlanModel;
 use bridgev2w_plan::experiment::planning::{CemSizes, GoalOptions};
 use bridgev2w_plan::experiment::ModelOptions;
 use bridgev2w_plan::goal_latent::GoalLatent;
+use bridgev2w_plan::synthetic::WaypointSpacing;
 use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
@@ -133,6 +134,11 @@ pub struct GoalArgs {
     /// image (a goal image says little about a gripper far from it).
     #[arg(long, default_value_t = 2)]
     pub waypoints: usize,
+    /// Instead of `--waypoints`: a waypoint goal about every this many
+    /// metres of the expert's TCP path, evenly along it (a long approach
+    /// gets several, a short segment none; beyond the paper).
+    #[arg(long, conflicts_with = "waypoints")]
+    pub waypoint_every_m: Option<f64>,
     /// Stalled steps (no 1% progress) after which the final goal counts as
     /// reached as far as the model can tell.
     #[arg(long, default_value_t = 4)]
@@ -150,12 +156,17 @@ pub struct GoalArgs {
 impl From<&GoalArgs> for GoalOptions {
     fn from(a: &GoalArgs) -> Self {
         Self {
-            waypoints: a.waypoints,
+            waypoints: waypoint_spacing(a.waypoints, a.waypoint_every_m),
             patience: a.patience,
             subgoal_patience: a.subgoal_patience,
             view_margin: a.view_margin,
         }
     }
+}
+
+/// `--waypoints N` or `--waypoint-every-m M` as a spacing.
+pub fn waypoint_spacing(per_segment: usize, every_m: Option<f64>) -> WaypointSpacing {
+    every_m.map_or(WaypointSpacing::Frames(per_segment), WaypointSpacing::PathM)
 }
 
 /// The CEM sizes shared by `plan` and `plan-report`.

@@ -8,7 +8,7 @@ use super::{mean_std, trial_seed, LoadedModel, ModelOptions};
 use crate::cem::standard_normal;
 use crate::fidelity::{rank_fidelity, RankFidelity};
 use crate::model::{apply_increment, ActionWorldModel};
-use crate::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance};
+use crate::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance, WaypointSpacing};
 use crate::{EeAction, PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
 use rand::SeedableRng;
@@ -30,7 +30,7 @@ pub struct FidelityOptions {
     pub translation_std_m: f64,
     /// Waypoint goals before the first key goal (as the planner); the trial's
     /// goal is the first goal image, as the planner's first one.
-    pub waypoints: usize,
+    pub waypoints: WaypointSpacing,
     /// Clip frames per action.
     pub frames_per_action: usize,
     /// Split of the task instances.
@@ -51,7 +51,7 @@ impl Default for FidelityOptions {
             model: ModelOptions::default(),
             candidates: 24,
             translation_std_m: 0.1,
-            waypoints: 2,
+            waypoints: WaypointSpacing::Frames(2),
             frames_per_action: 2,
             split: Split::Test,
             seed: 0,
@@ -93,6 +93,7 @@ pub fn fidelity_study(
     }
     let view_options = GoalOptions {
         view_margin: o.view_margin,
+        waypoints: o.waypoints,
         ..GoalOptions::default()
     };
     view_options.validate()?;
@@ -102,7 +103,8 @@ pub fn fidelity_study(
     let reference = loaded.is_diffusion();
     let (mut rows, mut perfect_rows) = (vec![], vec![]);
     for trial in 0..o.trials {
-        let inst = TaskInstance::new(&world, o.split, trial, o.task)?.with_waypoints(o.waypoints);
+        let inst =
+            TaskInstance::new(&world, o.split, trial, o.task)?.with_waypoints(o.waypoints)?;
         let goal = inst
             .goal_images()
             .into_iter()

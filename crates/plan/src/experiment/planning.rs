@@ -5,7 +5,7 @@ use super::{trial_seed, LoadedModel, ModelOptions};
 use crate::cem::{CemConfig, RotationSearch};
 use crate::model::ViewLimit;
 use crate::mpc::{run_mpc, run_random, GripperChoice, MpcConfig, MpcTraceStep};
-use crate::synthetic::{SyntheticEnv, TaskInstance};
+use crate::synthetic::{SyntheticEnv, TaskInstance, WaypointSpacing};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_embodiment::camera::Camera;
@@ -55,8 +55,8 @@ impl Default for CemSizes {
 /// The goal sequence and its switching.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GoalOptions {
-    /// Waypoint goals: expert frames inserted evenly before each key goal.
-    pub waypoints: usize,
+    /// Waypoint goals: expert frames inserted before each key goal.
+    pub waypoints: WaypointSpacing,
     /// Stalled steps (no 1% progress) after which the final goal counts as
     /// reached as far as the model can tell.
     pub patience: usize,
@@ -70,7 +70,7 @@ pub struct GoalOptions {
 impl Default for GoalOptions {
     fn default() -> Self {
         Self {
-            waypoints: 2,
+            waypoints: WaypointSpacing::Frames(2),
             patience: 4,
             subgoal_patience: 1,
             view_margin: None,
@@ -92,6 +92,7 @@ impl GoalOptions {
 
     /// Checks the settings.
     pub fn validate(&self) -> Result<()> {
+        self.waypoints.validate()?;
         match self.view_margin {
             Some(f) if !(f.is_finite() && (0.0..0.5).contains(&f)) => Err(PlanError::input(
                 "--view-margin",
@@ -303,7 +304,7 @@ pub(crate) fn plan_with(
     for trial in 0..o.trials {
         let mut inst = TaskInstance::new(&world, o.split, trial, o.task)?;
         if !o.single_goal {
-            inst = inst.with_waypoints(o.goals.waypoints);
+            inst = inst.with_waypoints(o.goals.waypoints)?;
         }
         let mut goals: Vec<RgbFrame> = inst.goal_images();
         if o.single_goal {
