@@ -168,9 +168,9 @@ impl MpcConfig {
             return Ok(());
         }
         Err(PlanError::input(
-            "executed actions",
+            "--execute-actions",
             format!(
-                "{}: expected 1 to the horizon ({})",
+                "{}: expected 1 to the horizon (--horizon {})",
                 self.execute_actions, self.cem.horizon
             ),
         ))

@@ -668,16 +668,21 @@ impl BridgeV2W {
 
     /// Decodes scaled latents `[B, t, C, h, w]` into videos `[B, 3, T, H, W]` in [-1, 1].
     pub fn decode_latents(&self, latents: &Tensor) -> Result<Tensor> {
-        let z = self.vae.unscale_latents(&latents.permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
-        self.vae.decode(&z.to_kind(Kind::Float))
+        self.vae.decode(&self.vae_latents(latents))
     }
 
     /// [`Self::decode_latents`] of the VAE's last latent-frame batch only
     /// ([`crate::vae::AutoencoderKLCogVideoX::decode_last_batch`]): the
     /// clip's last frames `[B, 3, T', H, W]`.
     pub fn decode_latents_last(&self, latents: &Tensor) -> Result<Tensor> {
+        self.vae.decode_last_batch(&self.vae_latents(latents))
+    }
+
+    /// The transformer's scaled latents `[B, t, C, h, w]` as the VAE
+    /// decoder takes them: unscaled, float32, `[B, C, t, h, w]`.
+    fn vae_latents(&self, latents: &Tensor) -> Tensor {
         let z = self.vae.unscale_latents(&latents.permute([0, 2, 1, 3, 4])); // [B, C, t, h, w]
-        self.vae.decode_last_batch(&z.to_kind(Kind::Float))
+        z.to_kind(Kind::Float)
     }
 
     /// The compute dtype of the backbone.
