@@ -135,6 +135,8 @@ impl TaskInstance {
             let step = (0..3).map(|i| (w[1][i] - w[0][i]).powi(2)).sum::<f64>();
             path_m.push(path_m[path_m.len() - 1] + step.sqrt());
         }
+        // The path length at a frame (the last action's beyond the actions).
+        let along_m = |f: usize| path_m[f.min(path_m.len() - 1)];
         let mut frames = Vec::new();
         let mut first_key = None;
         let mut prev = 0usize;
@@ -147,15 +149,17 @@ impl TaskInstance {
                         .collect()
                 }
                 WaypointSpacing::PathM(every_m) => {
-                    let (p0, p1) = (path_m[prev.min(key)], path_m[key]);
-                    let n = ((p1 - p0) / every_m).ceil().max(1.0) as usize - 1;
+                    let (p0, p1) = (along_m(prev.min(key)), along_m(key));
+                    // At most one waypoint per frame between the goals.
+                    let most = key.saturating_sub(prev).max(1) as f64;
+                    let n = ((p1 - p0) / every_m).ceil().clamp(1.0, most) as usize - 1;
                     (1..=n)
                         .filter_map(|j| {
                             let want_m = p0 + (p1 - p0) * j as f64 / (n + 1) as f64;
                             (prev..=key).min_by(|&a, &b| {
-                                (path_m[a] - want_m)
+                                (along_m(a) - want_m)
                                     .abs()
-                                    .total_cmp(&(path_m[b] - want_m).abs())
+                                    .total_cmp(&(along_m(b) - want_m).abs())
                             })
                         })
                         .collect()

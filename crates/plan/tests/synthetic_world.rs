@@ -105,6 +105,15 @@ fn path_spaced_waypoints_keep_every_goal_near_the_next() {
         .with_waypoints(WaypointSpacing::PathM(10.0))
         .unwrap();
     assert_eq!(none.goal_frames, keys);
+    // A spacing far shorter than a frame's step: at most every frame once
+    // (not a waypoint per 1e-300 m).
+    let dense = inst
+        .clone()
+        .with_waypoints(WaypointSpacing::PathM(1e-300))
+        .unwrap();
+    assert!(dense.goal_frames.windows(2).all(|w| w[0] < w[1]));
+    assert!(dense.goal_frames.len() > wp.goal_frames.len() && dense.goal_frames.len() <= 24);
+    assert_eq!(dense.goal_frames.last(), Some(&24));
     // A spacing that is not a positive length is refused by its flag.
     for bad in [0.0, -0.1, f64::NAN] {
         let e = inst
