@@ -149,7 +149,7 @@ impl TaskInstance {
                         .collect()
                 }
                 WaypointSpacing::PathM(every_m) => {
-                    let (p0, p1) = (along_m(prev.min(key)), along_m(key));
+                    let (p0, p1) = (along_m(prev), along_m(key));
                     // At most one waypoint per frame between the goals.
                     let most = key.saturating_sub(prev).max(1) as f64;
                     let n = ((p1 - p0) / every_m).ceil().clamp(1.0, most) as usize - 1;
