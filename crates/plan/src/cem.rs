@@ -79,6 +79,11 @@ pub struct CemConfig {
     /// paper's algorithm). A good rare sample then cannot be lost when the
     /// next iteration's samples are all worse.
     pub keep_elites: bool,
+    /// Evaluate the distribution's mean itself as one of each iteration's
+    /// `S` samples (iCEM). In the first iteration of an MPC step the mean is
+    /// the zero increment: staying put is then a candidate, and a step that
+    /// no sample improves on holds the pose instead of moving away.
+    pub include_mean: bool,
 }
 
 impl Default for CemConfig {
@@ -96,6 +101,7 @@ impl Default for CemConfig {
             rotation_search: RotationSearch::Joint,
             rotation_sample_fraction: 0.0,
             keep_elites: false,
+            include_mean: false,
         }
     }
 }
@@ -352,6 +358,9 @@ pub fn optimize(
         for _ in 0..iterations {
             let candidates: Vec<Candidate> = (0..cfg.samples)
                 .map(|s| {
+                    if s == 0 && cfg.include_mean {
+                        return extract_plan(&dists, cfg, gripper);
+                    }
                     let a = if s < n_rot_only { &rot_only } else { &active };
                     sample_candidate(&dists, a, cfg, gripper, rng)
                 })
@@ -549,6 +558,62 @@ mod tests {
             );
         }
         assert!(lost_without > 0, "plain CEM never lost its best sample");
+    }
+
+    #[test]
+    fn the_mean_is_a_sample_and_wins_where_every_move_is_worse() {
+        // A bowl at the origin: every nonzero move costs more than staying.
+        let cost = |c: &Candidate| c.increments[0][..3].iter().map(|x| x * x).sum::<f64>();
+        let run = |include_mean: bool| {
+            let cfg = CemConfig {
+                horizon: 1,
+                samples: 8,
+                elites: 2,
+                iterations: 2,
+                include_mean,
+                ..CemConfig::default()
+            };
+            let mut rng = ChaCha8Rng::seed_from_u64(4);
+            let mut batches = Vec::new();
+            let r = optimize(&cfg, GripperMode::Fixed(1.0), &mut rng, &mut |cs| {
+                batches.push(cs.to_vec());
+                Ok(cs.iter().map(cost).collect())
+            })
+            .unwrap();
+            (r, batches)
+        };
+        let (with, batches) = run(true);
+        // S samples per iteration, the first of each the current mean: the
+        // zero move first, then the refit mean.
+        assert!(batches.iter().all(|b| b.len() == 8));
+        assert_eq!(batches[0][0].increments[0], [0.0; 6]);
+        assert_eq!(batches[0][0].gripper, vec![1.0]);
+        assert_eq!(batches[1][0], extract_plan_of(&batches[0]));
+        assert_eq!(with.best.1, 0.0);
+        assert_eq!(with.best.0.increments[0], [0.0; 6]);
+        // Without it no sample is the zero move, so the best one moves.
+        let (without, batches) = run(false);
+        assert!(batches
+            .iter()
+            .flatten()
+            .all(|c| c.increments[0] != [0.0; 6]));
+        assert!(without.best.1 > 0.0);
+    }
+
+    /// The mean of the two lowest-cost candidates of a bowl at the origin
+    /// (the refit mean of `the_mean_is_a_sample...` after one iteration).
+    fn extract_plan_of(batch: &[Candidate]) -> Candidate {
+        let cost = |c: &Candidate| c.increments[0][..3].iter().map(|x| x * x).sum::<f64>();
+        let costs: Vec<f64> = batch.iter().map(cost).collect();
+        let e = elite_indices(&costs, 2);
+        let mut inc = [0.0; 6];
+        for (i, v) in inc.iter_mut().enumerate() {
+            *v = (batch[e[0]].increments[0][i] + batch[e[1]].increments[0][i]) / 2.0;
+        }
+        Candidate {
+            increments: vec![inc],
+            gripper: vec![1.0],
+        }
     }
 
     #[test]

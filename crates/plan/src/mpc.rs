@@ -115,6 +115,11 @@ pub struct MpcConfig {
     /// switch (the grasp): goals up to it are pursued with `approach`,
     /// later ones with `after_switch`. 0 without waypoint goals.
     pub switch_after_goal: usize,
+    /// After each consecutive stalled step the next search's standard
+    /// deviations are multiplied by this factor in (0, 1] (1: off); a step
+    /// with progress or a new goal restores them. Near a goal the initial
+    /// spread overshoots: a stall is the sign to search finer.
+    pub stall_std_factor: f64,
 }
 
 impl Default for MpcConfig {
@@ -132,6 +137,7 @@ impl Default for MpcConfig {
             execute_best: false,
             execute_actions: 1,
             switch_after_goal: 0,
+            stall_std_factor: 1.0,
         }
     }
 }
@@ -152,6 +158,7 @@ impl MpcConfig {
             ));
         }
         self.check_execute_actions()?;
+        self.check_stall_std_factor()?;
         if self.cem.horizon * self.frames_per_action > clip_frames.saturating_sub(1) {
             return Err(PlanError::ClipTooShort {
                 actions: self.cem.horizon,
@@ -174,6 +181,33 @@ impl MpcConfig {
                 self.execute_actions, self.cem.horizon
             ),
         ))
+    }
+
+    /// Checks that the stall factor is in (0, 1].
+    pub fn check_stall_std_factor(&self) -> Result<()> {
+        let f = self.stall_std_factor;
+        if f.is_finite() && f > 0.0 && f <= 1.0 {
+            return Ok(());
+        }
+        Err(PlanError::input(
+            "--shrink-on-stall",
+            format!("{f}: expected a factor in (0, 1] (1: off)"),
+        ))
+    }
+
+    /// These settings with the search's standard deviations shrunk for
+    /// `stalls` consecutive stalled steps ([`Self::stall_std_factor`]).
+    fn after_stalls(&self, stalls: usize) -> std::borrow::Cow<'_, Self> {
+        if stalls == 0 || self.stall_std_factor == 1.0 {
+            return std::borrow::Cow::Borrowed(self);
+        }
+        let scale = self
+            .stall_std_factor
+            .powi(i32::try_from(stalls).unwrap_or(i32::MAX));
+        let mut cfg = self.clone();
+        cfg.cem.init_translation_std_m *= scale;
+        cfg.cem.init_rotation_std_rad *= scale;
+        std::borrow::Cow::Owned(cfg)
     }
 
     /// The move from `from` toward `to` as the limits allow: `to` clamped
@@ -389,7 +423,15 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
         }),
     };
     while steps < cfg.max_steps && !env.goal_reached() {
-        let plan = plan_once(model, &obs, &latents[stage], cfg, gripper_for(stage), rng)?;
+        let search = cfg.after_stalls(stalls);
+        let plan = plan_once(
+            model,
+            &obs,
+            &latents[stage],
+            &search,
+            gripper_for(stage),
+            rng,
+        )?;
         // The first `execute_actions` of the plan, as many as the steps left.
         let n = cfg
             .execute_actions

@@ -316,6 +316,102 @@ fn executing_several_planned_actions_per_search() {
     }
 }
 
+#[test]
+fn a_stalled_step_holds_the_pose_and_the_next_search_is_finer() {
+    // The goal's gripper pixel differs from the fixed gripper: no move can
+    // lower the cost below staying put, so every step stalls.
+    let start = [0.0, 0.0, 0.0, std::f64::consts::PI, 0.0, 0.0, 0.0];
+    let goal = position_image(&[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]);
+    let (samples, steps) = (64, 4);
+    let run = |factor: f64, include_mean: bool| {
+        let model = position_model();
+        let mut env = PositionEnv {
+            ee: start,
+            target: [1.0; 3],
+        };
+        let cfg = MpcConfig {
+            cem: CemConfig {
+                samples,
+                elites: 4,
+                iterations: 1,
+                horizon: 1,
+                init_translation_std_m: 0.04,
+                include_mean,
+                ..CemConfig::default()
+            },
+            execute_best: true,
+            max_steps: steps,
+            patience: 100,
+            stall_std_factor: factor,
+            gripper: bridgev2w_plan::mpc::GripperPolicy::Heuristic {
+                approach: 0.0,
+                after_switch: 0.0,
+                release_at_end: false,
+            },
+            ..MpcConfig::default()
+        };
+        let out = run_mpc(
+            &model,
+            &mut env,
+            &[goal.clone()],
+            &cfg,
+            &mut ChaCha8Rng::seed_from_u64(2),
+        )
+        .unwrap();
+        // The RMS of each step's sampled translation (the zero move left
+        // out), from where that step started.
+        let padded = model.padded.into_inner().unwrap();
+        assert_eq!(padded.len(), samples * steps);
+        let mut from = start;
+        let rms: Vec<f64> = padded
+            .chunks(samples)
+            .zip(&out.trace)
+            .map(|(cands, step)| {
+                let sq: Vec<f64> = cands
+                    .iter()
+                    .map(|p| *p.last().unwrap())
+                    .filter(|a| a[..3] != from[..3])
+                    .flat_map(|a| (0..3).map(move |i| a[i] - from[i]))
+                    .map(|d| d * d)
+                    .collect();
+                from = step.ee;
+                (sq.iter().sum::<f64>() / sq.len() as f64).sqrt()
+            })
+            .collect();
+        (out, env.ee, rms)
+    };
+    let (out, ee, rms) = run(0.5, true);
+    // Staying put is a candidate and the best one: the pose is held.
+    assert_eq!(ee, start);
+    assert_eq!(
+        out.trace.iter().map(|s| s.stalls).collect::<Vec<_>>(),
+        vec![1, 2, 3, 4]
+    );
+    // Each stall halves the spread (64 samples x 3 axes: about 5% noise).
+    assert!((rms[0] / 0.04 - 1.0).abs() < 0.2, "{rms:?}");
+    for w in rms.windows(2) {
+        assert!((w[1] / w[0] - 0.5).abs() < 0.12, "{rms:?}");
+    }
+    // Off (factor 1) the spread stays; without the mean the arm moves.
+    let (_, ee, rms) = run(1.0, false);
+    assert_ne!(ee, start);
+    for w in rms.windows(2) {
+        assert!((w[1] / w[0] - 1.0).abs() < 0.25, "{rms:?}");
+    }
+    // A factor outside (0, 1] is a clear error naming the option.
+    for bad in [0.0, 1.5, f64::NAN] {
+        let cfg = MpcConfig {
+            stall_std_factor: bad,
+            ..MpcConfig::default()
+        };
+        let e = cfg.validate(9).unwrap_err().to_string();
+        assert!(
+            e.contains("--shrink-on-stall") && e.contains("(0, 1]"),
+            "{e}"
+        );
+    }
+}
+
 /// A world model that records the batch size of every call.
 struct CountingModel {
     calls: Mutex<Vec<usize>>,

@@ -200,6 +200,16 @@ pub struct CemArgs {
     /// (beyond the paper).
     #[arg(long, default_value_t = 1)]
     pub execute_actions: usize,
+    /// Evaluate the sampling distribution's mean as one of the S samples
+    /// (iCEM): in a step's first iteration that is staying put, so a step
+    /// that no sample improves on holds the pose (beyond the paper).
+    #[arg(long)]
+    pub include_mean: bool,
+    /// After each stalled step (no 1% progress) multiply the next search's
+    /// standard deviations by this factor in (0, 1]; progress or a new goal
+    /// restores them. 1: off (beyond the paper).
+    #[arg(long, default_value_t = 1.0, value_name = "FACTOR")]
+    pub shrink_on_stall: f64,
 }
 
 impl From<&CemArgs> for CemSizes {
@@ -212,6 +222,8 @@ impl From<&CemArgs> for CemSizes {
             keep_elites: a.keep_elites,
             execute_best: a.execute_best,
             execute_actions: a.execute_actions,
+            include_mean: a.include_mean,
+            shrink_on_stall: a.shrink_on_stall,
         }
     }
 }

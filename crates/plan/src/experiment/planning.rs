@@ -35,6 +35,12 @@ pub struct CemSizes {
     /// Actions of the chosen plan executed before planning again (1 to
     /// `horizon`; the paper executes 1).
     pub execute_actions: usize,
+    /// Evaluate the distribution's mean as one of the samples (iCEM; the
+    /// zero move in an MPC step's first iteration).
+    pub include_mean: bool,
+    /// After each stalled step the search's spread shrinks by this factor
+    /// (1: off; [`MpcConfig::stall_std_factor`]).
+    pub shrink_on_stall: f64,
 }
 
 impl Default for CemSizes {
@@ -48,6 +54,8 @@ impl Default for CemSizes {
             keep_elites: false,
             execute_best: false,
             execute_actions: 1,
+            include_mean: false,
+            shrink_on_stall: 1.0,
         }
     }
 }
@@ -206,6 +214,7 @@ impl PlanOptions {
                 rotation_search: self.rotation,
                 rotation_sample_fraction: self.rotation_sample_fraction,
                 keep_elites: self.cem.keep_elites,
+                include_mean: self.cem.include_mean,
                 ..CemConfig::default()
             },
             frames_per_action: self.frames_per_action,
@@ -215,9 +224,11 @@ impl PlanOptions {
             execute_actions: self.cem.execute_actions,
             patience: self.goals.patience,
             subgoal_patience: self.goals.subgoal_patience,
+            stall_std_factor: self.cem.shrink_on_stall,
             ..MpcConfig::default()
         };
         cfg.cem.validate()?;
+        cfg.check_stall_std_factor()?;
         self.goals.validate()?;
         cfg.check_execute_actions()?;
         Ok(cfg)
