@@ -23,6 +23,10 @@ use rayon::prelude::*;
 /// this distance of the expert's final one (metres, horizontal for objects).
 pub const SUCCESS_TOLERANCE_M: f64 = 0.03;
 
+/// The object push and pick_place move: the scene's first (the scripted
+/// expert's choice).
+pub const TASK_OBJECT: usize = 0;
+
 /// Lowest planned TCP height above the table top (metres).
 pub const WORKSPACE_CLEARANCE_M: f64 = 0.02;
 /// Highest planned TCP height above the start pose's (metres).
@@ -260,8 +264,11 @@ impl TaskInstance {
             }
             Task::Push | Task::PickPlace => {
                 let (Some(want), Some(got)) = (
-                    self.expert.object_poses.last().and_then(|p| p.first()),
-                    state.object_poses.first(),
+                    self.expert
+                        .object_poses
+                        .last()
+                        .and_then(|p| p.get(TASK_OBJECT)),
+                    state.object_poses.get(TASK_OBJECT),
                 ) else {
                     return f64::INFINITY;
                 };
@@ -320,6 +327,10 @@ pub struct SyntheticEnv<'w> {
     pub state: SceneState,
     /// Frames executed so far.
     pub frames_executed: usize,
+    /// The task object was held in the gripper at the end of some executed
+    /// chunk: a pick_place success with it was a grasp and a carry, not a
+    /// push into place.
+    pub carried_task_object: bool,
 }
 
 impl<'w> SyntheticEnv<'w> {
@@ -331,6 +342,7 @@ impl<'w> SyntheticEnv<'w> {
             instance,
             state,
             frames_executed: 0,
+            carried_task_object: false,
         }
     }
 
@@ -354,6 +366,7 @@ impl<'w> SyntheticEnv<'w> {
                 .step(&e.meta, &e.camera, &self.state, &rows, RenderFrames::Last)?;
         self.state = next;
         self.frames_executed += actions.len();
+        self.carried_task_object |= self.state.held_object() == Some(TASK_OBJECT);
         let rgb = out
             .rgb
             .last()

@@ -353,7 +353,7 @@ fn a_stalled_step_holds_the_pose_and_the_next_search_is_finer() {
         let out = run_mpc(
             &model,
             &mut env,
-            &[goal.clone()],
+            std::slice::from_ref(&goal),
             &cfg,
             &mut ChaCha8Rng::seed_from_u64(2),
         )

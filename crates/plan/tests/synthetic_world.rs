@@ -129,6 +129,23 @@ fn path_spaced_waypoints_keep_every_goal_near_the_next() {
 }
 
 #[test]
+fn the_expert_carries_the_object_in_pick_place_and_pushes_it_in_push() {
+    let world = small_world(25);
+    for (task, carries) in [(Task::PickPlace, true), (Task::Push, false)] {
+        let inst = TaskInstance::new(&world, Split::Test, 0, task).unwrap();
+        let actions = inst.expert_actions();
+        let mut env = SyntheticEnv::new(&world, inst);
+        assert!(!env.carried_task_object);
+        // The expert's actions in chunks of 2 frames, as the planner executes.
+        for chunk in actions[1..].chunks(2) {
+            env.execute(chunk).unwrap();
+        }
+        assert!(env.success(), "{task:?}: the expert's replay fails");
+        assert_eq!(env.carried_task_object, carries, "{task:?}");
+    }
+}
+
+#[test]
 fn tcp_rotation_error_is_the_angle_to_the_expert_final_orientation() {
     let world = small_world(9);
     let inst = TaskInstance::new(&world, Split::Test, 0, Task::Reach).unwrap();

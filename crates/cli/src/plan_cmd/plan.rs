@@ -65,7 +65,8 @@ pub struct PlanArgs {
     /// Write the planner's trace into this new folder: trials.jsonl (per
     /// trial and executed step: goal pursued, action, observed pose,
     /// predicted and observed cost, stalls, task error; the goals' expert
-    /// TCP positions) and trial-N.png (a row per step: goal, the model's
+    /// TCP positions; whether the task object was carried in the gripper)
+    /// and trial-N.png (a row per step: goal, the model's
     /// prediction of the best candidate, the observed frame).
     #[arg(long)]
     pub trace: Option<std::path::PathBuf>,

@@ -168,6 +168,9 @@ pub struct TrialTrace {
     pub success: bool,
     /// Final task error (metres).
     pub error_m: f64,
+    /// The task object was held in the gripper after some executed step
+    /// (a pick_place success without it pushed the object into place).
+    pub carried: bool,
     /// World positions (metres) of the expert's TCP at each goal image.
     pub goal_tcp_m: Vec<[f64; 3]>,
     /// The executed steps.
@@ -244,6 +247,10 @@ pub struct PlanSummary {
     pub trials: usize,
     /// Planner successes.
     pub planned: usize,
+    /// Planner successes in which the task object was held in the gripper
+    /// after some executed step (for pick_place: grasped and carried, not
+    /// pushed into place).
+    pub planned_carried: usize,
     /// Random-action successes.
     pub random: usize,
     /// Mean final task error of the planner (metres).
@@ -264,8 +271,13 @@ pub struct PlanSummary {
 impl PlanSummary {
     /// One line: the planner's and the random baseline's successes and errors.
     pub fn line(&self, model: &str) -> String {
+        let carried = if self.task == Task::PickPlace {
+            format!(", {} carried in the gripper", self.planned_carried)
+        } else {
+            String::new()
+        };
         format!(
-            "{}: planner ({model}) {}/{} successes (mean error {:.1} cm, TCP orientation {:.1} deg off, {:.1} actions), random actions {}/{} (mean error {:.1} cm, {:.1} deg); {:.0} s",
+            "{}: planner ({model}) {}/{} successes{carried} (mean error {:.1} cm, TCP orientation {:.1} deg off, {:.1} actions), random actions {}/{} (mean error {:.1} cm, {:.1} deg); {:.0} s",
             self.task.name(),
             self.planned,
             self.trials,
@@ -301,7 +313,7 @@ pub(crate) fn plan_with(
 ) -> Result<PlanSummary> {
     let world = loaded.world(o.episode_frames, o.seed)?;
     let t0 = Instant::now();
-    let (mut planned, mut random) = (0, 0);
+    let (mut planned, mut planned_carried, mut random) = (0, 0, 0);
     let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);
     let (mut planned_rot, mut random_rot) = (0.0, 0.0);
     let mut traces = Vec::new();
@@ -343,6 +355,7 @@ pub(crate) fn plan_with(
             )
         })?;
         let ok = env.success();
+        let carried = env.carried_task_object;
         let err = inst.error_m(&world, &env.state);
         if let Some(dir) = &trace_dir {
             let png = filmstrip(&goals, &out.trace);
@@ -353,6 +366,7 @@ pub(crate) fn plan_with(
                 trial,
                 success: ok,
                 error_m: err,
+                carried,
                 goal_tcp_m: inst.goal_tcp_m(&world),
                 steps: out.trace.clone(),
             });
@@ -366,7 +380,12 @@ pub(crate) fn plan_with(
         progress(&format!(
             "{} trial {trial}: planner {} ({:.1} cm, TCP {:.1} deg off, {} steps), random {} ({:.1} cm, {:.1} deg)",
             o.task.name(),
-            if ok { "success" } else { "failure" },
+            match (ok, o.task == Task::PickPlace, carried) {
+                (false, ..) => "failure",
+                (true, false, _) => "success",
+                (true, true, true) => "success, carried",
+                (true, true, false) => "success, not carried",
+            },
             err * 100.0,
             rot.to_degrees(),
             out.steps,
@@ -375,6 +394,7 @@ pub(crate) fn plan_with(
             rrot.to_degrees()
         ));
         planned += usize::from(ok);
+        planned_carried += usize::from(ok && carried);
         random += usize::from(rok);
         planned_err += err;
         random_err += rerr;
@@ -392,6 +412,7 @@ pub(crate) fn plan_with(
         task: o.task,
         trials: o.trials,
         planned,
+        planned_carried,
         random,
         planned_error_m: planned_err / n,
         random_error_m: random_err / n,

@@ -136,6 +136,7 @@ mod tests {
             task,
             trials: 4,
             planned,
+            planned_carried: 0,
             random,
             planned_error_m: 0.01,
             random_error_m: 0.1,
