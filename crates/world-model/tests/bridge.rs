@@ -18,6 +18,7 @@ use tch::{Device, Kind, Tensor};
 
 #[test]
 fn zero_projections_and_fresh_lora_leave_the_backbone_exactly() {
+    let _rng = rng_lock();
     let m = tiny(BridgeV2WConfig::tiny(), 1);
     let (x, c, t) = inputs(2);
     let with_branch = m.velocity_with(&x, &t, Some(&c)).unwrap();
@@ -48,6 +49,7 @@ fn zero_projections_and_fresh_lora_leave_the_backbone_exactly() {
 
 #[test]
 fn branch_starts_as_a_copy_of_the_backbone_and_changes_the_output_when_trained() {
+    let _rng = rng_lock();
     let m = tiny(BridgeV2WConfig::tiny(), 3);
     let base = m.transformer.vs.variables();
     let branch = m.adapters.variables();
@@ -81,6 +83,7 @@ fn branch_starts_as_a_copy_of_the_backbone_and_changes_the_output_when_trained()
 
 #[test]
 fn per_block_weights_scale_the_residuals() {
+    let _rng = rng_lock();
     let mut cfg = BridgeV2WConfig::tiny();
     cfg.controlnet = ControlNetConfig {
         num_layers: 2,
@@ -148,6 +151,7 @@ fn per_block_weights_scale_the_residuals() {
 
 #[test]
 fn non_zero_initialised_branch_is_the_ablation() {
+    let _rng = rng_lock();
     let mut cfg = BridgeV2WConfig::tiny();
     cfg.controlnet.zero_init = false;
     let m = tiny(cfg, 7);
@@ -159,6 +163,7 @@ fn non_zero_initialised_branch_is_the_ablation() {
 
 #[test]
 fn gradients_reach_the_branch_and_lora_only() {
+    let _rng = rng_lock();
     let m = tiny(BridgeV2WConfig::tiny(), 9);
     let (x, c, t) = inputs(10);
     let v = m.velocity_with(&x, &t, Some(&c)).unwrap();
@@ -176,6 +181,7 @@ fn gradients_reach_the_branch_and_lora_only() {
 
 #[test]
 fn weights_file_round_trip_with_config_and_strict_loading() {
+    let _rng = rng_lock();
     let mut cfg = BridgeV2WConfig::tiny();
     cfg.controlnet.conditioning_scale = vec![0.5];
     let m = tiny(cfg.clone(), 11);
@@ -237,6 +243,7 @@ fn weights_file_round_trip_with_config_and_strict_loading() {
 
 #[test]
 fn per_block_gradient_checkpointing_gives_the_same_gradients() {
+    let _rng = rng_lock();
     let m = tiny(BridgeV2WConfig::tiny(), 21);
     // Non-zero projections and LoRA B, so every path carries gradient.
     tch::no_grad(|| {
@@ -349,6 +356,7 @@ fn per_block_gradient_checkpointing_gives_the_same_gradients() {
 
 #[test]
 fn image_conditioning_pads_or_repeats_and_travels_with_the_backbone() {
+    let _rng = rng_lock();
     let every = BridgeV2WConfig {
         image_conditioning: ImageConditioning::EveryFrame,
         ..BridgeV2WConfig::tiny()

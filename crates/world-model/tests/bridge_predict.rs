@@ -22,6 +22,7 @@ use tch::Kind;
 
 #[test]
 fn predict_follows_the_world_model_contract() {
+    let _rng = rng_lock();
     let m = tiny(BridgeV2WConfig::tiny(), 14);
     perturb_projections(&m);
     assert_eq!(m.clip_frames(), 9);
@@ -175,6 +176,7 @@ fn predict_follows_the_world_model_contract() {
 
 #[test]
 fn backbone_folder_round_trips_and_loads_in_diffusers() {
+    let _rng = rng_lock();
     let m = tiny(BridgeV2WConfig::tiny(), 15);
     perturb_projections(&m);
     let dir = tempfile::tempdir().unwrap();
@@ -223,6 +225,7 @@ print("ok")
 
 #[test]
 fn bf16_model_predicts_close_to_f32() {
+    let _rng = rng_lock();
     let m = tiny(BridgeV2WConfig::tiny(), 17);
     perturb_projections(&m);
     let dir = tempfile::tempdir().unwrap();
@@ -253,6 +256,7 @@ fn bf16_model_predicts_close_to_f32() {
 
 #[test]
 fn random_spec_honours_bf16_with_the_same_weights() {
+    let _rng = rng_lock();
     use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
     let spec = ModelSpec::Random(RandomPreset::Tiny);
     let load = |p| {
@@ -331,6 +335,7 @@ fn random_spec_honours_bf16_with_the_same_weights() {
 
 #[test]
 fn link_coded_masks_travel_with_the_weights_and_refuse_binary_masks() {
+    let _rng = rng_lock();
     let links = BridgeV2WConfig {
         mask_coding: MaskCoding::Links,
         ..BridgeV2WConfig::tiny()
@@ -367,6 +372,7 @@ fn link_coded_masks_travel_with_the_weights_and_refuse_binary_masks() {
 
 #[test]
 fn the_clip_length_can_change_where_the_vae_allows_it() {
+    let _rng = rng_lock();
     let mut m = tiny(BridgeV2WConfig::tiny(), 21);
     perturb_projections(&m);
     // The tiny VAE compresses time 4x: 5 frames are 2 latent frames (an even
@@ -407,6 +413,7 @@ fn the_clip_length_can_change_where_the_vae_allows_it() {
 
 #[test]
 fn decoding_the_last_batch_gives_the_clips_last_frames() {
+    let _rng = rng_lock();
     // A VAE that does not compress time: 9 latent frames, decode batches
     // (0..3), (3..5), (5..7), (7..9).
     let m = BridgeV2W::random(

@@ -13,6 +13,18 @@ use bridgev2w_world_model::video::MaskVideo;
 use bridgev2w_world_model::ComputeDevice;
 use tch::{Device, Kind, Tensor};
 
+/// Serialises the tests of a test binary that draw from libtorch's global
+/// random generator: `BridgeV2W::random` seeds it and then initialises the
+/// weights from it, so a test running beside another that draws from it
+/// gets other weights for the same seed (two `tiny(cfg, 21)` differ). Every
+/// test of `bridge.rs` and `bridge_predict.rs` holds this for its duration.
+pub fn rng_lock() -> std::sync::MutexGuard<'static, ()> {
+    static RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    // A failed test poisons the lock; the others still run.
+    RNG.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 pub fn tiny(cfg: BridgeV2WConfig, seed: i64) -> BridgeV2W {
     BridgeV2W::random(
         cfg,
