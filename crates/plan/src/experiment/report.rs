@@ -281,7 +281,7 @@ fn plan_tables(
         o.cem.horizon,
         o.translation_std_m,
         o.max_steps,
-        if o.cem.keep_elites { ", elites carried over (iCEM)" } else { "" },
+        search_extras(&o.cem),
         match (o.cem.execute_best, o.cem.execute_actions) {
             (true, 1) => ", the best candidate executed".to_string(),
             (false, 1) => ", the refined mean executed".to_string(),
@@ -370,4 +370,44 @@ pub(crate) fn sampling_note(
         note += ", only the last latent-frame batch decoded";
     }
     note
+}
+
+/// The search options beyond S / k / T / H, as the section's text says them.
+fn search_extras(cem: &super::planning::CemSizes) -> String {
+    let mut text = String::new();
+    if cem.keep_elites {
+        text.push_str(", elites carried over (iCEM)");
+    }
+    if cem.include_mean {
+        text.push_str(", the distribution's mean among the samples (staying put a candidate)");
+    }
+    if cem.shrink_on_stall < 1.0 {
+        text.push_str(&format!(
+            ", the spread times {} after each stalled step",
+            cem.shrink_on_stall
+        ));
+    }
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::experiment::planning::CemSizes;
+
+    #[test]
+    fn the_section_text_names_the_search_options_in_use() {
+        let plain = CemSizes::default();
+        assert_eq!(search_extras(&plain), "");
+        let all = CemSizes {
+            keep_elites: true,
+            include_mean: true,
+            shrink_on_stall: 0.5,
+            ..plain
+        };
+        assert_eq!(
+            search_extras(&all),
+            ", elites carried over (iCEM), the distribution's mean among the samples (staying put a candidate), the spread times 0.5 after each stalled step"
+        );
+    }
 }
