@@ -12,7 +12,8 @@
 #   "base mean mean-p2-s0.5 mean-p3-s0.5 mean-p2-s0.3 p2-s0.5"
 #   (a variant is words joined by '-': mean = --include-mean, pN =
 #   --subgoal-patience N, sF = --shrink-on-stall F, aN = --max-steps N
-#   instead of 25, SN = --samples N instead of 16; base: none of them)
+#   instead of 25, SN = --samples N instead of 16, release =
+#   --release-before-final (session 38); base: none of them)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 BIN=${1:-target/release/bridgev2w}
@@ -31,6 +32,7 @@ for task in $TASKS; do
                 case $w in
                     base) ;;
                     mean) flags+=(--include-mean) ;;
+                    release) flags+=(--release-before-final) ;;
                     p*) flags+=(--subgoal-patience "${w#p}") ;;
                     s*) flags+=(--shrink-on-stall "${w#s}") ;;
                     a*) steps=${w#a} ;;

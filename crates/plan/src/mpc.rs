@@ -120,6 +120,13 @@ pub struct MpcConfig {
     /// with progress or a new goal restores them. Near a goal the initial
     /// spread overshoots: a stall is the sign to search finer.
     pub stall_std_factor: f64,
+    /// With the heuristic's release at the end (pick_place): open the
+    /// gripper in place on leaving the goal before the final one, when that
+    /// goal comes after the grasp (the place waypoint), and pursue the
+    /// final goal open: the expert's final frame shows the object released
+    /// and the gripper lifted away from it, which a closed gripper can only
+    /// approach by lifting the object with it.
+    pub release_before_final: bool,
 }
 
 impl Default for MpcConfig {
@@ -138,6 +145,7 @@ impl Default for MpcConfig {
             execute_actions: 1,
             switch_after_goal: 0,
             stall_std_factor: 1.0,
+            release_before_final: false,
         }
     }
 }
@@ -410,6 +418,18 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
     let mut steps = 0;
     let mut stalls = 0;
     let last = latents.len() - 1;
+    // Release in place on switching to the final goal (see
+    // `MpcConfig::release_before_final`): only with the heuristic's release
+    // and a goal between the grasp and the final one.
+    let release_before_final = cfg.release_before_final
+        && last > cfg.switch_after_goal + 1
+        && matches!(
+            cfg.gripper,
+            GripperPolicy::Heuristic {
+                release_at_end: true,
+                ..
+            }
+        );
     let gripper_for = |stage: usize| match cfg.gripper {
         GripperPolicy::Search => GripperMode::Search,
         GripperPolicy::Heuristic {
@@ -418,6 +438,8 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
             ..
         } => GripperMode::Fixed(if stage <= cfg.switch_after_goal {
             approach
+        } else if release_before_final && stage == last {
+            0.0
         } else {
             after_switch
         }),
@@ -482,6 +504,12 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
                 let mut close = obs.ee;
                 close[6] = after_switch;
                 obs = env.execute(&vec![close; cfg.frames_per_action])?;
+            }
+            // Release in place before pursuing the final goal open.
+            if release_before_final && stage == last {
+                let mut open = obs.ee;
+                open[6] = 0.0;
+                obs = env.execute(&vec![open; cfg.frames_per_action])?;
             }
             prev_dist = latent_l1(&model.encode(&obs.image)?, &latents[stage])?;
             stalls = 0;

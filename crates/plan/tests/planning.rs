@@ -8,9 +8,7 @@ use bridgev2w_embodiment::kinematics::xyz_rpy_from_pose;
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::cem::{CemConfig, GripperMode};
 use bridgev2w_plan::goal_latent::{pyramid_latent, GoalLatent};
-use bridgev2w_plan::model::{
-    expand_waypoints, pad_to_clip, ActionWorldModel, MaskConditioned, Workspace,
-};
+use bridgev2w_plan::model::{expand_waypoints, ActionWorldModel, MaskConditioned, Workspace};
 use bridgev2w_plan::mpc::{
     plan_once, run_mpc, run_random, score_sequences, select_proposal, Environment, MpcConfig,
 };
@@ -23,84 +21,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::sync::Mutex;
 
-/// A model whose "frame" is the end-effector position: pixel `i` holds
-/// `0.5 + x_i` for `x, y, z`, so the goal image of a position is known and
-/// the latent distance is the mean position error (plus the gripper pixel).
-struct PositionModel {
-    clip: usize,
-    padded: Mutex<Vec<Vec<EeAction>>>,
-}
-
-fn position_image(a: &EeAction) -> RgbFrame {
-    RgbFrame {
-        height: 1,
-        width: 2,
-        rgb: vec![
-            (0.5 + a[0]) as f32,
-            (0.5 + a[1]) as f32,
-            (0.5 + a[2]) as f32,
-            a[6] as f32,
-            0.0,
-            0.0,
-        ],
-    }
-}
-
-fn position_obs(a: EeAction) -> Observation {
-    Observation {
-        image: position_image(&a),
-        joints: vec![],
-        ee: a,
-        scene: None,
-    }
-}
-
-impl ActionWorldModel for PositionModel {
-    fn clip_frames(&self) -> usize {
-        self.clip
-    }
-    fn resolution(&self) -> (usize, usize) {
-        (1, 2)
-    }
-    fn rollout_batch(&self, _: &Observation, seqs: &[Vec<EeAction>]) -> Result<Vec<Observation>> {
-        seqs.iter()
-            .map(|s| {
-                let p = pad_to_clip(s, self.clip)?;
-                self.padded.lock().unwrap().push(p.clone());
-                Ok(position_obs(*p.last().unwrap()))
-            })
-            .collect()
-    }
-    fn encode(&self, image: &RgbFrame) -> Result<Vec<f32>> {
-        Ok(image.rgb.clone())
-    }
-}
-
-/// Executes by moving the end effector to the last action.
-struct PositionEnv {
-    ee: EeAction,
-    target: [f64; 3],
-}
-
-impl Environment for PositionEnv {
-    fn observe(&self) -> Result<Observation> {
-        Ok(position_obs(self.ee))
-    }
-    fn execute(&mut self, a: &[EeAction]) -> Result<Observation> {
-        self.ee = *a.last().unwrap();
-        self.observe()
-    }
-    fn goal_reached(&self) -> bool {
-        (0..3).all(|i| (self.ee[i] - self.target[i]).abs() < 0.01)
-    }
-}
-
-fn position_model() -> PositionModel {
-    PositionModel {
-        clip: 9,
-        padded: Mutex::new(vec![]),
-    }
-}
+mod common;
+use common::*;
 
 #[test]
 fn executing_the_best_candidate_and_the_workspace_box() {
@@ -698,93 +620,6 @@ fn policy_rollout_pads_chunks_and_feeds_the_last_frame_back() {
     let seen: Vec<f64> = p.seen_x.iter().map(|x| (x * 100.0).round()).collect();
     assert_eq!(seen, vec![0.0, 3.0, 6.0]);
     assert!(rollout_in_model(&model, &mut p, position_obs([0.0; 7]), 0).is_err());
-}
-
-/// Records the gripper command and position of every executed frame.
-struct RecordingEnv {
-    inner: PositionEnv,
-    executed: Vec<(f64, f64)>,
-}
-
-impl Environment for RecordingEnv {
-    fn observe(&self) -> Result<Observation> {
-        self.inner.observe()
-    }
-    fn execute(&mut self, a: &[EeAction]) -> Result<Observation> {
-        self.executed.extend(a.iter().map(|a| (a[0], a[6])));
-        self.inner.execute(a)
-    }
-    fn goal_reached(&self) -> bool {
-        self.inner.goal_reached()
-    }
-}
-
-#[test]
-fn waypoint_goals_and_the_gripper_switch_after_the_key_goal() {
-    use bridgev2w_plan::mpc::GripperPolicy;
-    let model = position_model();
-    let at = |x: f64, g: f64| position_image(&[x, 0.0, 0.0, 0.0, 0.0, 0.0, g]);
-    // A waypoint, the key (grasp) goal, the final goal.
-    let goals = [at(0.1, 0.0), at(0.2, 0.0), at(0.3, 1.0)];
-    let cfg = MpcConfig {
-        cem: CemConfig {
-            samples: 32,
-            elites: 4,
-            iterations: 3,
-            horizon: 1,
-            init_translation_std_m: 0.05,
-            translation_only: true,
-            keep_elites: true,
-            ..CemConfig::default()
-        },
-        gripper: GripperPolicy::Heuristic {
-            approach: 0.0,
-            after_switch: 1.0,
-            release_at_end: false,
-        },
-        max_steps: 30,
-        patience: 2,
-        subgoal_patience: 1,
-        execute_best: true,
-        switch_after_goal: 1,
-        ..MpcConfig::default()
-    };
-    let mut env = RecordingEnv {
-        inner: PositionEnv {
-            ee: [0.0; 7],
-            target: [0.3, 0.0, 0.0],
-        },
-        executed: vec![],
-    };
-    let out = run_mpc(
-        &model,
-        &mut env,
-        &goals,
-        &cfg,
-        &mut ChaCha8Rng::seed_from_u64(3),
-    )
-    .unwrap();
-    assert!(out.reached, "{:?}", env.executed);
-    // The gripper closes once, in place, after the key goal (not after the
-    // waypoint), and stays closed.
-    let first_closed = env.executed.iter().position(|e| e.1 == 1.0).unwrap();
-    assert!(env.executed[first_closed..].iter().all(|e| e.1 == 1.0));
-    let x = env.executed[first_closed].0;
-    assert!((x - 0.2).abs() < 0.03, "grasped at x = {x}");
-    // Too few goals for the switch: a clear error.
-    let e = run_mpc(
-        &model,
-        &mut env,
-        &goals[..1],
-        &cfg,
-        &mut ChaCha8Rng::seed_from_u64(3),
-    )
-    .unwrap_err()
-    .to_string();
-    assert!(
-        e.contains("switch after goal 1") && e.contains("1 goal"),
-        "{e}"
-    );
 }
 
 /// A 48x32 synthetic world (seed 1) with episodes of `frames` frames.

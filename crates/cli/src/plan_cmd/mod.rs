@@ -151,6 +151,12 @@ pub struct GoalArgs {
     /// gripper out of view). Not given: no limit.
     #[arg(long)]
     pub view_margin: Option<f64>,
+    /// pick_place: open the gripper on leaving the goal before the final
+    /// one (the place) and pursue the final goal, the gripper lifted from
+    /// the released object, open; without it the object is released after
+    /// the final goal (beyond the paper).
+    #[arg(long)]
+    pub release_before_final: bool,
 }
 
 impl From<&GoalArgs> for GoalOptions {
@@ -160,6 +166,7 @@ impl From<&GoalArgs> for GoalOptions {
             patience: a.patience,
             subgoal_patience: a.subgoal_patience,
             view_margin: a.view_margin,
+            release_before_final: a.release_before_final,
         }
     }
 }

@@ -73,6 +73,9 @@ pub struct GoalOptions {
     /// Keep the TCP inside the camera's view, this fraction of the image's
     /// smaller side from its edges ([`ViewLimit`]); `None`: no limit.
     pub view_margin: Option<f64>,
+    /// pick_place: release the object on leaving the goal before the final
+    /// one and pursue the final goal open ([`MpcConfig::release_before_final`]).
+    pub release_before_final: bool,
 }
 
 impl Default for GoalOptions {
@@ -82,6 +85,7 @@ impl Default for GoalOptions {
             patience: 4,
             subgoal_patience: 1,
             view_margin: None,
+            release_before_final: false,
         }
     }
 }
@@ -228,6 +232,7 @@ impl PlanOptions {
             patience: self.goals.patience,
             subgoal_patience: self.goals.subgoal_patience,
             stall_std_factor: self.cem.shrink_on_stall,
+            release_before_final: self.goals.release_before_final,
             ..MpcConfig::default()
         };
         cfg.cem.validate()?;

@@ -273,7 +273,7 @@ fn plan_tables(
     summaries: &mut Vec<(String, super::PlanSummary)>,
 ) -> Result<String> {
     let mut md = format!(
-        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}{}; gripper searched for reach, heuristic for push/pick_place. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), {}; a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}{}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
+        "### Goal-image CEM-MPC ({} trials per task)\n\nCEM: S = {}, k = {}, T = {}, H = {}, initial translation std {} m per step, 2 clip frames per action, at most {} actions, translation-only search{}{}{}; gripper searched for reach, heuristic for push/pick_place{}. Goals: two key goal images per task (reach: the half-way pose, then the final one; push: the end of the push, then the final frame; pick_place: the grasp, then the final frame), {}; a goal ends after {} stalled step(s) (no 1% latent progress), the final one after {}{}. Success: TCP (reach) or object (push, pick_place; released) within 3 cm of the scripted expert's final one. Random baseline: the same number of actions drawn from CEM's initial distribution.\n\n| task | model | planner success | random-action success | planner mean error (cm) | random mean error (cm) | mean actions | time (s) |\n|---|---|---|---|---|---|---|---|\n",
         o.trials,
         o.cem.samples,
         o.cem.elites,
@@ -291,6 +291,11 @@ fn plan_tables(
         o.plan_clip_frames.map_or(String::new(), |n| format!(
             ", each candidate predicted as a clip of {n} frames"
         )),
+        if o.goals.release_before_final {
+            " (pick_place released on leaving the goal before the final one, which is pursued open)"
+        } else {
+            ""
+        },
         o.goals.waypoints.describe(),
         o.goals.subgoal_patience,
         o.goals.patience,
