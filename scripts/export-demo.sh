@@ -3,7 +3,11 @@
 # as the shipped demo model, assets/demo-model (the default model of
 # `bridgev2w demo`): the backbone folder of the decoder stage (the prior's
 # transformer with the decoder trained further), the fine-tuned weights and
-# the fine-tuning config with paths relative to the repository root.
+# the fine-tuning config with paths relative to the repository root; and,
+# when the run has it, the planning model (stage bridgev2w-short, weights
+# continued on 3-frame clips: `plan --weights
+# assets/demo-model/bridgev2w-plan.safetensors --clip-frames 3`) with its
+# config, plan-config.toml.
 # Called by reproduce-synthetic.sh with EXPORT_DEMO=1. The weights are
 # stored in float16 (half the size in git; the loaders cast to the model's
 # dtype), their safetensors metadata (the mask coding) kept; HALF_WEIGHTS=0
@@ -32,6 +36,16 @@ cp "$OUT/bridgev2w/final/weights.safetensors" assets/demo-model.tmp/bridgev2w.sa
     sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"assets/demo-model/backbone\"|" \
         -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w-eval.toml"
 } >assets/demo-model.tmp/train-config.toml
+if [[ -f $OUT/bridgev2w-short/final/weights.safetensors ]]; then
+    cp "$OUT/bridgev2w-short/final/weights.safetensors" assets/demo-model.tmp/bridgev2w-plan.safetensors
+    {
+        echo "# The planning model's config (scripts/reproduce-synthetic.sh $OUT, stage bridgev2w-short):"
+        echo "# the fine-tuned BridgeV2W (train-config.toml) continued on 3-frame clips; paths"
+        echo "# relative to the repository root, the run folders the reproduction's."
+        sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"assets/demo-model/backbone\"|" \
+            -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w-short.toml"
+    } >assets/demo-model.tmp/plan-config.toml
+fi
 PY=${PYTHON:-.venv/bin/python}
 if [[ ${HALF_WEIGHTS:-1} != 0 ]]; then
 [[ -x $PY ]] || { echo "error: $PY not found: run scripts/setup-venv.sh first" >&2; exit 1; }

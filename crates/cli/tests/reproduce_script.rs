@@ -118,9 +118,28 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
             "prior",
             "vae-decoder",
             "bridgev2w",
-            "ablation-action-mlp"
+            "ablation-action-mlp",
+            "bridgev2w-short"
         ]
     );
+    // The planning model continues the fine-tuned weights on 3-frame clips;
+    // a larger budget of its own continues it alone from its checkpoints.
+    let short = fs::read_to_string(r.join("runs/r/configs/bridgev2w-short.toml")).expect("config");
+    for line in [
+        "init_weights = \"runs/r/bridgev2w/final/weights.safetensors\"",
+        "backbone = \"runs/r/vae-decoder/final/backbone\"",
+        "frames = 3",
+        "max_steps = 400",
+    ] {
+        assert!(short.contains(&format!("\n{line}\n")), "{line}: {short}");
+    }
+    bridgev2w_train::config::TrainConfig::from_toml(&short).expect("a valid config");
+    assert_eq!(
+        trained(&run(r, &[("SHORT_STEPS", "500")])),
+        ["bridgev2w-short --resume"]
+    );
+    // Back to the default, smaller budget: it starts over.
+    assert_eq!(trained(&run(r, &[])), ["bridgev2w-short"]);
     // BridgeV2W with the static scene kept (the default KEEP_STATIC=0) and
     // with every pixel generated, then the ablation.
     assert_eq!(evaluated(&first), 3, "{first:?}");
@@ -157,7 +176,8 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     assert_eq!(grids(&plain), 1, "{plain:?}");
     // A larger decoder budget: the decoder stage continues from its
     // checkpoints; the fine-tunings (trained over the prior's backbone) are
-    // kept, every evaluation and the grids (made with its decoder) redone.
+    // kept, every evaluation and the grids (made with its decoder) redone,
+    // and the planning model (trained over the decoder stage's backbone).
     let decoder = run(
         r,
         &[
@@ -166,7 +186,11 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
             ("DECODER_STEPS", "500"),
         ],
     );
-    assert_eq!(trained(&decoder), ["vae-decoder --resume"], "{decoder:?}");
+    assert_eq!(
+        trained(&decoder),
+        ["vae-decoder --resume", "bridgev2w-short"],
+        "{decoder:?}"
+    );
     assert_eq!(evaluated(&decoder), 2, "{decoder:?}");
     assert_eq!(grids(&decoder), 1, "{decoder:?}");
     let eval_cfg = fs::read_to_string(r.join("runs/r/configs/bridgev2w-eval.toml")).expect("eval");
@@ -186,7 +210,13 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     let third = run(r, &[("PRIOR_STEPS", "7")]);
     assert_eq!(
         trained(&third),
-        ["prior", "vae-decoder", "bridgev2w", "ablation-action-mlp"]
+        [
+            "prior",
+            "vae-decoder",
+            "bridgev2w",
+            "ablation-action-mlp",
+            "bridgev2w-short"
+        ]
     );
     assert_eq!(evaluated(&third), 3, "{third:?}");
     // The wall-time table keeps the stages kept from earlier runs, once each.
@@ -229,7 +259,8 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
             "prior --resume",
             "vae-decoder",
             "bridgev2w",
-            "ablation-action-mlp"
+            "ablation-action-mlp",
+            "bridgev2w-short"
         ]
     );
     assert_eq!(stale_priors(), before, "the prior was moved aside");
@@ -237,7 +268,13 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     let shorter = run(r, &[("PRIOR_STEPS", "8")]);
     assert_eq!(
         trained(&shorter),
-        ["prior", "vae-decoder", "bridgev2w", "ablation-action-mlp"]
+        [
+            "prior",
+            "vae-decoder",
+            "bridgev2w",
+            "ablation-action-mlp",
+            "bridgev2w-short"
+        ]
     );
     // The default recipe: the wide transformer (a fresh one for the prior,
     // model.transformer) and link-coded masks for BridgeV2W only.
@@ -257,7 +294,13 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     let run_narrow = |coding: &str| run(r, &[narrow[0], narrow[1], ("MASK_CODING", coding)]);
     assert_eq!(
         trained(&run_narrow("links")),
-        ["prior", "vae-decoder", "bridgev2w", "ablation-action-mlp"]
+        [
+            "prior",
+            "vae-decoder",
+            "bridgev2w",
+            "ablation-action-mlp",
+            "bridgev2w-short"
+        ]
     );
     let prior = fs::read_to_string(r.join("runs/r/configs/prior.toml")).expect("prior config");
     assert!(!prior.contains("transformer ="), "{prior}");
@@ -265,9 +308,16 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     // ablation has no masks), and its config has no coding line (the
     // fingerprints of runs made before the setting existed).
     let binary = run_narrow("binary");
-    assert_eq!(trained(&binary), ["bridgev2w"], "{binary:?}");
+    assert_eq!(
+        trained(&binary),
+        ["bridgev2w", "bridgev2w-short"],
+        "{binary:?}"
+    );
     assert!(!bw().contains("mask_coding"), "{}", bw());
-    assert_eq!(trained(&run_narrow("links")), ["bridgev2w"]);
+    assert_eq!(
+        trained(&run_narrow("links")),
+        ["bridgev2w", "bridgev2w-short"]
+    );
     // A dataset written before synth stored link labels is written again
     // (same arguments, same episodes): nothing trained on it is redone.
     fs::remove_dir_all(r.join("runs/r/synth/labels")).expect("rm labels");
@@ -287,7 +337,7 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     // Another dataset: everything is redone.
     let fourth = run(r, &[("PRIOR_STEPS", "7"), ("EPISODES", "9,1,1,1")]);
     assert_eq!(fourth[0], "synth");
-    assert_eq!(trained(&fourth).len(), 6, "{fourth:?}");
+    assert_eq!(trained(&fourth).len(), 7, "{fourth:?}");
 }
 
 #[test]
@@ -306,4 +356,16 @@ fn the_exported_demo_config_names_repository_paths() {
     // It parses as a training config as it stands.
     bridgev2w_train::config::TrainConfig::from_toml(&cfg).expect("a valid config");
     assert!(r.join("assets/demo-model/backbone").is_dir());
+    // The planning model with its config, paths as the fine-tuning's.
+    assert!(r
+        .join("assets/demo-model/bridgev2w-plan.safetensors")
+        .is_file());
+    let plan = fs::read_to_string(r.join("assets/demo-model/plan-config.toml")).expect("config");
+    assert!(
+        plan.contains("backbone = \"assets/demo-model/backbone\"")
+            && plan.contains("frames = 3")
+            && !plan.contains(&r.display().to_string()),
+        "{plan}"
+    );
+    bridgev2w_train::config::TrainConfig::from_toml(&plan).expect("a valid config");
 }
