@@ -17,28 +17,15 @@ fn waypoint_goals_and_the_gripper_switch_after_the_key_goal() {
     let at = |x: f64, g: f64| position_image(&[x, 0.0, 0.0, 0.0, 0.0, 0.0, g]);
     // A waypoint, the key (grasp) goal, the final goal.
     let goals = [at(0.1, 0.0), at(0.2, 0.0), at(0.3, 1.0)];
+    // The pick_place search (below) without a release.
     let cfg = MpcConfig {
-        cem: CemConfig {
-            samples: 32,
-            elites: 4,
-            iterations: 3,
-            horizon: 1,
-            init_translation_std_m: 0.05,
-            translation_only: true,
-            keep_elites: true,
-            ..CemConfig::default()
-        },
         gripper: GripperPolicy::Heuristic {
             approach: 0.0,
             after_switch: 1.0,
             release_at_end: false,
         },
         max_steps: 30,
-        patience: 2,
-        subgoal_patience: 1,
-        execute_best: true,
-        switch_after_goal: 1,
-        ..MpcConfig::default()
+        ..pick_place_config(false)
     };
     let mut env = RecordingEnv {
         inner: PositionEnv {
