@@ -25,16 +25,19 @@ rm -rf assets/demo-model.tmp
 mkdir -p assets/demo-model.tmp
 cp -r "$OUT/vae-decoder/final/backbone" assets/demo-model.tmp/backbone
 cp "$OUT/bridgev2w/final/weights.safetensors" assets/demo-model.tmp/bridgev2w.safetensors
-# The config as it stands, paths relative to the repository root: the
+# The configs as they stand, paths relative to the repository root: the
 # backbone is the exported one, the dataset and run folders the
 # reproduction's (rerun the script to recreate them).
+repo_config() { # repo_config CONFIG: CONFIG with the repository's paths
+    sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"assets/demo-model/backbone\"|" \
+        -e "s|\"$ROOT/|\"|" "$1"
+}
 {
     echo "# BridgeV2W fine-tuning config of this model (scripts/reproduce-synthetic.sh $OUT);"
     echo "# paths are relative to the repository root. The fine-tuning itself ran over the"
     echo "# prior's backbone, which differs from this one only in the decoder (the stage"
     echo "# vae-decoder trained it further; the encoder, the latents and the transformer are the same)."
-    sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"assets/demo-model/backbone\"|" \
-        -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w-eval.toml"
+    repo_config "$OUT/configs/bridgev2w-eval.toml"
 } >assets/demo-model.tmp/train-config.toml
 if [[ -f $OUT/bridgev2w-short/final/weights.safetensors ]]; then
     cp "$OUT/bridgev2w-short/final/weights.safetensors" assets/demo-model.tmp/bridgev2w-plan.safetensors
@@ -42,8 +45,7 @@ if [[ -f $OUT/bridgev2w-short/final/weights.safetensors ]]; then
         echo "# The planning model's config (scripts/reproduce-synthetic.sh $OUT, stage bridgev2w-short):"
         echo "# the fine-tuned BridgeV2W (train-config.toml) continued on 3-frame clips; paths"
         echo "# relative to the repository root, the run folders the reproduction's."
-        sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"assets/demo-model/backbone\"|" \
-            -e "s|\"$ROOT/|\"|" "$OUT/configs/bridgev2w-short.toml"
+        repo_config "$OUT/configs/bridgev2w-short.toml"
     } >assets/demo-model.tmp/plan-config.toml
 fi
 PY=${PYTHON:-.venv/bin/python}

@@ -501,15 +501,11 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
             if let (GripperPolicy::Heuristic { after_switch, .. }, true) =
                 (cfg.gripper, stage == cfg.switch_after_goal + 1)
             {
-                let mut close = obs.ee;
-                close[6] = after_switch;
-                obs = env.execute(&vec![close; cfg.frames_per_action])?;
+                obs = gripper_in_place(env, &obs, after_switch, cfg.frames_per_action)?;
             }
             // Release in place before pursuing the final goal open.
             if release_before_final && stage == last {
-                let mut open = obs.ee;
-                open[6] = 0.0;
-                obs = env.execute(&vec![open; cfg.frames_per_action])?;
+                obs = gripper_in_place(env, &obs, 0.0, cfg.frames_per_action)?;
             }
             prev_dist = latent_l1(&model.encode(&obs.image)?, &latents[stage])?;
             stalls = 0;
@@ -522,9 +518,7 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
         ..
     } = cfg.gripper
     {
-        let mut open = obs.ee;
-        open[6] = 0.0;
-        obs = env.execute(&vec![open; cfg.frames_per_action])?;
+        obs = gripper_in_place(env, &obs, 0.0, cfg.frames_per_action)?;
         final_goal_distance.push(latent_l1(&model.encode(&obs.image)?, &latents[last])?);
     }
     Ok(MpcOutcome {
@@ -533,6 +527,19 @@ pub fn run_mpc<M: ActionWorldModel + ?Sized, E: Environment>(
         final_goal_distance,
         trace,
     })
+}
+
+/// Commands the gripper to `command` (0 open, 1 closed) with the arm held
+/// at its observed pose, for `frames` frames.
+fn gripper_in_place<E: Environment>(
+    env: &mut E,
+    obs: &Observation,
+    command: f64,
+    frames: usize,
+) -> Result<Observation> {
+    let mut a = obs.ee;
+    a[6] = command;
+    env.execute(&vec![a; frames])
 }
 
 /// VLA-proposal mode: rolls out each proposed action chunk (absolute

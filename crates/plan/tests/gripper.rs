@@ -171,3 +171,24 @@ fn releasing_before_the_final_goal_opens_at_the_place_and_lifts_open() {
         run_recorded(&no_place, &pick_place_config(false), never)
     );
 }
+
+#[test]
+fn releasing_before_the_final_goal_is_refused_where_nothing_is_released() {
+    use bridgev2w_data::synth::Task;
+    use bridgev2w_plan::experiment::{plan_summary, PlanOptions};
+    use bridgev2w_plan::mpc::GripperChoice;
+    for (task, gripper) in [
+        (Task::Push, GripperChoice::Auto),
+        (Task::Reach, GripperChoice::Auto),
+        (Task::PickPlace, GripperChoice::Search),
+    ] {
+        let mut o = PlanOptions::new(task);
+        o.gripper = gripper;
+        o.goals.release_before_final = true;
+        let e = plan_summary(&o, &mut |_| {}).unwrap_err().to_string();
+        assert!(
+            e.contains("--release-before-final") && e.contains(task.name()),
+            "{e}"
+        );
+    }
+}

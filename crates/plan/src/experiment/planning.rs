@@ -4,7 +4,7 @@
 use super::{trial_seed, LoadedModel, ModelOptions};
 use crate::cem::{CemConfig, RotationSearch};
 use crate::model::ViewLimit;
-use crate::mpc::{run_mpc, run_random, GripperChoice, MpcConfig, MpcTraceStep};
+use crate::mpc::{run_mpc, run_random, GripperChoice, GripperPolicy, MpcConfig, MpcTraceStep};
 use crate::synthetic::{SyntheticEnv, TaskInstance, WaypointSpacing};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
@@ -305,6 +305,23 @@ pub fn plan_summary(o: &PlanOptions, progress: &mut dyn FnMut(&str)) -> Result<P
         return Err(PlanError::input("--trials", "must be at least 1"));
     }
     let cfg = o.mpc_config()?;
+    if o.goals.release_before_final
+        && !matches!(
+            cfg.gripper,
+            GripperPolicy::Heuristic {
+                release_at_end: true,
+                ..
+            }
+        )
+    {
+        return Err(PlanError::input(
+            "--release-before-final",
+            format!(
+                "task {}: only pick_place with the gripper heuristic releases an object",
+                o.task.name()
+            ),
+        ));
+    }
     let loaded = LoadedModel::load(&o.model)?;
     plan_with(&loaded, o, &cfg, progress)
 }
