@@ -52,7 +52,7 @@ PRIOR_STEPS=${PRIOR_STEPS:-3000}
 DECODER_STEPS=${DECODER_STEPS:-400}
 FT_STEPS=${FT_STEPS:-2000}
 # The planning model's steps on 3-frame clips (session 38: 400 steps from the
-# shipped weights planned reach 13 of 20 on the train split with 3-frame
+# shipped weights planned reach 12 of 20 on the train split with 3-frame
 # clips, against 7 for the model trained on 9-frame clips alone;
 # docs/results.md, section levers).
 SHORT_STEPS=${SHORT_STEPS:-400}
