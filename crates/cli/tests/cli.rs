@@ -611,18 +611,23 @@ fn plan_report_with_the_shipped_trained_model() {
     let tmp = tempfile::tempdir().expect("plan-report test");
     let md = tmp.path().join("results.md");
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo-model");
+    // The folder's own weights named as the planning weights: the row says so.
     let line = format!(
         "plan-report --tasks reach --trials 1 --samples 4 --elites 2 --iters 1 --max-steps 1 \
          --waypoints 0 --eval-trials 1 --denoise-steps 1 --plan-clip-frames 3 --trained {} \
-         --out {}",
+         --plan-weights {} --out {}",
         model.display(),
+        model.join("bridgev2w.safetensors").display(),
         md.display()
     );
     let out = run(&line.split_whitespace().collect::<Vec<_>>());
     assert!(out.status.success(), "{}", stderr(&out));
     let text = std::fs::read_to_string(&md).expect("plan-report test");
     assert!(text.contains("| reach | perfect | "), "{text}");
-    assert!(text.contains("| reach | trained (`"), "{text}");
+    assert!(
+        text.contains("| reach | trained (`") && text.contains("`, planning weights `"),
+        "{text}"
+    );
     // The planners predicted 3-frame clips (the model trained on 9).
     assert!(
         text.contains("each candidate predicted as a clip of 3 frames"),
@@ -639,6 +644,46 @@ fn plan_report_with_the_shipped_trained_model() {
             && text.contains("Goal progress vs synthetic-world success: MMRV"),
         "{text}"
     );
+}
+
+/// `plan-report --plan-weights FILE`: the planner loads that file (a broken
+/// one stops the run, named), and it is refused up front where no trained
+/// model plans or the file is missing.
+#[test]
+fn plan_report_plan_weights_are_the_planners() {
+    let tmp = tempfile::tempdir().expect("plan-report test");
+    let md = tmp.path().join("results.md");
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo-model");
+    let broken = tmp.path().join("broken-plan.safetensors");
+    std::fs::write(&broken, b"not a safetensors file").expect("plan-report test");
+    let missing = tmp.path().join("missing.safetensors");
+    let common = "--tasks reach --trials 1 --samples 4 --elites 2 --iters 1 --max-steps 1 \
+                  --waypoints 0 --eval-trials 1 --denoise-steps 1";
+    for (models, weights, want) in [
+        ("trained", &broken, "broken-plan.safetensors"),
+        ("trained", &missing, "expected a BridgeV2W weights file"),
+        ("perfect", &broken, "only a trained model that plans"),
+    ] {
+        let line = format!(
+            "plan-report {common} --models {models} --trained {} --plan-weights {} --out {}",
+            model.display(),
+            weights.display(),
+            md.display()
+        );
+        let line = if models == "perfect" {
+            line.replace(&format!("--trained {} ", model.display()), "")
+        } else {
+            line
+        };
+        let out = run(&line.split_whitespace().collect::<Vec<_>>());
+        let e = stderr(&out);
+        assert!(!out.status.success() && e.contains(want), "{line}: {e}");
+        assert!(
+            !md.exists(),
+            "{line}: a failed report wrote {}",
+            md.display()
+        );
+    }
 }
 
 /// `plan-report --models/--section`: the chosen models only, in their own

@@ -8,7 +8,7 @@ use bridgev2w_plan::experiment::report::report_models;
 use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
 use bridgev2w_plan::goal_latent::GoalLatent;
 use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
-use bridgev2w_world_model::ComputeDevice;
+use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
 #[derive(Debug, Clone, clap::Args)]
@@ -57,6 +57,13 @@ pub struct PlanReportArgs {
     /// `scripts/reproduce-synthetic.sh` exports (minutes per trial on CPU).
     #[arg(long)]
     pub trained: Option<PathBuf>,
+    /// BridgeV2W weights the trained model plans with, instead of its
+    /// folder's `bridgev2w.safetensors`: e.g.
+    /// `assets/demo-model/bridgev2w-plan.safetensors`, the planning model
+    /// trained on 3-frame clips (with `--plan-clip-frames 3`). The policy
+    /// evaluation keeps the folder's weights.
+    #[arg(long, value_name = "FILE")]
+    pub plan_weights: Option<PathBuf>,
     /// Denoising steps of the diffusion models' predictions.
     #[arg(long, default_value_t = 4)]
     pub denoise_steps: usize,
@@ -83,6 +90,9 @@ pub struct PlanReportArgs {
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
+    /// Precision of the diffusion models: f32 or bf16.
+    #[arg(long, default_value = "f32")]
+    pub precision: Precision,
     /// Frames of each clip the planning models predict (default: the
     /// model's own; a planned action needs one more than its frames, and a
     /// shorter clip is cheaper; beyond the paper). Policy evaluation keeps
@@ -127,6 +137,8 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         keep_static_margin_px: a.keep_static,
         goal_latent: a.goal_latent,
         device: a.device,
+        precision: a.precision,
+        plan_weights: a.plan_weights.clone(),
         plan_clip_frames: a.plan_clip_frames,
         decode_frames: a.decode_frames,
         seed: a.seed,

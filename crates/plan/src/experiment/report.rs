@@ -10,7 +10,7 @@ use crate::{PlanError, Result};
 use bridgev2w_data::synth::Task;
 use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
 use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
-use bridgev2w_world_model::ComputeDevice;
+use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
 /// A model of the report: `perfect`, `random`, or a trained folder
@@ -64,6 +64,7 @@ impl ReportModel {
             keep_static_margin_px: o.keep_static_margin_px,
             goal_latent: o.goal_latent,
             device: o.device,
+            precision: o.precision,
             decode_frames: o.decode_frames,
             width: 96,
             height: 64,
@@ -107,6 +108,13 @@ pub struct PlanReportOptions {
     pub goal_latent: GoalLatent,
     /// The device of the diffusion models.
     pub device: ComputeDevice,
+    /// Precision of the diffusion models.
+    pub precision: Precision,
+    /// BridgeV2W weights the trained model plans with instead of its
+    /// folder's `bridgev2w.safetensors` (e.g. `bridgev2w-plan.safetensors`,
+    /// trained on the clips planning predicts); the policy evaluation keeps
+    /// the folder's.
+    pub plan_weights: Option<PathBuf>,
     /// Frames of each clip the planning models predict (`None`: the
     /// model's own); policy evaluation keeps the model's own.
     pub plan_clip_frames: Option<usize>,
@@ -199,6 +207,25 @@ pub fn plan_report(
             "expected perfect or trained among them (random only evaluates policies; --trials 0 plans nothing)",
         ));
     }
+    if let Some(w) = &o.plan_weights {
+        let what = format!("--plan-weights {}", w.display());
+        if !planners
+            .iter()
+            .any(|(m, _)| matches!(m, ReportModel::Trained(_)))
+            || o.trials == 0
+        {
+            return Err(PlanError::input(
+                what,
+                "only a trained model that plans takes planning weights (name `trained` in --models, with --trials of at least 1)",
+            ));
+        }
+        if !w.is_file() {
+            return Err(PlanError::input(
+                what,
+                "expected a BridgeV2W weights file (ControlNet + LoRA safetensors), as assets/demo-model/bridgev2w-plan.safetensors",
+            ));
+        }
+    }
     let mut md = String::from(if o.trials > 0 {
         "## Goal-image planning and policy evaluation in the synthetic world"
     } else {
@@ -210,8 +237,12 @@ pub fn plan_report(
     }
     md += "\n\n";
     md += &format!(
-        "Produced by `{command}` (diffusion models on `{}`). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; each table names the world model that plans or rolls policies out.\n\n",
+        "Produced by `{command}` (diffusion models on `{}`{}). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; each table names the world model that plans or rolls policies out.\n\n",
         o.device,
+        match o.precision {
+            Precision::F32 => "",
+            Precision::Bf16 => " in bfloat16",
+        },
         96,
         64
     );
@@ -303,11 +334,16 @@ fn plan_tables(
             "; planned and random moves stop where the TCP would come within {f} of the image's smaller side of its edges (kept in the camera's view)"
         ))
     );
-    // The planners' model options: the report's, with the planning clip.
+    // The planners' model options: the report's, with the planning clip
+    // and, for a trained model, the planning weights.
     let planning: Vec<ModelOptions> = planners
         .iter()
-        .map(|(_, options)| ModelOptions {
+        .map(|(model, options)| ModelOptions {
             clip_frames: o.plan_clip_frames,
+            weights: match (model, &o.plan_weights) {
+                (ReportModel::Trained(_), Some(w)) => Some(w.clone()),
+                _ => options.weights.clone(),
+            },
             ..options.clone()
         })
         .collect();
@@ -329,10 +365,11 @@ fn plan_tables(
             };
             let cfg = po.mpc_config()?;
             let s = plan_with(loaded, &po, &cfg, progress)?;
+            let label = planner_label(planner, o.plan_weights.as_deref());
             md += &format!(
                 "| {} | {} | {}/{} | {}/{} | {:.1} | {:.1} | {:.1} | {:.0} |\n",
                 task.name(),
-                planner.label(),
+                label,
                 s.planned,
                 s.trials,
                 s.random,
@@ -342,10 +379,23 @@ fn plan_tables(
                 s.planned_steps,
                 s.seconds
             );
-            summaries.push((planner.label(), s));
+            summaries.push((label, s));
         }
     }
     Ok(md)
+}
+
+/// A planning model's name in the tables: its label, with the planning
+/// weights of a trained model when they are not its folder's.
+fn planner_label(model: &ReportModel, plan_weights: Option<&std::path::Path>) -> String {
+    match (model, plan_weights) {
+        (ReportModel::Trained(dir), Some(w)) => format!(
+            "trained (`{}`, planning weights `{}`)",
+            dir.display(),
+            w.display()
+        ),
+        _ => model.label(),
+    }
 }
 
 /// A diffusion model's departures from the defaults: `, strength S` when
