@@ -664,17 +664,15 @@ fn plan_report_plan_weights_are_the_planners() {
         ("trained", &missing, "expected a BridgeV2W weights file"),
         ("perfect", &broken, "only a trained model that plans"),
     ] {
+        let trained = match models {
+            "trained" => format!("--trained {}", model.display()),
+            _ => String::new(),
+        };
         let line = format!(
-            "plan-report {common} --models {models} --trained {} --plan-weights {} --out {}",
-            model.display(),
+            "plan-report {common} --models {models} {trained} --plan-weights {} --out {}",
             weights.display(),
             md.display()
         );
-        let line = if models == "perfect" {
-            line.replace(&format!("--trained {} ", model.display()), "")
-        } else {
-            line
-        };
         let out = run(&line.split_whitespace().collect::<Vec<_>>());
         let e = stderr(&out);
         assert!(!out.status.success() && e.contains(want), "{line}: {e}");
