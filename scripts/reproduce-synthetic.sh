@@ -382,6 +382,8 @@ PRE="$OUT/preamble.md"
         echo "Both methods' predictions keep the static scene (\`--keep-static $KEEP_STATIC\`, a sampler option beyond the paper): outside the region the robot's masks have swept in frames 0..t (dilated by $KEEP_STATIC px), frame t is the first frame; the row *every pixel generated* is BridgeV2W without it."
     fi
     echo
+    echo "Wall time of the run that finished each stage: a stage resumed after a cut counts from its resume, and the machine's other work at the time is in it."
+    echo
     echo "| stage | wall time (s) |"
     echo "|---|---|"
     awk -F'\t' '{printf "| %s | %s |\n", $1, $2}' "$LOG"
