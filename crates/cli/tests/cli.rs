@@ -737,6 +737,39 @@ fn plan_report_models_and_section() {
         "{text}"
     );
     assert!(text.contains("<!-- section: planning-small -->"), "{text}");
+    // --eval-trials 0: the planning alone (no policy table, no policy figure).
+    let out = words(&format!(
+        "plan-report --models perfect --section plans --tasks reach --trials 1 \
+         --samples 4 --elites 2 --iters 1 --max-steps 1 --waypoints 0 --eval-trials 0 --out {}",
+        md.display()
+    ));
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&md).expect("plan-report test");
+    let plans = text
+        .split("<!-- section: plans -->")
+        .nth(1)
+        .and_then(|s| s.split("<!-- end section: plans -->").next())
+        .expect("the plans section");
+    assert!(
+        plans.contains("## Goal-image planning in the synthetic world: perfect")
+            && plans.contains("| reach | perfect | ")
+            && !plans.contains("Policy evaluation")
+            && !plans.contains("plans-policy-evaluation.png"),
+        "{plans}"
+    );
+    assert!(!tmp
+        .path()
+        .join("results/figures/plans-policy-evaluation.png")
+        .exists());
+    let out = words(&format!(
+        "plan-report --models perfect --trials 0 --eval-trials 0 --out {}",
+        md.display()
+    ));
+    let e = stderr(&out);
+    assert!(
+        !out.status.success() && e.contains("nothing to report"),
+        "{e}"
+    );
     for (line, want) in [
         ("--models trained", "needs --trained"),
         ("--models perfect,fly", "unknown model \"fly\""),

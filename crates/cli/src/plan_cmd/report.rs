@@ -20,7 +20,8 @@ pub struct PlanReportArgs {
     /// Planning trials per task (0: no planning, only the policy evaluation).
     #[arg(long, default_value_t = 20)]
     pub trials: usize,
-    /// Policy-evaluation trials per policy.
+    /// Policy-evaluation trials per policy (0: no policy evaluation, only
+    /// the planning).
     #[arg(long, default_value_t = 10)]
     pub eval_trials: usize,
     #[command(flatten)]

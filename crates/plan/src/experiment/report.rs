@@ -6,6 +6,7 @@ use super::rollout::{rollout_with, RolloutOptions};
 use super::{LoadedModel, ModelOptions};
 use crate::choice::PlanModel;
 use crate::goal_latent::GoalLatent;
+use crate::policy::PolicyEvalReport;
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::Task;
 use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
@@ -78,7 +79,8 @@ impl ReportModel {
 pub struct PlanReportOptions {
     /// Planning trials per task (0: no planning, only the policy evaluation).
     pub trials: usize,
-    /// Policy-evaluation trials per policy.
+    /// Policy-evaluation trials per policy (0: no policy evaluation, only
+    /// the planning).
     pub eval_trials: usize,
     /// The CEM sizes.
     pub cem: CemSizes,
@@ -191,6 +193,12 @@ pub fn plan_report(
             bridgev2w_io::sections::SECTION_NAME_EXPECTED,
         ));
     }
+    if o.trials == 0 && o.eval_trials == 0 {
+        return Err(PlanError::input(
+            "--trials 0 --eval-trials 0",
+            "nothing to report: expected planning trials, policy-evaluation trials or both",
+        ));
+    }
     // Resolved once, up front: a bad folder fails before hours of planning.
     let models = o
         .models
@@ -226,10 +234,10 @@ pub fn plan_report(
             ));
         }
     }
-    let mut md = String::from(if o.trials > 0 {
-        "## Goal-image planning and policy evaluation in the synthetic world"
-    } else {
-        "## Policy evaluation in the synthetic world"
+    let mut md = String::from(match (o.trials > 0, o.eval_trials > 0) {
+        (true, true) => "## Goal-image planning and policy evaluation in the synthetic world",
+        (true, false) => "## Goal-image planning in the synthetic world",
+        (false, _) => "## Policy evaluation in the synthetic world",
     });
     if o.section != "planning" {
         let names: Vec<String> = models.iter().map(|(m, _)| m.label()).collect();
@@ -251,20 +259,35 @@ pub fn plan_report(
         md += &plan_tables(o, &planners, progress, &mut plans)?;
     }
     let mut evals = Vec::new();
-    md += &format!(
+    if o.eval_trials > 0 {
+        md += &policy_evaluation(o, &models, progress, &mut evals)?;
+    }
+    if let Some(results) = &o.results {
+        md += &super::report_figures::figures_section(results, &o.section, &plans, &evals)?;
+    }
+    Ok(md)
+}
+
+/// The policy-evaluation part of the report: every model rolls the
+/// scripted policies out (each model's report also pushed to `evals`, with
+/// its label).
+fn policy_evaluation(
+    o: &PlanReportOptions,
+    models: &[(ReportModel, ModelOptions)],
+    progress: &mut dyn FnMut(&str),
+    evals: &mut Vec<(String, PolicyEvalReport)>,
+) -> Result<String> {
+    let mut md = format!(
         "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). World-model goal progress: the mean over trials of (d_start - d_last) / max(d_start, d_last) for those latent distances (1: at the goal, 0: no nearer, negative: farther); it ranks policies even when no rollout succeeds. Synthetic-world success: the task's state check.\n",
         o.eval_trials
     );
-    for (model, options) in &models {
+    for (model, options) in models {
         let ro = RolloutOptions {
             trials: o.eval_trials,
             model: options.clone(),
             seed: o.seed,
             ..RolloutOptions::new(Task::PickPlace)
         };
-        if ro.trials == 0 {
-            return Err(PlanError::input("--eval-trials", "must be at least 1"));
-        }
         let loaded = LoadedModel::load(options)?;
         let r = rollout_with(&loaded, &ro, progress)?;
         evals.push((model.label(), r.clone()));
@@ -287,9 +310,6 @@ pub fn plan_report(
             },
             r.markdown()
         );
-    }
-    if let Some(results) = &o.results {
-        md += &super::report_figures::figures_section(results, &o.section, &plans, &evals)?;
     }
     Ok(md)
 }
