@@ -377,6 +377,7 @@ PRE="$OUT/preamble.md"
     echo "action-free I2V prior (4 layers, $([[ $PRESET == small2x-wide ]] && echo 8 || echo 4) heads x 32, patches of $([[ $PRESET == small2x* ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; then the VAE's decoder alone $DECODER_STEPS more steps on clips (encoder and latents unchanged; every model below is scored with it); BridgeV2W (ControlNet of 2 blocks + LoRA rank 64$([[ $MASK_CODING == links ]] && echo ', link-coded masks: `model.mask_coding = "links"`'))"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
     echo "batch 4, diffusion + dynamics (K = 4, 0.1) + flow (0.05 after 5 epochs; flow estimator: the differentiable Lucas-Kanade stand-in, no RAFT weights here)."
+    echo "The planning model (stage \`bridgev2w-short\`, exported as \`bridgev2w-plan.safetensors\`): BridgeV2W continued $SHORT_STEPS steps on 3-frame clips (batch 8, flow loss from the start) for \`plan --weights\`; it is not scored here."
     echo "Each method is scored on the first clip of the first $EVAL_VIDEOS episodes of each split."
     if [[ -n $KEEP_STATIC ]]; then
         echo "Both methods' predictions keep the static scene (\`--keep-static $KEEP_STATIC\`, a sampler option beyond the paper): outside the region the robot's masks have swept in frames 0..t (dilated by $KEEP_STATIC px), frame t is the first frame; the row *every pixel generated* is BridgeV2W without it."

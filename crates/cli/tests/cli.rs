@@ -615,7 +615,7 @@ fn plan_report_with_the_shipped_trained_model() {
     let line = format!(
         "plan-report --tasks reach --trials 1 --samples 4 --elites 2 --iters 1 --max-steps 1 \
          --waypoints 0 --eval-trials 1 --denoise-steps 1 --plan-clip-frames 3 --trained {} \
-         --plan-weights {} --out {}",
+         --plan-weights {} --section planning-shipped --out {}",
         model.display(),
         model.join("bridgev2w.safetensors").display(),
         md.display()
@@ -623,6 +623,15 @@ fn plan_report_with_the_shipped_trained_model() {
     let out = run(&line.split_whitespace().collect::<Vec<_>>());
     assert!(out.status.success(), "{}", stderr(&out));
     let text = std::fs::read_to_string(&md).expect("plan-report test");
+    // The heading names the planning weights too, as the table does.
+    let heading = text
+        .lines()
+        .find(|l| l.starts_with("## "))
+        .expect("a heading");
+    assert!(
+        heading.contains(": perfect, trained (`") && heading.contains("`, planning weights `"),
+        "{heading}"
+    );
     assert!(text.contains("| reach | perfect | "), "{text}");
     assert!(
         text.contains("| reach | trained (`") && text.contains("`, planning weights `"),

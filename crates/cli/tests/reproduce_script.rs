@@ -138,6 +138,13 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
         trained(&run(r, &[("SHORT_STEPS", "500")])),
         ["bridgev2w-short --resume"]
     );
+    // The results' preamble describes the planning stage with its budget.
+    let preamble = fs::read_to_string(r.join("runs/r/preamble.md")).expect("preamble");
+    assert!(
+        preamble.contains("(stage `bridgev2w-short`")
+            && preamble.contains("continued 500 steps on 3-frame clips"),
+        "{preamble}"
+    );
     // Back to the default, smaller budget: it starts over.
     assert_eq!(trained(&run(r, &[])), ["bridgev2w-short"]);
     // BridgeV2W with the static scene kept (the default KEEP_STATIC=0) and

@@ -240,7 +240,15 @@ pub fn plan_report(
         (false, _) => "## Policy evaluation in the synthetic world",
     });
     if o.section != "planning" {
-        let names: Vec<String> = models.iter().map(|(m, _)| m.label()).collect();
+        // A trained model that plans with other weights is named with them,
+        // as in the planning table.
+        let names: Vec<String> = models
+            .iter()
+            .map(|(m, _)| match o.trials {
+                0 => m.label(),
+                _ => planner_label(m, o.plan_weights.as_deref()),
+            })
+            .collect();
         md += &format!(": {}", names.join(", "));
     }
     md += "\n\n";
