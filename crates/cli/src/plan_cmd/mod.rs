@@ -48,31 +48,8 @@ pub struct ModelArgs {
     /// The fixed prompt's T5 embedding for a model folder.
     #[arg(long)]
     pub prompt_embeds: Option<PathBuf>,
-    /// Denoising steps of a diffusion model.
-    #[arg(long, default_value_t = 4)]
-    pub denoise_steps: usize,
-    /// How a diffusion model draws the noise of a batch of candidates:
-    /// `shared` (common random numbers: candidates differ by their actions
-    /// alone) or `independent`.
-    #[arg(long, default_value = "shared")]
-    pub batch_noise: BatchNoise,
-    /// Where a diffusion model's sampling starts, in (0, 1]: 1 from pure
-    /// noise; s < 1 from the first frame's latent in every frame, noised to
-    /// the level a fraction s from the end (only the last ceil(s * steps)
-    /// denoising steps run).
-    #[arg(long, default_value_t = 1.0)]
-    pub strength: f64,
-    /// Keep the static scene of a diffusion model's predictions (beyond the
-    /// paper): outside the region the candidate's masks have swept so far,
-    /// dilated by this many pixels, each frame is the first frame.
-    #[arg(long, value_name = "MARGIN_PX")]
-    pub keep_static: Option<u32>,
-    /// Where goal distances are measured: `model` (a diffusion model's VAE
-    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
-    /// perfect model's latent: it keeps growing with the arm's displacement
-    /// where a fine latent is flat; beyond the paper).
-    #[arg(long, default_value = "model")]
-    pub goal_latent: GoalLatent,
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
     /// cpu, cuda, cuda:N or auto.
     #[arg(long, default_value = "auto")]
     pub device: ComputeDevice,
@@ -105,17 +82,48 @@ pub struct ModelArgs {
     pub decode_frames: DecodeFrames,
 }
 
+/// How a diffusion model samples and how goal distances are measured,
+/// shared by the planning commands.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SamplingArgs {
+    /// Denoising steps of a diffusion model.
+    #[arg(long, default_value_t = 4)]
+    pub denoise_steps: usize,
+    /// How a diffusion model draws the noise of a batch of candidates:
+    /// `shared` (common random numbers: candidates differ by their actions
+    /// alone) or `independent`.
+    #[arg(long, default_value = "shared")]
+    pub batch_noise: BatchNoise,
+    /// Where a diffusion model's sampling starts, in (0, 1]: 1 from pure
+    /// noise; s < 1 from the first frame's latent in every frame, noised to
+    /// the level a fraction s from the end (only the last ceil(s * steps)
+    /// denoising steps run).
+    #[arg(long, default_value_t = 1.0)]
+    pub strength: f64,
+    /// Keep the static scene of a diffusion model's predictions (beyond the
+    /// paper): outside the region the candidate's masks have swept so far,
+    /// dilated by this many pixels, each frame is the first frame.
+    #[arg(long, value_name = "MARGIN_PX")]
+    pub keep_static: Option<u32>,
+    /// Where goal distances are measured: `model` (a diffusion model's VAE
+    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
+    /// perfect model's latent: it keeps growing with the arm's displacement
+    /// where a fine latent is flat; beyond the paper).
+    #[arg(long, default_value = "model")]
+    pub goal_latent: GoalLatent,
+}
+
 impl From<&ModelArgs> for ModelOptions {
     fn from(a: &ModelArgs) -> Self {
         Self {
             model: a.model.clone(),
             weights: a.weights.clone(),
             prompt_embeds: a.prompt_embeds.clone(),
-            denoise_steps: a.denoise_steps,
-            batch_noise: a.batch_noise,
-            strength: a.strength,
-            keep_static_margin_px: a.keep_static,
-            goal_latent: a.goal_latent,
+            denoise_steps: a.sampling.denoise_steps,
+            batch_noise: a.sampling.batch_noise,
+            strength: a.sampling.strength,
+            keep_static_margin_px: a.sampling.keep_static,
+            goal_latent: a.sampling.goal_latent,
             device: a.device,
             precision: a.precision,
             max_batch: a.max_batch,

@@ -1,13 +1,12 @@
 //! `bridgev2w plan-report`: planning on all tasks and the policy
 //! evaluation, written as one section of docs/results.md.
 
-use super::{parse_task, progress, CemArgs, GoalArgs};
+use super::{parse_task, progress, CemArgs, GoalArgs, SamplingArgs};
 use anyhow::Result;
 use bridgev2w_data::synth::Task;
 use bridgev2w_plan::experiment::report::report_models;
 use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
-use bridgev2w_plan::goal_latent::GoalLatent;
-use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
+use bridgev2w_world_model::pipeline::DecodeFrames;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -65,29 +64,8 @@ pub struct PlanReportArgs {
     /// evaluation keeps the folder's weights.
     #[arg(long, value_name = "FILE")]
     pub plan_weights: Option<PathBuf>,
-    /// Denoising steps of the diffusion models' predictions.
-    #[arg(long, default_value_t = 4)]
-    pub denoise_steps: usize,
-    /// How the diffusion models draw the noise of a batch of candidates:
-    /// `shared` (common random numbers) or `independent`.
-    #[arg(long, default_value = "shared")]
-    pub batch_noise: BatchNoise,
-    /// Where the diffusion models' sampling starts, in (0, 1]: 1 from pure
-    /// noise; s < 1 from the noised first frame (the last ceil(s * steps)
-    /// denoising steps run).
-    #[arg(long, default_value_t = 1.0)]
-    pub strength: f64,
-    /// Keep the static scene of the diffusion models' predictions (beyond
-    /// the paper): outside the region the masks have swept so far, dilated
-    /// by this many pixels, each frame is the first frame.
-    #[arg(long, value_name = "MARGIN_PX")]
-    pub keep_static: Option<u32>,
-    /// Where goal distances are measured: `model` (a diffusion model's VAE
-    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
-    /// perfect model's latent: it keeps growing with the arm's displacement
-    /// where a fine latent is flat; beyond the paper).
-    #[arg(long, default_value = "model")]
-    pub goal_latent: GoalLatent,
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
@@ -132,11 +110,11 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
             a.trained.as_deref(),
         )?,
         section: a.section.clone(),
-        denoise_steps: a.denoise_steps,
-        batch_noise: a.batch_noise,
-        strength: a.strength,
-        keep_static_margin_px: a.keep_static,
-        goal_latent: a.goal_latent,
+        denoise_steps: a.sampling.denoise_steps,
+        batch_noise: a.sampling.batch_noise,
+        strength: a.sampling.strength,
+        keep_static_margin_px: a.sampling.keep_static,
+        goal_latent: a.sampling.goal_latent,
         device: a.device,
         precision: a.precision,
         plan_weights: a.plan_weights.clone(),
