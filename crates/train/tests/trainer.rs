@@ -11,7 +11,7 @@ mod common;
 
 use bridgev2w_train::trainer::{resolve_checkpoint, Trainer};
 use bridgev2w_train::TrainError;
-use common::{config, controlnet_grad_sum, lock, tensors};
+use common::{config, controlnet_grad_sum, grad_abs_sum, lock, tensors};
 use std::path::Path;
 use tch::Kind;
 
@@ -324,20 +324,7 @@ fn action_mlp_ablation_trains_the_action_encoder() {
     t.opt.zero_grad();
     let l = t.losses(&batch, 0).unwrap();
     l.total.backward();
-    let g: f64 = t
-        .opt
-        .params()
-        .iter()
-        .filter(|(n, _)| n.starts_with("action."))
-        .map(|(_, p)| {
-            let g = p.grad();
-            if g.defined() {
-                g.abs().sum(Kind::Double).double_value(&[])
-            } else {
-                0.0
-            }
-        })
-        .sum();
+    let g = grad_abs_sum(&t, "action.");
     assert!(g > 0.0, "the action MLP gets no gradient");
     let m = t.train_step().unwrap();
     assert!(m.loss.is_finite());

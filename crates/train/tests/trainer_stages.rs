@@ -121,14 +121,16 @@ fn calc_and_seg_mask_sources_and_mixing() {
             .unwrap();
         }
     }
-    let segd = ClipDataset::open_sources(
-        &[spec(MaskKind::Seg { dir: seg.clone() }, 1.0)],
-        9,
-        64,
-        96,
-        1,
-    )
-    .unwrap();
+    let open_seg = || {
+        ClipDataset::open_sources(
+            &[spec(MaskKind::Seg { dir: seg.clone() }, 1.0)],
+            9,
+            64,
+            96,
+            1,
+        )
+    };
+    let segd = open_seg().unwrap();
     for (a, b) in segd.episodes.iter().zip(&reference.episodes) {
         let (ma, mb) = (a.masks.as_ref().unwrap(), b.masks.as_ref().unwrap());
         // seg masks are 0/1; the reference holds the synthetic link labels.
@@ -149,14 +151,7 @@ fn calc_and_seg_mask_sources_and_mixing() {
         reference.episodes[0].index
     )))
     .unwrap();
-    let err = ClipDataset::open_sources(
-        &[spec(MaskKind::Seg { dir: seg.clone() }, 1.0)],
-        9,
-        64,
-        96,
-        1,
-    )
-    .unwrap_err();
+    let err = open_seg().unwrap_err();
     assert!(
         err.to_string().contains("11 PNG masks for 12 video frames"),
         "{err}"

@@ -71,12 +71,13 @@ pub fn tensors(path: &Path) -> Vec<(String, Vec<f64>)> {
     t
 }
 
-/// The summed absolute gradient of the ControlNet branch's parameters.
-pub fn controlnet_grad_sum(t: &Trainer) -> f64 {
+/// The summed absolute gradient of the parameters whose names start with
+/// `prefix` (0 for those without a gradient).
+pub fn grad_abs_sum(t: &Trainer, prefix: &str) -> f64 {
     t.opt
         .params()
         .iter()
-        .filter(|(n, _)| n.starts_with("adapters.controlnet."))
+        .filter(|(n, _)| n.starts_with(prefix))
         .map(|(_, p)| {
             let g = p.grad();
             if g.defined() {
@@ -86,4 +87,9 @@ pub fn controlnet_grad_sum(t: &Trainer) -> f64 {
             }
         })
         .sum()
+}
+
+/// The summed absolute gradient of the ControlNet branch's parameters.
+pub fn controlnet_grad_sum(t: &Trainer) -> f64 {
+    grad_abs_sum(t, "adapters.controlnet.")
 }
