@@ -4,6 +4,7 @@
 //!
 //! * `csrc/torch_ext.cpp`: autocast;
 //! * `csrc/cpu_cache.cpp`: a caching CPU allocator;
+//! * `csrc/onednn_linear.cpp`: oneDNN's inference linear layer;
 //! * `csrc/c10d.cpp`: c10d's TCPStore and Gloo process group. The PyPI wheel
 //!   ships no gloo headers (ProcessGroupGloo.hpp includes them, for pointer
 //!   types only): they are looked for in `BRIDGEV2W_GLOO_INCLUDE`, libtorch's
@@ -42,6 +43,7 @@ fn main() {
     for f in [
         "csrc/torch_ext.cpp",
         "csrc/cpu_cache.cpp",
+        "csrc/onednn_linear.cpp",
         "csrc/c10d.cpp",
         "csrc/c10d_nccl.cpp",
         "csrc/c10d_shim.h",
@@ -65,6 +67,7 @@ fn main() {
     build
         .file("csrc/torch_ext.cpp")
         .file("csrc/cpu_cache.cpp")
+        .file("csrc/onednn_linear.cpp")
         .file("csrc/c10d.cpp");
     match gloo_include(&real_root) {
         Some(dir) => {

@@ -2,13 +2,17 @@
 """Where diffusers' CogVideoX spends a forward pass on this CPU: torch.profiler's
 table of ATen ops (self time) for one transformer forward, VAE encode or VAE
 decode at `bridgev2w bench model`'s default shapes (2B width, 8 blocks, 9 frames
-at 128x192), and the GEMM rate of the feed-forward's shape.
+at 128x192), the GEMM rate of the feed-forward's shape, and (`linear`) one
+block's products through libtorch's `linear` (as diffusers runs them) against
+oneDNN's linear layer on a weight packed once, GELU fused (as this crate runs
+them on the CPU outside autograd, `world_model::cpu_linear`).
 
 The same libtorch kernels run under this crate's model, so the table says what
 any implementation at these shapes is made of (docs/benchmarks.md).
 
     .venv/bin/python scripts/bench/profile_diffusers.py transformer --dtype f32
     .venv/bin/python scripts/bench/profile_diffusers.py decode --dtype bf16
+    .venv/bin/python scripts/bench/profile_diffusers.py linear --dtype f32
 """
 
 import argparse
@@ -18,7 +22,7 @@ import time
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm"])
+    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "linear"])
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rows", type=int, default=12, help="ops in the table")
@@ -43,6 +47,9 @@ def main() -> int:
         s = (time.perf_counter() - t0) / n
         print(f"gemm 514x1920x7680 {args.dtype}: {s * 1e3:.1f} ms, {2 * 514 * 1920 * 7680 / s / 1e9:.0f} GFLOP/s")
         return 0
+
+    if args.part == "linear":
+        return linear_kernels(torch, dtype, args.dtype)
 
     if args.part == "transformer":
         from diffusers import CogVideoXTransformer3DModel
@@ -78,6 +85,46 @@ def main() -> int:
         with torch.profiler.profile() as prof:
             run()
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows))
+    return 0
+
+
+def linear_kernels(torch, dtype, name) -> int:
+    """One 2B block's products at 514 tokens (226 text + 288 video): libtorch's
+    linear (then GELU) vs oneDNN on a packed weight (GELU fused), median of 20."""
+    F = torch.nn.functional
+    pointwise = torch.ops.mkldnn._linear_pointwise
+    pack = torch.ops.mkldnn._reorder_linear_weight
+
+    def median_s(fn, n=20):
+        fn()
+        fn()
+        times = []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return sorted(times)[n // 2]
+
+    rows, d = 514, 1920
+    shapes = [("q, k, v, out (each)", d, d, 4, False), ("ff.net.0 + GELU", d, 4 * d, 1, True),
+              ("ff.net.2", 4 * d, d, 1, False)]
+    total_aten = total_onednn = 0.0
+    print(f"{name}, {rows} rows: libtorch linear vs oneDNN packed (ms)")
+    for label, k, n, count, gelu in shapes:
+        x = torch.randn(rows, k, dtype=dtype)
+        w = (torch.randn(n, k) * 0.02).to(dtype)
+        b = torch.randn(n).to(dtype)
+        packed = pack(w, None)
+        if gelu:
+            aten = median_s(lambda: F.gelu(F.linear(x, w, b), approximate="tanh"))
+            onednn = median_s(lambda: pointwise(x, packed, b, "gelu", [], "tanh"))
+        else:
+            aten = median_s(lambda: F.linear(x, w, b))
+            onednn = median_s(lambda: pointwise(x, packed, b, "none", [], ""))
+        total_aten += count * aten
+        total_onednn += count * onednn
+        print(f"  {label:<22} {aten * 1e3:8.2f} {onednn * 1e3:8.2f}  {aten / onednn:.2f}x")
+    print(f"  {'one block':<22} {total_aten * 1e3:8.2f} {total_onednn * 1e3:8.2f}  {total_aten / total_onednn:.2f}x")
     return 0
 
 

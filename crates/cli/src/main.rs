@@ -92,6 +92,9 @@ fn main() -> Result<()> {
     // run widened to f32 (several times faster there; docs/benchmarks.md):
     // BRIDGEV2W_CPU_BF16=auto|native|f32, default auto.
     bridgev2w_world_model::cpu_bf16::init_from_env()?;
+    // f32 linear layers outside autograd run on oneDNN with weights packed
+    // once (docs/benchmarks.md): BRIDGEV2W_CPU_LINEAR=auto|onednn|aten.
+    bridgev2w_world_model::cpu_linear::init_from_env()?;
     let cli = Cli::parse();
     match cli.command {
         Command::Masks(a) => masks_cmd::run(&a),

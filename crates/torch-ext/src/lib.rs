@@ -10,10 +10,13 @@
 //!   training.
 //! * [`cpu_cache`]: a caching CPU allocator for libtorch (freed blocks
 //!   reused instead of returned to the kernel and page-faulted in again).
+//! * [`onednn`]: oneDNN's inference linear layer (prepacked weights, a
+//!   fused tanh GELU), which libtorch registers but tch does not expose.
 
 pub mod autocast;
 pub mod c10d;
 pub mod cpu_cache;
+pub mod onednn;
 
 pub use autocast::{autocast, AutocastDevice, AutocastDtype, AutocastGuard};
 
@@ -26,6 +29,9 @@ pub enum TorchExtError {
     /// A c10d store or collective failed (the C++ exception's message).
     #[error("c10d: {0}")]
     C10d(String),
+    /// A oneDNN op failed (the C++ exception's message).
+    #[error("{0}")]
+    OneDnn(String),
 }
 
 /// Result of this crate.

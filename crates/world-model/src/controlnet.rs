@@ -95,7 +95,7 @@ pub struct ControlNet {
     /// latents ++ image latents).
     pub patch_embed: PatchEmbed,
     blocks: Vec<CogVideoXBlock>,
-    out_projectors: Vec<crate::cpu_bf16::Linear>,
+    out_projectors: Vec<crate::cpu_linear::Linear>,
 }
 
 impl ControlNet {
@@ -119,7 +119,9 @@ impl ControlNet {
             nn::LinearConfig::default()
         };
         let out_projectors = (0..cfg.num_layers)
-            .map(|i| crate::cpu_bf16::Linear(nn::linear(p / "out_projectors" / i, d, d, proj_cfg)))
+            .map(|i| {
+                crate::cpu_linear::Linear::new(nn::linear(p / "out_projectors" / i, d, d, proj_cfg))
+            })
             .collect();
         Ok(Self {
             cfg: cfg.clone(),
@@ -196,7 +198,14 @@ impl ControlNet {
         let n = tokens.size()[1] - l;
         let (mut video, mut text) = (tokens.narrow(1, l, n), tokens.narrow(1, 0, l));
         let mut out = Vec::with_capacity(self.blocks.len());
+        let last = self.blocks.len().saturating_sub(1);
         for (i, (block, proj)) in self.blocks.iter().zip(&self.out_projectors).enumerate() {
+            if i == last {
+                // Nothing reads the last block's text output: not computed.
+                let v = block.forward_video(&video, &text, temb, rotary);
+                out.push(proj.forward(&v) * self.cfg.scale(i));
+                break;
+            }
             let (v, t) = block.forward(&video, &text, temb, rotary);
             out.push(proj.forward(&v) * self.cfg.scale(i));
             video = v;

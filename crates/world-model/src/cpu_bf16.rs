@@ -21,7 +21,7 @@
 
 use crate::error::WorldModelError;
 use std::sync::atomic::{AtomicU8, Ordering};
-use tch::{nn, Device, Kind, TchError, Tensor};
+use tch::{Device, Kind, TchError, Tensor};
 
 /// The environment variable [`init_from_env`] reads.
 pub const ENV: &str = "BRIDGEV2W_CPU_BF16";
@@ -162,17 +162,6 @@ fn conv_widened<const N: usize>(
         run(&f32(x), &f32(weight), bias.map(f32).as_ref())?.f_to_kind(Kind::BFloat16)
     } else {
         run(x, weight, bias)
-    }
-}
-
-/// tch's [`nn::Linear`] (same parameters, `weight` and `bias`) whose forward
-/// goes through [`linear`].
-#[derive(Debug)]
-pub struct Linear(pub nn::Linear);
-
-impl nn::Module for Linear {
-    fn forward(&self, x: &Tensor) -> Tensor {
-        linear(x, &self.0.ws, self.0.bs.as_ref())
     }
 }
 

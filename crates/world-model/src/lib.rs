@@ -13,6 +13,7 @@ pub mod checkpoint;
 pub mod conditioning;
 pub mod controlnet;
 pub mod cpu_bf16;
+pub mod cpu_linear;
 pub mod device;
 pub mod error;
 pub mod hub;

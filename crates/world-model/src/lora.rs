@@ -104,6 +104,8 @@ pub struct LoraLinear {
     pub bias: Option<Tensor>,
     adapter: Option<LoraAdapter>,
     merged: bool,
+    /// `weight` packed for oneDNN (inference on the CPU in f32).
+    pack: crate::cpu_linear::PackedWeight,
 }
 
 impl LoraLinear {
@@ -133,6 +135,7 @@ impl LoraLinear {
             bias,
             adapter: None,
             merged: false,
+            pack: Default::default(),
         }
     }
 
@@ -185,7 +188,13 @@ impl LoraLinear {
 
     /// `x W^T + b (+ scale x A^T B^T)` for `x [..., in]`.
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        let y = crate::cpu_bf16::linear(x, &self.weight, self.bias.as_ref());
+        let y = crate::cpu_linear::linear(
+            x,
+            &self.weight,
+            self.bias.as_ref(),
+            &self.pack,
+            bridgev2w_torch_ext::onednn::PostOp::None,
+        );
         match (&self.adapter, self.merged) {
             (Some(a), false) => y + a.delta(x),
             _ => y,

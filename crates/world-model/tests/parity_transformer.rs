@@ -211,6 +211,45 @@ fn residual_hook_sees_every_block_and_zero_residuals_change_nothing() {
 }
 
 #[test]
+fn last_block_video_output_alone_equals_the_full_block() {
+    // The model runs its last block without the text tokens' queries and
+    // feed-forward (nothing reads that block's text output): the video
+    // output must be the full block's, with RoPE and with sin-cos positions.
+    for rope in [true, false] {
+        let mut cfg = TransformerConfig::tiny();
+        cfg.use_rotary_positional_embeddings = rope;
+        cfg.use_learned_positional_embeddings = false;
+        let vs = VarStore::new(Device::Cpu);
+        let model = CogVideoXTransformer3DModel::new(&cfg, &vs.root()).unwrap();
+        let (x, text, t) = tiny_inputs(&cfg, 2, 3);
+        let rot = model.rotary_for(&x).unwrap();
+        // Inputs of the last block, from the model's own hook.
+        let mut last_in = None;
+        let _ = model
+            .forward_with_residuals(&x, &text, &t, rot.as_ref(), None, &mut |i, v| {
+                if i == 0 {
+                    last_in = Some(v.shallow_clone());
+                }
+                None
+            })
+            .unwrap();
+        let video = last_in.unwrap();
+        let words = Tensor::randn(
+            [2, cfg.max_text_seq_length, cfg.inner_dim()],
+            (Kind::Float, Device::Cpu),
+        );
+        let temb = Tensor::randn([2, cfg.time_embed_dim], (Kind::Float, Device::Cpu));
+        let block = model.blocks().last().unwrap();
+        let (full, _) = block.forward(&video, &words, &temb, rot.as_ref());
+        let alone = block.forward_video(&video, &words, &temb, rot.as_ref());
+        let diff = f64::try_from((&full - &alone).abs().max()).unwrap();
+        let scale = f64::try_from(full.abs().max()).unwrap();
+        assert!(diff <= 1e-6 * scale, "rope {rope}: {diff} of {scale}");
+        assert_eq!(full.size(), alone.size());
+    }
+}
+
+#[test]
 fn errors_name_the_problem() {
     let cfg = TransformerConfig::tiny();
     let vs = VarStore::new(Device::Cpu);

@@ -124,6 +124,9 @@ pub struct ModelBenchReport {
     /// How this crate ran bf16 linear layers and convolutions (bf16 on the
     /// CPU only; diffusers always runs libtorch's own bf16 kernels).
     pub cpu_bf16: Option<crate::cpu_bf16::Bf16Compute>,
+    /// How this crate ran linear layers on the CPU (f32, or bf16 with
+    /// libtorch's bf16 kernels; diffusers runs libtorch's `linear`).
+    pub cpu_linear: Option<crate::cpu_linear::CpuLinear>,
 }
 
 impl fmt::Display for ModelBenchReport {
@@ -155,6 +158,21 @@ impl fmt::Display for ModelBenchReport {
                 f,
                 "bf16 linear layers and convolutions: {mode} on both sides ({})",
                 crate::cpu_bf16::ENV
+            )?,
+            None => {}
+        }
+        match self.cpu_linear {
+            Some(crate::cpu_linear::CpuLinear::OneDnn) => writeln!(
+                f,
+                "linear layers: bridgev2w runs them on oneDNN with weights packed at the \
+                 first forward (the warm-up) and the GELU fused ({}=aten for libtorch's \
+                 linear), diffusers on libtorch's linear",
+                crate::cpu_linear::ENV
+            )?,
+            Some(mode) => writeln!(
+                f,
+                "linear layers: libtorch's linear on both sides ({}={mode})",
+                crate::cpu_linear::ENV
             )?,
             None => {}
         }
@@ -295,6 +313,10 @@ pub fn bench_model(
         }),
         cpu_bf16: (a.precision == Precision::Bf16 && a.device == ComputeDevice::Cpu)
             .then(crate::cpu_bf16::mode),
+        cpu_linear: (a.device == ComputeDevice::Cpu
+            && (a.precision == Precision::F32
+                || crate::cpu_bf16::mode() == crate::cpu_bf16::Bf16Compute::Native))
+            .then(crate::cpu_linear::mode),
     })
 }
 
@@ -352,6 +374,7 @@ mod tests {
             diffusers: None,
             gpu_peak_mib: None,
             cpu_bf16: None,
+            cpu_linear: None,
         };
         let text = report.to_string();
         assert_eq!(text.lines().count(), 5, "{text}");
@@ -391,5 +414,19 @@ mod tests {
         );
         report.cpu_bf16 = Some(crate::cpu_bf16::Bf16Compute::Native);
         assert!(report.to_string().contains("native on both sides"));
+        // The CPU says which kernels ran the linear layers.
+        report.cpu_bf16 = None;
+        report.cpu_linear = Some(crate::cpu_linear::CpuLinear::OneDnn);
+        let text = report.to_string();
+        assert!(
+            text.lines()
+                .nth(1)
+                .is_some_and(|l| l.contains("on oneDNN with weights packed")),
+            "{text}"
+        );
+        report.cpu_linear = Some(crate::cpu_linear::CpuLinear::Aten);
+        assert!(report
+            .to_string()
+            .contains("libtorch's linear on both sides (BRIDGEV2W_CPU_LINEAR=aten)"));
     }
 }

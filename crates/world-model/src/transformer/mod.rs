@@ -239,8 +239,8 @@ impl CogVideoXTransformer3DModel {
         let emb =
             self.embed_checked(hidden_states, encoder_hidden_states, timestep, rotary, ofs)?;
         let (mut video, mut text) = (emb.video.shallow_clone(), emb.text.shallow_clone());
-        for (i, block) in self.blocks.iter().enumerate() {
-            let (v, t) = block.forward(&video, &text, &emb.temb, rotary);
+        for i in 0..self.blocks.len() {
+            let (v, t) = self.run_block(i, &video, &text, &emb.temb, rotary);
             video = match residual(i, &v) {
                 Some(r) => v + r,
                 None => v,
@@ -248,6 +248,28 @@ impl CogVideoXTransformer3DModel {
             text = t;
         }
         Ok(self.finish(&emb, &video))
+    }
+
+    /// Block `i`'s `(video, text)` outputs; the last block's text output,
+    /// which nothing reads, is not computed (an empty tensor stands for
+    /// it; see [`CogVideoXBlock::forward_video`]).
+    fn run_block(
+        &self,
+        i: usize,
+        video: &Tensor,
+        text: &Tensor,
+        temb: &Tensor,
+        rotary: Option<&Rotary>,
+    ) -> (Tensor, Tensor) {
+        let block = &self.blocks[i];
+        if i + 1 == self.blocks.len() {
+            (
+                block.forward_video(video, text, temb, rotary),
+                Tensor::new(),
+            )
+        } else {
+            block.forward(video, text, temb, rotary)
+        }
     }
 
     /// [`Self::embed`] after checking the rotary embedding: required for
@@ -316,8 +338,8 @@ impl CogVideoXTransformer3DModel {
             let emb =
                 self.embed_checked(hidden_states, encoder_hidden_states, timestep, rotary, ofs)?;
             let (mut video, mut text) = (emb.video.shallow_clone(), emb.text.shallow_clone());
-            for (i, block) in self.blocks.iter().enumerate() {
-                let (v, t) = block.forward(&video, &text, &emb.temb, rotary);
+            for i in 0..self.blocks.len() {
+                let (v, t) = self.run_block(i, &video, &text, &emb.temb, rotary);
                 block_inputs.push((video, text));
                 video = match residuals.get(i) {
                     Some(Some(r)) => v + r.detach(),
@@ -470,13 +492,7 @@ impl CheckpointedForward {
         let mut grad_video = video.grad();
         let mut grad_text: Option<Tensor> = None;
         let mut residual_terms = Vec::new();
-        for (i, (block, (video_in, text_in))) in model
-            .blocks
-            .iter()
-            .zip(&self.block_inputs)
-            .enumerate()
-            .rev()
-        {
+        for (i, (video_in, text_in)) in self.block_inputs.iter().enumerate().rev() {
             // After block i: video_{i+1} = v + r_i, text_{i+1} = t.
             if let Some(Some(r)) = self.residuals.get(i) {
                 if r.requires_grad() {
@@ -484,9 +500,9 @@ impl CheckpointedForward {
                 }
             }
             let (v_in, t_in) = (leaf(video_in), leaf(text_in));
-            let (v, t) = block.forward(&v_in, &t_in, &temb, self.rotary.as_ref());
+            let (v, t) = model.run_block(i, &v_in, &t_in, &temb, self.rotary.as_ref());
             let mut scalar = dot(&v, &grad_video);
-            if let Some(g) = &grad_text {
+            if let (Some(g), true) = (&grad_text, t.defined()) {
                 scalar += dot(&t, g);
             }
             scalar.backward();

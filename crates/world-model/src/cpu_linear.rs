@@ -1,0 +1,575 @@
+//! Linear layers on the CPU through oneDNN, with weights packed once.
+//!
+//! The transformer's time on the CPU is its matrix products (84% of a
+//! forward in diffusers' profile, `docs/benchmarks.md`). libtorch's
+//! `linear` runs them as MKL `sgemm` calls that repack the weight at every
+//! call; oneDNN's inference linear layer (the op torch.compile's CPU backend
+//! uses for frozen weights, [`bridgev2w_torch_ext::onednn`]) takes the
+//! weight reordered once into its blocked layout, and runs the tanh GELU
+//! after the feed-forward's first product inside the same kernel. On this
+//! project's 2-core AMD EPYC (Zen 4) the feed-forward's products ran 1.15x
+//! to 1.44x faster that way, and 1.09x to 1.21x in bf16
+//! (`docs/benchmarks.md`).
+//!
+//! The path is taken only where it computes what `linear` does: f32
+//! tensors on the CPU (or bf16 where libtorch's own bf16 kernels run: they
+//! are oneDNN's, without the packing), no gradient recorded
+//! (`tch::no_grad`: prediction, planning, evaluation; training keeps
+//! libtorch's differentiable `linear`), no CPU autocast region, and at
+//! least [`MIN_ROWS`] rows (a one-row product, the timestep modulation's,
+//! gains nothing from a packed copy). In f32 the results differ from MKL's
+//! in the order of summation only (about 1e-6 relative); in bf16 the fused
+//! GELU rounds once instead of twice.
+//!
+//! Packed weights live next to the layer ([`PackedWeight`]) and are made at
+//! the first call; a weight changed in place (an optimiser step, loading,
+//! a LoRA merge) or replaced is packed again. They double the memory of the
+//! layers they cover, so packing stops at a budget (half the memory
+//! available at the first pack, or [`set_pack_budget`]); beyond it oneDNN
+//! reorders the plain weight at each call instead, with the same result bit
+//! for bit. `BRIDGEV2W_CPU_LINEAR=aten|onednn|auto` chooses the path
+//! process-wide ([`init_from_env`], called by the binary at start-up).
+
+use crate::error::WorldModelError;
+use bridgev2w_torch_ext::onednn::{self, PostOp};
+use bridgev2w_torch_ext::{autocast, AutocastDevice};
+use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
+use std::sync::Mutex;
+use tch::{nn, Device, Kind, Tensor};
+
+/// The environment variable [`init_from_env`] reads.
+pub const ENV: &str = "BRIDGEV2W_CPU_LINEAR";
+
+/// Products with fewer rows than this stay on libtorch's `linear`.
+pub const MIN_ROWS: i64 = 32;
+
+/// Which kernels run linear layers on the CPU outside autograd.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CpuLinear {
+    /// `OneDnn` where libtorch registers oneDNN's linear ops, else `Aten`.
+    #[default]
+    Auto,
+    /// libtorch's `linear` (MKL `sgemm`), as diffusers runs.
+    Aten,
+    /// oneDNN's linear layer on packed weights, GELU fused.
+    OneDnn,
+}
+
+crate::named_enum!(CpuLinear, WorldModelError, WorldModelError::input, ENV, {
+    Auto => "auto",
+    Aten => "aten",
+    OneDnn => "onednn",
+});
+
+impl CpuLinear {
+    /// `Auto` decided for this libtorch (`Aten` or `OneDnn`).
+    pub fn resolve(self) -> Self {
+        match self {
+            Self::Auto if onednn::available() => Self::OneDnn,
+            Self::Auto => Self::Aten,
+            other => other,
+        }
+    }
+}
+
+// 0: not resolved yet; otherwise 1 + the resolved mode (Aten 1, OneDnn 2).
+static MODE: AtomicU8 = AtomicU8::new(0);
+
+/// Sets the process-wide mode (`OneDnn` falls back to `Aten` where libtorch
+/// lacks the ops).
+pub fn set(mode: CpuLinear) {
+    let code = match mode.resolve() {
+        CpuLinear::OneDnn if onednn::available() => 2,
+        _ => 1,
+    };
+    MODE.store(code, Ordering::Relaxed);
+}
+
+/// Sets the mode from [`ENV`] (unset: `Auto`) and returns it resolved; an
+/// unknown value is an error naming the variable, the value and the choices.
+pub fn init_from_env() -> Result<CpuLinear, WorldModelError> {
+    let mode = match std::env::var(ENV) {
+        Ok(v) => v.trim().parse()?,
+        Err(_) => CpuLinear::Auto,
+    };
+    set(mode);
+    Ok(self::mode())
+}
+
+/// The mode in effect (`Aten` or `OneDnn`).
+pub fn mode() -> CpuLinear {
+    match MODE.load(Ordering::Relaxed) {
+        1 => CpuLinear::Aten,
+        2 => CpuLinear::OneDnn,
+        _ => {
+            set(CpuLinear::Auto);
+            mode()
+        }
+    }
+}
+
+/// Bytes of packed weights alive and the most there may be.
+#[derive(Debug)]
+pub struct PackBudget {
+    used: AtomicU64,
+    // u64::MAX: not decided yet (set at the first pack from /proc/meminfo).
+    limit: AtomicU64,
+}
+
+impl PackBudget {
+    const fn undecided() -> Self {
+        Self {
+            used: AtomicU64::new(0),
+            limit: AtomicU64::new(u64::MAX),
+        }
+    }
+
+    /// Takes `bytes` if they fit.
+    fn reserve(&self, bytes: u64) -> bool {
+        if self.limit.load(Ordering::Relaxed) == u64::MAX {
+            // Another thread may decide first: keep whichever is stored.
+            let _ = self.limit.compare_exchange(
+                u64::MAX,
+                default_budget(),
+                Ordering::Relaxed,
+                Ordering::Relaxed,
+            );
+        }
+        let limit = self.limit.load(Ordering::Relaxed);
+        self.used
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |used| {
+                (used.saturating_add(bytes) <= limit).then_some(used + bytes)
+            })
+            .is_ok()
+    }
+
+    fn release(&self, bytes: u64) {
+        self.used.fetch_sub(bytes, Ordering::Relaxed);
+    }
+}
+
+/// The process's budget.
+static BUDGET: PackBudget = PackBudget::undecided();
+
+/// At most `bytes` of packed weights from now on (0: pack nothing more;
+/// layers beyond the budget run on their plain weights, with the same
+/// results).
+pub fn set_pack_budget(bytes: u64) {
+    BUDGET
+        .limit
+        .store(bytes.min(u64::MAX - 1), Ordering::Relaxed);
+}
+
+/// Bytes of packed weights alive in this process.
+pub fn packed_bytes() -> u64 {
+    BUDGET.used.load(Ordering::Relaxed)
+}
+
+/// Half of `MemAvailable` in `/proc/meminfo` (0 where it cannot be read).
+fn default_budget() -> u64 {
+    std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("MemAvailable:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        })
+        .map_or(0, |kib| kib * 1024 / 2)
+}
+
+/// A weight packed for oneDNN and what it was packed from.
+#[derive(Debug)]
+struct Pack {
+    /// The weight's data when packed (a detached alias: it keeps that
+    /// memory alive, so an equal data pointer means the same data, and it
+    /// shares the weight's version counter).
+    source: Tensor,
+    version: u64,
+    packed: Tensor,
+    bytes: u64,
+    budget: &'static PackBudget,
+}
+
+impl Drop for Pack {
+    fn drop(&mut self) {
+        self.budget.release(self.bytes);
+    }
+}
+
+/// A layer's packed weight, made at its first oneDNN call and remade when
+/// the weight changes.
+#[derive(Debug, Default)]
+pub struct PackedWeight(Mutex<Option<Pack>>);
+
+impl PackedWeight {
+    /// The packed `weight`, packing it now if needed; `None` beyond the
+    /// budget or if packing failed (the caller uses the plain weight).
+    fn get(&self, weight: &Tensor, budget: &'static PackBudget) -> Option<Tensor> {
+        let mut slot = self.0.lock().ok()?;
+        let version = onednn::tensor_version(weight);
+        if let Some(p) = slot.as_ref() {
+            if p.source.data_ptr() == weight.data_ptr()
+                && p.version == version
+                && p.source.size() == weight.size()
+                && p.source.kind() == weight.kind()
+            {
+                return Some(p.packed.shallow_clone());
+            }
+        }
+        *slot = None;
+        let bytes = (weight.numel() * weight.kind().elt_size_in_bytes()) as u64;
+        if !budget.reserve(bytes) {
+            return None;
+        }
+        match onednn::pack_linear_weight(weight) {
+            Ok(packed) => {
+                let out = packed.shallow_clone();
+                *slot = Some(Pack {
+                    source: weight.detach(),
+                    version,
+                    packed,
+                    bytes,
+                    budget,
+                });
+                Some(out)
+            }
+            Err(_) => {
+                budget.release(bytes);
+                None
+            }
+        }
+    }
+
+    /// Drops the packed copy (when the layer leaves the oneDNN path: a
+    /// conversion, training).
+    fn clear(&self) {
+        if let Ok(mut slot) = self.0.lock() {
+            if slot.is_some() {
+                *slot = None;
+            }
+        }
+    }
+}
+
+/// Where a call goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Route {
+    /// oneDNN.
+    OneDnn,
+    /// libtorch's `linear` for this call (too few rows, autocast): a packed
+    /// weight stays for the next call.
+    Aten,
+    /// libtorch's `linear`, and a packed weight is dropped: the weight is
+    /// not on the path (mode, dtype, device) or autograd records (training,
+    /// where the weights change at every step).
+    AtenDropPack,
+}
+
+/// Where `x W^T + b` runs in `mode` (see the module's conditions).
+fn route(mode: CpuLinear, x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Route {
+    // f32, or bf16 where libtorch's own bf16 kernels run (they are
+    // oneDNN's; a CPU without bf16 arithmetic widens instead).
+    let kind = weight.kind();
+    let kind_ok = kind == Kind::Float
+        || (kind == Kind::BFloat16
+            && crate::cpu_bf16::mode() == crate::cpu_bf16::Bf16Compute::Native);
+    let same = |t: &Tensor| t.kind() == kind && t.device() == Device::Cpu;
+    let weight_on_path = mode.resolve() == CpuLinear::OneDnn
+        && onednn::available()
+        && kind_ok
+        && same(weight)
+        && weight.dim() == 2;
+    if !weight_on_path || onednn::grad_mode_enabled() {
+        return Route::AtenDropPack;
+    }
+    let call_on_path = same(x)
+        && bias.is_none_or(same)
+        && x.dim() >= 2
+        && x.size().last() == weight.size().get(1)
+        && x.numel() as i64 / weight.size()[1].max(1) >= MIN_ROWS
+        && !autocast::is_enabled(AutocastDevice::Cpu).unwrap_or(true);
+    if call_on_path {
+        Route::OneDnn
+    } else {
+        Route::Aten
+    }
+}
+
+/// `x W^T + b` then `post_op` (`weight [out, in]`): on oneDNN with the
+/// packed weight in `pack` where the module's conditions hold, else
+/// libtorch's `linear` (bf16 widened as [`crate::cpu_bf16::linear`] does).
+pub fn linear(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    pack: &PackedWeight,
+    post_op: PostOp,
+) -> Tensor {
+    linear_in(mode(), &BUDGET, x, weight, bias, pack, post_op)
+}
+
+/// [`linear`] in `mode`, packing within `budget`.
+fn linear_in(
+    mode: CpuLinear,
+    budget: &'static PackBudget,
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    pack: &PackedWeight,
+    post_op: PostOp,
+) -> Tensor {
+    match route(mode, x, weight, bias) {
+        Route::OneDnn => {
+            let packed = pack.get(weight, budget);
+            let w = packed.as_ref().unwrap_or(weight);
+            if let Ok(y) = onednn::linear(x, w, bias, post_op) {
+                return y;
+            }
+        }
+        Route::Aten => {}
+        Route::AtenDropPack => pack.clear(),
+    }
+    let y = crate::cpu_bf16::linear(x, weight, bias);
+    match post_op {
+        PostOp::None => y,
+        PostOp::GeluTanh => y.gelu("tanh"),
+    }
+}
+
+/// tch's [`nn::Linear`] (same parameters, `weight` and `bias`) whose
+/// forward goes through [`linear`] with its own packed weight.
+#[derive(Debug)]
+pub struct Linear {
+    /// The parameters.
+    pub layer: nn::Linear,
+    pack: PackedWeight,
+}
+
+impl Linear {
+    /// Wraps `layer`.
+    pub fn new(layer: nn::Linear) -> Self {
+        Self {
+            layer,
+            pack: PackedWeight::default(),
+        }
+    }
+
+    /// `post_op(x W^T + b)`.
+    pub fn forward_then(&self, x: &Tensor, post_op: PostOp) -> Tensor {
+        linear(
+            x,
+            &self.layer.ws,
+            self.layer.bs.as_ref(),
+            &self.pack,
+            post_op,
+        )
+    }
+}
+
+impl nn::Module for Linear {
+    fn forward(&self, x: &Tensor) -> Tensor {
+        self.forward_then(x, PostOp::None)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    fn layer(vs: &nn::VarStore, i: i64, o: i64) -> Linear {
+        Linear::new(nn::linear(vs.root() / "l", i, o, Default::default()))
+    }
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f64 {
+        (a - b).abs().max().double_value(&[])
+    }
+
+    /// A budget of its own (the process's is shared with the other tests).
+    fn budget(limit: u64) -> &'static PackBudget {
+        let b = Box::leak(Box::new(PackBudget::undecided()));
+        b.limit.store(limit, Ordering::Relaxed);
+        b
+    }
+
+    const BYTES: u64 = 48 * 80 * 4;
+
+    #[test]
+    fn onednn_path_matches_linear_and_repacks_changed_weights() {
+        assert_eq!(
+            CpuLinear::Auto.resolve(),
+            CpuLinear::OneDnn,
+            "this libtorch has oneDNN"
+        );
+        let b = budget(u64::MAX - 1);
+        let run = |l: &Linear, x: &Tensor, post: PostOp| {
+            linear_in(
+                CpuLinear::OneDnn,
+                b,
+                x,
+                &l.layer.ws,
+                l.layer.bs.as_ref(),
+                &l.pack,
+                post,
+            )
+        };
+        tch::manual_seed(1);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let l = layer(&vs, 48, 80);
+        let x = Tensor::randn([2, 40, 48], (Kind::Float, Device::Cpu));
+        let reference = x.linear(&l.layer.ws, l.layer.bs.as_ref());
+
+        // Autograd on: libtorch's differentiable linear, exactly.
+        let y = run(&l, &x, PostOp::None);
+        assert!(y.equal(&reference) && y.requires_grad());
+        assert_eq!(b.used.load(Ordering::Relaxed), 0);
+
+        let _guard = tch::no_grad_guard();
+        let y = run(&l, &x, PostOp::None);
+        assert!(
+            max_diff(&y, &reference) < 1e-5,
+            "{}",
+            max_diff(&y, &reference)
+        );
+        assert_eq!(b.used.load(Ordering::Relaxed), BYTES, "packed once");
+        let g = run(&l, &x, PostOp::GeluTanh);
+        assert!(max_diff(&g, &reference.gelu("tanh")) < 1e-5);
+        assert_eq!(
+            b.used.load(Ordering::Relaxed),
+            BYTES,
+            "the same pack reused"
+        );
+
+        // An in-place change of the weight is seen (its version counter).
+        let _ = l.layer.ws.shallow_clone().g_mul_scalar_(2.0);
+        let reference2 = x.linear(&l.layer.ws, l.layer.bs.as_ref());
+        let y2 = run(&l, &x, PostOp::None);
+        assert!(
+            max_diff(&y2, &reference2) < 1e-5,
+            "{}",
+            max_diff(&y2, &reference2)
+        );
+        assert_eq!(
+            b.used.load(Ordering::Relaxed),
+            BYTES,
+            "the stale pack replaced"
+        );
+
+        // Few rows, or the aten mode: libtorch's linear, exactly.
+        let row = x.narrow(1, 0, 1);
+        assert!(run(&l, &row, PostOp::None).equal(&row.linear(&l.layer.ws, l.layer.bs.as_ref())));
+        assert_eq!(
+            b.used.load(Ordering::Relaxed),
+            BYTES,
+            "a few-row call keeps the pack"
+        );
+        let aten = linear_in(
+            CpuLinear::Aten,
+            b,
+            &x,
+            &l.layer.ws,
+            l.layer.bs.as_ref(),
+            &l.pack,
+            PostOp::None,
+        );
+        assert!(aten.equal(&reference2));
+        assert_eq!(
+            b.used.load(Ordering::Relaxed),
+            0,
+            "leaving the path drops the pack"
+        );
+
+        // Training (autograd on) drops it too.
+        let _ = run(&l, &x, PostOp::None);
+        assert_eq!(b.used.load(Ordering::Relaxed), BYTES);
+        let trained = tch::with_grad(|| run(&l, &x, PostOp::None));
+        assert!(trained.equal(&reference2));
+        assert_eq!(b.used.load(Ordering::Relaxed), 0);
+
+        // f64 leaves the path too; bf16 takes it where libtorch's bf16
+        // kernels run (the same oneDNN kernel as aten's: the same values).
+        let _ = run(&l, &x, PostOp::None);
+        assert_eq!(b.used.load(Ordering::Relaxed), BYTES);
+        let wd = l.layer.ws.to_kind(Kind::Double);
+        let yd = linear_in(
+            CpuLinear::OneDnn,
+            b,
+            &x.to_kind(Kind::Double),
+            &wd,
+            None,
+            &l.pack,
+            PostOp::None,
+        );
+        assert_eq!(yd.kind(), Kind::Double);
+        assert_eq!(b.used.load(Ordering::Relaxed), 0);
+        let (xb, wb) = (
+            x.to_kind(Kind::BFloat16),
+            l.layer.ws.to_kind(Kind::BFloat16),
+        );
+        let yb = linear_in(CpuLinear::OneDnn, b, &xb, &wb, None, &l.pack, PostOp::None);
+        assert_eq!(yb.kind(), Kind::BFloat16);
+        let native = crate::cpu_bf16::mode() == crate::cpu_bf16::Bf16Compute::Native;
+        let expect = if native { 48 * 80 * 2 } else { 0 };
+        assert_eq!(
+            b.used.load(Ordering::Relaxed),
+            expect,
+            "bf16 packed iff native"
+        );
+        let yb_ref = crate::cpu_bf16::linear(&xb, &wb, None);
+        let diff = max_diff(&yb.to_kind(Kind::Float), &yb_ref.to_kind(Kind::Float));
+        assert!(
+            diff <= 0.02 * yb_ref.abs().max().double_value(&[]),
+            "{diff}"
+        );
+
+        // A dropped layer gives its bytes back.
+        let _ = run(&l, &x, PostOp::None);
+        drop(l);
+        assert_eq!(b.used.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn beyond_the_budget_the_plain_weight_gives_the_same_values() {
+        let _guard = tch::no_grad_guard();
+        tch::manual_seed(2);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let l = layer(&vs, 48, 80);
+        let x = Tensor::randn([3, 50, 48], (Kind::Float, Device::Cpu));
+        let (roomy, full) = (budget(BYTES), budget(BYTES - 1));
+        let packed = linear_in(
+            CpuLinear::OneDnn,
+            roomy,
+            &x,
+            &l.layer.ws,
+            l.layer.bs.as_ref(),
+            &l.pack,
+            PostOp::GeluTanh,
+        );
+        assert_eq!(roomy.used.load(Ordering::Relaxed), BYTES);
+        let other = PackedWeight::default();
+        let plain = linear_in(
+            CpuLinear::OneDnn,
+            full,
+            &x,
+            &l.layer.ws,
+            l.layer.bs.as_ref(),
+            &other,
+            PostOp::GeluTanh,
+        );
+        assert_eq!(full.used.load(Ordering::Relaxed), 0, "nothing packed");
+        assert!(plain.equal(&packed), "the same kernel, bit for bit");
+    }
+
+    #[test]
+    fn modes_parse_and_bad_values_name_the_variable() {
+        for m in [CpuLinear::Auto, CpuLinear::Aten, CpuLinear::OneDnn] {
+            assert_eq!(m.to_string().parse::<CpuLinear>().unwrap(), m);
+        }
+        let err = "mkl".parse::<CpuLinear>().unwrap_err().to_string();
+        assert!(
+            err.contains(ENV) && err.contains("\"mkl\"") && err.contains("onednn"),
+            "{err}"
+        );
+        assert_ne!(CpuLinear::Auto.resolve(), CpuLinear::Auto);
+    }
+}
