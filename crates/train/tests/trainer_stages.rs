@@ -12,7 +12,7 @@ use bridgev2w_train::config::{Stage, TrainConfig, VaeParts};
 use bridgev2w_train::trainer::Trainer;
 use bridgev2w_world_model::bridge::ImageConditioning;
 use bridgev2w_world_model::pipeline::SampleOptions;
-use common::{config, controlnet_grad_sum, dataset, lock};
+use common::{assert_trains_only, config, controlnet_grad_sum, dataset, lock};
 use std::path::Path;
 use tch::Kind;
 
@@ -245,7 +245,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     c.train.warmup_steps = 0;
     c.train.checkpoint_every = 0;
     let mut t = Trainer::new(c).unwrap();
-    assert!(t.opt.params().iter().all(|(n, _)| n.starts_with("vae.")));
+    assert_trains_only(&t, "vae.");
     let m = t.run(&mut |_| {}).unwrap();
     let first: f64 = m[..4].iter().map(|x| x.recon).sum::<f64>() / 4.0;
     let last: f64 = m[20..].iter().map(|x| x.recon).sum::<f64>() / 4.0;
@@ -298,11 +298,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
         c.train.checkpoint_every,
     ) = (3, 2e-3, 0, 0);
     let mut t = Trainer::new(c).unwrap();
-    assert!(t
-        .opt
-        .params()
-        .iter()
-        .all(|(n, _)| n.starts_with("vae.decoder.")));
+    assert_trains_only(&t, "vae.decoder.");
     let before: Vec<(String, tch::Tensor)> = t
         .model
         .vae_vs
@@ -339,11 +335,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     c.train.checkpoint_every = 0;
     c.model.image_conditioning = ImageConditioning::EveryFrame;
     let mut t = Trainer::new(c).unwrap();
-    assert!(t
-        .opt
-        .params()
-        .iter()
-        .all(|(n, _)| n.starts_with("backbone.")));
+    assert_trains_only(&t, "backbone.");
     let m = t.run(&mut |_| {}).unwrap();
     assert!(m
         .iter()
@@ -390,11 +382,7 @@ fn vae_then_prior_stages_write_a_backbone_the_next_stage_loads() {
     );
     c.model.image_conditioning = ImageConditioning::EveryFrame;
     let mut t = Trainer::new(c).unwrap();
-    assert!(t
-        .opt
-        .params()
-        .iter()
-        .all(|(n, _)| n.starts_with("adapters.")));
+    assert_trains_only(&t, "adapters.");
     t.run(&mut |_| {}).unwrap();
 }
 

@@ -71,6 +71,19 @@ pub fn tensors(path: &Path) -> Vec<(String, Vec<f64>)> {
     t
 }
 
+/// Asserts that every parameter the optimiser updates has a name starting
+/// with `prefix`.
+pub fn assert_trains_only(t: &Trainer, prefix: &str) {
+    let others: Vec<&str> = t
+        .opt
+        .params()
+        .iter()
+        .map(|(n, _)| n.as_str())
+        .filter(|n| !n.starts_with(prefix))
+        .collect();
+    assert!(others.is_empty(), "trained outside {prefix:?}: {others:?}");
+}
+
 /// The summed absolute gradient of the parameters whose names start with
 /// `prefix` (0 for those without a gradient).
 pub fn grad_abs_sum(t: &Trainer, prefix: &str) -> f64 {

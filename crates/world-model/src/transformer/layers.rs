@@ -396,19 +396,7 @@ impl Attention {
             q = rope(&q);
             k = rope(&k);
         }
-        let out = Tensor::scaled_dot_product_attention(
-            &q,
-            &k,
-            &v,
-            None::<Tensor>,
-            0.0,
-            false,
-            None,
-            false,
-        )
-        .transpose(1, 2) // [B, S, heads, hd]
-        .reshape([b, s, d]); // [B, S, D]
-        let out = self.to_out.forward(&out);
+        let out = self.to_out.forward(&attend(&q, &k, &v)); // [B, S, D]
         (out.narrow(1, l, s - l), out.narrow(1, 0, l))
     }
 
@@ -430,20 +418,18 @@ impl Attention {
             let video_part = apply_rotary(&k.narrow(2, l, n), rot);
             k = Tensor::cat(&[k.narrow(2, 0, l), video_part], 2);
         }
-        let out = Tensor::scaled_dot_product_attention(
-            &q,
-            &k,
-            &v,
-            None::<Tensor>,
-            0.0,
-            false,
-            None,
-            false,
-        )
-        .transpose(1, 2) // [B, N, heads, hd]
-        .reshape([b, n, d]); // [B, N, D]
-        self.to_out.forward(&out)
+        self.to_out.forward(&attend(&q, &k, &v)) // [B, N, D]
     }
+}
+
+/// Softmax attention of queries `q` `[B, heads, T, hd]` over keys `k` and
+/// values `v` `[B, heads, S, hd]`: `[B, T, heads * hd]`.
+fn attend(q: &Tensor, k: &Tensor, v: &Tensor) -> Tensor {
+    let s = q.size();
+    let (b, heads, t, hd) = (s[0], s[1], s[2], s[3]);
+    Tensor::scaled_dot_product_attention(q, k, v, None::<Tensor>, 0.0, false, None, false)
+        .transpose(1, 2) // [B, T, heads, hd]
+        .reshape([b, t, heads * hd]) // [B, T, D]
 }
 
 /// The tanh-GELU feed-forward (`ff.net.0.proj`, `ff.net.2`).
