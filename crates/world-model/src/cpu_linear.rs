@@ -12,8 +12,10 @@
 //! (`docs/benchmarks.md`).
 //!
 //! The path is taken only where it computes what `linear` does: f32
-//! tensors on the CPU (or bf16 where libtorch's own bf16 kernels run: they
-//! are oneDNN's, without the packing), no gradient recorded
+//! tensors on the CPU, or bf16 (libtorch's own bf16 kernels are oneDNN's,
+//! without the packing; on a CPU without bf16 arithmetic the operands are
+//! widened to f32 as [`crate::cpu_bf16`] does, the weight widened and
+//! packed once, in f32), no gradient recorded
 //! (`tch::no_grad`: prediction, planning, evaluation; training keeps
 //! libtorch's differentiable `linear`), no CPU autocast region, and at
 //! least [`MIN_ROWS`] rows (a one-row product, the timestep modulation's,
@@ -30,6 +32,7 @@
 //! for bit. `BRIDGEV2W_CPU_LINEAR=aten|onednn|auto` chooses the path
 //! process-wide ([`init_from_env`], called by the binary at start-up).
 
+use crate::cpu_bf16::Bf16Compute;
 use crate::error::WorldModelError;
 use bridgev2w_torch_ext::onednn::{self, PostOp};
 use bridgev2w_torch_ext::{autocast, AutocastDevice};
@@ -185,6 +188,8 @@ struct Pack {
     /// shares the weight's version counter).
     source: Tensor,
     version: u64,
+    /// Packed from the weight widened to f32.
+    widened: bool,
     packed: Tensor,
     bytes: u64,
     budget: &'static PackBudget,
@@ -202,14 +207,16 @@ impl Drop for Pack {
 pub struct PackedWeight(Mutex<Option<Pack>>);
 
 impl PackedWeight {
-    /// The packed `weight`, packing it now if needed; `None` beyond the
-    /// budget or if packing failed (the caller uses the plain weight).
-    fn get(&self, weight: &Tensor, budget: &'static PackBudget) -> Option<Tensor> {
+    /// The packed `weight` (widened to f32 first when `widen`), packing it
+    /// now if needed; `None` beyond the budget or if packing failed (the
+    /// caller uses the plain weight).
+    fn get(&self, weight: &Tensor, widen: bool, budget: &'static PackBudget) -> Option<Tensor> {
         let mut slot = self.0.lock().ok()?;
         let version = onednn::tensor_version(weight);
         if let Some(p) = slot.as_ref() {
             if p.source.data_ptr() == weight.data_ptr()
                 && p.version == version
+                && p.widened == widen
                 && p.source.size() == weight.size()
                 && p.source.kind() == weight.kind()
             {
@@ -217,16 +224,27 @@ impl PackedWeight {
             }
         }
         *slot = None;
-        let bytes = (weight.numel() * weight.kind().elt_size_in_bytes()) as u64;
+        let elt = if widen {
+            4
+        } else {
+            weight.kind().elt_size_in_bytes()
+        };
+        let bytes = (weight.numel() * elt) as u64;
         if !budget.reserve(bytes) {
             return None;
         }
-        match onednn::pack_linear_weight(weight) {
+        let packed = if widen {
+            onednn::pack_linear_weight(&weight.to_kind(Kind::Float))
+        } else {
+            onednn::pack_linear_weight(weight)
+        };
+        match packed {
             Ok(packed) => {
                 let out = packed.shallow_clone();
                 *slot = Some(Pack {
                     source: weight.detach(),
                     version,
+                    widened: widen,
                     packed,
                     bytes,
                     budget,
@@ -254,8 +272,9 @@ impl PackedWeight {
 /// Where a call goes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Route {
-    /// oneDNN.
-    OneDnn,
+    /// oneDNN; `widen`: bf16 operands computed in f32 (a CPU without bf16
+    /// arithmetic, [`crate::cpu_bf16`]), the result rounded to bf16.
+    OneDnn { widen: bool },
     /// libtorch's `linear` for this call (too few rows, autocast): a packed
     /// weight stays for the next call.
     Aten,
@@ -265,18 +284,20 @@ enum Route {
     AtenDropPack,
 }
 
-/// Where `x W^T + b` runs in `mode` (see the module's conditions).
-fn route(mode: CpuLinear, x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Route {
-    // f32, or bf16 where libtorch's own bf16 kernels run (they are
-    // oneDNN's; a CPU without bf16 arithmetic widens instead).
+/// Where `x W^T + b` runs in `mode`, bf16 being computed as `bf16` says
+/// (see the module's conditions).
+fn route(
+    mode: CpuLinear,
+    bf16: Bf16Compute,
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+) -> Route {
     let kind = weight.kind();
-    let kind_ok = kind == Kind::Float
-        || (kind == Kind::BFloat16
-            && crate::cpu_bf16::mode() == crate::cpu_bf16::Bf16Compute::Native);
     let same = |t: &Tensor| t.kind() == kind && t.device() == Device::Cpu;
     let weight_on_path = mode.resolve() == CpuLinear::OneDnn
         && onednn::available()
-        && kind_ok
+        && (kind == Kind::Float || kind == Kind::BFloat16)
         && same(weight)
         && weight.dim() == 2;
     if !weight_on_path || onednn::grad_mode_enabled() {
@@ -289,7 +310,9 @@ fn route(mode: CpuLinear, x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) ->
         && x.numel() as i64 / weight.size()[1].max(1) >= MIN_ROWS
         && !autocast::is_enabled(AutocastDevice::Cpu).unwrap_or(true);
     if call_on_path {
-        Route::OneDnn
+        Route::OneDnn {
+            widen: kind == Kind::BFloat16 && bf16.resolve() == Bf16Compute::F32,
+        }
     } else {
         Route::Aten
     }
@@ -305,12 +328,23 @@ pub fn linear(
     pack: &PackedWeight,
     post_op: PostOp,
 ) -> Tensor {
-    linear_in(mode(), &BUDGET, x, weight, bias, pack, post_op)
+    linear_in(
+        mode(),
+        crate::cpu_bf16::mode(),
+        &BUDGET,
+        x,
+        weight,
+        bias,
+        pack,
+        post_op,
+    )
 }
 
-/// [`linear`] in `mode`, packing within `budget`.
+/// [`linear`] in `mode` and bf16 mode `bf16`, packing within `budget`.
+#[allow(clippy::too_many_arguments)]
 fn linear_in(
     mode: CpuLinear,
+    bf16: Bf16Compute,
     budget: &'static PackBudget,
     x: &Tensor,
     weight: &Tensor,
@@ -318,12 +352,21 @@ fn linear_in(
     pack: &PackedWeight,
     post_op: PostOp,
 ) -> Tensor {
-    match route(mode, x, weight, bias) {
-        Route::OneDnn => {
-            let packed = pack.get(weight, budget);
+    match route(mode, bf16, x, weight, bias) {
+        Route::OneDnn { widen: false } => {
+            let packed = pack.get(weight, false, budget);
             let w = packed.as_ref().unwrap_or(weight);
             if let Ok(y) = onednn::linear(x, w, bias, post_op) {
                 return y;
+            }
+        }
+        Route::OneDnn { widen: true } => {
+            let f32 = |t: &Tensor| t.to_kind(Kind::Float);
+            let w = pack
+                .get(weight, true, budget)
+                .unwrap_or_else(|| f32(weight));
+            if let Ok(y) = onednn::linear(&f32(x), &w, bias.map(f32).as_ref(), post_op) {
+                return y.to_kind(Kind::BFloat16);
             }
         }
         Route::Aten => {}
@@ -405,6 +448,7 @@ mod tests {
         let run = |l: &Linear, x: &Tensor, post: PostOp| {
             linear_in(
                 CpuLinear::OneDnn,
+                Bf16Compute::Native,
                 b,
                 x,
                 &l.layer.ws,
@@ -465,6 +509,7 @@ mod tests {
         );
         let aten = linear_in(
             CpuLinear::Aten,
+            Bf16Compute::Native,
             b,
             &x,
             &l.layer.ws,
@@ -486,13 +531,14 @@ mod tests {
         assert!(trained.equal(&reference2));
         assert_eq!(b.used.load(Ordering::Relaxed), 0);
 
-        // f64 leaves the path too; bf16 takes it where libtorch's bf16
-        // kernels run (the same oneDNN kernel as aten's: the same values).
+        // f64 leaves the path too; bf16 takes it, widened to f32 on a CPU
+        // without bf16 arithmetic (packed in f32 then: twice the bytes).
         let _ = run(&l, &x, PostOp::None);
         assert_eq!(b.used.load(Ordering::Relaxed), BYTES);
         let wd = l.layer.ws.to_kind(Kind::Double);
         let yd = linear_in(
             CpuLinear::OneDnn,
+            Bf16Compute::Native,
             b,
             &x.to_kind(Kind::Double),
             &wd,
@@ -506,21 +552,30 @@ mod tests {
             x.to_kind(Kind::BFloat16),
             l.layer.ws.to_kind(Kind::BFloat16),
         );
-        let yb = linear_in(CpuLinear::OneDnn, b, &xb, &wb, None, &l.pack, PostOp::None);
-        assert_eq!(yb.kind(), Kind::BFloat16);
-        let native = crate::cpu_bf16::mode() == crate::cpu_bf16::Bf16Compute::Native;
-        let expect = if native { 48 * 80 * 2 } else { 0 };
-        assert_eq!(
-            b.used.load(Ordering::Relaxed),
-            expect,
-            "bf16 packed iff native"
+        let f32_of = |t: &Tensor| t.to_kind(Kind::Float);
+        // What a bf16 kernel computes: bf16 products summed in f32, rounded once.
+        let yb_ref = f32_of(
+            &f32_of(&xb)
+                .linear::<Tensor>(&f32_of(&wb), None)
+                .to_kind(Kind::BFloat16),
         );
-        let yb_ref = crate::cpu_bf16::linear(&xb, &wb, None);
-        let diff = max_diff(&yb.to_kind(Kind::Float), &yb_ref.to_kind(Kind::Float));
-        assert!(
-            diff <= 0.02 * yb_ref.abs().max().double_value(&[]),
-            "{diff}"
-        );
+        let scale = yb_ref.abs().max().double_value(&[]);
+        for (bf16, bytes) in [(Bf16Compute::Native, 2), (Bf16Compute::F32, 4)] {
+            let yb = linear_in(
+                CpuLinear::OneDnn,
+                bf16,
+                b,
+                &xb,
+                &wb,
+                None,
+                &l.pack,
+                PostOp::None,
+            );
+            assert_eq!(yb.kind(), Kind::BFloat16);
+            assert_eq!(b.used.load(Ordering::Relaxed), 48 * 80 * bytes, "{bf16}");
+            let diff = max_diff(&f32_of(&yb), &yb_ref);
+            assert!(diff <= 0.02 * scale, "{bf16}: {diff} of {scale}");
+        }
 
         // A dropped layer gives its bytes back.
         let _ = run(&l, &x, PostOp::None);
@@ -538,6 +593,7 @@ mod tests {
         let (roomy, full) = (budget(BYTES), budget(BYTES - 1));
         let packed = linear_in(
             CpuLinear::OneDnn,
+            Bf16Compute::Native,
             roomy,
             &x,
             &l.layer.ws,
@@ -549,6 +605,7 @@ mod tests {
         let other = PackedWeight::default();
         let plain = linear_in(
             CpuLinear::OneDnn,
+            Bf16Compute::Native,
             full,
             &x,
             &l.layer.ws,

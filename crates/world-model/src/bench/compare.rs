@@ -124,8 +124,8 @@ pub struct ModelBenchReport {
     /// How this crate ran bf16 linear layers and convolutions (bf16 on the
     /// CPU only; diffusers always runs libtorch's own bf16 kernels).
     pub cpu_bf16: Option<crate::cpu_bf16::Bf16Compute>,
-    /// How this crate ran linear layers on the CPU (f32, or bf16 with
-    /// libtorch's bf16 kernels; diffusers runs libtorch's `linear`).
+    /// How this crate ran linear layers on the CPU (diffusers runs
+    /// libtorch's `linear`).
     pub cpu_linear: Option<crate::cpu_linear::CpuLinear>,
 }
 
@@ -313,10 +313,7 @@ pub fn bench_model(
         }),
         cpu_bf16: (a.precision == Precision::Bf16 && a.device == ComputeDevice::Cpu)
             .then(crate::cpu_bf16::mode),
-        cpu_linear: (a.device == ComputeDevice::Cpu
-            && (a.precision == Precision::F32
-                || crate::cpu_bf16::mode() == crate::cpu_bf16::Bf16Compute::Native))
-            .then(crate::cpu_linear::mode),
+        cpu_linear: (a.device == ComputeDevice::Cpu).then(crate::cpu_linear::mode),
     })
 }
 
