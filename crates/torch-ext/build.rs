@@ -5,6 +5,7 @@
 //! * `csrc/torch_ext.cpp`: autocast;
 //! * `csrc/cpu_cache.cpp`: a caching CPU allocator;
 //! * `csrc/onednn_linear.cpp`: oneDNN's inference linear layer;
+//! * `csrc/shim_error.cpp`: C++ exceptions into the callers' error buffers;
 //! * `csrc/c10d.cpp`: c10d's TCPStore and Gloo process group. The PyPI wheel
 //!   ships no gloo headers (ProcessGroupGloo.hpp includes them, for pointer
 //!   types only): they are looked for in `BRIDGEV2W_GLOO_INCLUDE`, libtorch's
@@ -47,6 +48,8 @@ fn main() {
         "csrc/c10d.cpp",
         "csrc/c10d_nccl.cpp",
         "csrc/c10d_shim.h",
+        "csrc/shim_error.cpp",
+        "csrc/shim_error.h",
     ] {
         println!("cargo:rerun-if-changed={f}");
     }
@@ -68,6 +71,7 @@ fn main() {
         .file("csrc/torch_ext.cpp")
         .file("csrc/cpu_cache.cpp")
         .file("csrc/onednn_linear.cpp")
+        .file("csrc/shim_error.cpp")
         .file("csrc/c10d.cpp");
     match gloo_include(&real_root) {
         Some(dir) => {

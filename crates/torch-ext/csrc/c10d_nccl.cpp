@@ -55,7 +55,7 @@ void* bv2w_c10d_nccl_new(void* store, int rank, int world, int device,
         "nvidia-cuda-cccl, nvidia-nccl) were missing when torch-ext was compiled");
 #endif
   } catch (...) {
-    bv2w_c10d_set_current_error(err, err_len);
+    bv2w_set_current_error(err, err_len);
     return nullptr;
   }
 }

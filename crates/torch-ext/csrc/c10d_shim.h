@@ -8,6 +8,8 @@
 #include <string>
 #include <vector>
 
+#include "shim_error.h"
+
 struct BV2WStore {
   c10::intrusive_ptr<c10d::Store> store;
 };
@@ -21,8 +23,3 @@ struct BV2WWork {
   // The tensors the collective works on, alive until the handle is freed.
   std::vector<at::Tensor> tensors;
 };
-
-// Writes `message` (truncated, NUL-terminated) into err[0..err_len].
-void bv2w_c10d_set_error(char* err, size_t err_len, const std::string& message);
-// From inside a catch block: the current exception's message into err.
-void bv2w_c10d_set_current_error(char* err, size_t err_len);

@@ -16,32 +16,13 @@
 #include <ATen/core/stack.h>
 #include <c10/util/Exception.h>
 
-#include <algorithm>
+#include "shim_error.h"
+
 #include <cstdint>
-#include <cstring>
 #include <optional>
 #include <string>
 
 namespace {
-
-void set_error(char* err, size_t err_len, const std::string& message) {
-  if (err == nullptr || err_len == 0) return;
-  size_t n = std::min(message.size(), err_len - 1);
-  std::memcpy(err, message.data(), n);
-  err[n] = '\0';
-}
-
-void set_current_error(char* err, size_t err_len) {
-  try {
-    throw;
-  } catch (const c10::Error& e) {
-    set_error(err, err_len, e.what_without_backtrace());
-  } catch (const std::exception& e) {
-    set_error(err, err_len, e.what());
-  } catch (...) {
-    set_error(err, err_len, "unknown C++ exception");
-  }
-}
 
 std::optional<c10::OperatorHandle> find_op(const char* name) {
   return c10::Dispatcher::singleton().findSchema({name, ""});
@@ -87,7 +68,7 @@ void* bv2w_onednn_pack_linear_weight(void* weight, char* err, size_t err_len) {
     op->callBoxed(&stack);
     return new at::Tensor(stack.at(0).toTensor());
   } catch (...) {
-    set_current_error(err, err_len);
+    bv2w_set_current_error(err, err_len);
     return nullptr;
   }
 }
@@ -119,7 +100,7 @@ void* bv2w_onednn_linear(void* input, void* weight, void* bias, int post_op, cha
     op->callBoxed(&stack);
     return new at::Tensor(stack.at(0).toTensor());
   } catch (...) {
-    set_current_error(err, err_len);
+    bv2w_set_current_error(err, err_len);
     return nullptr;
   }
 }
