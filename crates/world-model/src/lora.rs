@@ -104,7 +104,7 @@ pub struct LoraLinear {
     pub bias: Option<Tensor>,
     adapter: Option<LoraAdapter>,
     merged: bool,
-    /// `weight` packed for oneDNN (inference on the CPU in f32).
+    /// `weight` packed for oneDNN (inference on the CPU, [`crate::cpu_linear`]).
     pack: crate::cpu_linear::PackedWeight,
 }
 

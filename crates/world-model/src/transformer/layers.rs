@@ -300,15 +300,20 @@ impl LayerNormZero {
         }
     }
 
-    fn forward(&self, video: &Tensor, text: &Tensor, temb: &Tensor) -> Modulated {
-        // [B, 6D] -> shift, scale, gate, text shift, text scale, text gate: [B, 1, D] each
-        let m: Vec<Tensor> = self
-            .linear
+    /// Shift, scale, gate, text shift, text scale, text gate: `[B, 1, D]`
+    /// each, from `temb` `[B, time_embed_dim]`.
+    fn modulation(&self, temb: &Tensor) -> Vec<Tensor> {
+        // [B, 6D] -> 6 x [B, 1, D]
+        self.linear
             .forward(&temb.silu())
             .chunk(6, 1)
             .iter()
             .map(|t| t.unsqueeze(1))
-            .collect();
+            .collect()
+    }
+
+    fn forward(&self, video: &Tensor, text: &Tensor, temb: &Tensor) -> Modulated {
+        let m = self.modulation(temb);
         Modulated {
             video: self.norm.forward(video) * (&m[1] + 1.0) + &m[0],
             text: self.norm.forward(text) * (&m[4] + 1.0) + &m[3],
@@ -319,15 +324,7 @@ impl LayerNormZero {
 
     /// The modulated video tokens and the video gate alone.
     fn forward_video(&self, video: &Tensor, temb: &Tensor) -> (Tensor, Tensor) {
-        // [B, 6D] -> the first three chunks: shift, scale, gate [B, 1, D]
-        let m: Vec<Tensor> = self
-            .linear
-            .forward(&temb.silu())
-            .chunk(6, 1)
-            .iter()
-            .take(3)
-            .map(|t| t.unsqueeze(1))
-            .collect();
+        let m = self.modulation(temb);
         (
             self.norm.forward(video) * (&m[1] + 1.0) + &m[0],
             m[2].shallow_clone(),
