@@ -5,6 +5,10 @@
 //! * `csrc/torch_ext.cpp`: autocast;
 //! * `csrc/cpu_cache.cpp`: a caching CPU allocator;
 //! * `csrc/onednn_linear.cpp`: oneDNN's inference linear layer;
+//! * `csrc/cpu_attention.cpp`: bf16 attention on oneDNN's micro-kernel,
+//!   optimised and with OpenMP whatever the profile (libtorch's
+//!   `parallel_for` is OpenMP in its headers; the wheel's own `libgomp.so.1`,
+//!   which libtorch_cpu loads, is linked);
 //! * `csrc/shim_error.cpp`: C++ exceptions into the callers' error buffers;
 //! * `csrc/c10d.cpp`: c10d's TCPStore and Gloo process group. The PyPI wheel
 //!   ships no gloo headers (ProcessGroupGloo.hpp includes them, for pointer
@@ -45,6 +49,7 @@ fn main() {
         "csrc/torch_ext.cpp",
         "csrc/cpu_cache.cpp",
         "csrc/onednn_linear.cpp",
+        "csrc/cpu_attention.cpp",
         "csrc/c10d.cpp",
         "csrc/c10d_nccl.cpp",
         "csrc/c10d_shim.h",
@@ -88,6 +93,14 @@ fn main() {
             println!("cargo:rerun-if-changed={}", venv_include.display());
         }
     }
+    // Before the main library on the link line: it calls shim_error.cpp's
+    // reporting.
+    let mut attention = base();
+    attention
+        .file("csrc/cpu_attention.cpp")
+        .opt_level(3)
+        .flag("-fopenmp");
+    attention.compile("bridgev2w_torch_ext_attention");
     build.compile("bridgev2w_torch_ext");
     // NCCL in its own library: its headers pull in CUDA's.
     let mut nccl = base();
@@ -133,6 +146,9 @@ fn main() {
     }
     println!("cargo:rustc-link-lib=dylib=torch_cpu");
     println!("cargo:rustc-link-lib=dylib=c10");
+    // The attention shim's OpenMP calls: the runtime libtorch_cpu itself
+    // needs (its lib dir holds only `libgomp.so.1`, no `libgomp.so`).
+    println!("cargo:rustc-link-lib=dylib:+verbatim=libgomp.so.1");
     println!("cargo:libtorch_lib={lib}");
     // This crate's own test binaries: rpath (and libtorch_cuda kept linked).
     emit_libtorch_link_args(&lib);

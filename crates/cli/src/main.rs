@@ -95,6 +95,9 @@ fn main() -> Result<()> {
     // f32 linear layers outside autograd run on oneDNN with weights packed
     // once (docs/benchmarks.md): BRIDGEV2W_CPU_LINEAR=auto|onednn|aten.
     bridgev2w_world_model::cpu_linear::init_from_env()?;
+    // bf16 attention on a CPU with AVX512-BF16 runs on oneDNN's bf16
+    // micro-kernel (docs/benchmarks.md): BRIDGEV2W_CPU_ATTENTION=auto|onednn|aten.
+    bridgev2w_world_model::cpu_attention::init_from_env()?;
     let cli = Cli::parse();
     match cli.command {
         Command::Masks(a) => masks_cmd::run(&a),

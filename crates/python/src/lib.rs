@@ -706,10 +706,13 @@ fn builtin_robots() -> String {
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     // The binary's start-up settings (bf16 layers widened to f32 on a CPU
-    // without bf16 arithmetic; f32 inference layers on oneDNN), with
-    // BRIDGEV2W_CPU_BF16 and BRIDGEV2W_CPU_LINEAR read the same way.
+    // without bf16 arithmetic; inference layers and bf16 attention on
+    // oneDNN), with BRIDGEV2W_CPU_BF16, BRIDGEV2W_CPU_LINEAR and
+    // BRIDGEV2W_CPU_ATTENTION read the same way.
     bridgev2w_world_model::cpu_bf16::init_from_env().map_err(|e| Error::new_err(e.to_string()))?;
     bridgev2w_world_model::cpu_linear::init_from_env()
+        .map_err(|e| Error::new_err(e.to_string()))?;
+    bridgev2w_world_model::cpu_attention::init_from_env()
         .map_err(|e| Error::new_err(e.to_string()))?;
     m.add("Error", m.py().get_type::<Error>())?;
     m.add_class::<Robot>()?;

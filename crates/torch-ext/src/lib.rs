@@ -8,6 +8,9 @@
 //! * [`c10d`]: PyTorch's distributed engine in libtorch (TCPStore, the
 //!   Gloo and NCCL process groups) through a C++ shim, for data-parallel
 //!   training.
+//! * [`cpu_attention`]: softmax attention in bf16 on oneDNN's bf16
+//!   micro-kernel, for x86 CPUs with AVX512-BF16 (libtorch's own runs its
+//!   bf16 products as f32 there).
 //! * [`cpu_cache`]: a caching CPU allocator for libtorch (freed blocks
 //!   reused instead of returned to the kernel and page-faulted in again).
 //! * [`onednn`]: oneDNN's inference linear layer (prepacked weights, a
@@ -15,6 +18,7 @@
 
 pub mod autocast;
 pub mod c10d;
+pub mod cpu_attention;
 pub mod cpu_cache;
 pub mod onednn;
 

@@ -12,6 +12,7 @@ pub mod bridge;
 pub mod checkpoint;
 pub mod conditioning;
 pub mod controlnet;
+pub mod cpu_attention;
 pub mod cpu_bf16;
 pub mod cpu_linear;
 pub mod device;

@@ -127,6 +127,9 @@ pub struct ModelBenchReport {
     /// How this crate ran linear layers on the CPU (diffusers runs
     /// libtorch's `linear`).
     pub cpu_linear: Option<crate::cpu_linear::CpuLinear>,
+    /// How this crate ran bf16 attention on the CPU (diffusers runs
+    /// libtorch's `scaled_dot_product_attention`).
+    pub cpu_attention: Option<crate::cpu_attention::CpuAttention>,
 }
 
 impl fmt::Display for ModelBenchReport {
@@ -173,6 +176,20 @@ impl fmt::Display for ModelBenchReport {
                 f,
                 "linear layers: libtorch's linear on both sides ({}={mode})",
                 crate::cpu_linear::ENV
+            )?,
+            None => {}
+        }
+        match self.cpu_attention {
+            Some(crate::cpu_attention::CpuAttention::OneDnn) => writeln!(
+                f,
+                "attention: bridgev2w runs it on oneDNN's bf16 micro-kernel ({}=aten for \
+                 libtorch's), diffusers on libtorch's scaled_dot_product_attention",
+                crate::cpu_attention::ENV
+            )?,
+            Some(mode) => writeln!(
+                f,
+                "attention: libtorch's scaled_dot_product_attention on both sides ({}={mode})",
+                crate::cpu_attention::ENV
             )?,
             None => {}
         }
@@ -314,6 +331,8 @@ pub fn bench_model(
         cpu_bf16: (a.precision == Precision::Bf16 && a.device == ComputeDevice::Cpu)
             .then(crate::cpu_bf16::mode),
         cpu_linear: (a.device == ComputeDevice::Cpu).then(crate::cpu_linear::mode),
+        cpu_attention: (a.precision == Precision::Bf16 && a.device == ComputeDevice::Cpu)
+            .then(crate::cpu_attention::mode),
     })
 }
 
@@ -372,6 +391,7 @@ mod tests {
             gpu_peak_mib: None,
             cpu_bf16: None,
             cpu_linear: None,
+            cpu_attention: None,
         };
         let text = report.to_string();
         assert_eq!(text.lines().count(), 5, "{text}");
@@ -425,5 +445,19 @@ mod tests {
         assert!(report
             .to_string()
             .contains("libtorch's linear on both sides (BRIDGEV2W_CPU_LINEAR=aten)"));
+        // bf16 on the CPU says which kernel ran the attention.
+        report.cpu_linear = None;
+        report.cpu_attention = Some(crate::cpu_attention::CpuAttention::OneDnn);
+        let text = report.to_string();
+        assert!(
+            text.lines()
+                .nth(1)
+                .is_some_and(|l| l.contains("oneDNN's bf16 micro-kernel")),
+            "{text}"
+        );
+        report.cpu_attention = Some(crate::cpu_attention::CpuAttention::Aten);
+        assert!(report
+            .to_string()
+            .contains("scaled_dot_product_attention on both sides (BRIDGEV2W_CPU_ATTENTION=aten)"));
     }
 }
