@@ -378,21 +378,9 @@ impl Attention {
     fn forward(&self, video: &Tensor, text: &Tensor, rotary: Option<&Rotary>) -> (Tensor, Tensor) {
         let l = text.size()[1];
         let x = Tensor::cat(&[text, video], 1); // [B, L + N, D]
-        let (b, s, d) = (x.size()[0], x.size()[1], x.size()[2]);
-        let hd = d / self.heads;
-        // [B, S, D] -> [B, heads, S, hd]
-        let split = |t: Tensor| t.view([b, s, self.heads, hd]).transpose(1, 2);
-        let mut q = self.norm_q.forward(&split(self.to_q.forward(&x)));
-        let mut k = self.norm_k.forward(&split(self.to_k.forward(&x)));
-        let v = split(self.to_v.forward(&x));
-        if let Some(rot) = rotary {
-            let rope = |t: &Tensor| {
-                let video_part = apply_rotary(&t.narrow(2, l, s - l), rot);
-                Tensor::cat(&[t.narrow(2, 0, l), video_part], 2)
-            };
-            q = rope(&q);
-            k = rope(&k);
-        }
+        let s = x.size()[1];
+        let q = self.heads(&self.to_q, Some(&self.norm_q), &x, l, rotary);
+        let (k, v) = self.keys_values(&x, l, rotary);
         let out = self.to_out.forward(&attend(&q, &k, &v)); // [B, S, D]
         (out.narrow(1, l, s - l), out.narrow(1, 0, l))
     }
@@ -402,20 +390,47 @@ impl Attention {
     fn forward_video(&self, video: &Tensor, text: &Tensor, rotary: Option<&Rotary>) -> Tensor {
         let l = text.size()[1];
         let x = Tensor::cat(&[text, video], 1); // [B, L + N, D]
-        let (b, s, d) = (x.size()[0], x.size()[1], x.size()[2]);
-        let n = s - l;
-        let hd = d / self.heads;
-        // [B, T, D] -> [B, heads, T, hd]
-        let split = |t: Tensor, tokens: i64| t.view([b, tokens, self.heads, hd]).transpose(1, 2);
-        let mut q = self.norm_q.forward(&split(self.to_q.forward(video), n));
-        let mut k = self.norm_k.forward(&split(self.to_k.forward(&x), s));
-        let v = split(self.to_v.forward(&x), s);
-        if let Some(rot) = rotary {
-            q = apply_rotary(&q, rot);
-            let video_part = apply_rotary(&k.narrow(2, l, n), rot);
-            k = Tensor::cat(&[k.narrow(2, 0, l), video_part], 2);
-        }
+        let q = self.heads(&self.to_q, Some(&self.norm_q), video, 0, rotary);
+        let (k, v) = self.keys_values(&x, l, rotary);
         self.to_out.forward(&attend(&q, &k, &v)) // [B, N, D]
+    }
+
+    /// Keys and values `[B, heads, S, hd]` of the tokens `x` `[B, S, D]`,
+    /// whose first `text` are the text tokens.
+    fn keys_values(&self, x: &Tensor, text: i64, rotary: Option<&Rotary>) -> (Tensor, Tensor) {
+        (
+            self.heads(&self.to_k, Some(&self.norm_k), x, text, rotary),
+            self.heads(&self.to_v, None, x, text, None),
+        )
+    }
+
+    /// The tokens `t` `[B, T, D]` through `proj`, split into heads, then
+    /// normalised by `norm` and rotated by `rotary` after the first `text`
+    /// tokens (RoPE turns the video tokens only): `[B, heads, T, hd]`.
+    fn heads(
+        &self,
+        proj: &LoraLinear,
+        norm: Option<&LayerNorm>,
+        t: &Tensor,
+        text: i64,
+        rotary: Option<&Rotary>,
+    ) -> Tensor {
+        let y = proj.forward(t);
+        let (b, n, d) = (y.size()[0], y.size()[1], y.size()[2]);
+        // [B, T, D] -> [B, heads, T, hd]
+        let h = y.view([b, n, self.heads, d / self.heads]).transpose(1, 2);
+        let h = match norm {
+            Some(norm) => norm.forward(&h),
+            None => h,
+        };
+        match rotary {
+            Some(rot) if text == 0 => apply_rotary(&h, rot),
+            Some(rot) => {
+                let video_part = apply_rotary(&h.narrow(2, text, n - text), rot);
+                Tensor::cat(&[h.narrow(2, 0, text), video_part], 2)
+            }
+            None => h,
+        }
     }
 }
 
