@@ -20,7 +20,7 @@
 
 use crate::error::WorldModelError;
 use bridgev2w_torch_ext::cpu_attention as kernel;
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
 use tch::{Device, Kind, Tensor};
 
 /// The environment variable [`init_from_env`] reads.
@@ -91,9 +91,23 @@ pub fn mode() -> CpuAttention {
     }
 }
 
+static FALLBACKS: AtomicU64 = AtomicU64::new(0);
+
+/// How many calls on the kernel's path failed there and ran libtorch's
+/// attention instead, in this process: 0 unless something is wrong (`bench
+/// model` reports a non-zero count).
+pub fn fallbacks() -> u64 {
+    FALLBACKS.load(Ordering::Relaxed)
+}
+
 /// Whether `mode` runs this call on the kernel.
 fn on_kernel(mode: CpuAttention, q: &Tensor, k: &Tensor, v: &Tensor) -> bool {
-    let fits = |t: &Tensor| t.device() == Device::Cpu && t.kind() == Kind::BFloat16;
+    let fits = |t: &Tensor| {
+        t.device() == Device::Cpu
+            && t.kind() == Kind::BFloat16
+            && t.dim() == 4
+            && t.stride()[3] == 1
+    };
     let recorded = bridgev2w_torch_ext::onednn::grad_mode_enabled()
         && (q.requires_grad() || k.requires_grad() || v.requires_grad());
     mode == CpuAttention::OneDnn
@@ -101,7 +115,6 @@ fn on_kernel(mode: CpuAttention, q: &Tensor, k: &Tensor, v: &Tensor) -> bool {
         && fits(k)
         && fits(v)
         && !recorded
-        && q.dim() == 4
         && q.size()[3] % 2 == 0
 }
 
@@ -115,9 +128,10 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Tensor {
 fn attention_in(mode: CpuAttention, q: &Tensor, k: &Tensor, v: &Tensor) -> Tensor {
     if on_kernel(mode, q, k, v) {
         let scale = 1.0 / (q.size()[3] as f64).sqrt();
-        if let Ok(out) = kernel::attention_bf16(q, k, v, scale) {
-            return out;
-        }
+        match kernel::attention_bf16(q, k, v, scale) {
+            Ok(out) => return out,
+            Err(_) => FALLBACKS.fetch_add(1, Ordering::Relaxed),
+        };
     }
     Tensor::scaled_dot_product_attention(q, k, v, None::<Tensor>, 0.0, false, None, false)
 }
@@ -172,6 +186,24 @@ mod tests {
         if mode == CpuAttention::OneDnn {
             assert!(!got.equal(&want), "the kernel ran (not libtorch's result)");
         }
+    }
+
+    #[test]
+    fn a_failing_kernel_call_runs_libtorch_and_is_counted() {
+        if !kernel::available() {
+            return;
+        }
+        let _guard = tch::no_grad_guard();
+        let opts = (Kind::BFloat16, Device::Cpu);
+        let q = Tensor::ones([1, 2, 3, 8], opts);
+        let kv = Tensor::ones([1, 2, 0, 8], opts); // no keys: the kernel refuses
+        let before = fallbacks();
+        let got = attention_in(CpuAttention::OneDnn, &q, &kv, &kv);
+        assert_eq!(fallbacks(), before + 1);
+        assert_eq!(got.size(), [1, 2, 3, 8]);
+        assert!(got
+            .to_kind(Kind::Float)
+            .equal(&sdpa(&q, &kv, &kv).to_kind(Kind::Float)));
     }
 
     #[test]

@@ -111,6 +111,15 @@ pub fn mode() -> CpuLinear {
     }
 }
 
+static FALLBACKS: AtomicU64 = AtomicU64::new(0);
+
+/// How many calls on the oneDNN path failed there (an error from oneDNN)
+/// and ran libtorch's `linear` instead, in this process: 0 unless something
+/// is wrong (`bench model` reports a non-zero count).
+pub fn fallbacks() -> u64 {
+    FALLBACKS.load(Ordering::Relaxed)
+}
+
 /// Bytes of packed weights alive and the most there may be.
 #[derive(Debug)]
 pub struct PackBudget {
@@ -356,18 +365,20 @@ fn linear_in(
         Route::OneDnn { widen: false } => {
             let packed = pack.get(weight, false, budget);
             let w = packed.as_ref().unwrap_or(weight);
-            if let Ok(y) = onednn::linear(x, w, bias, post_op) {
-                return y;
-            }
+            match onednn::linear(x, w, bias, post_op) {
+                Ok(y) => return y,
+                Err(_) => FALLBACKS.fetch_add(1, Ordering::Relaxed),
+            };
         }
         Route::OneDnn { widen: true } => {
             let f32 = |t: &Tensor| t.to_kind(Kind::Float);
             let w = pack
                 .get(weight, true, budget)
                 .unwrap_or_else(|| f32(weight));
-            if let Ok(y) = onednn::linear(&f32(x), &w, bias.map(f32).as_ref(), post_op) {
-                return y.to_kind(Kind::BFloat16);
-            }
+            match onednn::linear(&f32(x), &w, bias.map(f32).as_ref(), post_op) {
+                Ok(y) => return y.to_kind(Kind::BFloat16),
+                Err(_) => FALLBACKS.fetch_add(1, Ordering::Relaxed),
+            };
         }
         Route::Aten => {}
         Route::AtenDropPack => pack.clear(),

@@ -130,6 +130,10 @@ pub struct ModelBenchReport {
     /// How this crate ran bf16 attention on the CPU (diffusers runs
     /// libtorch's `scaled_dot_product_attention`).
     pub cpu_attention: Option<crate::cpu_attention::CpuAttention>,
+    /// Calls on this crate's oneDNN paths (linear layers, bf16 attention)
+    /// that failed and ran libtorch's op instead (0 unless something is
+    /// wrong).
+    pub onednn_fallbacks: u64,
 }
 
 impl fmt::Display for ModelBenchReport {
@@ -192,6 +196,13 @@ impl fmt::Display for ModelBenchReport {
                 crate::cpu_attention::ENV
             )?,
             None => {}
+        }
+        if self.onednn_fallbacks > 0 {
+            writeln!(
+                f,
+                "warning: {} oneDNN calls failed and ran libtorch's op instead (timings mixed)",
+                self.onednn_fallbacks
+            )?;
         }
         writeln!(
             f,
@@ -333,6 +344,7 @@ pub fn bench_model(
         cpu_linear: (a.device == ComputeDevice::Cpu).then(crate::cpu_linear::mode),
         cpu_attention: (a.precision == Precision::Bf16 && a.device == ComputeDevice::Cpu)
             .then(crate::cpu_attention::mode),
+        onednn_fallbacks: crate::cpu_linear::fallbacks() + crate::cpu_attention::fallbacks(),
     })
 }
 
@@ -392,6 +404,7 @@ mod tests {
             cpu_bf16: None,
             cpu_linear: None,
             cpu_attention: None,
+            onednn_fallbacks: 0,
         };
         let text = report.to_string();
         assert_eq!(text.lines().count(), 5, "{text}");
@@ -459,5 +472,10 @@ mod tests {
         assert!(report
             .to_string()
             .contains("scaled_dot_product_attention on both sides (BRIDGEV2W_CPU_ATTENTION=aten)"));
+        assert!(!report.to_string().contains("warning"));
+        report.onednn_fallbacks = 3;
+        assert!(report
+            .to_string()
+            .contains("warning: 3 oneDNN calls failed and ran libtorch's op instead"));
     }
 }
