@@ -19,8 +19,9 @@
 //! start-up).
 
 use crate::error::WorldModelError;
+use crate::process_mode::{ModeCell, ProcessMode};
 use bridgev2w_torch_ext::cpu_attention as kernel;
-use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use tch::{Device, Kind, Tensor};
 
 /// The environment variable [`init_from_env`] reads.
@@ -44,10 +45,12 @@ crate::named_enum!(CpuAttention, WorldModelError, WorldModelError::input, ENV, {
     OneDnn => "onednn",
 });
 
-impl CpuAttention {
+impl ProcessMode for CpuAttention {
+    const ENV: &'static str = ENV;
+    const VARIANTS: &'static [Self] = Self::ALL;
     /// `Auto` and `OneDnn` decided for this CPU (`Aten` where the kernel
     /// cannot run).
-    pub fn resolve(self) -> Self {
+    fn resolve(self) -> Self {
         match self {
             Self::Auto | Self::OneDnn if kernel::available() => Self::OneDnn,
             _ => Self::Aten,
@@ -55,40 +58,23 @@ impl CpuAttention {
     }
 }
 
-// 0: not resolved yet; otherwise 1 + the resolved mode (Aten 1, OneDnn 2).
-static MODE: AtomicU8 = AtomicU8::new(0);
+static MODE: ModeCell = ModeCell::new();
 
 /// Sets the process-wide mode (`OneDnn` falls back to `Aten` where the CPU
 /// cannot run the kernel).
 pub fn set(mode: CpuAttention) {
-    let code = match mode.resolve() {
-        CpuAttention::OneDnn => 2,
-        _ => 1,
-    };
-    MODE.store(code, Ordering::Relaxed);
+    MODE.set(mode);
 }
 
 /// Sets the mode from [`ENV`] (unset: `Auto`) and returns it resolved; an
 /// unknown value is an error naming the variable, the value and the choices.
 pub fn init_from_env() -> Result<CpuAttention, WorldModelError> {
-    let mode = match std::env::var(ENV) {
-        Ok(v) => v.trim().parse()?,
-        Err(_) => CpuAttention::Auto,
-    };
-    set(mode);
-    Ok(self::mode())
+    MODE.init_from_env()
 }
 
 /// The mode in effect (`Aten` or `OneDnn`).
 pub fn mode() -> CpuAttention {
-    match MODE.load(Ordering::Relaxed) {
-        1 => CpuAttention::Aten,
-        2 => CpuAttention::OneDnn,
-        _ => {
-            set(CpuAttention::Auto);
-            mode()
-        }
-    }
+    MODE.get()
 }
 
 static FALLBACKS: AtomicU64 = AtomicU64::new(0);

@@ -20,7 +20,7 @@
 //! nothing.
 
 use crate::error::WorldModelError;
-use std::sync::atomic::{AtomicU8, Ordering};
+use crate::process_mode::{ModeCell, ProcessMode};
 use tch::{Device, Kind, TchError, Tensor};
 
 /// The environment variable [`init_from_env`] reads.
@@ -44,9 +44,11 @@ crate::named_enum!(Bf16Compute, WorldModelError, WorldModelError::input, ENV, {
     F32 => "f32",
 });
 
-impl Bf16Compute {
+impl ProcessMode for Bf16Compute {
+    const ENV: &'static str = ENV;
+    const VARIANTS: &'static [Self] = Self::ALL;
     /// `Auto` decided for this CPU (`Native` or `F32`).
-    pub fn resolve(self) -> Self {
+    fn resolve(self) -> Self {
         match self {
             Self::Auto if cpu_has_bf16_arithmetic() => Self::Native,
             Self::Auto => Self::F32,
@@ -69,39 +71,22 @@ pub fn cpu_has_bf16_arithmetic() -> bool {
     }
 }
 
-// 0: not resolved yet; otherwise 1 + the resolved mode (Native 1, F32 2).
-static MODE: AtomicU8 = AtomicU8::new(0);
+static MODE: ModeCell = ModeCell::new();
 
 /// Sets the process-wide mode.
 pub fn set(mode: Bf16Compute) {
-    let code = match mode.resolve() {
-        Bf16Compute::F32 => 2,
-        _ => 1,
-    };
-    MODE.store(code, Ordering::Relaxed);
+    MODE.set(mode);
 }
 
 /// Sets the mode from [`ENV`] (unset: `Auto`) and returns it resolved; an
 /// unknown value is an error naming the variable, the value and the choices.
 pub fn init_from_env() -> Result<Bf16Compute, WorldModelError> {
-    let mode = match std::env::var(ENV) {
-        Ok(v) => v.trim().parse()?,
-        Err(_) => Bf16Compute::Auto,
-    };
-    set(mode);
-    Ok(mode.resolve())
+    MODE.init_from_env()
 }
 
 /// The mode in effect (`Native` or `F32`); `Auto` for this CPU until [`set`].
 pub fn mode() -> Bf16Compute {
-    match MODE.load(Ordering::Relaxed) {
-        1 => Bf16Compute::Native,
-        2 => Bf16Compute::F32,
-        _ => {
-            set(Bf16Compute::Auto);
-            mode()
-        }
-    }
+    MODE.get()
 }
 
 /// Whether an op on `x` widens in `mode`: a CPU bf16 tensor in `F32` mode.

@@ -34,9 +34,10 @@
 
 use crate::cpu_bf16::Bf16Compute;
 use crate::error::WorldModelError;
+use crate::process_mode::{ModeCell, ProcessMode};
 use bridgev2w_torch_ext::onednn::{self, PostOp};
 use bridgev2w_torch_ext::{autocast, AutocastDevice};
-use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use tch::{nn, Device, Kind, Tensor};
 
@@ -64,51 +65,36 @@ crate::named_enum!(CpuLinear, WorldModelError, WorldModelError::input, ENV, {
     OneDnn => "onednn",
 });
 
-impl CpuLinear {
-    /// `Auto` decided for this libtorch (`Aten` or `OneDnn`).
-    pub fn resolve(self) -> Self {
+impl ProcessMode for CpuLinear {
+    const ENV: &'static str = ENV;
+    const VARIANTS: &'static [Self] = Self::ALL;
+    /// `Auto` and `OneDnn` decided for this libtorch (`Aten` where it lacks
+    /// oneDNN's linear ops).
+    fn resolve(self) -> Self {
         match self {
-            Self::Auto if onednn::available() => Self::OneDnn,
-            Self::Auto => Self::Aten,
-            other => other,
+            Self::Auto | Self::OneDnn if onednn::available() => Self::OneDnn,
+            _ => Self::Aten,
         }
     }
 }
 
-// 0: not resolved yet; otherwise 1 + the resolved mode (Aten 1, OneDnn 2).
-static MODE: AtomicU8 = AtomicU8::new(0);
+static MODE: ModeCell = ModeCell::new();
 
 /// Sets the process-wide mode (`OneDnn` falls back to `Aten` where libtorch
 /// lacks the ops).
 pub fn set(mode: CpuLinear) {
-    let code = match mode.resolve() {
-        CpuLinear::OneDnn if onednn::available() => 2,
-        _ => 1,
-    };
-    MODE.store(code, Ordering::Relaxed);
+    MODE.set(mode);
 }
 
 /// Sets the mode from [`ENV`] (unset: `Auto`) and returns it resolved; an
 /// unknown value is an error naming the variable, the value and the choices.
 pub fn init_from_env() -> Result<CpuLinear, WorldModelError> {
-    let mode = match std::env::var(ENV) {
-        Ok(v) => v.trim().parse()?,
-        Err(_) => CpuLinear::Auto,
-    };
-    set(mode);
-    Ok(self::mode())
+    MODE.init_from_env()
 }
 
 /// The mode in effect (`Aten` or `OneDnn`).
 pub fn mode() -> CpuLinear {
-    match MODE.load(Ordering::Relaxed) {
-        1 => CpuLinear::Aten,
-        2 => CpuLinear::OneDnn,
-        _ => {
-            set(CpuLinear::Auto);
-            mode()
-        }
-    }
+    MODE.get()
 }
 
 static FALLBACKS: AtomicU64 = AtomicU64::new(0);

@@ -25,6 +25,7 @@ pub mod named;
 pub mod nets;
 pub mod parity;
 pub mod pipeline;
+pub mod process_mode;
 pub mod scheduler;
 pub mod spec;
 pub mod static_scene;

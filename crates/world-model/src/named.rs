@@ -1,6 +1,7 @@
 //! Modes named by strings in configs and on the command line: one macro
 //! writes their `NAMES`, `FromStr` (an unknown name is an error listing the
-//! names) and `Display`, so every typed mode parses and prints alike.
+//! names), `Display` and the list of variants, so every typed mode parses
+//! and prints alike.
 
 /// For an enum of unit variants:
 /// `named_enum!(Mode, ErrorType, ErrorType::input, "field", { A => "a", B => "b" });`
@@ -12,6 +13,9 @@ macro_rules! named_enum {
         impl $ty {
             /// The names [`std::str::FromStr`] accepts.
             pub const NAMES: &'static [&'static str] = &[$($name),+];
+            /// Every variant, in the order of [`Self::NAMES`].
+            #[allow(dead_code)]
+            pub const ALL: &'static [Self] = &[$(Self::$variant),+];
         }
 
         impl ::std::str::FromStr for $ty {
