@@ -94,14 +94,18 @@ fn on_kernel(mode: CpuAttention, q: &Tensor, k: &Tensor, v: &Tensor) -> bool {
             && t.dim() == 4
             && t.stride()[3] == 1
     };
-    let recorded = bridgev2w_torch_ext::onednn::grad_mode_enabled()
-        && (q.requires_grad() || k.requires_grad() || v.requires_grad());
+    // Cheapest first: in `aten` mode, f32 or on CUDA nothing more is asked
+    // of libtorch.
+    let recorded = || {
+        bridgev2w_torch_ext::onednn::grad_mode_enabled()
+            && (q.requires_grad() || k.requires_grad() || v.requires_grad())
+    };
     mode == CpuAttention::OneDnn
         && fits(q)
         && fits(k)
         && fits(v)
-        && !recorded
         && q.size()[3] % 2 == 0
+        && !recorded()
 }
 
 /// `softmax(q k^T / sqrt(D)) v` for `q [B, heads, T, D]`, `k`, `v
