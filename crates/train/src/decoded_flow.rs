@@ -34,7 +34,9 @@ pub enum FlowBackward {
     /// [`Self::Recorded`] with each batch replayed unit by unit
     /// ([`BatchReplay::Stepwise`]: `conv_in`, each resnet, each upsampler,
     /// the output): one unit's activations at a time, for a third decoder
-    /// pass. What training uses with gradient checkpointing.
+    /// pass; tiled, one tile's conv caches at a time, computed again at its
+    /// replay (a fourth pass, without autograd). What training uses with
+    /// gradient checkpointing.
     Stepwise,
 }
 bridgev2w_world_model::named_enum!(FlowBackward, TrainError, TrainError::input, "flow backward", {
@@ -84,7 +86,7 @@ pub fn decoded_flow_loss(
             } else {
                 BatchReplay::Whole
             };
-            let (decoded, record) = vae.decode_recorded(&z.detach())?;
+            let (decoded, record) = vae.decode_recorded(&z.detach(), replay)?;
             let leaf = decoded.detach().set_requires_grad(true);
             let gt = gt.to_device(leaf.device());
             let fl = flow_loss(estimator, &leaf.clamp(-1.0, 1.0), &gt, cfg)?;
@@ -96,7 +98,7 @@ pub fn decoded_flow_loss(
                 leaf.zeros_like()
             };
             drop(leaf);
-            let grad_z = vae.decode_backward(&record, &grad_video, replay)?;
+            let grad_z = vae.decode_backward(&record, &grad_video)?;
             drop(record);
             // The value of the flow loss, the gradient of it through z.
             let pushed = (z * grad_z.to_kind(z.kind())).sum(Kind::Float);

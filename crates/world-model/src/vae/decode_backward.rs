@@ -18,7 +18,11 @@
 //! units (`conv_in`, each resnet, each upsampler, the output) run once more
 //! without autograd keeping only their inputs, then one at a time under
 //! autograd from the last, so that one unit's activations are held at a
-//! time, for a third decoder pass.
+//! time, for a third decoder pass. Tiled, it also keeps no tile's caches
+//! between the decode and the backward: each tile's are computed again (one
+//! more pass without autograd) just before its replay, so that one tile's
+//! caches are held at a time (at 25 frames 720x480 all tiles' caches are
+//! several GB).
 
 use super::tiling::tiled;
 use super::{frame_batches, AutoencoderKLCogVideoX, DecoderCache};
@@ -26,7 +30,9 @@ use crate::error::{Result, WorldModelError};
 use tch::{Kind, Tensor};
 
 /// How [`AutoencoderKLCogVideoX::decode_backward`] replays one frame batch
-/// (of one tile) under autograd.
+/// (of one tile) under autograd; chosen when the decode is recorded
+/// ([`AutoencoderKLCogVideoX::decode_recorded`]), since it decides what the
+/// record keeps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum BatchReplay {
     /// The whole decoder at once: every activation of the batch kept until
@@ -35,8 +41,11 @@ pub enum BatchReplay {
     Whole,
     /// Unit by unit (`conv_in`, each resnet, each upsampler, the output):
     /// one more decoder pass keeps only each unit's input, then each unit is
-    /// replayed under autograd alone, from the last. For the full-size flow
-    /// loss, where one batch's activations are themselves too large.
+    /// replayed under autograd alone, from the last. Tiled, each tile's conv
+    /// caches are computed again just before its replay instead of being
+    /// kept for every tile (one more pass without autograd). For the
+    /// full-size flow loss, where one batch's activations are themselves too
+    /// large.
     Stepwise,
 }
 
@@ -52,6 +61,8 @@ pub struct DecodeRecord {
     video_shape: Vec<i64>,
     /// Untiled or tiled.
     form: Form,
+    /// How the batches are replayed.
+    replay: BatchReplay,
 }
 
 #[derive(Debug)]
@@ -81,26 +92,61 @@ struct BatchRecord {
     z: Tensor,
     /// The latent-frame batches, `(start, end)`.
     batches: Vec<(i64, i64)>,
-    /// The cache each batch started from (`None` for the first).
-    caches: Vec<Option<DecoderCache>>,
+    /// The cache each batch started from (`None` for the first); `None` when
+    /// not kept (computed again by the backward).
+    caches: Option<Vec<Option<DecoderCache>>>,
     /// The pixel frames each batch produced.
     frames: Vec<i64>,
+}
+
+impl DecodeRecord {
+    /// The bytes the record's tensors hold: the recorded latents, the conv
+    /// caches each batch started from and, tiled, each tile's decoded output.
+    pub fn bytes(&self) -> u64 {
+        fn of(t: &Tensor) -> u64 {
+            (t.numel() * t.kind().elt_size_in_bytes()) as u64
+        }
+        fn batches(r: &BatchRecord) -> u64 {
+            let caches: u64 = r
+                .caches
+                .iter()
+                .flatten()
+                .flatten()
+                .flat_map(DecoderCache::tensors)
+                .map(of)
+                .sum();
+            of(&r.z) + caches
+        }
+        match &self.form {
+            Form::Whole(r) => batches(r),
+            Form::Tiled { tiles, .. } => tiles
+                .iter()
+                .map(|t| of(&t.output) + batches(&t.record))
+                .sum(),
+        }
+    }
 }
 
 impl AutoencoderKLCogVideoX {
     /// [`Self::decode`] (the whole batch at once; tiled when tiling is on and
     /// the latents exceed a tile) that also returns the record
-    /// [`Self::decode_backward`] needs.
-    pub fn decode_recorded(&self, latents: &Tensor) -> Result<(Tensor, DecodeRecord)> {
+    /// [`Self::decode_backward`] needs to replay the batches by `replay`.
+    pub fn decode_recorded(
+        &self,
+        latents: &Tensor,
+        replay: BatchReplay,
+    ) -> Result<(Tensor, DecodeRecord)> {
         self.check_latents(latents)?;
         let z = tch::no_grad(|| self.to_model(&latents.detach()));
         let s = z.size();
         let (video, form) = if self.tiles_latents(s[3], s[4]) {
             let mut tiles = Vec::new();
+            // One tile's caches at a time in the stepwise backward.
+            let keep_caches = replay == BatchReplay::Whole;
             // Autograd on for the blending only (each tile's decode runs without).
             let video = tch::with_grad(|| {
                 tiled(&z, &self.decode_geometry(), |tile, origin| {
-                    let (out, record) = self.decode_batches(tile)?;
+                    let (out, record) = self.decode_batches(tile, keep_caches)?;
                     let output = out.set_requires_grad(true);
                     tiles.push(TileRecord {
                         origin,
@@ -112,7 +158,7 @@ impl AutoencoderKLCogVideoX {
             })?;
             (video.detach(), Form::Tiled { video, tiles })
         } else {
-            let (video, record) = self.decode_batches(&z)?;
+            let (video, record) = self.decode_batches(&z, true)?;
             (video, Form::Whole(record))
         };
         let record = DecodeRecord {
@@ -120,42 +166,54 @@ impl AutoencoderKLCogVideoX {
             latent_shape: s,
             video_shape: video.size(),
             form,
+            replay,
         };
         Ok((video, record))
     }
 
-    /// The batches of one (untiled) decode, without autograd, recorded.
-    fn decode_batches(&self, z: &Tensor) -> Result<(Tensor, BatchRecord)> {
-        let _guard = tch::no_grad_guard();
+    /// The batches of one (untiled) decode, without autograd, recorded (the
+    /// caches each batch started from only when `keep_caches`).
+    fn decode_batches(&self, z: &Tensor, keep_caches: bool) -> Result<(Tensor, BatchRecord)> {
         let batches = frame_batches(z.size()[2], self.num_latent_frames_batch_size);
-        let (mut cache, mut caches, mut parts) = (None, Vec::new(), Vec::new());
-        for &(start, end) in &batches {
-            let (h, c) = self.decode_batch(&z.narrow(2, start, end - start), cache.as_ref())?;
-            caches.push(cache.replace(c));
-            parts.push(h);
-        }
+        let mut parts = Vec::with_capacity(batches.len());
+        let caches = self.batch_caches(z, &batches, |h| parts.push(h))?;
         let frames = parts.iter().map(|p| p.size()[2]).collect();
         let video = Tensor::f_cat(&parts, 2)?;
         let record = BatchRecord {
             z: z.shallow_clone(),
             batches,
-            caches,
+            caches: keep_caches.then_some(caches),
             frames,
         };
         Ok((video, record))
     }
 
-    /// The gradient with respect to the recorded latents of
-    /// `sum(decode(latents) * grad_video)`, batch by batch from the last
-    /// (see the module docs). `grad_video` has the decoded video's shape; the
-    /// result the latents' shape and dtype. The decoder's own parameters get
-    /// no gradient.
-    pub fn decode_backward(
+    /// Decodes `z`'s frame `batches` in order without autograd, handing each
+    /// batch's output to `output`; returns the cache each batch started from
+    /// (`None` for the first).
+    fn batch_caches(
         &self,
-        record: &DecodeRecord,
-        grad_video: &Tensor,
-        replay: BatchReplay,
-    ) -> Result<Tensor> {
+        z: &Tensor,
+        batches: &[(i64, i64)],
+        mut output: impl FnMut(Tensor),
+    ) -> Result<Vec<Option<DecoderCache>>> {
+        let _guard = tch::no_grad_guard();
+        let (mut cache, mut caches) = (None, Vec::with_capacity(batches.len()));
+        for &(start, end) in batches {
+            let (h, c) = self.decode_batch(&z.narrow(2, start, end - start), cache.as_ref())?;
+            caches.push(cache.replace(c));
+            output(h);
+        }
+        Ok(caches)
+    }
+
+    /// The gradient with respect to the recorded latents of
+    /// `sum(decode(latents) * grad_video)`, batch by batch from the last, as
+    /// the record's [`BatchReplay`] says (see the module docs). `grad_video`
+    /// has the decoded video's shape; the result the latents' shape and
+    /// dtype. The decoder's own parameters get no gradient.
+    pub fn decode_backward(&self, record: &DecodeRecord, grad_video: &Tensor) -> Result<Tensor> {
+        let replay = record.replay;
         if grad_video.size() != record.video_shape {
             return Err(WorldModelError::input(
                 "grad_video",
@@ -208,6 +266,12 @@ impl AutoencoderKLCogVideoX {
             offsets.push(at);
             at += f;
         }
+        // The caches each batch started from: recorded, or computed again now
+        // (and let go batch by batch).
+        let mut computed = match &record.caches {
+            Some(_) => Vec::new(),
+            None => self.batch_caches(&record.z, &record.batches, drop)?,
+        };
         let n = record.batches.len();
         let mut grads: Vec<Tensor> = Vec::with_capacity(n);
         // d objective / d (the cache batch j + 1 started from), in `tensors()` order.
@@ -216,7 +280,14 @@ impl AutoencoderKLCogVideoX {
             let (start, end) = record.batches[j];
             let z = record.z.narrow(2, start, end - start);
             let g = grad_video.narrow(2, offsets[j], record.frames[j]);
-            let cache_in = record.caches[j].as_ref();
+            let popped;
+            let cache_in = match &record.caches {
+                Some(c) => c[j].as_ref(),
+                None => {
+                    popped = computed.pop().flatten();
+                    popped.as_ref()
+                }
+            };
             let (g_z, g_cache) = match replay {
                 BatchReplay::Whole => {
                     self.batch_backward_whole(&z, cache_in, &g, grad_cache.as_deref())

@@ -113,17 +113,17 @@ fn config_parses_diffusers_json() {
 /// Returns `g` and the reference gradient.
 fn check_decode_backward(vae: &AutoencoderKLCogVideoX, z: &Tensor) -> (Tensor, Tensor) {
     let max = |t: Tensor| f64::try_from(t.abs().max()).expect("max");
-    let (video, record) = vae.decode_recorded(z).expect("recorded");
     let plain = vae.decode(z).expect("decode");
-    assert_eq!(video.size(), plain.size());
-    assert!(max(&video - &plain) < 1e-6);
-    let g = Tensor::randn(video.size(), (Kind::Float, tch::Device::Cpu));
     let leaf = z.detach().set_requires_grad(true);
     let out = vae.decode_with_grad(&leaf).expect("with grad");
+    let g = Tensor::randn(out.size(), (Kind::Float, tch::Device::Cpu));
     let objective = (&out * &g).sum(Kind::Float);
     let reference = Tensor::run_backward(&[objective], &[&leaf], false, false).remove(0);
     for replay in [BatchReplay::Whole, BatchReplay::Stepwise] {
-        let ours = vae.decode_backward(&record, &g, replay).expect("backward");
+        let (video, record) = vae.decode_recorded(z, replay).expect("recorded");
+        assert_eq!(video.size(), plain.size());
+        assert!(max(&video - &plain) < 1e-6);
+        let ours = vae.decode_backward(&record, &g).expect("backward");
         assert_eq!(ours.size(), z.size());
         let (err, scale) = (max(&ours - &reference), max(reference.shallow_clone()));
         assert!(
@@ -131,8 +131,11 @@ fn check_decode_backward(vae: &AutoencoderKLCogVideoX, z: &Tensor) -> (Tensor, T
             "{replay:?}: max error {err} of {scale}"
         );
     }
+    let (_, record) = vae
+        .decode_recorded(z, BatchReplay::Stepwise)
+        .expect("recorded");
     let e = vae
-        .decode_backward(&record, &g.narrow(2, 0, 2), BatchReplay::Stepwise)
+        .decode_backward(&record, &g.narrow(2, 0, 2))
         .expect_err("wrong shape")
         .to_string();
     assert!(e.contains("expected the decoded video's"), "{e}");
@@ -179,9 +182,19 @@ fn tiled_decode_backward_matches_autograd_through_the_tiled_decode() {
     })
     .expect("tiling");
     let c = VaeConfig::tiny().latent_channels;
-    // 4x6 latents in 3x4 tiles: overlapping tiles in both directions.
-    let z = Tensor::randn([1, c, 3, 4, 6], (Kind::Float, tch::Device::Cpu));
+    // 4x6 latents in 3x4 tiles: overlapping tiles in both directions; 5
+    // latent frames: three batches per tile, linked by the conv caches.
+    let z = Tensor::randn([1, c, 5, 4, 6], (Kind::Float, tch::Device::Cpu));
     let _ = check_decode_backward(&vae, &z);
+    // The stepwise record keeps no tile's caches (each tile's are computed
+    // again at its replay); the whole-batch one keeps every tile's, more
+    // than the latents and tile outputs both keep.
+    let bytes = |replay| vae.decode_recorded(&z, replay).expect("recorded").1.bytes();
+    let (whole, stepwise) = (bytes(BatchReplay::Whole), bytes(BatchReplay::Stepwise));
+    assert!(
+        stepwise > 0 && whole > 2 * stepwise,
+        "{whole} vs {stepwise}"
+    );
 }
 
 #[test]
