@@ -72,15 +72,18 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
         "{bench}"
     );
     // Both replays of the flow loss's backward, each with its time, its
-    // memory (the caching allocator's peak on the CPU) and the same loss,
-    // and the stepwise one with RAFT.
+    // memory (the caching allocator's peak on the CPU), what its record
+    // kept and the same loss, and the stepwise one with RAFT.
     let flow = &item("bench-flow")["metrics"];
     for mode in ["recorded", "stepwise", "stepwise_raft"] {
         assert!(
             flow[format!("{mode}_seconds")]
                 .as_f64()
                 .is_some_and(|s| s > 0.0)
-                && flow[format!("{mode}_peak_mib")].as_f64().is_some(),
+                && flow[format!("{mode}_peak_mib")].as_f64().is_some()
+                && flow[format!("{mode}_record_mib")]
+                    .as_f64()
+                    .is_some_and(|m| m > 0.0),
             "{flow}"
         );
     }

@@ -385,6 +385,18 @@ lr = 1e-4
     }
 }
 
+/// The cells of `bench flow`'s row for `mode`.
+fn flow_row(text: &str, mode: &str) -> Vec<String> {
+    let line = text
+        .lines()
+        .find(|l| l.starts_with(&format!("| {mode} |")))
+        .unwrap_or_else(|| panic!("no {mode} row in {text}"));
+    line.trim_matches('|')
+        .split('|')
+        .map(|c| c.trim().to_owned())
+        .collect()
+}
+
 /// `bench flow` on the tiny VAE: every replay of the flow loss's backward
 /// gives autograd's loss and gradient (to float rounding), the batch-by-batch
 /// replay in less memory than autograd through the whole decode, and the
@@ -396,16 +408,7 @@ fn bench_flow_replays_give_autograds_gradient_in_less_memory() {
     ]);
     common::ok(&o);
     let text = String::from_utf8_lossy(&o.stdout).to_string();
-    let row = |mode: &str| -> Vec<String> {
-        let line = text
-            .lines()
-            .find(|l| l.starts_with(&format!("| {mode} |")))
-            .unwrap_or_else(|| panic!("no {mode} row in {text}"));
-        line.trim_matches('|')
-            .split('|')
-            .map(|c| c.trim().to_owned())
-            .collect()
-    };
+    let row = |mode: &str| flow_row(&text, mode);
     let peak = |mode: &str| -> f64 {
         row(mode)[2]
             .split_whitespace()
@@ -413,13 +416,49 @@ fn bench_flow_replays_give_autograds_gradient_in_less_memory() {
             .and_then(|p| p.parse().ok())
             .unwrap_or_else(|| panic!("{text}"))
     };
+    assert_eq!(row("autograd")[3], "-", "autograd keeps no record: {text}");
     for mode in ["recorded", "stepwise"] {
-        assert_eq!(row(mode)[3], row("autograd")[3], "the same loss: {text}");
-        let err: f64 = row(mode)[4].parse().expect("gradient error");
+        assert_eq!(row(mode)[4], row("autograd")[4], "the same loss: {text}");
+        let err: f64 = row(mode)[5].parse().expect("gradient error");
         assert!(err < 1e-5, "{mode}: gradient error {err}: {text}");
+        let kept: f64 = row(mode)[3].parse().expect("record MiB");
+        assert!(kept > 0.0 && kept < peak(mode), "{mode}: {text}");
     }
     assert!(
         peak("stepwise") < peak("recorded") && peak("recorded") < peak("autograd"),
+        "{text}"
+    );
+}
+
+/// Tiled, the stepwise replay keeps no tile's conv caches between the decode
+/// and the backward (each tile's are computed again at its replay): its
+/// record is a fraction of the batch-by-batch one's, for the same loss.
+#[test]
+fn bench_flow_tiled_stepwise_record_keeps_no_caches() {
+    let o = common::run(&[
+        "bench",
+        "flow",
+        "--vae",
+        "tiny",
+        "--frames",
+        "17",
+        "--height",
+        "64",
+        "--width",
+        "96",
+        "--tile",
+        "48x40",
+        "--modes",
+        "recorded,stepwise",
+    ]);
+    common::ok(&o);
+    let text = String::from_utf8_lossy(&o.stdout).to_string();
+    let cells = |mode: &str| flow_row(&text, mode);
+    let kept = |mode: &str| -> f64 { cells(mode)[3].parse().expect("record MiB") };
+    assert!(text.contains("tiles of 48x40 px"), "{text}");
+    assert_eq!(cells("recorded")[4], cells("stepwise")[4], "{text}");
+    assert!(
+        kept("stepwise") > 0.0 && kept("stepwise") * 2.0 < kept("recorded"),
         "{text}"
     );
 }

@@ -58,14 +58,19 @@ impl FlowBackward {
     }
 }
 
-/// The flow loss of the video the VAE decodes from `z` (`[B, C, t, h, w]`,
-/// unscaled latents, usually requiring gradients) against `gt`
-/// (`[B, 3, T, H, W]` in `[-1, 1]`): a scalar whose value is the loss and
-/// whose gradient with respect to `z` is the loss's, by `how`. The decoded
-/// video is clamped to `[-1, 1]` before the flow is estimated, as the
-/// predicted frames are elsewhere. The recorded modes give the decoder's
-/// own parameters no gradient; autograd does where they require one (the
-/// VAE is frozen in training).
+/// [`decoded_flow`]'s result.
+#[derive(Debug)]
+pub struct DecodedFlow {
+    /// The loss (see [`decoded_flow_loss`]).
+    pub loss: Tensor,
+    /// The bytes the recorded decode kept between the decode and the
+    /// backward ([`vae::DecodeRecord::bytes`]); `None` for autograd.
+    ///
+    /// [`vae::DecodeRecord::bytes`]: bridgev2w_world_model::vae::DecodeRecord::bytes
+    pub record_bytes: Option<u64>,
+}
+
+/// [`decoded_flow`]'s loss.
 pub fn decoded_flow_loss(
     vae: &AutoencoderKLCogVideoX,
     z: &Tensor,
@@ -74,11 +79,33 @@ pub fn decoded_flow_loss(
     cfg: &FlowLossConfig,
     how: FlowBackward,
 ) -> Result<Tensor> {
+    Ok(decoded_flow(vae, z, gt, estimator, cfg, how)?.loss)
+}
+
+/// The flow loss of the video the VAE decodes from `z` (`[B, C, t, h, w]`,
+/// unscaled latents, usually requiring gradients) against `gt`
+/// (`[B, 3, T, H, W]` in `[-1, 1]`): a scalar whose value is the loss and
+/// whose gradient with respect to `z` is the loss's, by `how`. The decoded
+/// video is clamped to `[-1, 1]` before the flow is estimated, as the
+/// predicted frames are elsewhere. The recorded modes give the decoder's
+/// own parameters no gradient; autograd does where they require one (the
+/// VAE is frozen in training).
+pub fn decoded_flow(
+    vae: &AutoencoderKLCogVideoX,
+    z: &Tensor,
+    gt: &Tensor,
+    estimator: &dyn FlowEstimator,
+    cfg: &FlowLossConfig,
+    how: FlowBackward,
+) -> Result<DecodedFlow> {
     match how {
         FlowBackward::Autograd => {
             let video = vae.decode_with_grad(z)?;
             let gt = gt.to_device(video.device());
-            flow_loss(estimator, &video.clamp(-1.0, 1.0), &gt, cfg)
+            Ok(DecodedFlow {
+                loss: flow_loss(estimator, &video.clamp(-1.0, 1.0), &gt, cfg)?,
+                record_bytes: None,
+            })
         }
         FlowBackward::Recorded | FlowBackward::Stepwise => {
             let replay = if how == FlowBackward::Stepwise {
@@ -99,10 +126,14 @@ pub fn decoded_flow_loss(
             };
             drop(leaf);
             let grad_z = vae.decode_backward(&record, &grad_video)?;
+            let record_bytes = Some(record.bytes());
             drop(record);
             // The value of the flow loss, the gradient of it through z.
             let pushed = (z * grad_z.to_kind(z.kind())).sum(Kind::Float);
-            Ok(&pushed - pushed.detach() + fl.detach())
+            Ok(DecodedFlow {
+                loss: &pushed - pushed.detach() + fl.detach(),
+                record_bytes,
+            })
         }
     }
 }

@@ -85,6 +85,14 @@ pub enum TrainError {
     /// From libtorch.
     #[error("torch: {0}")]
     Torch(#[from] tch::TchError),
+    /// The device (or the CPU) ran out of memory during a training step.
+    #[error("out of memory in {during}: {figures}\nTo lower a step's memory: `gradient_checkpointing = true` and `autocast = \"bf16\"` in [train], a smaller `train.batch_size`, fewer `data.frames` or a smaller `data.height` x `data.width`; on CUDA, PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True lets libtorch's caching allocator reuse memory it holds in pieces")]
+    OutOfMemory {
+        /// What was running, with its shapes.
+        during: String,
+        /// libtorch's account: the allocation that failed and the memory in use.
+        figures: String,
+    },
 }
 
 impl TrainError {
@@ -97,6 +105,27 @@ impl TrainError {
 }
 
 impl TrainError {
+    /// An out-of-memory error from libtorch (directly or through the world
+    /// model) as [`Self::OutOfMemory`] while `during()` (what ran, with its
+    /// shapes); other errors unchanged.
+    pub fn on_out_of_memory(self, during: impl FnOnce() -> String) -> Self {
+        use bridgev2w_world_model::error::{out_of_memory_figures, WorldModelError};
+        let figures = match &self {
+            Self::Torch(e) | Self::WorldModel(WorldModelError::Torch(e)) => {
+                out_of_memory_figures(&e.to_string())
+            }
+            Self::WorldModel(WorldModelError::OutOfMemory { figures, .. }) => Some(figures.clone()),
+            _ => None,
+        };
+        match figures {
+            Some(figures) => Self::OutOfMemory {
+                during: during(),
+                figures,
+            },
+            None => self,
+        }
+    }
+
     /// Wraps an error with what was being done.
     pub(crate) fn context(what: String) -> impl FnOnce(TrainError) -> TrainError {
         move |e| TrainError::Context {

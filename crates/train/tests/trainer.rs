@@ -350,3 +350,40 @@ fn non_zero_init_branch_changes_the_output_at_start() {
     assert_eq!(named(&zero), 0.0);
     assert!(named(&nonzero) > 0.0);
 }
+
+/// A step that runs out of memory is an error naming the step's shapes and
+/// what lowers its memory (libtorch's CPU allocator refusing here; a panic
+/// of an op's is caught as well: the unit test of `guarded`). The trainer
+/// goes on training afterwards.
+#[test]
+fn a_step_that_runs_out_of_memory_is_an_error_naming_the_step() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut t = Trainer::new(config(tmp.path())).unwrap();
+    let batch = t.batch(0).unwrap();
+    // 2^20 clips as stride-0 views of the first: nothing is allocated until
+    // a layer's output, petabytes, which no allocator gives.
+    let n = 1_i64 << 20;
+    let wide = |x: &tch::Tensor| {
+        let mut size = x.size();
+        size[0] = n;
+        x.narrow(0, 0, 1).expand(size.as_slice(), false)
+    };
+    let mut huge = t.batch(0).unwrap();
+    huge.first_frames = wide(&batch.first_frames);
+    huge.video = wide(&batch.video);
+    huge.masks = wide(&batch.masks);
+    huge.actions = wide(&batch.actions);
+    huge.episodes = vec![batch.episodes[0]; n as usize];
+    let e = t.update(&huge, 0).unwrap_err();
+    let text = e.to_string();
+    assert!(matches!(e, TrainError::OutOfMemory { .. }), "{text}");
+    assert!(
+        text.contains("training step 0 (1048576 clip(s) of 9 frames at 64x96")
+            && text.contains("memory")
+            && text.contains("gradient_checkpointing = true")
+            && !text.contains("frame #"),
+        "{text}"
+    );
+    assert!(t.update(&batch, 0).unwrap().loss.is_finite());
+}

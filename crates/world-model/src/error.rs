@@ -127,21 +127,13 @@ impl WorldModelError {
     /// `during()` (what ran, with its shapes); other errors unchanged.
     pub fn on_out_of_memory(self, during: impl FnOnce() -> String) -> Self {
         match self {
-            Self::Torch(e) if e.to_string().contains("out of memory") => {
-                let text = e.to_string();
-                // libtorch's first line holds the figures; the rest is its backtrace.
-                let figures = text
-                    .lines()
-                    .find(|l| l.contains("out of memory"))
-                    .unwrap_or(&text)
-                    .trim()
-                    .trim_start_matches("Internal torch error: ")
-                    .to_owned();
-                Self::OutOfMemory {
+            Self::Torch(e) => match out_of_memory_figures(&e.to_string()) {
+                Some(figures) => Self::OutOfMemory {
                     during: during(),
                     figures,
-                }
-            }
+                },
+                None => Self::Torch(e),
+            },
             other => other,
         }
     }
@@ -200,9 +192,46 @@ impl From<bridgev2w_io::FileError> for WorldModelError {
     }
 }
 
+/// The line of a libtorch error that says the memory ran out, with its
+/// figures (CUDA's caching allocator: "CUDA out of memory. Tried to allocate
+/// ..."; this project's CPU allocator: "... out of memory allocating N
+/// bytes"; libtorch's own CPU allocator: "... can't allocate memory: you
+/// tried to allocate N bytes ..." or "... not enough memory: ..."), without
+/// libtorch's backtrace; `None` for any other error.
+pub fn out_of_memory_figures(text: &str) -> Option<String> {
+    const SIGNS: [&str; 3] = [
+        "out of memory",
+        "can't allocate memory",
+        "not enough memory",
+    ];
+    let line = text.lines().find(|l| SIGNS.iter().any(|s| l.contains(s)))?;
+    Some(
+        line.trim()
+            .trim_start_matches("Internal torch error: ")
+            .to_owned(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn out_of_memory_lines_of_each_allocator_are_recognised() {
+        let cpu = "Internal torch error: DefaultCPUAllocator: not enough memory: you tried to allocate 1099511627776 bytes.\nException raised from ...";
+        assert_eq!(
+            out_of_memory_figures(cpu).as_deref(),
+            Some("DefaultCPUAllocator: not enough memory: you tried to allocate 1099511627776 bytes.")
+        );
+        let default = "Internal torch error: [enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to allocate 695784701952 bytes. Error code 12 (Cannot allocate memory)\nframe #0: ...";
+        assert_eq!(
+            out_of_memory_figures(default).as_deref(),
+            Some("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to allocate 695784701952 bytes. Error code 12 (Cannot allocate memory)")
+        );
+        let ours = "bridgev2w CPU allocator: out of memory allocating 4096 bytes";
+        assert_eq!(out_of_memory_figures(ours).as_deref(), Some(ours));
+        assert_eq!(out_of_memory_figures("shape '[2, 3]' is invalid"), None);
+    }
 
     #[test]
     fn an_out_of_memory_names_what_ran_and_keeps_libtorchs_figures() {

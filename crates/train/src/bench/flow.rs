@@ -14,7 +14,7 @@
 //! not the process), on CUDA from `nvidia-smi` (the device's used memory, so
 //! the CUDA caching allocator's reserve is in it).
 
-use crate::decoded_flow::{decoded_flow_loss, FlowBackward};
+use crate::decoded_flow::{decoded_flow, FlowBackward};
 use crate::flow::{FlowEstimator, FlowLossConfig, LucasKanade, RaftFlow};
 use crate::{Result, TrainError};
 use bridgev2w_torch_ext::{autocast, cpu_cache, AutocastDtype};
@@ -136,6 +136,9 @@ pub struct FlowBenchRow {
     /// Peak memory above the start, MiB (`None` where it cannot be read:
     /// a CPU without the caching allocator, a GPU without `nvidia-smi`).
     pub peak_mib: Option<f64>,
+    /// What the recorded decode kept between the decode and the backward,
+    /// MiB (`None` for autograd).
+    pub record_mib: Option<f64>,
     /// The flow loss's value.
     pub loss: f64,
     /// `max |g - g_ref| / max |g_ref|` against the first mode's gradient.
@@ -272,16 +275,17 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
         cpu_cache::reset_peak();
         let live0 = cpu_cache::memory().live_bytes;
         let t0 = Instant::now();
-        let ((loss, grad), gpu_peak) = with_gpu_peak(NVIDIA_SMI, gpu, || -> Result<_> {
-            let loss = autocast(dev, autocast_dtype, || {
-                decoded_flow_loss(&vae, &leaf, &gt, estimator.as_ref(), &flow_cfg, mode)
-            })??;
-            let grad = Tensor::f_run_backward(&[&loss], &[&leaf], false, false)?.remove(0);
-            if let Some(i) = gpu {
-                tch::Cuda::synchronize(i as i64);
-            }
-            Ok((loss.double_value(&[]), grad))
-        })?;
+        let ((loss, grad, record_bytes), gpu_peak) =
+            with_gpu_peak(NVIDIA_SMI, gpu, || -> Result<_> {
+                let flow = autocast(dev, autocast_dtype, || {
+                    decoded_flow(&vae, &leaf, &gt, estimator.as_ref(), &flow_cfg, mode)
+                })??;
+                let grad = Tensor::f_run_backward(&[&flow.loss], &[&leaf], false, false)?.remove(0);
+                if let Some(i) = gpu {
+                    tch::Cuda::synchronize(i as i64);
+                }
+                Ok((flow.loss.double_value(&[]), grad, flow.record_bytes))
+            })?;
         let seconds = t0.elapsed().as_secs_f64();
         let peak_mib = match gpu {
             Some(_) => gpu_peak.map(|m| m as f64),
@@ -304,6 +308,7 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
             mode,
             seconds,
             peak_mib,
+            record_mib: record_bytes.map(|b| b as f64 / (1 << 20) as f64),
             loss,
             gradient_error,
         });
@@ -334,10 +339,10 @@ impl fmt::Display for FlowBenchReport {
         };
         writeln!(
             f,
-            "| mode | seconds | {memory}, MiB | loss | gradient vs {} |",
+            "| mode | seconds | {memory}, MiB | of which the record kept, MiB | loss | gradient vs {} |",
             self.rows[0].mode
         )?;
-        writeln!(f, "|---|---|---|---|---|")?;
+        writeln!(f, "|---|---|---|---|---|---|")?;
         let first_peak = self.rows[0].peak_mib;
         for r in &self.rows {
             let peak = match (r.peak_mib, first_peak) {
@@ -345,9 +350,12 @@ impl fmt::Display for FlowBenchReport {
                 (Some(p), _) => format!("{p:.0}"),
                 (None, _) => "not measured".to_owned(),
             };
+            let record = r
+                .record_mib
+                .map_or_else(|| "-".to_owned(), |m| format!("{m:.1}"));
             writeln!(
                 f,
-                "| {} | {:.2} | {peak} | {:.6} | {:.1e} |",
+                "| {} | {:.2} | {peak} | {record} | {:.6} | {:.1e} |",
                 r.mode, r.seconds, r.loss, r.gradient_error
             )?;
         }

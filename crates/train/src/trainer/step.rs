@@ -24,8 +24,46 @@ impl Trainer {
 
     /// One optimizer update on `batch` with the random draws (and learning
     /// rate, epoch) of step `step`; counts as a completed step. Tests use it
-    /// to overfit one fixed batch.
+    /// to overfit one fixed batch. An error of libtorch's (its ops panic on
+    /// them) is returned, and an out-of-memory reported with what the step
+    /// ran ([`TrainError::OutOfMemory`]).
     pub fn update(&mut self, batch: &Batch, step: usize) -> Result<StepMetrics> {
+        guarded(|| self.update_unguarded(batch, step))
+            .map_err(|e| e.on_out_of_memory(|| self.describe_step(batch, step)))
+    }
+
+    /// What step `step` on `batch` runs, for error messages.
+    fn describe_step(&self, batch: &Batch, step: usize) -> String {
+        let t = &self.cfg.train;
+        let s = batch.video.size(); // [B, 3, T, H, W]
+        let (clips, frames, height, width) = match s.as_slice() {
+            [b, _, f, h, w] => (*b, *f, *h, *w),
+            _ => (0, 0, 0, 0),
+        };
+        let precision = match self.autocast {
+            Some(d) => format!("{d:?} autocast"),
+            None => "f32".to_owned(),
+        };
+        let epoch = step / self.steps_per_epoch();
+        let flow = if self.cfg.ablation.flow_loss
+            && crate::flow::flow_weight(epoch, t.e_switch, t.lambda_flow) > 0.0
+        {
+            format!(
+                "on ({} backward through the VAE)",
+                crate::decoded_flow::FlowBackward::for_training(t.gradient_checkpointing)
+            )
+        } else {
+            "off".to_owned()
+        };
+        format!(
+            "training step {step} ({clips} clip(s) of {frames} frames at {height}x{width}, {precision} on {:?}, gradient checkpointing {}, flow loss {flow})",
+            self.model.device(),
+            if t.gradient_checkpointing { "on" } else { "off" },
+        )
+    }
+
+    /// [`Self::update`] without its panic guard.
+    fn update_unguarded(&mut self, batch: &Batch, step: usize) -> Result<StepMetrics> {
         let start = Instant::now();
         self.opt.zero_grad();
         let device = self.model.device();
@@ -159,6 +197,14 @@ impl Trainer {
 
 /// Every number of a step's metrics as a `train/<name>` scalar (booleans as
 /// 0 or 1), the step itself aside.
+/// Runs `f`; a panic inside it (libtorch's ops panic on their errors, a
+/// device's out-of-memory among them) becomes [`TrainError::Torch`] with
+/// its message, without "panicked at" on stderr.
+pub(super) fn guarded<T>(f: impl FnOnce() -> Result<T>) -> Result<T> {
+    bridgev2w_io::quiet_panic::catch_quiet(f)
+        .unwrap_or_else(|panic| Err(TrainError::Torch(tch::TchError::Torch(panic))))
+}
+
 fn scalars(m: &StepMetrics) -> Result<Vec<(String, SummaryValue)>> {
     let v = serde_json::to_value(m).map_err(|e| TrainError::input("metrics", e.to_string()))?;
     let mut out = Vec::new();
