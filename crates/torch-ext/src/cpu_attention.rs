@@ -102,7 +102,10 @@ mod tests {
         if std::arch::is_x86_feature_detected!("avx512bf16") {
             // The pinned libtorch exports the bf16 micro-kernel: the start-up
             // check (a small attention against a plain one) must pass.
-            assert!(available(), "AVX512-BF16: the kernel's start-up check failed");
+            assert!(
+                available(),
+                "AVX512-BF16: the kernel's start-up check failed"
+            );
         } else {
             assert!(!available(), "no AVX512-BF16: the kernel must not run");
         }

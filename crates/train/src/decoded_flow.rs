@@ -61,25 +61,14 @@ impl FlowBackward {
 /// [`decoded_flow`]'s result.
 #[derive(Debug)]
 pub struct DecodedFlow {
-    /// The loss (see [`decoded_flow_loss`]).
+    /// The loss: a scalar whose value is the flow loss and whose gradient
+    /// with respect to `z` is the loss's.
     pub loss: Tensor,
     /// The bytes the recorded decode kept between the decode and the
     /// backward ([`vae::DecodeRecord::bytes`]); `None` for autograd.
     ///
     /// [`vae::DecodeRecord::bytes`]: bridgev2w_world_model::vae::DecodeRecord::bytes
     pub record_bytes: Option<u64>,
-}
-
-/// [`decoded_flow`]'s loss.
-pub fn decoded_flow_loss(
-    vae: &AutoencoderKLCogVideoX,
-    z: &Tensor,
-    gt: &Tensor,
-    estimator: &dyn FlowEstimator,
-    cfg: &FlowLossConfig,
-    how: FlowBackward,
-) -> Result<Tensor> {
-    Ok(decoded_flow(vae, z, gt, estimator, cfg, how)?.loss)
 }
 
 /// The flow loss of the video the VAE decodes from `z` (`[B, C, t, h, w]`,

@@ -6,7 +6,7 @@ use super::{check_finite, Losses, Trainer};
 use crate::augment::{recolor, ColorDraw};
 use crate::config::Stage;
 use crate::data::{rng_for, seed_for, Batch};
-use crate::decoded_flow::{decoded_flow_loss, FlowBackward};
+use crate::decoded_flow::{decoded_flow, FlowBackward};
 use crate::flow::flow_weight;
 use crate::losses::{
     diffusion_loss, dynamics_loss, motion_weights, predicted_x0, weighted_diffusion_loss,
@@ -186,14 +186,15 @@ impl Trainer {
                 .vae
                 .unscale_latents(&x0.permute([0, 2, 1, 3, 4])) // [B, C, t, h, w]
                 .to_kind(Kind::Float);
-            let fl = decoded_flow_loss(
+            let fl = decoded_flow(
                 &model.vae,
                 &z,
                 &batch.video,
                 self.estimator.as_ref(),
                 &self.flow_cfg,
                 FlowBackward::for_training(t.gradient_checkpointing),
-            )?;
+            )?
+            .loss;
             flow = fl.double_value(&[]);
             check_finite(step, "flow", flow)?;
             total + fl * fw
