@@ -548,6 +548,35 @@ fn a_mesh_parser_panic_is_a_clean_error_without_the_panic_message() {
     assert!(!err.contains("panicked at"), "{err}");
 }
 
+/// An allocation no machine gives (beyond a 47-bit address space) inside
+/// `bench model`: a clean error naming the shapes, libtorch's figures and
+/// what lowers the memory; no panic, no backtrace.
+#[test]
+fn bench_model_out_of_memory_is_a_clean_error_naming_the_shapes() {
+    let o = run(&[
+        "bench",
+        "model",
+        "--layers",
+        "1",
+        "--batch",
+        "10000000000",
+        "--no-diffusers",
+    ]);
+    let err = stderr(&o);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains(
+            "out of device memory while timing the model: batch 10000000000 of 9 frames at 128x192"
+        ) && err.contains("out of memory allocating")
+            && err.contains("Lower --batch"),
+        "{err}"
+    );
+    assert!(
+        !err.contains("panicked") && !err.contains("frame #"),
+        "{err}"
+    );
+}
+
 #[test]
 fn a_bad_cpu_cache_setting_stops_naming_the_variable() {
     let bad = bin()

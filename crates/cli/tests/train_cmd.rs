@@ -463,6 +463,27 @@ fn bench_flow_tiled_stepwise_record_keeps_no_caches() {
     );
 }
 
+/// An allocation no machine gives inside `bench flow` (a 2^24-pixel square
+/// clip): a clean error naming the modes and shapes and what lowers the
+/// memory; no panic, no backtrace.
+#[test]
+fn bench_flow_out_of_memory_is_a_clean_error_naming_the_shapes() {
+    let o = common::run(&[
+        "bench", "flow", "--vae", "tiny", "--frames", "17", "--height", "16777216", "--width",
+        "16777216", "--modes", "stepwise",
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{e}");
+    assert!(
+        e.contains(
+            "out of memory in the flow loss's backward (stepwise; 17 frames at 16777216x16777216"
+        ) && e.contains("out of memory allocating")
+            && e.contains("--tile"),
+        "{e}"
+    );
+    assert!(!e.contains("panicked") && !e.contains("frame #"), "{e}");
+}
+
 #[test]
 fn bench_flow_refuses_tiles_that_do_not_join() {
     let o = common::run(&["bench", "flow", "--vae", "tiny", "--tile", "64x96"]);

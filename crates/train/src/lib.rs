@@ -85,13 +85,15 @@ pub enum TrainError {
     /// From libtorch.
     #[error("torch: {0}")]
     Torch(#[from] tch::TchError),
-    /// The device (or the CPU) ran out of memory during a training step.
-    #[error("out of memory in {during}: {figures}\nTo lower a step's memory: `gradient_checkpointing = true` and `autocast = \"bf16\"` in [train], a smaller `train.batch_size`, fewer `data.frames` or a smaller `data.height` x `data.width`; on CUDA, PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True lets libtorch's caching allocator reuse memory it holds in pieces")]
+    /// The device (or the CPU) ran out of memory.
+    #[error("out of memory in {during}: {figures}\n{advice}")]
     OutOfMemory {
         /// What was running, with its shapes.
         during: String,
         /// libtorch's account: the allocation that failed and the memory in use.
         figures: String,
+        /// What lowers the memory of what was running.
+        advice: &'static str,
     },
 }
 
@@ -104,11 +106,27 @@ impl TrainError {
     }
 }
 
+/// Runs `f`; a panic inside it (libtorch's ops panic on their errors, a
+/// device's out-of-memory among them) becomes [`TrainError::Torch`] with
+/// its message, without "panicked at" on stderr.
+pub(crate) fn guarded<T>(f: impl FnOnce() -> Result<T>) -> Result<T> {
+    bridgev2w_io::quiet_panic::catch_quiet(f)
+        .unwrap_or_else(|panic| Err(TrainError::Torch(tch::TchError::Torch(panic))))
+}
+
+/// What lowers a training step's memory, for [`TrainError::OutOfMemory`].
+pub const TRAIN_MEMORY_ADVICE: &str = "To lower a step's memory: `gradient_checkpointing = true` and `autocast = \"bf16\"` in [train], a smaller `train.batch_size`, fewer `data.frames` or a smaller `data.height` x `data.width`; on CUDA, PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True lets libtorch's caching allocator reuse memory it holds in pieces";
+
+/// What lowers `bench flow`'s memory, for [`TrainError::OutOfMemory`].
+pub const BENCH_FLOW_MEMORY_ADVICE: &str =
+    "Lower --frames or the size, tile the decode (--tile, e.g. 240x360), use --precision bf16 or --modes stepwise";
+
 impl TrainError {
     /// An out-of-memory error from libtorch (directly or through the world
     /// model) as [`Self::OutOfMemory`] while `during()` (what ran, with its
-    /// shapes); other errors unchanged.
-    pub fn on_out_of_memory(self, during: impl FnOnce() -> String) -> Self {
+    /// shapes), with `advice` (e.g. [`TRAIN_MEMORY_ADVICE`]); other errors
+    /// unchanged.
+    pub fn on_out_of_memory(self, during: impl FnOnce() -> String, advice: &'static str) -> Self {
         use bridgev2w_world_model::error::{out_of_memory_figures, WorldModelError};
         let figures = match &self {
             Self::Torch(e) | Self::WorldModel(WorldModelError::Torch(e)) => {
@@ -121,6 +139,7 @@ impl TrainError {
             Some(figures) => Self::OutOfMemory {
                 during: during(),
                 figures,
+                advice,
             },
             None => self,
         }

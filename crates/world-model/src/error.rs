@@ -85,12 +85,14 @@ pub enum WorldModelError {
     #[error("libtorch: {0}")]
     Torch(#[from] tch::TchError),
     /// The device ran out of memory during an operation.
-    #[error("out of device memory while {during}: {figures}\nLower the batch (predict --batch-size, plan --max-batch), use --precision bf16, or keep the VAE tiled")]
+    #[error("out of device memory while {during}: {figures}\n{advice}")]
     OutOfMemory {
         /// What was running, with its shapes.
         during: String,
         /// libtorch's account: the allocation that failed and the memory in use.
         figures: String,
+        /// What lowers the memory of what was running.
+        advice: &'static str,
     },
     /// A model name is neither a local folder nor in the Hugging Face cache.
     #[error("model {name}: not found (offline); looked at:\n  - {}\nGive a diffusers folder, or download it first (e.g. `huggingface-cli download {name}`; HF_HUB_CACHE or HF_HOME name the cache)", looked.join("\n  - "))]
@@ -124,13 +126,15 @@ impl WorldModelError {
     }
 
     /// An out-of-memory error from libtorch as [`Self::OutOfMemory`] while
-    /// `during()` (what ran, with its shapes); other errors unchanged.
-    pub fn on_out_of_memory(self, during: impl FnOnce() -> String) -> Self {
+    /// `during()` (what ran, with its shapes), with `advice` (e.g.
+    /// [`PREDICT_MEMORY_ADVICE`]); other errors unchanged.
+    pub fn on_out_of_memory(self, during: impl FnOnce() -> String, advice: &'static str) -> Self {
         match self {
             Self::Torch(e) => match out_of_memory_figures(&e.to_string()) {
                 Some(figures) => Self::OutOfMemory {
                     during: during(),
                     figures,
+                    advice,
                 },
                 None => Self::Torch(e),
             },
@@ -192,6 +196,14 @@ impl From<bridgev2w_io::FileError> for WorldModelError {
     }
 }
 
+/// What lowers a prediction's memory, for [`WorldModelError::OutOfMemory`].
+pub const PREDICT_MEMORY_ADVICE: &str =
+    "Lower the batch (predict --batch-size, plan --max-batch), use --precision bf16, or keep the VAE tiled";
+
+/// What lowers `bench model`'s memory, for [`WorldModelError::OutOfMemory`].
+pub const BENCH_MEMORY_ADVICE: &str =
+    "Lower --batch, --frames or the size, use --precision bf16, or --vae-tiling";
+
 /// The line of a libtorch error that says the memory ran out, with its
 /// figures (CUDA's caching allocator: "CUDA out of memory. Tried to allocate
 /// ..."; this project's CPU allocator: "... out of memory allocating N
@@ -204,7 +216,11 @@ pub fn out_of_memory_figures(text: &str) -> Option<String> {
         "can't allocate memory",
         "not enough memory",
     ];
+    // An op's panic carries tch's error in its Debug form (`called
+    // `Result::unwrap()` on an `Err` value: Torch("...")`), newlines escaped.
+    let text = text.replace("\\n", "\n");
     let line = text.lines().find(|l| SIGNS.iter().any(|s| l.contains(s)))?;
+    let line = line.split_once("Torch(\"").map_or(line, |(_, rest)| rest);
     Some(
         line.trim()
             .trim_start_matches("Internal torch error: ")
@@ -228,6 +244,12 @@ mod tests {
             out_of_memory_figures(default).as_deref(),
             Some("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to allocate 695784701952 bytes. Error code 12 (Cannot allocate memory)")
         );
+        // As an op's panic (tch's unwrap of its error, Debug-formatted).
+        let panic = r#"called `Result::unwrap()` on an `Err` value: Torch("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79.19 GiB of which 1.10 GiB is free.\nException raised from malloc at CUDACachingAllocator.cpp:1574 (most recent call first):\nframe #0: c10::Error::Error")"#;
+        assert_eq!(
+            out_of_memory_figures(panic).as_deref(),
+            Some("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79.19 GiB of which 1.10 GiB is free.")
+        );
         let ours = "bridgev2w CPU allocator: out of memory allocating 4096 bytes";
         assert_eq!(out_of_memory_figures(ours).as_deref(), Some(ours));
         assert_eq!(out_of_memory_figures("shape '[2, 3]' is invalid"), None);
@@ -237,8 +259,10 @@ mod tests {
     fn an_out_of_memory_names_what_ran_and_keeps_libtorchs_figures() {
         // libtorch's message as a caught panic of an op carries it.
         let torch = "Internal torch error: CUDA out of memory. Tried to allocate 10.55 GiB. GPU 0 has a total capacity of 139.80 GiB of which 10.40 GiB is free.\nException raised from malloc at CUDACachingAllocator.cpp:1574 (most recent call first):\nframe #0: ...";
-        let e = WorldModelError::from_panic(torch.to_owned())
-            .on_out_of_memory(|| "predicting 4 clip(s) of 25 frames at 480x720".to_owned());
+        let e = WorldModelError::from_panic(torch.to_owned()).on_out_of_memory(
+            || "predicting 4 clip(s) of 25 frames at 480x720".to_owned(),
+            PREDICT_MEMORY_ADVICE,
+        );
         let text = e.to_string();
         assert!(matches!(e, WorldModelError::OutOfMemory { .. }), "{text}");
         assert!(
@@ -258,10 +282,13 @@ mod tests {
             "{text}"
         );
         // Other errors pass unchanged, and `during` is not evaluated for them.
-        let other = WorldModelError::from_panic("shape mismatch".to_owned())
-            .on_out_of_memory(|| unreachable!("only for out-of-memory"));
+        let other = WorldModelError::from_panic("shape mismatch".to_owned()).on_out_of_memory(
+            || unreachable!("only for out-of-memory"),
+            PREDICT_MEMORY_ADVICE,
+        );
         assert!(matches!(other, WorldModelError::Torch(_)), "{other}");
-        let input = WorldModelError::input("x", "bad").on_out_of_memory(|| unreachable!());
+        let input = WorldModelError::input("x", "bad")
+            .on_out_of_memory(|| unreachable!(), PREDICT_MEMORY_ADVICE);
         assert!(matches!(input, WorldModelError::Input { .. }));
     }
 }

@@ -105,6 +105,16 @@ pub struct FlowBenchOptions {
     pub raft_iterations: usize,
 }
 
+impl FlowBenchOptions {
+    /// The decode's tiles in words ("tiles of HxW px" or "whole frames").
+    fn tiles(&self) -> String {
+        match self.tile {
+            Some((h, w)) => format!("tiles of {h}x{w} px"),
+            None => "whole frames".to_owned(),
+        }
+    }
+}
+
 impl Default for FlowBenchOptions {
     fn default() -> Self {
         Self {
@@ -160,8 +170,31 @@ pub struct FlowBenchReport {
 
 /// Runs every mode of `options` once on the same random VAE, latents and
 /// ground-truth video.
+/// An out-of-memory (libtorch's error, or an op's panic, caught) is
+/// [`TrainError::OutOfMemory`] naming the clip, tiles and modes.
 pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
     let o = options;
+    crate::guarded(|| bench_flow_unguarded(o)).map_err(|e| {
+        e.on_out_of_memory(
+            || {
+                let modes: Vec<String> = o.modes.iter().map(ToString::to_string).collect();
+                format!(
+                    "the flow loss's backward ({}; {} frames at {}x{}, {}, {:?} on {:?})",
+                    modes.join(", "),
+                    o.frames,
+                    o.height,
+                    o.width,
+                    o.tiles(),
+                    o.precision,
+                    o.device
+                )
+            },
+            crate::BENCH_FLOW_MEMORY_ADVICE,
+        )
+    })
+}
+
+fn bench_flow_unguarded(o: &FlowBenchOptions) -> Result<FlowBenchReport> {
     if o.modes.is_empty() {
         return Err(TrainError::input(
             "modes",
@@ -275,17 +308,17 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
         cpu_cache::reset_peak();
         let live0 = cpu_cache::memory().live_bytes;
         let t0 = Instant::now();
-        let ((loss, grad, record_bytes), gpu_peak) =
-            with_gpu_peak(NVIDIA_SMI, gpu, || -> Result<_> {
-                let flow = autocast(dev, autocast_dtype, || {
-                    decoded_flow(&vae, &leaf, &gt, estimator.as_ref(), &flow_cfg, mode)
-                })??;
-                let grad = Tensor::f_run_backward(&[&flow.loss], &[&leaf], false, false)?.remove(0);
-                if let Some(i) = gpu {
-                    tch::Cuda::synchronize(i as i64);
-                }
-                Ok((flow.loss.double_value(&[]), grad, flow.record_bytes))
-            })?;
+        let measure = || -> Result<_> {
+            let flow = autocast(dev, autocast_dtype, || {
+                decoded_flow(&vae, &leaf, &gt, estimator.as_ref(), &flow_cfg, mode)
+            })??;
+            let grad = Tensor::f_run_backward(&[&flow.loss], &[&leaf], false, false)?.remove(0);
+            if let Some(i) = gpu {
+                tch::Cuda::synchronize(i as i64);
+            }
+            Ok((flow.loss.double_value(&[]), grad, flow.record_bytes))
+        };
+        let ((loss, grad, record_bytes), gpu_peak) = with_gpu_peak(NVIDIA_SMI, gpu, measure)?;
         let seconds = t0.elapsed().as_secs_f64();
         let peak_mib = match gpu {
             Some(_) => gpu_peak.map(|m| m as f64),
@@ -324,14 +357,10 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
 impl fmt::Display for FlowBenchReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let o = &self.options;
-        let tiles = match o.tile {
-            Some((h, w)) => format!("tiles of {h}x{w} px"),
-            None => "whole frames".to_owned(),
-        };
         writeln!(
             f,
-            "flow loss through the decoder: VAE {}, {} frames at {}x{} ({tiles}), latents {:?}, {:?} on {:?}, flow: {}",
-            o.vae, o.frames, o.height, o.width, self.latent_shape, o.precision, o.device, self.estimator
+            "flow loss through the decoder: VAE {}, {} frames at {}x{} ({}), latents {:?}, {:?} on {:?}, flow: {}",
+            o.vae, o.frames, o.height, o.width, o.tiles(), self.latent_shape, o.precision, o.device, self.estimator
         )?;
         let memory = match o.device {
             ComputeDevice::Cpu => "peak tensor memory above the start (caching allocator)",

@@ -28,8 +28,12 @@ impl Trainer {
     /// them) is returned, and an out-of-memory reported with what the step
     /// ran ([`TrainError::OutOfMemory`]).
     pub fn update(&mut self, batch: &Batch, step: usize) -> Result<StepMetrics> {
-        guarded(|| self.update_unguarded(batch, step))
-            .map_err(|e| e.on_out_of_memory(|| self.describe_step(batch, step)))
+        crate::guarded(|| self.update_unguarded(batch, step)).map_err(|e| {
+            e.on_out_of_memory(
+                || self.describe_step(batch, step),
+                crate::TRAIN_MEMORY_ADVICE,
+            )
+        })
     }
 
     /// What step `step` on `batch` runs, for error messages.
@@ -197,14 +201,6 @@ impl Trainer {
 
 /// Every number of a step's metrics as a `train/<name>` scalar (booleans as
 /// 0 or 1), the step itself aside.
-/// Runs `f`; a panic inside it (libtorch's ops panic on their errors, a
-/// device's out-of-memory among them) becomes [`TrainError::Torch`] with
-/// its message, without "panicked at" on stderr.
-pub(super) fn guarded<T>(f: impl FnOnce() -> Result<T>) -> Result<T> {
-    bridgev2w_io::quiet_panic::catch_quiet(f)
-        .unwrap_or_else(|panic| Err(TrainError::Torch(tch::TchError::Torch(panic))))
-}
-
 fn scalars(m: &StepMetrics) -> Result<Vec<(String, SummaryValue)>> {
     let v = serde_json::to_value(m).map_err(|e| TrainError::input("metrics", e.to_string()))?;
     let mut out = Vec::new();

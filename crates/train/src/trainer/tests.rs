@@ -1,5 +1,5 @@
 use super::setup::random_preset;
-use super::step::guarded;
+use crate::guarded;
 use crate::TrainError;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use bridgev2w_world_model::vae::VaeConfig;
@@ -27,7 +27,10 @@ fn a_panic_in_a_step_is_an_error_and_an_out_of_memory_one_names_the_step() {
     let oom = "Internal torch error: CUDA out of memory. Tried to allocate 10.55 GiB. GPU 0 has a total capacity of 79.19 GiB of which 1.40 GiB is free.\nException raised from malloc at CUDACachingAllocator.cpp:1574 (most recent call first):\nframe #0: ...";
     let e = guarded(|| -> crate::Result<()> { panic!("{oom}") })
         .unwrap_err()
-        .on_out_of_memory(|| "training step 7 (1 clip(s) of 25 frames at 480x720)".to_owned());
+        .on_out_of_memory(
+            || "training step 7 (1 clip(s) of 25 frames at 480x720)".to_owned(),
+            crate::TRAIN_MEMORY_ADVICE,
+        );
     let text = e.to_string();
     assert!(matches!(e, TrainError::OutOfMemory { .. }), "{text}");
     assert!(
@@ -40,7 +43,7 @@ fn a_panic_in_a_step_is_an_error_and_an_out_of_memory_one_names_the_step() {
     // Another panic stays libtorch's error; `during` is not evaluated for it.
     let e = guarded(|| -> crate::Result<()> { panic!("shape mismatch") })
         .unwrap_err()
-        .on_out_of_memory(|| unreachable!("only for out-of-memory"));
+        .on_out_of_memory(|| unreachable!("only for out-of-memory"), "");
     assert!(
         matches!(&e, TrainError::Torch(t) if t.to_string().contains("shape mismatch")),
         "{e}"

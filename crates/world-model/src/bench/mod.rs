@@ -96,7 +96,39 @@ fn best_of(repeat: usize, device: tch::Device, f: &mut dyn FnMut() -> Result<()>
 }
 
 /// Times a transformer forward and a VAE encode/decode with random weights.
+/// An out-of-memory (libtorch's error, or an op's panic, caught) is
+/// [`WorldModelError::OutOfMemory`] naming the shapes.
 pub fn time_model(
+    tf_cfg: &TransformerConfig,
+    vae_cfg: &VaeConfig,
+    shape: &ModelBenchShape,
+    device: ComputeDevice,
+    precision: Precision,
+    repeat: usize,
+) -> Result<ModelTimings> {
+    bridgev2w_io::quiet_panic::catch_quiet(|| {
+        time_model_unguarded(tf_cfg, vae_cfg, shape, device, precision, repeat)
+    })
+    .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
+    .map_err(|e| {
+        e.on_out_of_memory(
+            || {
+                format!(
+                    "timing the model: batch {} of {} frames at {}x{} ({} layers of {}, {precision:?} on {device:?})",
+                    shape.batch,
+                    shape.frames,
+                    shape.height,
+                    shape.width,
+                    tf_cfg.num_layers,
+                    tf_cfg.inner_dim()
+                )
+            },
+            crate::error::BENCH_MEMORY_ADVICE,
+        )
+    })
+}
+
+fn time_model_unguarded(
     tf_cfg: &TransformerConfig,
     vae_cfg: &VaeConfig,
     shape: &ModelBenchShape,

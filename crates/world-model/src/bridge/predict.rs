@@ -93,7 +93,12 @@ impl BridgeV2W {
             self.predict_batch_at_once(first_frames, masks, opts, progress)
         })
         .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
-        .map_err(|e| e.on_out_of_memory(|| self.describe_batch(first_frames.len(), opts)))
+        .map_err(|e| {
+            e.on_out_of_memory(
+                || self.describe_batch(first_frames.len(), opts),
+                crate::error::PREDICT_MEMORY_ADVICE,
+            )
+        })
     }
 
     /// What a prediction of `clips` clips runs, for error messages.
