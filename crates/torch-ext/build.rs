@@ -16,8 +16,9 @@
 //!   own `include/`, the venv's `include/` (where `scripts/setup-venv.sh`
 //!   unpacks Debian's `libgloo-dev`) and `/usr/include`; without them the
 //!   shim builds and its Gloo constructor reports what is missing;
-//! * `csrc/c10d_nccl.cpp`: the NCCL process group, with the CUDA and NCCL
-//!   headers of the wheel's `nvidia-*` packages, when libtorch has CUDA.
+//! * `csrc/c10d_nccl.cpp`: the NCCL process group, and `csrc/cuda_memory.cpp`:
+//!   the CUDA caching allocator's figures, with the CUDA and NCCL headers of
+//!   the wheel's `nvidia-*` packages, when libtorch has CUDA.
 
 use std::path::PathBuf;
 
@@ -102,9 +103,10 @@ fn main() {
         .flag("-fopenmp");
     attention.compile("bridgev2w_torch_ext_attention");
     build.compile("bridgev2w_torch_ext");
-    // NCCL in its own library: its headers pull in CUDA's.
+    // NCCL in its own library: its headers pull in CUDA's (the CUDA
+    // allocator's figures need the same headers).
     let mut nccl = base();
-    nccl.file("csrc/c10d_nccl.cpp");
+    nccl.file("csrc/c10d_nccl.cpp").file("csrc/cuda_memory.cpp");
     let cuda = PathBuf::from(&lib).join("libtorch_cuda.so").is_file();
     let nvidia = real_root.parent().map(|p| p.join("nvidia"));
     let headers = nvidia.as_ref().and_then(|n| {

@@ -97,6 +97,16 @@ def step_seconds(path, name):
         # > 0 when the flow loss ran (its weight is 0 before e_switch).
         max_flow_weight=max((r.get("flow_weight", 0.0) for r in rows), default=None),
         finite_losses=all(math.isfinite(r["loss"]) for r in rows),
+        # On CUDA, the caching allocator's exact peaks over the steps (MiB):
+        # what tensors held, and what the allocator reserved from the device.
+        cuda_peak_allocated_mib=max(
+            (r["cuda_peak_allocated_mib"] for r in rows if "cuda_peak_allocated_mib" in r),
+            default=None,
+        ),
+        cuda_peak_reserved_mib=max(
+            (r["cuda_peak_reserved_mib"] for r in rows if "cuda_peak_reserved_mib" in r),
+            default=None,
+        ),
     )
 
 

@@ -51,6 +51,8 @@ lr = 1e-4
         ] {
             assert!(l[key].as_f64().is_some_and(f64::is_finite), "{key} in {l}");
         }
+        // The CUDA allocator's peaks only on CUDA.
+        assert!(l.get("cuda_peak_reserved_mib").is_none(), "{l}");
     }
     assert!(run_dir.join("final/weights.safetensors").is_file());
     assert_eq!(

@@ -20,6 +20,7 @@ pub mod autocast;
 pub mod c10d;
 pub mod cpu_attention;
 pub mod cpu_cache;
+pub mod cuda_memory;
 pub mod onednn;
 
 pub use autocast::{autocast, AutocastDevice, AutocastDtype, AutocastGuard};
@@ -36,6 +37,9 @@ pub enum TorchExtError {
     /// A oneDNN op failed (the C++ exception's message).
     #[error("{0}")]
     OneDnn(String),
+    /// The CUDA allocator's figures could not be read.
+    #[error("{0}")]
+    Cuda(String),
 }
 
 /// Result of this crate.

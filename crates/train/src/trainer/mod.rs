@@ -86,6 +86,15 @@ pub struct StepMetrics {
     /// `vae` stage: KL divergence of the posterior from N(0, I), per element.
     #[serde(default)]
     pub kl: f64,
+    /// On CUDA: the most memory tensors held at once during the step, MiB
+    /// (the caching allocator's `max_memory_allocated`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cuda_peak_allocated_mib: Option<f64>,
+    /// On CUDA: the most memory the caching allocator reserved at once during
+    /// the step, MiB (`max_memory_reserved`: what the device must have,
+    /// besides the CUDA context).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cuda_peak_reserved_mib: Option<f64>,
 }
 
 /// The losses of one forward pass.

@@ -8,7 +8,7 @@ use crate::data::Batch;
 use crate::run_dir::{self, ExistingRun};
 use crate::tensorboard::SummaryValue;
 use crate::{Result, TrainError};
-use bridgev2w_torch_ext::autocast;
+use bridgev2w_torch_ext::{autocast, cuda_memory};
 use std::io::Write;
 use std::path::Path;
 use std::time::Instant;
@@ -71,6 +71,15 @@ impl Trainer {
         let start = Instant::now();
         self.opt.zero_grad();
         let device = self.model.device();
+        let cuda = match device {
+            tch::Device::Cuda(i) => Some(i),
+            _ => None,
+        };
+        // The allocator's peaks are figures for the metrics only: a failure
+        // to read them leaves them out, never stops training.
+        if let Some(i) = cuda {
+            let _ = cuda_memory::reset_peak(i);
+        }
         // The forward passes under autocast; the backward outside it (as
         // PyTorch recommends), except the checkpointed blocks' replay, which
         // must recompute them in the forward's precision.
@@ -94,6 +103,8 @@ impl Trainer {
             ema.update(self.opt.params(), step);
         }
         self.step += 1;
+        let cuda_peak = cuda.and_then(|i| cuda_memory::memory(i).ok().flatten());
+        let mib = |bytes: u64| bytes as f64 / (1 << 20) as f64;
         Ok(StepMetrics {
             step,
             epoch: step / self.steps_per_epoch(),
@@ -108,6 +119,8 @@ impl Trainer {
             secs: start.elapsed().as_secs_f64(),
             recon,
             kl,
+            cuda_peak_allocated_mib: cuda_peak.map(|m| mib(m.peak_allocated)),
+            cuda_peak_reserved_mib: cuda_peak.map(|m| mib(m.peak_reserved)),
         })
     }
 
