@@ -106,101 +106,91 @@ pub fn time_model(
     precision: Precision,
     repeat: usize,
 ) -> Result<ModelTimings> {
-    bridgev2w_io::quiet_panic::catch_quiet(|| {
-        time_model_unguarded(tf_cfg, vae_cfg, shape, device, precision, repeat)
-    })
-    .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
-    .map_err(|e| {
-        e.on_out_of_memory(
-            || {
+    let timed = || -> Result<ModelTimings> {
+        let _guard = tch::no_grad_guard();
+        let dev = device.check_available()?.to_tch();
+        let kind = precision.kind();
+        let t = vae_cfg.temporal_compression_ratio as i64;
+        let s = vae_cfg.spatial_compression();
+        if (shape.frames - 1) % t != 0
+            || shape.height % (s * tf_cfg.patch_size) != 0
+            || shape.width % (s * tf_cfg.patch_size) != 0
+        {
+            return Err(WorldModelError::input(
+                "bench shape",
                 format!(
-                    "timing the model: batch {} of {} frames at {}x{} ({} layers of {}, {precision:?} on {device:?})",
-                    shape.batch,
+                    "{} frames at {}x{}: expected {t}k + 1 frames and sides divisible by {}",
                     shape.frames,
                     shape.height,
                     shape.width,
-                    tf_cfg.num_layers,
-                    tf_cfg.inner_dim()
-                )
-            },
-            crate::error::BENCH_MEMORY_ADVICE,
-        )
-    })
-}
-
-fn time_model_unguarded(
-    tf_cfg: &TransformerConfig,
-    vae_cfg: &VaeConfig,
-    shape: &ModelBenchShape,
-    device: ComputeDevice,
-    precision: Precision,
-    repeat: usize,
-) -> Result<ModelTimings> {
-    let _guard = tch::no_grad_guard();
-    let dev = device.check_available()?.to_tch();
-    let kind = precision.kind();
-    let t = vae_cfg.temporal_compression_ratio as i64;
-    let s = vae_cfg.spatial_compression();
-    if (shape.frames - 1) % t != 0
-        || shape.height % (s * tf_cfg.patch_size) != 0
-        || shape.width % (s * tf_cfg.patch_size) != 0
-    {
-        return Err(WorldModelError::input(
-            "bench shape",
-            format!(
-                "{} frames at {}x{}: expected {t}k + 1 frames and sides divisible by {}",
-                shape.frames,
-                shape.height,
-                shape.width,
-                s * tf_cfg.patch_size
-            ),
-        ));
-    }
-    if shape.batch < 1 {
-        return Err(WorldModelError::input(
-            "bench batch",
-            format!("{}: expected >= 1", shape.batch),
-        ));
-    }
-    let (lf, lh, lw) = (
-        (shape.frames - 1) / t + 1,
-        shape.height / s,
-        shape.width / s,
-    );
-    tch::manual_seed(0);
-    let tf = LoadedTransformer::random(tf_cfg, device, precision)?;
-    let b = shape.batch;
-    // [B, F, C, H, W] latents, [B, L, D] text, [B] timesteps.
-    let x = Tensor::randn([b, lf, tf_cfg.in_channels, lh, lw], (kind, dev));
-    let text = Tensor::randn([b, shape.text_len, tf_cfg.text_embed_dim], (kind, dev));
-    let ts = Tensor::full([b], 500i64, (Kind::Int64, dev));
-    let rotary = tf.model.rotary_for(&x)?;
-    let ofs = tf_cfg
-        .ofs_embed_dim
-        .map(|_| Tensor::full([b], 2.0, (Kind::Float, dev)));
-    let transformer_forward_s = best_of(repeat, dev, &mut || {
-        tf.model
-            .forward(&x, &text, &ts, rotary.as_ref(), ofs.as_ref())
-            .map(|_| ())
-    })?;
-    drop(tf);
-    let mut vs = VarStore::new(tch::Device::Cpu);
-    let mut vae = AutoencoderKLCogVideoX::new(vae_cfg, vs.root())?;
-    if shape.vae_tiling {
-        vae.enable_tiling(crate::vae::TilingOptions::default())?;
-    }
-    vs.set_kind(kind);
-    crate::device::move_to_device(&mut vs, dev);
-    let video =
-        Tensor::rand([1, 3, shape.frames, shape.height, shape.width], (kind, dev)) * 2.0 - 1.0;
-    let latents = Tensor::randn([1, vae_cfg.latent_channels, lf, lh, lw], (kind, dev));
-    let vae_encode_s = best_of(repeat, dev, &mut || vae.encode(&video).map(|_| ()))?;
-    let vae_decode_s = best_of(repeat, dev, &mut || vae.decode(&latents).map(|_| ()))?;
-    Ok(ModelTimings {
-        transformer_forward_s,
-        vae_encode_s,
-        vae_decode_s,
-    })
+                    s * tf_cfg.patch_size
+                ),
+            ));
+        }
+        if shape.batch < 1 {
+            return Err(WorldModelError::input(
+                "bench batch",
+                format!("{}: expected >= 1", shape.batch),
+            ));
+        }
+        let (lf, lh, lw) = (
+            (shape.frames - 1) / t + 1,
+            shape.height / s,
+            shape.width / s,
+        );
+        tch::manual_seed(0);
+        let tf = LoadedTransformer::random(tf_cfg, device, precision)?;
+        let b = shape.batch;
+        // [B, F, C, H, W] latents, [B, L, D] text, [B] timesteps.
+        let x = Tensor::randn([b, lf, tf_cfg.in_channels, lh, lw], (kind, dev));
+        let text = Tensor::randn([b, shape.text_len, tf_cfg.text_embed_dim], (kind, dev));
+        let ts = Tensor::full([b], 500i64, (Kind::Int64, dev));
+        let rotary = tf.model.rotary_for(&x)?;
+        let ofs = tf_cfg
+            .ofs_embed_dim
+            .map(|_| Tensor::full([b], 2.0, (Kind::Float, dev)));
+        let transformer_forward_s = best_of(repeat, dev, &mut || {
+            tf.model
+                .forward(&x, &text, &ts, rotary.as_ref(), ofs.as_ref())
+                .map(|_| ())
+        })?;
+        drop(tf);
+        let mut vs = VarStore::new(tch::Device::Cpu);
+        let mut vae = AutoencoderKLCogVideoX::new(vae_cfg, vs.root())?;
+        if shape.vae_tiling {
+            vae.enable_tiling(crate::vae::TilingOptions::default())?;
+        }
+        vs.set_kind(kind);
+        crate::device::move_to_device(&mut vs, dev);
+        let video =
+            Tensor::rand([1, 3, shape.frames, shape.height, shape.width], (kind, dev)) * 2.0 - 1.0;
+        let latents = Tensor::randn([1, vae_cfg.latent_channels, lf, lh, lw], (kind, dev));
+        let vae_encode_s = best_of(repeat, dev, &mut || vae.encode(&video).map(|_| ()))?;
+        let vae_decode_s = best_of(repeat, dev, &mut || vae.decode(&latents).map(|_| ()))?;
+        Ok(ModelTimings {
+            transformer_forward_s,
+            vae_encode_s,
+            vae_decode_s,
+        })
+    };
+    bridgev2w_io::quiet_panic::catch_quiet(timed)
+        .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
+        .map_err(|e| {
+            e.on_out_of_memory(
+                || {
+                    format!(
+                        "timing the model: batch {} of {} frames at {}x{} ({} layers of {}, {precision:?} on {device:?})",
+                        shape.batch,
+                        shape.frames,
+                        shape.height,
+                        shape.width,
+                        tf_cfg.num_layers,
+                        tf_cfg.inner_dim()
+                    )
+                },
+                crate::error::BENCH_MEMORY_ADVICE,
+            )
+        })
 }
 
 /// libtorch's intra-op threads (what the peer should use too).
