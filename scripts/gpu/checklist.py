@@ -143,7 +143,7 @@ def flow_row(log, name, mode, label=None):
     with open(log) as f:
         for line in f:
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            if len(cells) == 6 and cells[0] == mode:
+            if len(cells) == 7 and cells[0] == mode:
                 peak = cells[2].split()[0]
                 record(
                     name,
@@ -152,6 +152,8 @@ def flow_row(log, name, mode, label=None):
                         f"{label}_peak_mib": None if peak == "not" else float(peak),
                         f"{label}_record_mib": None if cells[3] == "-" else float(cells[3]),
                         f"{label}_loss": float(cells[4]),
+                        # The CUDA caching allocator's exact peak (tensors).
+                        f"{label}_allocator_peak_mib": None if cells[6] == "-" else float(cells[6]),
                     },
                 )
                 return

@@ -83,7 +83,11 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
                 && flow[format!("{mode}_peak_mib")].as_f64().is_some()
                 && flow[format!("{mode}_record_mib")]
                     .as_f64()
-                    .is_some_and(|m| m > 0.0),
+                    .is_some_and(|m| m > 0.0)
+                // The CUDA allocator's peak: recorded, empty on the CPU.
+                && flow
+                    .as_object()
+                    .is_some_and(|o| o.contains_key(&format!("{mode}_allocator_peak_mib"))),
             "{flow}"
         );
     }

@@ -12,12 +12,14 @@
 //! the mode started: on the CPU from the caching allocator's counters
 //! ([`cpu_cache::memory`], installed by the `bridgev2w` binary; tensors only,
 //! not the process), on CUDA from `nvidia-smi` (the device's used memory, so
-//! the CUDA caching allocator's reserve is in it).
+//! the CUDA caching allocator's reserve is in it) and, exact, from the CUDA
+//! caching allocator's own peak of the memory tensors held
+//! ([`cuda_memory::memory`]).
 
 use crate::decoded_flow::{decoded_flow, FlowBackward};
 use crate::flow::{FlowEstimator, FlowLossConfig, LucasKanade, RaftFlow};
 use crate::{Result, TrainError};
-use bridgev2w_torch_ext::{autocast, cpu_cache, AutocastDtype};
+use bridgev2w_torch_ext::{autocast, cpu_cache, cuda_memory, AutocastDtype};
 use bridgev2w_world_model::bench::gpu_memory::{with_gpu_peak, NVIDIA_SMI};
 use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
 use bridgev2w_world_model::vae::{
@@ -149,6 +151,10 @@ pub struct FlowBenchRow {
     /// What the recorded decode kept between the decode and the backward,
     /// MiB (`None` for autograd).
     pub record_mib: Option<f64>,
+    /// On CUDA: the most memory tensors held at once above what they held
+    /// when the mode started, MiB, from the caching allocator (exact, unlike
+    /// polling; `None` on the CPU or where it cannot be read).
+    pub cuda_allocated_peak_mib: Option<f64>,
     /// The flow loss's value.
     pub loss: f64,
     /// `max |g - g_ref| / max |g_ref|` against the first mode's gradient.
@@ -307,6 +313,11 @@ fn bench_flow_unguarded(o: &FlowBenchOptions) -> Result<FlowBenchReport> {
         let leaf = z.detach().set_requires_grad(true);
         cpu_cache::reset_peak();
         let live0 = cpu_cache::memory().live_bytes;
+        // The CUDA allocator's figures are extra: unreadable, they are left out.
+        let cuda0 = gpu.and_then(|i| {
+            cuda_memory::reset_peak(i).ok()?;
+            Some(cuda_memory::memory(i).ok()??.allocated)
+        });
         let t0 = Instant::now();
         let measure = || -> Result<_> {
             let flow = autocast(dev, autocast_dtype, || {
@@ -326,6 +337,10 @@ fn bench_flow_unguarded(o: &FlowBenchOptions) -> Result<FlowBenchReport> {
                 (cpu_cache::memory().peak_bytes.saturating_sub(live0)) as f64 / (1 << 20) as f64
             }),
         };
+        let cuda_allocated_peak_mib = gpu.zip(cuda0).and_then(|(i, start)| {
+            let m = cuda_memory::memory(i).ok()??;
+            Some(m.peak_allocated.saturating_sub(start) as f64 / (1 << 20) as f64)
+        });
         let grad = grad.to_kind(Kind::Float).to_device(tch::Device::Cpu);
         let gradient_error = match &reference {
             None => 0.0,
@@ -342,6 +357,7 @@ fn bench_flow_unguarded(o: &FlowBenchOptions) -> Result<FlowBenchReport> {
             seconds,
             peak_mib,
             record_mib: record_bytes.map(|b| b as f64 / (1 << 20) as f64),
+            cuda_allocated_peak_mib,
             loss,
             gradient_error,
         });
@@ -368,10 +384,10 @@ impl fmt::Display for FlowBenchReport {
         };
         writeln!(
             f,
-            "| mode | seconds | {memory}, MiB | of which the record kept, MiB | loss | gradient vs {} |",
+            "| mode | seconds | {memory}, MiB | of which the record kept, MiB | loss | gradient vs {} | CUDA allocator's peak tensor memory above the start, MiB |",
             self.rows[0].mode
         )?;
-        writeln!(f, "|---|---|---|---|---|---|")?;
+        writeln!(f, "|---|---|---|---|---|---|---|")?;
         let first_peak = self.rows[0].peak_mib;
         for r in &self.rows {
             let peak = match (r.peak_mib, first_peak) {
@@ -382,18 +398,22 @@ impl fmt::Display for FlowBenchReport {
             let record = r
                 .record_mib
                 .map_or_else(|| "-".to_owned(), |m| format!("{m:.1}"));
+            let allocator = r
+                .cuda_allocated_peak_mib
+                .map_or_else(|| "-".to_owned(), |m| format!("{m:.0}"));
             writeln!(
                 f,
-                "| {} | {:.2} | {peak} | {record} | {:.6} | {:.1e} |",
+                "| {} | {:.2} | {peak} | {record} | {:.6} | {:.1e} | {allocator} |",
                 r.mode, r.seconds, r.loss, r.gradient_error
             )?;
         }
         if matches!(o.device, ComputeDevice::Cuda(_)) && self.rows.len() > 1 {
             writeln!(
                 f,
-                "note: on CUDA a mode's peak is above the device memory in use when it started, \
-                 which includes what the caching allocator kept from the modes before it: \
-                 run one mode per process (--modes NAME) to compare peaks"
+                "note: on CUDA nvidia-smi's peak is above the device memory in use when a mode \
+                 started, which includes what the caching allocator kept from the modes before \
+                 it: run one mode per process (--modes NAME) to compare those; the allocator's \
+                 own peaks (last column) compare within one process"
             )?;
         }
         Ok(())
