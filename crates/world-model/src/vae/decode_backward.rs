@@ -20,9 +20,9 @@
 //! autograd from the last, so that one unit's activations are held at a
 //! time, for a third decoder pass. Tiled, it also keeps no tile's caches
 //! between the decode and the backward: each tile's are computed again (one
-//! more pass without autograd) just before its replay, so that one tile's
-//! caches are held at a time (at 25 frames 720x480 all tiles' caches are
-//! several GB).
+//! more pass without autograd over all its batches but the last) just
+//! before its replay, so that one tile's caches are held at a time (at 25
+//! frames 720x480 all tiles' caches are several GB).
 
 use super::tiling::tiled;
 use super::{frame_batches, AutoencoderKLCogVideoX, DecoderCache};
@@ -176,7 +176,7 @@ impl AutoencoderKLCogVideoX {
     fn decode_batches(&self, z: &Tensor, keep_caches: bool) -> Result<(Tensor, BatchRecord)> {
         let batches = frame_batches(z.size()[2], self.num_latent_frames_batch_size);
         let mut parts = Vec::with_capacity(batches.len());
-        let caches = self.batch_caches(z, &batches, |h| parts.push(h))?;
+        let caches = self.batch_caches(z, &batches, Some(&mut |h| parts.push(h)))?;
         let frames = parts.iter().map(|p| p.size()[2]).collect();
         let video = Tensor::f_cat(&parts, 2)?;
         let record = BatchRecord {
@@ -188,21 +188,28 @@ impl AutoencoderKLCogVideoX {
         Ok((video, record))
     }
 
-    /// Decodes `z`'s frame `batches` in order without autograd, handing each
-    /// batch's output to `output`; returns the cache each batch started from
-    /// (`None` for the first).
+    /// Decodes `z`'s frame `batches` in order without autograd; returns the
+    /// cache each batch started from (`None` for the first). With `output`,
+    /// each batch's decoded frames are handed to it; without, the last batch
+    /// is not decoded (nothing it writes is needed then).
     fn batch_caches(
         &self,
         z: &Tensor,
         batches: &[(i64, i64)],
-        mut output: impl FnMut(Tensor),
+        mut output: Option<&mut dyn FnMut(Tensor)>,
     ) -> Result<Vec<Option<DecoderCache>>> {
         let _guard = tch::no_grad_guard();
         let (mut cache, mut caches) = (None, Vec::with_capacity(batches.len()));
-        for &(start, end) in batches {
+        for (i, &(start, end)) in batches.iter().enumerate() {
+            if output.is_none() && i + 1 == batches.len() {
+                caches.push(cache.take());
+                break;
+            }
             let (h, c) = self.decode_batch(&z.narrow(2, start, end - start), cache.as_ref())?;
             caches.push(cache.replace(c));
-            output(h);
+            if let Some(out) = output.as_mut() {
+                out(h);
+            }
         }
         Ok(caches)
     }
@@ -270,7 +277,7 @@ impl AutoencoderKLCogVideoX {
         // (and let go batch by batch).
         let mut computed = match &record.caches {
             Some(_) => Vec::new(),
-            None => self.batch_caches(&record.z, &record.batches, drop)?,
+            None => self.batch_caches(&record.z, &record.batches, None)?,
         };
         let n = record.batches.len();
         let mut grads: Vec<Tensor> = Vec::with_capacity(n);
