@@ -196,6 +196,14 @@ impl From<bridgev2w_io::FileError> for WorldModelError {
     }
 }
 
+/// Runs `f`; a panic inside it (libtorch's ops panic on their errors, a
+/// device's out-of-memory among them) becomes [`WorldModelError::Torch`]
+/// with its message, without "panicked at" on stderr.
+pub fn guarded<T>(f: impl FnOnce() -> Result<T>) -> Result<T> {
+    bridgev2w_io::quiet_panic::catch_quiet(f)
+        .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
+}
+
 /// What lowers a prediction's memory, for [`WorldModelError::OutOfMemory`].
 pub const PREDICT_MEMORY_ADVICE: &str =
     "Lower the batch (predict --batch-size, plan --max-batch), use --precision bf16, or keep the VAE tiled";

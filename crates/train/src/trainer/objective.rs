@@ -28,6 +28,17 @@ fn normal(rng: &mut impl Rng, mean: f64, std: f64) -> f64 {
 }
 
 impl Trainer {
+    /// The flow loss's weight at step `step`: 0 before `e_switch` epochs, in
+    /// the prior stage and with the flow-loss ablation off.
+    pub(super) fn flow_weight_at(&self, step: usize) -> f64 {
+        let t = &self.cfg.train;
+        if self.cfg.ablation.flow_loss && t.stage != Stage::Prior {
+            flow_weight(step / self.steps_per_epoch(), t.e_switch, t.lambda_flow)
+        } else {
+            0.0
+        }
+    }
+
     /// The `vae` stage's objective: L1 reconstruction of the clip through a
     /// posterior sample plus `kl_weight` times the per-element KL from N(0, I).
     fn vae_losses(&self, batch: &Batch, step: usize) -> Result<Losses> {
@@ -170,12 +181,7 @@ impl Trainer {
         let dynamics = dynl.double_value(&[]);
         check_finite(step, "dynamics", dynamics)?;
         let total = diff + &dynl * t.lambda_dyn;
-        let epoch = step / self.steps_per_epoch();
-        let fw = if self.cfg.ablation.flow_loss && !prior {
-            flow_weight(epoch, t.e_switch, t.lambda_flow)
-        } else {
-            0.0
-        };
+        let fw = self.flow_weight_at(step);
         let mut flow = 0.0;
         let total = if fw > 0.0 {
             // The decode runs without autograd and the flow loss's gradient

@@ -48,10 +48,7 @@ impl Trainer {
             Some(d) => format!("{d:?} autocast"),
             None => "f32".to_owned(),
         };
-        let epoch = step / self.steps_per_epoch();
-        let flow = if self.cfg.ablation.flow_loss
-            && crate::flow::flow_weight(epoch, t.e_switch, t.lambda_flow) > 0.0
-        {
+        let flow = if self.flow_weight_at(step) > 0.0 {
             format!(
                 "on ({} backward through the VAE)",
                 crate::decoded_flow::FlowBackward::for_training(t.gradient_checkpointing)

@@ -173,8 +173,7 @@ pub fn time_model(
             vae_decode_s,
         })
     };
-    bridgev2w_io::quiet_panic::catch_quiet(timed)
-        .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
+    crate::error::guarded(timed)
         .map_err(|e| {
             e.on_out_of_memory(
                 || {

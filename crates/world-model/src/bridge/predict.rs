@@ -89,16 +89,13 @@ impl BridgeV2W {
         }
         // libtorch's ops panic on a device's out-of-memory: caught and
         // reported with what ran.
-        bridgev2w_io::quiet_panic::catch_quiet(|| {
-            self.predict_batch_at_once(first_frames, masks, opts, progress)
-        })
-        .unwrap_or_else(|panic| Err(WorldModelError::from_panic(panic)))
-        .map_err(|e| {
-            e.on_out_of_memory(
-                || self.describe_batch(first_frames.len(), opts),
-                crate::error::PREDICT_MEMORY_ADVICE,
-            )
-        })
+        crate::error::guarded(|| self.predict_batch_at_once(first_frames, masks, opts, progress))
+            .map_err(|e| {
+                e.on_out_of_memory(
+                    || self.describe_batch(first_frames.len(), opts),
+                    crate::error::PREDICT_MEMORY_ADVICE,
+                )
+            })
     }
 
     /// What a prediction of `clips` clips runs, for error messages.
