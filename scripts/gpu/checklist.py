@@ -5,6 +5,8 @@ the GPU image has them):
   compare-videos A.npy B.npy NAME   max |A - B| of two uint8 videos -> metrics
   compare-losses A.jsonl B.jsonl NAME  losses of two runs (finite? how close?)
   step-seconds METRICS.jsonl NAME   median step time of a training run
+  fits-80gb NAME                    exit 0 (printing why) when NAME's training
+                                    steps fit an 80 GB GPU, else exit 1
   peak-mib LOG NAME                 the largest used-memory figure an
                                     nvidia-smi poll wrote (MiB)
   record-seconds NAME KEY SECONDS   one timing figure
@@ -90,6 +92,10 @@ def step_seconds(path, name):
     secs = [r["secs"] for r in rows]
     # The first step carries the warm-up (allocator, kernels): left out when there are more.
     timed = secs[1:] if len(secs) > 1 else secs
+    reserved = max(
+        (r["cuda_peak_reserved_mib"] for r in rows if "cuda_peak_reserved_mib" in r),
+        default=None,
+    )
     record(
         name,
         steps=len(secs),
@@ -103,11 +109,34 @@ def step_seconds(path, name):
             (r["cuda_peak_allocated_mib"] for r in rows if "cuda_peak_allocated_mib" in r),
             default=None,
         ),
-        cuda_peak_reserved_mib=max(
-            (r["cuda_peak_reserved_mib"] for r in rows if "cuda_peak_reserved_mib" in r),
-            default=None,
-        ),
+        cuda_peak_reserved_mib=reserved,
+        # Whether that reserve, with the context, fits an 80 GB card.
+        fits_80gb=fits_80gb_of(reserved),
     )
+
+
+# An 80 GB card (H100/A100 80GB) shows 81,080 MiB to CUDA; the context and
+# the libraries' handles take about a GiB of it outside the caching allocator.
+CARD_80GB_MIB = 81080
+OUTSIDE_ALLOCATOR_MIB = 1024
+
+
+def fits_80gb_of(reserved_mib):
+    return None if reserved_mib is None else reserved_mib + OUTSIDE_ALLOCATOR_MIB <= CARD_80GB_MIB
+
+
+def fits_80gb(name):
+    path = os.path.join(out_dir(), "metrics", f"{name}.json")
+    metrics = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            metrics = json.load(f)
+    reserved = metrics.get("cuda_peak_reserved_mib")
+    if metrics.get("fits_80gb") and metrics.get("finite_losses"):
+        print(f"{name} fits an 80 GB GPU (the caching allocator reserved at most {reserved:.0f} MiB)")
+        return
+    print(f"{name}: not shown to fit an 80 GB GPU (reserved {reserved} MiB)")
+    raise SystemExit(1)
 
 
 def peak_mib(path, name):
@@ -230,6 +259,7 @@ def main():
         "compare-losses": compare_losses,
         "step-seconds": step_seconds,
         "peak-mib": peak_mib,
+        "fits-80gb": fits_80gb,
         "environment": environment,
         "record-seconds": record_seconds,
         "bench-table": bench_table,

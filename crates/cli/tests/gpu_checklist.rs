@@ -48,7 +48,12 @@ fn the_gpu_checklist_dry_run_passes_on_the_cpu() {
     ] {
         assert_eq!(item(name)["status"], "ok", "{name}: {text}\n{stderr}");
     }
-    for name in ["predict-full", "train-step-full", "train-step-flow"] {
+    for name in [
+        "predict-full",
+        "train-step-full",
+        "train-step-flow",
+        "train-step-flow-tiles",
+    ] {
         assert_eq!(item(name)["status"], "skipped: no CUDA device", "{name}");
     }
     assert_eq!(summary["environment"]["mode"], "dry-run");
@@ -112,4 +117,79 @@ fn the_gpu_checklist_refuses_an_unknown_item_and_names_the_items() {
             && stderr.contains("smoke"),
         "{stderr}"
     );
+}
+
+/// `scripts/gpu/checklist.py ARGS` with OUT set.
+fn checklist_py(out: &Path, args: &[&str]) -> std::process::Output {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    Command::new("python3")
+        .arg(root.join("scripts/gpu/checklist.py"))
+        .args(args)
+        .env("OUT", out)
+        .output()
+        .expect("run scripts/gpu/checklist.py")
+}
+
+#[test]
+fn the_flow_step_in_smaller_tiles_runs_only_when_the_default_does_not_fit_80_gb() {
+    let out = tempfile::tempdir().expect("tempdir");
+    // Training steps as `train` logs them on CUDA: the caching allocator's
+    // peaks (MiB) per step.
+    let steps = |reserved: [f64; 3]| {
+        reserved
+            .iter()
+            .enumerate()
+            .map(|(i, r)| {
+                format!(
+                    "{{\"step\": {i}, \"loss\": 0.5, \"secs\": 9.0, \"flow_weight\": 0.05, \
+                     \"cuda_peak_allocated_mib\": {}, \"cuda_peak_reserved_mib\": {r}}}\n",
+                    r - 2000.0
+                )
+            })
+            .collect::<String>()
+    };
+    for (name, reserved, fits) in [
+        ("small", [60000.0, 71000.0, 70500.0], true),
+        // 79,500 MiB reserved + the context: over an 80 GB card's 81,080 MiB.
+        ("edge", [70000.0, 79500.0, 79000.0], false),
+        ("large", [90000.0, 98000.0, 98000.0], false),
+    ] {
+        let log = out.path().join(format!("{name}.jsonl"));
+        std::fs::write(&log, steps(reserved)).expect("write");
+        let o = checklist_py(
+            out.path(),
+            &["step-seconds", log.to_str().expect("utf-8"), name],
+        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let m: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out.path().join(format!("metrics/{name}.json")))
+                .expect("metrics"),
+        )
+        .expect("JSON");
+        assert_eq!(m["fits_80gb"], fits, "{name}: {m}");
+        assert_eq!(m["cuda_peak_reserved_mib"], reserved[1], "{name}: {m}");
+        let o = checklist_py(out.path(), &["fits-80gb", name]);
+        let said = String::from_utf8_lossy(&o.stdout);
+        assert_eq!(o.status.success(), fits, "{name}: {said}");
+        if fits {
+            assert!(
+                said.contains("fits an 80 GB GPU") && said.contains("71000 MiB"),
+                "{said}"
+            );
+        }
+    }
+    // No figures (the flow step failed or did not run): not shown to fit.
+    let o = checklist_py(out.path(), &["fits-80gb", "absent"]);
+    assert!(!o.status.success());
+    // Figures without CUDA's peaks (the CPU): unknown, so not shown to fit.
+    let log = out.path().join("cpu.jsonl");
+    std::fs::write(&log, "{\"step\": 0, \"loss\": 0.5, \"secs\": 1.0}\n").expect("write");
+    let o = checklist_py(
+        out.path(),
+        &["step-seconds", log.to_str().expect("utf-8"), "cpu"],
+    );
+    assert!(o.status.success());
+    assert!(!checklist_py(out.path(), &["fits-80gb", "cpu"])
+        .status
+        .success());
 }

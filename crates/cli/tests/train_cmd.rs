@@ -494,7 +494,7 @@ fn bench_flow_refuses_tiles_that_do_not_join() {
     assert!(!o.status.success());
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(
-        e.contains("tile: 64x96 px") && e.contains("would not join") && e.contains("240x360"),
+        e.contains("`tile`: 64x96 px") && e.contains("would not join") && e.contains("240x360"),
         "{e}"
     );
     let o = common::run(&["bench", "flow", "--tile", "240"]);

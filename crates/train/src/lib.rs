@@ -115,7 +115,7 @@ pub(crate) fn guarded<T>(f: impl FnOnce() -> Result<T>) -> Result<T> {
 }
 
 /// What lowers a training step's memory, for [`TrainError::OutOfMemory`].
-pub const TRAIN_MEMORY_ADVICE: &str = "To lower a step's memory: `gradient_checkpointing = true` and `autocast = \"bf16\"` in [train], a smaller `train.batch_size`, fewer `data.frames` or a smaller `data.height` x `data.width`; on CUDA, PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True lets libtorch's caching allocator reuse memory it holds in pieces";
+pub const TRAIN_MEMORY_ADVICE: &str = "To lower a step's memory: `gradient_checkpointing = true` and `autocast = \"bf16\"` in [train], a smaller `train.batch_size`, fewer `data.frames` or a smaller `data.height` x `data.width`; with the flow loss on, smaller VAE tiles (`model.vae_tile = \"144x200\"`; a run may resume with them); on CUDA, PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True lets libtorch's caching allocator reuse memory it holds in pieces";
 
 /// What lowers `bench flow`'s memory, for [`TrainError::OutOfMemory`].
 pub const BENCH_FLOW_MEMORY_ADVICE: &str =

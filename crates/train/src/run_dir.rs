@@ -19,8 +19,10 @@ pub const RUN_FILES: [&str; 5] = [
 ];
 
 /// The `[train]` fields a resumed run may change: where it writes, how far it
-/// goes, how often it checkpoints, the device it runs on, and the test hook.
-const RESUMABLE_CHANGES: [&str; 8] = [
+/// goes, how often it checkpoints, the device it runs on and the VAE's tiles
+/// (both for memory: a run that runs out of memory at the flow loss's switch
+/// continues with smaller tiles), and the test hook.
+const RESUMABLE_CHANGES: [&str; 9] = [
     "train.out",
     "train.max_steps",
     "train.epochs",
@@ -29,6 +31,7 @@ const RESUMABLE_CHANGES: [&str; 8] = [
     "train.keep_checkpoints",
     "train.inject_nan_at_step",
     "model.device",
+    "model.vae_tile",
 ];
 
 /// What to do with a run folder that already holds a run.
@@ -226,6 +229,7 @@ mod tests {
         let mut longer = c.clone();
         longer.train.max_steps += 100;
         longer.train.checkpoint_every = 7;
+        longer.model.vae_tile = Some("144x200".parse().unwrap());
         claim(dir.path(), &longer, ExistingRun::Continue).unwrap();
         let mut other = c.clone();
         other.train.lr *= 2.0;

@@ -762,3 +762,84 @@ fn link_coded_masks_train_from_the_datasets_labels_and_need_them() {
         "{e}"
     );
 }
+
+/// `model.vae_tile`: the clips' encoding and the flow loss's decode run in
+/// tiles of that size (the backward, plain and checkpointed, replaying one
+/// tile at a time), with gradients into the branch; tiles that would not
+/// join, a size that is not `HxW` and the vae stage are refused by name.
+#[test]
+fn vae_tile_tiles_the_encoding_and_the_flow_loss_decode() {
+    let _g = lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut c = config(tmp.path());
+    c.train.e_switch = 0;
+    c.train.condition_dropout = 0.0;
+    let losses = |c: TrainConfig| -> (f64, f64, f64, Option<(i64, i64)>) {
+        let t = Trainer::new(c).unwrap();
+        let tiling = t.model.vae.tiling();
+        let tiled = t
+            .model
+            .vae
+            .uses_tiling()
+            .then_some((tiling.tile_sample_min_height, tiling.tile_sample_min_width));
+        let l = t.losses(&t.batch(0).unwrap(), 0).unwrap();
+        l.total.backward();
+        if let Some(record) = l.checkpointed {
+            record.backward(&t.model.transformer.model).unwrap();
+        }
+        (l.diffusion, l.flow, controlnet_grad_sum(&t), tiled)
+    };
+    // 64x96 frames: whole frames by default (below 256x256).
+    let (diffusion, flow, grad, tiled) = losses(c.clone());
+    assert_eq!(tiled, None);
+    // Latent tiles of 6x5 (48x40 px) over the 8x12 latents: 2 x 3 tiles.
+    c.model.vae_tile = Some("48x40".parse().unwrap());
+    for checkpointing in [false, true] {
+        c.train.gradient_checkpointing = checkpointing;
+        let (tiled_diffusion, tiled_flow, tiled_grad, tiled) = losses(c.clone());
+        assert_eq!(tiled, Some((48, 40)));
+        assert!(
+            tiled_flow.is_finite() && tiled_flow > 0.0 && tiled_grad > 0.0,
+            "checkpointing {checkpointing}: flow {tiled_flow}, branch gradient {tiled_grad}"
+        );
+        // The tiles are blended: another encoding and decoding than whole frames.
+        assert!(
+            (tiled_diffusion - diffusion).abs() > 1e-9 && (tiled_flow - flow).abs() > 1e-9,
+            "tiled {tiled_diffusion} / {tiled_flow} vs whole frames {diffusion} / {flow}"
+        );
+        assert!(grad > 0.0);
+    }
+    // Tiles that would not join: refused when the model is built.
+    c.model.vae_tile = Some("64x96".parse().unwrap());
+    let e = Trainer::new(c.clone()).unwrap_err().to_string();
+    assert!(
+        e.contains("model.vae_tile") && e.contains("64x96") && e.contains("would not join"),
+        "{e}"
+    );
+    // In a config file: parsed as HxW; anything else, and the vae stage, refused.
+    let toml = |tile: &str, stage: &str| {
+        format!(
+            "[model]\nvae_tile = \"{tile}\"\n[data]\ndataset = \"d\"\n[train]\nstage = \"{stage}\"\n"
+        )
+    };
+    let parsed = TrainConfig::from_toml(&toml("144x200", "bridgev2w")).unwrap();
+    assert_eq!(
+        parsed.model.vae_tile.map(|t| t.to_string()).as_deref(),
+        Some("144x200")
+    );
+    let back = TrainConfig::from_toml(&parsed.to_toml().unwrap()).unwrap();
+    assert_eq!(back.model.vae_tile, parsed.model.vae_tile);
+    for bad in ["144", "144x", "0x200", "ax200"] {
+        let e = TrainConfig::from_toml(&toml(bad, "bridgev2w"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(bad) && e.contains("HEIGHTxWIDTH"), "{bad}: {e}");
+    }
+    let e = TrainConfig::from_toml(&toml("144x200", "vae"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("model.vae_tile") && e.contains("vae stage"),
+        "{e}"
+    );
+}

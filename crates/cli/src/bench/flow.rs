@@ -1,9 +1,10 @@
 //! `bridgev2w bench flow`: flags of [`bridgev2w_train::bench::flow`].
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use bridgev2w_train::bench::flow::{FlowBenchEstimator, FlowBenchVae};
 use bridgev2w_train::bench::{bench_flow, FlowBenchOptions};
 use bridgev2w_train::decoded_flow::FlowBackward;
+use bridgev2w_world_model::vae::TileSize;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 
 #[derive(Debug, clap::Args)]
@@ -22,8 +23,8 @@ pub struct FlowBench {
     width: i64,
     /// Spatial tiles of HxW pixels (training tiles above 256x256 with the
     /// VAE's default tiles, half its sample size); default: whole frames.
-    #[arg(long, value_parser = parse_tile)]
-    tile: Option<(i64, i64)>,
+    #[arg(long)]
+    tile: Option<TileSize>,
     /// f32 or bf16.
     #[arg(long, default_value = "f32")]
     precision: Precision,
@@ -44,16 +45,6 @@ pub struct FlowBench {
     /// RAFT's refinement iterations.
     #[arg(long, default_value_t = 12)]
     raft_iterations: usize,
-}
-
-fn parse_tile(text: &str) -> Result<(i64, i64)> {
-    let parsed = text
-        .split_once('x')
-        .and_then(|(h, w)| Some((h.trim().parse::<i64>().ok()?, w.trim().parse::<i64>().ok()?)));
-    match parsed {
-        Some((h, w)) if h > 0 && w > 0 => Ok((h, w)),
-        _ => bail!("{text:?}: expected HEIGHTxWIDTH in pixels, e.g. 240x360"),
-    }
 }
 
 impl From<&FlowBench> for FlowBenchOptions {

@@ -22,9 +22,7 @@ use crate::{Result, TrainError};
 use bridgev2w_torch_ext::{autocast, cpu_cache, cuda_memory, AutocastDtype};
 use bridgev2w_world_model::bench::gpu_memory::{with_gpu_peak, NVIDIA_SMI};
 use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
-use bridgev2w_world_model::vae::{
-    init_like_pytorch, AutoencoderKLCogVideoX, TilingOptions, VaeConfig,
-};
+use bridgev2w_world_model::vae::{init_like_pytorch, AutoencoderKLCogVideoX, TileSize, VaeConfig};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::fmt;
 use std::time::Instant;
@@ -94,7 +92,7 @@ pub struct FlowBenchOptions {
     pub width: i64,
     /// Spatial tiles of this many pixels (height, width), as training and
     /// `predict` tile above 256x256; `None`: whole frames.
-    pub tile: Option<(i64, i64)>,
+    pub tile: Option<TileSize>,
     /// The VAE's precision.
     pub precision: Precision,
     /// Where it runs.
@@ -111,7 +109,7 @@ impl FlowBenchOptions {
     /// The decode's tiles in words ("tiles of HxW px" or "whole frames").
     fn tiles(&self) -> String {
         match self.tile {
-            Some((h, w)) => format!("tiles of {h}x{w} px"),
+            Some(size) => format!("tiles of {size} px"),
             None => "whole frames".to_owned(),
         }
     }
@@ -237,24 +235,8 @@ fn bench_flow_unguarded(o: &FlowBenchOptions) -> Result<FlowBenchReport> {
     let mut vs = VarStore::new(tch::Device::Cpu);
     let mut vae = AutoencoderKLCogVideoX::new(&cfg, vs.root())?;
     init_like_pytorch(&vs);
-    if let Some((h, w)) = o.tile {
-        vae.enable_tiling(TilingOptions {
-            tile_sample_min_height: Some(h),
-            tile_sample_min_width: Some(w),
-            ..TilingOptions::default()
-        })?;
-        if !vae.tiles_join() {
-            return Err(TrainError::input(
-                "tile",
-                format!(
-                    "{h}x{w} px: the tiles would not join exactly (their latent strides differ \
-                     from the pixels each keeps, and the decoded video would come out larger \
-                     than {}x{}): expected latent tiles (pixels / {s}) of a multiple of 6 high \
-                     and 5 wide, as CogVideoX's 240x360",
-                    o.height, o.width
-                ),
-            ));
-        }
+    if let Some(size) = o.tile {
+        vae.enable_tiles(size, "tile")?;
     }
     vs.set_kind(o.precision.kind());
     vs.freeze();

@@ -75,6 +75,14 @@ pub struct ModelSection {
     /// transformer; the VAE and scheduler still come from the folder. For a
     /// `prior` stage of another width than the autoencoder stages' backbone.
     pub transformer: Option<String>,
+    /// The VAE's spatial tiles in training, `"HxW"` pixels (e.g.
+    /// `"144x200"`): the clips' encoding and the flow loss's decode run tile
+    /// by tile. Unset: the VAE's default tiles (half its sample size, 240x360
+    /// for CogVideoX) above 256x256 pixels, whole frames below. Smaller tiles
+    /// lower the flow loss's memory (its backward replays one tile at a
+    /// time) for more overlap to compute; they must join exactly (a multiple
+    /// of 8 px whose latent size is a multiple of 6 high and 5 wide).
+    pub vae_tile: Option<bridgev2w_world_model::vae::TileSize>,
 }
 
 impl Default for ModelSection {
@@ -92,6 +100,7 @@ impl Default for ModelSection {
             image_conditioning: ImageConditioning::FirstFrame,
             mask_coding: MaskCoding::Binary,
             transformer: None,
+            vae_tile: None,
         }
     }
 }
@@ -675,6 +684,15 @@ impl TrainConfig {
             if let Err(e) = TransformerConfig::preset(preset) {
                 return bad("model.transformer", e.to_string());
             }
+        }
+        if let (Some(size), Stage::Vae) = (self.model.vae_tile, t.stage) {
+            return bad(
+                "model.vae_tile",
+                format!(
+                    "{size}: the vae stage trains the autoencoder on whole frames; remove \
+                     model.vae_tile (it tiles the VAE in the prior and bridgev2w stages)"
+                ),
+            );
         }
         if self.model.controlnet_layers == Some(0) {
             return bad("model.controlnet_layers", "0: expected at least 1".into());

@@ -146,7 +146,10 @@ impl Trainer {
             data.set_mask_coding(cfg.model.mask_coding)?;
         }
         let mut model = build_model(&cfg, device, frames, height, width)?;
-        if cfg.train.stage != Stage::Vae
+        if let Some(size) = cfg.model.vae_tile {
+            // (not in the vae stage: `validate` refuses it there)
+            model.vae.enable_tiles(size, "config model.vae_tile")?;
+        } else if cfg.train.stage != Stage::Vae
             && height * width > bridgev2w_world_model::vae::TILING_MIN_PIXELS
         {
             // As `predict` runs the VAE at these sizes: the clips' encoding

@@ -229,3 +229,64 @@ fn the_last_batch_alone_is_the_decode_of_a_still_clip_and_close_otherwise() {
         .decode_last_batch(&Tensor::zeros([1, c + 1, 5, 3, 4], cpu))
         .is_err());
 }
+
+#[test]
+fn tile_sizes_parse_print_and_must_join() {
+    let size: TileSize = "144x200".parse().expect("HxW");
+    assert_eq!(
+        (size.height_px, size.width_px, size.to_string()),
+        (144, 200, "144x200".to_owned())
+    );
+    for bad in ["144", "x200", "144x", "0x200", "144x-8", "144 by 200"] {
+        let e = bad.parse::<TileSize>().expect_err(bad).to_string();
+        assert!(e.contains(bad) && e.contains("HEIGHTxWIDTH"), "{bad}: {e}");
+    }
+    let (_vs, mut vae) = tiny_vae(0);
+    // The overlaps' whole latent pixels: 1/6 of a multiple of 6, 1/5 of one of 5.
+    for (h, w) in [(240, 360), (144, 200), (48, 40)] {
+        let size = TileSize {
+            height_px: h,
+            width_px: w,
+        };
+        vae.enable_tiles(size, "tile").expect("joining tiles");
+        let t = vae.tiling();
+        assert_eq!((t.tile_sample_min_height, t.tile_sample_min_width), (h, w));
+        assert!(vae.uses_tiling() && vae.tiles_join());
+    }
+    let before = vae.tiling();
+    for (h, w) in [(64, 96), (120, 180), (244, 360)] {
+        let size = TileSize {
+            height_px: h,
+            width_px: w,
+        };
+        let e = vae
+            .enable_tiles(size, "model.vae_tile")
+            .expect_err("tiles that do not join")
+            .to_string();
+        assert!(
+            e.contains("model.vae_tile")
+                && e.contains(&format!("{h}x{w} px"))
+                && e.contains("would not join")
+                && e.contains("a multiple of 6 high and 5 wide"),
+            "{e}"
+        );
+        // Refused: the tiling as it was.
+        assert_eq!(vae.tiling(), before);
+    }
+    vae.disable_tiling();
+    let e = vae
+        .enable_tiles(
+            TileSize {
+                height_px: 8,
+                width_px: 8,
+            },
+            "tile",
+        )
+        .expect_err("no stride")
+        .to_string();
+    assert!(
+        e.contains("`tile`: 8x8 px") && e.contains("no stride"),
+        "{e}"
+    );
+    assert!(!vae.uses_tiling());
+}

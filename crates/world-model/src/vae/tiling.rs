@@ -60,7 +60,96 @@ impl Tiling {
     }
 }
 
+/// A spatial tile's size in pixels, written `HxW` (`240x360`) in configs and
+/// on the command line (`model.vae_tile`, `bench flow --tile`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub struct TileSize {
+    /// Tile height in pixels.
+    pub height_px: i64,
+    /// Tile width in pixels.
+    pub width_px: i64,
+}
+
+impl std::str::FromStr for TileSize {
+    type Err = WorldModelError;
+
+    fn from_str(text: &str) -> Result<Self> {
+        let parsed = text.split_once('x').and_then(|(h, w)| {
+            Some((h.trim().parse::<i64>().ok()?, w.trim().parse::<i64>().ok()?))
+        });
+        match parsed {
+            Some((height_px, width_px)) if height_px > 0 && width_px > 0 => Ok(Self {
+                height_px,
+                width_px,
+            }),
+            _ => Err(WorldModelError::input(
+                "tile",
+                format!("{text:?}: expected HEIGHTxWIDTH in pixels, both positive, e.g. 240x360"),
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for TileSize {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}x{}", self.height_px, self.width_px)
+    }
+}
+
+impl TryFrom<String> for TileSize {
+    type Error = WorldModelError;
+
+    fn try_from(text: String) -> Result<Self> {
+        text.parse()
+    }
+}
+
+impl From<TileSize> for String {
+    fn from(size: TileSize) -> Self {
+        size.to_string()
+    }
+}
+
 impl AutoencoderKLCogVideoX {
+    /// Tiles of `size` with the current overlaps ([`Self::enable_tiling`]),
+    /// refused unless they join exactly ([`Self::tiles_join`]); `field`
+    /// names the setting in the error. The tiling is unchanged on an error.
+    pub fn enable_tiles(&mut self, size: TileSize, field: &str) -> Result<()> {
+        let before = (self.tiling, self.use_tiling);
+        self.enable_tiling(TilingOptions {
+            tile_sample_min_height: Some(size.height_px),
+            tile_sample_min_width: Some(size.width_px),
+            ..TilingOptions::default()
+        })
+        .map_err(|e| match e {
+            WorldModelError::Input { message, .. } => {
+                WorldModelError::input(field, format!("{size} px: {message}"))
+            }
+            other => other,
+        })?;
+        if self.tiles_join() {
+            return Ok(());
+        }
+        (self.tiling, self.use_tiling) = before;
+        let s = self.cfg.spatial_compression();
+        let t = Tiling::for_config(&self.cfg);
+        Err(WorldModelError::input(
+            field,
+            format!(
+                "{size} px: the tiles would not join exactly (their latent strides differ from \
+                 the pixels each keeps, and the decoded video would come out larger than the \
+                 input): expected tiles of a multiple of {s} px whose latent size (pixels / {s}) \
+                 is a multiple of {} high and {} wide, as this VAE's default {}x{} (CogVideoX's: \
+                 240x360, or 144x200 for a third of its pixels)",
+                overlap_period(self.tiling.tile_overlap_factor_height),
+                overlap_period(self.tiling.tile_overlap_factor_width),
+                t.tile_sample_min_height,
+                t.tile_sample_min_width
+            ),
+        ))
+    }
+
     /// Splits large inputs into overlapping spatial tiles (diffusers' `enable_tiling`);
     /// the options override the current tile sizes and overlaps.
     pub fn enable_tiling(&mut self, options: TilingOptions) -> Result<()> {
@@ -220,6 +309,17 @@ impl AutoencoderKLCogVideoX {
             && (width > self.tiling.tile_latent_min_width
                 || height > self.tiling.tile_latent_min_height)
     }
+}
+
+/// The smallest latent tile size whose overlap is a whole number of latent
+/// pixels (6 for diffusers' 1/6, 5 for 1/5); 1 when there is none below 100.
+fn overlap_period(overlap: f64) -> i64 {
+    (1..100)
+        .find(|&n| {
+            let x = n as f64 * overlap;
+            (x - x.round()).abs() < 1e-9
+        })
+        .unwrap_or(1)
 }
 
 /// `int(size * (1 - overlap))`: the step between tile origins.
