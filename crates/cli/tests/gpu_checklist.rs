@@ -7,17 +7,28 @@
 use std::path::Path;
 use std::process::Command;
 
-/// `scripts/gpu/run.sh ARGS` with this build's binary, its output in `out`.
-fn run_checklist(out: &Path, args: &[&str]) -> std::process::Output {
+/// `PROGRAM scripts/gpu/SCRIPT ARGS` from the repository root with this
+/// build's binary, the checklist's output in `out`.
+fn gpu_script(program: &str, script: &str, out: &Path, args: &[&str]) -> std::process::Output {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    Command::new("bash")
-        .arg(root.join("scripts/gpu/run.sh"))
+    Command::new(program)
+        .arg(root.join("scripts/gpu").join(script))
         .args(args)
         .env("OUT", out)
         .env("BRIDGEV2W", env!("CARGO_BIN_EXE_bridgev2w"))
         .current_dir(&root)
         .output()
-        .expect("run scripts/gpu/run.sh")
+        .unwrap_or_else(|e| panic!("run scripts/gpu/{script}: {e}"))
+}
+
+/// `scripts/gpu/run.sh ARGS`.
+fn run_checklist(out: &Path, args: &[&str]) -> std::process::Output {
+    gpu_script("bash", "run.sh", out, args)
+}
+
+/// `scripts/gpu/checklist.py ARGS` (its helpers read and write `out`).
+fn checklist_py(out: &Path, args: &[&str]) -> std::process::Output {
+    gpu_script("python3", "checklist.py", out, args)
 }
 
 #[test]
@@ -117,17 +128,6 @@ fn the_gpu_checklist_refuses_an_unknown_item_and_names_the_items() {
             && stderr.contains("smoke"),
         "{stderr}"
     );
-}
-
-/// `scripts/gpu/checklist.py ARGS` with OUT set.
-fn checklist_py(out: &Path, args: &[&str]) -> std::process::Output {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    Command::new("python3")
-        .arg(root.join("scripts/gpu/checklist.py"))
-        .args(args)
-        .env("OUT", out)
-        .output()
-        .expect("run scripts/gpu/checklist.py")
 }
 
 #[test]
