@@ -5,7 +5,7 @@
 # failing one; OUT gets logs/, metrics/, items.tsv, summary.json and
 # summary.md (the table for docs/benchmarks.md).
 #
-# Usage: [OUT=DIR] scripts/gpu/run.sh [--dry-run] [PART|ITEM...]
+# Usage: [OUT=DIR] scripts/gpu/run.sh [--dry-run] [--budget SECONDS] [PART|ITEM...]
 #   PART: smoke (environment, predict on CUDA vs the CPU, bf16 training,
 #         one-rank data parallelism; about 3 min on an H100), speed (bench
 #         model at 5B-I2V shapes vs diffusers, the tiled VAE, a full 50-step
@@ -18,6 +18,12 @@
 #   --dry-run: the same items on the CPU at tiny shapes (the test suite runs
 #         it, so the checklist cannot rot between GPU loans); CUDA-only items
 #         are reported "skipped: no CUDA device".
+#   --budget SECONDS: the whole call's time (a device call's limit, less a
+#         margin): each item runs under the smaller of its own limit and
+#         the time left, less RESERVE_S for the summary; an item with less
+#         than MIN_ITEM_S left is not started ("skipped: not started: ...").
+#         So a call cut short still writes its summary, and one call can
+#         hold as many items as the time allows (default: no budget).
 # Prepared here by scripts/gpu/prepare.sh (gpu-bundle/: a stripped binary and
 # the diffusers wheels); on the GPU machine:
 #   run(command="OUT=$OUT scripts/gpu/run.sh smoke", carry=["gpu-bundle"])
@@ -30,6 +36,9 @@ ROOT=$PWD
 HERE=$ROOT/scripts/gpu
 DRY=0
 PARTS=()
+BUDGET_S=""
+RESERVE_S=15   # kept back from --budget for the summary
+MIN_ITEM_S=30  # an item with less time than this left is not started
 # The items: part, name, time limit (s), needs CUDA, function.
 ITEMS="smoke environment 60 0 environment
 smoke predict-random-tiny 150 0 predict_random_tiny
@@ -44,9 +53,17 @@ training train-step-flow 300 1 train_step_flow
 training train-step-flow-tiles 300 1 train_step_flow_tiles
 training bench-flow 300 0 bench_flow
 training planning-cost 240 0 planning_cost"
-for a in "$@"; do
+while (($#)); do
+    a=$1; shift
     case $a in
         --dry-run) DRY=1 ;;
+        --budget)
+            BUDGET_S=${1:-}; shift || true
+            if ! [[ $BUDGET_S =~ ^[1-9][0-9]*$ ]]; then
+                echo "run.sh: --budget ${BUDGET_S:-(missing)}: expected the call's time in whole seconds (e.g. --budget 570 for a 600 s device call)" >&2
+                exit 2
+            fi
+            ;;
         smoke|speed|training) PARTS+=("$a") ;;
         *)
             if grep -q "^[a-z]* $a " <<< "$ITEMS"; then
@@ -108,8 +125,15 @@ fi
 item() {
     local name=$1 limit=$2 needs_cuda=$3 fn=$4 status rc
     local log=$OUT/logs/$name.log start=$SECONDS
+    local left="" cut=0
+    if [[ -n $BUDGET_S ]]; then
+        left=$((BUDGET_S - SECONDS - RESERVE_S))
+        ((left < limit)) && { cut=1; limit=$((left > 0 ? left : 0)); }
+    fi
     if [[ $needs_cuda == 1 && $DEVICE != cuda ]]; then
         status="skipped: no CUDA device"
+    elif ((cut && limit < MIN_ITEM_S)); then
+        status="skipped: not started: ${limit}s of the --budget ${BUDGET_S}s left (its limit: ${2}s)"
     else
         echo "== $name (at most ${limit}s)" >&2
         rm -f "$WORK/$name.skip"
@@ -119,7 +143,8 @@ item() {
             0) status=ok
                # An item whose figures another item's make unneeded says why in NAME.skip.
                [[ -f $WORK/$name.skip ]] && status="skipped: $(head -n 1 "$WORK/$name.skip")" ;;
-            124|137) status="failed: over ${limit}s" ;;
+            124|137) status="failed: over ${limit}s"
+                     ((cut)) && status+=" (cut to the --budget ${BUDGET_S}s; its limit: ${2}s)" ;;
             *) status="failed: exit $rc (see logs/$name.log: $(tail -n 1 "$log" | cut -c1-160))" ;;
         esac
     fi

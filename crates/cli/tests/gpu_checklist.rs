@@ -195,3 +195,71 @@ fn the_flow_step_in_smaller_tiles_runs_only_when_the_default_does_not_fit_80_gb(
         .status
         .success());
 }
+
+#[test]
+fn the_gpu_checklist_keeps_to_its_budget_and_still_writes_the_summary() {
+    let items = |out: &Path| -> Vec<(String, String)> {
+        let text = std::fs::read_to_string(out.join("summary.json")).expect("summary.json");
+        let summary: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+        summary["items"]
+            .as_array()
+            .expect("items")
+            .iter()
+            .map(|i| {
+                (
+                    i["item"].as_str().expect("name").to_string(),
+                    i["status"].as_str().expect("status").to_string(),
+                )
+            })
+            .collect()
+    };
+    // 20 s: less than the 15 s kept for the summary plus the 30 s an item
+    // needs at least, so no item starts; the CUDA-only one still says why.
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = run_checklist(
+        out.path(),
+        &[
+            "--dry-run",
+            "--budget",
+            "20",
+            "environment",
+            "predict-full",
+            "bench-model",
+        ],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let got = items(out.path());
+    assert_eq!(got.len(), 3, "{got:?}");
+    assert_eq!(got[1].1, "skipped: no CUDA device");
+    for (name, status) in [&got[0], &got[2]] {
+        assert!(
+            status.starts_with("skipped: not started: ")
+                && status.contains("of the --budget 20s left")
+                && status.contains("its limit: "),
+            "{name}: {status}"
+        );
+    }
+    // Enough for the item (the setup before it, importing torch, can take
+    // half a minute on a loaded machine): it runs and passes.
+    let out = tempfile::tempdir().expect("tempdir");
+    let o = run_checklist(out.path(), &["--dry-run", "--budget", "150", "environment"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert_eq!(
+        items(out.path()),
+        [("environment".to_string(), "ok".to_string())]
+    );
+    assert!(stderr.contains("== environment (at most "), "{stderr}");
+    // A budget that is not whole seconds is refused before anything runs.
+    for bad in [&["--budget", "ten"][..], &["--budget", "0"], &["--budget"]] {
+        let out = tempfile::tempdir().expect("tempdir");
+        let o = run_checklist(out.path(), &[&["--dry-run"][..], bad].concat());
+        assert_eq!(o.status.code(), Some(2), "{bad:?}");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            stderr.contains("--budget") && stderr.contains("whole seconds"),
+            "{stderr}"
+        );
+        assert!(!out.path().join("summary.json").exists());
+    }
+}
