@@ -2,7 +2,9 @@
 """Where diffusers' CogVideoX spends a forward pass on this CPU: torch.profiler's
 table of ATen ops (self time) for one transformer forward, VAE encode or VAE
 decode at `bridgev2w bench model`'s default shapes (2B width, 8 blocks, 9 frames
-at 128x192), the GEMM rate of the feed-forward's shape, and (`linear`) one
+at 128x192), the GEMM rate of the feed-forward's shape, one of the VAE's 3x3x3
+convolutions (`conv`: which kernel libtorch picks shows in its time, e.g. the
+single-threaded `slow_conv3d` for bf16 on a CPU without AVX-512), and (`linear`) one
 block's products through libtorch's `linear` (as diffusers runs them) against
 oneDNN's linear layer on a weight packed once, GELU fused (as this crate runs
 them on the CPU outside autograd, `world_model::cpu_linear`).
@@ -13,6 +15,7 @@ any implementation at these shapes is made of (docs/benchmarks.md).
     .venv/bin/python scripts/bench/profile_diffusers.py transformer --dtype f32
     .venv/bin/python scripts/bench/profile_diffusers.py decode --dtype bf16
     .venv/bin/python scripts/bench/profile_diffusers.py linear --dtype f32
+    .venv/bin/python scripts/bench/profile_diffusers.py conv --dtype bf16
 """
 
 import argparse
@@ -22,7 +25,7 @@ import time
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "linear"])
+    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear"])
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rows", type=int, default=12, help="ops in the table")
@@ -46,6 +49,21 @@ def main() -> int:
             a @ b
         s = (time.perf_counter() - t0) / n
         print(f"gemm 514x1920x7680 {args.dtype}: {s * 1e3:.1f} ms, {2 * 514 * 1920 * 7680 / s / 1e9:.0f} GFLOP/s")
+        return 0
+
+    if args.part == "conv":
+        # A 128-channel resnet convolution of the VAE's first stage, 3 latent
+        # frames' worth of time steps at half the bench's resolution.
+        x = torch.randn(1, 128, 3, 66, 98, dtype=dtype)
+        w = torch.randn(128, 128, 3, 3, 3, dtype=dtype) * 0.03
+        with torch.no_grad():
+            torch.nn.functional.conv3d(x, w)
+            n = 3
+            t0 = time.perf_counter()
+            for _ in range(n):
+                torch.nn.functional.conv3d(x, w)
+        s = (time.perf_counter() - t0) / n
+        print(f"conv3d 128->128 3x3x3 on 1x128x3x66x98 {args.dtype}: {s * 1e3:.1f} ms (mean of {n} after a warm-up)")
         return 0
 
     if args.part == "linear":
