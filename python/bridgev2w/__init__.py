@@ -347,16 +347,20 @@ class WorldModel:
 
     @classmethod
     def from_pretrained(cls, model, *, weights=None, device: str = "cpu", precision: str = "f32",
-                        seed: int = 0) -> "WorldModel":
+                        seed: int = 0, vae_tile: str = "auto") -> "WorldModel":
         """``model``: a folder as ``assets/demo-model`` (``backbone/`` and
         ``bridgev2w.safetensors``), a diffusers CogVideoX-I2V folder or Hub
         name (from the local Hugging Face cache, offline) with BridgeV2W
         ``weights``, or ``random:PRESET``. ``device``: ``cpu``, ``cuda``,
         ``cuda:N`` or ``auto``; ``precision``: ``f32`` or ``bf16``; ``seed``
-        initialises a ``random:`` model (as ``bridgev2w predict --seed``)."""
+        initialises a ``random:`` model (as ``bridgev2w predict --seed``);
+        ``vae_tile``: the VAE's spatial tiles, ``auto`` (its own tiles above
+        256x256 pixels, as ``bridgev2w predict``), ``off`` (whole frames) or
+        ``"HxW"`` pixels (e.g. ``"144x200"`` for a smaller decode peak, as
+        ``predict --vae-tile``)."""
         return cls(_core.WorldModel.from_pretrained(
             _path("model", model), _path("weights", weights, optional=True), str(device), str(precision),
-            _int("seed", seed, -2 ** 63, 2 ** 63 - 1)))
+            _int("seed", seed, -2 ** 63, 2 ** 63 - 1), str(vae_tile)))
 
     @property
     def resolution(self) -> tuple[int, int]:

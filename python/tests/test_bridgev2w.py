@@ -178,6 +178,15 @@ def test_world_model_predicts_as_the_cli_does():
     cli = np.load(tmp / "out" / "video.npy")
     diff = np.abs(cli.astype(int) - video.astype(int))
     assert diff.max() <= 1 and diff.mean() < 0.01, (diff.max(), diff.mean())
+    # The VAE in the tiles asked for, as `predict --vae-tile`: the same video
+    # as the CLI's, another than whole frames give.
+    tiled = bw.WorldModel.from_pretrained("random:tiny", seed=3, vae_tile="48x40").predict(first, masks, steps=2, seed=3)
+    subprocess.run([BIN, "predict", "--model", "random:tiny", "--image", str(tmp / "first.png"),
+                    "--masks", str(tmp / "masks.npy"), "--steps", "2", "--seed", "3", "--vae-tile", "48x40",
+                    "--out", str(tmp / "out-tiled")], check=True, capture_output=True)
+    diff = np.abs(np.load(tmp / "out-tiled" / "video.npy").astype(int) - tiled.astype(int))
+    assert diff.max() <= 1 and diff.mean() < 0.01, (diff.max(), diff.mean())
+    assert (tiled != video).any(), "the tiles must be used"
     # Link labels pass through as labels: a binary-coded model sees robot vs
     # background, so labels give the video their silhouette gives.
     labels = masks * 7
@@ -447,6 +456,8 @@ def test_bad_input_is_a_python_exception_naming_it():
         (lambda: wm.predict(np.zeros((64, 96, 3), np.uint8), np.zeros((9, 64, 96), np.uint8), guidance="x"),
          ValueError, "guidance"),
         (lambda: bw.WorldModel.from_pretrained("random:tiny", device="tpu"), ValueError, "device"),
+        (lambda: bw.WorldModel.from_pretrained("random:tiny", vae_tile="144"), ValueError, "vae_tile"),
+        (lambda: bw.WorldModel.from_pretrained("random:tiny", vae_tile="64x96"), ValueError, "would not join"),
         # synth.
         (lambda: bw.synth.generate(WORK / "s1", frames=1), ValueError, "frames"),
         (lambda: bw.synth.generate(WORK / "s1", width=33), ValueError, "width"),

@@ -13,7 +13,7 @@ use bridgev2w_io::progress::Progress;
 use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions, WorldModel};
 use bridgev2w_world_model::spec::ModelSpec;
-use bridgev2w_world_model::vae::TilingOptions;
+use bridgev2w_world_model::vae::{TileSize, VaeTiling};
 use bridgev2w_world_model::video::{MaskVideo, Video};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::{Path, PathBuf};
@@ -95,6 +95,12 @@ pub struct PredictArgs {
     /// for frames above 256x256 pixels).
     #[arg(long)]
     no_vae_tiling: bool,
+    /// The VAE's spatial tiles, HEIGHTxWIDTH pixels, at any resolution (e.g.
+    /// 144x200, a third of CogVideoX's default 240x360, for a smaller decode
+    /// peak on a smaller GPU; tiles that would not join exactly are
+    /// refused). Default: the VAE's own tiles above 256x256 pixels.
+    #[arg(long, value_name = "HxW", conflicts_with = "no_vae_tiling")]
+    vae_tile: Option<TileSize>,
 }
 
 fn load_model(a: &PredictArgs) -> Result<BridgeV2W> {
@@ -288,10 +294,12 @@ pub fn run(a: &PredictArgs) -> Result<()> {
     let out = OutputDir::create(&a.out, a.overwrite)?;
     let mut model = load_model(a)?;
     let res = model.resolution();
-    // Memory-motivated, as diffusers' CogVideoX examples: tile frames above 256x256.
-    if !a.no_vae_tiling && res.0 * res.1 > bridgev2w_world_model::vae::TILING_MIN_PIXELS {
-        model.vae.enable_tiling(TilingOptions::default())?;
-    }
+    let tiling = match (a.vae_tile, a.no_vae_tiling) {
+        (Some(size), _) => VaeTiling::Tiles(size),
+        (None, true) => VaeTiling::Off,
+        (None, false) => VaeTiling::Auto,
+    };
+    model.vae.set_tiling(tiling, res, "--vae-tile")?;
     let image = read_image(&a.image, res)?;
     // Every clip's masks are checked before the first is predicted.
     for clip in &clips {

@@ -485,3 +485,70 @@ fn predict_keeps_the_static_scene_outside_the_swept_region() {
         "random weights predict noise: the static scene must differ"
     );
 }
+
+/// `--vae-tile HxW`: the VAE decodes in those tiles at any resolution (here
+/// below 256x256, where the default is whole frames), so the video differs
+/// from the whole-frame one where the tiles blend; tiles that would not
+/// join, a size that is not HxW, and tiles with `--no-vae-tiling` are
+/// refused, and a refused call leaves no output.
+#[test]
+fn predict_decodes_in_the_vae_tiles_asked_for() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let img = image::RgbImage::from_fn(96, 64, |x, y| image::Rgb([x as u8, y as u8, 128]));
+    img.save(d.join("first.png")).expect("png");
+    write_npy(&d.join("masks.npy"), &[9, 64, 96], &box_masks(3)).expect("npy");
+    let (first, mask_file) = (d.join("first.png"), d.join("masks.npy"));
+    let predict = |out: &str, extra: &[&str]| {
+        let out = d.join(out);
+        let mut args = vec![
+            "predict",
+            "--model",
+            "random:tiny",
+            "--image",
+            s(&first),
+            "--masks",
+            s(&mask_file),
+            "--steps",
+            "2",
+            "--device",
+            "cpu",
+            "--out",
+            s(&out),
+        ];
+        args.extend_from_slice(extra);
+        (run(&args), out)
+    };
+    let (o, whole) = predict("whole", &[]);
+    ok(&o);
+    let (o, tiled) = predict("tiled", &["--vae-tile", "48x40"]);
+    ok(&o);
+    let whole = read_npy(&whole.join("video.npy")).expect("whole video");
+    let tiled = read_npy(&tiled.join("video.npy")).expect("tiled video");
+    assert_eq!(tiled.shape, [9, 64, 96, 3]);
+    assert_eq!(tiled.shape, whole.shape);
+    assert!(
+        whole.data.iter().zip(&tiled.data).any(|(a, b)| a != b),
+        "the tiles must be used: the tiled decode blends where they overlap"
+    );
+    // Tiles whose latent strides would not join: refused by name.
+    let (o, out) = predict("bad", &["--vae-tile", "64x96"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--vae-tile") && err.contains("64x96 px") && err.contains("would not join"),
+        "{err}"
+    );
+    assert!(!out.exists(), "a refused call leaves no output");
+    // Not HxW, or with --no-vae-tiling: usage errors.
+    for extra in [
+        &["--vae-tile", "144"][..],
+        &["--vae-tile", "48x40", "--no-vae-tiling"],
+    ] {
+        let (o, out) = predict("usage", extra);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(err.contains("--vae-tile"), "{err}");
+        assert!(!out.exists());
+    }
+}

@@ -24,6 +24,7 @@ use bridgev2w_io::frame::{u8_from_unit, RgbFrame};
 use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
 use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions, WorldModel as _};
 use bridgev2w_world_model::spec::ModelSpec;
+use bridgev2w_world_model::vae::VaeTiling;
 use bridgev2w_world_model::video::MaskVideo;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use pyo3::create_exception;
@@ -509,9 +510,11 @@ struct WorldModel {
 impl WorldModel {
     /// A model folder as `bridgev2w demo` ships it (`backbone/` and
     /// `bridgev2w.safetensors`), a diffusers CogVideoX-I2V folder or Hub name
-    /// (with optional BridgeV2W `weights`), or `random:PRESET`.
+    /// (with optional BridgeV2W `weights`), or `random:PRESET`. `vae_tile`:
+    /// `auto` (the VAE's tiles above 256x256, as `bridgev2w predict`), `off`
+    /// or `HxW` pixels.
     #[staticmethod]
-    #[pyo3(signature = (model, weights = None, device = "cpu", precision = "f32", seed = 0))]
+    #[pyo3(signature = (model, weights = None, device = "cpu", precision = "f32", seed = 0, vae_tile = "auto"))]
     fn from_pretrained(
         py: Python<'_>,
         model: &str,
@@ -519,7 +522,14 @@ impl WorldModel {
         device: &str,
         precision: &str,
         seed: i64,
+        vae_tile: &str,
     ) -> PyResult<Self> {
+        let tiling: VaeTiling =
+            vae_tile
+                .parse()
+                .map_err(|e: bridgev2w_world_model::WorldModelError| {
+                    PyValueError::new_err(e.to_string())
+                })?;
         let device: ComputeDevice =
             device
                 .parse()
@@ -553,13 +563,18 @@ impl WorldModel {
         });
         // A local path that is not there (not a Hub name OWNER/NAME, not random:).
         let hub_name = model.split('/').count() == 2 && !model.starts_with(['.', '/']);
-        let inner = inner.map_err(|e| {
+        let mut inner = inner.map_err(|e| {
             if !model.starts_with("random:") && !dir.exists() && !hub_name {
                 PyFileNotFoundError::new_err(e.to_string())
             } else {
                 err(e)
             }
         })?;
+        let resolution = inner.resolution();
+        inner
+            .vae
+            .set_tiling(tiling, resolution, "vae_tile")
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         Ok(Self {
             resolution: inner.resolution(),
             clip_frames: inner.clip_frames(),

@@ -21,6 +21,7 @@ use bridgev2w_world_model::scheduler::{Scheduler, SchedulerConfig};
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::transformer::TransformerConfig;
 use bridgev2w_world_model::vae::VaeConfig;
+use bridgev2w_world_model::vae::VaeTiling;
 use std::path::{Path, PathBuf};
 use tch::nn::VarStore;
 use tch::Tensor;
@@ -146,18 +147,18 @@ impl Trainer {
             data.set_mask_coding(cfg.model.mask_coding)?;
         }
         let mut model = build_model(&cfg, device, frames, height, width)?;
-        if let Some(size) = cfg.model.vae_tile {
-            // (not in the vae stage: `validate` refuses it there)
-            model.vae.enable_tiles(size, "config model.vae_tile")?;
-        } else if cfg.train.stage != Stage::Vae
-            && height * width > bridgev2w_world_model::vae::TILING_MIN_PIXELS
-        {
-            // As `predict` runs the VAE at these sizes: the clips' encoding
-            // and the flow loss's decode in tiles (memory).
-            model
-                .vae
-                .enable_tiling(bridgev2w_world_model::vae::TilingOptions::default())?;
-        }
+        // As `predict` runs the VAE at these sizes: the clips' encoding and
+        // the flow loss's decode in tiles above 256x256 (memory), or in the
+        // configured ones; the vae stage trains on whole frames (`validate`
+        // refuses model.vae_tile there).
+        let tiling = match (cfg.model.vae_tile, cfg.train.stage) {
+            (_, Stage::Vae) => VaeTiling::Off,
+            (Some(size), _) => VaeTiling::Tiles(size),
+            (None, _) => VaeTiling::Auto,
+        };
+        model
+            .vae
+            .set_tiling(tiling, (height, width), "config model.vae_tile")?;
         let tf_cfg = model.transformer.model.config().clone();
         let train_backbone =
             cfg.model.train_backbone || !cfg.ablation.pretrained || cfg.model.transformer.is_some();

@@ -39,7 +39,7 @@ pub use decode_backward::{BatchReplay, DecodeRecord};
 pub const TILING_MIN_PIXELS: usize = 256 * 256;
 pub use init::{inflate_image_weights, init_like_pytorch};
 pub use posterior::Posterior;
-pub use tiling::{TileSize, Tiling, TilingOptions};
+pub use tiling::{TileSize, Tiling, TilingOptions, VaeTiling};
 
 /// Largest deviation from `[-1, 1]` that [`AutoencoderKLCogVideoX::encode`] accepts in a
 /// video (rounding of converted pixel values).

@@ -290,3 +290,74 @@ fn tile_sizes_parse_print_and_must_join() {
     );
     assert!(!vae.uses_tiling());
 }
+
+#[test]
+fn vae_tiling_modes_parse_and_follow_the_frame_size() {
+    for (text, want) in [
+        ("auto", VaeTiling::Auto),
+        ("off", VaeTiling::Off),
+        (
+            "144x200",
+            VaeTiling::Tiles(TileSize {
+                height_px: 144,
+                width_px: 200,
+            }),
+        ),
+    ] {
+        let got: VaeTiling = text.parse().expect(text);
+        assert_eq!((got, got.to_string()), (want, text.to_owned()));
+    }
+    for bad in ["on", "144", "tiles"] {
+        let e = bad.parse::<VaeTiling>().expect_err(bad).to_string();
+        assert!(
+            e.contains("vae_tile")
+                && e.contains(bad)
+                && e.contains("\"auto\"")
+                && e.contains("HEIGHTxWIDTH"),
+            "{bad}: {e}"
+        );
+    }
+    let (_vs, mut vae) = tiny_vae(0);
+    let default_tiles = vae.tiling();
+    // Auto: whole frames at 256x256 and below, the VAE's own tiles above.
+    vae.set_tiling(VaeTiling::Auto, (256, 256), "f")
+        .expect("auto");
+    assert!(!vae.uses_tiling());
+    vae.set_tiling(VaeTiling::Auto, (480, 720), "f")
+        .expect("auto");
+    assert!(vae.uses_tiling());
+    assert_eq!(vae.tiling(), default_tiles);
+    vae.set_tiling(VaeTiling::Off, (480, 720), "f")
+        .expect("off");
+    assert!(!vae.uses_tiling());
+    // Tiles at any size, below 256x256 too.
+    let size = TileSize {
+        height_px: 48,
+        width_px: 40,
+    };
+    vae.set_tiling(VaeTiling::Tiles(size), (64, 96), "f")
+        .expect("tiles");
+    let t = vae.tiling();
+    assert!(vae.uses_tiling());
+    assert_eq!(
+        (t.tile_sample_min_height, t.tile_sample_min_width),
+        (48, 40)
+    );
+    let bad = TileSize {
+        height_px: 64,
+        width_px: 96,
+    };
+    let e = vae
+        .set_tiling(VaeTiling::Tiles(bad), (64, 96), "--vae-tile")
+        .expect_err("tiles that do not join")
+        .to_string();
+    assert!(
+        e.contains("--vae-tile") && e.contains("would not join"),
+        "{e}"
+    );
+    assert_eq!(vae.tiling(), t, "refused: the tiling as it was");
+    // Auto again: the VAE's own tiles, not the last ones set.
+    vae.set_tiling(VaeTiling::Auto, (480, 720), "f")
+        .expect("auto");
+    assert_eq!(vae.tiling(), default_tiles);
+}

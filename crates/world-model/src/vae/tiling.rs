@@ -111,6 +111,52 @@ impl From<TileSize> for String {
     }
 }
 
+/// Which tiles the VAE runs in: the one rule of `predict`, training and the
+/// Python model ([`AutoencoderKLCogVideoX::set_tiling`]). Written `auto`,
+/// `off` or `HxW`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum VaeTiling {
+    /// The VAE's own tiles for frames above [`super::TILING_MIN_PIXELS`]
+    /// (memory; diffusers' CogVideoX examples tile above 256x256), whole
+    /// frames below.
+    #[default]
+    Auto,
+    /// Whole frames at any size.
+    Off,
+    /// Tiles of this size at any size of frame.
+    Tiles(TileSize),
+}
+
+impl std::str::FromStr for VaeTiling {
+    type Err = WorldModelError;
+
+    fn from_str(text: &str) -> Result<Self> {
+        match text.trim() {
+            "auto" => Ok(Self::Auto),
+            "off" => Ok(Self::Off),
+            size => size.parse().map(Self::Tiles).map_err(|_| {
+                WorldModelError::input(
+                    "vae_tile",
+                    format!(
+                        "{text:?}: expected \"auto\" (the VAE's tiles above 256x256), \"off\" \
+                         (whole frames) or HEIGHTxWIDTH in pixels, e.g. 144x200"
+                    ),
+                )
+            }),
+        }
+    }
+}
+
+impl std::fmt::Display for VaeTiling {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Auto => f.write_str("auto"),
+            Self::Off => f.write_str("off"),
+            Self::Tiles(size) => size.fmt(f),
+        }
+    }
+}
+
 impl AutoencoderKLCogVideoX {
     /// Tiles of `size` with the current overlaps ([`Self::enable_tiling`]),
     /// refused unless they join exactly ([`Self::tiles_join`]); `field`
@@ -148,6 +194,29 @@ impl AutoencoderKLCogVideoX {
                 t.tile_sample_min_width
             ),
         ))
+    }
+
+    /// Tiles for frames of `height_px` x `width_px` as `tiling` says: the
+    /// VAE's own tiles above [`super::TILING_MIN_PIXELS`] (`Auto`), whole
+    /// frames (`Off`), or the given tiles ([`Self::enable_tiles`], refused
+    /// unless they join; `field` names the setting in the error).
+    pub fn set_tiling(
+        &mut self,
+        tiling: VaeTiling,
+        (height_px, width_px): (usize, usize),
+        field: &str,
+    ) -> Result<()> {
+        match tiling {
+            VaeTiling::Tiles(size) => self.enable_tiles(size, field),
+            VaeTiling::Auto if height_px * width_px > super::TILING_MIN_PIXELS => {
+                self.tiling = Tiling::for_config(&self.cfg);
+                self.enable_tiling(TilingOptions::default())
+            }
+            VaeTiling::Auto | VaeTiling::Off => {
+                self.disable_tiling();
+                Ok(())
+            }
+        }
     }
 
     /// Splits large inputs into overlapping spatial tiles (diffusers' `enable_tiling`);
