@@ -9,7 +9,10 @@ use crate::synthetic::{PerfectWorldModel, TaskInstance};
 use crate::Result;
 use bridgev2w_data::synth::{SynthConfig, World};
 use bridgev2w_world_model::bridge::BridgeV2W;
-use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames, PredictOptions, SampleOptions};
+use bridgev2w_world_model::pipeline::{
+    BatchNoise, DecodeFrames, PredictOptions, SampleOptions, WorldModel as _,
+};
+use bridgev2w_world_model::vae::VaeTiling;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -138,6 +141,11 @@ impl LoadedModel {
                 if let Some(frames) = o.clip_frames {
                     model.set_clip_frames(frames)?;
                 }
+                // The VAE as `predict` runs it: in its tiles above 256x256.
+                let resolution = model.resolution();
+                model
+                    .vae
+                    .set_tiling(VaeTiling::Auto, resolution, "the VAE's tiles")?;
                 Self::Diffusion {
                     model: Box::new(model),
                     denoise_steps: o.denoise_steps,
