@@ -427,26 +427,9 @@ fn predict_keeps_the_static_scene_outside_the_swept_region() {
     img.save(d.join("first.png")).expect("png");
     let masks = box_masks(3);
     write_npy(&d.join("masks.npy"), &[9, 64, 96], &masks).expect("npy");
-    let (first, mask_file) = (d.join("first.png"), d.join("masks.npy"));
     let run_predict = |out: &str, extra: &[&str]| {
-        let mut args = vec![
-            "predict",
-            "--model",
-            "random:tiny",
-            "--image",
-            s(&first),
-            "--masks",
-            s(&mask_file),
-            "--steps",
-            "2",
-            "--device",
-            "cpu",
-            "--out",
-        ];
-        let out = d.join(out);
-        args.push(s(&out));
-        args.extend_from_slice(extra);
-        ok(&run(&args));
+        let (o, out) = predict_tiny(d, out, extra);
+        ok(&o);
         read_npy(&out.join("video.npy")).expect("video").data
     };
     let kept = run_predict("kept", &["--keep-static", "1"]);
@@ -498,27 +481,7 @@ fn predict_decodes_in_the_vae_tiles_asked_for() {
     let img = image::RgbImage::from_fn(96, 64, |x, y| image::Rgb([x as u8, y as u8, 128]));
     img.save(d.join("first.png")).expect("png");
     write_npy(&d.join("masks.npy"), &[9, 64, 96], &box_masks(3)).expect("npy");
-    let (first, mask_file) = (d.join("first.png"), d.join("masks.npy"));
-    let predict = |out: &str, extra: &[&str]| {
-        let out = d.join(out);
-        let mut args = vec![
-            "predict",
-            "--model",
-            "random:tiny",
-            "--image",
-            s(&first),
-            "--masks",
-            s(&mask_file),
-            "--steps",
-            "2",
-            "--device",
-            "cpu",
-            "--out",
-            s(&out),
-        ];
-        args.extend_from_slice(extra);
-        (run(&args), out)
-    };
+    let predict = |out: &str, extra: &[&str]| predict_tiny(d, out, extra);
     let (o, whole) = predict("whole", &[]);
     ok(&o);
     let (o, tiled) = predict("tiled", &["--vae-tile", "48x40"]);
@@ -551,4 +514,28 @@ fn predict_decodes_in_the_vae_tiles_asked_for() {
         assert!(err.contains("--vae-tile"), "{err}");
         assert!(!out.exists());
     }
+}
+
+/// `bridgev2w predict` of `random:tiny` with 2 steps on the CPU, from
+/// `d/first.png` and `d/masks.npy` into `d/OUT`, with `extra` flags: the
+/// run's output and the output folder.
+fn predict_tiny(d: &Path, out: &str, extra: &[&str]) -> (std::process::Output, std::path::PathBuf) {
+    let (first, masks, out) = (d.join("first.png"), d.join("masks.npy"), d.join(out));
+    let mut args = vec![
+        "predict",
+        "--model",
+        "random:tiny",
+        "--image",
+        s(&first),
+        "--masks",
+        s(&masks),
+        "--steps",
+        "2",
+        "--device",
+        "cpu",
+        "--out",
+        s(&out),
+    ];
+    args.extend_from_slice(extra);
+    (run(&args), out)
 }
