@@ -303,6 +303,15 @@ impl GroupNorm {
 /// resized to `f` by nearest interpolation. When `f` has an odd frame count above 1,
 /// the first latent frame is resized to the first feature frame and the rest to the
 /// rest separately.
+///
+/// A 1×1×1 convolution acts on each pixel alone, so it commutes with nearest
+/// resizing: the two convolutions run on the latent at its own size (a
+/// 64th of the products at the decoder's last stage, and no full-size
+/// copy of the resized latent), the results are resized in time, and where
+/// the spatial resize repeats each latent pixel in a block (every integer
+/// factor libtorch maps so, checked by [`nearest_block`]) scale and shift
+/// reach the normalized features by broadcasting, in one pass
+/// (`addcmul`). The same values as diffusers' order of operations.
 #[derive(Debug)]
 pub struct SpatialNorm3D {
     norm_layer: GroupNorm,
@@ -323,27 +332,71 @@ impl SpatialNorm3D {
     /// `f [B, Cf, T, H, W]`, `zq [B, Cz, t, h, w]` -> `[B, Cf, T, H, W]`.
     pub fn forward(&self, f: &Tensor, zq: &Tensor) -> Result<Tensor> {
         let fs = f.size();
-        let (t, h, w) = (fs[2], fs[3], fs[4]);
-        let zq = if t > 1 && t % 2 == 1 {
-            let zt = zq.size()[2];
-            // [B, Cz, 1, h, w] -> [B, Cz, 1, H, W]
-            let z_first = zq
-                .narrow(2, 0, 1)
-                .f_upsample_nearest3d([1, h, w], None, None, None)?;
-            // [B, Cz, t - 1, h, w] -> [B, Cz, T - 1, H, W]
-            let z_rest =
-                zq.narrow(2, 1, zt - 1)
-                    .f_upsample_nearest3d([t - 1, h, w], None, None, None)?;
-            Tensor::f_cat(&[z_first, z_rest], 2)?
-        } else {
-            // [B, Cz, t, h, w] -> [B, Cz, T, H, W]
-            zq.f_upsample_nearest3d([t, h, w], None, None, None)?
-        };
-        let (conv_y, _) = self.conv_y.forward(&zq, None)?;
-        let (conv_b, _) = self.conv_b.forward(&zq, None)?;
+        let (b, c, t, h, w) = (fs[0], fs[1], fs[2], fs[3], fs[4]);
+        let zs = zq.size();
+        let (zh, zw) = (zs[3], zs[4]);
+        // [B, Cz, t, h, w] -> [B, Cf, t, h, w]
+        let (scale, _) = self.conv_y.forward(zq, None)?;
+        let (shift, _) = self.conv_b.forward(zq, None)?;
+        // [B, Cf, t, h, w] -> [B, Cf, T, h, w]
+        let scale = resize_frames(&scale, t)?;
+        let shift = resize_frames(&shift, t)?;
         let norm_f = self.norm_layer.forward(f)?;
-        Ok(norm_f * conv_y + conv_b)
+        if let (Some(sh), Some(sw)) = (nearest_block(zh, h)?, nearest_block(zw, w)?) {
+            // [B, Cf, T, h, w] -> [B, Cf, T, h, 1, w, 1]
+            let lift = |x: &Tensor| x.f_reshape([b, c, t, zh, 1, zw, 1]);
+            // [B, Cf, T, H, W] -> [B, Cf, T, h, sh, w, sw]
+            let blocks = norm_f.f_reshape([b, c, t, zh, sh, zw, sw])?;
+            // [B, Cf, T, h, sh, w, sw] -> [B, Cf, T, H, W]
+            return Ok(lift(&shift)?
+                .f_addcmul(&blocks, &lift(&scale)?)?
+                .f_reshape([b, c, t, h, w])?);
+        }
+        // [B, Cf, T, h, w] -> [B, Cf, T, H, W]
+        let scale = scale.f_upsample_nearest3d([t, h, w], None, None, None)?;
+        let shift = shift.f_upsample_nearest3d([t, h, w], None, None, None)?;
+        Ok(shift.f_addcmul(&norm_f, &scale)?)
     }
+}
+
+/// The latent-side tensor `x [B, C, t, h, w]` resized by nearest
+/// interpolation to `frames` frames as diffusers' spatial norm resizes the
+/// latent in time: for an odd count above 1 the first frame alone to the
+/// first and the rest to the rest.
+fn resize_frames(x: &Tensor, frames: i64) -> Result<Tensor> {
+    let s = x.size();
+    let (t, h, w) = (s[2], s[3], s[4]);
+    if frames > 1 && frames % 2 == 1 {
+        // [B, C, t - 1, h, w] -> [B, C, frames - 1, h, w]
+        let rest =
+            x.narrow(2, 1, t - 1)
+                .f_upsample_nearest3d([frames - 1, h, w], None, None, None)?;
+        // [B, C, frames, h, w]
+        return Ok(Tensor::f_cat(&[x.narrow(2, 0, 1), rest], 2)?);
+    }
+    // [B, C, t, h, w] -> [B, C, frames, h, w]
+    Ok(x.f_upsample_nearest3d([frames, h, w], None, None, None)?)
+}
+
+/// `Some(k)` when libtorch's nearest resize of a side of `from` pixels to
+/// `to` repeats every source pixel `k` times in order (output `i` reads
+/// `i / k`), asked of the op itself on an index ramp, since it computes
+/// the source in floating point; `None` otherwise.
+fn nearest_block(from: i64, to: i64) -> Result<Option<i64>> {
+    if from < 1 || to % from != 0 {
+        return Ok(None);
+    }
+    let k = to / from;
+    let opts = (tch::Kind::Float, tch::Device::Cpu);
+    // [1, 1, from, 1, 1] -> [1, 1, to, 1, 1]
+    let sources = Tensor::f_arange(from, opts)?
+        .f_reshape([1, 1, from, 1, 1])?
+        .f_upsample_nearest3d([to, 1, 1], None, None, None)?
+        .f_reshape([to])?;
+    let blocks = Tensor::f_arange(to, opts)?
+        .f_div_scalar(k as f64)?
+        .f_floor()?;
+    Ok(sources.equal(&blocks).then_some(k))
 }
 
 #[cfg(test)]

@@ -135,3 +135,69 @@ fn time_pooling_is_avg_pool3d_and_runs_in_bf16_on_the_cpu() {
         );
     }
 }
+
+/// diffusers' spatial norm as written there: the latent resized to the
+/// features, both 1x1x1 convolutions at full size, then `norm * y + b`.
+fn spatial_norm_as_diffusers(norm: &SpatialNorm3D, f: &Tensor, zq: &Tensor) -> Tensor {
+    let s = f.size();
+    let (t, h, w) = (s[2], s[3], s[4]);
+    let zq = if t > 1 && t % 2 == 1 {
+        let zt = zq.size()[2];
+        let first = zq
+            .narrow(2, 0, 1)
+            .upsample_nearest3d([1, h, w], None, None, None);
+        let rest = zq
+            .narrow(2, 1, zt - 1)
+            .upsample_nearest3d([t - 1, h, w], None, None, None);
+        Tensor::cat(&[first, rest], 2)
+    } else {
+        zq.upsample_nearest3d([t, h, w], None, None, None)
+    };
+    let (y, _) = norm.conv_y.forward(&zq, None).unwrap();
+    let (b, _) = norm.conv_b.forward(&zq, None).unwrap();
+    norm.norm_layer.forward(f).unwrap() * y + b
+}
+
+#[test]
+fn spatial_norm_runs_its_convolutions_at_the_latents_size_with_diffusers_values() {
+    tch::manual_seed(4);
+    let vs = nn::VarStore::new(Device::Cpu);
+    let norm = SpatialNorm3D::new(vs.root() / "n", 8, 3, 4);
+    tch::no_grad(|| {
+        for mut v in vs.variables().into_values() {
+            let r = Tensor::randn_like(&v) * 0.5;
+            v.copy_(&r);
+        }
+    });
+    // (feature frames, height, width) for a latent of 3 frames at 2x3:
+    // odd and even frame counts, one frame, integer factors (broadcast) and
+    // factors libtorch does not map in blocks (5 of 2, 7 of 3: resized).
+    for (t, h, w) in [
+        (9, 8, 12),
+        (5, 2, 3),
+        (4, 4, 6),
+        (1, 4, 6),
+        (9, 5, 7),
+        (3, 16, 3),
+    ] {
+        let f = Tensor::randn([2, 8, t, h, w], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        let zq = Tensor::randn([2, 3, 3, 2, 3], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        let ours = norm.forward(&f, &zq).unwrap();
+        let theirs = spatial_norm_as_diffusers(&norm, &f, &zq);
+        assert_eq!(ours.size(), vec![2, 8, t, h, w]);
+        let diff = (&ours - &theirs).abs().max().double_value(&[]);
+        assert!(diff < 1e-5, "{t}x{h}x{w}: {diff}");
+        // The gradients too (decode_backward replays these layers).
+        let g = Tensor::randn_like(&ours);
+        let grads = |out: &Tensor| {
+            Tensor::run_backward(&[(out * &g).sum(Kind::Float)], &[&f, &zq], false, false)
+        };
+        for (a, b) in grads(&ours).iter().zip(grads(&theirs).iter()) {
+            let d = (a - b).abs().max().double_value(&[]);
+            assert!(d < 1e-4, "{t}x{h}x{w}: gradient {d}");
+        }
+    }
+    assert_eq!(nearest_block(60, 480).unwrap(), Some(8));
+    assert_eq!(nearest_block(3, 7).unwrap(), None);
+    assert_eq!(nearest_block(4, 4).unwrap(), Some(1));
+}
