@@ -1,7 +1,12 @@
 #!/usr/bin/env python3
 """Peer for `bridgev2w bench model`: times diffusers' CogVideoX transformer forward and
-VAE encode/decode on the same configs, shapes and thread count as the Rust side, and
-prints one JSON line of seconds (best of --repeat).
+VAE encode/decode on the same configs, shapes and thread count as the Rust side, each
+best of --repeat after one warm-up run (as the Rust side times its own).
+
+Progress goes to stdout as JSON lines, flushed at once, so that a caller that stops
+this run at a time limit keeps what finished: `{"starting": OP}` before each
+operation's warm-up, and after each operation the result so far (the same object
+growing); the last line is the whole result.
 
 The configs come from JSON files written by the Rust side (the same dicts it uses), so
 both sides build the same architecture; weights are random (timing only).
@@ -11,6 +16,18 @@ import json
 import os
 import sys
 import time
+
+
+def emit(obj):
+    print(json.dumps(obj), flush=True)
+
+
+def timed(out, op, fn, repeat):
+    """Warm-up, then best of `repeat`, stored as `out[op + "_s"]` and printed."""
+    emit({"starting": op})
+    fn()
+    out[op + "_s"] = best_of(fn, repeat)
+    emit(out)
 
 
 def best_of(fn, repeat):
@@ -74,8 +91,7 @@ def main() -> int:
                         image_rotary_emb=rope, return_dict=False)
             if dev.type == "cuda":
                 torch.cuda.synchronize()
-        fwd()  # warm-up
-        out["transformer_forward_s"] = best_of(fwd, args.repeat)
+        timed(out, "transformer_forward", fwd, args.repeat)
     if dev.type == "cuda":
         # The caching allocator's peaks (the Rust side reads nvidia-smi, like this run's
         # probe on the Rust side of `bench model`; these are extra detail).
@@ -98,11 +114,11 @@ def main() -> int:
             vae.decode(latents)
             if dev.type == "cuda":
                 torch.cuda.synchronize()
-        out["vae_encode_s"] = best_of(enc, args.repeat)
-        out["vae_decode_s"] = best_of(dec, args.repeat)
+        timed(out, "vae_encode", enc, args.repeat)
+        timed(out, "vae_decode", dec, args.repeat)
     if dev.type == "cuda":
         out["vae_peak_allocated_mib"] = torch.cuda.max_memory_allocated(dev) / 2**20
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

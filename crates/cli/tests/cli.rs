@@ -577,6 +577,36 @@ fn bench_model_out_of_memory_is_a_clean_error_naming_the_shapes() {
     );
 }
 
+/// `bench model --diffusers-limit`: a diffusers run still going at the
+/// limit (here still importing torch after 1 s) is stopped, and the table
+/// says what did not run; the limit must be whole positive seconds and
+/// needs diffusers.
+#[test]
+fn bench_model_stops_diffusers_at_its_limit_and_says_what_did_not_run() {
+    let tiny = [
+        "bench", "model", "--layers", "1", "--frames", "1", "--height", "16", "--width", "16",
+    ];
+    let o = run(&[&tiny[..], &["--diffusers-limit", "1"]].concat());
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{out}{}", stderr(&o));
+    for op in ["transformer forward (b1)", "VAE encode", "VAE decode"] {
+        let row = out.lines().find(|l| l.starts_with(op)).unwrap_or_default();
+        assert!(row.contains("not run"), "{op}: {out}");
+    }
+    assert!(
+        out.contains("diffusers was stopped at --diffusers-limit 1: `>` bounds"),
+        "{out}"
+    );
+    for bad in [
+        &["--diffusers-limit", "0"][..],
+        &["--diffusers-limit", "5", "--no-diffusers"],
+    ] {
+        let o = run(&[&tiny[..], bad].concat());
+        assert_eq!(o.status.code(), Some(2), "{bad:?}: {}", stderr(&o));
+        assert!(stderr(&o).contains("--diffusers-limit"), "{}", stderr(&o));
+    }
+}
+
 #[test]
 fn a_bad_cpu_cache_setting_stops_naming_the_variable() {
     let bad = bin()

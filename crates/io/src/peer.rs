@@ -5,8 +5,11 @@
 //! result as one JSON object on stdout. A bench reports its stages and
 //! notes through [`crate::progress::Progress`].
 
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
 
 /// The file that marks the repository root (the benches' peer scripts).
 pub const REPO_MARKER: &str = "scripts/bench/pybullet_masks.py";
@@ -167,6 +170,124 @@ pub fn run_peer_json(cmd: &mut Command, script: &str) -> Result<PeerOutput> {
     PeerOutput::parse(script, &String::from_utf8_lossy(&out.stdout))
 }
 
+/// What a peer run under [`run_peer_json_lines`] printed: every JSON
+/// object on its stdout with when it arrived, and whether the run was
+/// stopped at its time limit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PeerLines {
+    script: String,
+    /// The objects in order, each with the time since the start.
+    pub lines: Vec<(Duration, serde_json::Value)>,
+    /// `Some(limit)` when the peer was still running at its time limit and
+    /// was stopped there (`lines` then holds what it printed until then).
+    pub stopped: Option<Duration>,
+}
+
+impl PeerLines {
+    /// The last object for which `keep` holds, as a result.
+    pub fn last_where(&self, keep: impl Fn(&serde_json::Value) -> bool) -> Option<PeerOutput> {
+        self.lines
+            .iter()
+            .rev()
+            .find(|(_, v)| keep(v))
+            .map(|(_, v)| PeerOutput {
+                script: self.script.clone(),
+                value: v.clone(),
+            })
+    }
+}
+
+/// Runs the peer script `scripts/bench/{script}` as [`run_peer_json`] does,
+/// reading the JSON objects it prints line by line as they come (a peer
+/// that reports its progress so); with a `limit`, a peer still running
+/// then is stopped (killed) and what it printed so far returned, marked
+/// [`PeerLines::stopped`]. Lines that are not JSON objects are passed over;
+/// a peer that exits with an error is [`PeerError::Failed`] with its stderr.
+pub fn run_peer_json_lines(
+    cmd: &mut Command,
+    script: &str,
+    limit: Option<Duration>,
+) -> Result<PeerLines> {
+    let what = format!("scripts/bench/{script}");
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .map_err(|source| PeerError::Spawn {
+            what: what.clone(),
+            source,
+        })?;
+    let start = Instant::now();
+    let (Some(stdout), Some(mut stderr)) = (child.stdout.take(), child.stderr.take()) else {
+        let _ = child.kill();
+        return Err(PeerError::Spawn {
+            what,
+            source: std::io::Error::other("no pipes to its stdout and stderr"),
+        });
+    };
+    // stderr in its own thread, so that a chatty peer never blocks on it.
+    let errors = std::thread::spawn(move || {
+        let mut text = String::new();
+        let _ = std::io::Read::read_to_string(&mut stderr, &mut text);
+        text
+    });
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout)
+            .lines()
+            .map_while(std::io::Result::ok)
+        {
+            if tx.send((start.elapsed(), line)).is_err() {
+                break;
+            }
+        }
+    });
+    let mut lines = Vec::new();
+    let mut stopped = None;
+    loop {
+        let next = match limit {
+            Some(l) => rx.recv_timeout(l.saturating_sub(start.elapsed())),
+            None => rx.recv().map_err(|_| mpsc::RecvTimeoutError::Disconnected),
+        };
+        match next {
+            Ok((at, line)) => {
+                if line.trim_start().starts_with('{') {
+                    let value =
+                        serde_json::from_str(&line).map_err(|source| PeerError::BadJson {
+                            script: script.to_owned(),
+                            source,
+                        })?;
+                    lines.push((at, value));
+                }
+            }
+            Err(mpsc::RecvTimeoutError::Timeout) => {
+                // Killing a peer that has just exited fails harmlessly.
+                let _ = child.kill();
+                stopped = limit;
+                break;
+            }
+            Err(mpsc::RecvTimeoutError::Disconnected) => break,
+        }
+    }
+    let status = child.wait().map_err(|source| PeerError::Spawn {
+        what: what.clone(),
+        source,
+    })?;
+    // A stopped peer's stderr is not waited for (a process it started may
+    // still hold the pipe).
+    if stopped.is_none() && !status.success() {
+        return Err(PeerError::Failed {
+            what: script.to_owned(),
+            stderr: errors.join().unwrap_or_default(),
+        });
+    }
+    Ok(PeerLines {
+        script: script.to_owned(),
+        lines,
+        stopped,
+    })
+}
+
 /// The JSON result of a peer script.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PeerOutput {
@@ -282,6 +403,53 @@ mod tests {
         assert_eq!(text, "hi\n");
         let e = run_peer_text(&mut Command::new("/nonexistent/peer"), "peer").expect_err("spawn");
         assert_eq!(e.to_string(), "running peer");
+    }
+
+    #[test]
+    fn a_peer_read_line_by_line_is_stopped_at_its_limit_with_what_it_printed() {
+        let mut cmd = Command::new("sh");
+        cmd.args([
+            "-c",
+            "echo '{\"starting\": \"a\"}'; echo '{\"a_s\": 1}'; echo noise; \
+             echo '{\"starting\": \"b\"}'; exec sleep 30",
+        ]);
+        let t0 = Instant::now();
+        let run = run_peer_json_lines(&mut cmd, "x.py", Some(Duration::from_millis(1500)))
+            .expect("stopped, not failed");
+        assert!(t0.elapsed() < Duration::from_secs(20), "not killed");
+        assert_eq!(run.stopped, Some(Duration::from_millis(1500)));
+        assert_eq!(run.lines.len(), 3, "{run:?}");
+        let result = run
+            .last_where(|v| v.get("starting").is_none())
+            .expect("a result");
+        assert_eq!(result.number("a_s").expect("a"), 1.0);
+        assert!(run
+            .lines
+            .iter()
+            .all(|(at, _)| *at < Duration::from_millis(1500)));
+        // Run to the end: every object, not stopped; a failure names the script.
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "echo '{\"k\": 4}'; echo '{\"k\": 5}'"]);
+        let run =
+            run_peer_json_lines(&mut cmd, "x.py", Some(Duration::from_secs(60))).expect("runs");
+        assert_eq!((run.lines.len(), run.stopped), (2, None));
+        assert_eq!(
+            run.last_where(|_| true)
+                .expect("last")
+                .number("k")
+                .expect("k"),
+            5.0
+        );
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "echo '{\"k\": 4}'; echo broken >&2; exit 2"]);
+        let e = run_peer_json_lines(&mut cmd, "x.py", None).expect_err("fails");
+        assert_eq!(e.to_string(), "x.py failed:\nbroken\n");
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "echo '{oops'"]);
+        assert!(matches!(
+            run_peer_json_lines(&mut cmd, "x.py", None),
+            Err(PeerError::BadJson { .. })
+        ));
     }
 
     #[test]

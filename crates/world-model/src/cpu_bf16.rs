@@ -71,6 +71,25 @@ pub fn cpu_has_bf16_arithmetic() -> bool {
     }
 }
 
+/// Whether libtorch's own bf16 convolutions on this CPU fall back to its
+/// `slow_conv3d`, a scalar GEMM on one thread: oneDNN has bf16
+/// convolutions only with AVX-512 (F, BW, VL, DQ) or AVX-NE-CONVERT, and
+/// on an AVX2-only CPU a VAE convolution took 380 times as long as in f32
+/// (`docs/benchmarks.md`). What diffusers' bf16 VAE runs on such a CPU;
+/// this crate widens to f32 there. `false` off x86-64.
+pub fn libtorch_bf16_conv_is_scalar() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::is_x86_feature_detected as has;
+        let avx512 = has!("avx512f") && has!("avx512bw") && has!("avx512vl") && has!("avx512dq");
+        !(avx512 || has!("avxneconvert"))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 static MODE: ModeCell = ModeCell::new();
 
 /// Sets the process-wide mode.

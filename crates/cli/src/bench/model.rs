@@ -49,6 +49,12 @@ pub struct ModelBench {
     /// `enable_tiling()`, default tiles), as `predict` runs it above 256x256.
     #[arg(long)]
     vae_tiling: bool,
+    /// Stop diffusers if it is still running after SECONDS and report what
+    /// finished (`>`: a lower bound for the operation it was in). For bf16 on
+    /// a CPU without AVX-512, where diffusers' VAE takes hours.
+    #[arg(long, value_name = "SECONDS", conflicts_with = "no_diffusers",
+          value_parser = clap::value_parser!(u64).range(1..))]
+    diffusers_limit: Option<u64>,
 }
 
 impl From<&ModelBench> for ModelBenchOptions {
@@ -67,6 +73,7 @@ impl From<&ModelBench> for ModelBenchOptions {
             python: a.python.clone(),
             repo: a.repo.clone(),
             vae_tiling: a.vae_tiling,
+            diffusers_limit: a.diffusers_limit.map(std::time::Duration::from_secs),
         }
     }
 }

@@ -2,6 +2,7 @@
 //! against diffusers on the same configs and shapes, with each side's peak
 //! GPU memory on CUDA.
 
+use super::diffusers::{PeerTime, PeerTimings};
 use super::gpu_memory::{with_gpu_peak, NVIDIA_SMI};
 use super::{time_model, torch_threads, BenchError, DiffusersPeer, ModelBenchShape, ModelTimings};
 use crate::device::{ComputeDevice, Precision};
@@ -10,6 +11,7 @@ use crate::vae::VaeConfig;
 use bridgev2w_io::progress::Progress;
 use std::fmt;
 use std::path::PathBuf;
+use std::time::Duration;
 
 /// The CogVideoX architecture family `bench model` builds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -67,6 +69,9 @@ pub struct ModelBenchOptions {
     pub repo: Option<PathBuf>,
     /// Time the VAE with spatial tiling (both sides).
     pub vae_tiling: bool,
+    /// Stop diffusers if it is still running after this long, and report
+    /// what finished (`None`: let it run).
+    pub diffusers_limit: Option<Duration>,
 }
 
 impl Default for ModelBenchOptions {
@@ -85,6 +90,7 @@ impl Default for ModelBenchOptions {
             python: None,
             repo: None,
             vae_tiling: false,
+            diffusers_limit: None,
         }
     }
 }
@@ -118,7 +124,7 @@ pub struct ModelBenchReport {
     /// This crate's timings.
     pub bridgev2w: ModelTimings,
     /// diffusers' timings, when it ran.
-    pub diffusers: Option<ModelTimings>,
+    pub diffusers: Option<PeerTimings>,
     /// Peak GPU memory (on CUDA only).
     pub gpu_peak_mib: Option<GpuPeakMib>,
     /// How this crate ran bf16 linear layers and convolutions (bf16 on the
@@ -217,24 +223,35 @@ impl fmt::Display for ModelBenchReport {
             (
                 forward.as_str(),
                 ours.transformer_forward_s,
-                theirs.map(|t| t.transformer_forward_s),
+                theirs.map(|t| t.transformer_forward),
             ),
             (
                 encode.as_str(),
                 ours.vae_encode_s,
-                theirs.map(|t| t.vae_encode_s),
+                theirs.map(|t| t.vae_encode),
             ),
             (
                 decode.as_str(),
                 ours.vae_decode_s,
-                theirs.map(|t| t.vae_decode_s),
+                theirs.map(|t| t.vae_decode),
             ),
         ];
         for (name, o, t) in rows {
-            match t {
-                Some(t) => writeln!(f, "{name:<24} {o:>12.3} {t:>12.3} {:>9.2}x", t / o)?,
-                None => writeln!(f, "{name:<24} {o:>12.3} {:>12} {:>10}", "-", "-")?,
-            }
+            let (t, ratio) = match t {
+                Some(PeerTime::Seconds(t)) => (format!("{t:.3}"), format!("{:.2}x", t / o)),
+                Some(PeerTime::Over(t)) => (format!("> {t:.1}"), format!("> {:.1}x", t / o)),
+                Some(PeerTime::NotRun) => ("not run".to_owned(), "-".to_owned()),
+                None => ("-".to_owned(), "-".to_owned()),
+            };
+            writeln!(f, "{name:<24} {o:>12.3} {t:>12} {ratio:>10}")?;
+        }
+        if let Some(limit) = theirs.and_then(|t| t.stopped_after_s) {
+            writeln!(
+                f,
+                "diffusers was stopped at --diffusers-limit {limit:.0}: `>` bounds an operation \
+                 it was in from below (the time it had run, shared among its warm-up and \
+                 timed runs); `not run`: not started"
+            )?;
         }
         let Some(peak) = self.gpu_peak_mib else {
             return Ok(());
@@ -310,6 +327,20 @@ pub fn bench_model(
         time_model(&tf, &vae, &shape, a.device, a.precision, a.repeat)
     })?;
     let (theirs, their_peak) = if a.diffusers {
+        if a.precision == Precision::Bf16
+            && a.device == ComputeDevice::Cpu
+            && crate::cpu_bf16::libtorch_bf16_conv_is_scalar()
+        {
+            progress.note(&format!(
+                "note: this CPU has no AVX-512 (nor AVX-NE-CONVERT), so diffusers' bf16 VAE runs \
+                 libtorch's scalar slow_conv3d: hours at these shapes where this crate (widened \
+                 to f32) takes seconds; {}",
+                match a.diffusers_limit {
+                    Some(l) => format!("diffusers is stopped after {} s", l.as_secs()),
+                    None => "--diffusers-limit SECONDS stops it and reports what finished".into(),
+                }
+            ));
+        }
         progress.note("running diffusers on the same configs...");
         let (t, p) = with_gpu_peak(NVIDIA_SMI, gpu, || {
             DiffusersPeer::find(a.python.as_deref(), a.repo.as_deref())?.time_model(
@@ -319,6 +350,7 @@ pub fn bench_model(
                 a.device,
                 a.precision,
                 a.repeat,
+                a.diffusers_limit,
             )
         })?;
         (Some(t), p)
@@ -409,10 +441,10 @@ mod tests {
         let text = report.to_string();
         assert_eq!(text.lines().count(), 5, "{text}");
         assert!(text.contains("transformer forward (b2)        2.000            -          -"));
-        report.diffusers = Some(ModelTimings {
+        report.diffusers = Some(PeerTimings::finished(&ModelTimings {
             vae_decode_s: 8.0,
-            ..t
-        });
+            ..t.clone()
+        }));
         report.gpu_peak_mib = Some(GpuPeakMib {
             bridgev2w: None,
             diffusers: Some(12),
@@ -477,5 +509,29 @@ mod tests {
         assert!(report
             .to_string()
             .contains("warning: 3 oneDNN calls failed and ran libtorch's op instead"));
+        // diffusers stopped at its limit: a bound where it was, `not run` after.
+        report.diffusers = Some(PeerTimings {
+            transformer_forward: PeerTime::Seconds(3.0),
+            vae_encode: PeerTime::Over(600.0),
+            vae_decode: PeerTime::NotRun,
+            stopped_after_s: Some(1800.0),
+        });
+        let text = report.to_string();
+        assert!(
+            text.contains("transformer forward (b2)        2.000        3.000      1.50x"),
+            "{text}"
+        );
+        assert!(
+            text.contains("VAE encode (tiled)              1.000      > 600.0   > 600.0x"),
+            "{text}"
+        );
+        assert!(
+            text.contains("VAE decode (tiled)              4.000      not run          -"),
+            "{text}"
+        );
+        assert!(
+            text.contains("diffusers was stopped at --diffusers-limit 1800: `>` bounds"),
+            "{text}"
+        );
     }
 }
