@@ -7,7 +7,11 @@ convolutions (`conv`: which kernel libtorch picks shows in its time, e.g. the
 single-threaded `slow_conv3d` for bf16 on a CPU without AVX-512), and (`linear`) one
 block's products through libtorch's `linear` (as diffusers runs them) against
 oneDNN's linear layer on a weight packed once, GELU fused (as this crate runs
-them on the CPU outside autograd, `world_model::cpu_linear`).
+them on the CPU outside autograd, `world_model::cpu_linear`), and two decoder
+layers in diffusers' order of operations against this crate's (`spatial-norm`:
+the 1x1x1 convolutions at the latent's size and a broadcast `addcmul`;
+`upsampler`: the convolution of the 2x-upsampled frame as four 2x2 phases and a
+pixel shuffle), with the largest difference between the two.
 
 The same libtorch kernels run under this crate's model, so the table says what
 any implementation at these shapes is made of (docs/benchmarks.md).
@@ -16,6 +20,8 @@ any implementation at these shapes is made of (docs/benchmarks.md).
     .venv/bin/python scripts/bench/profile_diffusers.py decode --dtype bf16
     .venv/bin/python scripts/bench/profile_diffusers.py linear --dtype f32
     .venv/bin/python scripts/bench/profile_diffusers.py conv --dtype bf16
+    .venv/bin/python scripts/bench/profile_diffusers.py spatial-norm
+    .venv/bin/python scripts/bench/profile_diffusers.py upsampler
 """
 
 import argparse
@@ -25,7 +31,7 @@ import time
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear"])
+    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear", "spatial-norm", "upsampler"])
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rows", type=int, default=12, help="ops in the table")
@@ -68,6 +74,9 @@ def main() -> int:
 
     if args.part == "linear":
         return linear_kernels(torch, dtype, args.dtype)
+    if args.part in ("spatial-norm", "upsampler"):
+        with torch.no_grad():
+            return decoder_layers(torch, args.part, dtype)
 
     if args.part == "transformer":
         from diffusers import CogVideoXTransformer3DModel
@@ -144,6 +153,74 @@ def linear_kernels(torch, dtype, name) -> int:
         print(f"  {label:<22} {aten * 1e3:8.2f} {onednn * 1e3:8.2f}  {aten / onednn:.2f}x")
     print(f"  {'one block':<22} {total_aten * 1e3:8.2f} {total_onednn * 1e3:8.2f}  {total_aten / total_onednn:.2f}x")
     return 0
+
+
+def best_s(fn, n=5):
+    fn()
+    fn()
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def decoder_layers(torch, part, dtype) -> int:
+    """A decoder layer at the bench's shapes (best of 5 after 2 warm-ups):
+    diffusers' order of operations against this crate's, in libtorch ops."""
+    F = torch.nn.functional
+    print(f"{part}: diffusers' order vs this crate's (ms), max difference")
+    if part == "spatial-norm":
+        # Features [C, T, H, W] of one decoder batch; the latent: 2 frames at 16x24.
+        for c, t, h, w in [(128, 8, 128, 192), (256, 8, 64, 96), (512, 4, 32, 48)]:
+            f = torch.randn(1, c, t, h, w, dtype=dtype)
+            zq = torch.randn(1, 16, 2, 16, 24, dtype=dtype)
+            wy, wb = (torch.randn(c, 16, 1, 1, 1, dtype=dtype) * 0.2 for _ in range(2))
+            by, bb = torch.randn(c, dtype=dtype), torch.randn(c, dtype=dtype)
+            sh, sw = h // 16, w // 24
+
+            def diffusers_order():
+                z = F.interpolate(zq, size=(t, h, w))
+                return F.group_norm(f, 32, eps=1e-6) * F.conv3d(z, wy, by) + F.conv3d(z, wb, bb)
+
+            def this_crate():
+                y = F.interpolate(F.conv3d(zq, wy, by), size=(t, 16, 24)).view(1, c, t, 16, 1, 24, 1)
+                b = F.interpolate(F.conv3d(zq, wb, bb), size=(t, 16, 24)).view(1, c, t, 16, 1, 24, 1)
+                n = F.group_norm(f, 32, eps=1e-6).view(1, c, t, 16, sh, 24, sw)
+                return torch.addcmul(b, n, y).view(1, c, t, h, w)
+
+            report(torch, f"{c} channels, {t}x{h}x{w}", diffusers_order, this_crate)
+        return 0
+    for c, t, h, w in [(256, 9, 64, 96), (256, 5, 32, 48), (512, 3, 16, 24)]:
+        x = torch.randn(t, c, h, w, dtype=dtype)  # the frames as images
+        k = torch.randn(c, c, 3, 3, dtype=dtype) * 0.03
+        bias = torch.randn(c, dtype=dtype)
+
+        def fold(k, dim, a):
+            one, two = (k.narrow(dim, 0, 1), k.narrow(dim, 1, 2).sum(dim, keepdim=True)) if a == 0 else (
+                k.narrow(dim, 0, 2).sum(dim, keepdim=True), k.narrow(dim, 2, 1))
+            return torch.cat([one, two], dim)
+
+        phases = torch.stack([fold(fold(k, 2, a), 3, b) for a in (1, 0) for b in (1, 0)], 1)
+        phases = phases.reshape(4 * c, c, 2, 2)
+        bias4 = bias.repeat_interleave(4)
+
+        def diffusers_order():
+            return F.conv2d(F.interpolate(x, scale_factor=2.0), k, bias, padding=1)
+
+        def this_crate():
+            out = F.pixel_shuffle(F.conv2d(F.pad(x, (1, 1, 1, 1)), phases, bias4), 2)
+            return out[:, :, 1:2 * h + 1, 1:2 * w + 1].contiguous()
+
+        report(torch, f"{c} channels, {t} frames of {h}x{w}", diffusers_order, this_crate)
+    return 0
+
+
+def report(torch, label, theirs, ours):
+    diff = (theirs() - ours()).abs().max().item()
+    a, b = best_s(theirs), best_s(ours)
+    print(f"  {label:<32} {a * 1e3:8.1f} {b * 1e3:8.1f}  {a / b:.2f}x  max diff {diff:.1e}")
 
 
 if __name__ == "__main__":
