@@ -122,15 +122,8 @@ def linear_kernels(torch, dtype, name) -> int:
     pointwise = torch.ops.mkldnn._linear_pointwise
     pack = torch.ops.mkldnn._reorder_linear_weight
 
-    def median_s(fn, n=20):
-        fn()
-        fn()
-        times = []
-        for _ in range(n):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-        return sorted(times)[n // 2]
+    def median_s(fn):
+        return run_times(fn, 20)[10]
 
     rows, d = 514, 1920
     shapes = [("q, k, v, out (each)", d, d, 4, False), ("ff.net.0 + GELU", d, 4 * d, 1, True),
@@ -155,7 +148,8 @@ def linear_kernels(torch, dtype, name) -> int:
     return 0
 
 
-def best_s(fn, n=5):
+def run_times(fn, n):
+    """Seconds of `n` runs of `fn` after two warm-ups, sorted."""
     fn()
     fn()
     times = []
@@ -163,7 +157,11 @@ def best_s(fn, n=5):
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
-    return min(times)
+    return sorted(times)
+
+
+def best_s(fn):
+    return run_times(fn, 5)[0]
 
 
 def decoder_layers(torch, part, dtype) -> int:
