@@ -252,12 +252,18 @@ pub fn run_peer_json_lines(
         match next {
             Ok((at, line)) => {
                 if line.trim_start().starts_with('{') {
-                    let value =
-                        serde_json::from_str(&line).map_err(|source| PeerError::BadJson {
-                            script: script.to_owned(),
-                            source,
-                        })?;
-                    lines.push((at, value));
+                    match serde_json::from_str(&line) {
+                        Ok(value) => lines.push((at, value)),
+                        Err(source) => {
+                            // Not left running behind the error.
+                            let _ = child.kill();
+                            let _ = child.wait();
+                            return Err(PeerError::BadJson {
+                                script: script.to_owned(),
+                                source,
+                            });
+                        }
+                    }
                 }
             }
             Err(mpsc::RecvTimeoutError::Timeout) => {
@@ -445,11 +451,13 @@ mod tests {
         let e = run_peer_json_lines(&mut cmd, "x.py", None).expect_err("fails");
         assert_eq!(e.to_string(), "x.py failed:\nbroken\n");
         let mut cmd = Command::new("sh");
-        cmd.args(["-c", "echo '{oops'"]);
+        cmd.args(["-c", "echo '{oops'; exec sleep 30"]);
+        let t0 = Instant::now();
         assert!(matches!(
             run_peer_json_lines(&mut cmd, "x.py", None),
             Err(PeerError::BadJson { .. })
         ));
+        assert!(t0.elapsed() < Duration::from_secs(20), "left running");
     }
 
     #[test]
