@@ -102,6 +102,10 @@ def export_run(
     Returns the W&B run's local folder (``DIR/wandb/offline-run-*`` in offline
     mode). ``name`` defaults to the run folder's name, ``dir`` to the run folder;
     ``events``: the run's events when already read (``read_events(run)``).
+    The offline run's ``.wandb`` file is complete on return, except in a
+    process that already runs W&B (runs of its own, ``wandb.setup()``): W&B's
+    service, which writes it, is then the caller's, and the file is complete
+    once that service ends (``wandb.teardown()`` or the process's exit).
     """
     if mode not in MODES:
         raise ValueError(f"mode: {mode!r}: expected one of {', '.join(MODES)}")
@@ -121,6 +125,7 @@ def export_run(
     out = Path(dir) if dir is not None else run
     out.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("WANDB_SILENT", "true")
+    owns_service = not _wandb_service_running()
     wb = wandb.init(
         project=project,
         entity=entity,
@@ -140,7 +145,31 @@ def export_run(
         local = Path(wb.dir).parent
     finally:
         wb.finish()
+        # finish() returns once the run's exit record is handled, but W&B's
+        # service closes the run's transaction log (the offline `.wandb`
+        # file) afterwards, on its own time: on a busy machine the file can
+        # still be unwritten when finish() returns. Stopping the service waits
+        # for it; done only when this call started it, so that a process
+        # with its own W&B runs keeps them.
+        if owns_service:
+            wandb.teardown()
     return local
+
+
+def _wandb_service_running() -> bool:
+    """Whether this process already has W&B's service (a run of its own, or
+    an earlier ``wandb.setup()``); unknown (another wandb version's layout)
+    counts as running, so that nothing of the caller's is stopped."""
+    try:
+        from wandb.sdk import wandb_setup
+    except ImportError:
+        return True
+    if not hasattr(wandb_setup, "_singleton"):
+        return True
+    setup = wandb_setup._singleton
+    if setup is None or getattr(setup, "_pid", os.getpid()) != os.getpid():
+        return False
+    return getattr(setup, "_connection", True) is not None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -92,7 +92,11 @@ def run_dir(tmp_path_factory):
 
 
 def test_offline_export_replays_every_metric_and_preview(run_dir):
+    assert not wx._wandb_service_running()
     local = wx.export_run(run_dir, project="bridgev2w-test", mode="offline", dir=run_dir.parent / "wb")
+    # The export started W&B's service, so it stopped it: the `.wandb` file
+    # below is complete, however slowly the service wrote it.
+    assert not wx._wandb_service_running()
     files = list(local.glob("run-*.wandb"))
     assert len(files) == 1, f"{local}: {list(local.iterdir())}"
     records = wandb_records(files[0])
@@ -123,6 +127,25 @@ def test_offline_export_replays_every_metric_and_preview(run_dir):
     assert len(runs) == 1 and runs[0].project == "bridgev2w-test" and runs[0].display_name == "run", runs
     keys = {u.key for u in runs[0].config.update}
     assert {"model", "data", "train"} <= keys, keys
+
+
+def test_a_callers_own_wandb_run_keeps_running_through_an_export(run_dir, tmp_path):
+    import wandb
+
+    (tmp_path / "mine").mkdir()
+    mine = wandb.init(project="mine", mode="offline", dir=str(tmp_path / "mine"), reinit="create_new")
+    try:
+        assert wx._wandb_service_running()
+        local = wx.export_run(run_dir, project="bridgev2w-test", mode="offline", dir=tmp_path / "wb")
+        assert wx._wandb_service_running()
+        mine.log({"after_export": 1.5}, step=0)
+    finally:
+        mine.finish()
+        wandb.teardown()
+    exported = history(wandb_records(next(local.glob("run-*.wandb"))))
+    assert [r["_step"] for r in exported if "train/loss" in r] == [0, 1], exported
+    own = history(wandb_records(next(pathlib.Path(mine.dir).parent.glob("run-*.wandb"))))
+    assert [r.get("after_export") for r in own] == [1.5], own
 
 
 def test_the_command_line_and_its_errors(run_dir, tmp_path):
