@@ -11,7 +11,10 @@ them on the CPU outside autograd, `world_model::cpu_linear`), and two decoder
 layers in diffusers' order of operations against this crate's (`spatial-norm`:
 the 1x1x1 convolutions at the latent's size and a broadcast `addcmul`;
 `upsampler`: the convolution of the 2x-upsampled frame as four 2x2 phases and a
-pixel shuffle), with the largest difference between the two.
+pixel shuffle), with the largest difference between the two; and
+(`conv-layouts`) a resnet's 3x3x3 convolution as libtorch's conv3d against
+three other ways to the same sums (its time taps stacked into the channels
+as one 2-D convolution, three 2-D convolutions summed, channels-last).
 
 The same libtorch kernels run under this crate's model, so the table says what
 any implementation at these shapes is made of (docs/benchmarks.md).
@@ -22,6 +25,7 @@ any implementation at these shapes is made of (docs/benchmarks.md).
     .venv/bin/python scripts/bench/profile_diffusers.py conv --dtype bf16
     .venv/bin/python scripts/bench/profile_diffusers.py spatial-norm
     .venv/bin/python scripts/bench/profile_diffusers.py upsampler
+    .venv/bin/python scripts/bench/profile_diffusers.py conv-layouts
 """
 
 import argparse
@@ -31,7 +35,7 @@ import time
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear", "spatial-norm", "upsampler"])
+    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear", "spatial-norm", "upsampler", "conv-layouts"])
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rows", type=int, default=12, help="ops in the table")
@@ -74,6 +78,9 @@ def main() -> int:
 
     if args.part == "linear":
         return linear_kernels(torch, dtype, args.dtype)
+    if args.part == "conv-layouts":
+        with torch.no_grad():
+            return conv_layouts(torch, dtype)
     if args.part in ("spatial-norm", "upsampler"):
         with torch.no_grad():
             return decoder_layers(torch, args.part, dtype)
@@ -212,6 +219,49 @@ def decoder_layers(torch, part, dtype) -> int:
             return out[:, :, 1:2 * h + 1, 1:2 * w + 1].contiguous()
 
         report(torch, f"{c} channels, {t} frames of {h}x{w}", diffusers_order, this_crate)
+    return 0
+
+
+def conv_layouts(torch, dtype) -> int:
+    """A decoder resnet's causal 3x3x3 convolution (time already padded) at
+    the bench's shapes, four ways (best of 5 after 2 warm-ups)."""
+    F = torch.nn.functional
+    print("conv-layouts: ms (and conv3d's time over it), max difference to conv3d")
+    for c, t, h, w in [(128, 9, 128, 192), (256, 5, 64, 96), (512, 3, 32, 48)]:
+        x = torch.randn(1, c, t + 2, h, w, dtype=dtype)
+        k = torch.randn(c, c, 3, 3, 3, dtype=dtype) * 0.01
+        bias = torch.randn(c, dtype=dtype)
+        # [Cout, Cin, kt, kh, kw] -> [Cout, kt * Cin, kh, kw]
+        stacked = k.permute(0, 2, 1, 3, 4).reshape(c, 3 * c, 3, 3)
+        x_last = x.contiguous(memory_format=torch.channels_last_3d)
+        k_last = k.contiguous(memory_format=torch.channels_last_3d)
+
+        def conv3d():
+            return F.conv3d(x, k, bias, padding=(0, 1, 1))
+
+        def taps_in_channels():
+            # [1, C, T + 2, H, W] -> [T, 3C, H, W]: frame o with its next two
+            frames = torch.cat([x[0, :, j:j + t] for j in range(3)], 0).transpose(0, 1)
+            return F.conv2d(frames, stacked, bias, padding=1).transpose(0, 1).unsqueeze(0)
+
+        def summed_2d():
+            frames = x[0].transpose(0, 1)  # [T + 2, C, H, W]
+            y = F.conv2d(frames[0:t], k[:, :, 0], bias, padding=1)
+            for j in (1, 2):
+                y = y + F.conv2d(frames[j:j + t], k[:, :, j], None, padding=1)
+            return y.transpose(0, 1).unsqueeze(0)
+
+        def channels_last():
+            return F.conv3d(x_last, k_last, bias, padding=(0, 1, 1))
+
+        ref = conv3d()
+        base = best_s(conv3d)
+        print(f"  {c} channels, {t} frames of {h}x{w}: conv3d {base * 1e3:.1f}")
+        for name, fn in [("taps in channels", taps_in_channels), ("three conv2d", summed_2d),
+                         ("channels-last", channels_last)]:
+            diff = (fn() - ref).abs().max().item()
+            s = best_s(fn)
+            print(f"    {name:<18} {s * 1e3:8.1f}  {base / s:.2f}x  max diff {diff:.1e}")
     return 0
 
 
