@@ -607,6 +607,54 @@ fn bench_model_stops_diffusers_at_its_limit_and_says_what_did_not_run() {
     }
 }
 
+/// `bench model --precision f32,bf16`: both precisions in one run, each
+/// one's table, then the speed-ups side by side (here `-`: diffusers was
+/// stopped before it timed anything); a precision named twice is refused.
+#[test]
+fn bench_model_runs_several_precisions_in_one_call() {
+    let tiny = [
+        "bench", "model", "--layers", "1", "--frames", "1", "--height", "16", "--width", "16",
+    ];
+    let o = run(&[
+        &tiny[..],
+        &["--precision", "f32,bf16", "--diffusers-limit", "1"],
+    ]
+    .concat());
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{out}{}", stderr(&o));
+    assert!(
+        out.contains(", F32 on Cpu") && out.contains(", Bf16 on Cpu"),
+        "{out}"
+    );
+    let summary = out
+        .split("speed-up over diffusers")
+        .nth(1)
+        .unwrap_or_default();
+    let rows: Vec<&str> = summary.lines().skip(2).collect();
+    assert_eq!(rows.len(), 2, "{out}");
+    for (row, precision) in rows.iter().zip(["f32", "bf16"]) {
+        let cells: Vec<&str> = row.split_whitespace().collect();
+        assert_eq!(cells, [precision, "-", "-", "-"], "{out}");
+    }
+    let o = run(&[
+        &tiny[..],
+        &[
+            "--precision",
+            "bf16",
+            "--precision",
+            "bf16",
+            "--no-diffusers",
+        ],
+    ]
+    .concat());
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("--precision: bf16,bf16: bf16 is named twice"),
+        "{}",
+        stderr(&o)
+    );
+}
+
 #[test]
 fn a_bad_cpu_cache_setting_stops_naming_the_variable() {
     let bad = bin()

@@ -171,6 +171,16 @@ impl Precision {
     }
 }
 
+impl fmt::Display for Precision {
+    /// The name `FromStr` reads back: `f32` or `bf16`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+        })
+    }
+}
+
 impl FromStr for Precision {
     type Err = WorldModelError;
     fn from_str(s: &str) -> Result<Self> {

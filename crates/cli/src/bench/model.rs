@@ -2,7 +2,7 @@
 
 use crate::progress::TerminalProgress;
 use anyhow::Result;
-use bridgev2w_world_model::bench::{bench_model, ModelBenchOptions, ModelStyle};
+use bridgev2w_world_model::bench::{bench_model_precisions, ModelBenchOptions, ModelStyle};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
@@ -30,9 +30,10 @@ pub struct ModelBench {
     /// Timed runs per operation (best is reported), after one warm-up.
     #[arg(long, default_value_t = 1)]
     repeat: usize,
-    /// f32 or bf16.
-    #[arg(long, default_value = "f32")]
-    precision: Precision,
+    /// f32 or bf16; `f32,bf16` (or the flag twice) runs both in turn and
+    /// ends with every speed-up over diffusers side by side.
+    #[arg(long, default_value = "f32", value_delimiter = ',')]
+    precision: Vec<Precision>,
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: ComputeDevice,
@@ -67,7 +68,7 @@ impl From<&ModelBench> for ModelBenchOptions {
             width: a.width,
             batch: a.batch,
             repeat: a.repeat,
-            precision: a.precision,
+            precision: a.precision.first().copied().unwrap_or(Precision::F32),
             device: a.device,
             diffusers: !a.no_diffusers,
             python: a.python.clone(),
@@ -79,6 +80,6 @@ impl From<&ModelBench> for ModelBenchOptions {
 }
 
 pub fn run(a: &ModelBench) -> Result<()> {
-    let report = bench_model(&a.into(), &TerminalProgress::default())?;
+    let report = bench_model_precisions(&a.into(), &a.precision, &TerminalProgress::default())?;
     crate::print_stdout(&report.to_string())
 }

@@ -142,6 +142,48 @@ pub struct ModelBenchReport {
     pub onednn_fallbacks: u64,
 }
 
+impl ModelBenchReport {
+    /// The three timed operations: each one's name as the table prints it,
+    /// this crate's seconds and diffusers' time (`None`: diffusers did not
+    /// run).
+    pub fn rows(&self) -> [(String, f64, Option<PeerTime>); 3] {
+        let (ours, theirs) = (&self.bridgev2w, self.diffusers.as_ref());
+        let tiled = if self.shape.vae_tiling {
+            " (tiled)"
+        } else {
+            ""
+        };
+        [
+            (
+                format!("transformer forward (b{})", self.shape.batch),
+                ours.transformer_forward_s,
+                theirs.map(|t| t.transformer_forward),
+            ),
+            (
+                format!("VAE encode{tiled}"),
+                ours.vae_encode_s,
+                theirs.map(|t| t.vae_encode),
+            ),
+            (
+                format!("VAE decode{tiled}"),
+                ours.vae_decode_s,
+                theirs.map(|t| t.vae_decode),
+            ),
+        ]
+    }
+}
+
+/// diffusers' time over this crate's `ours` seconds as the tables print
+/// it: `1.32x`, `> 22.2x` (diffusers stopped while running it: a lower
+/// bound) or `-` (diffusers did not run it).
+pub fn speed_up(ours: f64, theirs: Option<PeerTime>) -> String {
+    match theirs {
+        Some(PeerTime::Seconds(t)) => format!("{:.2}x", t / ours),
+        Some(PeerTime::Over(t)) => format!("> {:.1}x", t / ours),
+        Some(PeerTime::NotRun) | None => "-".to_owned(),
+    }
+}
+
 impl fmt::Display for ModelBenchReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let (tf, s) = (&self.transformer, &self.shape);
@@ -215,36 +257,17 @@ impl fmt::Display for ModelBenchReport {
             "{:<24} {:>12} {:>12} {:>10}",
             "operation", "bridgev2w s", "diffusers s", "speed-up"
         )?;
-        let (ours, theirs) = (&self.bridgev2w, self.diffusers.as_ref());
-        let forward = format!("transformer forward (b{})", s.batch);
-        let tiled = if s.vae_tiling { " (tiled)" } else { "" };
-        let (encode, decode) = (format!("VAE encode{tiled}"), format!("VAE decode{tiled}"));
-        let rows = [
-            (
-                forward.as_str(),
-                ours.transformer_forward_s,
-                theirs.map(|t| t.transformer_forward),
-            ),
-            (
-                encode.as_str(),
-                ours.vae_encode_s,
-                theirs.map(|t| t.vae_encode),
-            ),
-            (
-                decode.as_str(),
-                ours.vae_decode_s,
-                theirs.map(|t| t.vae_decode),
-            ),
-        ];
-        for (name, o, t) in rows {
-            let (t, ratio) = match t {
-                Some(PeerTime::Seconds(t)) => (format!("{t:.3}"), format!("{:.2}x", t / o)),
-                Some(PeerTime::Over(t)) => (format!("> {t:.1}"), format!("> {:.1}x", t / o)),
-                Some(PeerTime::NotRun) => ("not run".to_owned(), "-".to_owned()),
-                None => ("-".to_owned(), "-".to_owned()),
+        for (name, ours, theirs) in self.rows() {
+            let t = match theirs {
+                Some(PeerTime::Seconds(t)) => format!("{t:.3}"),
+                Some(PeerTime::Over(t)) => format!("> {t:.1}"),
+                Some(PeerTime::NotRun) => "not run".to_owned(),
+                None => "-".to_owned(),
             };
-            writeln!(f, "{name:<24} {o:>12.3} {t:>12} {ratio:>10}")?;
+            let ratio = speed_up(ours, theirs);
+            writeln!(f, "{name:<24} {ours:>12.3} {t:>12} {ratio:>10}")?;
         }
+        let theirs = self.diffusers.as_ref();
         if let Some(limit) = theirs.and_then(|t| t.stopped_after_s) {
             writeln!(
                 f,

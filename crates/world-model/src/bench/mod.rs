@@ -4,16 +4,20 @@
 //! * here: [`time_model`], one transformer forward and one VAE encode/decode;
 //! * [`diffusers`]: the same operations timed by diffusers (a Python peer);
 //! * [`gpu_memory`]: each side's peak GPU memory, polled from `nvidia-smi`;
-//! * [`compare`]: both sides from one options struct to one report.
+//! * [`compare`]: both sides from one options struct to one report;
+//! * [`precisions`]: that report at several precisions in one run.
 
 pub mod compare;
 pub mod diffusers;
 pub mod gpu_memory;
+pub mod precisions;
 
 pub use compare::{
-    bench_configs, bench_model, GpuPeakMib, ModelBenchOptions, ModelBenchReport, ModelStyle,
+    bench_configs, bench_model, speed_up, GpuPeakMib, ModelBenchOptions, ModelBenchReport,
+    ModelStyle,
 };
 pub use diffusers::DiffusersPeer;
+pub use precisions::{bench_model_precisions, ModelBenchSeries};
 
 use crate::device::{ComputeDevice, Precision};
 use crate::error::{Result, WorldModelError};
