@@ -143,6 +143,36 @@ pub struct ModelBenchReport {
 }
 
 impl ModelBenchReport {
+    /// A report of the default options' 2B shapes on the CPU with
+    /// `timings`, diffusers not run: the tests' starting point.
+    #[cfg(test)]
+    pub(crate) fn example(precision: Precision, batch: i64, timings: ModelTimings) -> Self {
+        let (transformer, vae) = bench_configs(&ModelBenchOptions::default()).expect("configs");
+        Self {
+            style: ModelStyle::Cogvideox2b,
+            transformer,
+            vae,
+            shape: ModelBenchShape {
+                frames: 9,
+                height: 128,
+                width: 192,
+                text_len: 226,
+                batch,
+                vae_tiling: false,
+            },
+            precision,
+            device: ComputeDevice::Cpu,
+            threads: 2,
+            bridgev2w: timings,
+            diffusers: None,
+            gpu_peak_mib: None,
+            cpu_bf16: None,
+            cpu_linear: None,
+            cpu_attention: None,
+            onednn_fallbacks: 0,
+        }
+    }
+
     /// The three timed operations: each one's name as the table prints it,
     /// this crate's seconds and diffusers' time (`None`: diffusers did not
     /// run).
@@ -431,36 +461,12 @@ mod tests {
 
     #[test]
     fn report_prints_dashes_without_diffusers_and_memory_only_on_cuda() {
-        let o = ModelBenchOptions::default();
-        let (transformer, vae) = bench_configs(&o).expect("configs");
         let t = ModelTimings {
             transformer_forward_s: 2.0,
             vae_encode_s: 1.0,
             vae_decode_s: 4.0,
         };
-        let mut report = ModelBenchReport {
-            style: o.style,
-            transformer,
-            vae,
-            shape: ModelBenchShape {
-                frames: 9,
-                height: 128,
-                width: 192,
-                text_len: 226,
-                batch: 2,
-                vae_tiling: false,
-            },
-            precision: Precision::F32,
-            device: ComputeDevice::Cpu,
-            threads: 2,
-            bridgev2w: t.clone(),
-            diffusers: None,
-            gpu_peak_mib: None,
-            cpu_bf16: None,
-            cpu_linear: None,
-            cpu_attention: None,
-            onednn_fallbacks: 0,
-        };
+        let mut report = ModelBenchReport::example(Precision::F32, 2, t.clone());
         let text = report.to_string();
         assert_eq!(text.lines().count(), 5, "{text}");
         assert!(text.contains("transformer forward (b2)        2.000            -          -"));

@@ -103,39 +103,18 @@ impl fmt::Display for ModelBenchSeries {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bench::compare::bench_configs;
     use crate::bench::diffusers::{PeerTime, PeerTimings};
-    use crate::bench::{ModelBenchShape, ModelTimings};
-    use crate::device::ComputeDevice;
+    use crate::bench::ModelTimings;
 
     fn report(precision: Precision, diffusers: Option<PeerTimings>) -> ModelBenchReport {
-        let (transformer, vae) = bench_configs(&ModelBenchOptions::default()).expect("configs");
+        let timings = ModelTimings {
+            transformer_forward_s: 2.0,
+            vae_encode_s: 10.0,
+            vae_decode_s: 20.0,
+        };
         ModelBenchReport {
-            style: super::super::ModelStyle::Cogvideox2b,
-            transformer,
-            vae,
-            shape: ModelBenchShape {
-                frames: 9,
-                height: 128,
-                width: 192,
-                text_len: 226,
-                batch: 1,
-                vae_tiling: false,
-            },
-            precision,
-            device: ComputeDevice::Cpu,
-            threads: 2,
-            bridgev2w: ModelTimings {
-                transformer_forward_s: 2.0,
-                vae_encode_s: 10.0,
-                vae_decode_s: 20.0,
-            },
             diffusers,
-            gpu_peak_mib: None,
-            cpu_bf16: None,
-            cpu_linear: None,
-            cpu_attention: None,
-            onednn_fallbacks: 0,
+            ..ModelBenchReport::example(precision, 1, timings)
         }
     }
 
