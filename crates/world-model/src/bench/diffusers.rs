@@ -60,10 +60,6 @@ impl DiffusersPeer {
         );
         write_json_atomic(&tf_path, tf)?;
         write_json_atomic(&vae_path, vae)?;
-        let dtype = match precision {
-            Precision::F32 => "f32",
-            Precision::Bf16 => "bf16",
-        };
         let run = peer::run_peer_json_lines(
             Command::new(&self.python)
                 .arg(self.repo.join("scripts/bench").join(SCRIPT))
@@ -78,7 +74,12 @@ impl DiffusersPeer {
                 .args(["--repeat", &repeat.to_string()])
                 .args(["--batch", &shape.batch.to_string()])
                 .args(["--threads", &torch_threads().to_string()])
-                .args(["--dtype", dtype, "--device", &device.to_string()])
+                .args([
+                    "--dtype",
+                    &precision.to_string(),
+                    "--device",
+                    &device.to_string(),
+                ])
                 .args(shape.vae_tiling.then_some("--vae-tiling")),
             SCRIPT,
             limit,
