@@ -14,7 +14,11 @@ the 1x1x1 convolutions at the latent's size and a broadcast `addcmul`;
 pixel shuffle), with the largest difference between the two; and
 (`conv-layouts`) a resnet's 3x3x3 convolution as libtorch's conv3d against
 three other ways to the same sums (its time taps stacked into the channels
-as one 2-D convolution, three 2-D convolutions summed, channels-last).
+as one 2-D convolution, three 2-D convolutions summed, channels-last);
+(`decoder-products`) the decoder's multiply-adds by convolution shape, counted
+by hooks on one decode at the bench's shapes; and (`winograd`) the same
+convolution by Winograd's F(2x2, 3x3) (2.25x fewer products) built on
+libtorch's batched GEMM, against conv3d, with the time of each stage.
 
 The same libtorch kernels run under this crate's model, so the table says what
 any implementation at these shapes is made of (docs/benchmarks.md).
@@ -26,6 +30,8 @@ any implementation at these shapes is made of (docs/benchmarks.md).
     .venv/bin/python scripts/bench/profile_diffusers.py spatial-norm
     .venv/bin/python scripts/bench/profile_diffusers.py upsampler
     .venv/bin/python scripts/bench/profile_diffusers.py conv-layouts
+    .venv/bin/python scripts/bench/profile_diffusers.py decoder-products
+    .venv/bin/python scripts/bench/profile_diffusers.py winograd
 """
 
 import argparse
@@ -35,7 +41,8 @@ import time
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear", "spatial-norm", "upsampler", "conv-layouts"])
+    ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear", "spatial-norm", "upsampler", "conv-layouts",
+                                     "decoder-products", "winograd"])
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rows", type=int, default=12, help="ops in the table")
@@ -81,6 +88,12 @@ def main() -> int:
     if args.part == "conv-layouts":
         with torch.no_grad():
             return conv_layouts(torch, dtype)
+    if args.part == "decoder-products":
+        with torch.no_grad():
+            return decoder_products(torch, dtype)
+    if args.part == "winograd":
+        with torch.no_grad():
+            return winograd(torch, dtype)
     if args.part in ("spatial-norm", "upsampler"):
         with torch.no_grad():
             return decoder_layers(torch, args.part, dtype)
@@ -262,6 +275,116 @@ def conv_layouts(torch, dtype) -> int:
             diff = (fn() - ref).abs().max().item()
             s = best_s(fn)
             print(f"    {name:<18} {s * 1e3:8.1f}  {base / s:.2f}x  max diff {diff:.1e}")
+    return 0
+
+
+def decoder_products(torch, dtype) -> int:
+    """diffusers' decoder at the bench's shapes (latents 1x16x3x16x24, so 9
+    frames of 128x192): the multiply-adds of each convolution shape, counted
+    by forward hooks on one decode, largest first."""
+    from diffusers import AutoencoderKLCogVideoX
+
+    vae = AutoencoderKLCogVideoX().to(dtype).eval()
+    flops = {}
+
+    def count(module, inputs, output):
+        w = module.weight
+        # [Cout, Cin, *kernel]: one multiply-add per output, input channel and tap
+        key = (w.shape[1], w.shape[0], tuple(w.shape[2:]), tuple(inputs[0].shape[2:]))
+        flops[key] = flops.get(key, 0) + 2 * output.numel() * w.shape[1] * w[0, 0].numel()
+
+    for m in vae.decoder.modules():
+        if isinstance(m, (torch.nn.Conv2d, torch.nn.Conv3d)):
+            m.register_forward_hook(count)
+    vae.decode(torch.randn(1, 16, 3, 16, 24, dtype=dtype))
+    total = sum(flops.values())
+    print(f"decoder-products: {total / 1e9:.0f} GFLOP in the decoder's convolutions")
+    print("  Cin -> Cout, kernel, input (frames, H, W): GFLOP, share")
+    for (cin, cout, kernel, shape), f in sorted(flops.items(), key=lambda kv: -kv[1]):
+        print(f"  {cin:>4} -> {cout:<4} {'x'.join(map(str, kernel)):<6} {'x'.join(map(str, shape)):<12}"
+              f" {f / 1e9:8.1f}  {100 * f / total:5.1f}%")
+    return 0
+
+
+def winograd(torch, dtype) -> int:
+    """A decoder resnet's causal 3x3x3 convolution (time already padded) by
+    Winograd's F(2x2, 3x3) in space, its three time taps summed in the
+    transformed domain, channels-last, on libtorch's batched GEMM: 16
+    products of [frames x tiles, Cin] x [Cin, Cout] per tap instead of 9
+    per output pixel over 4 pixels (2.25x fewer multiply-adds). Best of 5
+    after 2 warm-ups, each stage alone too; the GEMM's rate from its
+    multiply-adds."""
+    F = torch.nn.functional
+    # Winograd's F(2, 3) matrices: G (kernel), B^T (input), A^T (output)
+    g = torch.tensor([[1, 0, 0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0, 0, 1]], dtype=dtype)
+
+    def kernel_transform(k):
+        # [Cout, Cin, kt, 3, 3] -> [kt, 16, Cin, Cout]
+        u = torch.einsum("ai,octij,bj->tabco", g, k, g)
+        return u.reshape(k.shape[2], 16, k.shape[1], k.shape[0]).contiguous()
+
+    def input_transform(x):
+        # [Cin, T + 2, H, W] -> [16, T + 2, H/2 * W/2, Cin]: B^T d B of each 4x4 tile, stride 2
+        c, tp, h, w = x.shape
+        th, tw = h // 2, w // 2
+        xp = torch.zeros(tp, h + 2, w + 2, c, dtype=dtype)
+        xp[:, 1:h + 1, 1:w + 1].copy_(x.permute(1, 2, 3, 0))
+        r = [xp[:, k:k + 2 * th:2] for k in range(4)]
+        rows = [r[0] - r[2], r[1] + r[2], r[2] - r[1], r[1] - r[3]]
+        v = torch.empty(4, 4, tp, th, tw, c, dtype=dtype)
+        for a in range(4):
+            q = [rows[a][:, :, k:k + 2 * tw:2] for k in range(4)]
+            torch.sub(q[0], q[2], out=v[a, 0])
+            torch.add(q[1], q[2], out=v[a, 1])
+            torch.sub(q[2], q[1], out=v[a, 2])
+            torch.sub(q[1], q[3], out=v[a, 3])
+        return v.view(16, tp, th * tw, c)
+
+    def products(v, u, t):
+        # [16, T + 2, tiles, Cin] x [kt, 16, Cin, Cout] -> [16, T * tiles, Cout]
+        _, _, tiles, c = v.shape
+        m = torch.bmm(v[:, 0:t].reshape(16, t * tiles, c), u[0])
+        for j in range(1, u.shape[0]):
+            m.baddbmm_(v[:, j:j + t].reshape(16, t * tiles, c), u[j])
+        return m
+
+    def output_transform(m, bias, t, h, w):
+        # [16, T * tiles, Cout] -> [Cout, T, H, W]: A^T m A, each tile's 2x2 outputs
+        th, tw, c = h // 2, w // 2, m.shape[2]
+        m = m.view(4, 4, t, th, tw, c)
+        s = (m[0] + m[1] + m[2], m[1] - m[2] - m[3])
+        out = torch.empty(t, th, 2, tw, 2, c, dtype=dtype)
+        for a in range(2):
+            torch.add(s[a][0] + s[a][1], s[a][2], out=out[:, :, a, :, 0])
+            torch.sub(s[a][1] - s[a][2], s[a][3], out=out[:, :, a, :, 1])
+        return out.view(t, h, w, c).permute(3, 0, 1, 2) + bias.view(c, 1, 1, 1)
+
+    print("winograd: ms (and conv3d's time over it); stages: input transform, GEMM (GFLOP/s), output transform")
+    for c, t, h, w in [(128, 9, 128, 192), (256, 9, 64, 96), (256, 5, 32, 48), (512, 3, 16, 24)]:
+        x = torch.randn(1, c, t + 2, h, w, dtype=dtype)
+        k = torch.randn(c, c, 3, 3, 3, dtype=dtype) * 0.01
+        bias = torch.randn(c, dtype=dtype)
+        u = kernel_transform(k)
+
+        def conv3d():
+            return F.conv3d(x, k, bias, padding=(0, 1, 1))
+
+        def wino():
+            return output_transform(products(input_transform(x[0]), u, t), bias, t, h, w).unsqueeze(0)
+
+        ref = conv3d()
+        diff = (wino() - ref).abs().max().item() / ref.abs().max().item()
+        base, total = best_s(conv3d), best_s(wino)
+        v = input_transform(x[0])
+        m = products(v, u, t)
+        s_in = best_s(lambda: input_transform(x[0]))
+        s_mm = best_s(lambda: products(v, u, t))
+        s_out = best_s(lambda: output_transform(m, bias, t, h, w))
+        gemm_flop = 2 * 16 * 3 * t * (h // 2) * (w // 2) * c * c
+        print(f"  {c} channels, {t} frames of {h}x{w}: conv3d {base * 1e3:.1f}"
+              f" ({2 * 27 * c * c * t * h * w / base / 1e9:.0f} GFLOP/s), winograd {total * 1e3:.1f}"
+              f" ({base / total:.2f}x; {s_in * 1e3:.1f} + {s_mm * 1e3:.1f} ({gemm_flop / s_mm / 1e9:.0f} GFLOP/s)"
+              f" + {s_out * 1e3:.1f}), max difference {diff:.1e} of the largest value")
     return 0
 
 
