@@ -8,6 +8,10 @@ this run at a time limit keeps what finished: `{"starting": OP}` before each
 operation's warm-up, and after each operation the result so far (the same object
 growing); the last line is the whole result.
 
+`--ops` names the operations to time (default all three, in that order), and only
+the models they need are built: a caller that stops a run in one operation (each has
+its own time limit) times the operations after it in a new process.
+
 The configs come from JSON files written by the Rust side (the same dicts it uses), so
 both sides build the same architecture; weights are random (timing only).
 """
@@ -16,6 +20,9 @@ import json
 import os
 import sys
 import time
+
+
+OPS = ("transformer_forward", "vae_encode", "vae_decode")
 
 
 def emit(obj):
@@ -53,10 +60,15 @@ def main() -> int:
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--vae-tiling", action="store_true", help="vae.enable_tiling() (default tiles)")
+    ap.add_argument("--ops", default=",".join(OPS),
+                    help=f"comma-separated operations to time, of {', '.join(OPS)} (default: all)")
     args = ap.parse_args()
+    ops = args.ops.split(",")
+    unknown = [op for op in ops if op not in OPS]
+    if unknown or not ops or len(set(ops)) != len(ops):
+        ap.error(f"--ops {args.ops!r}: expected each of {', '.join(OPS)} at most once")
 
     import torch
-    from diffusers import AutoencoderKLCogVideoX, CogVideoXTransformer3DModel
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -71,6 +83,18 @@ def main() -> int:
 
     lat_f = (args.frames - 1) // 4 + 1
     lat_h, lat_w = args.height // 8, args.width // 8
+    if "transformer_forward" in ops:
+        time_transformer(args, tcfg, out, dev, dtype, lat_f, lat_h, lat_w)
+    if "vae_encode" in ops or "vae_decode" in ops:
+        time_vae(args, vcfg, out, dev, dtype, lat_f, lat_h, lat_w, ops)
+    emit(out)
+    return 0
+
+
+def time_transformer(args, tcfg, out, dev, dtype, lat_f, lat_h, lat_w):
+    import torch
+    from diffusers import CogVideoXTransformer3DModel
+
     transformer = CogVideoXTransformer3DModel(**tcfg).to(dev, dtype).eval()
     b = args.batch
     x = torch.randn(b, lat_f, tcfg.get("in_channels", 16), lat_h, lat_w, device=dev, dtype=dtype)
@@ -97,7 +121,11 @@ def main() -> int:
         # probe on the Rust side of `bench model`; these are extra detail).
         out["transformer_peak_allocated_mib"] = torch.cuda.max_memory_allocated(dev) / 2**20
         torch.cuda.reset_peak_memory_stats(dev)
-    del transformer
+
+
+def time_vae(args, vcfg, out, dev, dtype, lat_f, lat_h, lat_w, ops):
+    import torch
+    from diffusers import AutoencoderKLCogVideoX
 
     vae = AutoencoderKLCogVideoX(**vcfg).to(dev, dtype).eval()
     if args.vae_tiling:
@@ -114,12 +142,12 @@ def main() -> int:
             vae.decode(latents)
             if dev.type == "cuda":
                 torch.cuda.synchronize()
-        timed(out, "vae_encode", enc, args.repeat)
-        timed(out, "vae_decode", dec, args.repeat)
+        if "vae_encode" in ops:
+            timed(out, "vae_encode", enc, args.repeat)
+        if "vae_decode" in ops:
+            timed(out, "vae_decode", dec, args.repeat)
     if dev.type == "cuda":
         out["vae_peak_allocated_mib"] = torch.cuda.max_memory_allocated(dev) / 2**20
-    emit(out)
-    return 0
 
 
 if __name__ == "__main__":

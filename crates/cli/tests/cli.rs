@@ -578,7 +578,8 @@ fn bench_model_out_of_memory_is_a_clean_error_naming_the_shapes() {
 }
 
 /// `bench model --diffusers-limit`: a diffusers run still going at the
-/// limit (here still importing torch after 1 s) is stopped, and the table
+/// limit (here still importing torch after 1 s; then the operations left
+/// in a new process, three in all, each accepting its `--ops`) is stopped, and the table
 /// says what did not run; the limit must be whole positive seconds and
 /// needs diffusers.
 #[test]
@@ -594,7 +595,7 @@ fn bench_model_stops_diffusers_at_its_limit_and_says_what_did_not_run() {
         assert!(row.contains("not run"), "{op}: {out}");
     }
     assert!(
-        out.contains("diffusers was stopped at --diffusers-limit 1: `>` bounds"),
+        out.contains("diffusers was stopped at --diffusers-limit 1 (a limit for each"),
         "{out}"
     );
     for bad in [

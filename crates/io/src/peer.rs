@@ -178,9 +178,39 @@ pub struct PeerLines {
     script: String,
     /// The objects in order, each with the time since the start.
     pub lines: Vec<(Duration, serde_json::Value)>,
-    /// `Some(limit)` when the peer was still running at its time limit and
-    /// was stopped there (`lines` then holds what it printed until then).
+    /// `Some(t)` when the peer was still running at its time limit and was
+    /// stopped there, `t` after its start (`lines` then holds what it
+    /// printed until then).
     pub stopped: Option<Duration>,
+}
+
+/// How long a peer read by [`run_peer_json_lines`] may run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PeerLimit {
+    /// The time allowed.
+    pub time: Duration,
+    /// With a key, the time counts from the last object that has it (a
+    /// peer's progress line, such as `{"starting": OP}`), so that each step
+    /// has `time` of its own; before the first such object, from the start.
+    pub per_step: Option<&'static str>,
+}
+
+impl PeerLimit {
+    /// `time` for the whole run.
+    pub fn whole(time: Duration) -> Self {
+        Self {
+            time,
+            per_step: None,
+        }
+    }
+
+    /// `time` for each step the peer starts with an object that has `key`.
+    pub fn per_step(time: Duration, key: &'static str) -> Self {
+        Self {
+            time,
+            per_step: Some(key),
+        }
+    }
 }
 
 impl PeerLines {
@@ -200,13 +230,14 @@ impl PeerLines {
 /// Runs the peer script `scripts/bench/{script}` as [`run_peer_json`] does,
 /// reading the JSON objects it prints line by line as they come (a peer
 /// that reports its progress so); with a `limit`, a peer still running
-/// then is stopped (killed) and what it printed so far returned, marked
+/// then (at the end of the whole run's time, or of its step's) is stopped
+/// (killed) and what it printed so far returned, marked
 /// [`PeerLines::stopped`]. Lines that are not JSON objects are passed over;
 /// a peer that exits with an error is [`PeerError::Failed`] with its stderr.
 pub fn run_peer_json_lines(
     cmd: &mut Command,
     script: &str,
-    limit: Option<Duration>,
+    limit: Option<PeerLimit>,
 ) -> Result<PeerLines> {
     let what = format!("scripts/bench/{script}");
     let mut child = cmd
@@ -242,11 +273,21 @@ pub fn run_peer_json_lines(
             }
         }
     });
-    let mut lines = Vec::new();
+    let mut lines: Vec<(Duration, serde_json::Value)> = Vec::new();
     let mut stopped = None;
+    // When the time allowed ends, after the start.
+    let deadline = |lines: &[(Duration, serde_json::Value)], limit: PeerLimit| {
+        let step = limit.per_step.and_then(|key| {
+            lines
+                .iter()
+                .rev()
+                .find_map(|(at, v)| v.get(key).map(|_| *at))
+        });
+        step.unwrap_or(Duration::ZERO) + limit.time
+    };
     loop {
         let next = match limit {
-            Some(l) => rx.recv_timeout(l.saturating_sub(start.elapsed())),
+            Some(l) => rx.recv_timeout(deadline(&lines, l).saturating_sub(start.elapsed())),
             None => rx.recv().map_err(|_| mpsc::RecvTimeoutError::Disconnected),
         };
         match next {
@@ -269,7 +310,7 @@ pub fn run_peer_json_lines(
             Err(mpsc::RecvTimeoutError::Timeout) => {
                 // Killing a peer that has just exited fails harmlessly.
                 let _ = child.kill();
-                stopped = limit;
+                stopped = limit.map(|l| deadline(&lines, l));
                 break;
             }
             Err(mpsc::RecvTimeoutError::Disconnected) => break,
@@ -420,8 +461,12 @@ mod tests {
              echo '{\"starting\": \"b\"}'; exec sleep 30",
         ]);
         let t0 = Instant::now();
-        let run = run_peer_json_lines(&mut cmd, "x.py", Some(Duration::from_millis(1500)))
-            .expect("stopped, not failed");
+        let run = run_peer_json_lines(
+            &mut cmd,
+            "x.py",
+            Some(PeerLimit::whole(Duration::from_millis(1500))),
+        )
+        .expect("stopped, not failed");
         assert!(t0.elapsed() < Duration::from_secs(20), "not killed");
         assert_eq!(run.stopped, Some(Duration::from_millis(1500)));
         assert_eq!(run.lines.len(), 3, "{run:?}");
@@ -436,8 +481,12 @@ mod tests {
         // Run to the end: every object, not stopped; a failure names the script.
         let mut cmd = Command::new("sh");
         cmd.args(["-c", "echo '{\"k\": 4}'; echo '{\"k\": 5}'"]);
-        let run =
-            run_peer_json_lines(&mut cmd, "x.py", Some(Duration::from_secs(60))).expect("runs");
+        let run = run_peer_json_lines(
+            &mut cmd,
+            "x.py",
+            Some(PeerLimit::whole(Duration::from_secs(60))),
+        )
+        .expect("runs");
         assert_eq!((run.lines.len(), run.stopped), (2, None));
         assert_eq!(
             run.last_where(|_| true)
@@ -458,6 +507,27 @@ mod tests {
             Err(PeerError::BadJson { .. })
         ));
         assert!(t0.elapsed() < Duration::from_secs(20), "left running");
+    }
+
+    #[test]
+    fn a_per_step_limit_counts_from_each_step_s_start() {
+        // Two steps of 0.7 s each, under a limit of 1.5 s a step: the
+        // whole run (1.4 s and more) would not matter; the third step hangs.
+        let mut cmd = Command::new("sh");
+        cmd.args([
+            "-c",
+            "echo '{\"starting\": \"a\"}'; sleep 0.7; echo '{\"starting\": \"b\"}'; \
+             sleep 0.7; echo '{\"starting\": \"c\"}'; exec sleep 30",
+        ]);
+        let t0 = Instant::now();
+        let limit = PeerLimit::per_step(Duration::from_millis(1500), "starting");
+        let run = run_peer_json_lines(&mut cmd, "x.py", Some(limit)).expect("stopped");
+        assert!(t0.elapsed() < Duration::from_secs(20), "not killed");
+        assert_eq!(run.lines.len(), 3, "{run:?}");
+        let stopped = run.stopped.expect("stopped");
+        // 1.5 s after the third step started, not 1.5 s after the start.
+        assert_eq!(stopped, run.lines[2].0 + Duration::from_millis(1500));
+        assert!(stopped > Duration::from_millis(2500), "{stopped:?}");
     }
 
     #[test]

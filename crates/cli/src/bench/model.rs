@@ -50,9 +50,11 @@ pub struct ModelBench {
     /// `enable_tiling()`, default tiles), as `predict` runs it above 256x256.
     #[arg(long)]
     vae_tiling: bool,
-    /// Stop diffusers if it is still running after SECONDS and report what
-    /// finished (`>`: a lower bound for the operation it was in). For bf16 on
-    /// a CPU without AVX-512, where diffusers' VAE takes hours.
+    /// Give each of diffusers' operations (transformer forward, VAE encode,
+    /// VAE decode) at most SECONDS from its start: one still running then
+    /// is stopped and reported with a lower bound (`>`), and the ones after
+    /// it run in a new process. For bf16 on a CPU without AVX-512, where
+    /// diffusers' VAE takes hours.
     #[arg(long, value_name = "SECONDS", conflicts_with = "no_diffusers",
           value_parser = clap::value_parser!(u64).range(1..))]
     diffusers_limit: Option<u64>,

@@ -69,8 +69,10 @@ pub struct ModelBenchOptions {
     pub repo: Option<PathBuf>,
     /// Time the VAE with spatial tiling (both sides).
     pub vae_tiling: bool,
-    /// Stop diffusers if it is still running after this long, and report
-    /// what finished (`None`: let it run).
+    /// Each of diffusers' operations may run this long from its start (its
+    /// warm-up and timed runs); one still running then is stopped and
+    /// bounded, and the operations after it run in a new process (`None`:
+    /// no limit).
     pub diffusers_limit: Option<Duration>,
 }
 
@@ -301,9 +303,9 @@ impl fmt::Display for ModelBenchReport {
         if let Some(limit) = theirs.and_then(|t| t.stopped_after_s) {
             writeln!(
                 f,
-                "diffusers was stopped at --diffusers-limit {limit:.0}: `>` bounds an operation \
-                 it was in from below (the time it had run, shared among its warm-up and \
-                 timed runs); `not run`: not started"
+                "diffusers was stopped at --diffusers-limit {limit:.0} (a limit for each \
+                 operation): `>` bounds an operation from below (the time it had run, shared \
+                 among its warm-up and timed runs); `not run`: not started"
             )?;
         }
         let Some(peak) = self.gpu_peak_mib else {
@@ -389,8 +391,8 @@ pub fn bench_model(
                  libtorch's scalar slow_conv3d: hours at these shapes where this crate (widened \
                  to f32) takes seconds; {}",
                 match a.diffusers_limit {
-                    Some(l) => format!("diffusers is stopped after {} s", l.as_secs()),
-                    None => "--diffusers-limit SECONDS stops it and reports what finished".into(),
+                    Some(l) => format!("each diffusers operation is stopped after {} s", l.as_secs()),
+                    None => "--diffusers-limit SECONDS stops each operation then and reports what finished".into(),
                 }
             ));
         }
@@ -559,7 +561,7 @@ mod tests {
             "{text}"
         );
         assert!(
-            text.contains("diffusers was stopped at --diffusers-limit 1800: `>` bounds"),
+            text.contains("diffusers was stopped at --diffusers-limit 1800 (a limit for each"),
             "{text}"
         );
     }
