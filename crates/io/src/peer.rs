@@ -184,6 +184,20 @@ pub struct PeerLines {
     pub stopped: Option<Duration>,
 }
 
+impl PeerLines {
+    /// The last object for which `keep` holds, as a result.
+    pub fn last_where(&self, keep: impl Fn(&serde_json::Value) -> bool) -> Option<PeerOutput> {
+        self.lines
+            .iter()
+            .rev()
+            .find(|(_, v)| keep(v))
+            .map(|(_, v)| PeerOutput {
+                script: self.script.clone(),
+                value: v.clone(),
+            })
+    }
+}
+
 /// How long a peer read by [`run_peer_json_lines`] may run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PeerLimit {
@@ -210,20 +224,6 @@ impl PeerLimit {
             time,
             per_step: Some(key),
         }
-    }
-}
-
-impl PeerLines {
-    /// The last object for which `keep` holds, as a result.
-    pub fn last_where(&self, keep: impl Fn(&serde_json::Value) -> bool) -> Option<PeerOutput> {
-        self.lines
-            .iter()
-            .rev()
-            .find(|(_, v)| keep(v))
-            .map(|(_, v)| PeerOutput {
-                script: self.script.clone(),
-                value: v.clone(),
-            })
     }
 }
 

@@ -17,6 +17,9 @@ use std::time::Duration;
 /// The peer script, under `scripts/bench/`.
 const SCRIPT: &str = "diffusers_model.py";
 
+/// The key of the script's progress line `{"starting": OP}`.
+const STARTING: &str = "starting";
+
 /// Where diffusers runs from: a Python with torch and diffusers, and the
 /// repository root that holds the peer script.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -63,7 +66,7 @@ impl DiffusersPeer {
         );
         write_json_atomic(&tf_path, tf)?;
         write_json_atomic(&vae_path, vae)?;
-        let per_op = limit.map(|l| PeerLimit::per_step(l, "starting"));
+        let per_op = limit.map(|l| PeerLimit::per_step(l, STARTING));
         let run = |ops: &[&str]| {
             peer::run_peer_json_lines(
                 Command::new(&self.python)
@@ -194,7 +197,7 @@ impl PeerTimings {
         run.lines
             .iter()
             .rev()
-            .find_map(|(at, v)| Some((*at, v.get("starting")?.as_str()?)))
+            .find_map(|(at, v)| Some((*at, v.get(STARTING)?.as_str()?)))
     }
 
     /// Operation `op` of one run: a finished run must have timed it; in a
@@ -203,7 +206,7 @@ impl PeerTimings {
     /// started, or it did not run.
     fn op_time(run: &peer::PeerLines, op: &str, repeat: usize) -> Result<PeerTime, BenchError> {
         let key = format!("{op}_s");
-        let result = run.last_where(|v| v.get("starting").is_none());
+        let result = run.last_where(|v| v.get(STARTING).is_none());
         let Some(stopped_at) = run.stopped else {
             let r = result.ok_or_else(|| PeerError::NoJson {
                 script: SCRIPT.into(),
