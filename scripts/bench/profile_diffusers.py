@@ -18,7 +18,10 @@ as one 2-D convolution, three 2-D convolutions summed, channels-last);
 (`decoder-products`) the decoder's multiply-adds by convolution shape, counted
 by hooks on one decode at the bench's shapes; and (`winograd`) the same
 convolution by Winograd's F(2x2, 3x3) (2.25x fewer products) built on
-libtorch's batched GEMM, against conv3d, with the time of each stage.
+libtorch's batched GEMM, against conv3d, with the time of each stage; and
+(`pooled-conv`) an encoder block's last causal convolution followed by the
+downsampler's mean of frame pairs, in diffusers' order against this crate's
+(each pair's mean as one stride-2 convolution with 4 time taps).
 
 The same libtorch kernels run under this crate's model, so the table says what
 any implementation at these shapes is made of (docs/benchmarks.md).
@@ -32,6 +35,7 @@ any implementation at these shapes is made of (docs/benchmarks.md).
     .venv/bin/python scripts/bench/profile_diffusers.py conv-layouts
     .venv/bin/python scripts/bench/profile_diffusers.py decoder-products
     .venv/bin/python scripts/bench/profile_diffusers.py winograd
+    .venv/bin/python scripts/bench/profile_diffusers.py pooled-conv
 """
 
 import argparse
@@ -42,7 +46,7 @@ import time
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("part", choices=["transformer", "encode", "decode", "gemm", "conv", "linear", "spatial-norm", "upsampler", "conv-layouts",
-                                     "decoder-products", "winograd"])
+                                     "decoder-products", "winograd", "pooled-conv"])
     ap.add_argument("--dtype", choices=["f32", "bf16"], default="f32")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rows", type=int, default=12, help="ops in the table")
@@ -94,6 +98,9 @@ def main() -> int:
     if args.part == "winograd":
         with torch.no_grad():
             return winograd(torch, dtype)
+    if args.part == "pooled-conv":
+        with torch.no_grad():
+            return pooled_conv(torch, dtype)
     if args.part in ("spatial-norm", "upsampler"):
         with torch.no_grad():
             return decoder_layers(torch, args.part, dtype)
@@ -385,6 +392,50 @@ def winograd(torch, dtype) -> int:
               f" ({2 * 27 * c * c * t * h * w / base / 1e9:.0f} GFLOP/s), winograd {total * 1e3:.1f}"
               f" ({base / total:.2f}x; {s_in * 1e3:.1f} + {s_mm * 1e3:.1f} ({gemm_flop / s_mm / 1e9:.0f} GFLOP/s)"
               f" + {s_out * 1e3:.1f}), max difference {diff:.1e} of the largest value")
+    return 0
+
+
+def pooled_conv(torch, dtype) -> int:
+    """An encoder block's last causal 3x3x3 convolution (the first frame batch:
+    the first frame twice in front) and the time-compressing downsampler's
+    pooling (the first frame alone, then the mean of each pair), at the
+    bench's shapes (best of 5 after 2 warm-ups): diffusers' order against
+    this crate's (`CausalConv3d::forward_time_pooled`)."""
+    F = torch.nn.functional
+    print("pooled-conv: diffusers' order vs this crate's (ms), max difference")
+    for c, t, h, w in [(128, 9, 128, 192), (256, 5, 64, 96)]:
+        x = torch.randn(1, c, t, h, w, dtype=dtype)
+        k = torch.randn(c, c, 3, 3, 3, dtype=dtype) * 0.03
+        bias = torch.randn(c, dtype=dtype)
+        # The pair-mean kernel: taps (W0, W0 + W1, W1 + W2, W2) / 2.
+        v = (F.pad(k, (0, 0, 0, 0, 1, 0)) + F.pad(k, (0, 0, 0, 0, 0, 1))) * 0.5
+        stacked = torch.cat([k.sum(2), v[:, :, 0]], 0)
+        bias2 = torch.cat([bias, torch.zeros_like(bias)])
+
+        def diffusers_order():
+            padded = torch.cat([x[:, :, :1], x[:, :, :1], x], 2)
+            y = F.conv3d(padded, k, bias, padding=(0, 1, 1))
+            rest = F.avg_pool3d(y[:, :, 1:], kernel_size=(2, 1, 1), stride=(2, 1, 1))
+            return torch.cat([y[:, :, :1], rest], 2)
+
+        def this_crate():
+            firsts = F.conv2d(x[:, :, 0], stacked, bias2, padding=1)
+            pairs = F.conv3d(x, v, bias, stride=(2, 1, 1), padding=(1, 1, 1))
+            pairs[:, :, :1] += firsts[:, c:].unsqueeze(2)
+            return torch.cat([firsts[:, :c].unsqueeze(2), pairs], 2)
+
+        def without_pair_means():
+            # This crate before (2026-12-03): the first frame's taps summed
+            # for output frames 0 and 1, conv3d for the rest, then the pooling.
+            f0, f1 = x[:, :, 0], x[:, :, 1]
+            y0 = F.conv2d(f0, k.sum(2), bias, padding=1)
+            y1 = F.conv2d(f0, k[:, :, :2].sum(2), bias, padding=1) + F.conv2d(f1, k[:, :, 2], padding=1)
+            y = torch.cat([y0.unsqueeze(2), y1.unsqueeze(2), F.conv3d(x, k, bias, padding=(0, 1, 1))], 2)
+            rest = F.avg_pool3d(y[:, :, 1:], kernel_size=(2, 1, 1), stride=(2, 1, 1))
+            return torch.cat([y[:, :, :1], rest], 2)
+
+        report(torch, f"{c} channels, {t} frames of {h}x{w}", diffusers_order, this_crate)
+        report(torch, "  the same, without pair means", diffusers_order, without_pair_means)
     return 0
 
 

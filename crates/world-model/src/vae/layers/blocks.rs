@@ -2,7 +2,8 @@
 //! blocks built from them, each carrying its resnets' conv caches between frame batches.
 
 use super::{
-    Activation, CausalConv3d, Downsample3D, GroupNorm, SafeConv3d, SpatialNorm3D, Upsample3D,
+    pool_frame_pairs, Activation, CausalConv3d, Downsample3D, GroupNorm, SafeConv3d, SpatialNorm3D,
+    Upsample3D,
 };
 use crate::error::{Result, WorldModelError};
 use tch::nn;
@@ -147,22 +148,60 @@ impl ResnetBlock3D {
         zq: Option<&Tensor>,
         cache: Option<&ResnetCache>,
     ) -> Result<(Tensor, ResnetCache)> {
-        let h = self.norm1.forward(x, zq)?;
-        let h = self.act.forward(&h);
-        let (h, conv1) = self
+        self.forward_with(x, zq, cache, false)
+    }
+
+    /// [`Self::forward`] followed by a time-compressing downsampler's
+    /// pooling of frame pairs ([`pool_frame_pairs`]), which is linear: it
+    /// reaches `conv2` ([`CausalConv3d::forward_time_pooled`], fewer
+    /// products) and the shortcut (pooled before its 1×1×1 convolution,
+    /// half the frames) separately. `[B, Cin, T, H, W] -> [B, Cout, T', H, W]`.
+    pub fn forward_time_pooled(
+        &self,
+        x: &Tensor,
+        zq: Option<&Tensor>,
+        cache: Option<&ResnetCache>,
+    ) -> Result<(Tensor, ResnetCache)> {
+        self.forward_with(x, zq, cache, true)
+    }
+
+    fn forward_with(
+        &self,
+        x: &Tensor,
+        zq: Option<&Tensor>,
+        cache: Option<&ResnetCache>,
+        pool_time: bool,
+    ) -> Result<(Tensor, ResnetCache)> {
+        // Each intermediate is let go as soon as the next is made (the
+        // norms' outputs at the end of their statements), so at most the
+        // input, one convolution's input and its output are held at once.
+        let conv1_in = self.act.forward(&self.norm1.forward(x, zq)?);
+        let (conv1_out, conv1) = self
             .conv1
-            .forward(&h, cache.and_then(|c| c.conv1.as_ref()))?;
-        let h = self.norm2.forward(&h, zq)?;
-        let h = self.act.forward(&h);
+            .forward(&conv1_in, cache.and_then(|c| c.conv1.as_ref()))?;
+        drop(conv1_in);
         // Dropout: identity at inference.
-        let (h, conv2) = self
-            .conv2
-            .forward(&h, cache.and_then(|c| c.conv2.as_ref()))?;
-        let shortcut = match &self.conv_shortcut {
-            Some(conv) => conv.forward(x)?,
-            None => x.shallow_clone(),
+        let conv2_in = self.act.forward(&self.norm2.forward(&conv1_out, zq)?);
+        drop(conv1_out);
+        let conv2_cache = cache.and_then(|c| c.conv2.as_ref());
+        let (mut out, conv2) = if pool_time {
+            self.conv2.forward_time_pooled(&conv2_in, conv2_cache)?
+        } else {
+            self.conv2.forward(&conv2_in, conv2_cache)?
         };
-        Ok((h + shortcut, ResnetCache { conv1, conv2 }))
+        drop(conv2_in);
+        let x = if pool_time {
+            pool_frame_pairs(x)?
+        } else {
+            x.shallow_clone()
+        };
+        let shortcut = match &self.conv_shortcut {
+            Some(conv) => conv.forward(&x)?,
+            None => x,
+        };
+        // In place on the convolution's output (its backward does not read it).
+        let _ = out.f_add_(&shortcut)?;
+        Ok((out, ResnetCache { conv1, conv2 }))
     }
 }
 
@@ -186,16 +225,24 @@ impl BlockCache {
     }
 }
 
+/// The resnets in order; with `pool_last`, the last one's output pooled in
+/// time ([`ResnetBlock3D::forward_time_pooled`]).
 fn resnets_forward(
     resnets: &[ResnetBlock3D],
     x: &Tensor,
     zq: Option<&Tensor>,
     cache: Option<&BlockCache>,
+    pool_last: bool,
 ) -> Result<(Tensor, BlockCache)> {
     let mut h = x.shallow_clone();
     let mut new_cache = BlockCache::default();
     for (i, resnet) in resnets.iter().enumerate() {
-        let (out, c) = resnet.forward(&h, zq, cache.and_then(|c| c.resnets.get(i)))?;
+        let c = cache.and_then(|c| c.resnets.get(i));
+        let (out, c) = if pool_last && i + 1 == resnets.len() {
+            resnet.forward_time_pooled(&h, zq, c)?
+        } else {
+            resnet.forward(&h, zq, c)?
+        };
         h = out;
         new_cache.resnets.push(c);
     }
@@ -242,10 +289,19 @@ impl DownBlock3D {
         }
     }
 
-    /// Runs the block on one frame batch.
+    /// Runs the block on one frame batch. When the downsampler compresses
+    /// time, its pooling of frame pairs runs inside the last resnet
+    /// ([`ResnetBlock3D::forward_time_pooled`]: the same values, fewer
+    /// products).
     pub fn forward(&self, x: &Tensor, cache: Option<&BlockCache>) -> Result<(Tensor, BlockCache)> {
-        let (h, cache) = resnets_forward(&self.resnets, x, None, cache)?;
+        let pool_in_resnet = !self.resnets.is_empty()
+            && self
+                .downsampler
+                .as_ref()
+                .is_some_and(Downsample3D::compresses_time);
+        let (h, cache) = resnets_forward(&self.resnets, x, None, cache, pool_in_resnet)?;
         let h = match &self.downsampler {
+            Some(d) if pool_in_resnet => d.forward_time_pooled(&h)?,
             Some(d) => d.forward(&h)?,
             None => h,
         };
@@ -294,7 +350,7 @@ impl MidBlock3D {
         zq: Option<&Tensor>,
         cache: Option<&BlockCache>,
     ) -> Result<(Tensor, BlockCache)> {
-        resnets_forward(&self.resnets, x, zq, cache)
+        resnets_forward(&self.resnets, x, zq, cache, false)
     }
 
     /// The resnets, in order.

@@ -24,6 +24,7 @@ use tch::nn::{self, Init};
 use tch::Tensor;
 
 pub use blocks::{BlockCache, DownBlock3D, MidBlock3D, ResnetBlock3D, ResnetCache, UpBlock3D};
+use resample::pool_frame_pairs;
 pub use resample::{Downsample3D, Upsample3D};
 
 /// The resnets' nonlinearity (`act_fn` in the config, diffusers' `get_activation`).
@@ -143,15 +144,50 @@ impl SafeConv3d {
         )?)
     }
 
+    /// The kernel whose stride-2 convolution gives the mean of two
+    /// consecutive output frames: with `y_t = Σ_j W_j P_{t+j}` over the
+    /// (padded) input `P`, `(y_t + y_{t+1}) / 2 = Σ_i V_i P_{t+i}` for the
+    /// `k + 1` taps `V_i = (W_{i-1} + W_i) / 2` (`W_{-1} = W_k = 0`):
+    /// `[Cout, Cin, k, kh, kw] -> [Cout, Cin, k + 1, kh, kw]`. The same sums,
+    /// with the products of a frame seen by both outputs added once.
+    fn pair_mean_weight(&self) -> Result<Tensor> {
+        // Tap i of each: W_{i-1} (one zero tap in front), W_i (one behind).
+        let later = self.weight.f_constant_pad_nd([0, 0, 0, 0, 1, 0])?;
+        let earlier = self.weight.f_constant_pad_nd([0, 0, 0, 0, 0, 1])?;
+        Ok(later.f_add(&earlier)?.f_mul_scalar(0.5)?)
+    }
+
+    /// The means of output frame pairs `(0, 1), (2, 3), ...` of the
+    /// convolution of `x` zero-padded by `time_padding` frames at both ends
+    /// (stride 1 in time): [`Self::pair_mean_weight`] at stride 2, with the
+    /// bias. `[B, Cin, T, H, W] -> [B, Cout, (T + 2 p - k - 1) / 2 + 1, H', W']`.
+    fn conv_pair_means(&self, x: &Tensor, time_padding: i64) -> Result<Tensor> {
+        Ok(crate::cpu_bf16::conv(
+            x,
+            &self.pair_mean_weight()?,
+            Some(&self.bias),
+            [2, self.stride[1], self.stride[2]],
+            [time_padding, self.padding[1], self.padding[2]],
+        )?)
+    }
+
+    /// Whether diffusers splits an input of `numel` elements into frame
+    /// chunks (`numel * 2 / 1024**3` GiB, split above 2).
+    fn splits(numel: i64) -> bool {
+        Self::memory_gib(numel) > 2.0
+    }
+
+    fn memory_gib(numel: i64) -> f64 {
+        (numel as f64 * 2.0) / 1024f64.powi(3)
+    }
+
     /// `[B, Cin, T, H, W] -> [B, Cout, T', H', W']`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let numel: i64 = x.size().iter().product();
-        // diffusers: `numel * 2 / 1024**3` GiB, split above 2.
-        let memory_gib = (numel as f64 * 2.0) / 1024f64.powi(3);
-        if memory_gib <= 2.0 {
+        if !Self::splits(numel) {
             return self.conv(x);
         }
-        let parts = (memory_gib / 2.0) as i64 + 1;
+        let parts = (Self::memory_gib(numel) / 2.0) as i64 + 1;
         let chunks = x.f_chunk(parts, 2)?;
         let k = self.time_kernel();
         let mut outputs = Vec::with_capacity(chunks.len());
@@ -232,6 +268,99 @@ impl CausalConv3d {
         // A copy, so the cache does not keep the whole padded input alive.
         let new_cache = padded.narrow(2, t - (k - 1), k - 1).copy();
         Ok((self.conv.forward(&padded)?, Some(new_cache)))
+    }
+
+    /// [`Self::forward`] followed by a time-compressing downsampler's
+    /// pooling ([`pool_frame_pairs`]: the first frame alone for an odd
+    /// count, then the mean of each pair), with fewer products: each pair's
+    /// mean is one stride-2 convolution of the padded input
+    /// ([`SafeConv3d::pair_mean_weight`], `k + 1` taps for two output
+    /// frames instead of `2k`). The same sums as diffusers' convolution and
+    /// `avg_pool3d`, in another order. Where diffusers would split the input
+    /// into frame chunks, or for a kernel other than 3 in time, it is
+    /// [`Self::forward`] and the pooling as written.
+    pub fn forward_time_pooled(
+        &self,
+        x: &Tensor,
+        cache: Option<&Tensor>,
+    ) -> Result<(Tensor, Option<Tensor>)> {
+        let (k, t) = (self.time_kernel, x.size()[2]);
+        let numel: i64 = x.size().iter().product();
+        let padded_numel = numel / t.max(1) * (t + k - 1);
+        if k != 3
+            || t < 2
+            || self.conv.stride[0] != 1
+            || self.conv.padding[0] != 0
+            || SafeConv3d::splits(padded_numel)
+        {
+            let (y, new_cache) = self.forward(x, cache)?;
+            return Ok((pool_frame_pairs(&y)?, new_cache));
+        }
+        if cache.is_none() && t % 2 == 1 {
+            return self.first_batch_time_pooled(x);
+        }
+        let front = match cache {
+            Some(c) => c.shallow_clone(),
+            // [B, C, 1, H, W] -> [B, C, k - 1, H, W]: the first frame, k - 1 times.
+            None => x.narrow(2, 0, 1).f_repeat([1, 1, k - 1, 1, 1])?,
+        };
+        // [B, C, k - 1 + T, H, W]
+        let padded = Tensor::f_cat(&[front, x.shallow_clone()], 2)?;
+        let new_cache = padded.narrow(2, t, k - 1).copy();
+        let out = if t % 2 == 0 {
+            // Output pairs (0, 1), (2, 3), ...: [B, Cout, T / 2, H', W']
+            self.conv.conv_pair_means(&padded, 0)?
+        } else {
+            // Output frame 0 alone: [B, Cout, 1, H', W']
+            let first = self.conv.conv(&padded.narrow(2, 0, k))?;
+            // Pairs (1, 2), (3, 4), ...: [B, Cout, (T - 1) / 2, H', W']
+            let pairs = self
+                .conv
+                .conv_pair_means(&padded.narrow(2, 1, t + k - 2), 0)?;
+            Tensor::f_cat(&[first, pairs], 2)?
+        };
+        Ok((out, Some(new_cache)))
+    }
+
+    /// [`Self::forward_time_pooled`] of the first frame batch (no cache, an
+    /// odd `T >= 3`, `k = 3`) without building the time-padded input. Output
+    /// frame 0 sees the first frame through all three taps; the pair means
+    /// are one stride-2 convolution of the input zero-padded by a frame,
+    /// whose first window `(-1, 0, 1, 2)` lacks the first frame's tap `V_0`
+    /// that the replicated frame gives: both 2-D products of the first
+    /// frame are one convolution with the kernels stacked.
+    fn first_batch_time_pooled(&self, x: &Tensor) -> Result<(Tensor, Option<Tensor>)> {
+        let t = x.size()[2];
+        let conv = &self.conv;
+        let v = conv.pair_mean_weight()?; // [Cout, Cin, 4, kh, kw]
+        let cout = v.size()[0];
+        // [Cout, Cin, 3, kh, kw] -> [Cout, Cin, kh, kw]
+        let all_taps = conv
+            .weight
+            .f_sum_dim_intlist(2, false, conv.weight.kind())?;
+        // [2 Cout, Cin, kh, kw]: frame 0's output, then the missing tap.
+        let stacked = Tensor::f_cat(&[all_taps, v.f_select(2, 0)?], 0)?;
+        let bias = Tensor::f_cat(&[conv.bias.shallow_clone(), conv.bias.f_zeros_like()?], 0)?;
+        // [B, 2 Cout, H', W']
+        let firsts = crate::cpu_bf16::conv(
+            &x.f_select(2, 0)?,
+            &stacked,
+            Some(&bias),
+            [conv.stride[1], conv.stride[2]],
+            [conv.padding[1], conv.padding[2]],
+        )?;
+        // [B, Cout, H', W'] -> [B, Cout, 1, H', W'], twice
+        let first = firsts.narrow(1, 0, cout).f_unsqueeze(2)?;
+        let missing = firsts.narrow(1, cout, cout).f_unsqueeze(2)?;
+        // Pairs (1, 2), (3, 4), ...: [B, Cout, (T - 1) / 2, H', W']
+        let pairs = conv.conv_pair_means(x, 1)?;
+        // In place on a convolution's output (not needed by its backward).
+        let _ = pairs.narrow(2, 0, 1).f_add_(&missing)?;
+        // [B, Cout, 1 + (T - 1) / 2, H', W']
+        let out = Tensor::f_cat(&[first, pairs], 2)?;
+        // The padded input's last two frames: the input's own (T >= 3).
+        let new_cache = x.narrow(2, t - 2, 2).copy();
+        Ok((out, Some(new_cache)))
     }
 
     /// The first frame batch (no cache, `T >= k - 1` frames) without building

@@ -149,38 +149,54 @@ impl Downsample3D {
         }
     }
 
+    /// Whether it halves the frame count (and so [`Self::forward`] pools
+    /// frame pairs first).
+    pub(super) fn compresses_time(&self) -> bool {
+        self.compress_time
+    }
+
     /// `[B, C, T, H, W] -> [B, C, T', (H - 1) / 2 + 1, (W - 1) / 2 + 1]` with
     /// `T' = T` or, compressing time, `T / 2` (even `T`) or `1 + (T - 1) / 2` (odd).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let x = if self.compress_time {
-            let t = x.size()[2];
-            // Average of frame pairs (diffusers' avg_pool3d of kernel and
-            // stride [2, 1, 1]), as a reshape and a mean: libtorch has no
-            // bf16 avg_pool3d on the CPU.
-            let pool = |x: &Tensor| -> Result<Tensor> {
-                let s = x.size();
-                // [B, C, 2n, H, W] -> [B, C, n, 2, H, W]
-                let pairs = x.f_reshape([s[0], s[1], s[2] / 2, 2, s[3], s[4]])?;
-                // [B, C, n, 2, H, W] -> [B, C, n, H, W]
-                Ok(pairs.f_mean_dim([3i64].as_slice(), false, None::<tch::Kind>)?)
-            };
-            if t % 2 == 1 {
-                let first = x.narrow(2, 0, 1);
-                if t > 1 {
-                    Tensor::f_cat(&[first, pool(&x.narrow(2, 1, t - 1))?], 2)?
-                } else {
-                    first
-                }
-            } else {
-                pool(x)?
-            }
+        if self.compress_time {
+            self.forward_time_pooled(&pool_frame_pairs(x)?)
         } else {
-            x.shallow_clone()
-        };
+            self.forward_time_pooled(x)
+        }
+    }
+
+    /// The downsampler's spatial part alone, for an input already pooled in
+    /// time (when it compresses time): `[B, C, T, H, W] -> [B, C, T, (H - 1)
+    /// / 2 + 1, (W - 1) / 2 + 1]`.
+    pub(super) fn forward_time_pooled(&self, x: &Tensor) -> Result<Tensor> {
         // [B, C, T, H, W] -> [B, C, T, H + 1, W + 1]
         let x = x.f_constant_pad_nd([0, 1, 0, 1])?;
         self.conv.forward(&x)
     }
+}
+
+/// A time-compressing downsampler's pooling: the mean of each pair of
+/// frames (diffusers' `avg_pool3d` of kernel and stride `[2, 1, 1]`), after
+/// the first frame kept alone when the count is odd: `[B, C, T, H, W] ->
+/// [B, C, T', H, W]`, `T' = T / 2` (even `T`) or `1 + (T - 1) / 2` (odd).
+/// A reshape and a mean: libtorch has no bf16 `avg_pool3d` on the CPU.
+pub(super) fn pool_frame_pairs(x: &Tensor) -> Result<Tensor> {
+    let pool = |x: &Tensor| -> Result<Tensor> {
+        let s = x.size();
+        // [B, C, 2n, H, W] -> [B, C, n, 2, H, W]
+        let pairs = x.f_reshape([s[0], s[1], s[2] / 2, 2, s[3], s[4]])?;
+        // [B, C, n, 2, H, W] -> [B, C, n, H, W]
+        Ok(pairs.f_mean_dim([3i64].as_slice(), false, None::<tch::Kind>)?)
+    };
+    let t = x.size()[2];
+    if t % 2 == 0 {
+        return pool(x);
+    }
+    let first = x.narrow(2, 0, 1);
+    if t == 1 {
+        return Ok(first);
+    }
+    Ok(Tensor::f_cat(&[first, pool(&x.narrow(2, 1, t - 1))?], 2)?)
 }
 
 /// diffusers' `CogVideoXUpsample3D`: nearest 2× upsampling in space, and in time when

@@ -136,6 +136,137 @@ fn time_pooling_is_avg_pool3d_and_runs_in_bf16_on_the_cpu() {
     }
 }
 
+/// The largest difference between `a` and `b` over the largest value of `b`.
+fn relative_difference(a: &Tensor, b: &Tensor) -> f64 {
+    let scale = b.abs().max().double_value(&[]);
+    (a - b).abs().max().double_value(&[]) / scale
+}
+
+#[test]
+fn time_pooled_causal_conv_is_the_conv_then_diffusers_pooling() {
+    let (_vs, conv) = random_conv(5, 4);
+    let opts = (Kind::Float, Device::Cpu);
+    // (frames, a cache from an earlier frame batch): odd and even counts,
+    // one frame, the first batch and later ones.
+    for (t, cached) in [
+        (1, false),
+        (2, false),
+        (3, false),
+        (4, false),
+        (5, false),
+        (9, false),
+        (1, true),
+        (2, true),
+        (3, true),
+        (8, true),
+    ] {
+        let x = Tensor::randn([2, 3, t, 6, 7], opts).set_requires_grad(true);
+        let cache = cached.then(|| Tensor::randn([2, 3, 2, 6, 7], opts));
+        let (ours, our_cache) = conv.forward_time_pooled(&x, cache.as_ref()).unwrap();
+        let (full, their_cache) = conv.forward(&x, cache.as_ref()).unwrap();
+        let theirs = pool_frame_pairs(&full).unwrap();
+        assert_eq!(ours.size(), theirs.size(), "T = {t}, cached {cached}");
+        let d = relative_difference(&ours, &theirs);
+        assert!(d < 1e-6, "T = {t}, cached {cached}: {d}");
+        assert!(our_cache.unwrap().equal(&their_cache.unwrap()));
+        // The gradient too (the in-place correction of the first pair).
+        let g = Tensor::randn_like(&ours);
+        let grad = |out: &Tensor| {
+            Tensor::run_backward(&[(out * &g).sum(Kind::Float)], &[&x], false, false).remove(0)
+        };
+        let d = relative_difference(&grad(&ours), &grad(&theirs));
+        assert!(d < 1e-5, "T = {t}, cached {cached}: gradient {d}");
+    }
+    // The first batch's own path (no cache, odd T >= 3), not a fallback.
+    let x = Tensor::randn([1, 3, 7, 5, 4], opts);
+    let (ours, _) = conv.first_batch_time_pooled(&x).unwrap();
+    let theirs = pool_frame_pairs(&conv.forward(&x, None).unwrap().0).unwrap();
+    assert!(relative_difference(&ours, &theirs) < 1e-6);
+    assert_eq!(ours.size(), vec![1, 4, 4, 5, 4]);
+}
+
+#[test]
+fn down_block_pools_time_inside_its_last_resnet_with_diffusers_values() {
+    let opts = (Kind::Float, Device::Cpu);
+    // 4 -> 8 channels in two resnets (the pooled last one's shortcut is
+    // the identity) and in one (the pooled one has a 1x1x1 shortcut).
+    for (cin, layers) in [(4, 2), (4, 1)] {
+        tch::manual_seed(6);
+        let mut vs = nn::VarStore::new(Device::Cpu);
+        let block = DownBlock3D::new(
+            vs.root(),
+            cin,
+            8,
+            layers,
+            4,
+            1e-6,
+            Activation::Silu,
+            true,
+            true,
+        );
+        tch::no_grad(|| {
+            for mut v in vs.variables().into_values() {
+                let r = Tensor::randn_like(&v) * 0.3;
+                v.copy_(&r);
+            }
+        });
+        // diffusers' order: every resnet in full, then the downsampler
+        // (its pooling, padding and strided convolution).
+        let mut vs_ref = nn::VarStore::new(Device::Cpu);
+        let resnets = ResnetBlock3D::stack(
+            &vs_ref.root(),
+            cin,
+            8,
+            layers,
+            4,
+            1e-6,
+            Activation::Silu,
+            None,
+        );
+        let down = Downsample3D::new(vs_ref.root() / "downsamplers" / 0, 8, true);
+        vs_ref.copy(&vs).unwrap();
+        let reference = |x: &Tensor, cache: &[ResnetCache]| {
+            let mut h = x.shallow_clone();
+            let mut caches = Vec::new();
+            for (i, r) in resnets.iter().enumerate() {
+                let (out, c) = r.forward(&h, None, cache.get(i)).unwrap();
+                h = out;
+                caches.push(c);
+            }
+            (down.forward(&h).unwrap(), caches)
+        };
+        // A first batch of 5 frames, then a later one of 4 with its cache.
+        let first = Tensor::randn([1, cin, 5, 8, 10], opts);
+        let later = Tensor::randn([1, cin, 4, 8, 10], opts);
+        let (ours, our_cache) = block.forward(&first, None).unwrap();
+        let (theirs, their_cache) = reference(&first, &[]);
+        assert_eq!(ours.size(), vec![1, 8, 3, 4, 5]);
+        assert!(
+            relative_difference(&ours, &theirs) < 1e-5,
+            "{cin}, {layers}"
+        );
+        let their_tensors: Vec<&Tensor> =
+            their_cache.iter().flat_map(ResnetCache::tensors).collect();
+        assert_eq!(our_cache.tensors().len(), their_tensors.len());
+        for (a, b) in our_cache.tensors().iter().zip(their_tensors) {
+            assert!(a.equal(b));
+        }
+        let (ours, _) = block.forward(&later, Some(&our_cache)).unwrap();
+        let (theirs, _) = reference(&later, &their_cache);
+        assert_eq!(ours.size(), vec![1, 8, 2, 4, 5]);
+        assert!(
+            relative_difference(&ours, &theirs) < 1e-5,
+            "{cin}, {layers}"
+        );
+        // bf16 on the CPU: within bf16 rounding of f32.
+        vs.bfloat16();
+        let (ours, _) = block.forward(&first.to_kind(Kind::BFloat16), None).unwrap();
+        let (theirs, _) = reference(&first, &[]);
+        let d = relative_difference(&ours.to_kind(Kind::Float), &theirs);
+        assert!(d < 0.05, "bf16: {d}");
+    }
+}
+
 /// diffusers' spatial norm as written there: the latent resized to the
 /// features, both 1x1x1 convolutions at full size, then `norm * y + b`.
 fn spatial_norm_as_diffusers(norm: &SpatialNorm3D, f: &Tensor, zq: &Tensor) -> Tensor {
