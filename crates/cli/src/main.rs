@@ -92,8 +92,9 @@ fn main() -> Result<()> {
     // run widened to f32 (several times faster there; docs/benchmarks.md):
     // BRIDGEV2W_CPU_BF16=auto|native|f32, default auto.
     bridgev2w_world_model::cpu_bf16::init_from_env()?;
-    // f32 linear layers outside autograd run on oneDNN with weights packed
-    // once (docs/benchmarks.md): BRIDGEV2W_CPU_LINEAR=auto|onednn|aten.
+    // Linear layers outside autograd run on oneDNN with weights packed once
+    // (f32 ones stay on MKL on an Intel CPU; docs/benchmarks.md):
+    // BRIDGEV2W_CPU_LINEAR=auto|onednn|onednn-bf16|aten.
     bridgev2w_world_model::cpu_linear::init_from_env()?;
     // bf16 attention on a CPU with AVX512-BF16 runs on oneDNN's bf16
     // micro-kernel (docs/benchmarks.md): BRIDGEV2W_CPU_ATTENTION=auto|onednn|aten.

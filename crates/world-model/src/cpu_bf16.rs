@@ -11,8 +11,12 @@
 //! values accumulated in f32), up to the order of summation. Activations and
 //! weights stay bf16 between the layers, so memory is that of bf16.
 //!
-//! The mode is process-wide: [`Bf16Compute::Auto`] (the default) widens only
-//! where the CPU has no AVX512-BF16; `BRIDGEV2W_CPU_BF16=native|f32|auto`
+//! An Intel CPU whose bf16 arithmetic is AVX512-BF16 alone (no AMX) runs
+//! `vdpbf16ps` at half its f32 rate: there too widening is faster (1.6-1.9x
+//! on the transformer and the VAE).
+//!
+//! The mode is process-wide: [`Bf16Compute::Auto`] (the default) widens
+//! where the CPU has no AVX512-BF16, or is an Intel one without AMX; `BRIDGEV2W_CPU_BF16=native|f32|auto`
 //! chooses ([`init_from_env`], which the binary calls at start-up), or
 //! [`set`]. CUDA tensors and f32 tensors are left alone. Inside a CPU
 //! autocast region libtorch casts a layer's operands back to bf16 itself, so
@@ -29,7 +33,8 @@ pub const ENV: &str = "BRIDGEV2W_CPU_BF16";
 /// How bf16 linear layers and convolutions run on the CPU.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Bf16Compute {
-    /// `F32` where the CPU has no bf16 arithmetic (no AVX512-BF16), else `Native`.
+    /// `Native` where libtorch's bf16 kernels outrun f32 ones
+    /// ([`native_bf16_outruns_f32`]), else `F32`.
     #[default]
     Auto,
     /// libtorch's own bf16 kernels.
@@ -50,7 +55,7 @@ impl ProcessMode for Bf16Compute {
     /// `Auto` decided for this CPU (`Native` or `F32`).
     fn resolve(self) -> Self {
         match self {
-            Self::Auto if cpu_has_bf16_arithmetic() => Self::Native,
+            Self::Auto if native_bf16_outruns_f32() => Self::Native,
             Self::Auto => Self::F32,
             other => other,
         }
@@ -68,6 +73,49 @@ pub fn cpu_has_bf16_arithmetic() -> bool {
     #[cfg(not(target_arch = "x86_64"))]
     {
         true
+    }
+}
+
+/// Whether libtorch's own bf16 kernels outrun f32 ones on this CPU: it has
+/// bf16 arithmetic, and it is not an Intel CPU whose only bf16 arithmetic is
+/// AVX512-BF16 (no AMX). On such a Xeon (2 cores, AMX hidden by the
+/// hypervisor) oneDNN's bf16 kernels (`vdpbf16ps`) ran the transformer
+/// forward and the VAE 1.6-1.9x slower than f32, while AMD's Zen 4 runs
+/// them about 2x faster than f32 (`docs/benchmarks.md`). `true` off x86-64.
+pub fn native_bf16_outruns_f32() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        cpu_has_bf16_arithmetic() && (!cpu_is_intel() || cpu_has_amx_bf16())
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        true
+    }
+}
+
+/// Whether the CPU's vendor string (CPUID leaf 0) is `GenuineIntel`.
+pub fn cpu_is_intel() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let id = std::arch::x86_64::__cpuid(0);
+        [id.ebx, id.edx, id.ecx].map(u32::to_le_bytes).concat() == b"GenuineIntel"
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Whether the CPU has AMX's bf16 tile products (CPUID leaf 7, EDX bit 22).
+pub fn cpu_has_amx_bf16() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::x86_64::__cpuid(0).eax >= 7
+            && std::arch::x86_64::__cpuid_count(7, 0).edx & (1 << 22) != 0
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
     }
 }
 
@@ -228,7 +276,21 @@ mod tests {
 
     #[test]
     fn auto_follows_the_cpu() {
-        let expect = if cpu_has_bf16_arithmetic() {
+        // The CPUID readings agree with the kernel's (/proc/cpuinfo).
+        if let Ok(info) = std::fs::read_to_string("/proc/cpuinfo") {
+            let field = |name: &str| {
+                info.lines()
+                    .find_map(|l| l.strip_prefix(name))
+                    .map(|v| v.trim_start_matches([' ', '\t', ':']).trim().to_string())
+            };
+            if let (Some(vendor), Some(flags)) = (field("vendor_id"), field("flags")) {
+                assert_eq!(cpu_is_intel(), vendor == "GenuineIntel", "{vendor}");
+                let has = |f: &str| flags.split(' ').any(|x| x == f);
+                assert_eq!(cpu_has_amx_bf16(), has("amx_bf16"), "{flags}");
+                assert_eq!(cpu_has_bf16_arithmetic(), has("avx512_bf16"), "{flags}");
+            }
+        }
+        let expect = if native_bf16_outruns_f32() {
             Bf16Compute::Native
         } else {
             Bf16Compute::F32

@@ -29,8 +29,11 @@
 //! layers they cover, so packing stops at a budget (half the memory
 //! available at the first pack, or [`set_pack_budget`]); beyond it oneDNN
 //! reorders the plain weight at each call instead, with the same result bit
-//! for bit. `BRIDGEV2W_CPU_LINEAR=aten|onednn|auto` chooses the path
-//! process-wide ([`init_from_env`], called by the binary at start-up).
+//! for bit. `BRIDGEV2W_CPU_LINEAR=aten|onednn|onednn-bf16|auto` chooses
+//! the path process-wide ([`init_from_env`], called by the binary at
+//! start-up). `auto` is `onednn-bf16` on an Intel CPU, where MKL's `sgemm`
+//! runs its own kernels at the CPU's peak and f32 layers stay on libtorch's
+//! `linear`, and `onednn` elsewhere.
 
 use crate::cpu_bf16::Bf16Compute;
 use crate::error::WorldModelError;
@@ -57,25 +60,54 @@ pub enum CpuLinear {
     Aten,
     /// oneDNN's linear layer on packed weights, GELU fused.
     OneDnn,
+    /// oneDNN (as `OneDnn`) for bf16 layers, libtorch's `linear` for f32
+    /// ones: what `Auto` means on an Intel CPU, where MKL's `sgemm` runs
+    /// its own kernels at the CPU's peak (306 GFLOP/s on 2 cores of a Xeon
+    /// with AVX-512, as fast as oneDNN's or faster: the f32 transformer
+    /// forward 3.3-5% faster than on oneDNN, bf16 6% slower;
+    /// `docs/benchmarks.md`).
+    OneDnnBf16,
 }
 
 crate::named_enum!(CpuLinear, WorldModelError, WorldModelError::input, ENV, {
     Auto => "auto",
     Aten => "aten",
     OneDnn => "onednn",
+    OneDnnBf16 => "onednn-bf16",
 });
 
 impl ProcessMode for CpuLinear {
     const ENV: &'static str = ENV;
     const VARIANTS: &'static [Self] = Self::ALL;
-    /// `Auto` and `OneDnn` decided for this libtorch (`Aten` where it lacks
-    /// oneDNN's linear ops).
+    /// `Auto` decided for this CPU and libtorch (`Aten` where libtorch
+    /// lacks oneDNN's linear ops, whatever was chosen).
     fn resolve(self) -> Self {
         match self {
-            Self::Auto | Self::OneDnn if onednn::available() => Self::OneDnn,
-            _ => Self::Aten,
+            _ if !onednn::available() => Self::Aten,
+            Self::Auto if mkl_runs_its_own_kernels() => Self::OneDnnBf16,
+            Self::Auto => Self::OneDnn,
+            other => other,
         }
     }
+}
+
+impl CpuLinear {
+    /// Whether this (resolved) mode runs a layer of dtype `kind` on oneDNN.
+    fn takes(self, kind: Kind) -> bool {
+        match self {
+            Self::OneDnn => kind == Kind::Float || kind == Kind::BFloat16,
+            Self::OneDnnBf16 => kind == Kind::BFloat16,
+            Self::Auto | Self::Aten => false,
+        }
+    }
+}
+
+/// Whether libtorch's f32 `linear` (MKL's `sgemm`) runs MKL's own kernels
+/// here: on an Intel CPU (its vendor string, CPUID leaf 0). Elsewhere MKL
+/// takes generic paths, which oneDNN's packed layers beat by 1.15-1.44x on
+/// an AMD EPYC (`docs/benchmarks.md`).
+pub fn mkl_runs_its_own_kernels() -> bool {
+    crate::cpu_bf16::cpu_is_intel()
 }
 
 static MODE: ModeCell = ModeCell::new();
@@ -290,11 +322,8 @@ fn route(
 ) -> Route {
     let kind = weight.kind();
     let same = |t: &Tensor| t.kind() == kind && t.device() == Device::Cpu;
-    let weight_on_path = mode.resolve() == CpuLinear::OneDnn
-        && onednn::available()
-        && (kind == Kind::Float || kind == Kind::BFloat16)
-        && same(weight)
-        && weight.dim() == 2;
+    let weight_on_path =
+        mode.resolve().takes(kind) && onednn::available() && same(weight) && weight.dim() == 2;
     if !weight_on_path || onednn::grad_mode_enabled() {
         return Route::AtenDropPack;
     }
@@ -438,7 +467,11 @@ mod tests {
     fn onednn_path_matches_linear_and_repacks_changed_weights() {
         assert_eq!(
             CpuLinear::Auto.resolve(),
-            CpuLinear::OneDnn,
+            if mkl_runs_its_own_kernels() {
+                CpuLinear::OneDnnBf16
+            } else {
+                CpuLinear::OneDnn
+            },
             "this libtorch has oneDNN"
         );
         let b = budget(u64::MAX - 1);
@@ -624,8 +657,51 @@ mod tests {
     }
 
     #[test]
+    fn onednn_bf16_mode_routes_bf16_layers_to_onednn_and_f32_ones_to_libtorch() {
+        let _guard = tch::no_grad_guard();
+        let x = Tensor::randn([MIN_ROWS, 16], (Kind::Float, Device::Cpu));
+        let w = Tensor::randn([8, 16], (Kind::Float, Device::Cpu));
+        let (xb, wb) = (x.to_kind(Kind::BFloat16), w.to_kind(Kind::BFloat16));
+        let route_of = |mode, x: &Tensor, w: &Tensor| route(mode, Bf16Compute::Native, x, w, None);
+        assert_eq!(
+            route_of(CpuLinear::OneDnnBf16, &x, &w),
+            Route::AtenDropPack,
+            "f32 stays on libtorch"
+        );
+        assert_eq!(
+            route_of(CpuLinear::OneDnnBf16, &xb, &wb),
+            Route::OneDnn { widen: false }
+        );
+        assert_eq!(
+            route_of(CpuLinear::OneDnn, &x, &w),
+            Route::OneDnn { widen: false }
+        );
+        assert_eq!(route_of(CpuLinear::Aten, &xb, &wb), Route::AtenDropPack);
+        // Whatever the mode, the values are libtorch's up to the order of
+        // summation.
+        let b = budget(u64::MAX - 1);
+        let pack = PackedWeight::default();
+        let y = |mode| {
+            linear_in(
+                mode,
+                Bf16Compute::Native,
+                b,
+                &x,
+                &w,
+                None,
+                &pack,
+                PostOp::None,
+            )
+        };
+        let reference = x.linear::<&Tensor>(&w, None);
+        for mode in [CpuLinear::OneDnnBf16, CpuLinear::OneDnn, CpuLinear::Aten] {
+            assert!(max_diff(&y(mode), &reference) < 1e-4, "{mode}");
+        }
+    }
+
+    #[test]
     fn modes_parse_and_bad_values_name_the_variable() {
-        for m in [CpuLinear::Auto, CpuLinear::Aten, CpuLinear::OneDnn] {
+        for &m in CpuLinear::ALL {
             assert_eq!(m.to_string().parse::<CpuLinear>().unwrap(), m);
         }
         let err = "mkl".parse::<CpuLinear>().unwrap_err().to_string();

@@ -238,7 +238,7 @@ impl fmt::Display for ModelBenchReport {
             Some(crate::cpu_bf16::Bf16Compute::F32) => writeln!(
                 f,
                 "bf16 linear layers and convolutions: bridgev2w widens them to f32 (the default \
-                 without AVX512-BF16; {}=native for libtorch's own), diffusers runs libtorch's",
+                 without AVX512-BF16, and on an Intel CPU without AMX; {}=native for libtorch's own), diffusers runs libtorch's",
                 crate::cpu_bf16::ENV
             )?,
             Some(mode) => writeln!(
@@ -248,8 +248,19 @@ impl fmt::Display for ModelBenchReport {
             )?,
             None => {}
         }
+        let on_onednn = self.cpu_linear.is_some_and(|m| {
+            m == crate::cpu_linear::CpuLinear::OneDnn
+                || (m == crate::cpu_linear::CpuLinear::OneDnnBf16
+                    && self.precision == Precision::Bf16)
+        });
         match self.cpu_linear {
-            Some(crate::cpu_linear::CpuLinear::OneDnn) => writeln!(
+            Some(crate::cpu_linear::CpuLinear::OneDnnBf16) if !on_onednn => writeln!(
+                f,
+                "linear layers: libtorch's linear on both sides (MKL's sgemm, at its best on \
+                 this Intel CPU; bf16 ones run on oneDNN; {}=onednn for oneDNN in f32 too)",
+                crate::cpu_linear::ENV
+            )?,
+            Some(_) if on_onednn => writeln!(
                 f,
                 "linear layers: bridgev2w runs them on oneDNN with weights packed at the \
                  first forward (the warm-up) and the GELU fused ({}=aten for libtorch's \
@@ -521,6 +532,32 @@ mod tests {
         assert!(report
             .to_string()
             .contains("libtorch's linear on both sides (BRIDGEV2W_CPU_LINEAR=aten)"));
+        // On an Intel CPU f32 layers stay on MKL, bf16 ones go to oneDNN.
+        report.cpu_linear = Some(crate::cpu_linear::CpuLinear::OneDnnBf16);
+        let (precision, text) = (report.precision, report.to_string());
+        assert_eq!(
+            text.contains("on oneDNN with weights packed"),
+            precision == Precision::Bf16,
+            "{text}"
+        );
+        report.precision = if precision == Precision::Bf16 {
+            Precision::F32
+        } else {
+            Precision::Bf16
+        };
+        let flipped = report.to_string();
+        assert_eq!(
+            flipped.contains("on oneDNN with weights packed"),
+            report.precision == Precision::Bf16,
+            "{flipped}"
+        );
+        assert!(
+            [&text, &flipped]
+                .iter()
+                .any(|t| t.contains("MKL's sgemm, at its best on this Intel CPU")),
+            "{text}{flipped}"
+        );
+        report.precision = precision;
         // bf16 on the CPU says which kernel ran the attention.
         report.cpu_linear = None;
         report.cpu_attention = Some(crate::cpu_attention::CpuAttention::OneDnn);
