@@ -16,12 +16,12 @@
 //! on the transformer and the VAE).
 //!
 //! The mode is process-wide: [`Bf16Compute::Auto`] (the default) widens
-//! where the CPU has no AVX512-BF16, or is an Intel one without AMX; `BRIDGEV2W_CPU_BF16=native|f32|auto`
-//! chooses ([`init_from_env`], which the binary calls at start-up), or
-//! [`set`]. CUDA tensors and f32 tensors are left alone. Inside a CPU
-//! autocast region libtorch casts a layer's operands back to bf16 itself, so
-//! there (training with `autocast = "bf16"` on the CPU) the widening gains
-//! nothing.
+//! where the CPU has no AVX512-BF16, or is an Intel one without AMX;
+//! `BRIDGEV2W_CPU_BF16=native|f32|auto` chooses ([`init_from_env`], which
+//! the binary calls at start-up), or [`set`]. CUDA tensors and f32 tensors
+//! are left alone. Inside a CPU autocast region libtorch casts a layer's
+//! operands back to bf16 itself, so there (training with `autocast = "bf16"`
+//! on the CPU) the widening gains nothing.
 
 use crate::error::WorldModelError;
 use crate::process_mode::{ModeCell, ProcessMode};
