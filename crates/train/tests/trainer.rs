@@ -2,7 +2,7 @@
 //! frames at 64x96): a run's life (overfitting, exact resume, moving
 //! averages, refusals, the NaN guard) and the conditioning branches. The
 //! data sources, stages, precisions and data parallelism are in
-//! `trainer_stages.rs`. libtorch's generator is process-global, so the
+//! `trainer_stages/`. libtorch's generator is process-global, so the
 //! tests that train run one at a time (`lock`).
 
 #![allow(clippy::unwrap_used)]
