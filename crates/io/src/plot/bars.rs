@@ -1,7 +1,7 @@
 //! Grouped bars: a group per category (a task), a bar per series (a
 //! planner, the random baseline), each labelled under its group.
 
-use super::{color, text_style, tick, Canvas, Figure};
+use super::{chart_builder, color, text_style, tick, Canvas, Figure};
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
@@ -51,18 +51,8 @@ impl Figure for BarFigure {
             ));
         }
         let e = |e: DrawingAreaErrorKind<_>| e.to_string();
-        let mut builder = ChartBuilder::on(root);
-        builder.margin(12);
-        if text {
-            builder
-                .caption(&self.title, text_style(16))
-                .x_label_area_size(30)
-                .y_label_area_size(60);
-        } else {
-            builder.x_label_area_size(8).y_label_area_size(8);
-        }
         let (lo, hi) = self.y_range;
-        let mut chart = builder
+        let mut chart = chart_builder(root, 12, &self.title, 30, text)
             .build_cartesian_2d(-0.5..(n as f64 - 0.5), lo..hi)
             .map_err(e)?;
         let y_fmt = |v: &f64| tick(*v);

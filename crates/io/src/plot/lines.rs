@@ -1,7 +1,7 @@
 //! Line panels: one or more charts side by side (a panel per training
 //! stage, per split), each with its own axes, lines and legend.
 
-use super::{color, padded_range, text_style, tick, Canvas, Figure};
+use super::{chart_builder, color, draw_grid, padded_range, text_style, tick, Canvas, Figure};
 use plotters::prelude::*;
 
 /// One line of a panel.
@@ -156,38 +156,19 @@ fn draw_panel(panel: &Panel, area: &Canvas<'_>, text: bool) -> Result<(), String
         return Err(format!("panel `{}`: no finite points", panel.title));
     };
     let e = |e: DrawingAreaErrorKind<_>| e.to_string();
-    let mut builder = ChartBuilder::on(area);
-    builder.margin(10);
-    if text {
-        builder
-            .caption(&panel.title, text_style(16))
-            .x_label_area_size(40)
-            .y_label_area_size(60);
-    } else {
-        builder.x_label_area_size(8).y_label_area_size(8);
-    }
-    let mut chart = builder
+    let mut chart = chart_builder(area, 10, &panel.title, 40, text)
         .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
         .map_err(e)?;
     let log_y = panel.log_y;
     let y_fmt = move |v: &f64| tick(if log_y { 10f64.powf(*v) } else { *v });
     let x_fmt = |v: &f64| tick(*v);
-    let mut mesh = chart.configure_mesh();
-    mesh.light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(215, 215, 215));
-    if text {
-        mesh.label_style(text_style(12))
-            .axis_desc_style(text_style(13))
-            .x_desc(panel.x_desc.as_str())
-            .y_desc(panel.y_desc.as_str())
-            .x_label_formatter(&x_fmt)
-            .y_label_formatter(&y_fmt)
-            .x_labels(6)
-            .y_labels(6);
-    } else {
-        mesh.x_labels(0).y_labels(0);
-    }
-    mesh.draw().map_err(e)?;
+    draw_grid(
+        &mut chart,
+        text,
+        (&panel.x_desc, &panel.y_desc),
+        &x_fmt,
+        &y_fmt,
+    )?;
     for (line, pts) in panel.lines.iter().zip(&pts) {
         let c = color(line.color);
         let style = if line.faint {

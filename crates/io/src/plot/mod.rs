@@ -199,6 +199,64 @@ pub(crate) fn text_style(px: u32) -> TextStyle<'static> {
     (font::FAMILY, px).into_font().color(&BLACK)
 }
 
+/// A chart builder on `area` in the house style: with `text`, the `title`
+/// as its caption and room for the labels (`x_label_px` below the chart,
+/// 60 pixels left of it); without, thin borders only.
+pub(crate) fn chart_builder<'a, 'b, DB: DrawingBackend>(
+    area: &'a DrawingArea<DB, plotters::coord::Shift>,
+    margin_px: u32,
+    title: &str,
+    x_label_px: u32,
+    text: bool,
+) -> ChartBuilder<'a, 'b, DB> {
+    let mut builder = ChartBuilder::on(area);
+    builder.margin(margin_px);
+    if text {
+        builder
+            .caption(title, text_style(16))
+            .x_label_area_size(x_label_px)
+            .y_label_area_size(60);
+    } else {
+        builder.x_label_area_size(8).y_label_area_size(8);
+    }
+    builder
+}
+
+/// A chart over two `f64` axes.
+pub(crate) type Chart2d<'a, DB> = ChartContext<
+    'a,
+    DB,
+    Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>,
+>;
+
+/// Draws `chart`'s grid in the house style: light lines, and with `text` six
+/// labels per axis written by `x_fmt` / `y_fmt` and the axes described by
+/// `x_desc` / `y_desc`; without, no labels.
+pub(crate) fn draw_grid<DB: DrawingBackend>(
+    chart: &mut Chart2d<'_, DB>,
+    text: bool,
+    (x_desc, y_desc): (&str, &str),
+    x_fmt: &dyn Fn(&f64) -> String,
+    y_fmt: &dyn Fn(&f64) -> String,
+) -> std::result::Result<(), String> {
+    let mut mesh = chart.configure_mesh();
+    mesh.light_line_style(RGBColor(235, 235, 235))
+        .bold_line_style(RGBColor(215, 215, 215));
+    if text {
+        mesh.label_style(text_style(12))
+            .axis_desc_style(text_style(13))
+            .x_desc(x_desc)
+            .y_desc(y_desc)
+            .x_label_formatter(x_fmt)
+            .y_label_formatter(y_fmt)
+            .x_labels(6)
+            .y_labels(6);
+    } else {
+        mesh.x_labels(0).y_labels(0);
+    }
+    mesh.draw().map_err(|e| e.to_string())
+}
+
 /// The range `[lo, hi]` of `values` (finite ones), padded by 5% (and to a
 /// non-empty span when all are equal); `None` when none is finite.
 pub(crate) fn padded_range(values: impl IntoIterator<Item = f64>) -> Option<(f64, f64)> {

@@ -2,7 +2,7 @@
 //! evaluation: world-model success against real success, a set per world
 //! model), next to the y = x diagonal of perfect agreement.
 
-use super::{color, text_style, tick, Canvas, Figure};
+use super::{chart_builder, color, draw_grid, text_style, tick, Canvas, Figure};
 use plotters::prelude::*;
 
 /// One set of points, with its fitted line.
@@ -71,35 +71,12 @@ impl Figure for ScatterFigure {
         };
         let height = root.dim_in_pixel().1;
         let (plot, legend) = root.split_vertically(height.saturating_sub(strip));
-        let mut builder = ChartBuilder::on(&plot);
-        builder.margin(12);
-        if text {
-            builder
-                .caption(&self.title, text_style(16))
-                .x_label_area_size(40)
-                .y_label_area_size(60);
-        } else {
-            builder.x_label_area_size(8).y_label_area_size(8);
-        }
         let (lo, hi) = self.range;
-        let mut chart = builder.build_cartesian_2d(lo..hi, lo..hi).map_err(e)?;
+        let mut chart = chart_builder(&plot, 12, &self.title, 40, text)
+            .build_cartesian_2d(lo..hi, lo..hi)
+            .map_err(e)?;
         let fmt = |v: &f64| tick(*v);
-        let mut mesh = chart.configure_mesh();
-        mesh.light_line_style(RGBColor(235, 235, 235))
-            .bold_line_style(RGBColor(215, 215, 215));
-        if text {
-            mesh.label_style(text_style(12))
-                .axis_desc_style(text_style(13))
-                .x_desc(self.x_desc.as_str())
-                .y_desc(self.y_desc.as_str())
-                .x_label_formatter(&fmt)
-                .y_label_formatter(&fmt)
-                .x_labels(6)
-                .y_labels(6);
-        } else {
-            mesh.x_labels(0).y_labels(0);
-        }
-        mesh.draw().map_err(e)?;
+        draw_grid(&mut chart, text, (&self.x_desc, &self.y_desc), &fmt, &fmt)?;
         let grey = RGBColor(150, 150, 150);
         chart
             .draw_series(DashedLineSeries::new(
