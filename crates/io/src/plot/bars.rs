@@ -1,7 +1,7 @@
 //! Grouped bars: a group per category (a task), a bar per series (a
 //! planner, the random baseline), each labelled under its group.
 
-use super::{chart_builder, color, text_style, tick, Canvas, Figure};
+use super::{chart_builder, color, text_style, tick, Canvas, Figure, GRID_BOLD, GRID_LIGHT};
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
@@ -59,8 +59,8 @@ impl Figure for BarFigure {
         let mut mesh = chart.configure_mesh();
         mesh.disable_x_mesh()
             .x_labels(0)
-            .light_line_style(RGBColor(235, 235, 235))
-            .bold_line_style(RGBColor(215, 215, 215));
+            .light_line_style(GRID_LIGHT)
+            .bold_line_style(GRID_BOLD);
         if text {
             mesh.label_style(text_style(12))
                 .axis_desc_style(text_style(13))

@@ -222,6 +222,10 @@ pub(crate) fn chart_builder<'a, 'b, DB: DrawingBackend>(
     builder
 }
 
+/// The grid's minor and major lines.
+pub(crate) const GRID_LIGHT: RGBColor = RGBColor(235, 235, 235);
+pub(crate) const GRID_BOLD: RGBColor = RGBColor(215, 215, 215);
+
 /// A chart over two `f64` axes.
 pub(crate) type Chart2d<'a, DB> = ChartContext<
     'a,
@@ -240,8 +244,7 @@ pub(crate) fn draw_grid<DB: DrawingBackend>(
     y_fmt: &dyn Fn(&f64) -> String,
 ) -> std::result::Result<(), String> {
     let mut mesh = chart.configure_mesh();
-    mesh.light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(215, 215, 215));
+    mesh.light_line_style(GRID_LIGHT).bold_line_style(GRID_BOLD);
     if text {
         mesh.label_style(text_style(12))
             .axis_desc_style(text_style(13))
