@@ -12,7 +12,7 @@ Run with the bench venv (scripts/bench/setup-venv.sh):
     from two viewpoints into DIR (default: demo-out/check_robots, not
     committed), and checks that projecting a few link origins with the
     OpenCV camera model lands on pixels of those links (camera convention).
-(c) agibot_g1.urdf: numeric IK (pybullet calculateInverseKinematics,
+(c) dual_arm/dual_arm.urdf: numeric IK (pybullet calculateInverseKinematics,
     iterated, clamped to the joint limits) for table-top targets
     x in {0.4, 0.5, 0.6}, y in {0, +-0.25} (each arm on its side and the
     middle), z in {0.9, 1.0, 1.1}: position-only and with the gripper
@@ -39,8 +39,8 @@ sys.path.insert(0, os.path.join(REPO, "scripts", "bench"))
 import bench_common as bc  # noqa: E402
 
 ROBOTS = os.path.join(REPO, "crates", "embodiment", "robots")
-FRANKA = os.path.join(ROBOTS, "franka.urdf")
-G1 = os.path.join(ROBOTS, "agibot_g1.urdf")
+FRANKA = os.path.join(ROBOTS, "franka", "franka.urdf")
+G1 = os.path.join(ROBOTS, "dual_arm", "dual_arm.urdf")
 
 PANDA_HOME = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
 DH = [  # (a, d, alpha), modified DH
@@ -241,7 +241,7 @@ def check_render(out_dir):
             [((1.5, -0.9, 0.8), (0.25, 0.0, 0.45)), ((-0.2, 1.6, 0.6), (0.25, 0.0, 0.45))],
         ),
         (
-            "agibot_g1",
+            "dual_arm",
             G1,
             {},
             [((2.2, -1.2, 1.4), (0.0, 0.0, 0.9)), ((1.0, 2.2, 1.6), (0.0, 0.0, 0.9))],
@@ -468,7 +468,7 @@ def check_g1_reach(out_dir):
         rest[:] = rest_now
     cam = bc.look_at_camera((2.0, -1.4, 1.6), (0.2, 0.0, 0.9), 720, 480, 600.0)
     rgb, label = render(p, client, body, cam)
-    path = os.path.join(out_dir, "agibot_g1_reach.png")
+    path = os.path.join(out_dir, "dual_arm_reach.png")
     bc.write_png(path, np.concatenate([rgb, bc.palette(64)[label % 64]], axis=1))
     print(f"[reach] {path}")
     p.disconnect(physicsClientId=client)

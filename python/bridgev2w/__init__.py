@@ -128,7 +128,7 @@ class LinkMesh(NamedTuple):
 
 
 class Robot:
-    """A robot: a built-in one by name (``franka``, ``agibot-g1``), or a URDF
+    """A robot: a built-in one by name (``franka``, ``dual-arm``, ``agibot-g1``, ``franka-robotiq``), or a URDF
     with :meth:`from_urdf`."""
 
     def __init__(self, name: str = "franka", *, _core_robot=None):

@@ -102,7 +102,7 @@ def test_a_urdf_robot_gives_the_clis_masks_joints_and_ik_residuals():
     """A URDF robot (the Franka's URDF file, not the built-in one), actions
     with an unreachable frame rendered with allow_residual: masks, IK joints
     and residuals equal `bridgev2w masks --robot URDF --allow-ik-residual`."""
-    urdf = pathlib.Path(__file__).resolve().parents[2] / "crates/embodiment/robots/franka.urdf"
+    urdf = pathlib.Path(__file__).resolve().parents[2] / "crates/embodiment/robots/franka/franka.urdf"
     robot = bw.Robot.from_urdf(urdf, ee_links=["panda_hand_tcp"], gripper_joints=["panda_finger_joint1"])
     cam = camera()
     a = np.array([[0.30 + 0.02 * t, 0.05, 0.45, np.pi, 0.0, 0.1 * t, 0.5] for t in range(4)])
@@ -294,7 +294,7 @@ def test_convert_writes_what_the_cli_writes():
     ep = bw.read_episode(WORK / "droid-py", 1)
     assert ep.frames.shape[1:] == (24, 32, 3) and ep.states.shape[1] == 8, (ep.frames.shape, ep.states.shape)
     # AgiBot World onto a Robot object, one camera.
-    g1 = bw.Robot("agibot-g1")
+    g1 = bw.Robot("dual-arm")
     r = bw.convert(RAW / "agibot", WORK / "g1-py", format="agibot", robot=g1, width=32, height=24,
                    cameras="head", gripper_range=(0, 120))
     assert r.episodes == 1 and r.views_written == 1, r

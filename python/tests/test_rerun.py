@@ -266,7 +266,7 @@ def test_bad_input_is_an_error_naming_it(data):
     with pytest.raises(bw.Error, match="episode"):
         bwr.record_episode(bad, data, 7)
     with pytest.raises(ValueError, match="observation.state has 8 values per frame but robot"):
-        bwr.record_episode(bad, data, 0, robot="agibot-g1")
+        bwr.record_episode(bad, data, 0, robot="dual-arm")
     with pytest.raises(ValueError, match="joints: expected 8 values per row"):
         bw.Robot("franka").link_poses(np.zeros((2, 3)))
     p = run("predict", "--video", WORK / "pred", "--masks", WORK / "nope.npy", "--rerun", bad, check=False)

@@ -9,7 +9,7 @@
 - joints.npy: float64 [T, 7] Panda trajectory sweeping around the home pose
   q = [0, -0.785, 0, -2.356, 0, 1.571, 0.785] (T = 25 by default).
 - joint_names.json: ["panda_joint1", ..., "panda_joint7"] (the names of
-  pybullet's franka_panda/panda.urdf and of crates/embodiment/robots/franka.urdf).
+  pybullet's franka_panda/panda.urdf and of crates/embodiment/robots/franka/franka.urdf).
 
 Prints the three paths as one JSON line.
 """

@@ -23,7 +23,7 @@ quaternion_xyzw [T,L,4] and matrix [T,L,4,4].
 
 Example:
   .venv-bench/bin/python scripts/bench/pybullet_fk.py \
-      --urdf crates/embodiment/robots/franka.urdf --random 100 --seed 0 \
+      --urdf crates/embodiment/robots/franka/franka.urdf --random 100 --seed 0 \
       --links panda_link8,panda_hand_tcp --out /tmp/fk.json
 """
 

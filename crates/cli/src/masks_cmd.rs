@@ -5,12 +5,10 @@ use anyhow::{bail, Context, Result};
 use bridgev2w_embodiment::actions::{
     actions_to_joints, check_joint_trajectory, FrameResidual, Trajectory,
 };
-use bridgev2w_embodiment::camera::Camera;
+use bridgev2w_embodiment::camera::{read_poses_npy, CameraTrack};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
-use bridgev2w_embodiment::masks::{
-    render_trajectory, render_trajectory_labels, write_outputs, WriteOptions,
-};
+use bridgev2w_embodiment::masks::{render_track, render_track_labels, write_outputs, WriteOptions};
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
 use bridgev2w_io::npy::write_npy;
@@ -21,13 +19,15 @@ use std::path::{Path, PathBuf};
 /// Which robot, shared by several commands.
 #[derive(Debug, Clone, clap::Args)]
 pub struct RobotArgs {
-    /// Built-in robot (franka, agibot-g1) or a URDF file.
+    /// Built-in robot (see `robot-info --list`) or a URDF file.
     #[arg(long)]
     pub robot: String,
     /// Directory searched for package:// and relative mesh paths (repeatable).
     #[arg(long = "mesh-path", value_name = "DIR")]
     pub mesh_path: Vec<PathBuf>,
-    /// End-effector link for --actions with a URDF file (repeat per arm, in action order).
+    /// The link each arm's action poses are of (repeat per arm, in action
+    /// order): required with a URDF file; with a built-in robot it replaces
+    /// its TCP (e.g. the flange panda_link8, whose poses robot logs record).
     #[arg(long = "ee-link", value_name = "LINK")]
     pub ee_link: Vec<String>,
     /// Gripper joint driven by each arm's gripper value (URDF files; same order as --ee-link).
@@ -45,7 +45,7 @@ impl RobotArgs {
         let options = LoadOptions {
             mesh_search_paths: self.mesh_path.clone(),
             use_ros_package_path: true,
-            skip_geometry: false,
+            ..LoadOptions::default()
         };
         Ok(Embodiment::load(
             &self.robot,
@@ -63,9 +63,16 @@ pub struct MasksArgs {
     #[command(flatten)]
     pub robot: RobotArgs,
     /// Camera JSON: fx, fy, cx, cy, width, height, optional distortion, and
-    /// world_from_camera (4x4 row-major) or extrinsics_xyz_rpy.
+    /// world_from_camera (4x4 row-major), extrinsics_xyz_rpy,
+    /// world_from_camera_per_frame (a moving camera) or parent_link (+
+    /// link_from_camera: a camera mounted on a robot link).
     #[arg(long)]
     pub camera: PathBuf,
+    /// A moving camera's world_from_camera per frame, .npy [T, 4, 4]
+    /// (e.g. AgiBot World's camera-to-base extrinsics); replaces the
+    /// camera file's pose.
+    #[arg(long, value_name = "NPY")]
+    pub camera_poses: Option<PathBuf>,
     /// Joint positions per frame (JSON array of arrays, CSV or .npy), URDF order of actuated joints.
     #[arg(long)]
     pub joints: Option<PathBuf>,
@@ -102,12 +109,12 @@ pub struct MasksArgs {
     pub no_png: bool,
 }
 
-pub fn load_camera(path: &Path, width: u32, height: u32) -> Result<Camera> {
+pub fn load_camera(path: &Path, width: u32, height: u32) -> Result<CameraTrack> {
     let max = bridgev2w_embodiment::camera::MAX_IMAGE_SIDE;
     if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
         bail!("--width {width} --height {height}: expected sizes of 1..={max} pixels");
     }
-    let camera = Camera::from_json_file(path)?;
+    let camera = CameraTrack::from_json_file(path)?;
     let camera = camera.rescaled(width, height);
     camera
         .intrinsics
@@ -157,17 +164,17 @@ pub fn joint_trajectory(
 /// empty), the faster path when only masks and labels are written.
 pub fn render_with_progress(
     e: &Embodiment,
-    camera: &Camera,
+    camera: &CameraTrack,
     joints: &[Vec<f64>],
     depth: bool,
 ) -> Vec<RenderOutput> {
     let pb = progress_bar(joints.len(), "rendering masks");
     let tick = || pb.inc(1);
     let frames = if depth {
-        render_trajectory(&e.robot, camera, joints, &tick)
+        render_track(&e.robot, camera, joints, &tick)
     } else {
         let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-        render_trajectory_labels(&e.robot, camera, joints, &tick)
+        render_track_labels(&e.robot, camera, joints, &tick)
             .into_iter()
             .map(|labels| RenderOutput {
                 width,
@@ -190,7 +197,10 @@ pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<()> {
 
 pub fn run(args: &MasksArgs) -> Result<()> {
     let e = args.robot.load()?;
-    let camera = load_camera(&args.camera, args.width, args.height)?;
+    let mut camera = load_camera(&args.camera, args.width, args.height)?;
+    if let Some(p) = &args.camera_poses {
+        camera = camera.with_poses(read_poses_npy(p)?);
+    }
     if !(args.ik_tol_mm > 0.0 && args.ik_tol_deg > 0.0) {
         bail!(
             "--ik-tol-mm {} --ik-tol-deg {}: expected positive tolerances",
@@ -210,6 +220,14 @@ pub fn run(args: &MasksArgs) -> Result<()> {
         &ik,
         args.allow_ik_residual,
     )?;
+    let camera_origin = args
+        .camera_poses
+        .as_deref()
+        .unwrap_or(&args.camera)
+        .display()
+        .to_string();
+    camera.check(&e.robot, joints.len(), &camera_origin)?;
+    let violations = e.robot.limit_violations(&joints, 1e-6);
     let out = OutputDir::create(&args.out, args.overwrite)?;
     let frames = render_with_progress(&e, &camera, &joints, args.depth);
     let written = write_outputs(
@@ -230,7 +248,17 @@ pub fn run(args: &MasksArgs) -> Result<()> {
     if !residuals.is_empty() {
         write_ik_report(out.path(), &residuals)?;
     }
+    if !violations.is_empty() {
+        let text = serde_json::to_string_pretty(&violations)?;
+        bridgev2w_io::atomic::write_atomic(&out.path().join("limits.json"), text.as_bytes())?;
+    }
     out.commit()?;
+    for v in &violations {
+        eprintln!(
+            "warning: {v}; rendered as given, not clamped (see {})",
+            args.out.join("limits.json").display()
+        );
+    }
     if !residuals.is_empty() {
         let missed: Vec<usize> = residuals
             .iter()

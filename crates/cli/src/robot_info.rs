@@ -26,10 +26,17 @@ pub fn run(args: &RobotInfoArgs) -> Result<()> {
     let mut out = String::new();
     let r = &e.robot;
     let limits = r.dof_limits();
+    let spec = bridgev2w_embodiment::embodiment::builtin(&args.robot.robot);
+    let flange = |arm: &str| -> Option<&str> {
+        spec.and_then(|s| s.arms.iter().find(|a| a.arm == arm))
+            .map(|a| a.flange_link)
+    };
     if args.json {
         let v = serde_json::json!({
             "name": r.name,
             "source": r.source_name,
+            "description": spec.map(|s| s.description),
+            "description_folder": spec.map(|s| format!("crates/embodiment/robots/{}", s.folder)),
             "joints": r.dof_names().iter().zip(&limits).zip(&e.home).map(|((n, (lo, hi)), h)| {
                 serde_json::json!({"name": n, "lower": finite_or_null(*lo), "upper": finite_or_null(*hi), "home": h})
             }).collect::<Vec<_>>(),
@@ -43,7 +50,9 @@ pub fn run(args: &RobotInfoArgs) -> Result<()> {
             "end_effectors": e.end_effectors.iter().map(|ee| serde_json::json!({
                 "arm": ee.arm,
                 "link": r.links[ee.link].name,
+                "flange_link": flange(&ee.arm),
                 "gripper_joint": ee.gripper_dof.map(|d| r.joints[r.dofs[d]].name.clone()),
+                "gripper_closed_at": ee.gripper_dof.map(|_| format!("{:?}", ee.gripper_closed_at).to_lowercase()),
             })).collect::<Vec<_>>(),
             "action_dim": e.action_dim(),
         });
@@ -51,6 +60,14 @@ pub fn run(args: &RobotInfoArgs) -> Result<()> {
         return crate::print_stdout(&out);
     }
     outln!(out, "robot \"{}\" from {}", r.name, r.source_name);
+    if let Some(s) = spec {
+        outln!(out, "  {}", s.description);
+        outln!(
+            out,
+            "  description folder: crates/embodiment/robots/{} (README: frames, joints, sources, licence)",
+            s.folder
+        );
+    }
     outln!(
         out,
         "\nactuated joints, in --joints column order ({}):",
@@ -93,9 +110,12 @@ pub fn run(args: &RobotInfoArgs) -> Result<()> {
             let g = ee
                 .gripper_dof
                 .map_or("none".to_string(), |d| r.joints[r.dofs[d]].name.clone());
+            let flange = flange(&ee.arm)
+                .map(|f| format!(" (flange {f}: --ee-link {f} for recorded flange poses)"))
+                .unwrap_or_default();
             outln!(
                 out,
-                "  {:<6} link {:<24} gripper joint {g}",
+                "  {:<6} link {:<24} gripper joint {g}{flange}",
                 ee.arm,
                 r.links[ee.link].name
             );

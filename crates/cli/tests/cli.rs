@@ -274,7 +274,7 @@ fn bad_input_gets_clear_errors() {
         "masks", "--robot", "ur5", "--camera", &cam, "--joints", &joints, "--out", &out,
     ]);
     assert!(
-        !o.status.success() && stderr(&o).contains("franka, agibot-g1"),
+        !o.status.success() && stderr(&o).contains("franka, dual-arm"),
         "{}",
         stderr(&o)
     );
@@ -308,7 +308,7 @@ fn camera_looking_away_warns() {
 
 #[test]
 fn robot_info_prints_joint_order() {
-    let o = run(&["robot-info", "--robot", "agibot-g1", "--json"]);
+    let o = run(&["robot-info", "--robot", "dual-arm", "--json"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
     assert_eq!(v["action_dim"], 14);
@@ -409,7 +409,7 @@ fn convert_droid_and_agibot_with_skip_report() {
         "24",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(String::from_utf8_lossy(&o.stdout).contains("robot agibot-g1"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("robot dual-arm"));
     let o = run(&[
         "convert",
         "--format",

@@ -131,7 +131,7 @@ fn splits_are_separated() {
 
 #[test]
 fn gt_masks_equal_the_masks_renderer() {
-    for robot in ["franka", "agibot-g1"] {
+    for robot in ["franka", "dual-arm"] {
         let w = World::new(&config(robot)).unwrap();
         let e = w.generate(Split::Test, 0, Task::PickPlace).unwrap();
         let frames = render_trajectory(&w.embodiment.robot, &e.camera, &e.joints, &|| {});
@@ -258,7 +258,7 @@ fn play_episodes_roam_the_table_and_toggle_the_gripper() {
 
 #[test]
 fn agibot_generates_all_tasks() {
-    let w = World::new(&config("agibot-g1")).unwrap();
+    let w = World::new(&config("dual-arm")).unwrap();
     for task in Task::ALL {
         let e = w.generate(Split::Train, 0, task).unwrap();
         assert_eq!(e.actions[0].len(), 14);

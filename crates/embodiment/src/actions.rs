@@ -250,10 +250,37 @@ pub struct EndEffector {
     pub link: usize,
     /// The actuated gripper joint (index in `q`), if any.
     pub gripper_dof: Option<usize>,
+    /// Which limit of the gripper joint is closed.
+    pub gripper_closed_at: GripperClosedAt,
 }
 
-/// Gripper command `g` in `[0, 1]` (0 open, 1 closed) to the joint value:
-/// `upper - g * (upper - lower)`.
+impl EndEffector {
+    /// The gripper joint's value for a gripper command `g` in `[0, 1]`
+    /// (0 open, 1 closed), given the joint's `limits`.
+    pub fn gripper_joint_value(&self, g: f64, limits: (f64, f64)) -> f64 {
+        match self.gripper_closed_at {
+            GripperClosedAt::Lower => gripper_to_joint(g, limits),
+            GripperClosedAt::Upper => {
+                let (lower, upper) = limits;
+                lower + g.clamp(0.0, 1.0) * (upper - lower)
+            }
+        }
+    }
+}
+
+/// Which limit of a gripper joint is the closed gripper.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GripperClosedAt {
+    /// Closed at the lower limit, open at the upper (parallel fingers whose
+    /// joint is the opening: the Franka Hand).
+    Lower,
+    /// Closed at the upper limit, open at the lower (a linkage whose joint
+    /// angle grows as it closes: the Robotiq 2F-85).
+    Upper,
+}
+
+/// Gripper command `g` in `[0, 1]` (0 open, 1 closed) to the joint value of
+/// a gripper closed at its lower limit: `upper - g * (upper - lower)`.
 pub fn gripper_to_joint(g: f64, (lower, upper): (f64, f64)) -> f64 {
     upper - g.clamp(0.0, 1.0) * (upper - lower)
 }
@@ -400,7 +427,7 @@ pub fn actions_to_joints(
                 q[d] = arm_q[d];
             }
             if let Some(g) = ee.gripper_dof {
-                q[g] = gripper_to_joint(row[7 * k + 6], limits[g]);
+                q[g] = ee.gripper_joint_value(row[7 * k + 6], limits[g]);
             }
             if !res.reached && !allow_residual {
                 let t = &row[7 * k..7 * k + 6];
@@ -422,14 +449,17 @@ pub fn actions_to_joints(
     Ok((joints, residuals))
 }
 
-/// Checks a joint trajectory against the robot (length, finite, limits with
-/// a small tolerance), naming the frame.
+/// Checks a joint trajectory against the robot (length, finite values),
+/// naming the frame. Limits are not enforced here: see
+/// [`Robot::limit_violations`], which reports them.
 pub fn check_joint_trajectory(robot: &Robot, joints: &Trajectory) -> Result<(), ActionError> {
     for (f, q) in joints.rows.iter().enumerate() {
-        robot.check_q(q, 1e-6).map_err(|m| ActionError::Format {
-            source_name: joints.source_name.clone(),
-            message: format!("frame {f}: {m}"),
-        })?;
+        robot
+            .check_q(q, f64::INFINITY)
+            .map_err(|m| ActionError::Format {
+                source_name: joints.source_name.clone(),
+                message: format!("frame {f}: {m}"),
+            })?;
     }
     Ok(())
 }

@@ -4,12 +4,13 @@
 //! background); [`link_labels`] names them. Frames are rendered in parallel;
 //! the result does not depend on the number of threads.
 
-use crate::camera::Camera;
+use crate::camera::{Camera, CameraPose, CameraTrack};
 use crate::raster::{Rasterizer, RenderItem, RenderOutput};
 use crate::robot::Robot;
 use bridgev2w_io::npy::{write_atomic, write_npy, NpyError};
 use nalgebra::Isometry3;
 use rayon::prelude::*;
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 /// `(label, link name)` for every link that has geometry.
@@ -102,6 +103,38 @@ pub fn render_frame_mask(robot: &Robot, rasterizer: &Rasterizer, q: &[f64]) -> V
         .collect()
 }
 
+/// The rasterizer of frame `t` of `track`, with the robot's link poses in
+/// that frame: a fixed camera's shared rasterizer, or `base` moved to the
+/// frame's pose.
+fn frame_rasterizer<'a>(
+    robot: &Robot,
+    track: &CameraTrack,
+    base: &'a Rasterizer,
+    t: usize,
+    poses: &[Isometry3<f64>],
+) -> Cow<'a, Rasterizer> {
+    match track.pose {
+        CameraPose::Fixed(_) => Cow::Borrowed(base),
+        _ => Cow::Owned(base.posed(&track.camera_at(robot, t, poses).world_from_camera)),
+    }
+}
+
+/// The rasterizer of a track's first frame (its intrinsics, shared by all).
+fn base_rasterizer(robot: &Robot, track: &CameraTrack, joints: &[Vec<f64>]) -> Rasterizer {
+    let poses = joints
+        .first()
+        .map(|q| robot.link_poses(q))
+        .unwrap_or_default();
+    let camera = match (&track.pose, joints.is_empty()) {
+        (CameraPose::Mounted { .. }, true) => Camera {
+            intrinsics: track.intrinsics,
+            world_from_camera: Isometry3::identity(),
+        },
+        _ => track.camera_at(robot, 0, &poses),
+    };
+    Rasterizer::new(&camera)
+}
+
 /// Renders every frame of a joint trajectory in parallel. `on_frame` is
 /// called once per finished frame (for progress bars), from any thread.
 ///
@@ -113,11 +146,28 @@ pub fn render_trajectory(
     joints: &[Vec<f64>],
     on_frame: &(dyn Fn() + Sync),
 ) -> Vec<RenderOutput> {
-    let rasterizer = Rasterizer::new(camera);
-    let (w, h) = (camera.intrinsics.width, camera.intrinsics.height);
+    render_track(robot, &CameraTrack::from(camera), joints, on_frame)
+}
+
+/// [`render_trajectory`] through a camera that may move: frame `t` is seen
+/// by the track's camera of frame `t` (a mounted camera posed by the same
+/// forward kinematics as the robot).
+///
+/// # Panics
+/// If a frame has the wrong number of joint values, or the track does not
+/// fit the trajectory (check with [`CameraTrack::check`]).
+pub fn render_track(
+    robot: &Robot,
+    track: &CameraTrack,
+    joints: &[Vec<f64>],
+    on_frame: &(dyn Fn() + Sync),
+) -> Vec<RenderOutput> {
+    let base = base_rasterizer(robot, track, joints);
+    let (w, h) = (track.intrinsics.width, track.intrinsics.height);
     joints
         .par_iter()
-        .map(|q| {
+        .enumerate()
+        .map(|(t, q)| {
             // Empty buffers: render_into sizes and clears them once.
             let mut out = RenderOutput {
                 width: w,
@@ -125,7 +175,9 @@ pub fn render_trajectory(
                 labels: Vec::new(),
                 depth_m: Vec::new(),
             };
-            render_frame(robot, &rasterizer, q, &mut out);
+            let poses = robot.link_poses(q);
+            let rasterizer = frame_rasterizer(robot, track, &base, t, &poses);
+            rasterizer.render_into(&render_items(robot, &poses, true), &mut out);
             on_frame();
             out
         })
@@ -144,11 +196,28 @@ pub fn render_trajectory_labels(
     joints: &[Vec<f64>],
     on_frame: &(dyn Fn() + Sync),
 ) -> Vec<Vec<u16>> {
-    let rasterizer = Rasterizer::new(camera);
+    render_track_labels(robot, &CameraTrack::from(camera), joints, on_frame)
+}
+
+/// [`render_trajectory_labels`] through a camera that may move (see
+/// [`render_track`]).
+///
+/// # Panics
+/// As [`render_track`].
+pub fn render_track_labels(
+    robot: &Robot,
+    track: &CameraTrack,
+    joints: &[Vec<f64>],
+    on_frame: &(dyn Fn() + Sync),
+) -> Vec<Vec<u16>> {
+    let base = base_rasterizer(robot, track, joints);
     joints
         .par_iter()
-        .map(|q| {
-            let labels = render_frame_labels(robot, &rasterizer, q);
+        .enumerate()
+        .map(|(t, q)| {
+            let poses = robot.link_poses(q);
+            let rasterizer = frame_rasterizer(robot, track, &base, t, &poses);
+            let labels = rasterizer.render_labels(&render_items(robot, &poses, true));
             on_frame();
             labels
         })
@@ -171,17 +240,37 @@ pub fn render_trajectory_label_array(
     joints: &[Vec<f64>],
     on_frame: &(dyn Fn() + Sync),
 ) -> Vec<u16> {
-    let rasterizer = Rasterizer::new(camera);
-    let n = camera.intrinsics.width as usize * camera.intrinsics.height as usize;
+    render_track_label_array(robot, &CameraTrack::from(camera), joints, on_frame)
+}
+
+/// [`render_trajectory_label_array`] through a camera that may move (see
+/// [`render_track`]).
+///
+/// # Panics
+/// As [`render_track`].
+pub fn render_track_label_array(
+    robot: &Robot,
+    track: &CameraTrack,
+    joints: &[Vec<f64>],
+    on_frame: &(dyn Fn() + Sync),
+) -> Vec<u16> {
+    let base = base_rasterizer(robot, track, joints);
+    let n = track.intrinsics.width as usize * track.intrinsics.height as usize;
     let mut labels = vec![0u16; n * joints.len()];
     if n == 0 {
         joints.iter().for_each(|_| on_frame());
         return labels;
     }
-    labels.par_chunks_mut(n).zip(joints).for_each(|(frame, q)| {
-        render_frame_labels_into(robot, &rasterizer, q, frame);
-        on_frame();
-    });
+    labels
+        .par_chunks_mut(n)
+        .zip(joints)
+        .enumerate()
+        .for_each(|(t, (frame, q))| {
+            let poses = robot.link_poses(q);
+            let rasterizer = frame_rasterizer(robot, track, &base, t, &poses);
+            rasterizer.render_labels_into(&render_items(robot, &poses, true), frame);
+            on_frame();
+        });
     labels
 }
 

@@ -356,7 +356,7 @@ fn action_errors_name_frame_and_value() {
 /// moves only its own joints; grippers map onto their finger joints.
 #[test]
 fn dual_arm_actions_round_trip() {
-    let e = Embodiment::builtin("agibot-g1").expect("g1");
+    let e = Embodiment::builtin("dual-arm").expect("g1");
     let r = &e.robot;
     assert_eq!(e.action_dim(), 14);
     let (lt, rt) = (e.end_effectors[0].link, e.end_effectors[1].link);

@@ -59,7 +59,7 @@ fn mask_centroid_follows_forward_kinematics() {
 #[test]
 fn builtin_robots_render_and_outputs_are_written() {
     let dir = tempfile::tempdir().expect("tmp");
-    for name in ["franka", "agibot-g1"] {
+    for name in ["franka", "dual-arm"] {
         let e = Embodiment::builtin(name).expect("builtin");
         let intr = Intrinsics::centered(300.0, 320, 240);
         let cam = Camera::look_at(

@@ -7,8 +7,8 @@ use bridgev2w_embodiment::robot::{LoadOptions, Robot};
 use proptest::prelude::*;
 
 const SEED_URDFS: [&str; 2] = [
-    include_str!("../robots/franka.urdf"),
-    include_str!("../robots/agibot_g1.urdf"),
+    include_str!("../robots/franka/franka.urdf"),
+    include_str!("../robots/dual_arm/dual_arm.urdf"),
 ];
 
 /// Odd attribute values that parsers and builders trip over.

@@ -297,7 +297,7 @@ pub(crate) fn read_episode<'py>(
     d.set_item(
         "camera",
         camera
-            .map(|inner| Camera { inner })
+            .map(|c| Camera { inner: (&c).into() })
             .map(|c| Bound::new(py, c))
             .transpose()?,
     )?;

@@ -13,10 +13,10 @@ use bridgev2w_data::synth::{
     plan, write_dataset, SynthConfig, SynthError, Task, WriteDatasetError,
 };
 use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, Trajectory};
-use bridgev2w_embodiment::camera::Camera as RsCamera;
+use bridgev2w_embodiment::camera::{isometry_from_rows, CameraPose, CameraTrack};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
-use bridgev2w_embodiment::masks::{label_of_link, link_labels, render_trajectory};
+use bridgev2w_embodiment::masks::{label_of_link, link_labels, render_track};
 use bridgev2w_embodiment::overlay::label_color;
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
@@ -55,7 +55,7 @@ struct Robot {
 
 #[pymethods]
 impl Robot {
-    /// A built-in robot (`franka`, `agibot-g1`).
+    /// A built-in robot (`franka`, `dual-arm`, `agibot-g1`, `franka-robotiq`; `bw.builtin_robots()`).
     #[new]
     fn new(name: &str) -> PyResult<Self> {
         Embodiment::builtin(name)
@@ -287,22 +287,31 @@ impl Robot {
     }
 }
 
-/// A calibrated camera: pinhole intrinsics, optional distortion, pose.
+/// A calibrated camera: pinhole intrinsics, optional distortion, and its
+/// pose: fixed, one per frame, or mounted on a robot link.
 #[pyclass(module = "bridgev2w._core", frozen)]
 struct Camera {
-    inner: RsCamera,
+    inner: CameraTrack,
+}
+
+fn camera_err(e: impl std::fmt::Display) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+fn rows_to_isometry(m: &[[f64; 4]; 4], name: &str) -> PyResult<nalgebra::Isometry3<f64>> {
+    isometry_from_rows(m, name, "matrix").map_err(camera_err)
 }
 
 #[pymethods]
 impl Camera {
     /// A camera from its JSON text (the format of `bridgev2w masks
-    /// --camera`); `source` names it in errors.
+    /// --camera`, moving cameras included); `source` names it in errors.
     #[staticmethod]
     #[pyo3(signature = (text, source = "camera JSON"))]
     fn from_json_str(text: &str, source: &str) -> PyResult<Self> {
-        RsCamera::from_json_str(text, source)
+        CameraTrack::from_json_str(text, source)
             .map(|inner| Self { inner })
-            .map_err(|e| PyValueError::new_err(e.to_string()))
+            .map_err(camera_err)
     }
 
     /// A camera from a JSON file.
@@ -314,20 +323,65 @@ impl Camera {
                 path.display()
             )));
         }
-        RsCamera::from_json_file(&path)
+        CameraTrack::from_json_file(&path)
             .map(|inner| Self { inner })
-            .map_err(|e| PyValueError::new_err(e.to_string()))
+            .map_err(camera_err)
     }
 
-    /// The camera as JSON text.
-    fn to_json(&self) -> String {
-        self.inner.to_json()
+    /// The camera as JSON text (a fixed camera).
+    fn to_json(&self) -> PyResult<String> {
+        self.inner
+            .as_fixed()
+            .map(|c| c.to_json())
+            .ok_or_else(|| PyValueError::new_err("to_json: a moving camera has no single pose"))
     }
 
     /// This camera with its intrinsics rescaled to `width` x `height`.
     fn rescaled(&self, width: u32, height: u32) -> Self {
         Self {
             inner: self.inner.rescaled(width, height),
+        }
+    }
+
+    /// These intrinsics moving through `poses` (`[T][4][4]`, row-major
+    /// `world_from_camera` per frame).
+    fn with_poses(&self, poses: Vec<[[f64; 4]; 4]>) -> PyResult<Self> {
+        let poses = poses
+            .iter()
+            .enumerate()
+            .map(|(t, m)| rows_to_isometry(m, &format!("poses[{t}]")))
+            .collect::<PyResult<Vec<_>>>()?;
+        Ok(Self {
+            inner: self.inner.with_poses(poses),
+        })
+    }
+
+    /// These intrinsics on a camera mounted on robot link `link`, at
+    /// `link_from_camera` (row-major 4x4; default identity).
+    #[pyo3(signature = (link, link_from_camera = None))]
+    fn mounted(&self, link: String, link_from_camera: Option<[[f64; 4]; 4]>) -> PyResult<Self> {
+        let link_from_camera = match link_from_camera {
+            Some(m) => rows_to_isometry(&m, "link_from_camera")?,
+            None => nalgebra::Isometry3::identity(),
+        };
+        Ok(Self {
+            inner: CameraTrack {
+                intrinsics: self.inner.intrinsics,
+                pose: CameraPose::Mounted {
+                    link,
+                    link_from_camera,
+                },
+            },
+        })
+    }
+
+    /// `"fixed"`, `"per_frame"` or `"mounted"`.
+    #[getter]
+    fn kind(&self) -> &'static str {
+        match self.inner.pose {
+            CameraPose::Fixed(_) => "fixed",
+            CameraPose::PerFrame(_) => "per_frame",
+            CameraPose::Mounted { .. } => "mounted",
         }
     }
 
@@ -344,11 +398,15 @@ impl Camera {
         (i.fx, i.fy, i.cx, i.cy)
     }
 
-    /// The pose, a row-major 4x4 rigid transform (OpenCV camera axes).
+    /// The pose of a fixed camera, a row-major 4x4 rigid transform (OpenCV
+    /// camera axes); a `ValueError` for a moving camera.
     #[getter]
-    fn world_from_camera(&self) -> [[f64; 4]; 4] {
-        let m = self.inner.world_from_camera.to_homogeneous();
-        std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+    fn world_from_camera(&self) -> PyResult<[[f64; 4]; 4]> {
+        let c = self.inner.as_fixed().ok_or_else(|| {
+            PyValueError::new_err("world_from_camera: a moving camera has a pose per frame")
+        })?;
+        let m = c.world_from_camera.to_homogeneous();
+        Ok(std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)])))
     }
 
     /// The distortion `(k1, k2, p1, p2, k3)`, or None for an ideal pinhole.
@@ -364,14 +422,21 @@ impl Camera {
     fn __repr__(&self) -> String {
         let i = &self.inner.intrinsics;
         format!(
-            "Camera({}x{}, fx={}, fy={}, cx={}, cy={})",
-            i.width, i.height, i.fx, i.fy, i.cx, i.cy
+            "Camera({}x{}, fx={}, fy={}, cx={}, cy={}, {})",
+            i.width,
+            i.height,
+            i.fx,
+            i.fy,
+            i.cx,
+            i.cy,
+            self.kind()
         )
     }
 }
 
 /// Checks a batch of joint sequences (`[B][T][dof]`) as `bridgev2w masks
-/// --joints` does: `dof` finite values per frame within the joint limits; a
+/// --joints` does: `dof` finite values per frame (limits are reported by
+/// `Robot.limit_violations`, not enforced); a
 /// `ValueError` naming `joints` (`joints[b]` in a batch), the frame and joint.
 fn check_joints(r: &bridgev2w_embodiment::robot::Robot, joints: &[Vec<Vec<f64>>]) -> PyResult<()> {
     let dof = r.dof_names().len();
@@ -390,7 +455,7 @@ fn check_joints(r: &bridgev2w_embodiment::robot::Robot, joints: &[Vec<Vec<f64>>]
                 r.dof_names().join(", ")
             )));
         }
-        // As `bridgev2w masks --joints`: finite values within the joint limits.
+        // As `bridgev2w masks --joints`: finite values.
         let traj = Trajectory::new(&name, seq.clone())
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         check_joint_trajectory(r, &traj).map_err(|e| PyValueError::new_err(e.to_string()))?;
@@ -420,7 +485,7 @@ fn render<'py>(
             cameras.len()
         )));
     }
-    let cams: Vec<RsCamera> = cameras.iter().map(|c| c.inner.clone()).collect();
+    let cams: Vec<CameraTrack> = cameras.iter().map(|c| c.inner.clone()).collect();
     if let Some(c) = cams.iter().find(|c| {
         (c.intrinsics.width, c.intrinsics.height)
             != (cams[0].intrinsics.width, cams[0].intrinsics.height)
@@ -435,11 +500,15 @@ fn render<'py>(
     }
     let r = &robot.inner.robot;
     check_joints(r, &joints)?;
+    for (b, (cam, seq)) in cams.iter().zip(&joints).enumerate() {
+        cam.check(r, seq.len(), &format!("camera[{b}]"))
+            .map_err(camera_err)?;
+    }
     let frames: Vec<Vec<RenderOutput>> = py.detach(|| {
         joints
             .par_iter()
             .zip(&cams)
-            .map(|(seq, cam)| render_trajectory(r, cam, seq, &|| {}))
+            .map(|(seq, cam)| render_track(r, cam, seq, &|| {}))
             .collect()
     });
     let n: usize = frames.iter().flatten().map(|f| f.labels.len()).sum();

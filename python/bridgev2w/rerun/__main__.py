@@ -118,7 +118,7 @@ def view(a):
 
 def _robot_args(p, required):
     p.add_argument("--robot", required=required,
-                   help="built-in robot (franka, agibot-g1) or a URDF file")
+                   help="built-in robot (bridgev2w.builtin_robots()) or a URDF file")
     p.add_argument("--mesh-path", action="append", default=[], metavar="DIR",
                    help="folder searched for package:// and relative mesh paths (repeatable)")
     p.add_argument("--ee-link", action="append", default=[], metavar="LINK",

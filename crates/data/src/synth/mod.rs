@@ -167,7 +167,7 @@ impl Task {
 /// Options of the synthetic world.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct SynthConfig {
-    /// Built-in robot name (`franka`, `agibot-g1`).
+    /// Built-in robot name (`franka`, `dual-arm`).
     pub robot: String,
     /// Frames per clip.
     pub frames: usize,

@@ -388,7 +388,8 @@ mod tests {
         };
         let e = bench_masks(&options, &bridgev2w_io::progress::Silent).expect_err("no urdf");
         assert_eq!(e.to_string(), "--no-pybullet needs --urdf PATH");
-        options.urdf = Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("robots/franka.urdf"));
+        options.urdf =
+            Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("robots/franka/franka.urdf"));
         let report = bench_masks(&options, &bridgev2w_io::progress::Silent).expect("bench");
         assert!(report.masks_per_s > 0.0 && report.pybullet.is_none());
         let text = report.to_string();

@@ -183,7 +183,7 @@ pub struct Rasterizer {
     height: u32,
     /// Target of triangle drawing: the camera itself without distortion.
     pinhole: Pinhole,
-    remap: Option<Remap>,
+    remap: Option<std::sync::Arc<Remap>>,
 }
 
 impl Rasterizer {
@@ -199,13 +199,24 @@ impl Rasterizer {
             width: k.width,
             height: k.height,
         };
-        let remap = k.active_distortion().map(|d| Remap::new(k, d));
+        let remap = k
+            .active_distortion()
+            .map(|d| std::sync::Arc::new(Remap::new(k, d)));
         Self {
             camera_from_world: camera.world_from_camera.inverse(),
             width: k.width,
             height: k.height,
             pinhole: camera_pinhole,
             remap,
+        }
+    }
+
+    /// The same camera (intrinsics and distortion remap, shared) at another
+    /// pose: a moving camera's frame without recomputing the remap.
+    pub fn posed(&self, world_from_camera: &Isometry3<f64>) -> Self {
+        Self {
+            camera_from_world: world_from_camera.inverse(),
+            ..self.clone()
         }
     }
 

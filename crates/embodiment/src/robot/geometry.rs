@@ -3,7 +3,7 @@
 
 use super::urdf::{pose_to_isometry, Builder};
 use super::{LoadOptions, RobotError};
-use crate::mesh::load::load_mesh;
+use crate::mesh::load::{load_mesh, load_mesh_from_bytes, MeshError, MeshFormat};
 use crate::mesh::TriMesh;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -117,6 +117,9 @@ impl Builder<'_> {
     }
 
     fn mesh_file(&mut self, link: &str, filename: &str) -> Result<Arc<TriMesh>, RobotError> {
+        if let Some(mesh) = self.embedded_mesh(link, filename)? {
+            return Ok(mesh);
+        }
         let candidates = mesh_candidates(filename, self.base_dir, self.options);
         let Some(path) = candidates.iter().find(|p| p.is_file()) else {
             return Err(RobotError::MeshNotFound {
@@ -144,6 +147,51 @@ impl Builder<'_> {
         );
         self.mesh_cache.insert(path.clone(), mesh.clone());
         Ok(mesh)
+    }
+}
+
+impl Builder<'_> {
+    /// The mesh named `filename` (a path relative to the URDF's folder) from
+    /// [`LoadOptions::embedded_files`], if it is there.
+    fn embedded_mesh(
+        &mut self,
+        link: &str,
+        filename: &str,
+    ) -> Result<Option<Arc<TriMesh>>, RobotError> {
+        let wanted = filename.trim_start_matches("./");
+        let Some((name, bytes)) = self
+            .options
+            .embedded_files
+            .iter()
+            .find(|(name, _)| *name == wanted)
+        else {
+            return Ok(None);
+        };
+        let key = PathBuf::from(format!("<embedded>/{name}"));
+        if let Some(mesh) = self.mesh_cache.get(&key) {
+            return Ok(Some(mesh.clone()));
+        }
+        let mesh_err = |source| RobotError::Mesh {
+            source_name: self.source_name.to_string(),
+            link: link.to_string(),
+            source,
+        };
+        let format = MeshFormat::from_path(Path::new(name)).ok_or_else(|| {
+            mesh_err(MeshError::UnsupportedFormat {
+                name: name.to_string(),
+                extension: Path::new(name)
+                    .extension()
+                    .map(|e| e.to_string_lossy().into_owned())
+                    .unwrap_or_default(),
+            })
+        })?;
+        let mesh = Arc::new(
+            load_mesh_from_bytes(bytes, format, &format!("{}/{name}", self.source_name))
+                .map_err(mesh_err)?
+                .welded(),
+        );
+        self.mesh_cache.insert(key, mesh.clone());
+        Ok(Some(mesh))
     }
 }
 

@@ -134,6 +134,10 @@ pub struct LoadOptions {
     pub use_ros_package_path: bool,
     /// Skip all visual geometry (kinematics only).
     pub skip_geometry: bool,
+    /// Mesh files compiled into the binary, by their path relative to the
+    /// URDF's folder (`meshes/link1.stl`): a relative mesh filename is looked
+    /// up here first (the built-in robots' meshes, [`crate::embodiment::BuiltinRobot::files`]).
+    pub embedded_files: &'static [(&'static str, &'static [u8])],
 }
 
 /// A robot: kinematic tree plus link meshes.
@@ -278,5 +282,69 @@ impl Robot {
             }
         }
         Ok(())
+    }
+
+    /// The joints whose values in `rows` (joint vectors in `q` order) lie
+    /// outside their limits by more than `tolerance`: per joint, how many
+    /// values, the worst one and its frame. Values are not changed: a
+    /// recorded state past a limit is rendered as recorded, and reported.
+    pub fn limit_violations(&self, rows: &[Vec<f64>], tolerance: f64) -> Vec<LimitViolation> {
+        let limits = self.dof_limits();
+        let mut out: Vec<LimitViolation> = Vec::new();
+        for (d, &(lo, hi)) in limits.iter().enumerate() {
+            let mut v: Option<LimitViolation> = None;
+            for (t, row) in rows.iter().enumerate() {
+                let Some(&x) = row.get(d) else { continue };
+                let excess = (lo - x).max(x - hi);
+                if !(excess > tolerance) {
+                    continue;
+                }
+                let e = v.get_or_insert_with(|| LimitViolation {
+                    joint: self.joints[self.dofs[d]].name.clone(),
+                    limits: (lo, hi),
+                    count: 0,
+                    worst_value: x,
+                    worst_frame: t,
+                });
+                e.count += 1;
+                if excess > (lo - e.worst_value).max(e.worst_value - hi) {
+                    e.worst_value = x;
+                    e.worst_frame = t;
+                }
+            }
+            out.extend(v);
+        }
+        out
+    }
+}
+
+/// Values of one joint outside its limits over a trajectory
+/// ([`Robot::limit_violations`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct LimitViolation {
+    /// The joint's name.
+    pub joint: String,
+    /// Its limits `(lower, upper)`.
+    pub limits: (f64, f64),
+    /// How many frames are outside them.
+    pub count: usize,
+    /// The value furthest outside.
+    pub worst_value: f64,
+    /// The frame of that value.
+    pub worst_frame: usize,
+}
+
+impl std::fmt::Display for LimitViolation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "joint \"{}\": {} frame(s) outside its limits [{}, {}], worst {} (frame {})",
+            self.joint,
+            self.count,
+            self.limits.0,
+            self.limits.1,
+            self.worst_value,
+            self.worst_frame
+        )
     }
 }

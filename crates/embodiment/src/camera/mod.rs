@@ -9,23 +9,29 @@
 //! an optional [`Distortion`]) plus the pose `world_from_camera`, which maps
 //! camera-frame coordinates (metres) to world coordinates (metres).
 //!
-//! Cameras are read from JSON (see [`Camera::from_json_str`]).
+//! Cameras are read from JSON (see [`Camera::from_json_str`]); a camera that
+//! moves over a clip (a pose per frame, or mounted on a robot link) is a
+//! [`CameraTrack`].
+
+mod json;
+mod track;
+
+pub use json::isometry_from_rows;
+pub use track::{read_poses_npy, CameraPose, CameraTrack};
 
 use nalgebra::{
     Isometry3, Matrix3, Point2, Point3, Rotation3, Translation3, UnitQuaternion, Vector3,
 };
 use serde::{Deserialize, Serialize};
-use std::fmt::Write as _;
-use std::path::Path;
 use thiserror::Error;
 
 /// Points closer than this to the camera plane (camera-frame z, metres) do
 /// not project.
 const MIN_PROJECT_Z_M: f64 = 1e-9;
 /// Tolerance on the last row `[0, 0, 0, 1]` of a 4x4 extrinsic matrix.
-const LAST_ROW_TOL: f64 = 1e-6;
+pub(crate) const LAST_ROW_TOL: f64 = 1e-6;
 /// Tolerance on `|R^T R - I|` and `|det R - 1|` of a 3x3 rotation block.
-const ROTATION_TOL: f64 = 1e-4;
+pub(crate) const ROTATION_TOL: f64 = 1e-4;
 /// The largest image side (pixels) a camera may have: far above any robot
 /// camera, far below what would exhaust memory when rasterized.
 pub const MAX_IMAGE_SIDE: u32 = 16_384;
@@ -87,6 +93,15 @@ pub enum CameraError {
         /// Determinant and orthonormality error.
         detail: String,
     },
+}
+
+pub(crate) fn invalid(origin: &str, field: &str, value: String, expected: &str) -> CameraError {
+    CameraError::InvalidField {
+        origin: origin.to_string(),
+        field: field.to_string(),
+        value,
+        expected: expected.to_string(),
+    }
 }
 
 /// OpenCV radial-tangential ("plumb bob") lens distortion.
@@ -356,145 +371,6 @@ pub fn world_from_camera_from_xyz_rpy(v: [f64; 6]) -> Isometry3<f64> {
     )
 }
 
-/// The camera file format.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct CameraJson {
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    width: u32,
-    height: u32,
-    /// An object `{k1, k2, p1, p2, k3}` or an array `[k1, k2, p1, p2, k3]`.
-    #[serde(default)]
-    distortion: Option<serde_json::Value>,
-    #[serde(default)]
-    world_from_camera: Option<[[f64; 4]; 4]>,
-    #[serde(default)]
-    extrinsics_xyz_rpy: Option<[f64; 6]>,
-}
-
-/// Serialization mirror of the camera file format (matrix extrinsics).
-#[derive(Debug, Serialize)]
-struct CameraJsonOut {
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    width: u32,
-    height: u32,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    distortion: Option<Distortion>,
-    world_from_camera: [[f64; 4]; 4],
-}
-
-fn invalid(origin: &str, field: &str, value: String, expected: &str) -> CameraError {
-    CameraError::InvalidField {
-        origin: origin.to_string(),
-        field: field.to_string(),
-        value,
-        expected: expected.to_string(),
-    }
-}
-
-/// Distortion from its JSON value: an object (missing coefficients are 0,
-/// unknown keys rejected) or an array of exactly 5 numbers.
-fn parse_distortion(value: serde_json::Value, origin: &str) -> Result<Distortion, CameraError> {
-    const EXPECTED: &str =
-        "an object {\"k1\", \"k2\", \"p1\", \"p2\", \"k3\"} or an array [k1, k2, p1, p2, k3]";
-    match value {
-        serde_json::Value::Array(items) => {
-            if items.len() != 5 {
-                return Err(invalid(
-                    origin,
-                    "distortion",
-                    format!("an array of {} values", items.len()),
-                    EXPECTED,
-                ));
-            }
-            let mut k = [0.0; 5];
-            for (i, (slot, item)) in k.iter_mut().zip(&items).enumerate() {
-                *slot = item.as_f64().ok_or_else(|| {
-                    invalid(
-                        origin,
-                        &format!("distortion[{i}]"),
-                        item.to_string(),
-                        "a number",
-                    )
-                })?;
-            }
-            let [k1, k2, p1, p2, k3] = k;
-            Ok(Distortion { k1, k2, p1, p2, k3 })
-        }
-        serde_json::Value::Object(_) => serde_json::from_value::<Distortion>(value)
-            .map_err(|e| invalid(origin, "distortion", e.to_string(), EXPECTED)),
-        other => Err(invalid(origin, "distortion", other.to_string(), EXPECTED)),
-    }
-}
-
-/// Converts a row-major 4x4 rigid transform to an isometry, checking the last
-/// row and re-orthonormalizing a rotation block within [`ROTATION_TOL`].
-fn isometry_from_rows(
-    m: &[[f64; 4]; 4],
-    origin: &str,
-    field: &str,
-) -> Result<Isometry3<f64>, CameraError> {
-    for (r, row) in m.iter().enumerate() {
-        for (c, &value) in row.iter().enumerate() {
-            if !value.is_finite() {
-                return Err(invalid(
-                    origin,
-                    &format!("{field}[{r}][{c}]"),
-                    value.to_string(),
-                    "a finite number",
-                ));
-            }
-        }
-    }
-    let last = m[3];
-    let expected_last = [0.0, 0.0, 0.0, 1.0];
-    if last
-        .iter()
-        .zip(expected_last)
-        .any(|(a, b)| (a - b).abs() > LAST_ROW_TOL)
-    {
-        return Err(invalid(
-            origin,
-            &format!("{field}[3]"),
-            format!("{last:?}"),
-            "the last row of a rigid transform, [0, 0, 0, 1]",
-        ));
-    }
-    let block = Matrix3::from_fn(|r, c| m[r][c]);
-    let det = block.determinant();
-    let ortho_err = (block.transpose() * block - Matrix3::identity())
-        .abs()
-        .max();
-    if (det - 1.0).abs() > ROTATION_TOL || ortho_err > ROTATION_TOL {
-        return Err(CameraError::DegenerateRotation {
-            origin: origin.to_string(),
-            field: field.to_string(),
-            detail: format!("determinant {det}, max |R^T R - I| = {ortho_err:.3e}"),
-        });
-    }
-    // Nearest rotation (polar decomposition): R = U V^T.
-    let svd = block.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Err(CameraError::DegenerateRotation {
-            origin: origin.to_string(),
-            field: field.to_string(),
-            detail: format!("determinant {det}, SVD failed"),
-        });
-    };
-    let rotation = Rotation3::from_matrix_unchecked(u * v_t);
-    let quaternion = UnitQuaternion::from_rotation_matrix(&rotation);
-    Ok(Isometry3::from_parts(
-        Translation3::new(m[0][3], m[1][3], m[2][3]),
-        UnitQuaternion::new_normalize(quaternion.into_inner()),
-    ))
-}
-
 impl Camera {
     /// A camera from validated intrinsics and its pose.
     pub fn new(
@@ -587,117 +463,6 @@ impl Camera {
         Camera {
             intrinsics: self.intrinsics.rescaled(width, height),
             world_from_camera: self.world_from_camera,
-        }
-    }
-
-    /// Parses a camera from JSON text; `source` names the text in errors
-    /// (a file path, or `"<string>"`).
-    ///
-    /// Format (unknown fields are rejected):
-    /// ```json
-    /// {
-    ///   "fx": 600.0, "fy": 600.0, "cx": 359.5, "cy": 239.5,
-    ///   "width": 720, "height": 480,
-    ///   "distortion": {"k1": 0.1, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0},
-    ///   "world_from_camera": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]
-    /// }
-    /// ```
-    /// `distortion` is optional and may also be `[k1, k2, p1, p2, k3]`.
-    /// Exactly one of `world_from_camera` (row-major 4x4 rigid transform) and
-    /// `extrinsics_xyz_rpy` (see [`world_from_camera_from_xyz_rpy`]) must be
-    /// given.
-    pub fn from_json_str(text: &str, source: &str) -> Result<Camera, CameraError> {
-        let parsed: CameraJson = serde_json::from_str(text).map_err(|e| CameraError::Json {
-            origin: source.to_string(),
-            line: e.line(),
-            column: e.column(),
-            message: e.to_string(),
-        })?;
-        let distortion = parsed
-            .distortion
-            .map(|d| parse_distortion(d, source))
-            .transpose()?;
-        let intrinsics = Intrinsics {
-            fx: parsed.fx,
-            fy: parsed.fy,
-            cx: parsed.cx,
-            cy: parsed.cy,
-            width: parsed.width,
-            height: parsed.height,
-            distortion,
-        };
-        intrinsics.validate_from(source)?;
-        let world_from_camera = match (parsed.world_from_camera, parsed.extrinsics_xyz_rpy) {
-            (Some(m), None) => isometry_from_rows(&m, source, "world_from_camera")?,
-            (None, Some(v)) => {
-                for (i, value) in v.iter().enumerate() {
-                    if !value.is_finite() {
-                        return Err(invalid(
-                            source,
-                            &format!("extrinsics_xyz_rpy[{i}]"),
-                            value.to_string(),
-                            "a finite number",
-                        ));
-                    }
-                }
-                world_from_camera_from_xyz_rpy(v)
-            }
-            (Some(_), Some(_)) => {
-                return Err(invalid(
-                    source,
-                    "world_from_camera",
-                    "given together with \"extrinsics_xyz_rpy\"".to_string(),
-                    "exactly one of \"world_from_camera\" and \"extrinsics_xyz_rpy\"",
-                ))
-            }
-            (None, None) => {
-                return Err(invalid(
-                    source,
-                    "world_from_camera",
-                    "missing (and \"extrinsics_xyz_rpy\" missing)".to_string(),
-                    "exactly one of \"world_from_camera\" and \"extrinsics_xyz_rpy\"",
-                ))
-            }
-        };
-        Ok(Camera {
-            intrinsics,
-            world_from_camera,
-        })
-    }
-
-    /// Reads a camera JSON file (format of [`Camera::from_json_str`]).
-    pub fn from_json_file(path: &Path) -> Result<Camera, CameraError> {
-        let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|error| CameraError::Io {
-            origin: origin.clone(),
-            error,
-        })?;
-        Self::from_json_str(&text, &origin)
-    }
-
-    /// Pretty JSON in the format of [`Camera::from_json_str`], extrinsics as
-    /// the `world_from_camera` matrix.
-    pub fn to_json(&self) -> String {
-        let m = self.world_from_camera.to_homogeneous();
-        let k = &self.intrinsics;
-        let out = CameraJsonOut {
-            fx: k.fx,
-            fy: k.fy,
-            cx: k.cx,
-            cy: k.cy,
-            width: k.width,
-            height: k.height,
-            distortion: k.distortion,
-            world_from_camera: std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)])),
-        };
-        match serde_json::to_string_pretty(&out) {
-            Ok(text) => text,
-            // Serializing plain numbers cannot fail; keep a readable fallback.
-            Err(e) => {
-                let mut s = String::new();
-                let _ = write!(s, "{{\"error\": \"{e}\"}}");
-                s
-            }
         }
     }
 }
