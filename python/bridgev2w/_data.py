@@ -12,7 +12,7 @@ import numpy as np
 
 from . import Camera, Robot, _core, _float, _int, _path
 
-_DEFAULT_ROBOT = {"droid": "franka", "agibot": "agibot-g1"}
+_DEFAULT_ROBOT = {"droid": "franka-robotiq", "agibot": "agibot-g1"}
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ def _names(name, value):
 def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
             joint_names: Union[Sequence[str], str, None] = None, width: int = 96, height: int = 64,
             fps: Optional[int] = None, intrinsics=None, calibration=None,
-            cameras: Union[Sequence[str], str, None] = None, gripper_range=(0.0, 120.0), split: str = "train",
+            cameras: Union[Sequence[str], str, None] = None, gripper_range=(35.0, 120.0), split: str = "train",
             skip_bad: bool = False, limit: Optional[int] = None) -> ConvertReport:
     """Converts raw episodes under ``src`` into a LeRobot v3.0 training
     dataset at ``out`` (must not exist; written to ``out.tmp``, then
@@ -56,7 +56,7 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
     overrides; ``cameras`` by role, default ``ext1, ext2``) or ``"agibot"``
     (AgiBot World; ``cameras`` default ``head``, ``gripper_range`` the
     (open, closed) readings). ``robot``: a :class:`Robot`, a built-in name
-    or a URDF path (default ``franka`` for DROID, ``agibot-g1`` for AgiBot
+    or a URDF path (default ``franka-robotiq`` for DROID, ``agibot-g1`` for AgiBot
     World); ``joint_names`` the robot's names for the recorded joint columns.
     ``fps`` defaults to 15 (DROID) or 30 (AgiBot World); ``split`` is
     recorded for every episode; ``skip_bad`` records failing episodes in

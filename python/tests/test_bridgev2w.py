@@ -294,9 +294,9 @@ def test_convert_writes_what_the_cli_writes():
     ep = bw.read_episode(WORK / "droid-py", 1)
     assert ep.frames.shape[1:] == (24, 32, 3) and ep.states.shape[1] == 8, (ep.frames.shape, ep.states.shape)
     # AgiBot World onto a Robot object, one camera.
-    g1 = bw.Robot("dual-arm")
+    g1 = bw.Robot("agibot-g1")
     r = bw.convert(RAW / "agibot", WORK / "g1-py", format="agibot", robot=g1, width=32, height=24,
-                   cameras="head", gripper_range=(0, 120))
+                   cameras="head")
     assert r.episodes == 1 and r.views_written == 1, r
     subprocess.run([BIN, "convert", "--format", "agibot", str(RAW / "agibot"), "--out", str(WORK / "g1-cli"),
                     "--width", "32", "--height", "24", "--cameras", "head"], check=True, capture_output=True)

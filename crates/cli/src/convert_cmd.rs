@@ -3,9 +3,10 @@
 
 use crate::masks_cmd::progress_bar;
 use anyhow::{bail, Result};
-use bridgev2w_data::raw::agibot::AgibotOptions;
-use bridgev2w_data::raw::convert::ConvertOptions;
+use bridgev2w_data::raw::agibot::{AgibotOptions, GripperSource};
+use bridgev2w_data::raw::convert::{ConvertOptions, REPORT_FILE};
 use bridgev2w_data::raw::droid::DroidOptions;
+use bridgev2w_data::raw::droid_calibration::MissingCalibration;
 use bridgev2w_data::raw::source::{convert_source, ConvertProgress, RawSource};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::robot::LoadOptions;
@@ -35,7 +36,7 @@ pub struct ConvertArgs {
     /// Replace an existing --out (once the new dataset is complete).
     #[arg(long)]
     overwrite: bool,
-    /// Robot: built-in name or URDF file (default: franka for DROID, agibot-g1 for AgiBot World).
+    /// Robot: built-in name or URDF file (default: franka-robotiq for DROID, agibot-g1 for AgiBot World).
     #[arg(long)]
     robot: Option<String>,
     /// End-effector link per arm (URDF robots only).
@@ -57,27 +58,48 @@ pub struct ConvertArgs {
     /// Frame rate recorded in the dataset (DROID: 15, AgiBot World: 30).
     #[arg(long)]
     fps: Option<u32>,
-    /// DROID: camera intrinsics JSON keyed by serial ({"<serial>": {"fx","fy","cx","cy","width","height"}}).
+    /// DROID: camera intrinsics: DROID's published intrinsics.json
+    /// ({"<episode id>": {"<serial>": [fx, cx, fy, cy]}} at 1280x720, scaled to
+    /// the video's size) or {"<serial>": {"fx","fy","cx","cy","width","height"}}.
     #[arg(long)]
     intrinsics: Option<PathBuf>,
-    /// DROID: extrinsics overrides ({"<uuid>": {"<serial>_left": [x,y,z,rx,ry,rz]}}).
+    /// DROID: extrinsics files, repeatable, earlier first: DROID's published
+    /// cam2base_extrinsics.json / cam2base_extrinsic_superset.json
+    /// ({"<episode id>": {..., "<serial>": [x,y,z,rx,ry,rz]}}, left image) or
+    /// {"<episode id>": {"<serial>_left": [..]}}. Cameras none of them
+    /// calibrates use the recorded extrinsics (see --missing-calibration).
     #[arg(long)]
-    calibration: Option<PathBuf>,
+    calibration: Vec<PathBuf>,
+    /// DROID: a camera without published extrinsics: "recorded" (use the
+    /// extrinsics in trajectory.h5, counted in the report) or "error".
+    #[arg(long, default_value = "recorded", value_parser = parse_from_str::<MissingCalibration>)]
+    missing_calibration: MissingCalibration,
     /// Cameras, comma-separated (DROID roles ext1,ext2,wrist; AgiBot names head,hand_left,hand_right).
     #[arg(long)]
     cameras: Option<String>,
-    /// AgiBot World: gripper readings when open and closed, "OPEN,CLOSED".
-    #[arg(long, default_value = "0,120")]
+    /// AgiBot World: gripper closure from "action" (action/effector/position,
+    /// 0..1), "state" (state/effector/position through --gripper-range) or
+    /// "auto" (action when recorded, else state).
+    #[arg(long, default_value = "auto", value_parser = parse_from_str::<GripperSource>)]
+    gripper_source: GripperSource,
+    /// AgiBot World: state/effector/position readings when open and closed,
+    /// "OPEN,CLOSED"; readings outside are clamped and counted in the report.
+    #[arg(long, default_value = "35,120")]
     gripper_range: String,
     /// Split recorded for every episode.
     #[arg(long, default_value = "train")]
     split: String,
-    /// Skip episodes/cameras that fail (listed in OUT/skipped.json) instead of stopping.
+    /// Skip episodes/cameras that fail (listed in OUT/skipped.json and
+    /// OUT/conversion_report.json) instead of stopping.
     #[arg(long)]
     skip_bad: bool,
     /// Convert at most this many episodes.
     #[arg(long)]
     limit: Option<usize>,
+}
+
+fn parse_from_str<T: std::str::FromStr<Err = String>>(s: &str) -> Result<T, String> {
+    s.parse()
 }
 
 fn list(s: &Option<String>) -> Option<Vec<String>> {
@@ -92,7 +114,7 @@ fn list(s: &Option<String>) -> Option<Vec<String>> {
 pub fn run(args: &ConvertArgs) -> Result<()> {
     let robot = args.robot.clone().unwrap_or_else(|| {
         match args.format {
-            Format::Droid => "franka",
+            Format::Droid => "franka-robotiq",
             Format::Agibot => "agibot-g1",
         }
         .to_string()
@@ -119,9 +141,10 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
     let source = match args.format {
         Format::Droid => {
             let intrinsics = args.intrinsics.as_deref().ok_or_else(|| {
-                anyhow::anyhow!("--intrinsics FILE is required for DROID: neither the raw episodes nor RLDS record camera intrinsics")
+                anyhow::anyhow!("--intrinsics FILE is required for DROID: the raw episodes' trajectory.h5 records no intrinsics (DROID publishes them as intrinsics.json)")
             })?;
-            let mut opts = DroidOptions::from_files(intrinsics, args.calibration.as_deref())?;
+            let mut opts = DroidOptions::from_calibration_files(intrinsics, &args.calibration)?;
+            opts.missing_calibration = args.missing_calibration;
             if let Some(c) = list(&args.cameras) {
                 opts.roles = c;
             }
@@ -131,7 +154,7 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
             }
         }
         Format::Agibot => {
-            if args.intrinsics.is_some() || args.calibration.is_some() {
+            if args.intrinsics.is_some() || !args.calibration.is_empty() {
                 bail!("--intrinsics/--calibration apply to DROID; AgiBot World episodes carry their camera parameters");
             }
             let (open, closed) = args
@@ -147,6 +170,7 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
                     )
                 })?;
             let mut opts = AgibotOptions {
+                gripper: args.gripper_source,
                 gripper_open: open,
                 gripper_closed: closed,
                 ..AgibotOptions::default()
@@ -200,6 +224,24 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         for s in &report.skipped {
             text.push_str(&format!("    {}: {}\n", s.item, s.error));
         }
+    }
+    if !report.ee_frames.is_empty() {
+        text.push_str(&format!(
+            "  actions: flange poses of {} (meta/info.json bridgev2w_source.ee_frame)\n",
+            report.ee_frames.join(", ")
+        ));
+    }
+    for (kind, notes, episodes, warning) in report.note_summary() {
+        text.push_str(&format!(
+            "  {}{kind}: {notes} in {episodes} episode(s)\n",
+            if warning { "warning: " } else { "" }
+        ));
+    }
+    if !report.notes.is_empty() {
+        text.push_str(&format!(
+            "  details: {}\n",
+            args.out.join(REPORT_FILE).display()
+        ));
     }
     for v in &report.empty_mask_views {
         text.push_str(&format!("  warning: {v}: the robot is outside the image in every frame (check the calibration)\n"));

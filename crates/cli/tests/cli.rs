@@ -394,7 +394,7 @@ fn convert_droid_and_agibot_with_skip_report() {
         stderr(&o)
     );
 
-    // AgiBot World onto the built-in dual-arm robot.
+    // AgiBot World onto the built-in (real) AgiBot G1.
     let out = d.join("agibot_ds");
     let o = run(&[
         "convert",
@@ -409,7 +409,7 @@ fn convert_droid_and_agibot_with_skip_report() {
         "24",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(String::from_utf8_lossy(&o.stdout).contains("robot dual-arm"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("robot agibot-g1"));
     let o = run(&[
         "convert",
         "--format",

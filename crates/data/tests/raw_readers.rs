@@ -167,27 +167,20 @@ fn read_convert_and_fail_clearly(pyav: bool) {
 
     // Joints onto the built-in franka: arm joints by name, gripper closure to the fingers.
     let franka = Embodiment::builtin("franka").expect("franka");
-    let q = ep.joint_trajectory(&franka, None).expect("q");
+    let jt = ep.joint_trajectory(&franka, None).expect("q");
+    assert!(jt.notes.is_empty(), "{:?}", jt.notes);
     let finger = franka
         .robot
         .dof_index("panda_finger_joint1")
         .expect("finger");
     let limits = franka.robot.dof_limits()[finger];
-    for (t, row) in q.iter().enumerate() {
+    for (t, row) in jt.q.iter().enumerate() {
         for j in 0..7 {
             let d = franka
                 .robot
                 .dof_index(&format!("panda_joint{}", j + 1))
                 .expect("joint");
-            assert!(
-                (row[d]
-                    - ep.joints[t][j].clamp(
-                        franka.robot.dof_limits()[d].0,
-                        franka.robot.dof_limits()[d].1
-                    ))
-                .abs()
-                    < 1e-12
-            );
+            assert_eq!(row[d], ep.joints[t][j], "recorded values pass unchanged");
         }
         let want = limits.1 - grip[t] * (limits.1 - limits.0);
         assert!((row[finger] - want).abs() < 1e-12);
@@ -218,7 +211,7 @@ fn read_convert_and_fail_clearly(pyav: bool) {
         "{msg}"
     );
     let mut no_k = droid_options(dir.path(), false);
-    no_k.intrinsics.remove(&serials[1]);
+    no_k.intrinsics.global.remove(&serials[1]);
     let err = droid::read_episode(&found[0], &no_k).expect_err("no intrinsics");
     assert!(
         err.to_string().contains(&format!(
@@ -261,14 +254,18 @@ fn read_convert_and_fail_clearly(pyav: bool) {
     let ag = agibot::read_episode(&root, &keys[0], &AgibotOptions::default()).expect("read agibot");
     assert_eq!(ag.id, "327/648642");
     assert_eq!(ag.task.as_deref(), Some("Pickup items in the supermarket"));
-    assert_close(&ag.joints, &rows(&a["joints"]), "agibot joints");
+    // The 14 arm columns, then the head's 2 (the fixture records no waist).
+    let arms: Vec<Vec<f64>> = ag.joints.iter().map(|r| r[..14].to_vec()).collect();
+    assert_close(&arms, &rows(&a["joints"]), "agibot joints");
+    assert_eq!(ag.joint_names.len(), 16);
     assert_eq!(ag.arms(), 2);
-    let eff = rows(&a["effector"]);
+    // The default gripper source: action/effector/position (0..1) where recorded.
+    let eff = rows(&a["action_effector"]);
     let yaw = f64s(&a["yaw_left"]);
     let roll = f64s(&a["roll_right"]);
     for t in 0..ag.frames {
-        assert!((ag.grippers[t][0] - eff[t][0] / 120.0).abs() < 1e-12);
-        assert!((ag.grippers[t][1] - eff[t][1] / 120.0).abs() < 1e-12);
+        assert!((ag.grippers[t][0] - eff[t][0]).abs() < 1e-12);
+        assert!((ag.grippers[t][1] - eff[t][1]).abs() < 1e-12);
         let e = &ag.ee_actions[t];
         assert_eq!(e.len(), 14);
         assert!(
@@ -366,7 +363,7 @@ fn read_convert_and_fail_clearly(pyav: bool) {
         convert(items, &franka, &dir.path().join("strict"), &strict, &|_| {}).expect_err("strict");
     assert!(err.to_string().contains("joint_positions"), "{err}");
 
-    // A video one frame short: that camera is skipped with the counts named, the other kept.
+    // A video one frame short is aligned (truncated: no timestamps for it) and reported.
     let short = dir.path().join("short");
     copy_tree(&found[0], &short);
     let ext2_video = short.join(format!("recordings/MP4/{}.mp4", serials[1]));
@@ -386,19 +383,16 @@ fn read_convert_and_fail_clearly(pyav: bool) {
         &|_| {},
     )
     .expect("convert short");
-    assert_eq!(report.views_written, 1);
-    assert_eq!(report.skipped.len(), 1);
-    assert!(
-        report.skipped[0]
-            .item
-            .ends_with(&format!("camera {}", serials[1]))
-            && report.skipped[0]
-                .error
-                .contains("has 5 frames but the states have 6"),
-        "{report:?}"
-    );
+    assert_eq!((report.views_written, report.skipped.len()), (2, 0));
+    let aligned: Vec<_> = report
+        .notes
+        .iter()
+        .filter(|n| n.note.kind() == "frames_aligned")
+        .collect();
+    assert_eq!(aligned.len(), 1, "{:?}", report.notes);
+    assert_eq!(aligned[0].camera.as_deref(), Some(serials[1].as_str()));
 
-    // AgiBot onto the built-in dual-arm robot.
+    // AgiBot onto the built-in G1 (its real joint names).
     let g1 = Embodiment::builtin("agibot-g1").expect("g1");
     let out = dir.path().join("converted_g1");
     let items = vec![(ag.id.clone(), Ok(ag.clone()))];

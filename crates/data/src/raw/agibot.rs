@@ -7,21 +7,30 @@
 //! <root>/parameters/<task>/<episode>/parameters/camera/<cam>_extrinsic_params_aligned.json
 //!     [{"extrinsic": {"rotation_matrix": [[3x3]], "translation_vector": [3]}}, ...]  (one per frame)
 //! <root>/proprio_stats/<task>/<episode>/proprio_stats.h5
-//!     state/joint/position [T,14] (left arm 1..7, right arm 1..7, radians)
-//!     state/effector/position [T,2] (left, right gripper)
-//!     state/end/position [T,2,3], state/end/orientation [T,2,4] (quaternion x, y, z, w)
+//!     state/joint/position [T,14]   left arm joints 1..7, right arm joints 1..7 (rad)
+//!     state/effector/position [T,2] gripper readings, rising as the gripper closes
+//!                                   (about 35 open, about 120 closed; [T,12] on
+//!                                   dexterous-hand robots)
+//!     action/effector/position [T,2] gripper commands, 0 open .. 1 closed
+//!     state/end/position [T,2,3], state/end/orientation [T,2,4] (x, y, z, w): the
+//!                                   arms' flange poses in the robot base frame
+//!     state/waist/position [T,2]    (pitch rad, lift m)
+//!     state/head/position [T,2]     (yaw, pitch; rad)
 //! <root>/task_info/task_<task>.json (optional; [{"episode_id": .., "task_name": ..}])
 //! ```
 //!
 //! The aligned extrinsics are `world_from_camera` (camera to robot base,
 //! OpenCV camera axes) per frame: the head can move. Intrinsics files that do
 //! not give the image size use [`AgibotOptions::default_size`] (AgiBot
-//! World's head colour camera: 640x480). Gripper readings are converted to a
-//! closure in [0, 1] with [`AgibotOptions::gripper_open`] and
-//! [`AgibotOptions::gripper_closed`] (defaults 0 and 120, the G1 gripper's
-//! range in the released data; swap them if your data counts the other way).
+//! World's colour cameras: 640x480). The joint columns are named as the real
+//! G1's URDF names them ([`ARM_JOINTS`], [`WAIST_JOINTS`], [`HEAD_JOINTS`]);
+//! the waist and head are read when recorded (otherwise noted, and the
+//! robot's home is used). The gripper closure comes from [`GripperSource`]:
+//! readings outside the stated range are clamped and counted in the
+//! conversion report. Dexterous-hand episodes are refused by name.
 
 use super::h5::H5;
+use super::report::Note;
 use super::{
     io_err, json_err, json_intrinsics, json_vec, read_json, rpy_from_xyzw, RawEpisode, RawError,
     RawView,
@@ -31,14 +40,72 @@ use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vect
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
-/// The joint names of `state/joint/position`'s 14 columns (the built-in
-/// `agibot-g1` robot's names).
-pub fn joint_names() -> Vec<String> {
-    ["left", "right"]
-        .iter()
-        .flat_map(|side| (1..=7).map(move |j| format!("{side}_arm_joint{j}")))
-        .collect()
+/// The robot's names for `state/joint/position`'s 14 columns (left arm
+/// 1..7, right arm 1..7): the real G1's URDF (genie_sim G01) names.
+pub const ARM_JOINTS: [&str; 14] = [
+    "idx21_arm_l_joint1",
+    "idx22_arm_l_joint2",
+    "idx23_arm_l_joint3",
+    "idx24_arm_l_joint4",
+    "idx25_arm_l_joint5",
+    "idx26_arm_l_joint6",
+    "idx27_arm_l_joint7",
+    "idx61_arm_r_joint1",
+    "idx62_arm_r_joint2",
+    "idx63_arm_r_joint3",
+    "idx64_arm_r_joint4",
+    "idx65_arm_r_joint5",
+    "idx66_arm_r_joint6",
+    "idx67_arm_r_joint7",
+];
+
+/// The robot's names for `state/waist/position`'s 2 columns, in the file's
+/// order (pitch in rad, then lift in metres, 0..0.55).
+pub const WAIST_JOINTS: [&str; 2] = ["idx02_body_joint2", "idx01_body_joint1"];
+
+/// The robot's names for `state/head/position`'s 2 columns (yaw, pitch).
+pub const HEAD_JOINTS: [&str; 2] = ["idx11_head_joint1", "idx12_head_joint2"];
+
+/// The links whose poses `state/end/{position,orientation}` hold, per arm
+/// (the arms' flanges: `agibot-g1`'s `arm_{l,r}_link7`, checked by FK of the
+/// recorded joints on AgiBot World's ge-sim-v2 sample).
+pub const EE_FRAMES: [&str; 2] = ["arm_l_link7", "arm_r_link7"];
+
+/// The gripper readings of `state/effector/position` this converter expects
+/// per frame (one per arm).
+pub const GRIPPER_VALUES: usize = 2;
+
+/// Where the gripper closure (0 open, 1 closed) comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GripperSource {
+    /// `action/effector/position` when the file has it, else the state.
+    #[default]
+    Auto,
+    /// `action/effector/position` (already 0 open .. 1 closed).
+    Action,
+    /// `state/effector/position`, mapped through
+    /// [`AgibotOptions::gripper_open`] / [`AgibotOptions::gripper_closed`].
+    State,
 }
+
+impl std::str::FromStr for GripperSource {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(Self::Auto),
+            "action" => Ok(Self::Action),
+            "state" => Ok(Self::State),
+            _ => Err(format!(
+                "\"{s}\": expected \"auto\", \"action\" or \"state\""
+            )),
+        }
+    }
+}
+
+/// The field of the state's gripper readings.
+pub const STATE_EFFECTOR: &str = "state/effector/position";
+/// The field of the commanded gripper closure (0..1).
+pub const ACTION_EFFECTOR: &str = "action/effector/position";
 
 /// What to read.
 #[derive(Debug, Clone)]
@@ -47,9 +114,11 @@ pub struct AgibotOptions {
     pub cameras: Vec<String>,
     /// Image size `(width, height)` when an intrinsics file does not give it.
     pub default_size: (u32, u32),
-    /// Gripper reading when fully open.
+    /// Where the gripper closure comes from.
+    pub gripper: GripperSource,
+    /// `state/effector/position` reading when fully open (default 35).
     pub gripper_open: f64,
-    /// Gripper reading when fully closed.
+    /// `state/effector/position` reading when fully closed (default 120).
     pub gripper_closed: f64,
 }
 
@@ -58,7 +127,8 @@ impl Default for AgibotOptions {
         Self {
             cameras: vec!["head".into()],
             default_size: (640, 480),
-            gripper_open: 0.0,
+            gripper: GripperSource::default(),
+            gripper_open: 35.0,
             gripper_closed: 120.0,
         }
     }
@@ -249,6 +319,81 @@ fn task_name(root: &Path, key: &EpisodeKey) -> Result<Option<String>, RawError> 
     }))
 }
 
+/// Gripper closures `[frames][2]` (0 open, 1 closed) from the source chosen
+/// in `options`, readings outside the range clamped and noted per arm.
+fn read_grippers(
+    h5: &H5,
+    frames: usize,
+    options: &AgibotOptions,
+    ep_id: &str,
+    notes: &mut Vec<Note>,
+) -> Result<Vec<Vec<f64>>, RawError> {
+    // The state's width first: a dexterous hand is refused by name whatever the source.
+    let state = h5.read(STATE_EFFECTOR)?;
+    let width = state.shape.get(1).copied().unwrap_or(1);
+    if state.shape.len() == 2 && state.shape[0] == frames && width != GRIPPER_VALUES {
+        return Err(RawError::Hdf5 {
+            path: h5.path().to_path_buf(),
+            field: STATE_EFFECTOR.into(),
+            message: format!(
+                "dexterous hand: {width} effector values per frame, this converter supports the {GRIPPER_VALUES}-value gripper"
+            ),
+        });
+    }
+    let use_action = match options.gripper {
+        GripperSource::Action => true,
+        GripperSource::State => false,
+        GripperSource::Auto => h5.has(ACTION_EFFECTOR),
+    };
+    let (field, values, open, closed) = if use_action {
+        let a = h5.read_shaped(ACTION_EFFECTOR, &[Some(frames), Some(GRIPPER_VALUES)])?;
+        (ACTION_EFFECTOR, a.values, 0.0, 1.0)
+    } else {
+        let s = h5.read_shaped(STATE_EFFECTOR, &[Some(frames), Some(GRIPPER_VALUES)])?;
+        (
+            STATE_EFFECTOR,
+            s.values,
+            options.gripper_open,
+            options.gripper_closed,
+        )
+    };
+    let span = closed - open;
+    if !(span.is_finite() && span.abs() > 1e-12) {
+        return Err(RawError::Inconsistent {
+            episode: ep_id.to_string(),
+            message: format!(
+                "gripper range open={open} closed={closed}: expected two different finite readings"
+            ),
+        });
+    }
+    let mut out = vec![vec![0.0; GRIPPER_VALUES]; frames];
+    for arm in 0..GRIPPER_VALUES {
+        let (mut count, mut worst, mut worst_c) = (0usize, 0.0, 0.5f64);
+        for (t, row) in out.iter_mut().enumerate() {
+            let raw = values[GRIPPER_VALUES * t + arm];
+            let c = (raw - open) / span;
+            if !(0.0..=1.0).contains(&c) {
+                count += 1;
+                if (c - 0.5).abs() > (worst_c - 0.5).abs() {
+                    (worst, worst_c) = (raw, c);
+                }
+            }
+            row[arm] = c.clamp(0.0, 1.0);
+        }
+        if count > 0 {
+            notes.push(Note::GripperClamped {
+                arm,
+                field: field.into(),
+                count,
+                worst,
+                open,
+                closed,
+            });
+        }
+    }
+    Ok(out)
+}
+
 /// Reads one AgiBot World episode.
 pub fn read_episode(
     root: &Path,
@@ -262,43 +407,34 @@ pub fn read_episode(
         .join(&key.episode)
         .join("proprio_stats.h5");
     let h5 = H5::open(&h5_path)?;
-    let joints = h5
+    let mut joints = h5
         .read_shaped("state/joint/position", &[None, Some(14)])?
         .rows();
     let frames = joints.len();
-    let eff = h5.read_shaped("state/effector/position", &[Some(frames), Some(2)])?;
+    let mut joint_names: Vec<String> = ARM_JOINTS.iter().map(|s| s.to_string()).collect();
+    let mut notes = Vec::new();
+    for (field, names) in [
+        ("state/waist/position", WAIST_JOINTS),
+        ("state/head/position", HEAD_JOINTS),
+    ] {
+        if h5.has(field) {
+            let a = h5.read_shaped(field, &[Some(frames), Some(names.len())])?;
+            for (row, v) in joints.iter_mut().zip(a.values.chunks(names.len())) {
+                row.extend_from_slice(v);
+            }
+            joint_names.extend(names.iter().map(|s| s.to_string()));
+        } else {
+            notes.push(Note::JointsMissing {
+                field: field.into(),
+                joints: names.iter().map(|s| s.to_string()).collect(),
+            });
+        }
+    }
+    let grippers = read_grippers(&h5, frames, options, &id, &mut notes)?;
     let pos = h5.read_shaped("state/end/position", &[Some(frames), Some(2), Some(3)])?;
     let ori = h5.read_shaped("state/end/orientation", &[Some(frames), Some(2), Some(4)])?;
-    let span = options.gripper_closed - options.gripper_open;
-    if !(span.is_finite() && span.abs() > 1e-12) {
-        return Err(RawError::Inconsistent {
-            episode: id,
-            message: format!(
-                "gripper range open={} closed={}: expected two different finite readings",
-                options.gripper_open, options.gripper_closed
-            ),
-        });
-    }
-    let mut grippers = Vec::with_capacity(frames);
     let mut ee_actions = Vec::with_capacity(frames);
-    for t in 0..frames {
-        let mut g = [0.0; 2];
-        for (arm, g) in g.iter_mut().enumerate() {
-            let raw = eff.values[2 * t + arm];
-            let c = (raw - options.gripper_open) / span;
-            if !(-0.05..=1.05).contains(&c) {
-                return Err(RawError::Hdf5 {
-                    path: h5_path.clone(),
-                    field: "state/effector/position".into(),
-                    message: format!(
-                        "frame {t}, arm {arm}: {raw} is outside the gripper range [{}, {}]",
-                        options.gripper_open.min(options.gripper_closed),
-                        options.gripper_open.max(options.gripper_closed)
-                    ),
-                });
-            }
-            *g = c.clamp(0.0, 1.0);
-        }
+    for (t, g) in grippers.iter().enumerate() {
         let mut row = Vec::with_capacity(14);
         for (arm, &g) in g.iter().enumerate() {
             let p = &pos.values[6 * t + 3 * arm..6 * t + 3 * arm + 3];
@@ -312,7 +448,6 @@ pub fn read_episode(
             row.extend_from_slice(&rpy);
             row.push(g);
         }
-        grippers.push(g.to_vec());
         ee_actions.push(row);
     }
 
@@ -342,19 +477,25 @@ pub fn read_episode(
                 &cams.join(format!("{cam}_extrinsic_params_aligned.json")),
                 frames,
             )?,
+            frame_times: None,
         });
     }
-    let ep = RawEpisode {
+    let mut ep = RawEpisode {
         id,
         source: h5_path.clone(),
         task: task_name(root, key)?,
         frames,
         joints,
-        joint_names: joint_names(),
+        joint_names,
         grippers,
         ee_actions,
+        ee_frames: EE_FRAMES.iter().map(|s| s.to_string()).collect(),
         views,
+        notes: Vec::new(),
     };
+    for n in notes {
+        ep.note(None, n);
+    }
     ep.validate()?;
     Ok(ep)
 }

@@ -4,8 +4,14 @@
 //! joints and the calibration, the recorded states and the end-effector
 //! actions. With `skip_bad`, an episode or view that fails is recorded in the
 //! report (and `skipped.json`) and the conversion goes on; nothing is dropped
-//! silently.
+//! silently. Everything changed on the way (frames aligned, intrinsics
+//! scaled, gripper readings clamped, joints outside the model's limits,
+//! calibration fallbacks) is a [`Note`] in the report, written whole to
+//! [`REPORT_FILE`]. The actions are flange poses: the dataset's
+//! `meta/info.json` names the link of each arm (`bridgev2w_source.ee_frame`).
 
+use super::align::align_frames;
+use super::report::{EpisodeNote, Note};
 use super::{RawEpisode, RawError, RawView};
 use crate::lerobot::{DatasetError, LeRobotV3Writer, WriterEpisode};
 use crate::video::{decode_mp4, VideoError};
@@ -50,6 +56,10 @@ pub struct Skipped {
     pub error: String,
 }
 
+/// The conversion report's file in the output dataset (the whole
+/// [`ConvertReport`]); `skipped.json` keeps its four summary fields.
+pub const REPORT_FILE: &str = "conversion_report.json";
+
 /// What a conversion did.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct ConvertReport {
@@ -62,6 +72,35 @@ pub struct ConvertReport {
     /// Views whose masks are empty in every frame (robot never in view):
     /// written, but listed because it usually means bad calibration.
     pub empty_mask_views: Vec<String>,
+    /// Per arm, the link the actions are poses of (from the episodes).
+    pub ee_frames: Vec<String>,
+    /// Everything changed or missing in the converted episodes.
+    pub notes: Vec<EpisodeNote>,
+}
+
+impl ConvertReport {
+    /// Per note kind (in first-seen order): the kind, how many notes, how
+    /// many episodes they concern, and whether they are warnings.
+    pub fn note_summary(&self) -> Vec<(&'static str, usize, usize, bool)> {
+        let mut out: Vec<(&'static str, usize, Vec<&str>, bool)> = Vec::new();
+        for n in &self.notes {
+            let kind = n.note.kind();
+            let i = match out.iter().position(|o| o.0 == kind) {
+                Some(i) => i,
+                None => {
+                    out.push((kind, 0, Vec::new(), n.note.is_warning()));
+                    out.len() - 1
+                }
+            };
+            out[i].1 += 1;
+            if !out[i].2.contains(&n.episode.as_str()) {
+                out[i].2.push(&n.episode);
+            }
+        }
+        out.into_iter()
+            .map(|(k, n, eps, w)| (k, n, eps.len(), w))
+            .collect()
+    }
 }
 
 /// Conversion errors.
@@ -141,8 +180,8 @@ pub fn resize_rgb(src: &[u8], (sw, sh): (usize, usize), (dw, dh): (usize, usize)
     out
 }
 
-/// One view of an episode at the output size: frames, masks and the first
-/// frame's camera (at the output size).
+/// One view of an episode at the output size: frames, masks and cameras,
+/// one per written frame, and the state each frame belongs to.
 #[derive(Debug, Clone)]
 pub struct ViewClip {
     /// RGB8 frames `width * height * 3`.
@@ -151,10 +190,18 @@ pub struct ViewClip {
     pub masks: Vec<Vec<u8>>,
     /// Cameras per frame at the output size.
     pub cameras: Vec<Camera>,
+    /// The episode's state index of each frame (all states, in order, unless
+    /// the video's frame count differed; see [`align_frames`]).
+    pub states: Vec<usize>,
+    /// What was changed (frames aligned, intrinsics scaled).
+    pub notes: Vec<Note>,
 }
 
-/// Decodes `view`'s video, checks it against the episode, resizes it and
-/// renders the `calc` masks of `q` (one configuration per frame).
+/// Decodes `view`'s video, aligns its frames with the episode's states
+/// (refusing counts that differ by more than
+/// [`super::align::MAX_FRAME_DIFFERENCE`]), scales the intrinsics to the
+/// video's size (noted when they differ), resizes the frames and renders the
+/// `calc` masks of `q` (one configuration per state).
 pub fn render_view(
     episode: &RawEpisode,
     view: &RawView,
@@ -167,52 +214,51 @@ pub fn render_view(
         camera: view.name.clone(),
         source: Box::new(e),
     })?;
-    let inconsistent = |message: String| {
-        ConvertError::Raw(RawError::Inconsistent {
-            episode: episode.id.clone(),
-            message,
-        })
-    };
-    if video.frames.len() != episode.frames {
-        return Err(inconsistent(format!(
-            "video {} has {} frames but the states have {}",
-            view.video.display(),
-            video.frames.len(),
-            episode.frames
-        )));
-    }
+    let alignment = align_frames(episode, view, video.frames.len())?;
+    let mut notes: Vec<Note> = alignment.note.into_iter().collect();
     let k = &view.intrinsics;
-    let aspect_video = video.width as f64 / video.height as f64;
-    let aspect_k = f64::from(k.width) / f64::from(k.height);
-    if (aspect_video / aspect_k - 1.0).abs() > 0.01 {
-        return Err(inconsistent(format!(
-            "camera \"{}\": intrinsics are for {}x{} but video {} is {}x{} (different aspect ratio)",
-            view.name,
-            k.width,
-            k.height,
-            view.video.display(),
-            video.width,
-            video.height
-        )));
+    let (vw, vh) = (video.width as u32, video.height as u32);
+    if (k.width, k.height) != (vw, vh) {
+        let scale = [
+            f64::from(vw) / f64::from(k.width),
+            f64::from(vh) / f64::from(k.height),
+        ];
+        notes.push(Note::IntrinsicsScaled {
+            from: [k.width, k.height],
+            to: [vw, vh],
+            scale,
+            uniform: (scale[0] / scale[1] - 1.0).abs() <= 0.01,
+        });
     }
-    let cameras: Vec<Camera> = (0..episode.frames)
-        .map(|t| view.camera(t).rescaled(width as u32, height as u32))
+    let pairs = alignment.pairs;
+    // Intrinsics at the video's size, then at the output size (one rescale:
+    // the two compose exactly).
+    let cameras: Vec<Camera> = pairs
+        .iter()
+        .map(|&(_, s)| view.camera(s).rescaled(width as u32, height as u32))
         .collect();
     let robot = &embodiment.robot;
-    let masks: Vec<Vec<u8>> = q
+    let masks: Vec<Vec<u8>> = pairs
         .par_iter()
         .zip(&cameras)
-        .map(|(q, cam)| render_frame_mask(robot, &Rasterizer::new(cam), q))
+        .map(|(&(_, s), cam)| render_frame_mask(robot, &Rasterizer::new(cam), &q[s]))
         .collect();
-    let rgb = video
-        .frames
+    let rgb = pairs
         .par_iter()
-        .map(|f| resize_rgb(f, (video.width, video.height), (width, height)))
+        .map(|&(v, _)| {
+            resize_rgb(
+                &video.frames[v],
+                (video.width, video.height),
+                (width, height),
+            )
+        })
         .collect();
     Ok(ViewClip {
         rgb,
         masks,
         cameras,
+        states: pairs.iter().map(|p| p.1).collect(),
+        notes,
     })
 }
 
@@ -267,8 +313,23 @@ pub fn convert(
                     ),
                 }));
             }
-            let q = ep.joint_trajectory(embodiment, options.joint_names.as_deref())?;
-            report.episodes += 1;
+            if !report.ee_frames.is_empty() && report.ee_frames != ep.ee_frames {
+                return Err(ConvertError::Raw(RawError::Inconsistent {
+                    episode: ep.id.clone(),
+                    message: format!(
+                        "actions are poses of {:?}, but earlier episodes' of {:?} (one dataset, one frame)",
+                        ep.ee_frames, report.ee_frames
+                    ),
+                }));
+            }
+            let jt = ep.joint_trajectory(embodiment, options.joint_names.as_deref())?;
+            let q = jt.q;
+            let mut notes = ep.notes.clone();
+            notes.extend(jt.notes.into_iter().map(|note| EpisodeNote {
+                episode: ep.id.clone(),
+                camera: None,
+                note,
+            }));
             let to_f32 = |rows: &[Vec<f64>]| -> Vec<Vec<f32>> {
                 rows.iter()
                     .map(|r| r.iter().map(|&v| v as f32).collect())
@@ -276,6 +337,9 @@ pub fn convert(
             };
             let (states, actions) = (to_f32(&q), to_f32(&ep.ee_actions));
             debug_assert!(states.iter().all(|s| s.len() == state_dim));
+            let pick = |rows: &[Vec<f32>], idx: &[usize]| -> Vec<Vec<f32>> {
+                idx.iter().map(|&i| rows[i].clone()).collect()
+            };
             let task = ep.task.clone().unwrap_or_default();
             let mut view_errors = Vec::new();
             for view in &ep.views {
@@ -293,17 +357,27 @@ pub fn convert(
                         .empty_mask_views
                         .push(format!("{} camera {}", ep.id, view.name));
                 }
+                notes.extend(clip.notes.iter().map(|note| EpisodeNote {
+                    episode: ep.id.clone(),
+                    camera: Some(view.name.clone()),
+                    note: note.clone(),
+                }));
                 writer.add_episode(WriterEpisode {
                     task: &task,
                     split: options.split.as_deref(),
-                    states: states.clone(),
-                    actions: actions.clone(),
+                    states: pick(&states, &clip.states),
+                    actions: pick(&actions, &clip.states),
                     rgb: &clip.rgb,
                     masks: Some(&clip.masks),
                     labels: None,
                     camera: view.is_static().then_some(&clip.cameras[0]),
                 })?;
                 report.views_written += 1;
+            }
+            report.episodes += 1;
+            report.notes.extend(notes);
+            if report.ee_frames.is_empty() {
+                report.ee_frames = ep.ee_frames.clone();
             }
             Ok(view_errors)
         })();
@@ -337,16 +411,31 @@ pub fn convert(
             "format": options.source_format,
             "episodes": report.episodes,
             "skipped": report.skipped.len(),
+            "ee_frame": report.ee_frames,
+            "action": "per arm [x, y, z, roll, pitch, yaw, gripper]: the pose of the ee_frame link \
+                       (a flange, not a TCP) in the robot base frame, metres and extrinsic XYZ \
+                       Euler angles (radians); gripper 0 open .. 1 closed",
+            "report": REPORT_FILE,
         }
     }))?;
-    let path: PathBuf = out.join("skipped.json");
-    let text =
-        serde_json::to_string_pretty(&report).map_err(|e| ConvertError::Options(e.to_string()))?;
-    write_atomic(&path, text.as_bytes()).map_err(|source| {
-        ConvertError::Dataset(DatasetError::Io {
-            path: path.clone(),
-            source,
-        })
-    })?;
+    let skipped = json!({
+        "episodes": report.episodes,
+        "views_written": report.views_written,
+        "skipped": report.skipped,
+        "empty_mask_views": report.empty_mask_views,
+    });
+    for (name, text) in [
+        (REPORT_FILE, serde_json::to_string_pretty(&report)),
+        ("skipped.json", serde_json::to_string_pretty(&skipped)),
+    ] {
+        let path: PathBuf = out.join(name);
+        let text = text.map_err(|e| ConvertError::Options(format!("{name}: {e}")))?;
+        write_atomic(&path, text.as_bytes()).map_err(|source| {
+            ConvertError::Dataset(DatasetError::Io {
+                path: path.clone(),
+                source,
+            })
+        })?;
+    }
     Ok(report)
 }

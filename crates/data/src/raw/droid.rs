@@ -1,37 +1,52 @@
-//! DROID raw episodes (the layout of the released `droid_raw` data):
+//! DROID raw episodes, in the layout of the released `droid_raw` data
+//! (droid-dataset/droid, `docs/the-droid-dataset.md`):
 //!
 //! ```text
-//! <episode>/metadata_<lab>+<uuid>+<date>.json   uuid, current_task, trajectory_length,
-//!                                               {ext1,ext2,wrist}_cam_serial, *_mp4_path
-//! <episode>/trajectory.h5                      observation/robot_state/{joint_positions [T,7],
-//!                                               gripper_position [T], cartesian_position [T,6]},
-//!                                               observation/camera_extrinsics/<serial>_left [T,6]
-//! <episode>/recordings/MP4/<serial>.mp4        left image of each ZED camera
+//! <episode>/metadata_<uuid>.json        uuid (= "<lab>+<8 hex>+<date>", the episode id of
+//!                                       DROID's annotation files), current_task,
+//!                                       trajectory_length, {ext1,ext2,wrist}_cam_serial,
+//!                                       {ext1,ext2,wrist}_mp4_path
+//! <episode>/trajectory.h5               observation/robot_state/{joint_positions [T,7],
+//!                                       gripper_position [T], cartesian_position [T,6]},
+//!                                       observation/camera_extrinsics/<serial>_{left,right} [T,6],
+//!                                       observation/timestamp/cameras/<serial>_{frame_received,
+//!                                       estimated_capture,...} [T] (ms)
+//! <episode>/recordings/MP4/<serial>.mp4         the camera's left image (1280x720)
+//! <episode>/recordings/MP4/<serial>-stereo.mp4  left and right side by side (not read)
+//! <episode>/recordings/MP4/<serial>_timestamps.json  (where present) per-frame ms, matched to
+//!                                       `_frame_received` by DROID's own MP4 reader
 //! ```
 //!
-//! Neither the raw episodes nor RLDS carry camera intrinsics, so they come
-//! from a user-supplied JSON file keyed by camera serial:
-//! `{"<serial>": {"fx": .., "fy": .., "cx": .., "cy": .., "width": 1280, "height": 720}}`.
-//! Re-calibrated extrinsics (the DROID team's improved calibrations, or
-//! anyone's) replace the recorded ones through an override file:
-//! `{"<uuid>": {"<serial>_left": [x, y, z, rx, ry, rz]}}`, or the same
-//! camera map at the top level to apply to every episode. Extrinsics are
+//! The raw episodes carry no intrinsics (only the SVO files do); DROID
+//! publishes them, with re-calibrated extrinsics, as `intrinsics.json` and
+//! `cam2base_extrinsics.json` / `cam2base_extrinsic_superset.json`: these
+//! are read as published ([`super::droid_calibration`], which also says
+//! which eye a pose belongs to), as are the project's simple layouts. An
+//! episode without published extrinsics uses the recorded
+//! `<serial>_left` extrinsics, with a counted warning in the conversion
+//! report (or is refused with [`MissingCalibration::Error`]). Extrinsics are
 //! DROID's `[x, y, z, rx, ry, rz]` = `world_from_camera` with extrinsic XYZ
 //! Euler angles ([`world_from_camera_from_xyz_rpy`]).
 //!
 //! The robot is a Franka Panda (`panda_joint1..7`) with a Robotiq 2F-85
 //! gripper: `gripper_position` is its normalised closure (0 open, 1 closed),
 //! i.e. an opening of [`ROBOTIQ_2F85_STROKE_M`]` * (1 - g)`.
+//! `cartesian_position` is the pose of the flange, [`EE_FRAME`].
+//! A video one or two frames longer or shorter than the states is aligned
+//! at conversion ([`super::align`]).
 
+use super::align::FrameTimes;
+use super::droid_calibration::{find_pose, ExtrinsicsTable, IntrinsicsTable, MissingCalibration};
 use super::h5::H5;
-use super::{
-    io_err, json_err, json_intrinsics, json_vec, read_json, RawEpisode, RawError, RawView,
-};
-use bridgev2w_embodiment::camera::{world_from_camera_from_xyz_rpy, Intrinsics};
+use super::report::{Eye, Note};
+use super::{io_err, json_err, read_json, RawEpisode, RawError, RawView};
+use bridgev2w_embodiment::camera::world_from_camera_from_xyz_rpy;
 use nalgebra::Isometry3;
 use serde_json::Value;
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+
+/// The link whose pose `cartesian_position` is (the Franka flange).
+pub const EE_FRAME: &str = "panda_link8";
 
 /// Full stroke of the Robotiq 2F-85 gripper (metres).
 pub const ROBOTIQ_2F85_STROKE_M: f64 = 0.085;
@@ -61,85 +76,44 @@ pub struct DroidOptions {
     /// Camera roles to load (`ext1`, `ext2`, `wrist`); default the two
     /// external cameras.
     pub roles: Vec<String>,
-    /// Intrinsics per camera serial.
-    pub intrinsics: BTreeMap<String, Intrinsics>,
-    /// Extrinsics overrides: per episode uuid (or `"*"` for all) per
-    /// `<serial>_left` key.
-    pub calibration: BTreeMap<String, BTreeMap<String, [f64; 6]>>,
+    /// Intrinsics per camera (published `intrinsics.json` or simple layout).
+    pub intrinsics: IntrinsicsTable,
+    /// Extrinsics files, the first with a pose for a camera winning.
+    pub calibration: Vec<ExtrinsicsTable>,
+    /// What to do for a camera none of them calibrates.
+    pub missing_calibration: MissingCalibration,
 }
 
 impl DroidOptions {
     /// Options with intrinsics read from `intrinsics_file` and, optionally,
-    /// extrinsics overrides from `calibration_file`.
+    /// extrinsics from `calibration_file`.
     pub fn from_files(
         intrinsics_file: &Path,
         calibration_file: Option<&Path>,
     ) -> Result<Self, RawError> {
+        let files: Vec<PathBuf> = calibration_file
+            .map(Path::to_path_buf)
+            .into_iter()
+            .collect();
+        Self::from_calibration_files(intrinsics_file, &files)
+    }
+
+    /// Options with intrinsics read from `intrinsics_file` and extrinsics
+    /// from each of `calibration_files` (earlier files take precedence).
+    pub fn from_calibration_files(
+        intrinsics_file: &Path,
+        calibration_files: &[PathBuf],
+    ) -> Result<Self, RawError> {
         Ok(Self {
             roles: vec!["ext1".into(), "ext2".into()],
-            intrinsics: read_intrinsics(intrinsics_file)?,
-            calibration: match calibration_file {
-                Some(p) => read_calibration(p)?,
-                None => BTreeMap::new(),
-            },
+            intrinsics: IntrinsicsTable::read(intrinsics_file)?,
+            calibration: calibration_files
+                .iter()
+                .map(|p| ExtrinsicsTable::read(p))
+                .collect::<Result<_, _>>()?,
+            missing_calibration: MissingCalibration::default(),
         })
     }
-}
-
-/// Parses an intrinsics file: `{"<serial>": {"fx", "fy", "cx", "cy", "width", "height"}}`.
-pub fn read_intrinsics(path: &Path) -> Result<BTreeMap<String, Intrinsics>, RawError> {
-    let v = read_json(path)?;
-    let map = v
-        .as_object()
-        .ok_or_else(|| json_err(path, "", "expected an object keyed by camera serial"))?;
-    let mut out = BTreeMap::new();
-    for (serial, k) in map {
-        let intr = json_intrinsics(path, k, serial, ["fx", "fy", "cx", "cy"], None)?;
-        out.insert(serial.clone(), intr);
-    }
-    Ok(out)
-}
-
-/// Parses an extrinsics override file (see the module docs). Top-level keys
-/// ending in `_left`/`_right` are camera keys applying to every episode
-/// (stored under `"*"`); other keys are episode uuids.
-pub fn read_calibration(
-    path: &Path,
-) -> Result<BTreeMap<String, BTreeMap<String, [f64; 6]>>, RawError> {
-    let v = read_json(path)?;
-    let map = v.as_object().ok_or_else(|| {
-        json_err(
-            path,
-            "",
-            "expected an object keyed by episode uuid or camera",
-        )
-    })?;
-    let mut out: BTreeMap<String, BTreeMap<String, [f64; 6]>> = BTreeMap::new();
-    let six = |field: &str, x: &Value| -> Result<[f64; 6], RawError> {
-        let v = json_vec(path, x, field, 6)?;
-        Ok([v[0], v[1], v[2], v[3], v[4], v[5]])
-    };
-    for (key, x) in map {
-        if key.ends_with("_left") || key.ends_with("_right") {
-            out.entry("*".into())
-                .or_default()
-                .insert(key.clone(), six(key, x)?);
-        } else {
-            let cams = x.as_object().ok_or_else(|| {
-                json_err(
-                    path,
-                    key,
-                    "expected an object of <serial>_left: [x, y, z, rx, ry, rz]",
-                )
-            })?;
-            for (cam, e) in cams {
-                out.entry(key.clone())
-                    .or_default()
-                    .insert(cam.clone(), six(&format!("{key}.{cam}"), e)?);
-            }
-        }
-    }
-    Ok(out)
 }
 
 /// Every DROID episode directory under `root` (directories holding a
@@ -194,6 +168,22 @@ fn metadata_file(dir: &Path) -> Result<PathBuf, RawError> {
     }
 }
 
+/// The metadata's episode id candidates: the `uuid` field, then the id in
+/// the file name (`metadata_<id>.json`) when it differs.
+fn episode_ids(uuid: &str, meta_path: &Path) -> Vec<String> {
+    let mut ids = vec![uuid.to_string()];
+    if let Some(stem) = meta_path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .and_then(|s| s.strip_prefix("metadata_"))
+    {
+        if stem != uuid {
+            ids.push(stem.to_string());
+        }
+    }
+    ids
+}
+
 /// Reads one DROID episode directory.
 pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, RawError> {
     let meta_path = metadata_file(dir)?;
@@ -212,6 +202,8 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
             "missing: expected the episode's uuid string",
         )
     })?;
+    let ids = episode_ids(&id, &meta_path);
+    let ids: Vec<&str> = ids.iter().map(String::as_str).collect();
     let h5 = H5::open(&dir.join("trajectory.h5"))?;
     let joints = h5
         .read_shaped("observation/robot_state/joint_positions", &[None, Some(7)])?
@@ -233,14 +225,22 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
             ));
         }
     }
+    let grip_field = "observation/robot_state/gripper_position";
     let mut grippers = Vec::with_capacity(frames);
+    let (mut clamped, mut worst) = (0usize, 0.5f64);
     for (t, &g) in grip.values.iter().enumerate() {
         if !(-0.05..=1.05).contains(&g) {
             return Err(RawError::Hdf5 {
                 path: h5.path().to_path_buf(),
-                field: "observation/robot_state/gripper_position".into(),
+                field: grip_field.into(),
                 message: format!("frame {t}: {g}, expected a closure in [0, 1]"),
             });
+        }
+        if !(0.0..=1.0).contains(&g) {
+            clamped += 1;
+            if (g - 0.5).abs() > (worst - 0.5).abs() {
+                worst = g;
+            }
         }
         grippers.push(vec![g.clamp(0.0, 1.0)]);
     }
@@ -253,16 +253,54 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
             row
         })
         .collect();
-
-    let overrides = |key: &str| -> Option<[f64; 6]> {
-        options
-            .calibration
-            .get(&id)
-            .and_then(|m| m.get(key))
-            .or_else(|| options.calibration.get("*").and_then(|m| m.get(key)))
-            .copied()
+    let mut ep = RawEpisode {
+        id: id.clone(),
+        source: dir.to_path_buf(),
+        task: text("current_task").filter(|t| !t.is_empty()),
+        frames,
+        joints,
+        joint_names: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+        grippers,
+        ee_actions,
+        ee_frames: vec![EE_FRAME.to_string()],
+        views: Vec::new(),
+        notes: Vec::new(),
     };
-    let mut views = Vec::new();
+    if clamped > 0 {
+        ep.note(
+            None,
+            Note::GripperClamped {
+                arm: 0,
+                field: grip_field.into(),
+                count: clamped,
+                worst,
+                open: 0.0,
+                closed: 1.0,
+            },
+        );
+    }
+
+    // Calibration keys of this episode's entries that match none of its cameras.
+    let serials: Vec<String> = ROLES
+        .iter()
+        .filter_map(|r| text(&format!("{r}_cam_serial")))
+        .collect();
+    for table in &options.calibration {
+        if let (Some(_), poses) = table.entry(&ids) {
+            for p in poses {
+                if !serials.contains(&p.camera.serial) {
+                    ep.note(
+                        None,
+                        Note::CalibrationKeyUnmatched {
+                            file: table.file.clone(),
+                            key: p.key.clone(),
+                        },
+                    );
+                }
+            }
+        }
+    }
+
     for role in &options.roles {
         if !ROLES.contains(&role.as_str()) {
             return Err(RawError::Inconsistent {
@@ -288,43 +326,169 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
                 what: format!("video of camera {role} ({serial})"),
             });
         }
-        let intrinsics = *options.intrinsics.get(&serial).ok_or_else(|| RawError::Inconsistent {
-            episode: id.clone(),
-            message: format!(
-                "no intrinsics for camera {role} (serial {serial}) in the intrinsics file: DROID does not record them, add an entry \"{serial}\""
-            ),
+        let (intrinsics, k_key) = options.intrinsics.lookup(&ids, &serial).ok_or_else(|| {
+            json_err(
+                &options.intrinsics.file,
+                &format!("{}.{serial}", ids[0]),
+                format!(
+                    "no intrinsics for camera {role} (serial {serial}) of episode {}: expected an entry \"{}\": {{\"{serial}\": [fx, cx, fy, cy]}} or a top-level \"{serial}\"",
+                    ids[0], ids[0]
+                ),
+            )
         })?;
-        let key = format!("{serial}_left");
-        let world_from_camera: Vec<Isometry3<f64>> = match overrides(&key) {
-            Some(e) => vec![world_from_camera_from_xyz_rpy(e); frames],
-            None => h5
-                .read_shaped(
-                    &format!("observation/camera_extrinsics/{key}"),
-                    &[Some(frames), Some(6)],
-                )?
-                .rows()
-                .iter()
-                .map(|r| world_from_camera_from_xyz_rpy([r[0], r[1], r[2], r[3], r[4], r[5]]))
-                .collect(),
-        };
-        views.push(RawView {
+        let poses = view_extrinsics(&h5, options, &ids, &serial, frames, &mut ep)?;
+        ep.note(
+            Some(&serial),
+            Note::Calibration {
+                intrinsics: format!("{} [{k_key}]", options.intrinsics.file.display()),
+                extrinsics: poses.source,
+                eye: poses.eye,
+                right_to_left: poses.right_to_left,
+            },
+        );
+        let world_from_camera = poses.world_from_camera;
+        let frame_times = read_frame_times(&h5, &video, &serial)?;
+        ep.views.push(RawView {
             name: serial,
             video,
             intrinsics,
             world_from_camera,
+            frame_times,
         });
     }
-    let ep = RawEpisode {
-        id,
-        source: dir.to_path_buf(),
-        task: text("current_task").filter(|t| !t.is_empty()),
-        frames,
-        joints,
-        joint_names: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
-        grippers,
-        ee_actions,
-        views,
-    };
     ep.validate()?;
     Ok(ep)
+}
+
+/// A camera's extrinsics and where they came from.
+struct ViewPoses {
+    /// Per state, of the left image.
+    world_from_camera: Vec<Isometry3<f64>>,
+    /// File and key (or the recorded dataset).
+    source: String,
+    /// The eye the pose was given for.
+    eye: Eye,
+    /// Whether a right-eye pose was moved to the left eye.
+    right_to_left: bool,
+}
+
+/// `world_from_camera` per state for camera `serial`'s left image: the first
+/// calibration file's pose for it (a right-eye pose moved to the left eye
+/// with the recorded stereo offset), else the recorded `<serial>_left`
+/// extrinsics (noted, or refused).
+fn view_extrinsics(
+    h5: &H5,
+    options: &DroidOptions,
+    ids: &[&str],
+    serial: &str,
+    frames: usize,
+    ep: &mut RawEpisode,
+) -> Result<ViewPoses, RawError> {
+    let recorded = |eye: Eye| -> Result<Vec<Isometry3<f64>>, RawError> {
+        Ok(h5
+            .read_shaped(
+                &format!("observation/camera_extrinsics/{serial}_{eye}"),
+                &[Some(frames), Some(6)],
+            )?
+            .rows()
+            .iter()
+            .map(|r| world_from_camera_from_xyz_rpy([r[0], r[1], r[2], r[3], r[4], r[5]]))
+            .collect())
+    };
+    let mut searched = Vec::new();
+    for table in &options.calibration {
+        let (entry, poses) = table.entry(ids);
+        let Some(p) = find_pose(poses, serial) else {
+            searched.push(match entry {
+                Some(e) => format!(
+                    "{}: entry \"{e}\" has no key \"{serial}\"",
+                    table.file.display()
+                ),
+                None => format!("{}: no entry for episode {}", table.file.display(), ids[0]),
+            });
+            continue;
+        };
+        let source = format!(
+            "{} [{}{}]",
+            table.file.display(),
+            entry.map_or(String::new(), |e| format!("{e}.")),
+            p.key
+        );
+        let pose = world_from_camera_from_xyz_rpy(p.pose);
+        return match p.camera.eye() {
+            Eye::Left => Ok(ViewPoses {
+                world_from_camera: vec![pose; frames],
+                source,
+                eye: Eye::Left,
+                right_to_left: false,
+            }),
+            Eye::Right => {
+                let field = format!("observation/camera_extrinsics/{serial}_right");
+                if !h5.has(&field) {
+                    return Err(RawError::Inconsistent {
+                        episode: ep.id.clone(),
+                        message: format!(
+                            "{source} is a pose of camera {serial}'s right eye, but the video is its left image and {} records no \"{field}\" to take the stereo offset from (DROID publishes no per-camera baseline): give a left-eye pose",
+                            h5.path().display()
+                        ),
+                    });
+                }
+                let (l, r) = (recorded(Eye::Left)?, recorded(Eye::Right)?);
+                let right_from_left = r[0].inverse() * l[0];
+                Ok(ViewPoses {
+                    world_from_camera: vec![pose * right_from_left; frames],
+                    source,
+                    eye: Eye::Right,
+                    right_to_left: true,
+                })
+            }
+        };
+    }
+    let files: Vec<PathBuf> = options.calibration.iter().map(|t| t.file.clone()).collect();
+    let reason = if files.is_empty() {
+        "no calibration file given".to_string()
+    } else {
+        searched.join("; ")
+    };
+    if options.missing_calibration == MissingCalibration::Error {
+        return Err(RawError::Inconsistent {
+            episode: ep.id.clone(),
+            message: format!("camera {serial}: no published extrinsics ({reason})"),
+        });
+    }
+    ep.note(
+        Some(serial),
+        Note::CalibrationMissing {
+            files,
+            reason: format!("{reason}: the recorded extrinsics are used"),
+        },
+    );
+    let field = format!("observation/camera_extrinsics/{serial}_left");
+    Ok(ViewPoses {
+        world_from_camera: recorded(Eye::Left)?,
+        source: format!("{} [{field}]", h5.path().display()),
+        eye: Eye::Left,
+        right_to_left: false,
+    })
+}
+
+/// The recorded timestamps matching `video`'s frames to the states, when
+/// both sides are present: `<video stem>_timestamps.json` (a list of ms per
+/// frame) and `observation/timestamp/cameras/<serial>_frame_received`.
+fn read_frame_times(h5: &H5, video: &Path, serial: &str) -> Result<Option<FrameTimes>, RawError> {
+    let json = video.with_file_name(format!(
+        "{}_timestamps.json",
+        video.file_stem().and_then(|s| s.to_str()).unwrap_or(serial)
+    ));
+    let field = format!("observation/timestamp/cameras/{serial}_frame_received");
+    if !json.is_file() || !h5.has(&field) {
+        return Ok(None);
+    }
+    let v = read_json(&json)?;
+    let video_ms = v
+        .as_array()
+        .and_then(|a| a.iter().map(Value::as_f64).collect::<Option<Vec<f64>>>())
+        .ok_or_else(|| json_err(&json, "", "expected a list of per-frame timestamps (ms)"))?;
+    let state_ms = h5.read_shaped(&field, &[None])?.values;
+    Ok(Some(FrameTimes { video_ms, state_ms }))
 }

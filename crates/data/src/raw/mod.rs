@@ -11,17 +11,25 @@
 //! Masks for these episodes are rendered from the *recorded joint positions*
 //! (no IK): [`RawEpisode::joint_trajectory`] maps them onto an
 //! [`Embodiment`]'s degrees of freedom by joint name, grippers included.
+//! Whatever a reader or the conversion changes (clamped gripper readings,
+//! aligned frame counts, scaled intrinsics, joints outside the model's
+//! limits, calibration fallbacks) is a [`report::Note`] in the conversion
+//! report.
 
 pub mod agibot;
+pub mod align;
 pub mod convert;
 pub mod droid;
+pub mod droid_calibration;
 pub mod h5;
+pub mod report;
 pub mod source;
 
 use bridgev2w_embodiment::actions::gripper_to_joint;
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use nalgebra::Isometry3;
+use report::{EpisodeNote, Note};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
@@ -213,8 +221,11 @@ pub struct RawView {
     pub video: PathBuf,
     /// Intrinsics at the video's resolution.
     pub intrinsics: Intrinsics,
-    /// `world_from_camera` per frame (OpenCV camera axes; world = robot base).
+    /// `world_from_camera` per state (OpenCV camera axes; world = robot base).
     pub world_from_camera: Vec<Isometry3<f64>>,
+    /// Recorded timestamps matching video frames to states, where the raw
+    /// data has them (used only when the counts differ; see [`align`]).
+    pub frame_times: Option<align::FrameTimes>,
 }
 
 impl RawView {
@@ -256,10 +267,28 @@ pub struct RawEpisode {
     /// Gripper closure per frame and arm: 0 open, 1 closed.
     pub grippers: Vec<Vec<f64>>,
     /// End-effector actions per frame: `[x, y, z, roll, pitch, yaw, gripper]`
-    /// per arm (extrinsic XYZ Euler angles, like `bridgev2w masks` input).
+    /// per arm: the pose of the link named in [`RawEpisode::ee_frames`] (a
+    /// flange, not a TCP) in the robot base frame, extrinsic XYZ Euler angles.
     pub ee_actions: Vec<Vec<f64>>,
+    /// Per arm, the link whose pose `ee_actions` holds (DROID:
+    /// `panda_link8`; AgiBot World: [`agibot::EE_FRAMES`]).
+    pub ee_frames: Vec<String>,
     /// Cameras.
     pub views: Vec<RawView>,
+    /// What the reader changed or could not find (for the conversion report).
+    pub notes: Vec<EpisodeNote>,
+}
+
+/// Joint configurations of an [`Embodiment`] per frame, and the recorded
+/// values outside its limits (kept, not clamped).
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointTrajectory {
+    /// Full configurations, one per state.
+    pub q: Vec<Vec<f64>>,
+    /// Per joint outside its limits in some frame: a
+    /// [`Note::JointOutOfLimits`]; and a [`Note::JointColumnsIgnored`] for
+    /// columns named `-`.
+    pub notes: Vec<Note>,
 }
 
 impl RawEpisode {
@@ -276,6 +305,13 @@ impl RawEpisode {
         };
         if self.frames == 0 {
             return Err(bad("no frames".into()));
+        }
+        if self.ee_frames.len() != self.arms() {
+            return Err(bad(format!(
+                "{} end-effector frame names for {} arms",
+                self.ee_frames.len(),
+                self.arms()
+            )));
         }
         for (what, rows, width) in [
             ("joint positions", &self.joints, self.joint_names.len()),
@@ -316,15 +352,17 @@ impl RawEpisode {
 
     /// The recorded joints as full configurations of `embodiment`, frame by
     /// frame: each joint column goes to the actuated joint of the same name
-    /// (or, with `rename`, of `rename[i]`), each arm's gripper closure to its
-    /// gripper joint through [`gripper_to_joint`]; joints the dataset does not
-    /// record stay at the embodiment's home. Values outside a joint's limits
-    /// are clamped (recorded states sit on the limits within sensor noise).
+    /// (or, with `rename`, of `rename[i]`; a `-` there leaves the column
+    /// undriven, noted), each arm's gripper closure to its gripper joint
+    /// through [`gripper_to_joint`]; joints the dataset does not record stay
+    /// at the embodiment's home. Values outside a joint's limits are kept as
+    /// recorded and listed in [`JointTrajectory::notes`] (count, worst value,
+    /// limits), never clamped.
     pub fn joint_trajectory(
         &self,
         embodiment: &Embodiment,
         rename: Option<&[String]>,
-    ) -> Result<Vec<Vec<f64>>, RawError> {
+    ) -> Result<JointTrajectory, RawError> {
         let robot = &embodiment.robot;
         let names = rename.unwrap_or(&self.joint_names);
         let bad = |message: String| RawError::Embodiment {
@@ -338,10 +376,13 @@ impl RawEpisode {
                 self.joint_names.len()
             )));
         }
-        let dofs: Vec<usize> = names
+        let dofs: Vec<Option<usize>> = names
             .iter()
             .map(|n| {
-                robot.dof_index(n).ok_or_else(|| {
+                if n == "-" {
+                    return Ok(None);
+                }
+                robot.dof_index(n).map(Some).ok_or_else(|| {
                     bad(format!(
                         "recorded joint \"{n}\" is not an actuated joint of robot \"{}\" (pass the robot's names for the {} columns)",
                         robot.name,
@@ -359,18 +400,26 @@ impl RawEpisode {
             )));
         }
         let limits = robot.dof_limits();
-        let clamp = |d: usize, v: f64| {
-            let (lo, hi) = limits[d];
-            v.clamp(lo, hi)
-        };
-        Ok(self
+        // Per column: (count outside, worst value, its distance outside).
+        let mut outside = vec![(0usize, 0.0f64, 0.0f64); dofs.len()];
+        let q = self
             .joints
             .iter()
             .zip(&self.grippers)
             .map(|(row, grips)| {
                 let mut q = embodiment.home.clone();
-                for (&d, &v) in dofs.iter().zip(row) {
-                    q[d] = clamp(d, v);
+                for (c, (d, &v)) in dofs.iter().zip(row).enumerate() {
+                    let Some(d) = *d else { continue };
+                    let (lo, hi) = limits[d];
+                    let excess = (lo - v).max(v - hi);
+                    if excess > 0.0 {
+                        let o = &mut outside[c];
+                        o.0 += 1;
+                        if excess > o.2 {
+                            (o.1, o.2) = (v, excess);
+                        }
+                    }
+                    q[d] = v;
                 }
                 for (ee, &g) in embodiment.end_effectors.iter().zip(grips) {
                     if let Some(d) = ee.gripper_dof {
@@ -379,7 +428,40 @@ impl RawEpisode {
                 }
                 q
             })
-            .collect())
+            .collect();
+        let mut notes: Vec<Note> = dofs
+            .iter()
+            .zip(&outside)
+            .filter_map(|(d, &(count, worst, _))| {
+                let d = (*d)?;
+                (count > 0).then(|| Note::JointOutOfLimits {
+                    joint: robot.dof_names()[d].to_string(),
+                    count,
+                    worst,
+                    lower: limits[d].0,
+                    upper: limits[d].1,
+                })
+            })
+            .collect();
+        let ignored: Vec<String> = dofs
+            .iter()
+            .zip(&self.joint_names)
+            .filter(|(d, _)| d.is_none())
+            .map(|(_, n)| n.clone())
+            .collect();
+        if !ignored.is_empty() {
+            notes.push(Note::JointColumnsIgnored { columns: ignored });
+        }
+        Ok(JointTrajectory { q, notes })
+    }
+
+    /// Records `note` about this episode (and `camera`).
+    pub fn note(&mut self, camera: Option<&str>, note: Note) {
+        self.notes.push(EpisodeNote {
+            episode: self.id.clone(),
+            camera: camera.map(str::to_string),
+            note,
+        });
     }
 }
 
