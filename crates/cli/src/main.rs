@@ -7,6 +7,7 @@ mod eval_cmd;
 mod export_lora_cmd;
 mod grid_cmd;
 mod masks_cmd;
+mod overlay_cmd;
 mod parity_cmd;
 mod plan_cmd;
 mod predict_cmd;
@@ -31,6 +32,8 @@ struct Cli {
 enum Command {
     /// Render embodiment masks for a joint or end-effector action trajectory.
     Masks(masks_cmd::MasksArgs),
+    /// Draw rendered masks over a camera's real frames (PNG, GIF) and score them against a ground truth.
+    Overlay(overlay_cmd::OverlayArgs),
     /// Print a robot's links, actuated joints (the --joints column order) and end effectors.
     RobotInfo(robot_info::RobotInfoArgs),
     /// Run the built-in demo: the Franka doing a pick, masks and a GIF overlay in ./demo-out/.
@@ -102,6 +105,7 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Masks(a) => masks_cmd::run(&a),
+        Command::Overlay(a) => overlay_cmd::run(&a),
         Command::RobotInfo(a) => robot_info::run(&a),
         Command::Demo(a) => demo::run(&a),
         Command::Bench(b) => bench::run(&b),

@@ -11,6 +11,7 @@
 pub mod clip_masks;
 pub mod lerobot;
 pub mod mp4;
+pub mod overlay;
 pub mod raw;
 pub mod render;
 pub mod synth;

@@ -98,6 +98,39 @@ pub fn overlay(frame: &RenderOutput, background: &[u8]) -> Vec<u8> {
     out
 }
 
+/// Draws a label map over an RGB8 frame (`w` x `h`, both row-major): every
+/// robot pixel is tinted by `tint` (0 none .. 1 opaque) towards its link's
+/// colour, and the outline of each link (a labelled pixel with a
+/// 4-neighbour of another label) is drawn in that colour. The real frame
+/// stays visible, so a mask that is off by a few pixels shows as an offset
+/// outline.
+pub fn draw_outlines(rgb: &mut [u8], labels: &[u16], w: usize, h: usize, tint: f32) {
+    let at = |x: usize, y: usize| labels[y * w + x];
+    for y in 0..h {
+        for x in 0..w {
+            let l = at(x, y);
+            if l == 0 {
+                continue;
+            }
+            let edge = x == 0
+                || y == 0
+                || x + 1 == w
+                || y + 1 == h
+                || at(x - 1, y) != l
+                || at(x + 1, y) != l
+                || at(x, y - 1) != l
+                || at(x, y + 1) != l;
+            let c = label_color(l);
+            let a = if edge { 1.0 } else { tint };
+            let i = (y * w + x) * 3;
+            for (k, &ck) in c.iter().enumerate() {
+                let v = f32::from(rgb[i + k]) * (1.0 - a) + ck * 255.0 * a;
+                rgb[i + k] = v.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+}
+
 /// Nearest-neighbour upscaling of a `w` x `h` RGB8 image by `k`.
 pub fn upscale(rgb: &[u8], w: usize, h: usize, k: usize) -> Vec<u8> {
     let mut out = Vec::with_capacity(rgb.len() * k * k);
@@ -187,6 +220,26 @@ mod tests {
             vec![1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]
         );
         assert_eq!(mask_rgb(&[0, 3]), vec![0, 0, 0, 255, 255, 255]);
+    }
+
+    #[test]
+    fn outlines_mark_link_borders_and_keep_the_background() {
+        // 4x3: a 2x2 link (label 1) at the left, background elsewhere.
+        let labels = [1u16, 1, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0];
+        let mut rgb = vec![10u8; 4 * 3 * 3];
+        draw_outlines(&mut rgb, &labels, 4, 3, 0.3);
+        let c = label_color(1).map(|v| (v * 255.0).round() as u8);
+        assert_eq!(&rgb[0..3], &c, "edge pixel in the link colour");
+        assert_eq!(
+            &rgb[2 * 3..2 * 3 + 3],
+            &[10, 10, 10],
+            "background untouched"
+        );
+        let mut big = vec![1u16; 9];
+        big[0] = 0;
+        let mut rgb = vec![0u8; 27];
+        draw_outlines(&mut rgb, &big, 3, 3, 0.0);
+        assert_eq!(&rgb[4 * 3..4 * 3 + 3], &[0, 0, 0], "interior, no tint");
     }
 
     #[test]
