@@ -19,6 +19,8 @@ Needs numpy only (Pillow optional: with it, overlay PNGs are written). Checks:
 4. genie-envisioner samples (no joints): hand camera mount from recorded flange pose vs camera pose;
    waist lift/pitch and head angles solved from the recorded head camera pose.
 5. Mesh sanity: triangle counts, sizes, watertightness (edge-manifold closed), parent/child mesh contact.
+6. Omnipicker pads (informational): the modelled pad inner-edge ends projected into the hand photos of
+   ge-sim-v2 frame 0 vs pixel positions measured by eye on the real photos (GRIPPER_PAD_PX); overlay pads_*.png.
 """
 import argparse
 import math
@@ -375,6 +377,74 @@ def check_genie_envisioner(u, root):
               f'{1000 * resd[0]:.1f} mm, {resd[1]:.2f} deg')
 
 
+# Omnipicker pads, measured by eye on ge-sim-v2-demo_000 frame 0 (cur_left.png / cur_right.png, 512x384, both grippers
+# at raw 0.217 = "open"): pixel (u, v) of the distal (top) end and of the lower end of the black rubber strip on the
+# inner face of each finger, +-3 px. 'outer' = the finger on idx41/idx81 (image-left in the left hand camera,
+# image-right in the right hand camera).
+GRIPPER_PAD_PX = {
+    ('l', 'outer', 'tip'): (150, 188), ('l', 'outer', 'bottom'): (165, 242),
+    ('l', 'inner', 'tip'): (411, 244), ('l', 'inner', 'bottom'): (402, 270),
+    ('r', 'inner', 'tip'): (158, 233), ('r', 'inner', 'bottom'): (165, 270),
+    ('r', 'outer', 'tip'): (393, 188), ('r', 'outer', 'bottom'): (378, 303),
+}
+
+
+def pad_keypoints(u, q, side, part):
+    """Distal and proximal midpoints of the inner edge of the modelled pad box on the finger's link4, root frame."""
+    pre = {'l': {'outer': '4', 'inner': '3'}, 'r': {'outer': '8', 'inner': '7'}}[side][part]
+    link = u.by_name[f'idx{pre}3_gripper_{side}_{part}_joint4']['child']
+    P = u.all_poses(q); B = P[f'gripper_{side}_base_link']; Bi = np.linalg.inv(B)
+    boxes = [(T, prm) for T, kind, prm in u.visuals(link) if kind == 'box']
+    T, size = boxes[-1]
+    s = np.asarray(size) / 2
+    corners = np.array([[a, b, c, 1.0] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]) * np.r_[s, 1]
+    cb = (Bi @ P[link] @ T @ corners.T).T[:, :3]          # corners in the gripper base frame
+    inner = cb[np.argsort(np.abs(cb[:, 1]))[:4]]         # the 4 corners of the inner face (smallest |y|)
+    inner = inner[np.argsort(inner[:, 2])]
+    out = {}
+    for name, sel in (('tip', inner[2:]), ('bottom', inner[:2])):
+        pb = sel.mean(0); out[name] = (B @ np.r_[pb, 1.0])[:3]
+    return out
+
+
+def check_gripper_pads(u, D, out=None):
+    """Modelled pad inner-edge ends vs the hand-camera pixels measured on the real photos (informational)."""
+    J = np.load(os.path.join(D, 'state_joints_0.npy')).astype(float)
+    K = np.load(os.path.join(D, 'intrinsic.npy')).astype(float)
+    q = q_from_state20(J[0])
+    print(f'\n== 6. Omnipicker pads vs measured pixels (ge-sim-v2 frame 0, gripper raw {J[0, 14]:.3f} / {J[0, 15]:.3f}, '
+          f'outer joint1 = {q["idx41_gripper_l_outer_joint1"]:.4f} / {q["idx81_gripper_r_outer_joint1"]:.4f} rad)')
+    res = []; draw = {}
+    for side, ci, cam in (('l', 1, 'hand_left_camera_optical'), ('r', 2, 'hand_right_camera_optical')):
+        Tcw = np.linalg.inv(u.link_pose(cam, q))
+        for part in ('outer', 'inner'):
+            kp = pad_keypoints(u, q, side, part)
+            for which in ('tip', 'bottom'):
+                uv, _ = project(K[ci], Tcw, kp[which][None])
+                m = np.array(GRIPPER_PAD_PX[(side, part, which)], float)
+                d = uv[0] - m; res.append(np.linalg.norm(d))
+                draw.setdefault(side, []).append((m, uv[0]))
+                print(f'  {side} {part:5s} {which:6s}: measured ({m[0]:.0f}, {m[1]:.0f}) model ({uv[0, 0]:.0f}, {uv[0, 1]:.0f}) '
+                      f'error ({d[0]:+.0f}, {d[1]:+.0f}) px')
+    res = np.array(res)
+    print(f'  pad keypoint error: rms {np.sqrt((res ** 2).mean()):.1f} px, max {res.max():.1f} px (8 points; '
+          'informational, not a pass/fail check: the Omnipicker is not calibrated, see README)')
+    if out:
+        try:
+            from PIL import Image, ImageDraw
+        except ImportError:
+            return res
+        for side, img in (('l', 'cur_left.png'), ('r', 'cur_right.png')):
+            im = Image.open(os.path.join(D, img)).convert('RGB'); dr = ImageDraw.Draw(im)
+            for m, p in draw[side]:
+                dr.line([tuple(m), tuple(p)], fill=(255, 255, 0))
+                dr.ellipse((m[0] - 4, m[1] - 4, m[0] + 4, m[1] + 4), outline=(0, 255, 0), width=2)
+                dr.rectangle((p[0] - 4, p[1] - 4, p[0] + 4, p[1] + 4), outline=(255, 0, 255), width=2)
+            path = os.path.join(out, 'pads_' + img); im.save(path)
+            print(f'  {path}: green = measured, magenta = model, yellow = error')
+    return res
+
+
 WH = ['idx01_body_joint1', 'idx02_body_joint2', 'idx11_head_joint1', 'idx12_head_joint2']
 
 
@@ -450,6 +520,7 @@ def main():
     ok &= check_cameras(u, D)
     overlays(u, D, a.overlays)
     check_genie_envisioner(u, a.realdata)
+    check_gripper_pads(u, D, a.overlays)
     print('\nALL PASS' if ok else '\nSOME CHECKS FAILED')
     return 0 if ok else 1
 

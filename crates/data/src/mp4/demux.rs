@@ -2,6 +2,7 @@
 //! and presentation times.
 
 use super::{Av1Config, H264Config, Mp4Error, Sample, TrackCodec, VideoTrack};
+use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;
 
 /// Boxes of a container: `(four-character code, body)`.
@@ -104,6 +105,74 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
         .find(|(k, _)| k == b"moov")
         .map(|(_, b)| *b)
         .ok_or_else(|| r.err("no \"moov\" box (truncated or unfinished recording?)"))?;
+    track_from_moov(&r, moov, data.len() as u64)
+}
+
+/// Reads the first video track's sample table from the MP4 file at `path`
+/// without reading its media data: the top-level box headers are read by
+/// seeking, and only `moov` is read whole. The same checks as [`demux`]
+/// (every box and every sample within the file).
+pub fn demux_file(path: &Path) -> Result<VideoTrack, Mp4Error> {
+    let io = |source: std::io::Error| Mp4Error::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let r = Reader { path };
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let len = file.metadata().map_err(io)?.len();
+    let (mut ftyp, mut moov) = (false, None);
+    let mut pos = 0u64;
+    while pos < len {
+        let left = len - pos;
+        if left < 8 {
+            return Err(r.err(format!(
+                "file: {left} trailing bytes are not a box header (truncated file?)"
+            )));
+        }
+        file.seek(SeekFrom::Start(pos)).map_err(io)?;
+        let mut head = [0u8; 16];
+        let header_len = if left >= 16 { 16 } else { 8 };
+        file.read_exact(&mut head[..header_len]).map_err(io)?;
+        let size32 = u32::from_be_bytes([head[0], head[1], head[2], head[3]]);
+        let kind = [head[4], head[5], head[6], head[7]];
+        let (header, size) = match size32 {
+            0 => (8u64, left),
+            1 => {
+                if header_len < 16 {
+                    return Err(r.err("file: truncated large box header"));
+                }
+                (16u64, be_u64(&head, 8).unwrap_or(0))
+            }
+            s => (8u64, u64::from(s)),
+        };
+        if size < header || size > left {
+            return Err(r.err(format!(
+                "file: box \"{}\" at byte {pos} claims {size} bytes but only {left} remain (truncated file?)",
+                String::from_utf8_lossy(&kind),
+            )));
+        }
+        if &kind == b"ftyp" {
+            ftyp = true;
+        } else if &kind == b"moov" && moov.is_none() {
+            // Bounded by the file's length (checked above).
+            let mut body = vec![0u8; (size - header) as usize];
+            file.seek(SeekFrom::Start(pos + header)).map_err(io)?;
+            file.read_exact(&mut body).map_err(io)?;
+            moov = Some(body);
+        }
+        pos += size;
+    }
+    if !ftyp {
+        return Err(r.err("no \"ftyp\" box: not an MP4 file"));
+    }
+    let moov = moov.ok_or_else(|| r.err("no \"moov\" box (truncated or unfinished recording?)"))?;
+    track_from_moov(&r, &moov, len)
+}
+
+/// The first video track of `moov` in a file of `file_len` bytes.
+fn track_from_moov(r: &Reader<'_>, moov: &[u8], file_len: u64) -> Result<VideoTrack, Mp4Error> {
+    let path = r.path;
+    let data_len = usize::try_from(file_len).unwrap_or(usize::MAX);
     let short = |what: &str| r.err(format!("{what} is too short"));
     let mvhd = r.child(moov, b"mvhd", "moov")?;
     let movie_timescale = if mvhd.first() == Some(&1) {
@@ -170,22 +239,22 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
         // holds at least one byte of the file, and a table of sizes holds
         // four bytes per sample.
         let room = if uniform != 0 {
-            data.len() / uniform as usize
+            data_len / uniform as usize
         } else {
             stsz.len().saturating_sub(12) / 4
         };
-        if count > room.min(data.len()) {
+        if count > room.min(data_len) {
             return Err(r.err(format!(
                 "stsz claims {count} samples, but {} (at most {}): corrupt sample table",
                 if uniform != 0 {
-                    format!("{uniform}-byte samples fit the {}-byte file", data.len())
+                    format!("{uniform}-byte samples fit the {file_len}-byte file")
                 } else {
                     format!(
                         "its size table holds {} entries",
                         stsz.len().saturating_sub(12) / 4
                     )
                 },
-                room.min(data.len())
+                room.min(data_len)
             )));
         }
         let sizes: Vec<u32> = if uniform != 0 {
@@ -238,8 +307,8 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
             Err(_) => None,
         };
 
-        let offsets = composition_offsets(&r, stbl, count)?;
-        let start = edit_start(&r, trak, movie_timescale, timescale)?;
+        let offsets = composition_offsets(r, stbl, count)?;
+        let start = edit_start(r, trak, movie_timescale, timescale)?;
         let mut samples = Vec::with_capacity(count);
         let mut dts = 0u64;
         for (c, &chunk_offset) in chunk_offsets.iter().enumerate() {
@@ -257,11 +326,10 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
                     break;
                 }
                 let size = sizes[i];
-                if off + u64::from(size) > data.len() as u64 {
+                if off.saturating_add(u64::from(size)) > file_len {
                     return Err(r.err(format!(
-                        "sample {i} (bytes {off}..{}) lies beyond the end of the file ({} bytes): truncated file",
-                        off + u64::from(size),
-                        data.len()
+                        "sample {i} (bytes {off}..{}) lies beyond the end of the file ({file_len} bytes): truncated file",
+                        off.saturating_add(u64::from(size)),
                     )));
                 }
                 samples.push(Sample {

@@ -8,6 +8,8 @@
 //! the `edts`/`elst` edit list), H.264 (`avc1`/`avc3` with `avcC`) or AV1
 //! (`av01` with `av1C`); another sample entry (HEVC, VP9, ...) is reported
 //! as an unsupported codec. Fragmented files (`moof`) are not read.
+//! [`demux_file`] reads the same from a file on disk holding only its
+//! `moov` box in memory (the samples stay in the file, read by offset).
 
 use std::path::{Path, PathBuf};
 
@@ -109,7 +111,7 @@ pub struct VideoTrack {
 mod demux;
 mod mux;
 
-pub use demux::demux;
+pub use demux::{demux, demux_file};
 pub use mux::{mux_h264, H264Stream};
 
 /// Reads a file, mapping errors to [`Mp4Error::Io`].

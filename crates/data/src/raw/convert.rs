@@ -14,7 +14,7 @@ use super::align::align_frames;
 use super::report::{EpisodeNote, Note};
 use super::{RawEpisode, RawError, RawView};
 use crate::lerobot::{DatasetError, LeRobotV3Writer, WriterEpisode};
-use crate::video::{decode_mp4, VideoError};
+use crate::video::{VideoError, VideoStream};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::masks::render_frame_mask;
@@ -209,12 +209,15 @@ pub fn render_view(
     q: &[Vec<f64>],
     (width, height): (usize, usize),
 ) -> Result<ViewClip, ConvertError> {
-    let video = decode_mp4(&view.video).map_err(|e| ConvertError::Video {
+    let video_err = |e| ConvertError::Video {
         episode: episode.id.clone(),
         camera: view.name.clone(),
         source: Box::new(e),
-    })?;
-    let alignment = align_frames(episode, view, video.frames.len())?;
+    };
+    // Streamed: only the resized frames are held, never the whole video.
+    let mut stream = VideoStream::open(&view.video).map_err(video_err)?;
+    let video = stream.info().clone();
+    let alignment = align_frames(episode, view, video.frames)?;
     let mut notes: Vec<Note> = alignment.note.into_iter().collect();
     let k = &view.intrinsics;
     let (vw, vh) = (video.width as u32, video.height as u32);
@@ -243,16 +246,48 @@ pub fn render_view(
         .zip(&cameras)
         .map(|(&(_, s), cam)| render_frame_mask(robot, &Rasterizer::new(cam), &q[s]))
         .collect();
-    let rgb = pairs
-        .par_iter()
-        .map(|&(v, _)| {
-            resize_rgb(
-                &video.frames[v],
-                (video.width, video.height),
-                (width, height),
-            )
-        })
-        .collect();
+    // The slot of each video frame in the clip (frames the alignment
+    // drops have none); frames are resized in parallel chunks as they come.
+    let mut slot_of = vec![None; video.frames];
+    for (slot, &(v, _)) in pairs.iter().enumerate() {
+        slot_of[v] = Some(slot);
+    }
+    let mut rgb = vec![Vec::new(); pairs.len()];
+    let mut chunk: Vec<(usize, Vec<u8>)> = Vec::new();
+    let resize = |chunk: &mut Vec<(usize, Vec<u8>)>, rgb: &mut [Vec<u8>]| {
+        let resized: Vec<(usize, Vec<u8>)> = chunk
+            .par_drain(..)
+            .map(|(slot, f)| {
+                (
+                    slot,
+                    resize_rgb(&f, (video.width, video.height), (width, height)),
+                )
+            })
+            .collect();
+        for (slot, f) in resized {
+            rgb[slot] = f;
+        }
+    };
+    while let Some(frame) = stream.next_frame().map_err(video_err)? {
+        if let Some(slot) = slot_of.get(frame.index).copied().flatten() {
+            chunk.push((slot, frame.rgb));
+            if chunk.len() >= 32 {
+                resize(&mut chunk, &mut rgb);
+            }
+        }
+    }
+    resize(&mut chunk, &mut rgb);
+    if let Some(slot) = rgb.iter().position(Vec::is_empty) {
+        return Err(ConvertError::Raw(RawError::Inconsistent {
+            episode: episode.id.clone(),
+            message: format!(
+                "video {}: frame {} of {} was not decoded",
+                view.video.display(),
+                pairs[slot].0,
+                video.frames
+            ),
+        }));
+    }
     Ok(ViewClip {
         rgb,
         masks,

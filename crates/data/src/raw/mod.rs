@@ -25,7 +25,6 @@ pub mod h5;
 pub mod report;
 pub mod source;
 
-use bridgev2w_embodiment::actions::gripper_to_joint;
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use nalgebra::Isometry3;
@@ -354,8 +353,10 @@ impl RawEpisode {
     /// frame: each joint column goes to the actuated joint of the same name
     /// (or, with `rename`, of `rename[i]`; a `-` there leaves the column
     /// undriven, noted), each arm's gripper closure to its gripper joint
-    /// through [`gripper_to_joint`]; joints the dataset does not record stay
-    /// at the embodiment's home. Values outside a joint's limits are kept as
+    /// through
+    /// [`EndEffector::gripper_joint_value`](bridgev2w_embodiment::actions::EndEffector::gripper_joint_value)
+    /// (open and closed as the robot defines them); joints the dataset does
+    /// not record stay at the embodiment's home. Values outside a joint's limits are kept as
     /// recorded and listed in [`JointTrajectory::notes`] (count, worst value,
     /// limits), never clamped.
     pub fn joint_trajectory(
@@ -423,7 +424,7 @@ impl RawEpisode {
                 }
                 for (ee, &g) in embodiment.end_effectors.iter().zip(grips) {
                     if let Some(d) = ee.gripper_dof {
-                        q[d] = gripper_to_joint(g, limits[d]);
+                        q[d] = ee.gripper_joint_value(g, limits[d]);
                     }
                 }
                 q

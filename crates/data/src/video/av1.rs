@@ -9,7 +9,8 @@ use super::VideoError;
 use crate::mp4::{Av1Config, VideoTrack};
 use re_rav1d::dav1d::pixel::{MatrixCoefficients, YUVRange};
 use re_rav1d::dav1d::{Decoder, Error, Picture, PixelLayout, PlanarImageComponent, Settings};
-use std::path::Path;
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
 
 fn codec_err(path: &Path, frame: usize, message: String) -> VideoError {
     VideoError::Codec {
@@ -21,100 +22,143 @@ fn codec_err(path: &Path, frame: usize, message: String) -> VideoError {
     }
 }
 
-/// The AV1 samples of `track` as RGB8 frames, in presentation order.
-pub(super) fn decode(
-    path: &Path,
-    data: &[u8],
-    track: &VideoTrack,
-    config: &Av1Config,
-) -> Result<Vec<Vec<u8>>, VideoError> {
-    if config.seq_profile > 2 {
-        return Err(VideoError::UnsupportedProfile {
+/// A rav1d decoder for one track, fed sample by sample. A panic inside the
+/// decoder (a corrupt stream) becomes an error naming the frame, after which
+/// the decoder is not used again.
+pub(super) struct Av1Decoder {
+    path: PathBuf,
+    decoder: Decoder,
+    width: usize,
+    height: usize,
+    /// Pictures taken so far (for errors).
+    taken: usize,
+    /// A panic was caught: the decoder's state is unknown.
+    broken: bool,
+}
+
+impl Av1Decoder {
+    /// A decoder for `track`, sent the configuration OBUs (any picture that
+    /// comes out of them is appended to `out`).
+    pub(super) fn new(
+        path: &Path,
+        track: &VideoTrack,
+        config: &Av1Config,
+        out: &mut VecDeque<Vec<u8>>,
+    ) -> Result<Self, VideoError> {
+        if config.seq_profile > 2 {
+            return Err(VideoError::UnsupportedProfile {
+                path: path.to_path_buf(),
+                codec: "AV1",
+                profile: format!("seq_profile {}", config.seq_profile),
+                what_is: "profiles 0 (Main), 1 (High) and 2 (Professional) are",
+            });
+        }
+        let mut settings = Settings::new();
+        settings.set_n_threads(1);
+        settings.set_max_frame_delay(1);
+        let decoder =
+            Decoder::with_settings(&settings).map_err(|e| codec_err(path, 0, e.to_string()))?;
+        let mut me = Self {
             path: path.to_path_buf(),
-            codec: "AV1",
-            profile: format!("seq_profile {}", config.seq_profile),
-            what_is: "profiles 0 (Main), 1 (High) and 2 (Professional) are",
-        });
-    }
-    let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        decode_samples(path, data, track, config)
-    }));
-    match run {
-        Ok(result) => result,
-        Err(panic) => {
-            let what = panic
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "the decoder panicked".into());
-            Err(codec_err(
-                path,
-                0,
-                format!("corrupt stream (the decoder stopped: {what})"),
-            ))
+            decoder,
+            width: usize::from(track.width),
+            height: usize::from(track.height),
+            taken: 0,
+            broken: false,
+        };
+        if !config.config_obus.is_empty() {
+            // The sequence header, ahead of the first temporal unit.
+            me.guarded(0, |d| d.send(config.config_obus.clone(), 0, out))?;
         }
+        Ok(me)
     }
-}
 
-fn decode_samples(
-    path: &Path,
-    data: &[u8],
-    track: &VideoTrack,
-    config: &Av1Config,
-) -> Result<Vec<Vec<u8>>, VideoError> {
-    let mut settings = Settings::new();
-    settings.set_n_threads(1);
-    settings.set_max_frame_delay(1);
-    let mut decoder =
-        Decoder::with_settings(&settings).map_err(|e| codec_err(path, 0, e.to_string()))?;
-    let mut frames = Vec::with_capacity(track.samples.len());
-    let (w, h) = (usize::from(track.width), usize::from(track.height));
-    let take = |decoder: &mut Decoder, frames: &mut Vec<Vec<u8>>, i: usize| loop {
-        match decoder.get_picture() {
-            Ok(pic) => frames.push(rgb(path, &pic, w, h, frames.len())?),
-            Err(Error::Again) => return Ok(()),
-            Err(e) => return Err(codec_err(path, i, e.to_string())),
+    /// Decodes sample `i` (a temporal unit); the pictures that come out are
+    /// appended to `out` as RGB8.
+    pub(super) fn feed(
+        &mut self,
+        i: usize,
+        bytes: Vec<u8>,
+        out: &mut VecDeque<Vec<u8>>,
+    ) -> Result<(), VideoError> {
+        self.guarded(i, |d| {
+            d.send(bytes, i, out)?;
+            d.take(i, out)
+        })
+    }
+
+    /// The pictures still held after sample `n - 1`.
+    pub(super) fn finish(
+        &mut self,
+        n: usize,
+        out: &mut VecDeque<Vec<u8>>,
+    ) -> Result<(), VideoError> {
+        self.guarded(n, |d| d.take(n, out))
+    }
+
+    /// Runs `step`, turning a panic inside the decoder into an error.
+    fn guarded(
+        &mut self,
+        i: usize,
+        step: impl FnOnce(&mut Self) -> Result<(), VideoError>,
+    ) -> Result<(), VideoError> {
+        if self.broken {
+            return Err(codec_err(
+                &self.path,
+                i,
+                "the decoder stopped at an earlier frame".into(),
+            ));
         }
-    };
-    if !config.config_obus.is_empty() {
-        // The sequence header, ahead of the first temporal unit.
-        send(
-            path,
-            &mut decoder,
-            config.config_obus.clone(),
-            0,
-            &mut |d| take(d, &mut frames, 0),
-        )?;
-    }
-    for (i, s) in track.samples.iter().enumerate() {
-        let start = s.offset as usize;
-        let bytes = data[start..start + s.size as usize].to_vec();
-        send(path, &mut decoder, bytes, i, &mut |d| {
-            take(d, &mut frames, i)
-        })?;
-        take(&mut decoder, &mut frames, i)?;
-    }
-    take(&mut decoder, &mut frames, track.samples.len())?;
-    Ok(frames)
-}
-
-/// Sends one chunk, draining pictures (`take`) whenever the decoder asks.
-fn send(
-    path: &Path,
-    decoder: &mut Decoder,
-    bytes: Vec<u8>,
-    i: usize,
-    take: &mut dyn FnMut(&mut Decoder) -> Result<(), VideoError>,
-) -> Result<(), VideoError> {
-    let mut result = decoder.send_data(bytes, None, Some(i as i64), None);
-    loop {
-        match result {
-            Ok(()) => return Ok(()),
-            Err(Error::Again) => {
-                take(decoder)?;
-                result = decoder.send_pending_data();
+        let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| step(self)));
+        match run {
+            Ok(result) => result,
+            Err(panic) => {
+                self.broken = true;
+                let what = panic
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "the decoder panicked".into());
+                Err(codec_err(
+                    &self.path,
+                    i,
+                    format!("corrupt stream (the decoder stopped: {what})"),
+                ))
             }
-            Err(e) => return Err(codec_err(path, i, e.to_string())),
+        }
+    }
+
+    /// Drains every picture the decoder has ready.
+    fn take(&mut self, i: usize, out: &mut VecDeque<Vec<u8>>) -> Result<(), VideoError> {
+        loop {
+            match self.decoder.get_picture() {
+                Ok(pic) => {
+                    out.push_back(rgb(&self.path, &pic, self.width, self.height, self.taken)?);
+                    self.taken += 1;
+                }
+                Err(Error::Again) => return Ok(()),
+                Err(e) => return Err(codec_err(&self.path, i, e.to_string())),
+            }
+        }
+    }
+
+    /// Sends one chunk, draining pictures whenever the decoder asks.
+    fn send(
+        &mut self,
+        bytes: Vec<u8>,
+        i: usize,
+        out: &mut VecDeque<Vec<u8>>,
+    ) -> Result<(), VideoError> {
+        let mut result = self.decoder.send_data(bytes, None, Some(i as i64), None);
+        loop {
+            match result {
+                Ok(()) => return Ok(()),
+                Err(Error::Again) => {
+                    self.take(i, out)?;
+                    result = self.decoder.send_pending_data();
+                }
+                Err(e) => return Err(codec_err(&self.path, i, e.to_string())),
+            }
         }
     }
 }

@@ -2,19 +2,22 @@
 //! source), and decoding what cameras and encoders write: H.264 (openh264:
 //! Baseline, Main and High profiles, CABAC, B-frames) and AV1 ([`av1`], the
 //! pure-Rust port of dav1d: 8/10/12 bit, 4:2:0, 4:2:2, 4:4:4, monochrome),
-//! frames returned in presentation order with their presentation times.
+//! frames returned in presentation order with their presentation times,
+//! one at a time ([`VideoStream`], memory bounded by the codec's reorder
+//! depth) or all at once ([`decode_mp4`]).
 
 mod av1;
+mod h264;
+mod stream;
 mod yuv;
 
-use crate::mp4::{
-    demux, mux_h264, read_file, H264Config, H264Stream, Mp4Error, TrackCodec, VideoTrack,
-};
-use openh264::decoder::{Decoder, DecoderConfig, Flush};
+pub use stream::{VideoFrame, VideoInfo, VideoStream};
+
+use crate::mp4::{mux_h264, H264Stream, Mp4Error, TrackCodec, VideoTrack};
 use openh264::encoder::{
     BitRate, Encoder, EncoderConfig, FrameRate, FrameType, QpRange, RateControlMode,
 };
-use openh264::formats::{RgbSliceU8, YUVBuffer, YUVSource};
+use openh264::formats::{RgbSliceU8, YUVBuffer};
 use openh264::OpenH264API;
 use std::path::{Path, PathBuf};
 
@@ -280,11 +283,11 @@ pub struct DecodedVideo {
     pub timestamps_s: Vec<f64>,
 }
 
-/// Reads and decodes every frame of an MP4 file (H.264 or AV1).
+/// Reads and decodes every frame of an MP4 file (H.264 or AV1) into memory
+/// (`frames * height * width * 3` bytes: for long or large videos use
+/// [`VideoStream`], which holds a few frames at a time).
 pub fn decode_mp4(path: &Path) -> Result<DecodedVideo, VideoError> {
-    let data = read_file(path)?;
-    let track = demux(path, &data)?;
-    decode_track(path, &data, &track)
+    VideoStream::open(path)?.read_all()
 }
 
 /// Decodes the samples of `track` (from `data`, the file's bytes): the
@@ -294,34 +297,7 @@ pub fn decode_track(
     data: &[u8],
     track: &VideoTrack,
 ) -> Result<DecodedVideo, VideoError> {
-    let (w, h) = (usize::from(track.width), usize::from(track.height));
-    let frames = match &track.codec {
-        TrackCodec::H264(config) => decode_h264(path, data, track, config)?,
-        TrackCodec::Av1(config) => av1::decode(path, data, track, config)?,
-    };
-    let n = track.samples.len();
-    if frames.len() != n {
-        return Err(VideoError::Codec {
-            path: path.to_path_buf(),
-            codec: codec_name(&track.codec),
-            op: "decode",
-            frame: frames.len(),
-            message: format!("decoded {} frames from {n} samples", frames.len()),
-        });
-    }
-    // Decoders return frames in presentation order.
-    let mut pts: Vec<i64> = track.samples.iter().map(|s| s.pts).collect();
-    pts.sort_unstable();
-    let timestamps_s = pts
-        .iter()
-        .map(|&p| p as f64 / f64::from(track.timescale.max(1)))
-        .collect();
-    Ok(DecodedVideo {
-        width: w,
-        height: h,
-        frames,
-        timestamps_s,
-    })
+    VideoStream::new(path, std::io::Cursor::new(data), track.clone())?.read_all()
 }
 
 fn codec_name(codec: &TrackCodec) -> &'static str {
@@ -329,121 +305,6 @@ fn codec_name(codec: &TrackCodec) -> &'static str {
         TrackCodec::H264(_) => "H.264",
         TrackCodec::Av1(_) => "AV1",
     }
-}
-
-/// H.264 profiles by `profile_idc`; `Some(true)` for those openh264 decodes.
-fn h264_profile(profile_idc: u8) -> (String, bool) {
-    let (name, ok) = match profile_idc {
-        66 => ("Baseline", true),
-        77 => ("Main", true),
-        100 => ("High", true),
-        88 => ("Extended", false),
-        110 => ("High 10", false),
-        122 => ("High 4:2:2", false),
-        244 => ("High 4:4:4 Predictive", false),
-        44 => ("CAVLC 4:4:4 Intra", false),
-        _ => ("profile", false),
-    };
-    (format!("{name} (profile_idc {profile_idc})"), ok)
-}
-
-/// The H.264 samples of `track` decoded with openh264, in presentation
-/// order (the decoder reorders B-frames; no flush after each packet, the
-/// rest flushed at the end).
-fn decode_h264(
-    path: &Path,
-    data: &[u8],
-    track: &VideoTrack,
-    config: &H264Config,
-) -> Result<Vec<Vec<u8>>, VideoError> {
-    let codec_err = |frame: usize, message: String| VideoError::Codec {
-        path: path.to_path_buf(),
-        codec: "H.264",
-        op: "decode",
-        frame,
-        message,
-    };
-    let (profile, supported) = h264_profile(config.profile_idc);
-    if !supported {
-        return Err(VideoError::UnsupportedProfile {
-            path: path.to_path_buf(),
-            codec: "H.264",
-            profile,
-            what_is: "8-bit 4:2:0 Baseline, Main and High are",
-        });
-    }
-    let mut decoder = Decoder::with_api_config(
-        OpenH264API::from_source(),
-        DecoderConfig::new().flush_after_decode(Flush::NoFlush),
-    )
-    .map_err(|e| codec_err(0, e.to_string()))?;
-    let (w, h) = (usize::from(track.width), usize::from(track.height));
-    let mut frames = Vec::with_capacity(track.samples.len());
-    let mut header = Vec::new();
-    for ps in config.sps.iter().chain(&config.pps) {
-        header.extend_from_slice(&[0, 0, 0, 1]);
-        header.extend_from_slice(ps);
-    }
-    let ls = usize::from(config.nal_length_size);
-    let push = |frames: &mut Vec<Vec<u8>>,
-                yuv: &openh264::decoder::DecodedYUV<'_>,
-                i: usize|
-     -> Result<(), VideoError> {
-        let (dw, dh) = yuv.dimensions();
-        if (dw, dh) != (w, h) {
-            return Err(codec_err(
-                i,
-                format!("decoded {dw}x{dh} but the container says {w}x{h}"),
-            ));
-        }
-        let mut rgb = vec![0u8; w * h * 3];
-        yuv.write_rgb8(&mut rgb);
-        frames.push(rgb);
-        Ok(())
-    };
-    for (i, s) in track.samples.iter().enumerate() {
-        let start = s.offset as usize;
-        let bytes = &data[start..start + s.size as usize];
-        let mut packet = if i == 0 || s.sync {
-            header.clone()
-        } else {
-            Vec::new()
-        };
-        let mut pos = 0;
-        while pos < bytes.len() {
-            let len_bytes = bytes
-                .get(pos..pos + ls)
-                .ok_or_else(|| codec_err(i, "truncated NAL length".into()))?;
-            let len = len_bytes
-                .iter()
-                .fold(0usize, |a, &b| (a << 8) | usize::from(b));
-            let nal = bytes.get(pos + ls..pos + ls + len).ok_or_else(|| {
-                codec_err(
-                    i,
-                    format!(
-                        "NAL of {len} bytes overruns the {}-byte sample",
-                        bytes.len()
-                    ),
-                )
-            })?;
-            packet.extend_from_slice(&[0, 0, 0, 1]);
-            packet.extend_from_slice(nal);
-            pos += ls + len;
-        }
-        match decoder.decode(&packet) {
-            Ok(Some(yuv)) => push(&mut frames, &yuv, i)?,
-            Ok(None) => {}
-            Err(e) => return Err(codec_err(i, e.to_string())),
-        }
-    }
-    let n = track.samples.len();
-    let rest = decoder
-        .flush_remaining()
-        .map_err(|e| codec_err(n, e.to_string()))?;
-    for yuv in &rest {
-        push(&mut frames, yuv, n)?;
-    }
-    Ok(frames)
 }
 
 /// Peak signal-to-noise ratio (dB) between two 8-bit buffers.
