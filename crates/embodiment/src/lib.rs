@@ -18,5 +18,6 @@ pub mod kinematics;
 pub mod masks;
 pub mod mesh;
 pub mod overlay;
+pub mod posture;
 pub mod raster;
 pub mod robot;

@@ -296,7 +296,7 @@ impl Robot {
             for (t, row) in rows.iter().enumerate() {
                 let Some(&x) = row.get(d) else { continue };
                 let excess = (lo - x).max(x - hi);
-                if !(excess > tolerance) {
+                if excess.is_nan() || excess <= tolerance {
                     continue;
                 }
                 let e = v.get_or_insert_with(|| LimitViolation {
