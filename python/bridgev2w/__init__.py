@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import numbers
 import os
+import warnings
 from typing import NamedTuple, Optional, Sequence, Union
 
 import numpy as np
@@ -193,6 +194,17 @@ class Robot:
         poses = np.frombuffer(self._r.link_poses(q.tolist()), dtype="<f8").reshape(len(q), -1, 4, 4)
         return poses[0] if single else poses
 
+    def convert_action_links(self, actions, from_links, to_links):
+        """End-effector ``actions`` ``[T, action_dim]`` given as poses of
+        ``from_links`` (one link name per arm) re-expressed as poses of
+        ``to_links``: e.g. recorded flange poses (DROID's ``panda_link8``,
+        AgiBot World's ``arm_l_link7``/``arm_r_link7``) as the TCP poses this
+        robot's actions use by default, or back. The links of each arm must be
+        rigidly attached to each other; grippers are copied."""
+        a = _float_array("actions", actions, (2,), self.action_dim)
+        out = self._r.convert_action_links(a.tolist(), list(from_links), list(to_links))
+        return np.array(out, dtype=np.float64).reshape(a.shape)
+
     def solve_ik(self, actions, *, allow_residual: bool = False):
         """Joint positions ``[T, dof]`` for end-effector ``actions``
         ``[T, action_dim]`` (each frame warm-started from the previous one),
@@ -257,6 +269,33 @@ class Camera:
         """This camera with its intrinsics scaled to ``width`` x ``height``."""
         return Camera(_core_camera=self._c.rescaled(_int("width", width, 1), _int("height", height, 1)))
 
+    def with_poses(self, poses) -> "Camera":
+        """These intrinsics on a moving camera: ``poses`` ``[T, 4, 4]``, the
+        ``world_from_camera`` of each frame (e.g. AgiBot World's per-frame
+        camera-to-base extrinsics, or DROID's recorded wrist-camera poses)."""
+        p = _float_array("poses", poses, 3)
+        if p.shape[1:] != (4, 4) or p.shape[0] == 0:
+            raise ValueError(f"poses: expected [T, 4, 4], got shape {p.shape}")
+        return Camera(_core_camera=self._c.with_poses(p.tolist()))
+
+    def mounted(self, link: str, link_from_camera=None) -> "Camera":
+        """These intrinsics on a camera mounted on robot link ``link`` at
+        ``link_from_camera`` (4x4, default identity), posed every frame by
+        the robot's forward kinematics (e.g. ``agibot-g1``'s
+        ``head_camera_optical``)."""
+        m = None
+        if link_from_camera is not None:
+            m = _float_array("link_from_camera", link_from_camera, 2)
+            if m.shape != (4, 4):
+                raise ValueError(f"link_from_camera: expected a 4x4 matrix, got shape {m.shape}")
+            m = m.tolist()
+        return Camera(_core_camera=self._c.mounted(str(link), m))
+
+    @property
+    def kind(self) -> str:
+        """``"fixed"``, ``"per_frame"`` or ``"mounted"``."""
+        return self._c.kind
+
     @property
     def size(self) -> tuple[int, int]:
         """``(width, height)`` in pixels."""
@@ -306,6 +345,11 @@ def render_masks(robot: Robot, camera: Union[Camera, Sequence[Camera]], *, joint
         q = _float_array("joints", joints, (2, 3), len(robot.joint_names))
     single = q.ndim == 2
     seqs = q[None] if single else q
+    for b, seq in enumerate(seqs):
+        for joint, n, worst, frame, lo, hi in robot._r.limit_violations(seq.tolist()):
+            where = f"joints[{b}]" if not single else "joints"
+            warnings.warn(f"{where}: joint {joint!r}: {n} frame(s) outside its limits [{lo}, {hi}], worst {worst} "
+                          f"(frame {frame}); rendered as given, not clamped", stacklevel=2)
     if isinstance(camera, Camera):
         cams = [camera] * len(seqs)
     elif isinstance(camera, (list, tuple)) and all(isinstance(c, Camera) for c in camera):

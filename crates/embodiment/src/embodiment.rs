@@ -6,6 +6,7 @@
 //! with user-given end-effector links.
 
 use crate::actions::{EndEffector, GripperClosedAt};
+use crate::kinematics::{pose_from_xyz_rpy, xyz_rpy_from_pose};
 use crate::robot::{LoadOptions, Robot, RobotError};
 use std::path::Path;
 
@@ -354,6 +355,75 @@ impl Embodiment {
             ee.link = l;
         }
         Ok(())
+    }
+
+    /// Re-expresses end-effector actions (7 values per arm, action order:
+    /// `[x, y, z, roll, pitch, yaw, gripper]`) given as poses of `from`
+    /// (one link per arm) as poses of `to`: e.g. recorded flange poses
+    /// (`panda_link8`) as TCP poses (`robotiq_tcp`), or back. Each pair of
+    /// links must be rigidly attached to each other (moved by the same
+    /// joints), so `world_from_to = world_from_from * from_from_to` with a
+    /// fixed `from_from_to`; grippers are copied.
+    pub fn convert_action_links(
+        &self,
+        actions: &[Vec<f64>],
+        from: &[String],
+        to: &[String],
+    ) -> Result<Vec<Vec<f64>>, EmbodimentError> {
+        let robot = &self.robot;
+        let arms = self.end_effectors.len();
+        let invalid = |message: String| EmbodimentError::Invalid {
+            source_name: robot.source_name.clone(),
+            message,
+        };
+        if from.len() != arms || to.len() != arms {
+            return Err(invalid(format!(
+                "{} \"from\" and {} \"to\" links for {arms} arm(s): give one of each per arm",
+                from.len(),
+                to.len()
+            )));
+        }
+        let moving = |link: usize| -> Vec<usize> {
+            robot
+                .chain_joints(link)
+                .into_iter()
+                .filter(|&j| robot.joints[j].kind.is_movable())
+                .collect()
+        };
+        let mut from_to = Vec::with_capacity(arms);
+        for (f, t) in from.iter().zip(to) {
+            let (fi, ti) = (link_by_name(robot, f)?, link_by_name(robot, t)?);
+            if moving(fi) != moving(ti) {
+                return Err(invalid(format!(
+                    "links \"{f}\" and \"{t}\" are not rigidly attached (different joints move them): expected an arm's flange and its TCP, or two frames of one link"
+                )));
+            }
+            let (wf, wt) = (
+                robot.link_pose(fi, &self.home),
+                robot.link_pose(ti, &self.home),
+            );
+            from_to.push(wf.inverse() * wt);
+        }
+        actions
+            .iter()
+            .enumerate()
+            .map(|(t, row)| {
+                if row.len() != 7 * arms {
+                    return Err(invalid(format!(
+                        "action frame {t}: {} values, expected {} (7 per arm)",
+                        row.len(),
+                        7 * arms
+                    )));
+                }
+                let mut out = row.clone();
+                for (k, f_t) in from_to.iter().enumerate() {
+                    let v = &row[7 * k..7 * k + 6];
+                    let pose = pose_from_xyz_rpy([v[0], v[1], v[2], v[3], v[4], v[5]]) * f_t;
+                    out[7 * k..7 * k + 6].copy_from_slice(&xyz_rpy_from_pose(&pose));
+                }
+                Ok(out)
+            })
+            .collect()
     }
 
     fn with_end_effectors(robot: Robot, arms: &[ArmSpec]) -> Result<Self, EmbodimentError> {

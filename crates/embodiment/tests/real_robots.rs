@@ -196,3 +196,45 @@ fn agibot_joints_reproduce_the_recorded_flange_and_head_camera_poses() {
     assert!(worst_m < 1e-3 && worst_rad.to_degrees() < 0.1);
     assert!(cam_m < 2e-3 && cam_rad.to_degrees() < 0.2);
 }
+
+/// Flange poses re-expressed as TCP poses equal the TCP's own forward
+/// kinematics (and back), for DROID's robot at its recorded joints.
+#[test]
+fn flange_and_tcp_actions_convert_into_each_other() {
+    let e = Embodiment::builtin("franka-robotiq").unwrap();
+    let r = &e.robot;
+    let (flange, tcp) = (
+        r.link_index("panda_link8").unwrap(),
+        r.link_index("robotiq_tcp").unwrap(),
+    );
+    let mut q = e.home.clone();
+    q[0] = 0.3;
+    q[3] = -2.0;
+    let row = |link: usize| {
+        let mut v =
+            bridgev2w_embodiment::kinematics::xyz_rpy_from_pose(&r.link_pose(link, &q)).to_vec();
+        v.push(0.7);
+        v
+    };
+    let names = |n: &str| vec![n.to_string()];
+    let out = e
+        .convert_action_links(&[row(flange)], &names("panda_link8"), &names("robotiq_tcp"))
+        .unwrap();
+    let (dp, dr) = pose_error(&pose_xyz_rpy(&out[0]), &pose_xyz_rpy(&row(tcp)));
+    assert!(dp < 1e-9 && dr < 1e-9, "{dp} {dr}");
+    assert_eq!(out[0][6], 0.7, "gripper copied");
+    let back = e
+        .convert_action_links(&out, &names("robotiq_tcp"), &names("panda_link8"))
+        .unwrap();
+    let (dp, dr) = pose_error(&pose_xyz_rpy(&back[0]), &pose_xyz_rpy(&row(flange)));
+    assert!(dp < 1e-9 && dr < 1e-9);
+    // Links that a joint separates are refused by name.
+    let err = e
+        .convert_action_links(&[row(flange)], &names("panda_link3"), &names("robotiq_tcp"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("panda_link3") && err.contains("rigidly"),
+        "{err}"
+    );
+}

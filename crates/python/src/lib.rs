@@ -113,6 +113,44 @@ impl Robot {
         self.inner.action_dim()
     }
 
+    /// End-effector actions (`[T][7 * arms]`) given as poses of `from_links`
+    /// (one per arm) re-expressed as poses of `to_links` (rigidly attached:
+    /// an arm's flange and its TCP), grippers copied.
+    fn convert_action_links(
+        &self,
+        actions: Vec<Vec<f64>>,
+        from_links: Vec<String>,
+        to_links: Vec<String>,
+    ) -> PyResult<Vec<Vec<f64>>> {
+        self.inner
+            .convert_action_links(&actions, &from_links, &to_links)
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+
+    /// The joints of `joints` (`[T][dof]`) outside their limits, one entry
+    /// per joint: `(joint, frames, worst value, its frame, lower, upper)`.
+    /// Rendering does not clamp them: a recorded state is drawn as recorded.
+    fn limit_violations(
+        &self,
+        joints: Vec<Vec<f64>>,
+    ) -> Vec<(String, usize, f64, usize, f64, f64)> {
+        self.inner
+            .robot
+            .limit_violations(&joints, 1e-6)
+            .into_iter()
+            .map(|v| {
+                (
+                    v.joint,
+                    v.count,
+                    v.worst_value,
+                    v.worst_frame,
+                    v.limits.0,
+                    v.limits.1,
+                )
+            })
+            .collect()
+    }
+
     /// The home configuration (the IK's first warm start).
     #[getter]
     fn home(&self) -> Vec<f64> {
