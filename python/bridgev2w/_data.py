@@ -4,6 +4,7 @@ episode of such a dataset (frames, states, actions, camera, masks) back."""
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from typing import Optional, Sequence, Union
@@ -28,6 +29,12 @@ class ConvertReport:
     skipped: list = field(default_factory=list)
     #: Camera episodes whose masks are empty in every frame (check the calibration).
     empty_mask_views: list = field(default_factory=list)
+    #: Per arm, the link the written actions are poses of (the flange).
+    ee_frames: list = field(default_factory=list)
+    #: The whole conversion report (``out/conversion_report.json``): ``notes``
+    #: lists everything done to the data beyond copying it (frames aligned,
+    #: intrinsics scaled, grippers clamped, joints past their limits, ...).
+    report: dict = field(default_factory=dict)
 
 
 def _names(name, value):
@@ -42,8 +49,9 @@ def _names(name, value):
 
 def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
             joint_names: Union[Sequence[str], str, None] = None, width: int = 96, height: int = 64,
-            fps: Optional[int] = None, intrinsics=None, calibration=None,
-            cameras: Union[Sequence[str], str, None] = None, gripper_range=(35.0, 120.0), split: str = "train",
+            fps: Optional[int] = None, intrinsics=None, calibration=None, missing_calibration: str = "recorded",
+            cameras: Union[Sequence[str], str, None] = None, gripper_source: str = "auto",
+            gripper_range=(35.0, 120.0), split: str = "train",
             skip_bad: bool = False, limit: Optional[int] = None) -> ConvertReport:
     """Converts raw episodes under ``src`` into a LeRobot v3.0 training
     dataset at ``out`` (must not exist; written to ``out.tmp``, then
@@ -51,11 +59,15 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
     ``width`` x ``height`` (even), ``calc`` masks rendered from the recorded
     joints, as ``bridgev2w convert``. Returns a :class:`ConvertReport`.
 
-    ``format``: ``"droid"`` (DROID raw episodes; needs ``intrinsics``, a JSON
-    file of intrinsics per camera serial, and takes ``calibration``
-    overrides; ``cameras`` by role, default ``ext1, ext2``) or ``"agibot"``
-    (AgiBot World; ``cameras`` default ``head``, ``gripper_range`` the
-    (open, closed) readings). ``robot``: a :class:`Robot`, a built-in name
+    ``format``: ``"droid"`` (DROID raw episodes; needs ``intrinsics``, DROID's
+    published ``intrinsics.json`` or a JSON file of intrinsics per camera
+    serial, and takes ``calibration``, one or a list of extrinsics files
+    such as DROID's ``cam2base_extrinsic_superset.json``, earlier first;
+    ``missing_calibration`` ``"recorded"`` or ``"error"`` for cameras none
+    calibrates; ``cameras`` by role, default ``ext1, ext2``) or ``"agibot"``
+    (AgiBot World; ``cameras`` default ``head``; ``gripper_source``
+    ``"auto"``, ``"action"`` or ``"state"``, ``gripper_range`` the (open,
+    closed) ``state/effector/position`` readings). ``robot``: a :class:`Robot`, a built-in name
     or a URDF path (default ``franka-robotiq`` for DROID, ``agibot-g1`` for AgiBot
     World); ``joint_names`` the robot's names for the recorded joint columns.
     ``fps`` defaults to 15 (DROID) or 30 (AgiBot World); ``split`` is
@@ -81,13 +93,19 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
     grip = (_float("gripper_range[0]", gripper_range[0]), _float("gripper_range[1]", gripper_range[1]))
     if not isinstance(split, str) or not split:
         raise ValueError(f"split: expected a split name, got {split!r}")
+    if calibration is None:
+        calibration = []
+    elif isinstance(calibration, (str, os.PathLike)):
+        calibration = [calibration]
+    calibration = [_path(f"calibration[{i}]", c) for i, c in enumerate(calibration)]
     d = _core.convert(
         format, _path("src", src), _path("out", out), robot._r, _names("joint_names", joint_names),
         _int("width", width, 2, 4096, even=True), _int("height", height, 2, 4096, even=True),
         None if fps is None else _int("fps", fps, 1, 2 ** 32 - 1),
-        _path("intrinsics", intrinsics, optional=True), _path("calibration", calibration, optional=True),
-        _names("cameras", cameras), grip, split, bool(skip_bad),
+        _path("intrinsics", intrinsics, optional=True), calibration, str(missing_calibration),
+        _names("cameras", cameras), str(gripper_source), grip, split, bool(skip_bad),
         None if limit is None else _int("limit", limit, 1))
+    d["report"] = json.loads(d.pop("report_json"))
     return ConvertReport(**d)
 
 

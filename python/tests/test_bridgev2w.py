@@ -287,6 +287,7 @@ def test_convert_writes_what_the_cli_writes():
     intr = RAW / "droid_intrinsics.json"
     r = bw.convert(droid, WORK / "droid-py", format="droid", intrinsics=intr, width=32, height=24)
     assert (r.episodes, r.views_written, r.skipped) == (1, 2, []), r
+    assert r.ee_frames == ["panda_link8"] and isinstance(r.report["notes"], list), r
     subprocess.run([BIN, "convert", "--format", "droid", str(droid), "--out", str(WORK / "droid-cli"),
                     "--intrinsics", str(intr), "--width", "32", "--height", "24"], check=True,
                    capture_output=True)

@@ -91,9 +91,11 @@ fn missing(path: &Path, what: &str) -> PyErr {
 /// episodes under `src` into a LeRobot v3.0 training dataset at `out` with
 /// `calc` masks of `robot`, as `bridgev2w convert` does, with the GIL
 /// released; returns the report as a dict (`out`, `episodes`,
-/// `views_written`, `skipped` as `(item, error)` pairs, `empty_mask_views`).
+/// `views_written`, `skipped` as `(item, error)` pairs, `empty_mask_views`,
+/// `ee_frames`, and `report_json`: the whole conversion report, notes
+/// included, as JSON text).
 #[pyfunction]
-#[pyo3(signature = (format, src, out, robot, joint_names, width, height, fps, intrinsics, calibration, cameras, gripper_range, split, skip_bad, limit))]
+#[pyo3(signature = (format, src, out, robot, joint_names, width, height, fps, intrinsics, calibration, missing_calibration, cameras, gripper_source, gripper_range, split, skip_bad, limit))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert<'py>(
     py: Python<'py>,
@@ -106,8 +108,10 @@ pub(crate) fn convert<'py>(
     height: usize,
     fps: Option<u32>,
     intrinsics: Option<PathBuf>,
-    calibration: Option<PathBuf>,
+    calibration: Vec<PathBuf>,
+    missing_calibration: &str,
     cameras: Option<Vec<String>>,
+    gripper_source: &str,
     gripper_range: (f64, f64),
     split: String,
     skip_bad: bool,
@@ -137,7 +141,7 @@ pub(crate) fn convert<'py>(
                 "intrinsics: required for DROID (a JSON file of intrinsics per camera serial): neither the raw episodes nor RLDS record them",
             ))
         }
-        (false, None) if calibration.is_none() => None,
+        (false, None) if calibration.is_empty() => None,
         (false, _) => {
             return Err(PyValueError::new_err(
                 "intrinsics, calibration: apply to DROID; AgiBot World episodes carry their camera parameters",
@@ -169,8 +173,11 @@ pub(crate) fn convert<'py>(
     };
     let source = match intrinsics {
         Some(intrinsics) => {
-            let mut options = DroidOptions::from_files(&intrinsics, calibration.as_deref())
+            let mut options = DroidOptions::from_calibration_files(&intrinsics, &calibration)
                 .map_err(|e| to_py(e.into()))?;
+            options.missing_calibration = missing_calibration
+                .parse()
+                .map_err(|e: String| PyValueError::new_err(format!("missing_calibration: {e}")))?;
             if let Some(c) = cameras {
                 options.roles = c;
             }
@@ -178,6 +185,9 @@ pub(crate) fn convert<'py>(
         }
         None => {
             let mut options = AgibotOptions {
+                gripper: gripper_source
+                    .parse()
+                    .map_err(|e: String| PyValueError::new_err(format!("gripper_source: {e}")))?,
                 gripper_open: open,
                 gripper_closed: closed,
                 ..AgibotOptions::default()
@@ -197,11 +207,16 @@ pub(crate) fn convert<'py>(
     d.set_item("views_written", report.views_written)?;
     let skipped: Vec<(String, String)> = report
         .skipped
-        .into_iter()
-        .map(|s| (s.item, s.error))
+        .iter()
+        .map(|s| (s.item.clone(), s.error.clone()))
         .collect();
     d.set_item("skipped", skipped)?;
-    d.set_item("empty_mask_views", report.empty_mask_views)?;
+    d.set_item("empty_mask_views", report.empty_mask_views.clone())?;
+    d.set_item("ee_frames", report.ee_frames.clone())?;
+    d.set_item(
+        "report_json",
+        serde_json::to_string(&report).map_err(|e| PyValueError::new_err(e.to_string()))?,
+    )?;
     Ok(d)
 }
 
