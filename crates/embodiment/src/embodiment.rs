@@ -323,14 +323,7 @@ impl Embodiment {
             // The new link must be moved by exactly the joints that move
             // the old one (rigidly attached to the same arm link), so the
             // arm's IK and its gripper stay as they were.
-            let moving = |link: usize| -> Vec<usize> {
-                robot
-                    .chain_joints(link)
-                    .into_iter()
-                    .filter(|&j| robot.joints[j].kind.is_movable())
-                    .collect()
-            };
-            let (old, new) = (moving(ee.link), moving(l));
+            let (old, new) = (robot.moving_joints(ee.link), robot.moving_joints(l));
             if old != new {
                 let names = |js: &[usize]| {
                     js.iter()
@@ -383,17 +376,10 @@ impl Embodiment {
                 to.len()
             )));
         }
-        let moving = |link: usize| -> Vec<usize> {
-            robot
-                .chain_joints(link)
-                .into_iter()
-                .filter(|&j| robot.joints[j].kind.is_movable())
-                .collect()
-        };
         let mut from_to = Vec::with_capacity(arms);
         for (f, t) in from.iter().zip(to) {
             let (fi, ti) = (link_by_name(robot, f)?, link_by_name(robot, t)?);
-            if moving(fi) != moving(ti) {
+            if robot.moving_joints(fi) != robot.moving_joints(ti) {
                 return Err(invalid(format!(
                     "links \"{f}\" and \"{t}\" are not rigidly attached (different joints move them): expected an arm's flange and its TCP, or two frames of one link"
                 )));
@@ -490,12 +476,7 @@ fn link_by_name(robot: &Robot, link: &str) -> Result<usize, EmbodimentError> {
             source_name: robot.source_name.clone(),
             message: format!(
                 "end-effector link \"{link}\" does not exist (links: {})",
-                robot
-                    .links
-                    .iter()
-                    .map(|l| l.name.as_str())
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                robot.link_names()
             ),
         })
 }

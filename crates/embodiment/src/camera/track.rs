@@ -127,12 +127,7 @@ impl CameraTrack {
                     expected: format!(
                         "a link of robot \"{}\" ({})",
                         robot.name,
-                        robot
-                            .links
-                            .iter()
-                            .map(|l| l.name.as_str())
-                            .collect::<Vec<_>>()
-                            .join(", ")
+                        robot.link_names()
                     ),
                 }),
             },

@@ -208,6 +208,24 @@ impl Robot {
         self.links.iter().position(|l| l.name == name)
     }
 
+    /// Every link's name, comma-separated (for messages).
+    pub fn link_names(&self) -> String {
+        self.links
+            .iter()
+            .map(|l| l.name.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// The movable joints (actuated or mimic) that move `link`, root to
+    /// tip: two links with the same list are rigidly attached.
+    pub fn moving_joints(&self, link: usize) -> Vec<usize> {
+        self.chain_joints(link)
+            .into_iter()
+            .filter(|&j| self.joints[j].kind.is_movable())
+            .collect()
+    }
+
     /// Index of a joint by name.
     pub fn joint_index(&self, name: &str) -> Option<usize> {
         self.joints.iter().position(|j| j.name == name)
