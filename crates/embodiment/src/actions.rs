@@ -292,6 +292,9 @@ pub struct FrameResidual {
     pub frame: usize,
     /// Arm name.
     pub arm: String,
+    /// The link whose pose the action gave (the arm's end effector: its
+    /// TCP, or the link `--ee-link` named, e.g. a flange).
+    pub link: String,
     /// Remaining position error (metres).
     pub position_error_m: f64,
     /// Remaining rotation error (radians).
@@ -405,6 +408,7 @@ pub fn actions_to_joints(
                         FrameResidual {
                             frame: f,
                             arm: ee.arm.clone(),
+                            link: robot.links[ee.link].name.clone(),
                             position_error_m: sol.position_error_m,
                             rotation_error_rad: sol.rotation_error_rad,
                             reached: sol.reached,
@@ -464,10 +468,18 @@ pub fn check_joint_trajectory(robot: &Robot, joints: &Trajectory) -> Result<(), 
     Ok(())
 }
 
-/// The residual report `ik.json` of an IK solve: the frames not reached, the
-/// largest position and rotation errors, and every frame's residuals.
+/// The residual report `ik.json` of an IK solve: the link each arm's
+/// actions were poses of, the frames not reached, the largest position and
+/// rotation errors, and every frame's residuals.
 pub fn ik_report(residuals: &[FrameResidual]) -> serde_json::Value {
+    let mut ee_links: Vec<(&str, &str)> = Vec::new();
+    for r in residuals {
+        if !ee_links.iter().any(|(arm, _)| *arm == r.arm) {
+            ee_links.push((&r.arm, &r.link));
+        }
+    }
     serde_json::json!({
+        "ee_links": ee_links.iter().map(|(arm, link)| serde_json::json!({"arm": arm, "link": link})).collect::<Vec<_>>(),
         "frames_not_reached": residuals.iter().filter(|r| !r.reached).map(|r| r.frame).collect::<Vec<_>>(),
         "max_position_error_m": residuals.iter().map(|r| r.position_error_m).fold(0.0, f64::max),
         "max_rotation_error_rad": residuals.iter().map(|r| r.rotation_error_rad).fold(0.0, f64::max),

@@ -142,7 +142,18 @@ pub fn write_dataset(
         }
     }
     let specs = serde_json::to_value(&world.specs).unwrap_or_default();
-    writer.finish(serde_json::json!({ "synth_splits": specs.clone() }))?;
+    // The links the actions are poses of (the TCPs), as `convert` names
+    // its flanges: datasets of different frames are told apart.
+    let ee_frame: Vec<String> = world
+        .embodiment
+        .end_effectors
+        .iter()
+        .map(|ee| world.embodiment.robot.links[ee.link].name.clone())
+        .collect();
+    writer.finish(serde_json::json!({
+        "synth_splits": specs.clone(),
+        "bridgev2w_source": {"format": "synth", "ee_frame": ee_frame},
+    }))?;
     let synth_path = tmp.join("meta/synth.json");
     let synth = serde_json::json!({
         "generator": "bridgev2w synth",
