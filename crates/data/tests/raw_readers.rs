@@ -402,7 +402,7 @@ fn read_convert_and_fail_clearly(pyav: bool) {
         &out,
         &ConvertOptions {
             source_format: "agibot".into(),
-            ..strict
+            ..strict.clone()
         },
         &|_| {},
     )
@@ -411,6 +411,42 @@ fn read_convert_and_fail_clearly(pyav: bool) {
     let ds = LeRobotDataset::open(&out).expect("open g1");
     let (_, masks) = ds.read_masks(0).expect("masks");
     assert!(masks.contains(&1));
+
+    // The head and the moving hand camera: one episode each; the hand
+    // camera's masks change from frame to frame with its per-frame pose.
+    let both = agibot::read_episode(
+        &root,
+        &keys[0],
+        &AgibotOptions {
+            cameras: vec!["head".into(), "hand_left".into()],
+            ..AgibotOptions::default()
+        },
+    )
+    .expect("read agibot head + hand");
+    let hand = both.view("hand_left").expect("hand view");
+    assert!(!hand.is_static(), "the hand camera moves");
+    let out = dir.path().join("converted_g1_hands");
+    let report = convert(
+        vec![(both.id.clone(), Ok(both.clone()))],
+        &g1,
+        &out,
+        &ConvertOptions {
+            source_format: "agibot".into(),
+            ..strict.clone()
+        },
+        &|_| {},
+    )
+    .expect("convert g1 head + hand");
+    assert_eq!(report.views_written, 2);
+    let ds = LeRobotDataset::open(&out).expect("open g1 hands");
+    let (shape, masks) = ds.read_masks(1).expect("hand masks");
+    let n = shape[1] * shape[2];
+    assert!(masks.contains(&1), "the hand camera sees the robot");
+    assert_ne!(
+        &masks[..n],
+        &masks[masks.len() - n..],
+        "frames seen from different poses"
+    );
 
     // The whole workflow in one call (what `convert` and `bw.convert` run):
     // find, limit, convert into OUT.tmp, rename.
