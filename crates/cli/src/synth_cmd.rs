@@ -11,7 +11,7 @@ pub struct SynthArgs {
     /// Output dataset directory (must not exist; written to DIR.tmp, then renamed).
     #[arg(long)]
     out: PathBuf,
-    /// Built-in robot of the synthetic world: franka or dual-arm.
+    /// Built-in robot of the synthetic world: franka, franka-robotiq or dual-arm.
     #[arg(long, default_value = "franka")]
     robot: String,
     /// Episodes per split: one number for all four splits, or four

@@ -43,6 +43,9 @@ pub struct BuiltinRobot {
     pub arms: &'static [BuiltinArm],
     /// Home configuration by joint name; unnamed dofs are 0 clamped to limits.
     pub home: &'static [(&'static str, f64)],
+    /// Whether `synth`'s tabletop scenes are laid out for it (a table in
+    /// reach of its home pose).
+    pub synthetic_world: bool,
 }
 
 /// `(path, bytes)` of files in a robot's description folder, compiled in.
@@ -76,6 +79,7 @@ pub const BUILTIN_ROBOTS: &[BuiltinRobot] = &[
             ("panda_joint7", 0.785),
             ("panda_finger_joint1", 0.04),
         ],
+        synthetic_world: true,
     },
     BuiltinRobot {
         name: "dual-arm",
@@ -98,6 +102,7 @@ pub const BUILTIN_ROBOTS: &[BuiltinRobot] = &[
             },
         ],
         home: &[],
+        synthetic_world: true,
     },
     BuiltinRobot {
         name: "agibot-g1",
@@ -133,6 +138,7 @@ pub const BUILTIN_ROBOTS: &[BuiltinRobot] = &[
             ("idx11_head_joint1", 0.0),
             ("idx12_head_joint2", 0.4363),
         ],
+        synthetic_world: false,
     },
     BuiltinRobot {
         name: "franka-robotiq",
@@ -162,6 +168,7 @@ pub const BUILTIN_ROBOTS: &[BuiltinRobot] = &[
             ("panda_joint6", 1.8849555921538759),
             ("panda_joint7", 0.0),
         ],
+        synthetic_world: true,
     },
 ];
 

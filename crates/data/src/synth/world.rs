@@ -5,7 +5,7 @@ use super::{episode_seed, plan, Contact, ObjectPose, SceneFrame, SceneLook, Scen
 use super::{split_specs, Split, SplitSpec, SynthConfig, SynthError, Task};
 use bridgev2w_embodiment::actions::{actions_to_joints, Trajectory};
 use bridgev2w_embodiment::camera::Camera;
-use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::embodiment::{Embodiment, BUILTIN_ROBOTS};
 use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_embodiment::masks::render_trajectory_labels;
 use bridgev2w_embodiment::mesh::TriMesh;
@@ -133,6 +133,18 @@ impl World {
     pub fn new(config: &SynthConfig) -> Result<World, SynthError> {
         config.validate()?;
         let embodiment = Embodiment::builtin(&config.robot)?;
+        let usable: Vec<&str> = BUILTIN_ROBOTS
+            .iter()
+            .filter(|b| b.synthetic_world)
+            .map(|b| b.name)
+            .collect();
+        if !usable.contains(&config.robot.as_str()) {
+            return Err(SynthError::Config(format!(
+                "robot \"{}\": the synthetic world's tables are laid out for {}",
+                config.robot,
+                usable.join(", ")
+            )));
+        }
         let frame = SceneFrame::for_embodiment(&embodiment);
         let poses = embodiment.robot.link_poses(&embodiment.home);
         let home_tcp = embodiment
