@@ -440,10 +440,10 @@ def test_joints_past_their_limits_are_rendered_and_warned_about():
 def test_flange_actions_and_moving_cameras():
     robot = bw.Robot("franka-robotiq")
     # DROID-style flange poses as TCP poses and back (closed form: the
-    # Robotiq TCP is 0.15815 m along the flange's z axis).
+    # Robotiq TCP is 0.1581549775 m along the flange's z axis, its URDF origin).
     flange = np.array([[0.5, 0.0, 0.3, np.pi, 0.0, 0.0, 0.4]])
     tcp = robot.convert_action_links(flange, ["panda_link8"], ["robotiq_tcp"])
-    assert np.allclose(tcp[0, :3], [0.5, 0.0, 0.3 - 0.15815], atol=1e-9), tcp
+    assert np.allclose(tcp[0, :3], [0.5, 0.0, 0.3 - 0.1581549775], atol=1e-9), tcp
     assert tcp[0, 6] == 0.4
     back = robot.convert_action_links(tcp, ["robotiq_tcp"], ["panda_link8"])
     assert np.allclose(back[0, :3], flange[0, :3], atol=1e-9)
