@@ -249,9 +249,10 @@ def test_bad_input_is_an_error_naming_it(data):
     bad = WORK / "bad.rrd"
     with pytest.raises(ValueError, match=r"joints: expected 8 values per row"):
         bwr.record_masks(bad, "franka", cam, joints=np.zeros((3, 7)))
-    with pytest.raises(ValueError, match=r"far\.json: joints: frame 0: joint .*panda_joint4"):
+    # Joints past their limits are recorded as given, with a warning naming them.
+    with pytest.warns(UserWarning, match=r"panda_joint4.*outside its limits"):
         (WORK / "far.json").write_text(json.dumps([[0, 0, 0, 1.0, 0, 0, 0, 0]]))
-        bwr.record_masks(bad, "franka", cam, joints=WORK / "far.json")
+        bwr.record_masks(WORK / "far.rrd", "franka", cam, joints=WORK / "far.json")
     with pytest.raises(FileNotFoundError, match="nope.json"):
         bwr.record_masks(bad, "franka", WORK / "nope.json", joints=WORK / "joints.json")
     with pytest.raises(ValueError, match="exactly one of joints= and actions="):
