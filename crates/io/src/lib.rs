@@ -27,6 +27,7 @@
 //!   panels, grouped bars, scatter plots with a fitted line).
 
 pub mod atomic;
+pub mod confine;
 pub mod frame;
 pub mod json;
 pub mod npy;

@@ -67,6 +67,37 @@ pub enum Version {
     V30,
 }
 
+/// The widest field a path template may pad to (`{name:0Nd}`): a width
+/// read from `meta/info.json` is allocated when the template is filled.
+pub const MAX_TEMPLATE_WIDTH: usize = 32;
+
+/// Checks the widths of a path template's fields (`{name:0Nd}`): each at
+/// most [`MAX_TEMPLATE_WIDTH`]. The error says which field and width.
+pub fn check_template_widths(template: &str) -> Result<(), String> {
+    let mut rest = template;
+    while let Some(open) = rest.find('{') {
+        let Some(close) = rest[open..].find('}') else {
+            break;
+        };
+        let inner = &rest[open + 1..open + close];
+        if let Some((name, spec)) = inner.split_once(':') {
+            let digits = spec.trim_start_matches('0').trim_end_matches('d');
+            if !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit()) {
+                let ok = digits
+                    .parse::<usize>()
+                    .is_ok_and(|w| w <= MAX_TEMPLATE_WIDTH);
+                if !ok {
+                    return Err(format!(
+                        "field {{{name}}} has width {digits}: expected at most {MAX_TEMPLATE_WIDTH}"
+                    ));
+                }
+            }
+        }
+        rest = &rest[open + close + 1..];
+    }
+    Ok(())
+}
+
 /// Fills a Python-style template: `{name}` and `{name:03d}`.
 pub fn format_template(template: &str, values: &[(&str, String)]) -> String {
     let mut out = String::new();

@@ -33,6 +33,9 @@ mod stats;
 mod writer;
 
 pub use error::DatasetError;
-pub use meta::{format_template, EpisodeData, EpisodeInfo, FrameRow, Version, VideoRef};
+pub use meta::{
+    check_template_widths, format_template, EpisodeData, EpisodeInfo, FrameRow, Version, VideoRef,
+    MAX_TEMPLATE_WIDTH,
+};
 pub use reader::{read_frames_parquet, LeRobotDataset};
 pub use writer::{write_frames_parquet, LeRobotV3Writer, WriterEpisode};

@@ -3,10 +3,13 @@
 
 use super::columns::{read_batches, Columns};
 use super::error::{io_err, meta_err};
-use super::meta::{format_template, EpisodeData, EpisodeInfo, FrameRow, Version, VideoRef};
+use super::meta::{
+    check_template_widths, format_template, EpisodeData, EpisodeInfo, FrameRow, Version, VideoRef,
+};
 use super::DatasetError;
 use crate::video::decode_mp4;
 use bridgev2w_embodiment::camera::Camera;
+use bridgev2w_io::confine::{self, Refusal};
 use bridgev2w_io::npy::read_npy;
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -134,11 +137,24 @@ impl LeRobotDataset {
             .filter(|(_, v)| v.get("dtype").and_then(Value::as_str) == Some("video"))
             .map(|(k, _)| k.clone())
             .collect();
+        // Keys are substituted into `video_path` and name parquet columns.
+        for key in &video_keys {
+            confine::check_name(key).map_err(|e| {
+                meta_err(
+                    &info_path,
+                    format!("field \"features\": video feature key {e}"),
+                )
+            })?;
+        }
         let template = |key: &str| -> Result<String, DatasetError> {
-            info.get(key)
+            let tpl = info
+                .get(key)
                 .and_then(Value::as_str)
                 .map(str::to_string)
-                .ok_or_else(|| meta_err(&info_path, format!("\"{key}\" is missing")))
+                .ok_or_else(|| meta_err(&info_path, format!("\"{key}\" is missing")))?;
+            check_template_widths(&tpl)
+                .map_err(|m| meta_err(&info_path, format!("field \"{key}\" ({tpl:?}): {m}")))?;
+            Ok(tpl)
         };
         let data_tpl = template("data_path")?;
         let video_tpl = if video_keys.is_empty() {
@@ -247,26 +263,36 @@ impl LeRobotDataset {
                         format!("negative length {}", length[i]),
                     ));
                 }
-                let data_path = root.join(format_template(
+                let data_path = confined_join(
+                    root,
+                    "data_path",
                     data_tpl,
-                    &[
-                        ("chunk_index", dchunk[i].to_string()),
-                        ("file_index", dfile[i].to_string()),
-                    ],
-                ));
+                    format_template(
+                        data_tpl,
+                        &[
+                            ("chunk_index", dchunk[i].to_string()),
+                            ("file_index", dfile[i].to_string()),
+                        ],
+                    ),
+                )?;
                 let mut videos = BTreeMap::new();
                 for (key, vc, vf, from, to) in &vids {
                     videos.insert(
                         key.clone(),
                         VideoRef {
-                            path: root.join(format_template(
+                            path: confined_join(
+                                root,
+                                "video_path",
                                 video_tpl,
-                                &[
-                                    ("video_key", key.clone()),
-                                    ("chunk_index", vc[i].to_string()),
-                                    ("file_index", vf[i].to_string()),
-                                ],
-                            )),
+                                format_template(
+                                    video_tpl,
+                                    &[
+                                        ("video_key", key.clone()),
+                                        ("chunk_index", vc[i].to_string()),
+                                        ("file_index", vf[i].to_string()),
+                                    ],
+                                ),
+                            )?,
                             from_timestamp_s: from[i],
                             to_timestamp_s: to[i],
                         },
@@ -352,33 +378,44 @@ impl LeRobotDataset {
                 })
                 .unwrap_or_default();
             let chunk = (ep as u64 / chunks_size).to_string();
-            let data_path = root.join(format_template(
+            let data_path = confined_join(
+                root,
+                "data_path",
                 data_tpl,
-                &[
-                    ("episode_chunk", chunk.clone()),
-                    ("episode_index", ep.to_string()),
-                ],
-            ));
+                format_template(
+                    data_tpl,
+                    &[
+                        ("episode_chunk", chunk.clone()),
+                        ("episode_index", ep.to_string()),
+                    ],
+                ),
+            )?;
             let videos = video_keys
                 .iter()
                 .map(|key| {
-                    (
+                    let path = confined_join(
+                        root,
+                        "video_path",
+                        video_tpl,
+                        format_template(
+                            video_tpl,
+                            &[
+                                ("episode_chunk", chunk.clone()),
+                                ("video_key", key.clone()),
+                                ("episode_index", ep.to_string()),
+                            ],
+                        ),
+                    )?;
+                    Ok((
                         key.clone(),
                         VideoRef {
-                            path: root.join(format_template(
-                                video_tpl,
-                                &[
-                                    ("episode_chunk", chunk.clone()),
-                                    ("video_key", key.clone()),
-                                    ("episode_index", ep.to_string()),
-                                ],
-                            )),
+                            path,
                             from_timestamp_s: 0.0,
                             to_timestamp_s: length as f64 / fps,
                         },
-                    )
+                    ))
                 })
-                .collect();
+                .collect::<Result<_, DatasetError>>()?;
             episodes.push(EpisodeInfo {
                 episode_index: ep,
                 length,
@@ -392,6 +429,32 @@ impl LeRobotDataset {
         Ok((episodes, tasks))
     }
 
+    /// `path` (an episode's data or video file, formatted from the template
+    /// `field` of `meta/info.json`) checked to resolve inside the root, links
+    /// followed, to a regular file of at most `max_bytes`. A missing file is
+    /// an I/O error on `path`, as opening it would give.
+    fn confined(
+        &self,
+        episode: i64,
+        field: &str,
+        path: &Path,
+        max_bytes: u64,
+    ) -> Result<PathBuf, DatasetError> {
+        confine::confined_under(&self.root, path, max_bytes).map_err(|e| match e {
+            Refusal::Unresolved { path, source, .. }
+                if source.kind() == std::io::ErrorKind::NotFound =>
+            {
+                DatasetError::Io { path, source }
+            }
+            e => DatasetError::Field {
+                path: self.root.join("meta/info.json"),
+                episode,
+                field: field.into(),
+                message: e.to_string(),
+            },
+        })
+    }
+
     /// The episode entry with index `episode`.
     pub fn episode(&self, episode: i64) -> Result<&EpisodeInfo, DatasetError> {
         self.episodes
@@ -403,7 +466,13 @@ impl LeRobotDataset {
     /// Reads an episode's frame rows (state, action, ...), checking count and order.
     pub fn read_episode(&self, episode: i64) -> Result<EpisodeData, DatasetError> {
         let info = self.episode(episode)?;
-        let mut frames: Vec<FrameRow> = read_frames_parquet(&info.data_path)?
+        let data_path = self.confined(
+            episode,
+            "data_path",
+            &info.data_path,
+            confine::MAX_DATA_BYTES,
+        )?;
+        let mut frames: Vec<FrameRow> = read_frames_parquet(&data_path)?
             .into_iter()
             .filter(|r| r.episode_index == episode)
             .collect();
@@ -444,7 +513,8 @@ impl LeRobotDataset {
             field: key.into(),
             message: format!("no such video key (keys: {})", self.video_keys.join(", ")),
         })?;
-        let video = decode_mp4(&v.path).map_err(|source| DatasetError::Video {
+        let path = self.confined(episode, "video_path", &v.path, confine::MAX_VIDEO_BYTES)?;
+        let video = decode_mp4(&path).map_err(|source| DatasetError::Video {
             episode,
             key: key.into(),
             source,
@@ -515,4 +585,23 @@ impl LeRobotDataset {
             }
         })
     }
+}
+
+/// `root` joined with `rel`, the path the template `field` (`template`) of
+/// `meta/info.json` formats to, checked to be relative without `..` (the
+/// files are checked when read, in [`LeRobotDataset::read_episode`] and
+/// [`LeRobotDataset::read_video`]).
+fn confined_join(
+    root: &Path,
+    field: &str,
+    template: &str,
+    rel: String,
+) -> Result<PathBuf, DatasetError> {
+    confine::check_relative(root, &rel).map_err(|e| {
+        meta_err(
+            &root.join("meta/info.json"),
+            format!("field \"{field}\" ({template:?}) formats to {e}"),
+        )
+    })?;
+    Ok(root.join(rel))
 }

@@ -41,6 +41,7 @@ use super::h5::H5;
 use super::report::{Eye, Note};
 use super::{io_err, json_err, read_json, RawEpisode, RawError, RawView};
 use bridgev2w_embodiment::camera::world_from_camera_from_xyz_rpy;
+use bridgev2w_io::confine;
 use nalgebra::Isometry3;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
@@ -316,16 +317,13 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
                 "missing: expected the camera's serial number",
             )
         })?;
-        let video = text(&format!("{role}_mp4_path"))
-            .map(|p| dir.join(p))
-            .filter(|p| p.is_file())
-            .unwrap_or_else(|| dir.join(format!("recordings/MP4/{serial}.mp4")));
-        if !video.is_file() {
-            return Err(RawError::Missing {
-                path: video,
-                what: format!("video of camera {role} ({serial})"),
-            });
-        }
+        let video = camera_video(
+            dir,
+            &meta_path,
+            role,
+            &serial,
+            text(&format!("{role}_mp4_path")),
+        )?;
         let (intrinsics, k_key) = options.intrinsics.lookup(&ids, &serial).ok_or_else(|| {
             json_err(
                 &options.intrinsics.file,
@@ -358,6 +356,61 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
     }
     ep.validate()?;
     Ok(ep)
+}
+
+/// The video of camera `role` (serial `serial`) of the episode in `dir`:
+/// the metadata's `<role>_mp4_path` where it names a file, else
+/// `recordings/MP4/<serial>.mp4`. Both are confined to `dir`: a relative
+/// path without `..` that resolves (links followed) inside the folder, to a
+/// regular file of at most [`confine::MAX_VIDEO_BYTES`]; the serial must be
+/// a plain serial number. A recorded path that does not exist falls back
+/// (DROID's metadata records paths relative to the lab's folder); any
+/// other refusal is an error naming the metadata file and the field.
+fn camera_video(
+    dir: &Path,
+    meta_path: &Path,
+    role: &str,
+    serial: &str,
+    mp4_path: Option<String>,
+) -> Result<PathBuf, RawError> {
+    let serial_field = format!("{role}_cam_serial");
+    if serial.is_empty()
+        || !serial
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+    {
+        return Err(json_err(
+            meta_path,
+            &serial_field,
+            format!("{serial:?}: expected a plain serial number (letters, digits, '-', '_')"),
+        ));
+    }
+    if let Some(p) = mp4_path {
+        match confine::confined_file(dir, &p, confine::MAX_VIDEO_BYTES) {
+            Ok(video) => return Ok(video),
+            Err(e) if e.is_missing() => {}
+            Err(e) => {
+                return Err(json_err(
+                    meta_path,
+                    &format!("{role}_mp4_path"),
+                    e.to_string(),
+                ))
+            }
+        }
+    }
+    let fallback = format!("recordings/MP4/{serial}.mp4");
+    match confine::confined_file(dir, &fallback, confine::MAX_VIDEO_BYTES) {
+        Ok(video) => Ok(video),
+        Err(e) if e.is_missing() => Err(RawError::Missing {
+            path: dir.join(fallback),
+            what: format!("video of camera {role} ({serial})"),
+        }),
+        Err(e) => Err(json_err(
+            meta_path,
+            &serial_field,
+            format!("the camera's video {fallback}: {e}"),
+        )),
+    }
 }
 
 /// A camera's extrinsics and where they came from.
