@@ -111,20 +111,26 @@ fn list(s: &Option<String>) -> Option<Vec<String>> {
     })
 }
 
-pub fn run(args: &ConvertArgs) -> Result<()> {
-    let robot = args.robot.clone().unwrap_or_else(|| {
-        match args.format {
-            Format::Droid => "franka-robotiq",
-            Format::Agibot => "agibot-g1",
+/// The `--cameras` list: refused when it names no camera or one twice (a
+/// camera converted twice would write the same episodes twice).
+fn camera_list(s: &Option<String>) -> Result<Option<Vec<String>>> {
+    let Some(c) = list(s) else {
+        return Ok(None);
+    };
+    let text = s.as_deref().unwrap_or_default();
+    if c.is_empty() {
+        bail!("--cameras {text:?}: expected at least one camera name, comma-separated");
+    }
+    for (i, name) in c.iter().enumerate() {
+        if c[..i].contains(name) {
+            bail!("--cameras {text:?}: camera {name:?} is named twice: expected distinct names");
         }
-        .to_string()
-    });
-    let embodiment = Embodiment::load(
-        &robot,
-        &LoadOptions::default(),
-        &args.ee_links,
-        &args.gripper_joints,
-    )?;
+    }
+    Ok(Some(c))
+}
+
+pub fn run(args: &ConvertArgs) -> Result<()> {
+    let cameras = camera_list(&args.cameras)?;
     let options = ConvertOptions {
         width: args.width,
         height: args.height,
@@ -138,6 +144,20 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         source_format: format!("{:?}", args.format).to_lowercase(),
         overwrite: args.overwrite,
     };
+    options.validate()?;
+    let robot = args.robot.clone().unwrap_or_else(|| {
+        match args.format {
+            Format::Droid => "franka-robotiq",
+            Format::Agibot => "agibot-g1",
+        }
+        .to_string()
+    });
+    let embodiment = Embodiment::load(
+        &robot,
+        &LoadOptions::default(),
+        &args.ee_links,
+        &args.gripper_joints,
+    )?;
     let source = match args.format {
         Format::Droid => {
             let intrinsics = args.intrinsics.as_deref().ok_or_else(|| {
@@ -145,7 +165,7 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
             })?;
             let mut opts = DroidOptions::from_calibration_files(intrinsics, &args.calibration)?;
             opts.missing_calibration = args.missing_calibration;
-            if let Some(c) = list(&args.cameras) {
+            if let Some(c) = cameras {
                 opts.roles = c;
             }
             RawSource::Droid {
@@ -175,9 +195,10 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
                 gripper_closed: closed,
                 ..AgibotOptions::default()
             };
-            if let Some(c) = list(&args.cameras) {
+            if let Some(c) = cameras {
                 opts.cameras = c;
             }
+            opts.check_cameras().map_err(anyhow::Error::msg)?;
             RawSource::Agibot {
                 root: args.src.clone(),
                 options: opts,

@@ -59,6 +59,12 @@ impl From<&DemoArgs> for DemoOptions {
 }
 
 pub fn run(args: &DemoArgs) -> Result<()> {
+    if args.frames < 2 {
+        anyhow::bail!(
+            "--frames {}: expected at least 2 frames in the trajectory (CogVideoX clips are 49)",
+            args.frames
+        );
+    }
     let frames = args.frames.max(2) as u64;
     let pb = progress_bar(frames as usize, "rendering masks");
     let tick = || {

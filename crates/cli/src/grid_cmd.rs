@@ -37,6 +37,7 @@ pub struct EvalGridArgs {
 
 /// `bridgev2w eval-grid`.
 pub fn run(a: &EvalGridArgs) -> Result<()> {
+    let splits = crate::train_cmd::split_list(&a.splits)?;
     let mut runs = vec![GridRun {
         config: a.config.clone(),
         run: a.run.clone(),
@@ -47,13 +48,7 @@ pub fn run(a: &EvalGridArgs) -> Result<()> {
     }));
     let o = GridOptions {
         runs,
-        splits: a
-            .splits
-            .split(',')
-            .map(str::trim)
-            .filter(|s| !s.is_empty())
-            .map(String::from)
-            .collect(),
+        splits,
         clips: a.clips,
         sampling: a.sampling.eval_options(),
         weights: a.weights,

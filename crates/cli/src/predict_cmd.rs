@@ -227,14 +227,24 @@ fn clips(masks: &[PathBuf]) -> Result<Vec<Clip>> {
             }]);
         }
     }
+    // A clip's name is its mask file's stem, and becomes a folder under
+    // --out: it must be a plain name (`...npy` has the stem `..`).
     let stems: Vec<String> = files
         .iter()
         .map(|f| {
-            f.file_stem()
+            let stem = f
+                .file_stem()
                 .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_else(|| "clip".to_owned())
+                .unwrap_or_else(|| "clip".to_owned());
+            bridgev2w_io::confine::check_name(&stem).map_err(|e| {
+                anyhow::anyhow!(
+                    "--masks {}: the clip name taken from this file's name is {e}",
+                    f.display()
+                )
+            })?;
+            Ok(stem)
         })
-        .collect();
+        .collect::<Result<_>>()?;
     let unique = stems
         .iter()
         .collect::<std::collections::BTreeSet<_>>()
@@ -290,8 +300,19 @@ pub fn run(a: &PredictArgs) -> Result<()> {
     if a.batch_size == 0 {
         bail!("--batch-size 0: expected at least 1 clip per batch");
     }
+    a.model
+        .check_inputs(a.weights.as_deref(), a.prompt_embeds.as_deref())?;
     let clips = clips(&a.masks)?;
-    let out = OutputDir::create(&a.out, a.overwrite)?;
+    // An output equal to, inside or containing an input would delete it.
+    let inputs: Vec<&Path> = a
+        .masks
+        .iter()
+        .map(PathBuf::as_path)
+        .chain([a.image.as_path()])
+        .chain(a.weights.as_deref())
+        .chain(a.prompt_embeds.as_deref())
+        .collect();
+    let out = OutputDir::create_for(&a.out, a.overwrite, &inputs)?;
     let mut model = load_model(a)?;
     let res = model.resolution();
     let tiling = match (a.vae_tile, a.no_vae_tiling) {

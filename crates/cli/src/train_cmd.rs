@@ -190,6 +190,28 @@ impl SamplingArgs {
     }
 }
 
+/// The split names of a `--splits` flag (comma-separated, blanks around
+/// names ignored): refused when it names no split or one twice.
+pub(crate) fn split_list(text: &str) -> Result<Vec<String>> {
+    let splits: Vec<String> = text
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(String::from)
+        .collect();
+    if splits.is_empty() {
+        anyhow::bail!("--splits {text:?}: expected at least one split name, comma-separated (e.g. test,unseen_camera,unseen_scene)");
+    }
+    for (i, name) in splits.iter().enumerate() {
+        if splits[..i].contains(name) {
+            anyhow::bail!(
+                "--splits {text:?}: split {name:?} is named twice: expected distinct names"
+            );
+        }
+    }
+    Ok(splits)
+}
+
 #[derive(Debug, clap::Args)]
 pub struct EvalRunArgs {
     /// The run's training configuration (TOML).
@@ -228,16 +250,11 @@ pub struct EvalRunArgs {
 /// `bridgev2w eval-run`: PSNR/SSIM of a trained run's predictions per split,
 /// next to the copy-the-first-frame baseline.
 pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
+    let splits = split_list(&args.splits)?;
     let o = EvalRunOptions {
         config: args.config.clone(),
         run: args.run.clone(),
-        splits: args
-            .splits
-            .split(',')
-            .map(str::trim)
-            .filter(|s| !s.is_empty())
-            .map(String::from)
-            .collect(),
+        splits,
         sampling: EvalOptions {
             max_videos: args.max_videos,
             grid_dir: args.grids.clone(),

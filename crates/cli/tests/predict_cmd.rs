@@ -111,7 +111,14 @@ fn predict_writes_frames_and_video_deterministically() {
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("a value of 128"), "{err}");
-    assert!(!d.join("e").exists() && !d.join("e.tmp").exists());
+    assert!(
+        !d.join("e").exists()
+            && std::fs::read_dir(d).expect("read_dir").all(|e| !e
+                .expect("entry")
+                .file_name()
+                .to_string_lossy()
+                .contains("bridgev2w-tmp"))
+    );
     // An existing output is refused (nothing of it changes), or replaced
     // whole with --overwrite.
     std::fs::write(d.join("a/notes.txt"), "mine").expect("write");
@@ -413,7 +420,14 @@ fn predict_batches_clips_as_their_single_predictions() {
     let o = predict(&[&a, &b], "bad", &["--batch-size", "0"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--batch-size"), "{err}");
-    assert!(!d.join("bad").exists() && !d.join("bad.tmp").exists());
+    assert!(
+        !d.join("bad").exists()
+            && std::fs::read_dir(d).expect("read_dir").all(|e| !e
+                .expect("entry")
+                .file_name()
+                .to_string_lossy()
+                .contains("bridgev2w-tmp"))
+    );
 }
 
 /// `--keep-static MARGIN_PX`: outside the region the masks have swept in
@@ -538,4 +552,76 @@ fn predict_tiny(d: &Path, out: &str, extra: &[&str]) -> (std::process::Output, s
     ];
     args.extend_from_slice(extra);
     (run(&args), out)
+}
+
+/// An output that is, or contains, an input is refused before anything is
+/// written, and the input survives; a mask file whose stem is not a plain
+/// name (`...npy`: `..`) cannot become a clip folder outside `--out`.
+#[test]
+fn predict_refuses_an_output_over_its_inputs_and_clip_names_that_are_paths() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    image::RgbImage::from_fn(96, 64, |x, y| image::Rgb([x as u8, y as u8, 128]))
+        .save(d.join("first.png"))
+        .expect("png");
+    let masks_dir = d.join("clips");
+    std::fs::create_dir(&masks_dir).expect("mkdir");
+    write_npy(
+        &masks_dir.join("a.npy"),
+        &[9, 64, 96],
+        &vec![0u8; 9 * 64 * 96],
+    )
+    .expect("npy");
+    for out in [&masks_dir, d] {
+        let o = run(&[
+            "predict",
+            "--model",
+            "random:tiny",
+            "--image",
+            s(&d.join("first.png")),
+            "--masks",
+            s(&masks_dir),
+            "--steps",
+            "2",
+            "--device",
+            "cpu",
+            "--out",
+            s(out),
+            "--overwrite",
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success(),
+            "--out {} over its input passed",
+            out.display()
+        );
+        assert!(
+            err.contains(s(&masks_dir))
+                && (err.contains("is the input") || err.contains("contains the input")),
+            "{err}"
+        );
+        assert!(masks_dir.join("a.npy").is_file(), "the input survives");
+    }
+    std::fs::rename(masks_dir.join("a.npy"), masks_dir.join("...npy")).expect("rename");
+    let o = run(&[
+        "predict",
+        "--model",
+        "random:tiny",
+        "--image",
+        s(&d.join("first.png")),
+        "--masks",
+        s(&masks_dir),
+        "--steps",
+        "2",
+        "--device",
+        "cpu",
+        "--out",
+        s(&d.join("o")),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("...npy") && err.contains("plain name"),
+        "{err}"
+    );
+    assert!(!d.join("o").exists());
 }

@@ -41,16 +41,28 @@ fn field_err(path: &Path, episode: i64, field: &str, message: String) -> Dataset
     }
 }
 
-/// The cache file of [`calc_masks`]: `cache/<video_key>/episode_XXXXXX_<W>x<H>.npy`.
+/// The cache file of [`calc_masks`]: `cache/<video_key>/episode_XXXXXX_<W>x<H>.npy`
+/// (`/` and `\\` in the key as `_`). The key names a folder under `cache`:
+/// one that is not then a plain name (`..`, empty, NUL) is refused, naming
+/// the cache and the key.
 pub fn calc_cache_path(
     cache: &Path,
     video_key: &str,
     episode: i64,
     (w, h): (usize, usize),
-) -> PathBuf {
-    cache
-        .join(video_key.replace(['/', '\\'], "_"))
-        .join(format!("episode_{episode:06}_{w}x{h}.npy"))
+) -> Result<PathBuf, DatasetError> {
+    let folder = video_key.replace(['/', '\\'], "_");
+    bridgev2w_io::confine::check_name(&folder).map_err(|e| {
+        field_err(
+            cache,
+            episode,
+            "video_key",
+            format!("video key {video_key:?} as the mask cache's folder: {e}"),
+        )
+    })?;
+    Ok(cache
+        .join(folder)
+        .join(format!("episode_{episode:06}_{w}x{h}.npy")))
 }
 
 fn read_cached(
@@ -98,7 +110,7 @@ pub fn calc_masks(
             data,
         });
     }
-    let path = calc_cache_path(cache, video_key, episode, (width, height));
+    let path = calc_cache_path(cache, video_key, episode, (width, height))?;
     if let Some(m) = read_cached(&path, episode, (frames, width, height))? {
         return Ok(m);
     }

@@ -102,6 +102,15 @@ pub enum WorldModelError {
         /// Each place looked at, and why it did not hold the model.
         looked: Vec<String>,
     },
+    /// A Hub model name (`OWNER/NAME@REVISION`) refused: a revision that is
+    /// not a plain name, or a cache entry that leads outside its folder.
+    #[error("model name {name:?}: {message}")]
+    ModelName {
+        /// The name given.
+        name: String,
+        /// What is wrong, and what was expected (never a file's content).
+        message: String,
+    },
     /// Loading a model folder failed.
     #[error("loading the model from {}", path.display())]
     Load {

@@ -14,6 +14,7 @@
 //! folder of that path exists.
 
 use crate::error::WorldModelError;
+use bridgev2w_io::confine;
 use std::path::{Path, PathBuf};
 
 /// A Hub repository name, `OWNER/NAME`, with an optional `@REVISION`
@@ -47,6 +48,28 @@ impl HubName {
             repo: repo.to_owned(),
             revision,
         })
+    }
+
+    /// Checks the revision: a branch, tag or commit name of letters,
+    /// digits, `.`, `-` and `_`, in `/`-separated parts (a branch such as
+    /// `pr/1`), none empty, `.` or `..`; so it can only name a file under the
+    /// repository's `refs/` folder. The error says what was expected.
+    pub fn check_revision(&self) -> Result<(), String> {
+        const EXPECTED: &str = "expected a branch, tag or commit: letters, digits, '.', '-', '_', \
+             in parts separated by '/' (none empty, \".\" or \"..\")";
+        let rev = &self.revision;
+        let plain = |p: &str| {
+            !p.is_empty()
+                && p != "."
+                && p != ".."
+                && p.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+        };
+        if rev.split('/').all(plain) {
+            Ok(())
+        } else {
+            Err(format!("revision {rev:?}: {EXPECTED}"))
+        }
     }
 
     /// The repository's folder name in the cache: `models--OWNER--NAME`.
@@ -95,6 +118,11 @@ pub fn resolve_with(
     let Some(hub) = HubName::parse(&text) else {
         return Err(not_found(looked));
     };
+    let refused = |message: String| WorldModelError::ModelName {
+        name: text.to_string(),
+        message,
+    };
+    hub.check_revision().map_err(refused)?;
     let Some(cache) = hub_cache_dir(var) else {
         looked.push(
             "the Hugging Face cache: none of HF_HUB_CACHE, HF_HOME, XDG_CACHE_HOME, HOME is set"
@@ -108,14 +136,17 @@ pub fn resolve_with(
         return Err(not_found(looked));
     }
     let snapshots = repo_dir.join("snapshots");
-    let is_commit = hub.revision.len() == 40 && hub.revision.chars().all(|c| c.is_ascii_hexdigit());
+    let is_commit = is_commit_hash(&hub.revision);
     let commit = if is_commit {
         hub.revision.clone()
     } else {
-        let refs = repo_dir.join("refs").join(&hub.revision);
-        match std::fs::read_to_string(&refs) {
-            Ok(hash) => hash.trim().to_owned(),
-            Err(_) => {
+        // The revision names a file under refs/ (checked above), which must
+        // be a small regular file inside it: no link out, no FIFO.
+        let refs_dir = repo_dir.join("refs");
+        let refs = refs_dir.join(&hub.revision);
+        let file = match confine::confined_file(&refs_dir, &hub.revision, MAX_REF_BYTES) {
+            Ok(file) => file,
+            Err(e) if e.is_missing() => {
                 looked.push(format!(
                     "{}: no such revision file (revision `{}`)",
                     refs.display(),
@@ -123,7 +154,24 @@ pub fn resolve_with(
                 ));
                 return Err(not_found(looked));
             }
+            Err(e) => {
+                return Err(refused(format!(
+                    "revision file under {}: {e}",
+                    refs_dir.display()
+                )))
+            }
+        };
+        let hash = std::fs::read_to_string(&file)
+            .map_err(|e| refused(format!("reading {}: {e}", file.display())))?;
+        let hash = hash.trim();
+        // Its content is not printed: only a commit hash is accepted.
+        if !is_commit_hash(hash) {
+            return Err(refused(format!(
+                "{} does not hold a commit hash: expected 40 hex digits",
+                file.display()
+            )));
         }
+        hash.to_owned()
     };
     let snapshot = snapshots.join(&commit);
     if !snapshot.is_dir() {
@@ -133,7 +181,30 @@ pub fn resolve_with(
         ));
         return Err(not_found(looked));
     }
+    // The snapshot folder, links followed, stays inside the repository's
+    // snapshots/ folder.
+    let inside = |p: &Path| {
+        p.canonicalize()
+            .map_err(|e| refused(format!("resolving {}: {e}", p.display())))
+    };
+    let (root, resolved) = (inside(&snapshots)?, inside(&snapshot)?);
+    if !resolved.starts_with(&root) || resolved == root {
+        return Err(refused(format!(
+            "the snapshot {} resolves to {}, outside {} (through a symbolic link): \
+             expected a folder inside it",
+            snapshot.display(),
+            resolved.display(),
+            root.display()
+        )));
+    }
     Ok(snapshot)
+}
+
+/// The largest `refs/REVISION` file read (it holds one commit hash).
+const MAX_REF_BYTES: u64 = 1024;
+
+fn is_commit_hash(s: &str) -> bool {
+    s.len() == 40 && s.chars().all(|c| c.is_ascii_hexdigit())
 }
 
 #[cfg(test)]
@@ -160,6 +231,42 @@ mod tests {
             "a/b c",
         ] {
             assert_eq!(HubName::parse(not), None, "{not}");
+        }
+    }
+
+    #[test]
+    fn revisions_are_names_not_paths() {
+        let rev = |r: &str| {
+            HubName::parse(&format!("a/b@{r}"))
+                .unwrap()
+                .check_revision()
+        };
+        for ok in [
+            "main",
+            "v1.0",
+            "pr/1",
+            "refs-x_y",
+            "0123456789abcdef0123456789abcdef01234567",
+        ] {
+            rev(ok).unwrap();
+        }
+        for bad in [
+            "..",
+            "../x",
+            "a/../../b",
+            "/etc/passwd",
+            "a//b",
+            "a/",
+            ".",
+            "a\0b",
+            "a\\b",
+            "a b",
+        ] {
+            let e = rev(bad).unwrap_err();
+            assert!(
+                e.contains(&format!("{bad:?}")) && e.contains("expected"),
+                "{bad:?}: {e}"
+            );
         }
     }
 

@@ -24,7 +24,7 @@ use crate::checkpoint::PipelineFolder;
 use crate::error::{Result, WorldModelError};
 use crate::lora::{LoraConfig, LORA_TARGETS};
 use crate::transformer::TransformerConfig;
-use crate::weights::{read_safetensors, save_safetensors_with_metadata};
+use crate::weights::{check_finite, read_safetensors, save_safetensors_with_metadata};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};
@@ -211,7 +211,13 @@ pub fn export_lora_file(
     let folder = PipelineFolder::open(&root).map_err(|e| e.in_folder(backbone))?;
     let tf = TransformerConfig::from_file(&folder.component_dir("transformer").join("config.json"))
         .map_err(|e| e.in_folder(backbone))?;
-    let tensors = diffusers_lora_tensors(&read_safetensors(weights)?, cfg)?;
+    // As loading the weights for `predict` does: a NaN or infinite value is
+    // refused, naming the tensor, not exported.
+    let named = read_safetensors(weights)?;
+    for (key, t) in &named {
+        check_finite(weights, key, t)?;
+    }
+    let tensors = diffusers_lora_tensors(&named, cfg)?;
     check_against_transformer(&tensors, &tf, weights)?;
     write(&tensors, cfg, out_dir, overwrite)
 }

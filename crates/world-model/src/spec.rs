@@ -76,11 +76,35 @@ pub enum ModelSpec {
 }
 
 impl ModelSpec {
+    /// Refuses adapter `weights` or `prompt_embeds` with a `random:` model,
+    /// which has no use for them (they would be silently ignored).
+    pub fn check_inputs(
+        &self,
+        weights: Option<&Path>,
+        prompt_embeds: Option<&Path>,
+    ) -> Result<(), WorldModelError> {
+        if let Self::Random(_) = self {
+            for (flag, path) in [("--weights", weights), ("--prompt-embeds", prompt_embeds)] {
+                if let Some(path) = path {
+                    return Err(WorldModelError::input(
+                        flag,
+                        format!(
+                            "{} given with --model {self}: a random: model has random weights and a zero prompt and would ignore it (expected a diffusers model folder, or no {flag})",
+                            path.display()
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Builds the BridgeV2W this names, in `precision`: random weights of a
     /// preset (its [`RandomPreset::bridge_config`], initialised from `seed`,
     /// the same weights in either precision), or a diffusers
     /// folder with the paper's settings and the given adapter `weights` and
-    /// `prompt_embeds` (a folder error names the folder).
+    /// `prompt_embeds` (a folder error names the folder). Adapter files
+    /// with a random preset are refused ([`Self::check_inputs`]).
     pub fn load_bridge(
         &self,
         weights: Option<&Path>,
@@ -89,6 +113,7 @@ impl ModelSpec {
         precision: Precision,
         seed: i64,
     ) -> Result<BridgeV2W, WorldModelError> {
+        self.check_inputs(weights, prompt_embeds)?;
         match self {
             Self::Random(preset) => {
                 let (vae, tf) = preset.configs();
@@ -102,15 +127,26 @@ impl ModelSpec {
                     seed,
                 )
             }
-            Self::Folder(dir) => BridgeV2W::load(
-                dir,
-                weights,
-                prompt_embeds,
-                BridgeV2WConfig::paper(),
-                device,
-                precision,
-            )
-            .map_err(|e| e.in_folder(dir)),
+            // A Hub name's refusal (bad revision, a cache entry leading out
+            // of its folder) names the flag this value came from.
+            Self::Folder(dir) => crate::hub::resolve_model_dir(dir)
+                .map_err(|e| match e {
+                    WorldModelError::ModelName { .. } => {
+                        WorldModelError::input("--model", e.to_string())
+                    }
+                    e => e,
+                })
+                .and_then(|root| {
+                    BridgeV2W::load(
+                        &root,
+                        weights,
+                        prompt_embeds,
+                        BridgeV2WConfig::paper(),
+                        device,
+                        precision,
+                    )
+                })
+                .map_err(|e| e.in_folder(dir)),
         }
     }
 }
@@ -133,7 +169,17 @@ impl FromStr for ModelSpec {
                 "model",
                 "empty: expected random:PRESET or a diffusers folder",
             )),
-            None => Ok(Self::Folder(PathBuf::from(s))),
+            None => {
+                // A Hub name's revision (`OWNER/NAME@REV`, no such local
+                // folder) is checked here, so the flag's error names it.
+                if !Path::new(s).is_dir() {
+                    if let Some(hub) = crate::hub::HubName::parse(s) {
+                        hub.check_revision()
+                            .map_err(|m| WorldModelError::input("model", format!("{s:?}: {m}")))?;
+                    }
+                }
+                Ok(Self::Folder(PathBuf::from(s)))
+            }
         }
     }
 }

@@ -112,6 +112,27 @@ pub fn read_safetensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
     })
 }
 
+/// Refuses a floating-point `tensor` holding NaN or infinite values: a
+/// [`WorldModelError::NonFiniteWeight`] naming the file `path`, the tensor's
+/// `key` and how many values are not finite (a diverged run or a corrupt file).
+pub fn check_finite(path: &Path, key: &str, tensor: &Tensor) -> Result<()> {
+    if tensor.is_floating_point() {
+        let bad = tensor
+            .isfinite()
+            .logical_not()
+            .sum(tch::Kind::Int64)
+            .int64_value(&[]);
+        if bad > 0 {
+            return Err(WorldModelError::NonFiniteWeight {
+                path: path.to_path_buf(),
+                key: key.to_string(),
+                count: bad,
+            });
+        }
+    }
+    Ok(())
+}
+
 /// Copies the tensors of `files` into the variables of `vs` by name, converting dtype
 /// and device to the variable's. `missing_ok(key)` allows a variable without a tensor,
 /// `unexpected_ok(key)` a tensor without a variable; anything else not matched, and
@@ -145,20 +166,7 @@ pub fn load_weights(
                     found: tensor.size(),
                 });
             }
-            if tensor.is_floating_point() {
-                let bad = tensor
-                    .isfinite()
-                    .logical_not()
-                    .sum(tch::Kind::Int64)
-                    .int64_value(&[]);
-                if bad > 0 {
-                    return Err(WorldModelError::NonFiniteWeight {
-                        path: path.clone(),
-                        key,
-                        count: bad,
-                    });
-                }
-            }
+            check_finite(path, &key, &tensor)?;
             tch::no_grad(|| {
                 let mut var = var.shallow_clone();
                 var.f_copy_(&tensor.to_kind(var.kind()).to_device(var.device()))

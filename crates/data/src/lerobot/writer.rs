@@ -138,6 +138,9 @@ impl LeRobotV3Writer {
         state_names: Vec<String>,
         action_names: Vec<String>,
     ) -> Result<Self, DatasetError> {
+        // The key becomes a folder name (`videos/{video_key}/`): a plain name only.
+        bridgev2w_io::confine::check_name(video_key)
+            .map_err(|e| meta_err(root, format!("video key {e}")))?;
         std::fs::create_dir_all(root).map_err(io_err(root))?;
         let vpath = root.join(format_template(
             VIDEO_TPL,

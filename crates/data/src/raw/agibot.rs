@@ -122,6 +122,20 @@ pub struct AgibotOptions {
     pub gripper_closed: f64,
 }
 
+impl AgibotOptions {
+    /// Checks the camera names (`--cameras`): each becomes part of a file
+    /// name (`<cam>_color.mp4`, `<cam>_intrinsic_params.json`), so each must
+    /// be a plain name (no `/`, `..` or NUL). The error names the flag, the
+    /// value and what was expected.
+    pub fn check_cameras(&self) -> Result<(), String> {
+        for cam in &self.cameras {
+            bridgev2w_io::confine::check_name(cam)
+                .map_err(|e| format!("--cameras: camera name {e}"))?;
+        }
+        Ok(())
+    }
+}
+
 impl Default for AgibotOptions {
     fn default() -> Self {
         Self {
@@ -401,6 +415,12 @@ pub fn read_episode(
     options: &AgibotOptions,
 ) -> Result<RawEpisode, RawError> {
     let id = key.to_string();
+    options
+        .check_cameras()
+        .map_err(|message| RawError::Inconsistent {
+            episode: id.clone(),
+            message,
+        })?;
     let h5_path = root
         .join("proprio_stats")
         .join(&key.task)

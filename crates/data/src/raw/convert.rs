@@ -47,6 +47,37 @@ pub struct ConvertOptions {
     pub overwrite: bool,
 }
 
+/// The highest frame rate a converted dataset may record (frames per second;
+/// its MP4 time base is `fps * 1000` ticks per second, a `u32`).
+pub const MAX_FPS: u32 = 1000;
+
+impl ConvertOptions {
+    /// Checks the output size (even, 2..=[`crate::synth::MAX_SIDE`] pixels a
+    /// side, for H.264) and the frame rate (1..=[`MAX_FPS`]: the LeRobot
+    /// reader refuses a dataset whose `fps` is not positive), before any
+    /// file is read or written.
+    pub fn validate(&self) -> Result<(), ConvertError> {
+        let max = crate::synth::MAX_SIDE as usize;
+        if !(1..=max).contains(&self.width)
+            || !(1..=max).contains(&self.height)
+            || self.width % 2 != 0
+            || self.height % 2 != 0
+        {
+            return Err(ConvertError::Options(format!(
+                "output size {}x{}: expected even width and height of 2..={max} pixels (H.264)",
+                self.width, self.height
+            )));
+        }
+        if !(1..=MAX_FPS).contains(&self.fps) {
+            return Err(ConvertError::Options(format!(
+                "--fps {}: expected a frame rate of 1..={MAX_FPS} frames per second (a dataset's fps must be positive)",
+                self.fps
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// One item that was skipped, and why.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct Skipped {
@@ -306,17 +337,7 @@ pub fn convert(
     options: &ConvertOptions,
     on_item: &dyn Fn(&str),
 ) -> Result<ConvertReport, ConvertError> {
-    let max = crate::synth::MAX_SIDE as usize;
-    if !(1..=max).contains(&options.width)
-        || !(1..=max).contains(&options.height)
-        || options.width % 2 != 0
-        || options.height % 2 != 0
-    {
-        return Err(ConvertError::Options(format!(
-            "output size {}x{}: expected even width and height of 2..={max} pixels (H.264)",
-            options.width, options.height
-        )));
-    }
+    options.validate()?;
     let arms = embodiment.end_effectors.len();
     let names = |prefix: &str, n: usize| (0..n).map(|i| format!("{prefix}{i}")).collect();
     let state_dim = embodiment.robot.dof();

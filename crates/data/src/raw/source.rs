@@ -52,7 +52,11 @@ pub fn convert_source(
     progress: &dyn Fn(ConvertProgress),
 ) -> Result<ConvertReport, ConvertError> {
     let limit = limit.unwrap_or(usize::MAX);
-    let output = OutputDir::create(out, options.overwrite)
+    let root = match source {
+        RawSource::Droid { root, .. } | RawSource::Agibot { root, .. } => root,
+    };
+    // An output equal to, inside or containing the source would delete it.
+    let output = OutputDir::create_for(out, options.overwrite, &[root])
         .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
     let tmp = output.path().to_path_buf();
     let on_item = |id: &str| progress(ConvertProgress::Done(id));
@@ -96,4 +100,48 @@ pub fn convert_source(
         .commit()
         .map_err(|e| ConvertError::Options(format!("out: {e}")))?;
     Ok(report)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_output_overlapping_the_source_is_refused_and_the_source_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("agibot");
+        std::fs::create_dir_all(root.join("proprio_stats")).unwrap();
+        std::fs::write(root.join("proprio_stats/keep.txt"), "k").unwrap();
+        let source = RawSource::Agibot {
+            root: root.clone(),
+            options: AgibotOptions::default(),
+        };
+        let embodiment = Embodiment::builtin("agibot-g1").unwrap();
+        let options = ConvertOptions {
+            width: 64,
+            height: 48,
+            fps: 15,
+            joint_names: None,
+            skip_bad: false,
+            split: None,
+            source_format: "agibot".into(),
+            overwrite: true,
+        };
+        for (out, how) in [
+            (root.clone(), "is the input"),
+            (root.join("out"), "is inside the input"),
+            (dir.path().to_path_buf(), "contains the input"),
+        ] {
+            let e = convert_source(&source, None, &embodiment, &out, &options, &|_| {})
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(how) && e.contains(&*root.to_string_lossy()),
+                "{e}"
+            );
+        }
+        let kept = std::fs::read_to_string(root.join("proprio_stats/keep.txt")).unwrap();
+        assert_eq!(kept, "k");
+    }
 }

@@ -1,0 +1,254 @@
+//! Flags whose values would give silent garbage (issue 69, item 4) are
+//! refused up front: exit status 1 or 2, an error naming the flag and the
+//! value, and nothing written.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{run, s};
+use std::path::Path;
+use std::process::Output;
+
+/// Asserts that `o` failed with status 1 or 2 and that its stderr holds every
+/// one of `needles`; returns the stderr.
+fn refused(o: &Output, needles: &[&str]) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(
+        matches!(o.status.code(), Some(1 | 2)),
+        "expected exit status 1 or 2, got {:?}; stderr:\n{err}",
+        o.status.code()
+    );
+    for n in needles {
+        assert!(err.contains(n), "stderr lacks {n:?}:\n{err}");
+    }
+    assert!(!err.contains("panicked"), "{err}");
+    err
+}
+
+/// `convert --format agibot SRC --out OUT REST...` (SRC need not exist: the
+/// flags are checked before it is read).
+fn convert(dir: &Path, rest: &[&str]) -> Output {
+    let (src, out) = (dir.join("src"), dir.join("out"));
+    let mut args = vec!["convert", "--format", "agibot", s(&src), "--out", s(&out)];
+    args.extend_from_slice(rest);
+    run(&args)
+}
+
+#[test]
+fn convert_refuses_a_frame_rate_the_dataset_reader_would_refuse() {
+    let tmp = tempfile::tempdir().unwrap();
+    refused(
+        &convert(tmp.path(), &["--fps", "0"]),
+        &["--fps 0", "1..=1000"],
+    );
+    // fps * 1000 ticks must fit the MP4 time base.
+    refused(
+        &convert(tmp.path(), &["--fps", "5000000"]),
+        &["--fps 5000000"],
+    );
+    assert!(!tmp.path().join("out").exists());
+    assert!(std::fs::read_dir(tmp.path()).expect("read_dir").all(|e| !e
+        .expect("entry")
+        .file_name()
+        .to_string_lossy()
+        .contains("bridgev2w-tmp")));
+}
+
+#[test]
+fn convert_refuses_duplicate_or_no_cameras() {
+    let tmp = tempfile::tempdir().unwrap();
+    refused(
+        &convert(tmp.path(), &["--cameras", "head,head"]),
+        &["--cameras \"head,head\"", "\"head\" is named twice"],
+    );
+    refused(
+        &convert(tmp.path(), &["--cameras", "head, hand_left ,hand_left"]),
+        &["--cameras", "\"hand_left\" is named twice"],
+    );
+    refused(
+        &convert(tmp.path(), &["--cameras", " , "]),
+        &["--cameras \" , \"", "at least one camera"],
+    );
+    assert!(!tmp.path().join("out").exists());
+}
+
+#[test]
+fn eval_run_refuses_empty_or_duplicate_splits() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (cfg, runs) = (tmp.path().join("run.toml"), tmp.path().join("run"));
+    let eval_run =
+        |splits: &str| run(&["eval-run", s(&cfg), "--run", s(&runs), "--splits", splits]);
+    refused(&eval_run(""), &["--splits \"\"", "at least one split"]);
+    refused(
+        &eval_run(" , ,"),
+        &["--splits \" , ,\"", "at least one split"],
+    );
+    refused(
+        &eval_run("test,unseen_scene, test"),
+        &[
+            "--splits \"test,unseen_scene, test\"",
+            "\"test\" is named twice",
+        ],
+    );
+}
+
+#[test]
+fn eval_grid_refuses_empty_or_duplicate_splits() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (cfg, runs, out) = (
+        tmp.path().join("run.toml"),
+        tmp.path().join("run"),
+        tmp.path().join("grids"),
+    );
+    let grid = |splits: &str| {
+        run(&[
+            "eval-grid",
+            s(&cfg),
+            "--run",
+            s(&runs),
+            "--out",
+            s(&out),
+            "--splits",
+            splits,
+        ])
+    };
+    refused(&grid(""), &["--splits \"\"", "at least one split"]);
+    refused(
+        &grid("test,test"),
+        &["--splits \"test,test\"", "\"test\" is named twice"],
+    );
+    assert!(!out.exists());
+}
+
+#[test]
+fn demo_refuses_fewer_than_two_frames() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    for frames in ["0", "1"] {
+        refused(
+            &run(&["demo", "--out", s(&out), "--frames", frames, "--no-predict"]),
+            &[&format!("--frames {frames}"), "at least 2"],
+        );
+    }
+    assert!(!out.exists());
+}
+
+#[test]
+fn predict_refuses_weights_or_prompt_embeds_with_a_random_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (w, p, out) = (
+        tmp.path().join("w.safetensors"),
+        tmp.path().join("prompt.safetensors"),
+        tmp.path().join("out"),
+    );
+    let base = [
+        "predict",
+        "--model",
+        "random:tiny",
+        "--image",
+        "first.png",
+        "--masks",
+        "masks.npy",
+        "--out",
+        s(&out),
+        "--device",
+        "cpu",
+    ];
+    let with = |flag: &str, path: &Path| {
+        let mut args = base.to_vec();
+        args.extend_from_slice(&[flag, s(path)]);
+        run(&args)
+    };
+    refused(&with("--weights", &w), &["--weights", s(&w), "random:tiny"]);
+    refused(
+        &with("--prompt-embeds", &p),
+        &["--prompt-embeds", s(&p), "random:tiny"],
+    );
+    assert!(!out.exists());
+}
+
+#[test]
+fn plan_refuses_weights_with_a_random_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let w = tmp.path().join("w.safetensors");
+    for model in ["random", "random:tiny"] {
+        refused(
+            &run(&[
+                "plan",
+                "--task",
+                "reach",
+                "--trials",
+                "1",
+                "--model",
+                model,
+                "--weights",
+                s(&w),
+                "--device",
+                "cpu",
+            ]),
+            &["--weights", s(&w), "random:tiny"],
+        );
+    }
+}
+
+#[test]
+fn export_lora_refuses_non_finite_weights_naming_the_tensor() {
+    use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+    use bridgev2w_world_model::lora::LoraConfig;
+    use bridgev2w_world_model::scheduler::SchedulerConfig;
+    use bridgev2w_world_model::transformer::TransformerConfig;
+    use bridgev2w_world_model::vae::VaeConfig;
+    use bridgev2w_world_model::ComputeDevice;
+
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = BridgeV2WConfig {
+        lora: Some(LoraConfig {
+            rank: 4,
+            alpha: 4.0,
+        }),
+        ..BridgeV2WConfig::tiny()
+    };
+    let model = BridgeV2W::random(
+        cfg,
+        &VaeConfig::tiny(),
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        3,
+    )
+    .unwrap();
+    // One value of one adapter becomes NaN (a diverged run).
+    let mut keys: Vec<String> = model
+        .adapters
+        .variables()
+        .into_keys()
+        .filter(|k| k.starts_with("transformer.") && k.ends_with("lora_B.weight"))
+        .collect();
+    keys.sort();
+    let key = keys.first().unwrap().clone();
+    tch::no_grad(|| {
+        let v = &model.adapters.variables()[&key];
+        let _ = v.flatten(0, -1).get(0).fill_(f64::NAN);
+    });
+    let (backbone, weights, out) = (
+        tmp.path().join("backbone"),
+        tmp.path().join("bw.safetensors"),
+        tmp.path().join("lora"),
+    );
+    model.save_backbone(&backbone).unwrap();
+    model.save_weights(&weights).unwrap();
+    refused(
+        &run(&[
+            "export-lora",
+            "--model",
+            s(&backbone),
+            "--weights",
+            s(&weights),
+            "--out",
+            s(&out),
+        ]),
+        &[s(&weights), &format!("`{key}`"), "NaN or infinite"],
+    );
+    assert!(!out.exists());
+}
