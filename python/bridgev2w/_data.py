@@ -54,7 +54,7 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
             gripper_range=(35.0, 120.0), split: str = "train",
             skip_bad: bool = False, limit: Optional[int] = None) -> ConvertReport:
     """Converts raw episodes under ``src`` into a LeRobot v3.0 training
-    dataset at ``out`` (must not exist; written to ``out.tmp``, then
+    dataset at ``out`` (must not exist; written to a temporary folder beside it, then
     renamed): every camera of every episode one episode, frames resized to
     ``width`` x ``height`` (even), ``calc`` masks rendered from the recorded
     joints, as ``bridgev2w convert``. Returns a :class:`ConvertReport`.

@@ -40,7 +40,7 @@ def generate(out, *, robot: str = "franka", episodes_per_split: Union[int, Seque
              frames: int = 25, width: int = 96, height: int = 64, fps: int = 10, seed: int = 0,
              tasks: Union[str, Sequence[str]] = ("reach", "push", "pick_place")) -> SynthSummary:
     """Writes a synthetic tabletop dataset (LeRobot v3.0) to ``out``, which
-    must not exist (written to ``out.tmp``, then renamed), and returns its
+    must not exist (written to a temporary folder beside it, then renamed), and returns its
     :class:`SynthSummary`. The arguments and defaults are ``bridgev2w
     synth``'s: a built-in ``robot``; ``episodes_per_split``, one number for
     all of :data:`SPLITS` or four; ``frames`` per episode (2..10000);

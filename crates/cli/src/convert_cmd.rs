@@ -29,8 +29,8 @@ pub struct ConvertArgs {
     format: Format,
     /// Source: a DROID directory (searched for episodes) or an AgiBot World root.
     src: PathBuf,
-    /// Output dataset directory (must not exist unless --overwrite; written to
-    /// DIR.tmp, then renamed).
+    /// Output dataset directory (must not exist unless --overwrite, nor
+    /// overlap SRC; written to a temporary folder beside it, then renamed).
     #[arg(long)]
     out: PathBuf,
     /// Replace an existing --out (once the new dataset is complete).

@@ -11,7 +11,7 @@ use std::path::PathBuf;
 /// Arguments of `demo`.
 #[derive(Debug, clap::Args)]
 pub struct DemoArgs {
-    /// Output directory (written to OUT.tmp, then renamed). An earlier
+    /// Output directory (written to a temporary folder beside it, then renamed). An earlier
     /// demo's output there is replaced; any other existing folder is refused
     /// unless --overwrite.
     #[arg(long, default_value = "demo-out")]

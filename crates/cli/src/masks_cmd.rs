@@ -85,7 +85,7 @@ pub struct MasksArgs {
     /// Output height (the camera intrinsics are rescaled).
     #[arg(long, default_value_t = 480)]
     pub height: u32,
-    /// Output directory (written to OUT.tmp, then renamed; an existing one
+    /// Output directory (written to a temporary folder beside it, then renamed; an existing one
     /// is refused unless --overwrite).
     #[arg(long)]
     pub out: PathBuf,

@@ -45,7 +45,7 @@ pub struct PredictArgs {
     masks: Vec<PathBuf>,
     /// Output folder: frames/000000.png..., video.npy (uint8 [T, H, W, 3]),
     /// video.mp4 (H.264), or one such folder per clip when several --masks;
-    /// written to OUT.tmp, then renamed (all clips or none). An existing one
+    /// written to a temporary folder beside it, then renamed (all clips or none). An existing one
     /// is refused unless --overwrite.
     #[arg(long)]
     out: PathBuf,

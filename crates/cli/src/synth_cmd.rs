@@ -8,7 +8,7 @@ use std::path::PathBuf;
 /// Arguments of `synth`.
 #[derive(Debug, clap::Args)]
 pub struct SynthArgs {
-    /// Output dataset directory (must not exist; written to DIR.tmp, then renamed).
+    /// Output dataset directory (must not exist; written to a temporary folder beside it, then renamed).
     #[arg(long)]
     out: PathBuf,
     /// Built-in robot of the synthetic world: franka, franka-robotiq or dual-arm.

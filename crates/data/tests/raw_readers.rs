@@ -449,7 +449,7 @@ fn read_convert_and_fail_clearly(pyav: bool) {
     );
 
     // The whole workflow in one call (what `convert` and `bw.convert` run):
-    // find, limit, convert into OUT.tmp, rename.
+    // find, limit, convert into a temporary folder, rename.
     let whole = ConvertOptions {
         width: 32,
         height: 24,

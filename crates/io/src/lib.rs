@@ -10,7 +10,7 @@
 //!   frames and videos are exchanged in;
 //! * [`frame`]: [`frame::RgbFrame`], the float RGB frame that the world
 //!   model, the planners and the metrics all use, and its 8-bit conversions;
-//! * [`output`]: output folders as transactions (built in `OUT.tmp`, renamed
+//! * [`output`]: output folders as transactions (built in a temporary folder the run owns, renamed
 //!   to `OUT` when complete);
 //! * [`sections`]: a markdown results file that several commands share, each
 //!   owning one marked section;

@@ -15,7 +15,7 @@ fn check_new_output(out: &Path) -> PyResult<()> {
 }
 
 /// Writes the synthetic tabletop dataset (LeRobot v3.0) of `bridgev2w synth`
-/// to `out` (written to `out.tmp`, then renamed) with the GIL released;
+/// to `out` (written to a temporary folder beside it, then renamed) with the GIL released;
 /// returns its summary as a dict (`out`, `episodes`, `total_frames`,
 /// `episodes_per_split`, `episodes_per_task`, `contact_events`).
 #[pyfunction]

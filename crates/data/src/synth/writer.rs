@@ -49,7 +49,7 @@ pub struct DatasetSummary {
 pub const VIDEO_KEY: &str = "observation.images.main";
 
 /// Generates the configured episodes and writes them as a LeRobot v3.0
-/// dataset at `out` (first into `out.tmp`, renamed when complete).
+/// dataset at `out` (first into a temporary folder beside it, renamed when complete).
 /// Episodes are rendered in parallel batches and written in plan order, so
 /// the bytes do not depend on the thread count. `on_episode` is called after
 /// each generated episode.
