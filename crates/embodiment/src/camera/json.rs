@@ -5,10 +5,10 @@
 
 use super::track::{CameraPose, CameraTrack};
 use super::{
-    invalid, world_from_camera_from_xyz_rpy, Camera, CameraError, Distortion, Intrinsics,
-    LAST_ROW_TOL, ROTATION_TOL,
+    invalid, isometry_from_rows, world_from_camera_from_xyz_rpy, Camera, CameraError, Distortion,
+    Intrinsics,
 };
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
+use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::Path;
@@ -88,68 +88,6 @@ fn parse_distortion(value: serde_json::Value, origin: &str) -> Result<Distortion
             .map_err(|e| invalid(origin, "distortion", e.to_string(), EXPECTED)),
         other => Err(invalid(origin, "distortion", other.to_string(), EXPECTED)),
     }
-}
-
-/// Converts a row-major 4x4 rigid transform to an isometry, checking the last
-/// row and re-orthonormalizing a rotation block within [`ROTATION_TOL`].
-pub fn isometry_from_rows(
-    m: &[[f64; 4]; 4],
-    origin: &str,
-    field: &str,
-) -> Result<Isometry3<f64>, CameraError> {
-    for (r, row) in m.iter().enumerate() {
-        for (c, &value) in row.iter().enumerate() {
-            if !value.is_finite() {
-                return Err(invalid(
-                    origin,
-                    &format!("{field}[{r}][{c}]"),
-                    value.to_string(),
-                    "a finite number",
-                ));
-            }
-        }
-    }
-    let last = m[3];
-    let expected_last = [0.0, 0.0, 0.0, 1.0];
-    if last
-        .iter()
-        .zip(expected_last)
-        .any(|(a, b)| (a - b).abs() > LAST_ROW_TOL)
-    {
-        return Err(invalid(
-            origin,
-            &format!("{field}[3]"),
-            format!("{last:?}"),
-            "the last row of a rigid transform, [0, 0, 0, 1]",
-        ));
-    }
-    let block = Matrix3::from_fn(|r, c| m[r][c]);
-    let det = block.determinant();
-    let ortho_err = (block.transpose() * block - Matrix3::identity())
-        .abs()
-        .max();
-    if (det - 1.0).abs() > ROTATION_TOL || ortho_err > ROTATION_TOL {
-        return Err(CameraError::DegenerateRotation {
-            origin: origin.to_string(),
-            field: field.to_string(),
-            detail: format!("determinant {det}, max |R^T R - I| = {ortho_err:.3e}"),
-        });
-    }
-    // Nearest rotation (polar decomposition): R = U V^T.
-    let svd = block.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Err(CameraError::DegenerateRotation {
-            origin: origin.to_string(),
-            field: field.to_string(),
-            detail: format!("determinant {det}, SVD failed"),
-        });
-    };
-    let rotation = Rotation3::from_matrix_unchecked(u * v_t);
-    let quaternion = UnitQuaternion::from_rotation_matrix(&rotation);
-    Ok(Isometry3::from_parts(
-        Translation3::new(m[0][3], m[1][3], m[2][3]),
-        UnitQuaternion::new_normalize(quaternion.into_inner()),
-    ))
 }
 
 /// Parses the camera file format into intrinsics and a pose of any kind.
@@ -327,5 +265,28 @@ impl Camera {
                 s
             }
         }
+    }
+}
+
+impl CameraTrack {
+    /// Parses the camera file format ([`Camera::from_json_str`]'s fields)
+    /// with the moving-camera fields allowed:
+    ///
+    /// - `"world_from_camera_per_frame": [[[4x4]], ...]`: one row-major
+    ///   `world_from_camera` per frame;
+    /// - `"parent_link": "head_camera_link"` with optional
+    ///   `"link_from_camera": [[4x4]]` (default identity): mounted on a link.
+    pub fn from_json_str(text: &str, source: &str) -> Result<Self, CameraError> {
+        parse_track(text, source)
+    }
+
+    /// Reads a camera file (format of [`CameraTrack::from_json_str`]).
+    pub fn from_json_file(path: &Path) -> Result<Self, CameraError> {
+        let origin = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|error| CameraError::Io {
+            origin: origin.clone(),
+            error,
+        })?;
+        Self::from_json_str(&text, &origin)
     }
 }

@@ -16,7 +16,6 @@
 mod json;
 mod track;
 
-pub use json::isometry_from_rows;
 pub use track::{read_poses_npy, CameraPose, CameraTrack};
 
 use nalgebra::{
@@ -29,9 +28,9 @@ use thiserror::Error;
 /// not project.
 const MIN_PROJECT_Z_M: f64 = 1e-9;
 /// Tolerance on the last row `[0, 0, 0, 1]` of a 4x4 extrinsic matrix.
-pub(crate) const LAST_ROW_TOL: f64 = 1e-6;
+const LAST_ROW_TOL: f64 = 1e-6;
 /// Tolerance on `|R^T R - I|` and `|det R - 1|` of a 3x3 rotation block.
-pub(crate) const ROTATION_TOL: f64 = 1e-4;
+const ROTATION_TOL: f64 = 1e-4;
 /// The largest image side (pixels) a camera may have: far above any robot
 /// camera, far below what would exhaust memory when rasterized.
 pub const MAX_IMAGE_SIDE: u32 = 16_384;
@@ -465,4 +464,66 @@ impl Camera {
             world_from_camera: self.world_from_camera,
         }
     }
+}
+
+/// Converts a row-major 4x4 rigid transform to an isometry, checking the last
+/// row and re-orthonormalizing a rotation block within [`ROTATION_TOL`].
+pub fn isometry_from_rows(
+    m: &[[f64; 4]; 4],
+    origin: &str,
+    field: &str,
+) -> Result<Isometry3<f64>, CameraError> {
+    for (r, row) in m.iter().enumerate() {
+        for (c, &value) in row.iter().enumerate() {
+            if !value.is_finite() {
+                return Err(invalid(
+                    origin,
+                    &format!("{field}[{r}][{c}]"),
+                    value.to_string(),
+                    "a finite number",
+                ));
+            }
+        }
+    }
+    let last = m[3];
+    let expected_last = [0.0, 0.0, 0.0, 1.0];
+    if last
+        .iter()
+        .zip(expected_last)
+        .any(|(a, b)| (a - b).abs() > LAST_ROW_TOL)
+    {
+        return Err(invalid(
+            origin,
+            &format!("{field}[3]"),
+            format!("{last:?}"),
+            "the last row of a rigid transform, [0, 0, 0, 1]",
+        ));
+    }
+    let block = Matrix3::from_fn(|r, c| m[r][c]);
+    let det = block.determinant();
+    let ortho_err = (block.transpose() * block - Matrix3::identity())
+        .abs()
+        .max();
+    if (det - 1.0).abs() > ROTATION_TOL || ortho_err > ROTATION_TOL {
+        return Err(CameraError::DegenerateRotation {
+            origin: origin.to_string(),
+            field: field.to_string(),
+            detail: format!("determinant {det}, max |R^T R - I| = {ortho_err:.3e}"),
+        });
+    }
+    // Nearest rotation (polar decomposition): R = U V^T.
+    let svd = block.svd(true, true);
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return Err(CameraError::DegenerateRotation {
+            origin: origin.to_string(),
+            field: field.to_string(),
+            detail: format!("determinant {det}, SVD failed"),
+        });
+    };
+    let rotation = Rotation3::from_matrix_unchecked(u * v_t);
+    let quaternion = UnitQuaternion::from_rotation_matrix(&rotation);
+    Ok(Isometry3::from_parts(
+        Translation3::new(m[0][3], m[1][3], m[2][3]),
+        UnitQuaternion::new_normalize(quaternion.into_inner()),
+    ))
 }

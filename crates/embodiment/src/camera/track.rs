@@ -4,8 +4,7 @@
 //! frame (`world_from_camera = world_from_link(q_t) * link_from_camera`).
 //! A fixed camera is the special case of one pose for every frame.
 
-use super::json::isometry_from_rows;
-use super::{Camera, CameraError, Intrinsics};
+use super::{isometry_from_rows, Camera, CameraError, Intrinsics};
 use crate::robot::Robot;
 use nalgebra::Isometry3;
 use std::path::Path;
@@ -56,27 +55,6 @@ impl From<&Camera> for CameraTrack {
 }
 
 impl CameraTrack {
-    /// Parses the camera file format ([`Camera::from_json_str`]'s fields)
-    /// with the moving-camera fields allowed:
-    ///
-    /// - `"world_from_camera_per_frame": [[[4x4]], ...]`: one row-major
-    ///   `world_from_camera` per frame;
-    /// - `"parent_link": "head_camera_link"` with optional
-    ///   `"link_from_camera": [[4x4]]` (default identity): mounted on a link.
-    pub fn from_json_str(text: &str, source: &str) -> Result<Self, CameraError> {
-        super::json::parse_track(text, source)
-    }
-
-    /// Reads a camera file (format of [`CameraTrack::from_json_str`]).
-    pub fn from_json_file(path: &Path) -> Result<Self, CameraError> {
-        let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|error| CameraError::Io {
-            origin: origin.clone(),
-            error,
-        })?;
-        Self::from_json_str(&text, &origin)
-    }
-
     /// The same track with the pose of each frame replaced by `poses`
     /// (`world_from_camera`, e.g. from a `[T, 4, 4]` `.npy` file).
     pub fn with_poses(&self, poses: Vec<Isometry3<f64>>) -> Self {
