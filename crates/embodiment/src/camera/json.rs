@@ -90,6 +90,15 @@ fn parse_distortion(value: serde_json::Value, origin: &str) -> Result<Distortion
     }
 }
 
+/// A camera file's text and its name for messages.
+fn read_camera_file(path: &Path) -> Result<(String, String), CameraError> {
+    let origin = path.display().to_string();
+    match std::fs::read_to_string(path) {
+        Ok(text) => Ok((text, origin)),
+        Err(error) => Err(CameraError::Io { origin, error }),
+    }
+}
+
 /// Parses the camera file format into intrinsics and a pose of any kind.
 pub(super) fn parse_track(text: &str, source: &str) -> Result<CameraTrack, CameraError> {
     let parsed: CameraJson = serde_json::from_str(text).map_err(|e| CameraError::Json {
@@ -233,11 +242,7 @@ impl Camera {
 
     /// Reads a camera JSON file (format of [`Camera::from_json_str`]).
     pub fn from_json_file(path: &Path) -> Result<Camera, CameraError> {
-        let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|error| CameraError::Io {
-            origin: origin.clone(),
-            error,
-        })?;
+        let (text, origin) = read_camera_file(path)?;
         Self::from_json_str(&text, &origin)
     }
 
@@ -282,11 +287,7 @@ impl CameraTrack {
 
     /// Reads a camera file (format of [`CameraTrack::from_json_str`]).
     pub fn from_json_file(path: &Path) -> Result<Self, CameraError> {
-        let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|error| CameraError::Io {
-            origin: origin.clone(),
-            error,
-        })?;
+        let (text, origin) = read_camera_file(path)?;
         Self::from_json_str(&text, &origin)
     }
 }
