@@ -364,7 +364,7 @@ grids() { # the side-by-side GIFs, kept when both runs and the settings are unch
     rm -f "$OUT/grids.inputs"
     stage grids "$BIN" eval-grid "$OUT/configs/bridgev2w-eval.toml" --run "$OUT/bridgev2w" \
         --compare "$OUT/configs/ablation-action-mlp-eval.toml" "$OUT/ablation-action-mlp" \
-        --out "$GRIDS" --clips "$GRID_CLIPS" --steps "$EVAL_STEPS" "${KEEP_ARGS[@]}"
+        --out "$GRIDS" --overwrite --clips "$GRID_CLIPS" --steps "$EVAL_STEPS" "${KEEP_ARGS[@]}"
     printf '%s\n' "$fp" >"$OUT/grids.inputs"
 }
 grids

@@ -33,9 +33,13 @@ pub struct EvalArgs {
         default_value = "psnr,ssim,lpips,fvd,mask_iou"
     )]
     pub metrics: Vec<String>,
-    /// Also write the results as JSON to this file.
+    /// Also write the results as JSON to this file (atomically; an existing
+    /// file is refused unless --overwrite).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Replace an existing --json file.
+    #[arg(long)]
+    pub overwrite: bool,
     /// LPIPS weights (AlexNet trunk + v0.1 heads, safetensors; see
     /// scripts/convert_reference_weights.py). Without them LPIPS is reported unavailable.
     #[arg(long)]
@@ -59,9 +63,13 @@ pub struct EvalPolicyArgs {
     /// World-model success rates for the same tasks and policies, same formats.
     #[arg(long)]
     pub sim: PathBuf,
-    /// Also write the results as JSON to this file.
+    /// Also write the results as JSON to this file (atomically; an existing
+    /// file is refused unless --overwrite).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Replace an existing --json file.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 impl TryFrom<&EvalArgs> for ScoreOptions {
@@ -93,8 +101,36 @@ impl TryFrom<&EvalArgs> for ScoreOptions {
     }
 }
 
+/// Refuses, before any work, a `--json` file that exists (unless
+/// `--overwrite`) or whose folder does not.
+fn check_json_out(json: Option<&std::path::Path>, overwrite: bool) -> Result<()> {
+    let Some(path) = json else { return Ok(()) };
+    if path.exists() && !overwrite {
+        anyhow::bail!(
+            "--json {}: already exists (choose another file, or pass --overwrite to replace it)",
+            path.display()
+        );
+    }
+    if path.is_dir() {
+        anyhow::bail!(
+            "--json {}: is a folder, expected a file name",
+            path.display()
+        );
+    }
+    let parent = path.parent().filter(|p| !p.as_os_str().is_empty());
+    if let Some(dir) = parent.filter(|d| !d.is_dir()) {
+        anyhow::bail!(
+            "--json {}: the folder {} does not exist",
+            path.display(),
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
 /// `bridgev2w eval`.
 pub fn run_eval(a: &EvalArgs) -> Result<()> {
+    check_json_out(a.json.as_deref(), a.overwrite)?;
     let opts = ScoreOptions::try_from(a)?;
     let report = score_videos(&opts, &crate::progress::TerminalProgress::default())?;
     crate::print_stdout(&report.markdown())?;
@@ -106,6 +142,7 @@ pub fn run_eval(a: &EvalArgs) -> Result<()> {
 
 /// `bridgev2w eval-policy`.
 pub fn run_eval_policy(a: &EvalPolicyArgs) -> Result<()> {
+    check_json_out(a.json.as_deref(), a.overwrite)?;
     let agreement = compare(&read_rates(&a.real)?, &read_rates(&a.sim)?)?;
     crate::print_stdout(&agreement.markdown())?;
     if let Some(path) = &a.json {

@@ -19,9 +19,14 @@ pub struct EvalGridArgs {
     /// BridgeV2W): its configuration and its folder; repeat for more.
     #[arg(long, num_args = 2, value_names = ["CONFIG", "RUN"])]
     compare: Vec<PathBuf>,
-    /// The folder of the GIFs: OUT/<split>.gif.
+    /// The folder of the GIFs: OUT/<split>.gif (written to a temporary
+    /// folder beside it, then renamed; an existing one is refused unless
+    /// --overwrite).
     #[arg(long)]
     out: PathBuf,
+    /// Replace an existing --out (as a whole, once the grids are written).
+    #[arg(long)]
+    overwrite: bool,
     /// Splits of the runs' dataset, comma-separated.
     #[arg(long, default_value = "test,unseen_camera,unseen_scene")]
     splits: String,
@@ -46,18 +51,22 @@ pub fn run(a: &EvalGridArgs) -> Result<()> {
         config: c[0].clone(),
         run: c[1].clone(),
     }));
+    let inputs: Vec<&std::path::Path> = runs.iter().map(|r| r.run.as_path()).collect();
+    let out = bridgev2w_io::output::OutputDir::create_for(&a.out, a.overwrite, &inputs)?;
     let o = GridOptions {
-        runs,
+        runs: runs.clone(),
         splits,
         clips: a.clips,
         sampling: a.sampling.eval_options(),
         weights: a.weights,
-        out: a.out.clone(),
+        out: out.path().to_path_buf(),
     };
     let written = write_grids(&o, &crate::progress::TerminalProgress::default())?;
+    out.commit()?;
     let lines: Vec<String> = written
         .iter()
-        .map(|p| format!("wrote {}", p.display()))
+        .filter_map(|p| p.file_name())
+        .map(|name| format!("wrote {}", a.out.join(name).display()))
         .collect();
     crate::print_stdout(&(lines.join("\n") + "\n"))
 }

@@ -215,6 +215,7 @@ fn eval_pairs_frames_by_number_not_by_sorted_name() {
         "psnr",
         "--json",
         &json,
+        "--overwrite",
     ];
     let o = run(&args);
     assert!(o.status.success(), "{}", stderr(&o));

@@ -252,3 +252,66 @@ fn export_lora_refuses_non_finite_weights_naming_the_tensor() {
     );
     assert!(!out.exists());
 }
+
+fn refs(a: &[String]) -> Vec<&str> {
+    a.iter().map(String::as_str).collect()
+}
+
+/// `eval-policy --json FILE` (and `eval`) leave an existing file alone unless
+/// `--overwrite`, and `eval-grid --out` an existing folder: refused before
+/// any work, the user's file unchanged.
+#[test]
+fn result_files_are_not_overwritten_without_overwrite() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let rates =
+        r#"{"reach": {"a": 0.9, "b": 0.4, "c": 0.1}, "push": {"a": 0.7, "b": 0.5, "c": 0.2}}"#;
+    std::fs::write(d.join("real.json"), rates).unwrap();
+    std::fs::write(d.join("sim.json"), rates).unwrap();
+    std::fs::write(d.join("mine.json"), "my notes").unwrap();
+    let args = |extra: &[&'static str]| {
+        let mut a = vec![
+            "eval-policy".to_string(),
+            "--real".into(),
+            s(&d.join("real.json")).into(),
+            "--sim".into(),
+            s(&d.join("sim.json")).into(),
+            "--json".into(),
+            s(&d.join("mine.json")).into(),
+        ];
+        a.extend(extra.iter().map(|x| x.to_string()));
+        a
+    };
+    let a = args(&[]);
+    refused(
+        &run(&refs(&a)),
+        &["--json", "mine.json", "already exists", "--overwrite"],
+    );
+    assert_eq!(
+        std::fs::read_to_string(d.join("mine.json")).unwrap(),
+        "my notes"
+    );
+    let a = args(&["--overwrite"]);
+    let o = run(&refs(&a));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(std::fs::read_to_string(d.join("mine.json"))
+        .unwrap()
+        .contains("pearson"));
+
+    // eval-grid: an existing --out folder is refused before the runs load.
+    std::fs::create_dir(d.join("grids")).unwrap();
+    std::fs::write(d.join("grids/keep.txt"), "mine").unwrap();
+    std::fs::create_dir(d.join("run")).unwrap();
+    refused(
+        &run(&[
+            "eval-grid",
+            s(&d.join("config.toml")),
+            "--run",
+            s(&d.join("run")),
+            "--out",
+            s(&d.join("grids")),
+        ]),
+        &["grids", "already exists"],
+    );
+    assert!(d.join("grids/keep.txt").is_file());
+}
