@@ -31,16 +31,7 @@ const TOLERANCE_PX: f64 = 3.0;
 const DOC_WIDTH: u32 = 320;
 
 fn agibot_dir() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/agibot-world");
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!(
-            "skipped: {} is absent (real episodes, see the project's data guide)",
-            p.display()
-        );
-        None
-    }
+    bridgev2w_io::realdata::dir(env!("CARGO_MANIFEST_DIR"), "agibot-world")
 }
 
 fn intrinsics(k: &[f64], width: u32, height: u32) -> Intrinsics {

@@ -26,17 +26,10 @@ const CAMERAS: [&str; 3] = ["head", "hand_left", "hand_right"];
 const TOLERANCE_PX: f64 = 3.0;
 
 fn samples_dir() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/realdata/agibot-world/genie-envisioner-samples");
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!(
-            "skipped: {} is absent (real episodes, see the project's data guide)",
-            p.display()
-        );
-        None
-    }
+    bridgev2w_io::realdata::dir(
+        env!("CARGO_MANIFEST_DIR"),
+        "agibot-world/genie-envisioner-samples",
+    )
 }
 
 fn intrinsics(path: &Path) -> Intrinsics {

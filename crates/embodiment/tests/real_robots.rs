@@ -12,16 +12,7 @@ use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 use std::path::{Path, PathBuf};
 
 fn realdata() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata");
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!(
-            "skipped: {} is absent (real episodes, see the project's data guide)",
-            p.display()
-        );
-        None
-    }
+    bridgev2w_io::realdata::dir(env!("CARGO_MANIFEST_DIR"), "")
 }
 
 fn pose_xyz_rpy(v: &[f64]) -> Isometry3<f64> {

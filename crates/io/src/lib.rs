@@ -20,6 +20,9 @@
 //!   scripts that print a JSON result);
 //! * [`progress`]: [`progress::Progress`], how a library reports stages,
 //!   steps and notes while it runs (the command-line tool draws the bars);
+//! * [`realdata`]: where the real robot episodes of the tests are
+//!   (`../shared/realdata/`), and the skip message where they are absent;
+//! * [`confine`]: names read from files kept inside their folder;
 //! * [`quiet_panic`]: code that may panic (third-party parsers, libtorch
 //!   ops, which panic on a device's out-of-memory) run so that the panic
 //!   becomes an error value;
@@ -38,6 +41,7 @@ pub mod plot;
 pub mod png;
 pub mod progress;
 pub mod quiet_panic;
+pub mod realdata;
 pub mod sections;
 pub mod seed;
 
