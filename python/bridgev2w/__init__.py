@@ -372,6 +372,13 @@ def render_masks(robot: Robot, camera: Union[Camera, Sequence[Camera]], *, joint
     return out
 
 
+def _batch_within(name, a, batch_ndim):
+    """A batch ``a`` (``batch_ndim`` dimensions) of at most ``MAX_PREDICT_BATCH`` items, checked before any copy."""
+    if a.ndim == batch_ndim and len(a) > _core.MAX_PREDICT_BATCH:
+        raise ValueError(f"{name}: a batch of {len(a)}, at most {_core.MAX_PREDICT_BATCH} clips per call "
+                         f"(predict them in several calls)")
+
+
 def _frames(name, a, shape, batch_ndim):
     """``a`` (uint8 ``shape`` or ``[B, *shape]``) as a contiguous batch."""
     if a.dtype != np.uint8:
@@ -437,8 +444,10 @@ class WorldModel:
         as_torch = next((x for x in (first_frame, masks) if _is_tensor(x)), None)
         f = _array("first_frame", first_frame)
         single = f.ndim == 3
+        _batch_within("first_frame", f, 4)
         f = _frames("first_frame", f, (h, w, 3), 4)
         m = _array("masks", masks)
+        _batch_within("masks", m, 4)
         if m.dtype.kind == "f" and np.isin(m, (0.0, 1.0)).all():
             m = m.astype(np.uint8)
         if m.dtype.kind not in "biu":

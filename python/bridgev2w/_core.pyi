@@ -5,6 +5,10 @@ from typing import Any
 
 class Error(Exception): ...
 
+# The most clips of one WorldModel.predict call, and of frames of one render.
+MAX_PREDICT_BATCH: int
+MAX_RENDER_FRAMES: int
+
 class Robot:
     def __init__(self, name: str) -> None: ...
     @staticmethod

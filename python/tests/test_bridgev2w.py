@@ -282,6 +282,36 @@ def test_synth_generate_writes_what_the_cli_writes():
         assert "synth-py" in str(e), e
 
 
+def test_read_episode_checks_shapes_against_the_declared_features():
+    out = WORK / "synth-shapes"
+    bw.synth.generate(out, episodes_per_split=(1, 0, 0, 0), frames=3, width=32, height=24, seed=1)
+    info_path = out / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    key = "observation.images.main"
+    n = info["features"]["observation.state"]["shape"][0]
+
+    def refused(needles):
+        try:
+            bw.read_episode(out, 0)
+        except bw.Error as e:
+            assert all(x in str(e) for x in needles), (needles, e)
+        else:
+            raise AssertionError(f"read despite {needles}")
+
+    good = json.dumps(info)
+    info["features"]["observation.state"]["shape"] = [n + 1]
+    info_path.write_text(json.dumps(info))
+    refused(["observation.state", f"declares shape [{n + 1}]", "file-000.parquet"])
+    info = json.loads(good)
+    info["features"][key]["shape"] = [24, 30, 3]
+    info_path.write_text(json.dumps(info))
+    refused([key, "declares [24, 30, 3]", ".mp4"])
+    info_path.write_text(good)
+    assert bw.read_episode(out, 0).masks.shape == (3, 24, 32)
+    np.save(out / "masks" / "episode_000000.npy", np.zeros((2, 24, 32), np.uint8))
+    refused(["episode_000000.npy", "masks", "shape [2, 24, 32]", "expected [3, 24, 32]"])
+
+
 def test_convert_writes_what_the_cli_writes():
     droid = RAW / "droid"
     intr = RAW / "droid_intrinsics.json"
@@ -521,6 +551,13 @@ def test_bad_input_is_a_python_exception_naming_it():
         (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", gripper_range="abc"), ValueError,
          "gripper_range"),
         (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", cameras=[1]), ValueError, "cameras"),
+        # Duplicate or no cameras: the library's check, shared with the CLI.
+        (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", cameras="head,head"), ValueError,
+         '"head" is named twice'),
+        (lambda: bw.convert(RAW / "droid", WORK / "c1", format="droid", intrinsics=RAW / "droid_intrinsics.json",
+                            cameras=["ext1", "ext2", "ext1"]), ValueError, '"ext1" is named twice'),
+        (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", cameras=" , "), ValueError,
+         "at least one camera"),
         (lambda: bw.convert(RAW / "agibot", WORK / "c1", format="agibot", robot=WORK / "no.urdf"),
          FileNotFoundError, "no.urdf"),
         (lambda: bw.convert(RAW / "agibot", RAW / "droid", format="agibot"), FileExistsError, "droid"),
@@ -529,6 +566,20 @@ def test_bad_input_is_a_python_exception_naming_it():
         (lambda: bw.read_episode(WORK / "synth-py", 99), bw.Error, "99"),
         (lambda: bw.read_episode(WORK / "synth-py", 0, key="observation.images.top"), ValueError, "key"),
         (lambda: bw.read_episode(WORK / "synth-py", -1), ValueError, "episode"),
+    ]
+    # Sizes beyond their maximum or the machine (issue 69, item 3): an
+    # exception naming them, before anything of that size is allocated.
+    cases += [
+        (lambda: cam.rescaled(100_000, 60), ValueError, "width=100000"),
+        (lambda: bw.render_masks(robot, cam.rescaled(16384, 16384), joints=np.tile(robot.home, (10_000, 1))),
+         ValueError, "rendering 10000 frames of 16384x16384 pixels needs at least"),
+        (lambda: wm.predict(np.broadcast_to(np.zeros((64, 96, 3), np.uint8), (5000, 64, 96, 3)),
+                            np.zeros((9, 64, 96), np.uint8)), ValueError, "first_frame: a batch of 5000"),
+        (lambda: wm.predict(np.zeros((64, 96, 3), np.uint8),
+                            np.broadcast_to(np.zeros((9, 64, 96), np.uint8), (4097, 9, 64, 96))),
+         ValueError, "masks: a batch of 4097"),
+        (lambda: wm.predict(np.zeros((64, 96, 3), np.uint8), np.zeros((9, 64, 96), np.uint8), steps=10 ** 12),
+         ValueError, "steps"),
     ]
     for call, kind, needle in cases:
         try:

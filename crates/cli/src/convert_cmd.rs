@@ -4,6 +4,7 @@
 use crate::masks_cmd::progress_bar;
 use anyhow::{bail, Result};
 use bridgev2w_data::raw::agibot::{AgibotOptions, GripperSource};
+use bridgev2w_data::raw::check_camera_list;
 use bridgev2w_data::raw::convert::{ConvertOptions, REPORT_FILE};
 use bridgev2w_data::raw::droid::DroidOptions;
 use bridgev2w_data::raw::droid_calibration::MissingCalibration;
@@ -111,21 +112,14 @@ fn list(s: &Option<String>) -> Option<Vec<String>> {
     })
 }
 
-/// The `--cameras` list: refused when it names no camera or one twice (a
-/// camera converted twice would write the same episodes twice).
+/// The `--cameras` list: refused when it names no camera or one twice
+/// (the library's check, which the Python package shares).
 fn camera_list(s: &Option<String>) -> Result<Option<Vec<String>>> {
     let Some(c) = list(s) else {
         return Ok(None);
     };
     let text = s.as_deref().unwrap_or_default();
-    if c.is_empty() {
-        bail!("--cameras {text:?}: expected at least one camera name, comma-separated");
-    }
-    for (i, name) in c.iter().enumerate() {
-        if c[..i].contains(name) {
-            bail!("--cameras {text:?}: camera {name:?} is named twice: expected distinct names");
-        }
-    }
+    check_camera_list(&c).map_err(|e| anyhow::anyhow!("--cameras {text:?}: {e}"))?;
     Ok(Some(c))
 }
 

@@ -59,13 +59,9 @@ impl From<&DemoArgs> for DemoOptions {
 }
 
 pub fn run(args: &DemoArgs) -> Result<()> {
-    if args.frames < 2 {
-        anyhow::bail!(
-            "--frames {}: expected at least 2 frames in the trajectory (CogVideoX clips are 49)",
-            args.frames
-        );
-    }
-    let frames = args.frames.max(2) as u64;
+    let options: DemoOptions = args.into();
+    options.validate()?;
+    let frames = args.frames as u64;
     let pb = progress_bar(frames as usize, "rendering masks");
     let tick = || {
         pb.inc(1);
@@ -73,7 +69,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             pb.finish_and_clear();
         }
     };
-    let report = run_demo(&args.into(), &tick);
+    let report = run_demo(&options, &tick);
     pb.finish_and_clear();
     let report = report?;
     if let Some(w) = &report.warning {

@@ -4,7 +4,7 @@
 //! `OUT/<split>.gif`.
 
 use anyhow::Result;
-use bridgev2w_train::grid::{write_grids, GridOptions, GridRun};
+use bridgev2w_train::grid::{grid_inputs, write_grids, GridOptions, GridRun};
 use std::path::PathBuf;
 
 /// Arguments of `eval-grid`.
@@ -51,7 +51,9 @@ pub fn run(a: &EvalGridArgs) -> Result<()> {
         config: c[0].clone(),
         run: c[1].clone(),
     }));
-    let inputs: Vec<&std::path::Path> = runs.iter().map(|r| r.run.as_path()).collect();
+    // Its runs, their configurations and datasets: an output overlapping one is refused.
+    let inputs = grid_inputs(&runs);
+    let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
     let out = bridgev2w_io::output::OutputDir::create_for(&a.out, a.overwrite, &inputs)?;
     let o = GridOptions {
         runs: runs.clone(),

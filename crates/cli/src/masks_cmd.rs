@@ -36,6 +36,13 @@ pub struct RobotArgs {
 }
 
 impl RobotArgs {
+    /// The URDF file `--robot` names, when it names a file (not a built-in
+    /// robot): an input an output must not overlap.
+    pub fn urdf_file(&self) -> Option<&Path> {
+        let p = Path::new(&self.robot);
+        p.is_file().then_some(p)
+    }
+
     pub fn load(&self) -> Result<Embodiment> {
         for d in &self.mesh_path {
             if !d.is_dir() {
@@ -107,6 +114,18 @@ pub struct MasksArgs {
     /// Skip the per-frame PNGs.
     #[arg(long)]
     pub no_png: bool,
+}
+
+impl MasksArgs {
+    /// The files `masks` reads (a URDF, the camera, its poses, the
+    /// trajectory): `--out` equal to, inside or containing one is refused.
+    pub fn inputs(&self) -> Vec<&Path> {
+        let files = [&self.camera_poses, &self.joints, &self.actions];
+        let mut inputs: Vec<&Path> = self.robot.urdf_file().into_iter().collect();
+        inputs.push(&self.camera);
+        inputs.extend(files.into_iter().flatten().map(PathBuf::as_path));
+        inputs
+    }
 }
 
 pub fn load_camera(path: &Path, width: u32, height: u32) -> Result<CameraTrack> {
@@ -227,8 +246,20 @@ pub fn run(args: &MasksArgs) -> Result<()> {
         .display()
         .to_string();
     camera.check(&e.robot, joints.len(), &camera_origin)?;
+    let source = match (&args.joints, &args.actions) {
+        (Some(p), _) => format!("--joints {}: frames", p.display()),
+        (None, Some(p)) => format!("--actions {}: frames", p.display()),
+        (None, None) => "frames".to_owned(),
+    };
+    bridgev2w_embodiment::masks::check_render_size(
+        &source,
+        joints.len(),
+        args.width,
+        args.height,
+        args.depth,
+    )?;
     let violations = e.robot.limit_violations(&joints, 1e-6);
-    let out = OutputDir::create(&args.out, args.overwrite)?;
+    let out = OutputDir::create_for(&args.out, args.overwrite, &args.inputs())?;
     let frames = render_with_progress(&e, &camera, &joints, args.depth);
     let written = write_outputs(
         out.path(),

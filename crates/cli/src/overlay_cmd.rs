@@ -7,7 +7,7 @@ use bridgev2w_data::overlay::{overlay, FrameSource, OverlayOptions};
 use bridgev2w_embodiment::camera::{read_poses_npy, CameraTrack};
 use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_io::output::OutputDir;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Arguments of `overlay`.
 #[derive(Debug, clap::Args)]
@@ -51,6 +51,25 @@ pub struct OverlayArgs {
     allow_ik_residual: bool,
 }
 
+impl OverlayArgs {
+    /// The files and folders `overlay` reads (a URDF, the camera, its poses,
+    /// the trajectory, the frames, the truths): `--out` equal to, inside or
+    /// containing one is refused.
+    fn inputs(&self) -> Vec<&Path> {
+        let files = [
+            &self.camera_poses,
+            &self.joints,
+            &self.actions,
+            &self.truth_masks,
+            &self.truth_points,
+        ];
+        let mut inputs: Vec<&Path> = self.robot.urdf_file().into_iter().collect();
+        inputs.extend([self.camera.as_path(), self.frames.as_path()]);
+        inputs.extend(files.into_iter().flatten().map(PathBuf::as_path));
+        inputs
+    }
+}
+
 pub fn run(args: &OverlayArgs) -> Result<()> {
     if !(args.point_tolerance_px.is_finite() && args.point_tolerance_px >= 0.0) {
         bail!(
@@ -77,7 +96,7 @@ pub fn run(args: &OverlayArgs) -> Result<()> {
         point_tolerance_px: args.point_tolerance_px,
         ..OverlayOptions::default()
     };
-    let out = OutputDir::create(&args.out, args.overwrite)?;
+    let out = OutputDir::create_for(&args.out, args.overwrite, &args.inputs())?;
     let pb = progress_bar(joints.len(), "rendering masks");
     let report = overlay(&e.robot, &camera, &joints, &options, out.path(), &|| {
         pb.inc(1)

@@ -297,11 +297,22 @@ fn write_clip(dir: &Path, video: &Video) -> Result<()> {
 }
 
 pub fn run(a: &PredictArgs) -> Result<()> {
-    if a.batch_size == 0 {
-        bail!("--batch-size 0: expected at least 1 clip per batch");
-    }
+    bridgev2w_world_model::bridge::check_predict_batch("--batch-size", a.batch_size)?;
     a.model
         .check_inputs(a.weights.as_deref(), a.prompt_embeds.as_deref())?;
+    let sample = SampleOptions {
+        steps: a.steps,
+        guidance_scale: a.guidance,
+        dynamic_cfg: a.dynamic_cfg,
+        seed: a.seed,
+        first_frame: Default::default(),
+        // Each clip the noise of a batch of one: its single prediction.
+        batch_noise: BatchNoise::Shared,
+        strength: a.strength,
+        keep_static_margin_px: a.keep_static,
+    };
+    // --steps, --guidance and --strength, before the model is loaded.
+    sample.validate()?;
     let clips = clips(&a.masks)?;
     // An output equal to, inside or containing an input would delete it.
     let inputs: Vec<&Path> = a
@@ -327,17 +338,7 @@ pub fn run(a: &PredictArgs) -> Result<()> {
         read_masks(&clip.masks, model.clip_frames(), res)?;
     }
     let opts = PredictOptions {
-        sample: SampleOptions {
-            steps: a.steps,
-            guidance_scale: a.guidance,
-            dynamic_cfg: a.dynamic_cfg,
-            seed: a.seed,
-            first_frame: Default::default(),
-            // Each clip the noise of a batch of one: its single prediction.
-            batch_noise: BatchNoise::Shared,
-            strength: a.strength,
-            keep_static_margin_px: a.keep_static,
-        },
+        sample,
         max_batch: None,
         ..PredictOptions::default()
     };

@@ -470,10 +470,12 @@ fn demo_predicts_with_the_shipped_model() {
         "{stdout}"
     );
 
+    let not_a_model = tmp.path().join("not-a-model");
+    std::fs::create_dir(&not_a_model).expect("demo test");
     let o = run(&[
         "demo",
         "--model",
-        tmp.path().to_str().expect("demo test"),
+        not_a_model.to_str().expect("demo test"),
         "--out",
         out.to_str().expect("demo test"),
     ]);

@@ -193,6 +193,54 @@ fn plan_refuses_weights_with_a_random_model() {
 }
 
 #[test]
+fn predict_refuses_sampling_values_before_the_model_is_loaded() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("out");
+    // The image and masks do not exist: the flags are checked first.
+    for (flag, value, expected) in [
+        ("--steps", "0", "at least 1"),
+        ("--guidance", "0.5", ">= 1"),
+        ("--guidance", "NaN", ">= 1"),
+        ("--guidance", "inf", ">= 1"),
+        ("--strength", "0", "(0, 1]"),
+        ("--strength", "1.5", "(0, 1]"),
+    ] {
+        let o = run(&[
+            "predict",
+            "--model",
+            "random:tiny",
+            "--image",
+            "first.png",
+            "--masks",
+            "masks.npy",
+            "--out",
+            s(&out),
+            "--device",
+            "cpu",
+            flag,
+            value,
+        ]);
+        refused(&o, &[flag, value, expected]);
+    }
+    assert!(!out.exists());
+}
+
+#[test]
+fn plan_refuses_weights_or_prompt_embeds_with_the_perfect_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let w = tmp.path().join("w.safetensors");
+    for (command, flag) in [
+        ("plan", "--weights"),
+        ("plan", "--prompt-embeds"),
+        ("plan-fidelity", "--weights"),
+    ] {
+        let mut args = vec![command, "--task", "reach", "--trials", "1"];
+        args.extend_from_slice(&["--model", "perfect", flag, s(&w), "--device", "cpu"]);
+        refused(&run(&args), &[flag, s(&w), "--model perfect"]);
+    }
+}
+
+#[test]
 fn export_lora_refuses_non_finite_weights_naming_the_tensor() {
     use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
     use bridgev2w_world_model::lora::LoraConfig;

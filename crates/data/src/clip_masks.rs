@@ -101,8 +101,7 @@ pub fn calc_masks(
     cache: &Path,
 ) -> Result<EpisodeMasks, DatasetError> {
     let stored = ds.root.join(format!("masks/episode_{episode:06}.npy"));
-    if stored.is_file() {
-        let (shape, data) = ds.read_masks(episode)?;
+    if let Some((shape, data)) = ds.stored_masks(episode)? {
         return Ok(EpisodeMasks {
             frames: shape[0],
             height: shape[1],
@@ -182,16 +181,17 @@ pub fn calc_masks(
 /// The dataset's link labels of `episode` (`labels/episode_XXXXXX.npy`,
 /// uint8 `[T, H, W]`, 0 = background, else the link's label, as `bridgev2w
 /// synth` writes them), when it has them. They must have `masks`' shape and
-/// cover exactly its robot pixels; anything else is an error naming the file.
+/// cover exactly its robot pixels; anything else (a FIFO, a folder or a
+/// link out of the dataset in its place included) is an error naming the file.
 pub fn read_link_labels(
     ds: &LeRobotDataset,
     episode: i64,
     masks: &EpisodeMasks,
 ) -> Result<Option<Vec<u8>>, DatasetError> {
-    let path = ds.root.join(format!("labels/episode_{episode:06}.npy"));
-    if !path.is_file() {
+    let rel = format!("labels/episode_{episode:06}.npy");
+    let Some(path) = ds.stored_file(&rel, bridgev2w_io::confine::MAX_DATA_BYTES)? else {
         return Ok(None);
-    }
+    };
     let a = read_npy(&path).map_err(|e| field_err(&path, episode, "labels", e.to_string()))?;
     let shape = [masks.frames, masks.height, masks.width];
     if a.descr != "|u1" || a.shape != shape {

@@ -3,10 +3,16 @@
 //! dataset's `data_path`/`video_path` templates and video feature keys.
 //! Absolute paths, `..`, symbolic links out of the folder and files that are
 //! not regular files are refused with the metadata file and the field named,
-//! and the message never holds the outside file's content.
+//! and the message never holds the outside file's content. The files the
+//! readers open at fixed places (LeRobot's `meta/*`, episode index, masks,
+//! labels, calibration; DROID's metadata, `trajectory.h5` and timestamps;
+//! AgiBot World's HDF5, videos and JSON) are held to the same: a FIFO is
+//! refused without blocking, a link out of the folder without being read.
 #![allow(clippy::unwrap_used)]
 
+use bridgev2w_data::clip_masks::{read_link_labels, EpisodeMasks};
 use bridgev2w_data::lerobot::{DatasetError, LeRobotDataset};
+use bridgev2w_data::raw::agibot::{self, AgibotOptions};
 use bridgev2w_data::raw::droid::{self, DroidOptions};
 use bridgev2w_data::raw::RawError;
 use bridgev2w_data::synth::{write_dataset, SynthConfig, VIDEO_KEY};
@@ -43,6 +49,8 @@ fn within_seconds<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> 
 /// metadata file, the options to read it, and a secret file beside the episode.
 struct Droid {
     _tmp: tempfile::TempDir,
+    /// The fixture folder (`droid/`, `agibot/`, ...).
+    root: PathBuf,
     episode: PathBuf,
     meta_path: PathBuf,
     meta: Value,
@@ -89,6 +97,7 @@ fn droid_fixture() -> Droid {
     let secret = tmp.path().join("secret.txt");
     std::fs::write(&secret, SECRET).unwrap();
     Droid {
+        root: tmp.path().to_path_buf(),
         _tmp: tmp,
         episode,
         meta_path,
@@ -355,4 +364,293 @@ fn lerobot_v21_templates_are_confined() {
     )
     .unwrap();
     open_refused(&root, "\"data_path\"", "\"..\" component");
+}
+
+/// What a file is replaced by for a check.
+enum Stand {
+    /// A FIFO (opening it would block with no writer).
+    Fifo,
+    /// A symbolic link to a copy of the file outside the dataset
+    /// (`outside`, a folder beside it), or to `to` when given.
+    LinkOut(Option<PathBuf>),
+}
+
+/// Replaces `path` (a file or a folder) as `stand` says, runs `check`, and
+/// puts the original back; `outside` is where copies out of the dataset go.
+fn replaced(path: &Path, outside: &Path, stand: Stand, check: impl FnOnce()) {
+    let kept = path.with_extension("kept-by-test");
+    std::fs::rename(path, &kept).unwrap();
+    match stand {
+        Stand::Fifo => mkfifo(path),
+        Stand::LinkOut(to) => {
+            let target = to.unwrap_or_else(|| {
+                std::fs::create_dir_all(outside).unwrap();
+                let copy = outside.join(path.file_name().unwrap());
+                // A folder moves out whole; a file is copied.
+                if kept.is_dir() {
+                    std::fs::rename(&kept, &copy).unwrap();
+                    std::os::unix::fs::symlink(&copy, &kept).unwrap();
+                } else {
+                    std::fs::copy(&kept, &copy).unwrap();
+                }
+                copy
+            });
+            std::os::unix::fs::symlink(target, path).unwrap();
+        }
+    }
+    check();
+    std::fs::remove_file(path).unwrap();
+    if kept.is_symlink() {
+        let moved = std::fs::read_link(&kept).unwrap();
+        std::fs::remove_file(&kept).unwrap();
+        std::fs::rename(moved, path).unwrap();
+    } else {
+        std::fs::rename(&kept, path).unwrap();
+    }
+}
+
+/// `e` must be a dataset metadata error on `path`, saying `expected`,
+/// without the secret's content.
+fn meta_refused(e: DatasetError, path: &Path, expected: &str) {
+    let message = e.to_string();
+    match &e {
+        DatasetError::Meta { path: p, .. } => assert_eq!(p, path, "{message}"),
+        other => panic!("expected an error on {}, got {other}", path.display()),
+    }
+    assert!(message.contains(expected), "{message}");
+    assert!(!message.contains(SECRET), "{message}");
+}
+
+/// Opens the dataset at `root` on a thread (a FIFO must not block it).
+fn open_within_seconds(root: &Path) -> Result<LeRobotDataset, DatasetError> {
+    let root = root.to_path_buf();
+    within_seconds(move || LeRobotDataset::open(&root))
+}
+
+#[test]
+fn lerobot_metadata_and_episode_index_must_be_regular_files_inside() {
+    let (tmp, root, _secret) = lerobot_fixture();
+    let outside = tmp.path().join("outside");
+    let open_refused = |rel: &str, expected: &str| {
+        meta_refused(
+            open_within_seconds(&root).unwrap_err(),
+            &root.join(rel),
+            expected,
+        )
+    };
+    for rel in ["meta/info.json", "meta/tasks.parquet"] {
+        replaced(&root.join(rel), &outside, Stand::Fifo, || {
+            open_refused(rel, "FIFO")
+        });
+        replaced(&root.join(rel), &outside, Stand::LinkOut(None), || {
+            open_refused(rel, "outside")
+        });
+    }
+    // The episode index scan: a linked chunk folder, a linked or FIFO file,
+    // the whole linked folder.
+    let chunk = "meta/episodes/chunk-000";
+    replaced(&root.join(chunk), &outside, Stand::LinkOut(None), || {
+        open_refused(chunk, "outside")
+    });
+    let index = "meta/episodes/chunk-000/file-000.parquet";
+    replaced(&root.join(index), &outside, Stand::LinkOut(None), || {
+        open_refused(index, "outside")
+    });
+    replaced(&root.join(index), &outside, Stand::Fifo, || {
+        open_refused(index, "FIFO")
+    });
+    let episodes = "meta/episodes";
+    replaced(&root.join(episodes), &outside, Stand::LinkOut(None), || {
+        open_refused(episodes, "outside")
+    });
+    // A FIFO with another name in the index folder is passed over unopened.
+    mkfifo(&root.join("meta/episodes/chunk-000/notes.txt"));
+    open_within_seconds(&root).unwrap();
+
+    // v2.1's JSON lines.
+    let v21 = tmp.path().join("v21");
+    std::fs::create_dir_all(v21.join("meta")).unwrap();
+    let info = serde_json::json!({
+        "codebase_version": "v2.1", "fps": 10, "chunks_size": 1000,
+        "data_path": "data/episode_{episode_index:06d}.parquet",
+        "features": {},
+    });
+    std::fs::write(v21.join("meta/info.json"), info.to_string()).unwrap();
+    mkfifo(&v21.join("meta/tasks.jsonl"));
+    meta_refused(
+        open_within_seconds(&v21).unwrap_err(),
+        &v21.join("meta/tasks.jsonl"),
+        "FIFO",
+    );
+}
+
+#[test]
+fn lerobot_calibration_masks_and_labels_must_be_regular_files_inside() {
+    let (tmp, root, secret) = lerobot_fixture();
+    let outside = tmp.path().join("outside");
+    let ds = LeRobotDataset::open(&root).unwrap();
+    let (shape, data) = ds.read_masks(0).unwrap();
+    let masks = EpisodeMasks {
+        frames: shape[0],
+        height: shape[1],
+        width: shape[2],
+        data,
+    };
+    assert!(read_link_labels(&ds, 0, &masks).unwrap().is_some());
+    ds.read_calibration(0, VIDEO_KEY).unwrap();
+    let on_thread = |f: fn(&LeRobotDataset, &EpisodeMasks) -> Result<(), DatasetError>| {
+        let (ds, masks) = (ds.clone(), masks.clone());
+        within_seconds(move || f(&ds, &masks)).unwrap_err()
+    };
+    let calibration =
+        |ds: &LeRobotDataset, _: &EpisodeMasks| ds.read_calibration(0, VIDEO_KEY).map(|_| ());
+    let stored = |ds: &LeRobotDataset, _: &EpisodeMasks| ds.stored_masks(0).map(|_| ());
+    let labels = |ds: &LeRobotDataset, m: &EpisodeMasks| read_link_labels(ds, 0, m).map(|_| ());
+    for (rel, read) in [
+        (
+            "meta/calibration/episode_000000.json",
+            calibration as fn(&_, &_) -> _,
+        ),
+        ("masks/episode_000000.npy", stored),
+        ("labels/episode_000000.npy", labels),
+    ] {
+        let path = root.join(rel);
+        // A FIFO is refused, not taken for a missing file nor opened.
+        replaced(&path, &outside, Stand::Fifo, || {
+            meta_refused(on_thread(read), &path, "FIFO")
+        });
+        replaced(
+            &path,
+            &outside,
+            Stand::LinkOut(Some(secret.clone())),
+            || meta_refused(on_thread(read), &path, "outside"),
+        );
+        // A link to a device outside: refused without reading it.
+        replaced(
+            &path,
+            &outside,
+            Stand::LinkOut(Some("/dev/zero".into())),
+            || meta_refused(on_thread(read), &path, "outside"),
+        );
+    }
+    let e = ds.read_masks(0);
+    assert!(e.is_ok(), "restored: {e:?}");
+    // Missing stays missing: no calibration, no stored masks or labels.
+    std::fs::remove_file(root.join("meta/calibration/episode_000000.json")).unwrap();
+    assert!(matches!(
+        ds.read_calibration(0, VIDEO_KEY),
+        Err(DatasetError::MissingCalibration { .. })
+    ));
+    std::fs::remove_file(root.join("labels/episode_000000.npy")).unwrap();
+    assert_eq!(read_link_labels(&ds, 0, &masks).unwrap(), None);
+    std::fs::remove_file(root.join("masks/episode_000000.npy")).unwrap();
+    assert!(ds.stored_masks(0).unwrap().is_none());
+}
+
+/// `e` must be a raw refusal of `path` saying `expected`, without the secret.
+fn raw_refused(e: RawError, path: &Path, expected: &str) {
+    let message = e.to_string();
+    match &e {
+        RawError::Refused { path: p, .. } => assert_eq!(p, path, "{message}"),
+        other => panic!("expected a refusal of {}, got {other}", path.display()),
+    }
+    assert!(message.contains(expected), "{message}");
+    assert!(!message.contains(SECRET), "{message}");
+}
+
+#[test]
+fn droid_episode_files_must_be_regular_files_inside() {
+    let d = droid_fixture();
+    let outside = d.root.join("outside");
+    let read = |dir: &Path| {
+        let (dir, options) = (dir.to_path_buf(), d.options.clone());
+        within_seconds(move || droid::read_episode(&dir, &options).map(|_| ()))
+    };
+    read(&d.episode).unwrap();
+    let h5 = d.episode.join("trajectory.h5");
+    replaced(&h5, &outside, Stand::Fifo, || {
+        raw_refused(read(&d.episode).unwrap_err(), &h5, "FIFO")
+    });
+    replaced(&h5, &outside, Stand::LinkOut(None), || {
+        raw_refused(read(&d.episode).unwrap_err(), &h5, "outside")
+    });
+    replaced(&d.meta_path, &outside, Stand::Fifo, || {
+        raw_refused(read(&d.episode).unwrap_err(), &d.meta_path, "FIFO")
+    });
+    replaced(
+        &d.meta_path,
+        &outside,
+        Stand::LinkOut(Some(d.secret.clone())),
+        || raw_refused(read(&d.episode).unwrap_err(), &d.meta_path, "outside"),
+    );
+    // The per-frame timestamps beside a video (read where trajectory.h5
+    // has the camera's frame_received times, as in this episode).
+    let serial = d.meta["ext1_cam_serial"].as_str().unwrap();
+    let times = d
+        .episode
+        .join(format!("recordings/MP4/{serial}_timestamps.json"));
+    mkfifo(&times);
+    raw_refused(read(&d.episode).unwrap_err(), &times, "FIFO");
+    std::fs::remove_file(&times).unwrap();
+    std::os::unix::fs::symlink(&d.secret, &times).unwrap();
+    raw_refused(read(&d.episode).unwrap_err(), &times, "outside");
+    std::fs::remove_file(&times).unwrap();
+    read(&d.episode).unwrap();
+
+    // The folder the user names may itself be a link.
+    let link = d.root.join("linked-episode");
+    std::os::unix::fs::symlink(&d.episode, &link).unwrap();
+    read(&link).unwrap();
+
+    // A calibration file the user names: a FIFO is an error, not a hang.
+    let fifo = d.root.join("intrinsics-fifo.json");
+    mkfifo(&fifo);
+    let f2 = fifo.clone();
+    let e = within_seconds(move || DroidOptions::from_files(&f2, None).map(|_| ())).unwrap_err();
+    raw_refused(e, &fifo, "FIFO");
+}
+
+#[test]
+fn agibot_episode_files_must_be_regular_files_inside() {
+    let d = droid_fixture();
+    let root = d.root.join("agibot");
+    let outside = d.root.join("outside");
+    let key = agibot::find_episodes(&root).unwrap().remove(0);
+    let read = || {
+        let (root, key) = (root.clone(), key.clone());
+        within_seconds(move || {
+            agibot::read_episode(&root, &key, &AgibotOptions::default()).map(|_| ())
+        })
+    };
+    read().unwrap();
+    let ep = format!("{}/{}", key.task, key.episode);
+    let cams = format!("parameters/{ep}/parameters/camera");
+    for (rel, link) in [
+        (format!("proprio_stats/{ep}/proprio_stats.h5"), None),
+        (format!("observations/{ep}/videos/head_color.mp4"), None),
+        (format!("{cams}/head_intrinsic_params.json"), None),
+        (
+            format!("{cams}/head_extrinsic_params_aligned.json"),
+            Some(d.secret.clone()),
+        ),
+        (format!("task_info/task_{}.json", key.task), None),
+    ] {
+        let path = root.join(&rel);
+        replaced(&path, &outside, Stand::Fifo, || {
+            raw_refused(read().unwrap_err(), &path, "FIFO")
+        });
+        replaced(&path, &outside, Stand::LinkOut(link), || {
+            raw_refused(read().unwrap_err(), &path, "outside")
+        });
+    }
+    // A folder of the episode linked out of the root.
+    let params = root.join(format!("parameters/{}", key.task));
+    replaced(&params, &outside, Stand::LinkOut(None), || {
+        let e = read().unwrap_err();
+        assert!(
+            e.to_string().contains("outside") && matches!(e, RawError::Refused { .. }),
+            "{e}"
+        );
+    });
+    read().unwrap();
 }

@@ -406,13 +406,13 @@ fn stored_masks_with_an_empty_dimension_or_grey_values_are_refused() {
         "{msg}"
     );
     // 0/255 masks (image tools') read as 0/1; a grey value is refused.
-    let mut data = vec![0u8; 2 * 4 * 6];
+    let mut data = vec![0u8; shape.iter().product()];
     data[3] = 255;
-    write_npy(&path, &[2, 4, 6], &data).unwrap();
+    write_npy(&path, &shape, &data).unwrap();
     let (_, masks) = ds.read_masks(0).unwrap();
     assert_eq!((masks[3], masks.iter().map(|&v| v as usize).sum()), (1, 1));
     data[4] = 128;
-    write_npy(&path, &[2, 4, 6], &data).unwrap();
+    write_npy(&path, &shape, &data).unwrap();
     let msg = ds.read_masks(0).unwrap_err().to_string();
     assert!(msg.contains("128"), "{msg}");
 }

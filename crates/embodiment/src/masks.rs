@@ -4,14 +4,81 @@
 //! background); [`link_labels`] names them. Frames are rendered in parallel;
 //! the result does not depend on the number of threads.
 
-use crate::camera::{Camera, CameraPose, CameraTrack};
+use crate::camera::{Camera, CameraPose, CameraTrack, MAX_IMAGE_SIDE};
 use crate::raster::{Rasterizer, RenderItem, RenderOutput};
 use crate::robot::Robot;
+use bridgev2w_io::memory::{at_most, bytes, check_fits, MemoryError};
 use bridgev2w_io::npy::{write_atomic, write_npy, NpyError};
 use nalgebra::Isometry3;
 use rayon::prelude::*;
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
+
+/// The most frames one render takes (a trajectory's rows; a batch's in
+/// all): more than nine hours at 30 frames per second. Memory is checked
+/// as well ([`check_render_size`]).
+pub const MAX_RENDER_FRAMES: usize = 1_000_000;
+
+/// Bytes per pixel that rendering and writing a frame holds at the least:
+/// the label map (u16) and, from it, the binary mask (u8) and the label
+/// array written or returned (u16); with depth, the depth map (f32) and its
+/// copy written or returned.
+const RENDER_BYTES_PER_PIXEL: u64 = 2 + 1 + 2;
+/// [`RENDER_BYTES_PER_PIXEL`] with depth maps.
+const RENDER_DEPTH_BYTES_PER_PIXEL: u64 = RENDER_BYTES_PER_PIXEL + 4 + 4;
+
+/// A floor of the memory that rendering `frames` frames of `width` x
+/// `height` pixels holds (with depth maps if `depth`), all frames at once as
+/// `bridgev2w masks` and `bw.render_masks` hold them: 5 bytes a pixel, 13
+/// with depth (the label maps, masks and arrays written or returned; the
+/// rasterizer's per-thread buffers and PNG encoding not counted).
+pub fn render_bytes(frames: usize, width: u32, height: u32, depth: bool) -> u64 {
+    let per_pixel = if depth {
+        RENDER_DEPTH_BYTES_PER_PIXEL
+    } else {
+        RENDER_BYTES_PER_PIXEL
+    };
+    bytes(&[
+        frames as u64,
+        u64::from(width),
+        u64::from(height),
+        per_pixel,
+    ])
+}
+
+/// Checks a render before anything is allocated: `frames` (named
+/// `frames_name` in the error: the flag or argument that gave them) at most
+/// [`MAX_RENDER_FRAMES`], each side at most [`MAX_IMAGE_SIDE`], and
+/// [`render_bytes`] within the memory this machine has.
+pub fn check_render_size(
+    frames_name: &str,
+    frames: usize,
+    width: u32,
+    height: u32,
+    depth: bool,
+) -> Result<(), MemoryError> {
+    at_most(
+        frames_name,
+        frames as u64,
+        MAX_RENDER_FRAMES as u64,
+        "frames",
+    )?;
+    at_most("image width", width.into(), MAX_IMAGE_SIDE.into(), "pixels")?;
+    at_most(
+        "image height",
+        height.into(),
+        MAX_IMAGE_SIDE.into(),
+        "pixels",
+    )?;
+    check_fits(
+        &format!(
+            "rendering {frames} frames of {width}x{height} pixels{}",
+            if depth { " with depth" } else { "" }
+        ),
+        render_bytes(frames, width, height, depth),
+        "render fewer frames at a time (split the trajectory) or smaller images (--width/--height, Camera.rescaled)",
+    )
+}
 
 /// `(label, link name)` for every link that has geometry.
 pub fn link_labels(robot: &Robot) -> Vec<(u16, String)> {
@@ -412,5 +479,39 @@ pub fn empty_masks_warning(empty: &[usize], total: usize) -> Option<String> {
         ))
     } else {
         None
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_render_beyond_its_bounds_or_the_machine_is_refused_before_any_allocation() {
+        assert_eq!(render_bytes(10, 4, 2, false), 10 * 4 * 2 * 5);
+        assert_eq!(render_bytes(10, 4, 2, true), 10 * 4 * 2 * 13);
+        assert!(check_render_size("frames", 49, 720, 480, true).is_ok());
+        let e = check_render_size("--joints", MAX_RENDER_FRAMES + 1, 64, 64, false).unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("--joints 1000001: at most 1000000 frames"),
+            "{e}"
+        );
+        let e = check_render_size("frames", 2, 100_000, 64, false).unwrap_err();
+        assert!(e.to_string().contains("image width 100000"), "{e}");
+        // 10000 frames of 16384x16384: 13 TB, beyond any machine this runs on.
+        let e = check_render_size("joints", 10_000, 16_384, 16_384, false).unwrap_err();
+        let text = e.to_string();
+        if bridgev2w_io::memory::available_bytes().is_some() {
+            assert!(matches!(e, MemoryError::Exceeds { .. }), "{text}");
+            assert!(
+                text.contains(
+                    "rendering 10000 frames of 16384x16384 pixels needs at least 12500.0 GiB"
+                ),
+                "{text}"
+            );
+            assert!(text.contains("is available"), "{text}");
+        }
     }
 }

@@ -160,6 +160,15 @@ pub fn bench_metrics(
             "--frames must be >= 1 and --width/--height >= 11 (the SSIM window)".into(),
         ));
     }
+    // The predicted and ground-truth frames (RGB8) and their .npy copies
+    // for the peer: 12 bytes a pixel of every frame, checked before any is made.
+    let estimate = bridgev2w_io::memory::bytes(&[n as u64, w as u64, h as u64, 12]);
+    bridgev2w_io::memory::check_fits(
+        &format!("the metrics bench's {n} frames of {w}x{h}"),
+        estimate,
+        "lower --frames or --width/--height",
+    )
+    .map_err(|e| BenchError::Invalid(e.to_string()))?;
     let (pred, gt) = metric_frames(n, w, h);
     let frame_len = w * h * 3;
     let threads = rayon::current_num_threads();

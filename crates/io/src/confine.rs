@@ -22,6 +22,10 @@ pub const MAX_VIDEO_BYTES: u64 = 64 << 30;
 /// rows are decoded into memory.
 pub const MAX_DATA_BYTES: u64 = 16 << 30;
 
+/// The largest metadata file (JSON, JSON lines) a reader accepts (256 MiB):
+/// it is read whole and parsed into memory.
+pub const MAX_METADATA_BYTES: u64 = 256 << 20;
+
 /// Why a name or path from metadata was refused. Each names the value as
 /// written and what was expected; none holds any of the file's content.
 #[derive(Debug, thiserror::Error)]
@@ -251,6 +255,36 @@ pub fn confined_under(root: &Path, path: &Path, max_bytes: u64) -> Result<PathBu
     }
 }
 
+/// Checks a path the user gave (not confined to any folder; symbolic
+/// links followed) without opening it: it must be a regular file (not a
+/// FIFO, which would block the open, a device such as `/dev/zero`, which
+/// would never end, a socket or a folder) of at most `max_bytes` bytes.
+pub fn regular_file(path: &Path, max_bytes: u64) -> Result<(), Refusal> {
+    let value = path.to_string_lossy().into_owned();
+    let meta = std::fs::metadata(path).map_err(|source| Refusal::Unresolved {
+        value: value.clone(),
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let kind = file_kind(&meta.file_type());
+    if kind != "regular file" {
+        return Err(Refusal::NotRegular {
+            value,
+            resolved: path.to_path_buf(),
+            kind,
+        });
+    }
+    if meta.len() > max_bytes {
+        return Err(Refusal::TooLarge {
+            value,
+            resolved: path.to_path_buf(),
+            len: meta.len(),
+            max: max_bytes,
+        });
+    }
+    Ok(())
+}
+
 /// What a file type is, in words.
 fn file_kind(t: &std::fs::FileType) -> &'static str {
     if t.is_file() {
@@ -387,6 +421,36 @@ mod tests {
         let e = confined_file(&root, "a/clip.mp4", 4).unwrap_err();
         assert!(matches!(e, Refusal::TooLarge { len: 5, max: 4, .. }), "{e}");
         assert!(e.to_string().contains("at most 4 bytes"), "{e}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_user_path_must_be_a_bounded_regular_file() {
+        let (_tmp, root) = layout();
+        assert!(regular_file(&root.join("a/clip.mp4"), 5).is_ok());
+        let e = regular_file(&root.join("a/clip.mp4"), 4).unwrap_err();
+        assert!(matches!(e, Refusal::TooLarge { len: 5, .. }), "{e}");
+        let e = regular_file(Path::new("/dev/zero"), u64::MAX).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                Refusal::NotRegular {
+                    kind: "character device",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let fifo = root.join("pipe.json");
+        let status = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let e = regular_file(&fifo, u64::MAX).unwrap_err();
+        assert!(e.to_string().contains("FIFO"), "{e}");
+        let e = regular_file(&root.join("none.json"), u64::MAX).unwrap_err();
+        assert!(e.is_missing(), "{e}");
     }
 
     #[test]

@@ -23,6 +23,9 @@
 //! * [`realdata`]: where the real robot episodes of the tests are
 //!   (`../shared/realdata/`), and the skip message where they are absent;
 //! * [`confine`]: names read from files kept inside their folder;
+//! * [`memory`]: the machine's available memory, sizes checked against
+//!   their stated maximum and a run's estimated peak against the machine
+//!   before anything is allocated;
 //! * [`quiet_panic`]: code that may panic (third-party parsers, libtorch
 //!   ops, which panic on a device's out-of-memory) run so that the panic
 //!   becomes an error value;
@@ -33,6 +36,7 @@ pub mod atomic;
 pub mod confine;
 pub mod frame;
 pub mod json;
+pub mod memory;
 pub mod npy;
 pub mod output;
 pub mod peer;

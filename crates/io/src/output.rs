@@ -19,18 +19,20 @@
 //!   dropped: a second writer into the same `OUT` is refused naming the
 //!   first's pid (a lock whose process is gone is taken over), and the
 //!   commit re-checks that `OUT` is still what the run found (absent, or the
-//!   folder it replaces).
+//!   folder it replaces);
+//! * a folder written in place (a training run) holds the same lock for the
+//!   whole run ([`OutputLock`]).
 
+mod lock;
+
+pub use lock::OutputLock;
+use lock::{Lock, LOCK_HEADER};
 use std::ffi::OsString;
-use std::io::Write;
 use std::path::{Component, Path, PathBuf};
 
 /// The marker file inside a temporary output folder: the folder is
 /// bridgev2w's own, and may be removed once its process is gone.
 pub const MARKER: &str = ".bridgev2w-output";
-
-/// The first line of a lock file (a file without it is not bridgev2w's).
-const LOCK_HEADER: &str = "bridgev2w output lock";
 
 /// Errors of [`OutputDir`].
 #[derive(Debug, thiserror::Error)]
@@ -416,112 +418,12 @@ fn remove_stale(parent: &Path, name: &std::ffi::OsStr) {
     }
 }
 
-/// The lock file `.OUT.bridgev2w-lock` of a run (its pid and a random
-/// token inside), removed when dropped if it is still this run's.
-#[derive(Debug)]
-struct Lock {
-    path: PathBuf,
-    content: String,
-}
-
-impl Lock {
-    fn take(out: &Path, path: PathBuf) -> Result<Self, OutputError> {
-        let content = format!(
-            "{LOCK_HEADER}\npid {}\ntoken {:016x}\n",
-            std::process::id(),
-            rand::random::<u64>()
-        );
-        for _ in 0..3 {
-            match std::fs::OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .open(&path)
-            {
-                Ok(mut f) => {
-                    if let Err(e) = f.write_all(content.as_bytes()).and_then(|()| f.sync_all()) {
-                        let _ = std::fs::remove_file(&path);
-                        return Err(io(&path)(e));
-                    }
-                    return Ok(Self { path, content });
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
-                Err(e) => return Err(io(&path)(e)),
-            }
-            let Some(text) = read_lock(&path)? else {
-                continue; // released meanwhile
-            };
-            let Some(pid) = lock_pid(&text) else {
-                return Err(OutputError::ForeignLock {
-                    out: out.to_path_buf(),
-                    lock: path,
-                });
-            };
-            if pid_alive(pid) {
-                return Err(OutputError::Locked {
-                    out: out.to_path_buf(),
-                    lock: path,
-                    pid,
-                });
-            }
-            // Its process is gone: taken over (if no one else did first).
-            if read_lock(&path)?.as_deref() == Some(text.as_str()) {
-                match std::fs::remove_file(&path) {
-                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io(&path)(e)),
-                    _ => {}
-                }
-            }
-        }
-        Err(OutputError::Io {
-            path,
-            source: std::io::Error::other("the lock kept changing; try again"),
-        })
-    }
-
-    /// Whether the lock file still holds this run's content.
-    fn held(&self) -> bool {
-        std::fs::read_to_string(&self.path).is_ok_and(|t| t == self.content)
-    }
-}
-
-impl Drop for Lock {
-    fn drop(&mut self) {
-        if self.held() {
-            let _ = std::fs::remove_file(&self.path);
-        }
-    }
-}
-
-/// A lock file's text, `None` when it is gone. A lock being written (empty
-/// still) is read again after a moment.
-fn read_lock(path: &Path) -> Result<Option<String>, OutputError> {
-    for attempt in 0..3 {
-        match std::fs::read_to_string(path) {
-            Ok(t) if t.is_empty() && attempt < 2 => {
-                std::thread::sleep(std::time::Duration::from_millis(50));
-            }
-            Ok(t) => return Ok(Some(t)),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(io(path)(e)),
-        }
-    }
-    Ok(Some(String::new()))
-}
-
-/// The pid of a bridgev2w lock's text (`None`: not a bridgev2w lock).
-fn lock_pid(text: &str) -> Option<u32> {
-    let mut lines = text.lines();
-    if lines.next()? != LOCK_HEADER {
-        return None;
-    }
-    lines.next()?.strip_prefix("pid ")?.parse().ok()
-}
-
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
-    fn names(dir: &Path) -> Vec<String> {
+    pub(super) fn names(dir: &Path) -> Vec<String> {
         let mut n: Vec<_> = std::fs::read_dir(dir)
             .unwrap()
             .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
@@ -531,7 +433,7 @@ mod tests {
     }
 
     /// The pid of a process that has exited.
-    fn dead_pid() -> u32 {
+    pub(super) fn dead_pid() -> u32 {
         let mut child = std::process::Command::new("true").spawn().unwrap();
         let pid = child.id();
         child.wait().unwrap();
@@ -675,40 +577,6 @@ mod tests {
         check_no_overlap(&dir.path().join("src2"), &[&src]).unwrap();
         let o = OutputDir::create_for(&dir.path().join("src2"), false, &[&src]).unwrap();
         o.commit().unwrap();
-    }
-
-    #[test]
-    fn a_second_writer_is_refused_naming_the_first_pid() {
-        let dir = tempfile::tempdir().unwrap();
-        let out = dir.path().join("out");
-        let first = OutputDir::create(&out, true).unwrap();
-        let e = OutputDir::create(&out, true).unwrap_err().to_string();
-        assert!(
-            e.contains(&format!("pid {}", std::process::id())) && e.contains("another"),
-            "{e}"
-        );
-        std::fs::write(first.path().join("a"), "1").unwrap();
-        first.commit().unwrap();
-        // Released at the end: the next run may write.
-        let again = OutputDir::create(&out, true).unwrap();
-        drop(again);
-        assert_eq!(names(dir.path()), ["out"]);
-    }
-
-    #[test]
-    #[cfg(target_os = "linux")]
-    fn a_lock_of_a_gone_process_is_taken_over_a_foreign_file_is_not() {
-        let dir = tempfile::tempdir().unwrap();
-        let out = dir.path().join("out");
-        let lock = dir.path().join(".out.bridgev2w-lock");
-        std::fs::write(&lock, format!("{LOCK_HEADER}\npid {}\n", dead_pid())).unwrap();
-        let o = OutputDir::create(&out, false).unwrap();
-        o.commit().unwrap();
-        assert!(!lock.exists());
-        std::fs::write(&lock, "my notes").unwrap();
-        let e = OutputDir::create(&out, true).unwrap_err().to_string();
-        assert!(e.contains("not a bridgev2w lock"), "{e}");
-        assert_eq!(std::fs::read_to_string(&lock).unwrap(), "my notes");
     }
 
     #[test]

@@ -81,6 +81,10 @@ pub enum PlanError {
         /// What went wrong.
         message: String,
     },
+    /// A size beyond its stated maximum, or candidates beyond the machine's
+    /// memory (refused before the first trial).
+    #[error(transparent)]
+    Memory(#[from] bridgev2w_io::memory::MemoryError),
     /// A setting or argument with a value it cannot take.
     #[error("{name}: {message}")]
     Input {

@@ -55,11 +55,15 @@ impl Camera {
             .ok_or_else(|| PyValueError::new_err("to_json: a moving camera has no single pose"))
     }
 
-    /// This camera with its intrinsics rescaled to `width` x `height`.
-    fn rescaled(&self, width: u32, height: u32) -> Self {
-        Self {
-            inner: self.inner.rescaled(width, height),
-        }
+    /// This camera with its intrinsics rescaled to `width` x `height`
+    /// (each 1..=`MAX_IMAGE_SIDE` pixels; a `ValueError` naming the size
+    /// otherwise, before anything of that size is rendered).
+    fn rescaled(&self, width: u32, height: u32) -> PyResult<Self> {
+        let inner = self.inner.rescaled(width, height);
+        inner.intrinsics.validate().map_err(|e| {
+            PyValueError::new_err(format!("rescaled(width={width}, height={height}): {e}"))
+        })?;
+        Ok(Self { inner })
     }
 
     /// These intrinsics moving through `poses` (`[T][4][4]`, row-major

@@ -64,7 +64,11 @@ pub(crate) fn synth_generate<'py>(
     }
     check_new_output(&out)?;
     let summary = py
-        .detach(|| write_dataset(&config, &out, &|| {}))
+        .detach(|| {
+            no_panic("synth.generate", || {
+                Ok(write_dataset(&config, &out, &|| {}))
+            })
+        })?
         .map_err(|e| match e {
             WriteDatasetError::Exists(p) => PyFileExistsError::new_err(format!(
                 "{}: already exists; choose another out or remove it",
@@ -198,9 +202,13 @@ pub(crate) fn convert<'py>(
             RawSource::Agibot { root: src, options }
         }
     };
+    // Cameras: at least one, none twice (a library check the CLI shares).
+    source.validate().map_err(PyValueError::new_err)?;
     let embodiment = &robot.inner;
     let run = || convert_source(&source, limit, embodiment, &out, &options, &|_| {});
-    let report = py.detach(run).map_err(to_py)?;
+    let report = py
+        .detach(|| no_panic("convert", || Ok(run())))?
+        .map_err(to_py)?;
     let d = PyDict::new(py);
     d.set_item("out", out.to_string_lossy().into_owned())?;
     d.set_item("episodes", report.episodes)?;
@@ -246,7 +254,7 @@ pub(crate) fn read_episode<'py>(
         Read(DatasetError),
         Key(String),
     }
-    let read = py.detach(|| {
+    let read_all = || {
         let ds = LeRobotDataset::open(&root).map_err(Failed::Read)?;
         let info = ds.episode(episode).map_err(Failed::Read)?.clone();
         let key = match key {
@@ -262,18 +270,10 @@ pub(crate) fn read_episode<'py>(
                 Failed::Key(format!("{}: the dataset has no videos", root.display()))
             })?,
         };
-        // LeRobot's video feature shape: [height, width, channels].
-        let shape = ds.info["features"][&key]["shape"]
-            .as_array()
-            .and_then(|s| Some((s.first()?.as_u64()?, s.get(1)?.as_u64()?)))
-            .ok_or_else(|| {
-                Failed::Read(DatasetError::Field {
-                    path: root.join("meta/info.json"),
-                    episode,
-                    field: format!("features.{key}.shape"),
-                    message: "expected [height, width, channels]".into(),
-                })
-            })?;
+        // The library checks what it reads against meta/info.json's features:
+        // state and action widths, the frames' size and count, the masks'
+        // [T, H, W]; a mismatch is an error naming the file and feature.
+        let shape = ds.video_size(&key).map_err(Failed::Read)?;
         let rows = ds.read_episode(episode).map_err(Failed::Read)?;
         let frames = ds.read_video(episode, &key).map_err(Failed::Read)?;
         let camera = match ds.read_calibration(episode, &key) {
@@ -281,24 +281,21 @@ pub(crate) fn read_episode<'py>(
             Err(DatasetError::MissingCalibration { .. }) => None,
             Err(e) => return Err(Failed::Read(e)),
         };
-        let masks = root
-            .join(format!("masks/episode_{episode:06}.npy"))
-            .is_file()
-            .then(|| ds.read_masks(episode))
-            .transpose()
-            .map_err(Failed::Read)?;
+        let masks = ds.stored_masks(episode).map_err(Failed::Read)?;
         Ok((
             rows, frames, shape, camera, masks, info.tasks, key, info.split,
         ))
-    });
+    };
+    let read = py.detach(|| no_panic("read_episode", || Ok(read_all())))?;
     let (rows, frames, (h, w), camera, masks, tasks, key, split) = read.map_err(|e| match e {
         Failed::Read(e) => err(e),
         Failed::Key(m) => PyValueError::new_err(format!("key: {m}")),
     })?;
-    let (t, h, w) = (frames.len(), h as usize, w as usize);
-    if frames.iter().any(|f| f.len() != h * w * 3) {
+    let t = frames.len();
+    if let Some((shape, _)) = masks.as_ref().filter(|(s, _)| s[..] != [t, h, w]) {
+        // Masks of another of the dataset's videos.
         return Err(err(format!(
-            "{}: episode {episode}'s {key} frames are not the {h}x{w} of meta/info.json",
+            "{}: masks/episode_{episode:06}.npy has shape {shape:?}, not the [{t}, {h}, {w}] of video {key}",
             root.display()
         )));
     }

@@ -16,7 +16,9 @@ use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, T
 use bridgev2w_embodiment::camera::CameraTrack;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::kinematics::IkOptions;
-use bridgev2w_embodiment::masks::{label_of_link, link_labels, render_track};
+use bridgev2w_embodiment::masks::{
+    check_render_size, label_of_link, link_labels, render_track, MAX_RENDER_FRAMES,
+};
 use bridgev2w_embodiment::overlay::label_color;
 use bridgev2w_embodiment::raster::RenderOutput;
 use bridgev2w_embodiment::robot::LoadOptions;
@@ -26,7 +28,7 @@ use bridgev2w_world_model::pipeline::{BatchNoise, PredictOptions, SampleOptions,
 use bridgev2w_world_model::spec::ModelSpec;
 use bridgev2w_world_model::vae::VaeTiling;
 use bridgev2w_world_model::video::MaskVideo;
-use bridgev2w_world_model::{ComputeDevice, Precision};
+use bridgev2w_world_model::{ComputeDevice, Precision, WorldModelError};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileExistsError, PyFileNotFoundError, PyValueError};
 use pyo3::prelude::*;
@@ -48,6 +50,22 @@ create_exception!(
 
 fn err(e: impl std::fmt::Display) -> PyErr {
     Error::new_err(e.to_string())
+}
+
+/// Runs `f` (the work of `what`) so that a panic inside it, on this thread
+/// or a rayon worker it waits for, is a `bridgev2w.Error` naming `what`
+/// instead of pyo3's `PanicException` (a `BaseException` that `except
+/// Exception` does not catch). Allocations are bounded before `f` runs
+/// ([`bridgev2w_io::memory`]): a failed allocation would abort the
+/// interpreter, which no exception can stop.
+fn no_panic<T>(what: &str, f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
+    bridgev2w_io::quiet_panic::catch_quiet(f)
+        .unwrap_or_else(|panic| Err(Error::new_err(format!("{what}: internal error: {panic}"))))
+}
+
+/// A size beyond its maximum or the machine's memory as a `ValueError`.
+fn size_err(e: bridgev2w_io::memory::MemoryError) -> PyErr {
+    PyValueError::new_err(e.to_string())
 }
 
 /// A robot: its kinematic tree, link meshes and end effectors.
@@ -233,16 +251,32 @@ impl Robot {
             .filter(|(_, l)| l.mesh.is_some())
             .map(|(i, _)| i)
             .collect();
+        // Every link's pose per frame, then the returned bytes (128 each).
+        let frames = joints[0].len();
+        bridgev2w_io::memory::at_most("joints", frames as u64, MAX_RENDER_FRAMES as u64, "frames")
+            .map_err(size_err)?;
+        bridgev2w_io::memory::check_fits(
+            &format!("the link poses of {frames} frames"),
+            bridgev2w_io::memory::bytes(&[
+                frames as u64,
+                r.links.len() as u64 + with_mesh.len() as u64,
+                128,
+            ]),
+            "pass fewer frames at a time",
+        )
+        .map_err(size_err)?;
         let bytes: Vec<u8> = py.detach(|| {
-            let poses = r.trajectory_link_poses(&joints[0]);
-            poses
-                .iter()
-                .flat_map(|frame| with_mesh.iter().map(move |&i| frame[i].to_homogeneous()))
-                // nalgebra stores column-major: transpose to write rows.
-                .flat_map(|m| m.transpose().as_slice().to_vec())
-                .flat_map(f64::to_le_bytes)
-                .collect()
-        });
+            no_panic("link_poses", || {
+                let poses = r.trajectory_link_poses(&joints[0]);
+                Ok(poses
+                    .iter()
+                    .flat_map(|frame| with_mesh.iter().map(move |&i| frame[i].to_homogeneous()))
+                    // nalgebra stores column-major: transpose to write rows.
+                    .flat_map(|m| m.transpose().as_slice().to_vec())
+                    .flat_map(f64::to_le_bytes)
+                    .collect())
+            })
+        })?;
         Ok(PyByteArray::new(py, &bytes))
     }
 
@@ -275,21 +309,26 @@ impl Robot {
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let e = &self.inner;
+        let frames: usize = trajs.iter().map(Trajectory::len).sum();
+        bridgev2w_io::memory::at_most("actions", frames as u64, MAX_RENDER_FRAMES as u64, "frames")
+            .map_err(size_err)?;
         let solved = py.detach(|| {
-            trajs
-                .par_iter()
-                .map(|traj| {
-                    actions_to_joints(
-                        &e.robot,
-                        &e.end_effectors,
-                        traj,
-                        &e.home,
-                        &IkOptions::default(),
-                        allow_residual,
-                    )
-                })
-                .collect::<Vec<_>>()
-        });
+            no_panic("solve_ik", || {
+                Ok(trajs
+                    .par_iter()
+                    .map(|traj| {
+                        actions_to_joints(
+                            &e.robot,
+                            &e.end_effectors,
+                            traj,
+                            &e.home,
+                            &IkOptions::default(),
+                            allow_residual,
+                        )
+                    })
+                    .collect::<Vec<_>>())
+            })
+        })?;
         solved
             .into_iter()
             .enumerate()
@@ -398,13 +437,22 @@ fn render<'py>(
         cam.check(r, seq.len(), &format!("camera[{b}]"))
             .map_err(camera_err)?;
     }
+    // Every frame of every sequence is held at once: bounded, and checked
+    // against the machine's memory, before any is rendered.
+    let total: usize = joints.iter().map(Vec::len).sum();
+    let (w, h) = cams
+        .first()
+        .map_or((0, 0), |c| (c.intrinsics.width, c.intrinsics.height));
+    check_render_size("joints", total, w, h, depth).map_err(size_err)?;
     let frames: Vec<Vec<RenderOutput>> = py.detach(|| {
-        joints
-            .par_iter()
-            .zip(&cams)
-            .map(|(seq, cam)| render_track(r, cam, seq, &|| {}))
-            .collect()
-    });
+        no_panic("render", || {
+            Ok(joints
+                .par_iter()
+                .zip(&cams)
+                .map(|(seq, cam)| render_track(r, cam, seq, &|| {}))
+                .collect())
+        })
+    })?;
     let n: usize = frames.iter().flatten().map(|f| f.labels.len()).sum();
     let mut labels = Vec::with_capacity(2 * n);
     let mut depths = Vec::with_capacity(if depth { 4 * n } else { 0 });
@@ -585,6 +633,9 @@ impl WorldModel {
                 "first_frame: an empty batch (expected at least one frame)",
             ));
         }
+        bridgev2w_world_model::bridge::check_predict_batch("batch", batch)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        // Within MAX_PREDICT_BATCH clips of a model's bounded clip: no overflow.
         if first_frames.len() != batch * h * w * 3 {
             return Err(PyValueError::new_err(format!(
                 "first_frame: {} values, expected [{batch}, {h}, {w}, 3] for this model",
@@ -634,15 +685,22 @@ impl WorldModel {
             ..PredictOptions::default()
         };
         let model = &self.inner;
-        let videos = py
-            .detach(|| {
+        let videos = py.detach(|| {
+            no_panic("predict", || {
                 let m = model
                     .lock()
-                    .map_err(|_| "an earlier prediction failed mid-way".to_string())?;
+                    .map_err(|_| Error::new_err("an earlier prediction failed mid-way"))?;
                 m.predict_batch(&images, &mask_videos, &opts)
-                    .map_err(|e| e.to_string())
+                    .map_err(|e| match e {
+                        // A batch beyond the machine's memory, refused before it ran.
+                        WorldModelError::Memory(e) => size_err(e),
+                        // An argument the model refuses (e.g. steps beyond the
+                        // scheduler's training timesteps).
+                        e @ WorldModelError::Input { .. } => PyValueError::new_err(e.to_string()),
+                        e => err(e),
+                    })
             })
-            .map_err(Error::new_err)?;
+        })?;
         let bytes: Vec<u8> = videos
             .iter()
             .flat_map(|v| v.data.iter().map(|&x| u8_from_unit(x)))
@@ -693,6 +751,12 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     bridgev2w_world_model::cpu_attention::init_from_env()
         .map_err(|e| Error::new_err(e.to_string()))?;
     m.add("Error", m.py().get_type::<Error>())?;
+    // The stated maxima the Python half checks before it builds its bytes.
+    m.add(
+        "MAX_PREDICT_BATCH",
+        bridgev2w_world_model::bridge::MAX_PREDICT_BATCH,
+    )?;
+    m.add("MAX_RENDER_FRAMES", MAX_RENDER_FRAMES)?;
     m.add_class::<Robot>()?;
     m.add_class::<Camera>()?;
     m.add_class::<WorldModel>()?;

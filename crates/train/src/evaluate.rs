@@ -200,6 +200,14 @@ pub fn evaluate_split(
     segmenter: Option<&dyn RobotSegmenter>,
     on_video: &dyn Fn(),
 ) -> Result<SplitScores> {
+    if opts.grid_dir.is_some() {
+        bridgev2w_io::memory::at_most(
+            "--grid-clips",
+            opts.grid_clips as u64,
+            crate::grid::MAX_GRID_CLIPS as u64,
+            "clips",
+        )?;
+    }
     let data = split_data(trainer, split)?;
     let d = &trainer.data;
     let n = match opts.max_videos {

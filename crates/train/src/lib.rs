@@ -44,7 +44,7 @@ pub enum TrainError {
         message: String,
     },
     /// A loss term or the gradient norm became NaN or infinite.
-    #[error("step {step}: non-finite {term} ({value}); training stopped, the checkpoints written before this step are kept")]
+    #[error("step {step}: non-finite {term} ({value}); training stopped, the checkpoints written before this step are kept. Check train.lr (lower it, or raise train.warmup_steps), train.grad_clip (0 turns clipping off) and the loss weights (train.lambda_dyn, train.lambda_flow, train.motion_loss_weight), then resume from a checkpoint")]
     NonFinite {
         /// The 0-based step.
         step: usize,
@@ -85,6 +85,10 @@ pub enum TrainError {
     /// From libtorch.
     #[error("torch: {0}")]
     Torch(#[from] tch::TchError),
+    /// A run whose estimated memory exceeds what the machine has (refused
+    /// before the data is read).
+    #[error(transparent)]
+    Memory(#[from] bridgev2w_io::memory::MemoryError),
     /// The device (or the CPU) ran out of memory.
     #[error("out of memory in {during}: {figures}\n{advice}")]
     OutOfMemory {

@@ -4,9 +4,15 @@
 //!
 //! A folder "holds a run" when it has any of the files a run writes
 //! ([`RUN_FILES`]); other files in it are the user's and are never touched.
+//!
+//! A run holds the folder's lock (`.OUT.bridgev2w-lock` beside it,
+//! [`OutputLock`]) from its claim to its end: a second trainer into the same
+//! folder (a new run, `--resume` or `--overwrite`) stops, naming the first's
+//! process, before it reads or changes anything there.
 
 use crate::config::TrainConfig;
 use crate::{Result, TrainError};
+use bridgev2w_io::output::{check_no_overlap, OutputLock};
 use std::path::Path;
 
 /// The files and folders a run writes into `train.out`.
@@ -56,8 +62,29 @@ pub fn held_run_files(out: &Path) -> Vec<&'static str> {
         .collect()
 }
 
-/// Claims `out` for a run of `cfg`, as `existing` says.
-pub fn claim(out: &Path, cfg: &TrainConfig, existing: ExistingRun) -> Result<()> {
+/// Claims `out` for a run of `cfg`, as `existing` says: takes its lock
+/// (refused, naming the process, while another run holds it), then checks
+/// (or, to start over, removes) the run it holds. The run keeps the
+/// returned lock to its end.
+pub fn claim(out: &Path, cfg: &TrainConfig, existing: ExistingRun) -> Result<OutputLock> {
+    check_outside_datasets(out, cfg)?;
+    let lock = OutputLock::take(out).map_err(|e| TrainError::input("train.out", e.to_string()))?;
+    check_claim(out, cfg, existing)?;
+    Ok(lock)
+}
+
+/// Refuses an `out` that is, is inside or contains one of the run's
+/// datasets (`data.dataset`, `data.mix[].dataset`): the run's files (and
+/// `--overwrite`'s removal of them) would land among the dataset's.
+pub fn check_outside_datasets(out: &Path, cfg: &TrainConfig) -> Result<()> {
+    let datasets: Vec<&Path> = std::iter::once(cfg.data.dataset.as_path())
+        .chain(cfg.data.mix.iter().map(|m| m.dataset.as_path()))
+        .collect();
+    check_no_overlap(out, &datasets).map_err(|e| TrainError::input("train.out", e.to_string()))
+}
+
+/// [`claim`]'s checks, under the lock.
+fn check_claim(out: &Path, cfg: &TrainConfig, existing: ExistingRun) -> Result<()> {
     let held = held_run_files(out);
     if held.is_empty() {
         return Ok(());
@@ -182,6 +209,88 @@ mod tests {
         assert!(e.contains("metrics.jsonl, final"), "{e}");
         assert!(e.contains("--overwrite") && e.contains("--resume"), "{e}");
         assert!(dir.path().join("metrics.jsonl").exists());
+    }
+
+    /// `train` or `train --resume` into a run folder that another trainer
+    /// still writes (issue 69): refused naming that trainer's pid, before
+    /// anything there is changed; once it is gone, its lock is taken over.
+    #[test]
+    #[cfg(target_os = "linux")]
+    fn a_run_folder_locked_by_a_live_trainer_is_refused_naming_its_pid() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("run");
+        std::fs::create_dir(&out).unwrap();
+        std::fs::write(out.join("metrics.jsonl"), "{}\n").unwrap();
+        let lock = dir.path().join(".run.bridgev2w-lock");
+        let mut trainer = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
+        let pid = trainer.id();
+        std::fs::write(&lock, format!("bridgev2w output lock\npid {pid}\n")).unwrap();
+        let refused: Vec<String> = [
+            ExistingRun::Refuse,
+            ExistingRun::Continue,
+            ExistingRun::Overwrite,
+        ]
+        .into_iter()
+        .map(|existing| match claim(&out, &cfg(&out), existing) {
+            Ok(_) => "claimed".to_owned(),
+            Err(e) => e.to_string(),
+        })
+        .collect();
+        trainer.kill().unwrap();
+        trainer.wait().unwrap();
+        for e in &refused {
+            assert!(
+                e.contains("train.out") && e.contains(&format!("pid {pid}")),
+                "{e}"
+            );
+        }
+        assert!(out.join("metrics.jsonl").exists(), "nothing removed");
+        // That trainer is gone: its lock is taken over, held to the end.
+        let held = claim(&out, &cfg(&out), ExistingRun::Overwrite).unwrap();
+        assert!(held.held() && held.path() == lock);
+        assert!(held_run_files(&out).is_empty());
+        // A second trainer of this process is refused while it is held.
+        let e = claim(&out, &cfg(&out), ExistingRun::Continue)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(&format!("pid {}", std::process::id())), "{e}");
+        drop(held);
+        assert!(!lock.exists());
+    }
+
+    #[test]
+    fn an_out_overlapping_a_dataset_is_refused_naming_both() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        let mixed = dir.path().join("human");
+        std::fs::create_dir_all(data.join("meta")).unwrap();
+        std::fs::write(data.join("config.toml"), "the dataset's").unwrap();
+        let mut c = cfg(&data);
+        c.data.dataset = data.clone();
+        c.data.mix = vec![crate::config::MixSource {
+            dataset: mixed.clone(),
+            ..Default::default()
+        }];
+        for (out, input, how) in [
+            (data.clone(), &data, "is the input"),
+            (data.join("runs/a"), &data, "is inside the input"),
+            (mixed.join("run"), &mixed, "is inside the input"),
+            (dir.path().to_path_buf(), &data, "contains the input"),
+        ] {
+            let e = claim(&out, &c, ExistingRun::Overwrite)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("train.out") && e.contains(how) && e.contains(&*input.to_string_lossy()),
+                "{e}"
+            );
+        }
+        let kept = std::fs::read_to_string(data.join("config.toml")).unwrap();
+        assert_eq!(kept, "the dataset's");
+        claim(&dir.path().join("runs/a"), &c, ExistingRun::Refuse).unwrap();
     }
 
     #[test]

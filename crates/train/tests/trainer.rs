@@ -213,13 +213,30 @@ fn a_checkpoint_step_beyond_any_run_is_refused() {
     let crafted = text.replace("\"step\":3", &format!("\"step\":{}", u64::MAX));
     assert_ne!(crafted, text, "{text}");
     std::fs::write(&state, crafted).unwrap();
-    let err = Trainer::new(c)
+    let err = Trainer::new(c.clone())
         .unwrap()
         .resume(tmp.path())
         .unwrap_err()
         .to_string();
     assert!(
         err.contains("state.json") && err.contains("beyond"),
+        "{err}"
+    );
+    // A checkpoint whose folder name says another step than its state.json
+    // (issue 69): refused naming the folder, the field and both values.
+    std::fs::write(&state, &text).unwrap();
+    let renamed = ck.with_file_name("step-00000005");
+    std::fs::rename(&ck, &renamed).unwrap();
+    std::fs::write(tmp.path().join("checkpoints/latest"), "step-00000005").unwrap();
+    let err = Trainer::new(c)
+        .unwrap()
+        .resume(tmp.path())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains(&*renamed.to_string_lossy())
+            && err.contains("`step` is 3")
+            && err.contains("named for step 5"),
         "{err}"
     );
 }
@@ -240,7 +257,10 @@ fn nan_guard_stops_and_keeps_the_last_good_checkpoint() {
         other => panic!("expected NonFinite, got {other}"),
     }
     let msg = err.to_string();
-    assert!(msg.contains("step 3") && msg.contains("diffusion"), "{msg}");
+    assert!(
+        msg.contains("step 3") && msg.contains("diffusion") && msg.contains("train.lr"),
+        "{msg}"
+    );
     // Parameters were not touched by the bad step.
     for (name, p) in t.opt.params() {
         let finite = p.isfinite().all().int64_value(&[]) != 0;

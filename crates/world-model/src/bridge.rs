@@ -26,10 +26,20 @@ use std::path::Path;
 use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
 
+mod memory;
 mod predict;
+
+pub use memory::{check_predict_batch, MAX_PREDICT_BATCH};
 
 /// The metadata key of the config in a BridgeV2W weights file.
 pub const CONFIG_METADATA_KEY: &str = "bridgev2w_config";
+
+/// The most pixel frames of a clip (a config's or a weights file's
+/// `frames`, `plan --clip-frames`): 40 times the paper's 25.
+pub const MAX_CLIP_FRAMES: usize = 1024;
+/// The largest side of a clip (pixels; a config's or a weights file's
+/// `height` and `width`): more than 10 times the paper's 720.
+pub const MAX_CLIP_SIDE: usize = 8192;
 
 /// BridgeV2W's own settings (the backbone's are in its diffusers configs).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -92,8 +102,27 @@ impl BridgeV2WConfig {
         }
     }
 
+    /// Checks the clip's size against [`MAX_CLIP_FRAMES`] and
+    /// [`MAX_CLIP_SIDE`] (before anything of that size is allocated): the
+    /// field at fault and its value, or `None`.
+    pub fn size_error(&self) -> Option<(&'static str, String)> {
+        for (field, v, max, unit) in [
+            ("frames", self.frames, MAX_CLIP_FRAMES, "frames"),
+            ("height", self.height, MAX_CLIP_SIDE, "pixels"),
+            ("width", self.width, MAX_CLIP_SIDE, "pixels"),
+        ] {
+            if v > max {
+                return Some((field, format!("{v}: at most {max} {unit} is supported")));
+            }
+        }
+        None
+    }
+
     /// Checks the clip shape against the VAE and transformer.
     pub fn validate(&self, vae: &VaeConfig, tf: &TransformerConfig) -> Result<()> {
+        if let Some((field, message)) = self.size_error() {
+            return Err(WorldModelError::input(field, message));
+        }
         let t = vae.temporal_compression_ratio as usize;
         if self.frames == 0 || (self.frames - 1) % t.max(1) != 0 {
             return Err(WorldModelError::input(
@@ -295,6 +324,7 @@ impl BridgeV2W {
     ) -> Result<Self> {
         let pipeline_dir = &crate::hub::resolve_model_dir(pipeline_dir)?;
         let folder = PipelineFolder::open(pipeline_dir)?;
+        folder.check_weights(&["vae", "transformer"])?;
         let device = device.check_available()?;
         let vae_dir = folder.component_dir("vae");
         let vae_cfg = VaeConfig::from_file(&vae_dir.join("config.json"))?;
@@ -370,19 +400,28 @@ impl BridgeV2W {
     }
 
     /// The BridgeV2W config stored in a weights file, if any.
+    /// Its frame count and resolution are checked against
+    /// [`MAX_CLIP_FRAMES`] and [`MAX_CLIP_SIDE`] here, naming the file.
     pub fn weights_config(path: &Path) -> Result<Option<BridgeV2WConfig>> {
         let meta = read_safetensors_metadata(path)?;
-        meta.get(CONFIG_METADATA_KEY)
-            .map(|s| {
-                serde_json::from_str(s).map_err(|e| {
-                    WorldModelError::config(
-                        path,
-                        CONFIG_METADATA_KEY,
-                        format!("not a BridgeV2W config: {e}"),
-                    )
-                })
-            })
-            .transpose()
+        let Some(text) = meta.get(CONFIG_METADATA_KEY) else {
+            return Ok(None);
+        };
+        let cfg: BridgeV2WConfig = serde_json::from_str(text).map_err(|e| {
+            WorldModelError::config(
+                path,
+                CONFIG_METADATA_KEY,
+                format!("not a BridgeV2W config: {e}"),
+            )
+        })?;
+        if let Some((field, message)) = cfg.size_error() {
+            return Err(WorldModelError::config(
+                path,
+                format!("{CONFIG_METADATA_KEY}.{field}"),
+                message,
+            ));
+        }
+        Ok(Some(cfg))
     }
 
     /// Writes the ControlNet + LoRA weights and the config, atomically.

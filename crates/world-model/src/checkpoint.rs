@@ -123,6 +123,19 @@ impl PipelineFolder {
     pub fn component_dir(&self, component: &str) -> PathBuf {
         self.root.join(component)
     }
+
+    /// Checks that each of `components` has its weights (one safetensors
+    /// file or the shards of its index), before any is read: a folder with
+    /// the configs alone is named as such, not met later as a mismatch.
+    pub fn check_weights(&self, components: &[&str]) -> Result<()> {
+        for c in components {
+            crate::weights::resolve_weight_files(
+                &self.component_dir(c),
+                crate::weights::DIFFUSERS_WEIGHTS_STEM,
+            )?;
+        }
+        Ok(())
+    }
 }
 
 /// The fixed prompt ("Follow this action sequence represented in mask") as T5

@@ -18,6 +18,10 @@ use crate::transformer::{CogVideoXBlock, Rotary, TransformerConfig};
 use tch::nn::{self, Module, VarStore};
 use tch::Tensor;
 
+/// The largest `conditioning_scale` magnitude accepted: a residual weight
+/// far beyond 1 (the paper's) overflows the backbone's tokens.
+pub const MAX_CONDITIONING_SCALE: f64 = 1000.0;
+
 /// The branch's hyper-parameters.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default)]
@@ -77,13 +81,27 @@ impl ControlNetConfig {
                 ),
             ));
         }
-        if let Some(w) = self.conditioning_scale.iter().find(|w| !w.is_finite()) {
+        if let Some(message) = self.scale_error() {
             return Err(WorldModelError::input(
                 "controlnet.conditioning_scale",
-                format!("{w}: expected finite weights"),
+                message,
             ));
         }
         Ok(())
+    }
+
+    /// A `conditioning_scale` weight that is not finite or beyond
+    /// [`MAX_CONDITIONING_SCALE`] in magnitude: which one, its value and the
+    /// range; `None` when all are fine.
+    pub fn scale_error(&self) -> Option<String> {
+        let (i, w) = self
+            .conditioning_scale
+            .iter()
+            .enumerate()
+            .find(|(_, w)| !(w.is_finite() && w.abs() <= MAX_CONDITIONING_SCALE))?;
+        Some(format!(
+            "weight {i} is {w}: expected a finite weight in [-{MAX_CONDITIONING_SCALE}, {MAX_CONDITIONING_SCALE}] (1 = the paper's)"
+        ))
     }
 }
 

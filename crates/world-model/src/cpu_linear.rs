@@ -195,16 +195,11 @@ pub fn packed_bytes() -> u64 {
     BUDGET.used.load(Ordering::Relaxed)
 }
 
-/// Half of `MemAvailable` in `/proc/meminfo` (0 where it cannot be read).
+/// Half of the memory available to this process
+/// ([`bridgev2w_io::memory::available_bytes`]: `MemAvailable` in
+/// `/proc/meminfo`, or less under a cgroup limit; 0 where it cannot be read).
 fn default_budget() -> u64 {
-    std::fs::read_to_string("/proc/meminfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("MemAvailable:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-        })
-        .map_or(0, |kib| kib * 1024 / 2)
+    bridgev2w_io::memory::available_bytes().map_or(0, |b| b / 2)
 }
 
 /// A weight packed for oneDNN and what it was packed from.

@@ -73,6 +73,15 @@ pub enum WorldModelError {
         /// How many values are not finite.
         count: i64,
     },
+    /// Values became NaN or infinite while a model ran (a diverged chain):
+    /// where, and which settings or files to check.
+    #[error("NaN or infinite values {during}: {check}")]
+    NonFinite {
+        /// Where they appeared (the step and the tensor).
+        during: String,
+        /// What can cause it, with the values in use.
+        check: String,
+    },
     /// An input has the wrong shape, range or type.
     #[error("invalid input `{name}`: {message}")]
     Input {
@@ -94,6 +103,10 @@ pub enum WorldModelError {
         /// What lowers the memory of what was running.
         advice: &'static str,
     },
+    /// A size beyond its stated maximum, or a prediction whose estimated
+    /// memory exceeds what the machine has (refused before it runs).
+    #[error(transparent)]
+    Memory(#[from] bridgev2w_io::memory::MemoryError),
     /// A model name is neither a local folder nor in the Hugging Face cache.
     #[error("model {name}: not found (offline); looked at:\n  - {}\nGive a diffusers folder, or download it first (e.g. `huggingface-cli download {name}`; HF_HUB_CACHE or HF_HOME name the cache)", looked.join("\n  - "))]
     ModelNotFound {

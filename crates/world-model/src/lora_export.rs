@@ -184,13 +184,19 @@ pub fn export_lora(model: &BridgeV2W, out_dir: &Path, overwrite: bool) -> Result
 /// `out_dir/pytorch_lora_weights.safetensors`, after checking them against the
 /// transformer of the backbone folder `backbone` (a diffusers pipeline folder;
 /// only its `transformer/config.json` is read). Atomic; an existing file is
-/// refused unless `overwrite`.
+/// refused unless `overwrite`; so is an output file that is, is inside or
+/// contains `weights` or `backbone` (it would replace or change an input).
 pub fn export_lora_file(
     weights: &Path,
     backbone: &Path,
     out_dir: &Path,
     overwrite: bool,
 ) -> Result<LoraExport> {
+    bridgev2w_io::output::check_no_overlap(
+        &out_dir.join(DIFFUSERS_LORA_FILE),
+        &[weights, backbone],
+    )
+    .map_err(|e| WorldModelError::input("--out", e.to_string()))?;
     let cfg = BridgeV2W::weights_config(weights)?
         .ok_or_else(|| {
             WorldModelError::config(

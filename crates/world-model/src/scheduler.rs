@@ -15,215 +15,17 @@
 //! as diffusers computes them) and applied to tensors as scalars.
 
 use crate::error::{Result, WorldModelError};
-use bridgev2w_io::json::read_json;
 use std::path::Path;
 use tch::Tensor;
 
-/// How betas are laid out over the training timesteps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum BetaSchedule {
-    /// Linear in beta (f32).
-    Linear,
-    /// Linear in sqrt(beta), squared (f64).
-    ScaledLinear,
-    /// Cosine alpha-bar (f32), betas capped at 0.999.
-    SquaredcosCapV2,
-}
+mod config;
+#[cfg(test)]
+mod tests;
 
-/// What the model predicts.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum PredictionType {
-    /// The added noise.
-    Epsilon,
-    /// The clean sample.
-    Sample,
-    /// The velocity `sqrt(a) noise - sqrt(1 - a) x0`.
-    VPrediction,
-}
-
-/// How inference timesteps are spread over the training timesteps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum TimestepSpacing {
-    /// `round(linspace(0, N - 1, n))`, descending.
-    Linspace,
-    /// `arange(n) * (N / n) + steps_offset`, descending.
-    Leading,
-    /// `round(arange(N, 0, -N / n)) - 1`.
-    Trailing,
-}
-
-/// Which sampler steps the chain.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum SamplerKind {
-    /// `CogVideoXDDIMScheduler` (deterministic).
-    Ddim,
-    /// `CogVideoXDPMScheduler` (second-order, stochastic).
-    Dpm,
-}
-
-fn default_train_timesteps() -> usize {
-    1000
-}
-fn default_beta_start() -> f64 {
-    0.00085
-}
-fn default_beta_end() -> f64 {
-    0.012
-}
-fn default_beta_schedule() -> BetaSchedule {
-    BetaSchedule::ScaledLinear
-}
-fn default_true() -> bool {
-    true
-}
-fn default_prediction() -> PredictionType {
-    PredictionType::Epsilon
-}
-fn default_spacing() -> TimestepSpacing {
-    TimestepSpacing::Leading
-}
-fn default_snr_shift() -> f64 {
-    3.0
-}
-
-/// A scheduler config, as diffusers' `scheduler_config.json` (unknown fields ignored,
-/// missing ones get diffusers' defaults).
-#[derive(Debug, Clone, PartialEq, serde::Deserialize, serde::Serialize)]
-pub struct SchedulerConfig {
-    /// `CogVideoXDDIMScheduler` or `CogVideoXDPMScheduler` (absent: DDIM).
-    #[serde(
-        rename = "_class_name",
-        default,
-        skip_serializing_if = "Option::is_none"
-    )]
-    pub class_name: Option<String>,
-    /// Training timesteps N.
-    #[serde(default = "default_train_timesteps")]
-    pub num_train_timesteps: usize,
-    /// First beta.
-    #[serde(default = "default_beta_start")]
-    pub beta_start: f64,
-    /// Last beta.
-    #[serde(default = "default_beta_end")]
-    pub beta_end: f64,
-    /// Beta layout.
-    #[serde(default = "default_beta_schedule")]
-    pub beta_schedule: BetaSchedule,
-    /// Explicit betas (override the schedule).
-    #[serde(default)]
-    pub trained_betas: Option<Vec<f64>>,
-    /// Final step goes to alpha-bar 1 (else to alpha-bar of timestep 0).
-    #[serde(default = "default_true")]
-    pub set_alpha_to_one: bool,
-    /// Added to `leading` timesteps.
-    #[serde(default)]
-    pub steps_offset: i64,
-    /// What the model predicts.
-    #[serde(default = "default_prediction")]
-    pub prediction_type: PredictionType,
-    /// Inference timestep spacing.
-    #[serde(default = "default_spacing")]
-    pub timestep_spacing: TimestepSpacing,
-    /// Rescale to zero terminal SNR.
-    #[serde(default)]
-    pub rescale_betas_zero_snr: bool,
-    /// SNR shift `s`: alpha-bar becomes `a / (s + (1 - s) a)`.
-    #[serde(default = "default_snr_shift")]
-    pub snr_shift_scale: f64,
-}
-
-impl SchedulerConfig {
-    fn cogvideox(snr_shift_scale: f64) -> Self {
-        Self {
-            class_name: Some("CogVideoXDDIMScheduler".to_owned()),
-            num_train_timesteps: 1000,
-            beta_start: 0.00085,
-            beta_end: 0.012,
-            beta_schedule: BetaSchedule::ScaledLinear,
-            trained_betas: None,
-            set_alpha_to_one: true,
-            steps_offset: 0,
-            prediction_type: PredictionType::VPrediction,
-            timestep_spacing: TimestepSpacing::Trailing,
-            rescale_betas_zero_snr: true,
-            snr_shift_scale,
-        }
-    }
-
-    /// `THUDM/CogVideoX-5b-I2V`'s `scheduler/scheduler_config.json`.
-    pub fn cogvideox_5b_i2v() -> Self {
-        Self::cogvideox(1.0)
-    }
-
-    /// `THUDM/CogVideoX-2b`'s `scheduler/scheduler_config.json`.
-    pub fn cogvideox_2b() -> Self {
-        Self::cogvideox(3.0)
-    }
-
-    /// Reads `scheduler_config.json`.
-    pub fn load(path: &Path) -> Result<Self> {
-        let cfg: Self = read_json(path)?;
-        cfg.validate(path)?;
-        Ok(cfg)
-    }
-
-    /// The sampler named by `_class_name`.
-    pub fn sampler_kind(&self) -> Result<SamplerKind> {
-        match self.class_name.as_deref() {
-            None | Some("CogVideoXDDIMScheduler") => Ok(SamplerKind::Ddim),
-            Some("CogVideoXDPMScheduler") => Ok(SamplerKind::Dpm),
-            Some(other) => Err(WorldModelError::config(
-                "scheduler_config.json",
-                "_class_name",
-                format!("`{other}`: expected CogVideoXDDIMScheduler or CogVideoXDPMScheduler"),
-            )),
-        }
-    }
-
-    fn validate(&self, path: &Path) -> Result<()> {
-        if self.num_train_timesteps == 0 {
-            return Err(WorldModelError::config(
-                path,
-                "num_train_timesteps",
-                "must be at least 1",
-            ));
-        }
-        if let Some(b) = &self.trained_betas {
-            if b.len() != self.num_train_timesteps {
-                return Err(WorldModelError::config(
-                    path,
-                    "trained_betas",
-                    format!(
-                        "has {} values, num_train_timesteps is {}",
-                        b.len(),
-                        self.num_train_timesteps
-                    ),
-                ));
-            }
-        }
-        if !(self.snr_shift_scale.is_finite() && self.snr_shift_scale > 0.0) {
-            return Err(WorldModelError::config(
-                path,
-                "snr_shift_scale",
-                format!("{}: expected a positive number", self.snr_shift_scale),
-            ));
-        }
-        self.sampler_kind().map_err(|_| {
-            WorldModelError::config(
-                path,
-                "_class_name",
-                format!(
-                    "`{}`: expected CogVideoXDDIMScheduler or CogVideoXDPMScheduler",
-                    self.class_name.as_deref().unwrap_or_default()
-                ),
-            )
-        })?;
-        Ok(())
-    }
-}
+pub use config::{
+    BetaSchedule, PredictionType, SamplerKind, SchedulerConfig, TimestepSpacing,
+    MAX_TRAIN_TIMESTEPS,
+};
 
 /// Rounds through f32 (diffusers keeps these schedules in float32).
 fn f32r(x: f64) -> f64 {
@@ -370,6 +172,18 @@ pub fn inference_timesteps(cfg: &SchedulerConfig, num_inference_steps: usize) ->
             .collect(),
         TimestepSpacing::Leading => {
             let ratio = (n / k) as i64;
+            let last = (k as i64 - 1) * ratio + cfg.steps_offset;
+            if !(0..n as i64).contains(&last) {
+                return Err(WorldModelError::config(
+                    "scheduler config",
+                    "steps_offset",
+                    format!(
+                        "{}: with leading spacing and {k} inference steps the first timestep is {last}, outside the {n} training timesteps; expected steps_offset 0..={}",
+                        cfg.steps_offset,
+                        n as i64 - 1 - (k as i64 - 1) * ratio
+                    ),
+                ));
+            }
             (0..k as i64)
                 .rev()
                 .map(|i| i * ratio + cfg.steps_offset)
@@ -436,7 +250,22 @@ impl Scheduler {
 
     /// Sets `num_inference_steps` and resets the sampler state.
     pub fn set_timesteps(&mut self, num_inference_steps: usize) -> Result<&[i64]> {
-        self.timesteps = inference_timesteps(&self.cfg, num_inference_steps)?;
+        let timesteps = inference_timesteps(&self.cfg, num_inference_steps)?;
+        if self.cfg.prediction_type == PredictionType::Epsilon {
+            // Alpha-bar 0 (the zero-SNR terminal): x0 = (x - sqrt(1 - a) eps) / sqrt(a).
+            for &t in &timesteps {
+                if self.schedule.alpha_bar(t)? <= 0.0 {
+                    return Err(WorldModelError::config(
+                        "scheduler config",
+                        "prediction_type",
+                        format!(
+                            "epsilon with rescale_betas_zero_snr = true: alpha-bar is 0 at inference timestep {t}, where an epsilon prediction gives no sample (a division by zero); expected prediction_type v_prediction (CogVideoX's) or rescale_betas_zero_snr = false"
+                        ),
+                    ));
+                }
+            }
+        }
+        self.timesteps = timesteps;
         self.old_pred_original = None;
         self.step_index = 0;
         Ok(&self.timesteps)

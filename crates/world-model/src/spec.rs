@@ -4,7 +4,8 @@
 //! ([`std::str::FromStr`]) wherever a model is named: `model.backbone`,
 //! `predict --model`, `plan --model`.
 
-use crate::bridge::{BridgeV2W, BridgeV2WConfig};
+use crate::bridge::{BridgeV2W, BridgeV2WConfig, CONFIG_METADATA_KEY};
+use crate::checkpoint::PipelineFolder;
 use crate::device::{ComputeDevice, Precision};
 use crate::error::WorldModelError;
 use crate::scheduler::SchedulerConfig;
@@ -137,6 +138,7 @@ impl ModelSpec {
                     e => e,
                 })
                 .and_then(|root| {
+                    check_backbone(&root, weights)?;
                     BridgeV2W::load(
                         &root,
                         weights,
@@ -149,6 +151,60 @@ impl ModelSpec {
                 .map_err(|e| e.in_folder(dir)),
         }
     }
+}
+
+/// Checks a diffusers folder `root` before any weights are read: its VAE
+/// and transformer weights are there, and the clip the model will take
+/// (the config in the BridgeV2W `weights`, else the paper's 25 frames at
+/// 480x720) fits its VAE and transformer. A misfit says where the clip
+/// came from (no `--weights`, a weights file without a config, or one
+/// trained on another backbone) instead of a bare resolution mismatch.
+pub fn check_backbone(root: &Path, weights: Option<&Path>) -> Result<(), WorldModelError> {
+    let folder = PipelineFolder::open(root)?;
+    folder.check_weights(&["vae", "transformer"])?;
+    let vae = VaeConfig::from_file(&folder.component_dir("vae").join("config.json"))?;
+    let tf =
+        TransformerConfig::from_file(&folder.component_dir("transformer").join("config.json"))?;
+    let stored = weights
+        .map(BridgeV2W::weights_config)
+        .transpose()?
+        .flatten();
+    if let (Some(w), Some(message)) = (
+        weights,
+        stored.as_ref().and_then(|c| c.controlnet.scale_error()),
+    ) {
+        let field = format!("{CONFIG_METADATA_KEY}.controlnet.conditioning_scale");
+        return Err(WorldModelError::config(w, field, message));
+    }
+    let clip = stored.clone().unwrap_or_else(BridgeV2WConfig::paper);
+    let Err(e) = clip.validate(&vae, &tf) else {
+        return Ok(());
+    };
+    let paper = "the paper's clip (25 frames at 480x720) is assumed";
+    let backbone = root.display();
+    Err(match (weights, stored) {
+        (None, _) => WorldModelError::input(
+            "--weights",
+            format!(
+                "not given, so {paper}, which the backbone {backbone} does not take ({e}); expected the BridgeV2W weights trained on this backbone (their config sets the clip), e.g. the bridgev2w.safetensors beside it"
+            ),
+        ),
+        (Some(w), None) => WorldModelError::config(
+            w,
+            CONFIG_METADATA_KEY,
+            format!(
+                "absent, so {paper}, which the backbone {backbone} does not take ({e}); expected a weights file written by `bridgev2w train` for this backbone"
+            ),
+        ),
+        (Some(w), Some(c)) => WorldModelError::config(
+            w,
+            CONFIG_METADATA_KEY,
+            format!(
+                "{} frames at {}x{} (HxW), which the backbone {backbone} does not take ({e}); were these weights trained on another backbone?",
+                c.frames, c.height, c.width
+            ),
+        ),
+    })
 }
 
 impl FromStr for ModelSpec {
@@ -217,5 +273,112 @@ mod tests {
             "{e}"
         );
         assert!("".parse::<ModelSpec>().is_err());
+    }
+
+    /// The error and its sources, one line each.
+    fn chain(e: &WorldModelError) -> String {
+        let mut text = e.to_string();
+        let mut source = std::error::Error::source(e);
+        while let Some(s) = source {
+            text = format!("{text}\n{s}");
+            source = s.source();
+        }
+        text
+    }
+
+    #[test]
+    fn a_backbone_without_the_weights_it_needs_says_so() {
+        let (vae, tf) = RandomPreset::Tiny.configs();
+        let sched = SchedulerConfig::cogvideox_5b_i2v();
+        let cpu = ComputeDevice::Cpu;
+        let m = BridgeV2W::random(BridgeV2WConfig::tiny(), &vae, &tf, sched, cpu, 0).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("backbone");
+        m.save_backbone(&root).unwrap();
+        let w = dir.path().join("bridgev2w.safetensors");
+        m.save_weights(&w).unwrap();
+        let spec = ModelSpec::Folder(root.clone());
+        let load = |w: Option<&Path>| spec.load_bridge(w, None, cpu, Precision::F32, 0);
+        assert_eq!(load(Some(&w)).unwrap().config().height, 64);
+        // No --weights: the paper's 480x720 is assumed, which this 64x96
+        // backbone does not take. Today's message was the bare mismatch.
+        let e = chain(&load(None).unwrap_err());
+        assert!(
+            e.contains("--weights")
+                && e.contains("not given")
+                && e.contains("480x720")
+                && e.contains("64x96"),
+            "{e}"
+        );
+        // A weights file without a config, or with another clip's.
+        let one = vec![(
+            "x".to_owned(),
+            tch::Tensor::zeros([1], tch::kind::FLOAT_CPU),
+        )];
+        let bare = dir.path().join("bare.safetensors");
+        crate::weights::save_safetensors(&one, &bare).unwrap();
+        let e = chain(&load(Some(&bare)).unwrap_err());
+        assert!(
+            e.contains(&bare.display().to_string())
+                && e.contains(CONFIG_METADATA_KEY)
+                && e.contains("absent"),
+            "{e}"
+        );
+        let other = dir.path().join("other.safetensors");
+        let cfg = BridgeV2WConfig {
+            height: 128,
+            ..BridgeV2WConfig::tiny()
+        };
+        let meta = [(
+            CONFIG_METADATA_KEY.to_owned(),
+            serde_json::to_string(&cfg).unwrap(),
+        )];
+        crate::weights::save_safetensors_with_metadata(&one, &meta.into(), &other).unwrap();
+        let e = chain(&load(Some(&other)).unwrap_err());
+        assert!(
+            e.contains(&other.display().to_string())
+                && e.contains("128x96")
+                && e.contains("another backbone"),
+            "{e}"
+        );
+        // A residual weight that would overflow the backbone's tokens.
+        let mut cfg = BridgeV2WConfig::tiny();
+        cfg.controlnet.conditioning_scale = vec![1e30];
+        let meta = [(
+            CONFIG_METADATA_KEY.to_owned(),
+            serde_json::to_string(&cfg).unwrap(),
+        )];
+        crate::weights::save_safetensors_with_metadata(&one, &meta.into(), &other).unwrap();
+        let e = chain(&load(Some(&other)).unwrap_err());
+        assert!(
+            e.contains(&other.display().to_string())
+                && e.contains("controlnet.conditioning_scale")
+                && e.contains("weight 0 is 1000000000000000000000000000000"),
+            "{e}"
+        );
+        // Configs without weights: the missing file is named first, before
+        // any mismatch (and before the transformer is allocated).
+        for component in ["transformer", "vae"] {
+            let file = root
+                .join(component)
+                .join("diffusion_pytorch_model.safetensors");
+            let kept = dir.path().join(format!("{component}.safetensors"));
+            std::fs::rename(&file, &kept).unwrap();
+            for weights in [None, Some(w.as_path())] {
+                let e = chain(&load(weights).unwrap_err());
+                assert!(
+                    e.contains(&file.display().to_string())
+                        && e.contains("config.json but not its weights")
+                        && !e.contains("480x720"),
+                    "{e}"
+                );
+            }
+            if component == "transformer" {
+                let dir = root.join(component);
+                let e = crate::transformer::LoadedTransformer::load(&dir, cpu, Precision::F32);
+                assert!(chain(&e.unwrap_err()).contains("not its weights"));
+            }
+            std::fs::rename(&kept, &file).unwrap();
+        }
     }
 }

@@ -67,6 +67,8 @@ pub fn resolve_weight_files(dir: &Path, stem: &str) -> Result<Vec<PathBuf>> {
             "; found {} (PyTorch pickle): convert it to safetensors first",
             pickle.display()
         )
+    } else if dir.join("config.json").is_file() {
+        "; the folder has its config.json but not its weights (downloaded without them?)".into()
     } else {
         String::new()
     };

@@ -201,6 +201,29 @@ fn diffusers_load_lora_weights_reproduces_our_lora_forward() {
     );
 }
 
+/// An output file that is the weights file, or lies inside the backbone
+/// folder, is refused before anything is read or written (issue 69).
+#[test]
+fn an_output_overlapping_an_input_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (backbone, out) = (tmp.path().join("backbone"), tmp.path().join("lora"));
+    std::fs::create_dir_all(&backbone).unwrap();
+    std::fs::create_dir_all(&out).unwrap();
+    let weights = out.join(DIFFUSERS_LORA_FILE);
+    std::fs::write(&weights, "the user's weights").unwrap();
+    for (dir, how) in [(&out, "is the input"), (&backbone, "is inside the input")] {
+        let err = export_lora_file(&weights, &backbone, dir, true)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("--out") && err.contains(how), "{err}");
+    }
+    assert_eq!(
+        std::fs::read_to_string(&weights).unwrap(),
+        "the user's weights"
+    );
+    assert_eq!(std::fs::read_dir(&backbone).unwrap().count(), 0);
+}
+
 #[test]
 fn a_backbone_of_another_depth_is_refused() {
     let tmp = tempfile::tempdir().unwrap();

@@ -7,10 +7,21 @@ use arrow_array::{
     Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int32Array, Int64Array,
     LargeListArray, LargeStringArray, ListArray, RecordBatch, StringArray,
 };
+use bridgev2w_io::confine::{self, Refusal};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use std::path::Path;
 
+/// Reads a parquet file whole. It must be a regular file of at most
+/// [`confine::MAX_DATA_BYTES`] (checked before it is opened: a FIFO would
+/// block the open, a device never end the read).
 pub(super) fn read_batches(path: &Path) -> Result<Vec<RecordBatch>, DatasetError> {
+    confine::regular_file(path, confine::MAX_DATA_BYTES).map_err(|e| match e {
+        Refusal::Unresolved { path, source, .. } => DatasetError::Io { path, source },
+        e => DatasetError::Meta {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        },
+    })?;
     let file = std::fs::File::open(path).map_err(io_err(path))?;
     let file_len = file.metadata().map_err(io_err(path))?.len();
     // The parquet decoder asserts things of the data it reads (a dictionary

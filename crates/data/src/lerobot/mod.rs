@@ -27,8 +27,10 @@
 
 mod columns;
 mod error;
+mod files;
 mod meta;
 mod reader;
+mod shapes;
 mod stats;
 mod writer;
 
@@ -37,5 +39,5 @@ pub use meta::{
     check_template_widths, format_template, EpisodeData, EpisodeInfo, FrameRow, Version, VideoRef,
     MAX_TEMPLATE_WIDTH,
 };
-pub use reader::{read_frames_parquet, LeRobotDataset};
+pub use reader::{read_frames_parquet, LeRobotDataset, StoredMasks};
 pub use writer::{write_frames_parquet, LeRobotV3Writer, WriterEpisode};

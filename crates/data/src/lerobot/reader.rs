@@ -6,14 +6,18 @@ use super::error::{io_err, meta_err};
 use super::meta::{
     check_template_widths, format_template, EpisodeData, EpisodeInfo, FrameRow, Version, VideoRef,
 };
-use super::DatasetError;
-use crate::video::decode_mp4;
+use super::shapes::{check_frames_shape, check_row_widths, feature_shape, video_size};
+use super::{files, DatasetError};
+use crate::video::VideoStream;
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_io::confine::{self, Refusal};
 use bridgev2w_io::npy::read_npy;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+
+/// Stored masks: their shape `[T, H, W]` and their 0/1 values.
+pub type StoredMasks = (Vec<usize>, Vec<u8>);
 
 /// Per video key: `(key, chunk_index, file_index, from_timestamp, to_timestamp)` columns.
 type VideoColumns = (String, Vec<i64>, Vec<i64>, Vec<f64>, Vec<f64>);
@@ -105,8 +109,12 @@ fn read_json(path: &Path) -> Result<Value, DatasetError> {
 
 impl LeRobotDataset {
     /// Opens a v3.0 or v2.1 dataset (reads the metadata, not the frames).
+    /// Every metadata file must be a regular file of bounded size inside
+    /// `root` (links followed); the shapes `meta/info.json` declares for
+    /// `observation.state`, `action` and each video must be well-formed
+    /// (they are checked against what is read).
     pub fn open(root: &Path) -> Result<Self, DatasetError> {
-        let info_path = root.join("meta/info.json");
+        let info_path = files::required(root, "meta/info.json", confine::MAX_METADATA_BYTES)?;
         let info = read_json(&info_path)?;
         let version = info
             .get("codebase_version")
@@ -145,6 +153,12 @@ impl LeRobotDataset {
                     format!("field \"features\": video feature key {e}"),
                 )
             })?;
+        }
+        for key in ["observation.state", "action"] {
+            feature_shape(&info, &info_path, key)?;
+        }
+        for key in &video_keys {
+            video_size(&info, &info_path, key)?;
         }
         let template = |key: &str| -> Result<String, DatasetError> {
             let tpl = info
@@ -190,7 +204,7 @@ impl LeRobotDataset {
         video_tpl: &str,
         video_keys: &[String],
     ) -> Result<(Vec<EpisodeInfo>, BTreeMap<i64, String>), DatasetError> {
-        let tasks_path = root.join("meta/tasks.parquet");
+        let tasks_path = files::required(root, "meta/tasks.parquet", confine::MAX_DATA_BYTES)?;
         let batches = read_batches(&tasks_path)?;
         let c = Columns {
             path: &tasks_path,
@@ -207,28 +221,8 @@ impl LeRobotDataset {
             .zip(c.strings(task_col)?)
             .collect();
 
-        let dir = root.join("meta/episodes");
-        let mut files = Vec::new();
-        for chunk in std::fs::read_dir(&dir).map_err(io_err(&dir))? {
-            let chunk = chunk.map_err(io_err(&dir))?.path();
-            if chunk.is_dir() {
-                for f in std::fs::read_dir(&chunk).map_err(io_err(&chunk))? {
-                    let f = f.map_err(io_err(&chunk))?.path();
-                    if f.extension().is_some_and(|e| e == "parquet") {
-                        files.push(f);
-                    }
-                }
-            }
-        }
-        files.sort();
-        if files.is_empty() {
-            return Err(meta_err(
-                &dir,
-                "no episode parquet files (meta/episodes/chunk-*/file-*.parquet)",
-            ));
-        }
         let mut episodes = Vec::new();
-        for path in &files {
+        for path in &files::episode_index_files(root)? {
             let batches = read_batches(path)?;
             let c = Columns {
                 path,
@@ -321,7 +315,7 @@ impl LeRobotDataset {
         fps: f64,
     ) -> Result<(Vec<EpisodeInfo>, BTreeMap<i64, String>), DatasetError> {
         let jsonl = |name: &str| -> Result<Vec<(usize, Value)>, DatasetError> {
-            let path = root.join("meta").join(name);
+            let path = files::required(root, &format!("meta/{name}"), confine::MAX_METADATA_BYTES)?;
             let text = std::fs::read_to_string(&path).map_err(io_err(&path))?;
             text.lines()
                 .enumerate()
@@ -501,10 +495,32 @@ impl LeRobotDataset {
                 ));
             }
         }
+        let info_path = self.root.join("meta/info.json");
+        let state = feature_shape(&self.info, &info_path, "observation.state")?;
+        let rows = frames.iter().map(|r| &r.state);
+        check_row_widths(
+            &data_path,
+            episode,
+            "observation.state",
+            state.as_deref(),
+            rows,
+        )?;
+        let action = feature_shape(&self.info, &info_path, "action")?;
+        let rows = frames.iter().map(|r| &r.action);
+        check_row_widths(&data_path, episode, "action", action.as_deref(), rows)?;
         Ok(EpisodeData { frames })
     }
 
-    /// Decodes an episode's frames of video `key` (interleaved RGB8), checking the frame count.
+    /// The frame size `(height, width)` `meta/info.json` declares for video
+    /// `key` (its `shape`, `[height, width, 3]` or channels first); an
+    /// error names the feature when it declares none.
+    pub fn video_size(&self, key: &str) -> Result<(usize, usize), DatasetError> {
+        video_size(&self.info, &self.root.join("meta/info.json"), key)
+    }
+
+    /// Decodes an episode's frames of video `key` (interleaved RGB8),
+    /// checking the frame size against the declared shape (before decoding)
+    /// and the frame count against the episode's length.
     pub fn read_video(&self, episode: i64, key: &str) -> Result<Vec<Vec<u8>>, DatasetError> {
         let info = self.episode(episode)?;
         let v = info.videos.get(key).ok_or_else(|| DatasetError::Field {
@@ -514,11 +530,26 @@ impl LeRobotDataset {
             message: format!("no such video key (keys: {})", self.video_keys.join(", ")),
         })?;
         let path = self.confined(episode, "video_path", &v.path, confine::MAX_VIDEO_BYTES)?;
-        let video = decode_mp4(&path).map_err(|source| DatasetError::Video {
+        let video_err = |source| DatasetError::Video {
             episode,
             key: key.into(),
             source,
-        })?;
+        };
+        let stream = VideoStream::open(&path).map_err(video_err)?;
+        let (h, w) = self.video_size(key)?;
+        let found = (stream.info().height, stream.info().width);
+        if found != (h, w) {
+            return Err(DatasetError::Field {
+                path: v.path.clone(),
+                episode,
+                field: key.into(),
+                message: format!(
+                    "frames of shape [{}, {}, 3] (height, width, channels), but meta/info.json's features.{key}.shape declares [{h}, {w}, 3]",
+                    found.0, found.1
+                ),
+            });
+        }
+        let video = stream.read_all().map_err(video_err)?;
         let half = 0.5 / self.fps;
         let frames: Vec<Vec<u8>> = video
             .frames
@@ -544,9 +575,36 @@ impl LeRobotDataset {
         Ok(frames)
     }
 
-    /// The synthetic ground-truth masks of an episode: `(shape [T, H, W], 0/1 data)`.
-    pub fn read_masks(&self, episode: i64) -> Result<(Vec<usize>, Vec<u8>), DatasetError> {
-        let path = self.root.join(format!("masks/episode_{episode:06}.npy"));
+    /// A file of the dataset at a fixed place (`rel` under the root, e.g.
+    /// `labels/episode_000000.npy`) when one is there: a regular file of at
+    /// most `max_bytes` inside the root (links followed), or an error naming
+    /// the path (a FIFO, a device, a folder, a link out); `None` when
+    /// nothing is there.
+    pub fn stored_file(&self, rel: &str, max_bytes: u64) -> Result<Option<PathBuf>, DatasetError> {
+        files::optional(&self.root, rel, max_bytes)
+    }
+
+    /// The declared `(height, width, key)` of every video, for checking
+    /// per-frame arrays stored beside them.
+    fn video_sizes(&self) -> Result<Vec<(usize, usize, String)>, DatasetError> {
+        self.video_keys
+            .iter()
+            .map(|k| self.video_size(k).map(|(h, w)| (h, w, k.clone())))
+            .collect()
+    }
+
+    /// The stored ground-truth masks of an episode (`masks/episode_XXXXXX.npy`)
+    /// when the dataset has them: `(shape [T, H, W], 0/1 data)`, uint8 (0/1
+    /// or 0/255), `T` the episode's length and `H, W` a declared video size.
+    pub fn stored_masks(
+        &self,
+        episode: i64,
+    ) -> Result<Option<StoredMasks>, DatasetError> {
+        let length = self.episode(episode)?.length;
+        let rel = format!("masks/episode_{episode:06}.npy");
+        let Some(path) = self.stored_file(&rel, confine::MAX_DATA_BYTES)? else {
+            return Ok(None);
+        };
         let a = read_npy(&path).map_err(|e| meta_err(&path, e.to_string()))?;
         if a.shape.len() != 3 || a.descr != "|u1" || a.shape.contains(&0) {
             return Err(meta_err(
@@ -557,18 +615,39 @@ impl LeRobotDataset {
                 ),
             ));
         }
+        check_frames_shape(
+            &path,
+            episode,
+            "masks",
+            &a.shape,
+            length,
+            &self.video_sizes()?,
+        )?;
         let masks = a.binary_mask().map_err(|m| meta_err(&path, m))?;
-        Ok((a.shape, masks))
+        Ok(Some((a.shape, masks)))
+    }
+
+    /// The synthetic ground-truth masks of an episode: [`Self::stored_masks`],
+    /// a missing file being an I/O error naming it.
+    pub fn read_masks(&self, episode: i64) -> Result<(Vec<usize>, Vec<u8>), DatasetError> {
+        self.stored_masks(episode)?.ok_or_else(|| {
+            let path = self.root.join(format!("masks/episode_{episode:06}.npy"));
+            DatasetError::Io {
+                path,
+                source: std::io::ErrorKind::NotFound.into(),
+            }
+        })
     }
 
     /// The synthetic camera calibration of an episode's video `key`.
     pub fn read_calibration(&self, episode: i64, key: &str) -> Result<Camera, DatasetError> {
-        let path = self
-            .root
-            .join(format!("meta/calibration/episode_{episode:06}.json"));
-        if !path.is_file() {
-            return Err(DatasetError::MissingCalibration { path, episode });
-        }
+        let rel = format!("meta/calibration/episode_{episode:06}.json");
+        let Some(path) = self.stored_file(&rel, confine::MAX_METADATA_BYTES)? else {
+            return Err(DatasetError::MissingCalibration {
+                path: self.root.join(rel),
+                episode,
+            });
+        };
         let v = read_json(&path)?;
         let cam = v.get(key).ok_or_else(|| DatasetError::Field {
             path: path.clone(),

@@ -111,12 +111,15 @@ pub fn demux(path: &Path, data: &[u8]) -> Result<VideoTrack, Mp4Error> {
 /// Reads the first video track's sample table from the MP4 file at `path`
 /// without reading its media data: the top-level box headers are read by
 /// seeking, and only `moov` is read whole. The same checks as [`demux`]
-/// (every box and every sample within the file).
+/// (every box and every sample within the file). The file must be a
+/// regular file of bounded size ([`super::check_video_file`], checked before
+/// it is opened).
 pub fn demux_file(path: &Path) -> Result<VideoTrack, Mp4Error> {
     let io = |source: std::io::Error| Mp4Error::Io {
         path: path.to_path_buf(),
         source,
     };
+    super::check_video_file(path)?;
     let r = Reader { path };
     let mut file = std::fs::File::open(path).map_err(io)?;
     let len = file.metadata().map_err(io)?.len();

@@ -24,6 +24,16 @@ pub enum Mp4Error {
         /// Cause.
         source: std::io::Error,
     },
+    /// The path is not a regular file of bounded size (a FIFO, a device, a
+    /// folder, or larger than [`bridgev2w_io::confine::MAX_VIDEO_BYTES`]):
+    /// refused before it is opened.
+    #[error("{path}: {message}")]
+    NotAFile {
+        /// File.
+        path: PathBuf,
+        /// What it is instead.
+        message: String,
+    },
     /// The file is not a well-formed MP4 (or is truncated).
     #[error("{path}: malformed MP4: {message}")]
     Malformed {
@@ -114,8 +124,23 @@ mod mux;
 pub use demux::{demux, demux_file};
 pub use mux::{mux_h264, H264Stream};
 
-/// Reads a file, mapping errors to [`Mp4Error::Io`].
+/// Checks, without opening it, that `path` is a regular file of at most
+/// [`bridgev2w_io::confine::MAX_VIDEO_BYTES`]: opening a FIFO would block,
+/// reading a device such as `/dev/zero` would never end.
+pub fn check_video_file(path: &Path) -> Result<(), Mp4Error> {
+    use bridgev2w_io::confine;
+    confine::regular_file(path, confine::MAX_VIDEO_BYTES).map_err(|e| match e {
+        confine::Refusal::Unresolved { path, source, .. } => Mp4Error::Io { path, source },
+        e => Mp4Error::NotAFile {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        },
+    })
+}
+
+/// Reads a file ([`check_video_file`] first), mapping errors to [`Mp4Error::Io`].
 pub fn read_file(path: &Path) -> Result<Vec<u8>, Mp4Error> {
+    check_video_file(path)?;
     std::fs::read(path).map_err(|source| Mp4Error::Io {
         path: path.to_path_buf(),
         source,

@@ -32,13 +32,14 @@
 use super::h5::H5;
 use super::report::Note;
 use super::{
-    io_err, json_err, json_intrinsics, json_vec, read_json, rpy_from_xyzw, RawEpisode, RawError,
-    RawView,
+    confined, confined_optional, io_err, json_err, json_intrinsics, json_vec, read_json,
+    rpy_from_xyzw, RawEpisode, RawError, RawView,
 };
 use bridgev2w_embodiment::camera::Intrinsics;
+use bridgev2w_io::confine;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde_json::Value;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// The robot's names for `state/joint/position`'s 14 columns (left arm
 /// 1..7, right arm 1..7): the real G1's URDF (genie_sim G01) names.
@@ -123,11 +124,14 @@ pub struct AgibotOptions {
 }
 
 impl AgibotOptions {
-    /// Checks the camera names (`--cameras`): each becomes part of a file
+    /// Checks the camera names (`--cameras`): at least one, none twice
+    /// ([`super::check_camera_list`]); each becomes part of a file
     /// name (`<cam>_color.mp4`, `<cam>_intrinsic_params.json`), so each must
     /// be a plain name (no `/`, `..` or NUL). The error names the flag, the
     /// value and what was expected.
     pub fn check_cameras(&self) -> Result<(), String> {
+        super::check_camera_list(&self.cameras)
+            .map_err(|e| format!("--cameras {:?}: {e}", self.cameras))?;
         for cam in &self.cameras {
             bridgev2w_io::confine::check_name(cam)
                 .map_err(|e| format!("--cameras: camera name {e}"))?;
@@ -202,11 +206,9 @@ pub fn find_episodes(root: &Path) -> Result<Vec<EpisodeKey>, RawError> {
     Ok(out)
 }
 
-fn camera_dir(root: &Path, key: &EpisodeKey) -> PathBuf {
-    root.join("parameters")
-        .join(&key.task)
-        .join(&key.episode)
-        .join("parameters/camera")
+/// The folder of an episode's camera parameters, relative to the root.
+fn camera_dir(key: &EpisodeKey) -> String {
+    format!("parameters/{}/{}/parameters/camera", key.task, key.episode)
 }
 
 fn read_intrinsics(path: &Path, default_size: (u32, u32)) -> Result<Intrinsics, RawError> {
@@ -310,12 +312,10 @@ fn read_extrinsics(path: &Path, frames: usize) -> Result<Vec<Isometry3<f64>>, Ra
 }
 
 fn task_name(root: &Path, key: &EpisodeKey) -> Result<Option<String>, RawError> {
-    let path = root
-        .join("task_info")
-        .join(format!("task_{}.json", key.task));
-    if !path.is_file() {
+    let rel = format!("task_info/task_{}.json", key.task);
+    let Some(path) = confined_optional(root, &rel, confine::MAX_METADATA_BYTES)? else {
         return Ok(None);
-    }
+    };
     let v = read_json(&path)?;
     Ok(v.as_array().and_then(|items| {
         items.iter().find_map(|it| {
@@ -408,7 +408,10 @@ fn read_grippers(
     Ok(out)
 }
 
-/// Reads one AgiBot World episode.
+/// Reads one AgiBot World episode. Every file read (`proprio_stats.h5`, the
+/// videos, the camera parameters, the task information) must be a regular
+/// file of bounded size inside `root`, symbolic links followed: a FIFO, a
+/// device or a link out of the root is refused before it is opened.
 pub fn read_episode(
     root: &Path,
     key: &EpisodeKey,
@@ -421,11 +424,15 @@ pub fn read_episode(
             episode: id.clone(),
             message,
         })?;
-    let h5_path = root
-        .join("proprio_stats")
-        .join(&key.task)
-        .join(&key.episode)
-        .join("proprio_stats.h5");
+    let h5_path = confined(
+        root,
+        &format!(
+            "proprio_stats/{}/{}/proprio_stats.h5",
+            key.task, key.episode
+        ),
+        confine::MAX_DATA_BYTES,
+        "HDF5 file",
+    )?;
     let h5 = H5::open(&h5_path)?;
     let mut joints = h5
         .read_shaped("state/joint/position", &[None, Some(14)])?
@@ -471,30 +478,28 @@ pub fn read_episode(
         ee_actions.push(row);
     }
 
-    let cams = camera_dir(root, key);
-    let videos = root
-        .join("observations")
-        .join(&key.task)
-        .join(&key.episode)
-        .join("videos");
+    let cams = camera_dir(key);
+    let json = |name: String| confined(root, &name, confine::MAX_METADATA_BYTES, "JSON file");
     let mut views = Vec::new();
     for cam in &options.cameras {
-        let video = videos.join(format!("{cam}_color.mp4"));
-        if !video.is_file() {
-            return Err(RawError::Missing {
-                path: video,
-                what: format!("video of camera \"{cam}\""),
-            });
-        }
+        let video = confined(
+            root,
+            &format!(
+                "observations/{}/{}/videos/{cam}_color.mp4",
+                key.task, key.episode
+            ),
+            confine::MAX_VIDEO_BYTES,
+            &format!("video of camera \"{cam}\""),
+        )?;
         views.push(RawView {
             name: cam.clone(),
             video,
             intrinsics: read_intrinsics(
-                &cams.join(format!("{cam}_intrinsic_params.json")),
+                &json(format!("{cams}/{cam}_intrinsic_params.json"))?,
                 options.default_size,
             )?,
             world_from_camera: read_extrinsics(
-                &cams.join(format!("{cam}_extrinsic_params_aligned.json")),
+                &json(format!("{cams}/{cam}_extrinsic_params_aligned.json"))?,
                 frames,
             )?,
             frame_times: None,

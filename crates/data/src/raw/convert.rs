@@ -228,7 +228,9 @@ pub struct ViewClip {
     pub notes: Vec<Note>,
 }
 
-/// Decodes `view`'s video, aligns its frames with the episode's states
+/// Decodes `view`'s video, skips the leading frames its edit list hides
+/// ([`crate::video::VideoInfo::hidden_by_edit_list`], noted), aligns the
+/// frames it shows with the episode's states
 /// (refusing counts that differ by more than
 /// [`super::align::MAX_FRAME_DIFFERENCE`]), scales the intrinsics to the
 /// video's size (noted when they differ), resizes the frames and renders the
@@ -248,8 +250,29 @@ pub fn render_view(
     // Streamed: only the resized frames are held, never the whole video.
     let mut stream = VideoStream::open(&view.video).map_err(video_err)?;
     let video = stream.info().clone();
-    let alignment = align_frames(episode, view, video.frames)?;
-    let mut notes: Vec<Note> = alignment.note.into_iter().collect();
+    // The frames a player shows: the edit list may hide leading ones.
+    let hidden = video.hidden_by_edit_list();
+    let shown = video.frames - hidden;
+    if shown == 0 {
+        return Err(ConvertError::Raw(RawError::Inconsistent {
+            episode: episode.id.clone(),
+            message: format!(
+                "video {}: its edit list hides all {} frames",
+                view.video.display(),
+                video.frames
+            ),
+        }));
+    }
+    let alignment = align_frames(episode, view, shown)?;
+    let mut notes: Vec<Note> = Vec::new();
+    if hidden > 0 {
+        notes.push(Note::EditListSkipped {
+            video: view.video.clone(),
+            video_frames: video.frames,
+            hidden,
+        });
+    }
+    notes.extend(alignment.note);
     let k = &view.intrinsics;
     let (vw, vh) = (video.width as u32, video.height as u32);
     if (k.width, k.height) != (vw, vh) {
@@ -277,9 +300,9 @@ pub fn render_view(
         .zip(&cameras)
         .map(|(&(_, s), cam)| render_frame_mask(robot, &Rasterizer::new(cam), &q[s]))
         .collect();
-    // The slot of each video frame in the clip (frames the alignment
-    // drops have none); frames are resized in parallel chunks as they come.
-    let mut slot_of = vec![None; video.frames];
+    // The slot of each shown frame in the clip (frames the alignment drops
+    // have none); frames are resized in parallel chunks as they come.
+    let mut slot_of = vec![None; shown];
     for (slot, &(v, _)) in pairs.iter().enumerate() {
         slot_of[v] = Some(slot);
     }
@@ -300,7 +323,10 @@ pub fn render_view(
         }
     };
     while let Some(frame) = stream.next_frame().map_err(video_err)? {
-        if let Some(slot) = slot_of.get(frame.index).copied().flatten() {
+        let Some(shown_index) = frame.index.checked_sub(hidden) else {
+            continue; // hidden by the edit list
+        };
+        if let Some(slot) = slot_of.get(shown_index).copied().flatten() {
             chunk.push((slot, frame.rgb));
             if chunk.len() >= 32 {
                 resize(&mut chunk, &mut rgb);
@@ -314,7 +340,7 @@ pub fn render_view(
             message: format!(
                 "video {}: frame {} of {} was not decoded",
                 view.video.display(),
-                pairs[slot].0,
+                pairs[slot].0 + hidden,
                 video.frames
             ),
         }));

@@ -39,7 +39,9 @@ use super::align::FrameTimes;
 use super::droid_calibration::{find_pose, ExtrinsicsTable, IntrinsicsTable, MissingCalibration};
 use super::h5::H5;
 use super::report::{Eye, Note};
-use super::{io_err, json_err, read_json, RawEpisode, RawError, RawView};
+use super::{
+    confined, confined_optional, io_err, json_err, read_json, RawEpisode, RawError, RawView,
+};
 use bridgev2w_embodiment::camera::world_from_camera_from_xyz_rpy;
 use bridgev2w_io::confine;
 use nalgebra::Isometry3;
@@ -86,6 +88,17 @@ pub struct DroidOptions {
 }
 
 impl DroidOptions {
+    /// Checks the camera roles (`--cameras`): at least one, none twice
+    /// ([`super::check_camera_list`]), each one of [`ROLES`]. The error says
+    /// what is wrong; the caller prefixes the flag or argument.
+    pub fn check_roles(&self) -> Result<(), String> {
+        super::check_camera_list(&self.roles)?;
+        match self.roles.iter().find(|r| !ROLES.contains(&r.as_str())) {
+            Some(r) => Err(format!("camera role {r:?}: expected one of {ROLES:?}")),
+            None => Ok(()),
+        }
+    }
+
     /// Options with intrinsics read from `intrinsics_file` and, optionally,
     /// extrinsics from `calibration_file`.
     pub fn from_files(
@@ -144,20 +157,23 @@ pub fn find_episodes(root: &Path) -> Result<Vec<PathBuf>, RawError> {
     Ok(out)
 }
 
+/// The episode's one `metadata*.json`, a regular file inside `dir` (see
+/// [`super::confined`]).
 fn metadata_file(dir: &Path) -> Result<PathBuf, RawError> {
-    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+    let mut found: Vec<String> = std::fs::read_dir(dir)
         .map_err(io_err(dir))?
         .filter_map(Result::ok)
-        .map(|e| e.path())
-        .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with("metadata") && n.ends_with(".json"))
-        })
+        .filter_map(|e| e.file_name().to_str().map(str::to_string))
+        .filter(|n| n.starts_with("metadata") && n.ends_with(".json"))
         .collect();
     found.sort();
     match found.len() {
-        1 => Ok(found.remove(0)),
+        1 => confined(
+            dir,
+            &found[0],
+            confine::MAX_METADATA_BYTES,
+            "DROID episode metadata",
+        ),
         0 => Err(RawError::Missing {
             path: dir.join("metadata_*.json"),
             what: "DROID episode metadata".into(),
@@ -185,7 +201,10 @@ fn episode_ids(uuid: &str, meta_path: &Path) -> Vec<String> {
     ids
 }
 
-/// Reads one DROID episode directory.
+/// Reads one DROID episode directory. Every file read (the metadata,
+/// `trajectory.h5`, the videos, the per-frame timestamps) must be a regular
+/// file of bounded size inside `dir`, symbolic links followed: a FIFO, a
+/// device or a link out of the folder is refused before it is opened.
 pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, RawError> {
     let meta_path = metadata_file(dir)?;
     let meta = read_json(&meta_path)?;
@@ -205,7 +224,12 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
     })?;
     let ids = episode_ids(&id, &meta_path);
     let ids: Vec<&str> = ids.iter().map(String::as_str).collect();
-    let h5 = H5::open(&dir.join("trajectory.h5"))?;
+    let h5 = H5::open(&confined(
+        dir,
+        "trajectory.h5",
+        confine::MAX_DATA_BYTES,
+        "HDF5 file",
+    )?)?;
     let joints = h5
         .read_shaped("observation/robot_state/joint_positions", &[None, Some(7)])?
         .rows();
@@ -345,7 +369,7 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
             },
         );
         let world_from_camera = poses.world_from_camera;
-        let frame_times = read_frame_times(&h5, &video, &serial)?;
+        let frame_times = read_frame_times(&h5, dir, &video, &serial)?;
         ep.views.push(RawView {
             name: serial,
             video,
@@ -527,16 +551,31 @@ fn view_extrinsics(
 
 /// The recorded timestamps matching `video`'s frames to the states, when
 /// both sides are present: `<video stem>_timestamps.json` (a list of ms per
-/// frame) and `observation/timestamp/cameras/<serial>_frame_received`.
-fn read_frame_times(h5: &H5, video: &Path, serial: &str) -> Result<Option<FrameTimes>, RawError> {
-    let json = video.with_file_name(format!(
+/// frame) and `observation/timestamp/cameras/<serial>_frame_received`. The
+/// JSON file, beside `video` in the episode folder `dir`, must be a regular
+/// file inside `dir` ([`confined_optional`]).
+fn read_frame_times(
+    h5: &H5,
+    dir: &Path,
+    video: &Path,
+    serial: &str,
+) -> Result<Option<FrameTimes>, RawError> {
+    let name = format!(
         "{}_timestamps.json",
         video.file_stem().and_then(|s| s.to_str()).unwrap_or(serial)
-    ));
+    );
     let field = format!("observation/timestamp/cameras/{serial}_frame_received");
-    if !json.is_file() || !h5.has(&field) {
+    // `video` is `dir` joined with a checked relative path.
+    let Ok(rel) = video.strip_prefix(dir).map(|r| r.with_file_name(&name)) else {
+        return Ok(None);
+    };
+    if !h5.has(&field) {
         return Ok(None);
     }
+    let rel = rel.to_string_lossy();
+    let Some(json) = confined_optional(dir, &rel, confine::MAX_METADATA_BYTES)? else {
+        return Ok(None);
+    };
     let v = read_json(&json)?;
     let video_ms = v
         .as_array()

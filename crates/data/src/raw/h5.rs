@@ -8,6 +8,7 @@
 //! [`MAX_DECODED_RATIO`] times the file's size.
 
 use super::RawError;
+use bridgev2w_io::confine;
 use hdf5_reader::{Dataset, Datatype, Hdf5File, OpenOptions};
 use std::path::{Path, PathBuf};
 
@@ -59,11 +60,20 @@ impl Array {
 
 impl H5 {
     /// Opens `path`; a missing, truncated or non-HDF5 file is an error naming it.
+    /// It must be a regular file of at most [`confine::MAX_DATA_BYTES`],
+    /// checked before it is opened (a FIFO or a device is an error, not a hang).
     pub fn open(path: &Path) -> Result<Self, RawError> {
-        if !path.is_file() {
-            return Err(RawError::Missing {
-                path: path.to_path_buf(),
-                what: "HDF5 file".into(),
+        if let Err(e) = confine::regular_file(path, confine::MAX_DATA_BYTES) {
+            return Err(if e.is_missing() {
+                RawError::Missing {
+                    path: path.to_path_buf(),
+                    what: "HDF5 file".into(),
+                }
+            } else {
+                RawError::Refused {
+                    path: path.to_path_buf(),
+                    message: e.to_string(),
+                }
             });
         }
         let file_bytes = std::fs::metadata(path).map_or(0, |m| m.len() as usize);

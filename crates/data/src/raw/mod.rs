@@ -27,6 +27,7 @@ pub mod source;
 
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_io::confine::{self, Refusal};
 use nalgebra::Isometry3;
 use report::{EpisodeNote, Note};
 use serde_json::Value;
@@ -72,6 +73,16 @@ pub enum RawError {
         /// What is wrong.
         message: String,
     },
+    /// A file the episode is read from is not a regular file of bounded
+    /// size inside the episode's folder (a FIFO, a device, a folder, a
+    /// symbolic link out of the folder): refused before it is opened.
+    #[error("{path}: {message}")]
+    Refused {
+        /// The path as named.
+        path: PathBuf,
+        /// Why (names the value and where it resolves, never its content).
+        message: String,
+    },
     /// The episode's parts disagree (frame counts, cameras).
     #[error("episode {episode}: {message}")]
     Inconsistent {
@@ -105,14 +116,72 @@ pub(crate) fn json_err(path: &Path, field: &str, message: impl Into<String>) -> 
     }
 }
 
-/// Reads and parses a JSON file.
-pub(crate) fn read_json(path: &Path) -> Result<Value, RawError> {
-    if !path.is_file() {
-        return Err(RawError::Missing {
-            path: path.to_path_buf(),
-            what: "JSON file".into(),
-        });
+/// Checks a list of cameras to convert (`--cameras`, Python's `cameras=`):
+/// at least one, none named twice (a camera converted twice would write
+/// the same episodes twice). The error says what is wrong; the caller
+/// prefixes the flag or argument and the value.
+pub fn check_camera_list(names: &[String]) -> Result<(), String> {
+    if names.is_empty() {
+        return Err("expected at least one camera name".into());
     }
+    for (i, name) in names.iter().enumerate() {
+        if names[..i].contains(name) {
+            return Err(format!(
+                "camera {name:?} is named twice: expected distinct names"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A refusal of `path` (named `what` when missing) as a [`RawError`].
+fn refused(path: PathBuf, what: &str, e: Refusal) -> RawError {
+    if e.is_missing() {
+        RawError::Missing {
+            path,
+            what: what.to_string(),
+        }
+    } else {
+        RawError::Refused {
+            path,
+            message: e.to_string(),
+        }
+    }
+}
+
+/// `dir/rel`, a file an episode is read from (`what` names it when
+/// missing): a regular file of at most `max_bytes` that lies inside `dir`
+/// (the folder the user named or one found under it), symbolic links
+/// followed; checked without opening it ([`confine::confined_file`]).
+pub(crate) fn confined(
+    dir: &Path,
+    rel: &str,
+    max_bytes: u64,
+    what: &str,
+) -> Result<PathBuf, RawError> {
+    confine::confined_file(dir, rel, max_bytes).map_err(|e| refused(dir.join(rel), what, e))
+}
+
+/// [`confined`] for a file the episode may lack: `None` when nothing is
+/// there (a dangling link counts as nothing).
+pub(crate) fn confined_optional(
+    dir: &Path,
+    rel: &str,
+    max_bytes: u64,
+) -> Result<Option<PathBuf>, RawError> {
+    match confine::confined_file(dir, rel, max_bytes) {
+        Ok(p) => Ok(Some(p)),
+        Err(e) if e.is_missing() => Ok(None),
+        Err(e) => Err(refused(dir.join(rel), "file", e)),
+    }
+}
+
+/// Reads and parses a JSON file, which must be a regular file of at most
+/// [`confine::MAX_METADATA_BYTES`] (checked before it is opened, so a FIFO
+/// or a device is an error, not a hang).
+pub(crate) fn read_json(path: &Path) -> Result<Value, RawError> {
+    confine::regular_file(path, confine::MAX_METADATA_BYTES)
+        .map_err(|e| refused(path.to_path_buf(), "JSON file", e))?;
     bridgev2w_io::json::read_json(path).map_err(|e| match e {
         bridgev2w_io::FileError::Io { path, source } => RawError::Io { path, source },
         bridgev2w_io::FileError::Json { path, source } => {

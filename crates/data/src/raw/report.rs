@@ -102,6 +102,17 @@ pub enum Note {
         /// Video frame indices left without a state (not written).
         dropped_video_frames: Vec<usize>,
     },
+    /// Frames at the start of a view's video that its edit list (`elst`)
+    /// hides were not converted (as a player, and the LeRobot reader, skip
+    /// them); the rest were aligned with the states.
+    EditListSkipped {
+        /// The video file.
+        video: PathBuf,
+        /// Frames in the file.
+        video_frames: usize,
+        /// Leading frames the edit list hides.
+        hidden: usize,
+    },
     /// Intrinsics given for one image size were scaled to the video's size.
     IntrinsicsScaled {
         /// The size the intrinsics were given for.
@@ -151,6 +162,7 @@ impl Note {
             Note::JointColumnsIgnored { .. } => "joint_columns_ignored",
             Note::JointOutOfLimits { .. } => "joint_out_of_limits",
             Note::FramesAligned { .. } => "frames_aligned",
+            Note::EditListSkipped { .. } => "edit_list_skipped",
             Note::IntrinsicsScaled { .. } => "intrinsics_scaled",
             Note::Calibration { .. } => "calibration",
             Note::CalibrationMissing { .. } => "calibration_missing",
@@ -162,7 +174,9 @@ impl Note {
     /// record of what was done.
     pub fn is_warning(&self) -> bool {
         match self {
-            Note::Calibration { .. } | Note::JointColumnsIgnored { .. } => false,
+            Note::Calibration { .. }
+            | Note::JointColumnsIgnored { .. }
+            | Note::EditListSkipped { .. } => false,
             Note::IntrinsicsScaled { uniform, .. } => !uniform,
             _ => true,
         }

@@ -31,6 +31,29 @@ pub enum RawSource {
     },
 }
 
+impl RawSource {
+    /// Checks the source's options before anything is read or written: the
+    /// cameras (DROID roles, or AgiBot World camera names) must be at least
+    /// one, none named twice ([`super::check_camera_list`]), DROID roles
+    /// among [`droid::ROLES`] and AgiBot names plain names. The error names
+    /// `cameras`, the list and what was expected; the CLI and the Python
+    /// package both get it from [`convert_source`].
+    pub fn validate(&self) -> Result<(), String> {
+        let (cameras, check) = match self {
+            RawSource::Droid { options, .. } => (&options.roles, options.check_roles()),
+            RawSource::Agibot { options, .. } => (
+                &options.cameras,
+                super::check_camera_list(&options.cameras).and_then(|()| {
+                    options.cameras.iter().try_for_each(|c| {
+                        bridgev2w_io::confine::check_name(c).map_err(|e| format!("camera name {e}"))
+                    })
+                }),
+            ),
+        };
+        check.map_err(|e| format!("cameras {cameras:?}: {e}"))
+    }
+}
+
 /// Progress of [`convert_source`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ConvertProgress<'a> {
@@ -42,7 +65,8 @@ pub enum ConvertProgress<'a> {
 
 /// Converts the episodes of `source` (at most `limit`) into a LeRobot v3.0
 /// dataset at `out`, which must not exist unless `options.overwrite`; see
-/// the module documentation.
+/// the module documentation. The options are checked first
+/// ([`RawSource::validate`], [`ConvertOptions::validate`]).
 pub fn convert_source(
     source: &RawSource,
     limit: Option<usize>,
@@ -51,6 +75,8 @@ pub fn convert_source(
     options: &ConvertOptions,
     progress: &dyn Fn(ConvertProgress),
 ) -> Result<ConvertReport, ConvertError> {
+    source.validate().map_err(ConvertError::Options)?;
+    options.validate()?;
     let limit = limit.unwrap_or(usize::MAX);
     let root = match source {
         RawSource::Droid { root, .. } | RawSource::Agibot { root, .. } => root,

@@ -37,6 +37,18 @@ impl VideoInfo {
     pub fn frame_bytes(&self) -> usize {
         self.width * self.height * 3
     }
+
+    /// How many frames at the start the track's edit list (`elst`) hides:
+    /// the demuxer shifts presentation times so that the first edit's
+    /// media time is 0, and a frame is hidden when it ends (the next frame
+    /// starts) at or before 0; the last frame, when it starts before 0. A
+    /// player shows none of them; 0 without an edit list that cuts frames.
+    pub fn hidden_by_edit_list(&self) -> usize {
+        let ts = &self.timestamps_s;
+        (0..ts.len())
+            .take_while(|&i| ts.get(i + 1).map_or(ts[i] < 0.0, |&next| next <= 0.0))
+            .count()
+    }
 }
 
 /// One decoded frame.

@@ -219,6 +219,8 @@ pub fn bench_masks(
             "--frames and --repeat must be positive".into(),
         ));
     }
+    // One [T, H, W] label array per pass, the peer's masks beside it.
+    crate::masks::check_render_size("--frames", a.frames, a.width, a.height, false)?;
     let threads = rayon::current_num_threads();
     let workers = a.workers.unwrap_or(threads);
     let peer = if a.pybullet {

@@ -43,6 +43,9 @@ pub enum BenchError {
     /// An array exchanged with the peer could not be written or read.
     #[error(transparent)]
     Npy(#[from] NpyError),
+    /// A size beyond its maximum or this machine's memory.
+    #[error(transparent)]
+    Memory(#[from] bridgev2w_io::memory::MemoryError),
 }
 
 /// Result of the benches.

@@ -97,7 +97,11 @@ pub fn fidelity_study(
         ..GoalOptions::default()
     };
     view_options.validate()?;
+    o.model.check_sizes()?;
+    super::sizes::check_trials("--trials", o.trials)?;
+    super::sizes::check_candidates("--candidates", o.candidates)?;
     let loaded = LoadedModel::load(&o.model)?;
+    super::sizes::check_candidates_memory(&loaded, "--candidates", o.candidates)?;
     let world = loaded.world(25, o.seed)?;
     let t0 = Instant::now();
     let reference = loaded.is_diffusion();

@@ -12,6 +12,8 @@
 //! * [`report`]: all of them as the `planning` sections of `docs/results.md`
 //!   ([`plan_report`]), with their figures ([`report_figures`]).
 //!
+//! Their sizes are checked before anything is allocated ([`sizes`]).
+//!
 //! The world model of each is named by [`ModelOptions`] and loaded once
 //! ([`LoadedModel`]).
 
@@ -21,6 +23,7 @@ pub mod planning;
 pub mod report;
 pub mod report_figures;
 pub mod rollout;
+pub mod sizes;
 
 pub use fidelity_study::{fidelity_study, FidelityOptions, FidelityStudy};
 pub use models::{LoadedModel, ModelOptions};

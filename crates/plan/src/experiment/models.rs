@@ -6,7 +6,7 @@ use crate::choice::PlanModel;
 use crate::goal_latent::GoalLatent;
 use crate::model::{ActionWorldModel, MaskConditioned};
 use crate::synthetic::{PerfectWorldModel, TaskInstance};
-use crate::Result;
+use crate::{PlanError, Result};
 use bridgev2w_data::synth::{SynthConfig, World};
 use bridgev2w_world_model::bridge::BridgeV2W;
 use bridgev2w_world_model::pipeline::{
@@ -88,6 +88,35 @@ impl Default for ModelOptions {
     }
 }
 
+impl ModelOptions {
+    /// Refuses `weights` or `prompt_embeds` with a model that would ignore
+    /// them: the perfect renderer (no weights, no prompt), or a `random:`
+    /// model ([`bridgev2w_world_model::spec::ModelSpec::check_inputs`]).
+    pub fn check_inputs(&self) -> Result<()> {
+        match &self.model {
+            PlanModel::Perfect => {
+                let given = [
+                    ("--weights", &self.weights),
+                    ("--prompt-embeds", &self.prompt_embeds),
+                ];
+                if let Some((flag, Some(path))) = given.into_iter().find(|(_, p)| p.is_some()) {
+                    return Err(PlanError::input(
+                        flag,
+                        format!(
+                            "{} given with --model perfect: the synthetic renderer has no weights and no prompt and would ignore it (expected a diffusers model folder as --model, or no {flag})",
+                            path.display()
+                        ),
+                    ));
+                }
+            }
+            PlanModel::World(spec) => {
+                spec.check_inputs(self.weights.as_deref(), self.prompt_embeds.as_deref())?
+            }
+        }
+        Ok(())
+    }
+}
+
 /// A loaded world model.
 #[derive(Debug)]
 pub enum LoadedModel {
@@ -124,6 +153,7 @@ pub enum LoadedModel {
 impl LoadedModel {
     /// Loads the model `o` names.
     pub fn load(o: &ModelOptions) -> Result<Self> {
+        o.check_inputs()?;
         Ok(match &o.model {
             PlanModel::Perfect => Self::Perfect {
                 width: o.width,
@@ -234,5 +264,43 @@ impl LoadedModel {
                 f(&wrapped)
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_perfect_model_refuses_weights_and_prompt_embeds_it_would_ignore() {
+        let path = PathBuf::from("trained/bridgev2w.safetensors");
+        for (weights, prompt_embeds, flag) in [
+            (Some(path.clone()), None, "--weights"),
+            (None, Some(path.clone()), "--prompt-embeds"),
+        ] {
+            let o = ModelOptions {
+                weights,
+                prompt_embeds,
+                ..ModelOptions::default()
+            };
+            let e = LoadedModel::load(&o)
+                .expect_err("ignored input")
+                .to_string();
+            assert!(
+                e.contains(flag)
+                    && e.contains("--model perfect")
+                    && e.contains(&path.display().to_string()),
+                "{e}"
+            );
+        }
+        assert!(ModelOptions::default().check_inputs().is_ok());
+        // A random: model, as `ModelSpec::check_inputs` refuses it.
+        let o = ModelOptions {
+            model: "random".parse().expect("random"),
+            weights: Some(path),
+            ..ModelOptions::default()
+        };
+        let e = o.check_inputs().expect_err("ignored weights").to_string();
+        assert!(e.contains("--weights") && e.contains("random:tiny"), "{e}");
     }
 }

@@ -10,10 +10,10 @@ use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_io::frame::RgbFrame;
-use bridgev2w_io::output::OutputDir;
+use bridgev2w_io::output::{check_no_overlap, OutputDir};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The CEM sizes of an experiment.
@@ -304,6 +304,7 @@ pub fn plan_summary(o: &PlanOptions, progress: &mut dyn FnMut(&str)) -> Result<P
     if o.trials == 0 {
         return Err(PlanError::input("--trials", "must be at least 1"));
     }
+    o.check_sizes()?;
     let cfg = o.mpc_config()?;
     if o.goals.release_before_final
         && !matches!(
@@ -322,8 +323,31 @@ pub fn plan_summary(o: &PlanOptions, progress: &mut dyn FnMut(&str)) -> Result<P
             ),
         ));
     }
+    if let Some(trace) = &o.trace {
+        // Before the model loads: a trace folder overlapping the model's
+        // files is refused.
+        check_no_overlap(trace, &model_inputs(&o.model))
+            .map_err(|e| PlanError::input("--trace", e.to_string()))?;
+    }
     let loaded = LoadedModel::load(&o.model)?;
+    super::sizes::check_candidates_memory(&loaded, "--samples", o.cem.samples)?;
     plan_with(&loaded, o, &cfg, progress)
+}
+
+/// The files of a world model (its folder, weights, prompt embedding): an
+/// output must not overlap them.
+fn model_inputs(m: &ModelOptions) -> Vec<&Path> {
+    let folder = match &m.model {
+        crate::choice::PlanModel::World(bridgev2w_world_model::spec::ModelSpec::Folder(p)) => {
+            Some(p.as_path())
+        }
+        _ => None,
+    };
+    folder
+        .into_iter()
+        .chain(m.weights.as_deref())
+        .chain(m.prompt_embeds.as_deref())
+        .collect()
 }
 
 /// [`plan_summary`] with a model already loaded.
@@ -343,7 +367,8 @@ pub(crate) fn plan_with(
         .trace
         .as_deref()
         .map(|p| {
-            OutputDir::create(p, false).map_err(|e| PlanError::input("--trace", e.to_string()))
+            OutputDir::create_for(p, false, &model_inputs(&o.model))
+                .map_err(|e| PlanError::input("--trace", e.to_string()))
         })
         .transpose()?;
     for trial in 0..o.trials {

@@ -205,6 +205,20 @@ pub fn plan_report(
         .iter()
         .map(|m| Ok((m.clone(), m.options(o)?)))
         .collect::<Result<Vec<(ReportModel, ModelOptions)>>>()?;
+    for (_, options) in &models {
+        options.check_sizes()?;
+    }
+    super::sizes::check_trials("--trials", o.trials)?;
+    super::sizes::check_trials("--eval-trials", o.eval_trials)?;
+    super::sizes::check_candidates("--samples", o.cem.samples)?;
+    if let Some(frames) = o.plan_clip_frames {
+        bridgev2w_io::memory::at_most(
+            "--plan-clip-frames",
+            frames as u64,
+            bridgev2w_world_model::bridge::MAX_CLIP_FRAMES as u64,
+            "frames",
+        )?;
+    }
     let planners: Vec<&(ReportModel, ModelOptions)> = models
         .iter()
         .filter(|(m, _)| *m != ReportModel::Random)
@@ -379,6 +393,9 @@ fn plan_tables(
         .iter()
         .map(LoadedModel::load)
         .collect::<Result<Vec<_>>>()?;
+    for l in &loaded {
+        super::sizes::check_candidates_memory(l, "--samples", o.cem.samples)?;
+    }
     for &task in &o.tasks {
         for ((&(planner, _), options), loaded) in planners.iter().zip(&planning).zip(&loaded) {
             let po = PlanOptions {

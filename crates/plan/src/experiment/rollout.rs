@@ -99,7 +99,12 @@ pub fn rollout_report(
             "at least two policies are needed for a correlation",
         ));
     }
+    o.model.check_sizes()?;
+    super::sizes::check_trials("--trials", o.trials)?;
+    super::sizes::check_episode_frames(o.episode_frames)?;
     let loaded = LoadedModel::load(&o.model)?;
+    // One clip per model call.
+    super::sizes::check_candidates_memory(&loaded, "a rollout", 1)?;
     rollout_with(&loaded, o, progress)
 }
 

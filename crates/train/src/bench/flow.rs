@@ -198,6 +198,30 @@ pub fn bench_flow(options: &FlowBenchOptions) -> Result<FlowBenchReport> {
     })
 }
 
+/// `--frames` within [`bridgev2w_world_model::bridge::MAX_CLIP_FRAMES`],
+/// `--height`/`--width` within
+/// [`bridgev2w_world_model::bridge::MAX_CLIP_SIDE`], and a floor of the
+/// bench's memory within the machine's: the ground-truth clip built on the
+/// host (its frames and their concatenation, float RGB: 24 bytes a pixel of
+/// every frame).
+fn check_sizes(o: &FlowBenchOptions) -> Result<()> {
+    use bridgev2w_io::memory::{at_most, bytes, check_fits};
+    use bridgev2w_world_model::bridge::{MAX_CLIP_FRAMES, MAX_CLIP_SIDE};
+    let size = |v: i64| v.max(0) as u64;
+    at_most("--frames", size(o.frames), MAX_CLIP_FRAMES as u64, "frames")?;
+    at_most("--height", size(o.height), MAX_CLIP_SIDE as u64, "pixels")?;
+    at_most("--width", size(o.width), MAX_CLIP_SIDE as u64, "pixels")?;
+    check_fits(
+        &format!(
+            "the flow bench's clip of {} frames at {}x{}",
+            o.frames, o.height, o.width
+        ),
+        bytes(&[size(o.frames), size(o.height), size(o.width), 24]),
+        crate::BENCH_FLOW_MEMORY_ADVICE,
+    )?;
+    Ok(())
+}
+
 fn bench_flow_unguarded(o: &FlowBenchOptions) -> Result<FlowBenchReport> {
     if o.modes.is_empty() {
         return Err(TrainError::input(
@@ -229,6 +253,7 @@ fn bench_flow_unguarded(o: &FlowBenchOptions) -> Result<FlowBenchReport> {
             ));
         }
     }
+    check_sizes(o)?;
     let device = o.device.check_available()?;
     let dev = device.to_tch();
     tch::manual_seed(0);

@@ -88,6 +88,41 @@ impl fmt::Display for LoaderBenchReport {
     }
 }
 
+/// `--frames` within [`bridgev2w_world_model::bridge::MAX_CLIP_FRAMES`],
+/// `--width`/`--height` within
+/// [`bridgev2w_world_model::bridge::MAX_CLIP_SIDE`], `--batch` within
+/// [`bridgev2w_world_model::bridge::MAX_PREDICT_BATCH`], and a batch of
+/// clips (video and masks as floats, 16 bytes a pixel of every frame: a
+/// floor) within the machine's memory.
+fn check_sizes(a: &LoaderBenchOptions) -> Result<()> {
+    use bridgev2w_io::memory::{at_most, bytes, check_fits};
+    use bridgev2w_world_model::bridge::{MAX_CLIP_FRAMES, MAX_CLIP_SIDE, MAX_PREDICT_BATCH};
+    at_most(
+        "--frames",
+        a.frames as u64,
+        MAX_CLIP_FRAMES as u64,
+        "frames",
+    )?;
+    at_most("--width", a.width as u64, MAX_CLIP_SIDE as u64, "pixels")?;
+    at_most("--height", a.height as u64, MAX_CLIP_SIDE as u64, "pixels")?;
+    at_most("--batch", a.batch as u64, MAX_PREDICT_BATCH as u64, "clips")?;
+    check_fits(
+        &format!(
+            "the loader bench's batch of {} clips of {} frames at {}x{}",
+            a.batch, a.frames, a.height, a.width
+        ),
+        bytes(&[
+            a.batch as u64,
+            a.frames as u64,
+            a.height as u64,
+            a.width as u64,
+            16,
+        ]),
+        "lower --batch, --frames or --width/--height",
+    )?;
+    Ok(())
+}
+
 /// Opens the dataset (with stored masks; for the generated dataset also
 /// with calc masks rendered, then read from the cache) and assembles
 /// `options.steps` batches on the CPU.
@@ -96,6 +131,7 @@ pub fn bench_loader(
     progress: &dyn Progress,
 ) -> Result<LoaderBenchReport> {
     let a = options;
+    check_sizes(a)?;
     let io = |path: &std::path::Path| {
         let path = path.to_path_buf();
         move |error| TrainError::Io { path, error }

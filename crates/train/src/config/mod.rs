@@ -524,6 +524,10 @@ impl Default for AblationSection {
 /// The most steps (`train.max_steps`) a run may have.
 pub const MAX_STEPS: usize = 1_000_000_000;
 
+/// The largest `train.lr` accepted: AdamW moves each weight by about the
+/// learning rate a step, and a weight moved by 1 a step diverges.
+pub const MAX_LR: f64 = 1.0;
+
 impl TrainConfig {
     /// Parses a TOML file.
     pub fn from_file(path: &Path) -> Result<Self> {
@@ -572,10 +576,21 @@ impl TrainConfig {
                 "both 0: give a number of steps or epochs".into(),
             );
         }
-        if !(t.lr.is_finite() && t.lr > 0.0) {
+        if !(t.lr > 0.0 && t.lr <= MAX_LR) {
             return bad(
                 "train.lr",
-                format!("{}: expected a finite learning rate > 0", t.lr),
+                format!(
+                    "{}: expected a finite learning rate > 0 and at most {MAX_LR} (MAX_LR; the paper's: 2e-5)",
+                    t.lr
+                ),
+            );
+        }
+        // AdamW divides by sqrt(v) + eps: a parameter whose gradient is 0
+        // (LoRA's A while B is still 0) would get 0 / 0.
+        if !(t.eps.is_finite() && t.eps > 0.0) {
+            return bad(
+                "train.eps",
+                format!("{}: expected a finite value > 0 (the paper's: 1e-8)", t.eps),
             );
         }
         if !(0.0..1.0).contains(&t.ema_decay) {
@@ -588,7 +603,6 @@ impl TrainConfig {
             );
         }
         for (name, v) in [
-            ("train.eps", t.eps),
             ("train.weight_decay", t.weight_decay),
             ("train.grad_clip", t.grad_clip),
             ("train.lambda_dyn", t.lambda_dyn),

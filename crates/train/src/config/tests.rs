@@ -15,12 +15,41 @@ fn sizes_beyond_the_limits_name_the_field() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("train.batch_size"), "{e}");
-    // A learning rate of 0 would train nothing (found by fuzz_config).
-    for lr in ["0.0", "-1e-4", "nan"] {
+    // A learning rate of 0 would train nothing (found by fuzz_config); one
+    // beyond MAX_LR, or infinite, diverges to NaN at the first steps.
+    for lr in ["0.0", "-1e-4", "nan", "inf", "-inf", "1e300", "1.5"] {
         let e = TrainConfig::from_toml(&format!("{base}[train]\nlr = {lr}\n"))
             .unwrap_err()
             .to_string();
-        assert!(e.contains("train.lr") && e.contains("> 0"), "{e}");
+        assert!(
+            e.contains("train.lr") && e.contains("> 0") && e.contains("at most 1"),
+            "{lr}: {e}"
+        );
+    }
+    assert!(TrainConfig::from_toml(&format!("{base}[train]\nlr = {MAX_LR}\n")).is_ok());
+    // AdamW's eps = 0 divides 0 by 0 for a parameter whose gradient is 0.
+    for eps in ["0.0", "-1e-8", "nan", "inf"] {
+        let e = TrainConfig::from_toml(&format!("{base}[train]\neps = {eps}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("train.eps") && e.contains("> 0"), "{eps}: {e}");
+    }
+    // The other float fields: NaN, infinite and negative values are named.
+    for (field, v) in [
+        ("weight_decay", "-1.0"),
+        ("grad_clip", "nan"),
+        ("lambda_dyn", "inf"),
+        ("lambda_flow", "-0.5"),
+        ("kl_weight", "nan"),
+        ("beta1", "nan"),
+        ("beta2", "-0.1"),
+        ("condition_dropout", "nan"),
+        ("image_noise_log_mean", "inf"),
+    ] {
+        let e = TrainConfig::from_toml(&format!("{base}[train]\n{field} = {v}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(&format!("train.{field}")), "{field} = {v}: {e}");
     }
     // Found by `scripts/fuzz.sh train-config 60`: lora_alpha = nan passed.
     for (table, line, field) in [

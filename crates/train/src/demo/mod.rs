@@ -8,10 +8,14 @@
 //!
 //! Everything is written into a temporary folder and renamed into place at
 //! the end ([`OutputDir`]): a failed demo leaves no half-written output.
+//! An existing output is replaced without `--overwrite` only when it is an
+//! earlier demo's ([`ownership`]: marked, and nothing else in it).
 
+mod ownership;
 pub mod prediction;
 mod scene;
 
+pub use ownership::{not_an_earlier_demo, DEMO_FILES, DEMO_MARKER};
 pub use prediction::PredictionSummary;
 pub use scene::{demo_actions, demo_camera};
 
@@ -64,6 +68,28 @@ pub enum DemoError {
     /// Scoring the prediction.
     #[error(transparent)]
     Metric(#[from] bridgev2w_eval::MetricError),
+    /// A setting with a value it cannot take (the flag, the value, what
+    /// was expected).
+    #[error("{flag} {value}: {expected}")]
+    Option {
+        /// The flag.
+        flag: &'static str,
+        /// Its value.
+        value: String,
+        /// What was expected.
+        expected: String,
+    },
+    /// A size beyond its maximum or the machine's memory.
+    #[error(transparent)]
+    Memory(#[from] bridgev2w_io::memory::MemoryError),
+    /// The output exists and is not an earlier demo's output.
+    #[error("{}: exists and is not an earlier demo's output ({reason}); choose another --out, or pass --overwrite to replace it", path.display())]
+    NotADemo {
+        /// The output folder.
+        path: PathBuf,
+        /// Why it is not a demo's.
+        reason: String,
+    },
     /// The model folder is not a demo model.
     #[error("demo model {}: expected backbone/ (a diffusers CogVideoX I2V folder) and bridgev2w.safetensors; pass --model DIR, or --no-predict for masks only", .0.display())]
     NotAModel(PathBuf),
@@ -83,7 +109,9 @@ pub enum DemoError {
 pub struct DemoOptions {
     /// Output folder (written to a temporary folder, then renamed).
     pub out: PathBuf,
-    /// Replace an existing `out` that is not an earlier demo's output.
+    /// Replace an existing `out` that is not an earlier demo's output (one
+    /// marked [`DEMO_MARKER`] holding nothing but [`DEMO_FILES`] and
+    /// `frames/`, which is replaced anyway).
     pub overwrite: bool,
     /// Frames in the trajectory.
     pub frames: usize,
@@ -112,6 +140,32 @@ impl Default for DemoOptions {
             seed: 0,
             first_frame: FirstFrame::default(),
         }
+    }
+}
+
+impl DemoOptions {
+    /// Checks the settings before anything is written or allocated:
+    /// `frames` at least 2, and the masks of that many frames of the demo
+    /// camera within [`bridgev2w_embodiment::masks::check_render_size`]'s
+    /// bounds and the machine's memory.
+    pub fn validate(&self) -> Result<(), DemoError> {
+        if self.frames < 2 {
+            return Err(DemoError::Option {
+                flag: "--frames",
+                value: self.frames.to_string(),
+                expected: "expected at least 2 frames in the trajectory (CogVideoX clips are 49)"
+                    .into(),
+            });
+        }
+        let k = demo_camera()?.intrinsics;
+        bridgev2w_embodiment::masks::check_render_size(
+            "--frames",
+            self.frames,
+            k.width,
+            k.height,
+            false,
+        )?;
+        Ok(())
     }
 }
 
@@ -167,17 +221,24 @@ impl DemoReport {
     }
 }
 
-/// An earlier demo's output (the files every demo writes).
-fn is_earlier_demo(out: &Path) -> bool {
-    ["overlay.gif", "camera.json", "actions.json", "masks.npy"]
-        .iter()
-        .all(|f| out.join(f).is_file())
-}
-
-/// Runs the demo; `tick` is called once per rendered mask frame.
+/// Runs the demo; `tick` is called once per rendered mask frame. An
+/// existing `o.out` is replaced when it is an earlier demo's output (or
+/// `o.overwrite`), else refused; an `o.out` that is, is inside or contains
+/// the model folder is refused.
 pub fn run_demo(o: &DemoOptions, tick: &(dyn Fn() + Sync)) -> Result<DemoReport, DemoError> {
     let start = Instant::now();
-    let output = OutputDir::create(&o.out, o.overwrite || is_earlier_demo(&o.out))?;
+    o.validate()?;
+    let model = (!o.no_predict).then(|| {
+        o.model
+            .clone()
+            .unwrap_or_else(prediction::default_model_dir)
+    });
+    let inputs: Vec<&Path> = model.iter().map(PathBuf::as_path).collect();
+    // Whether to replace is decided under the output's lock; nothing is
+    // replaced before the commit.
+    let output = OutputDir::create_for(&o.out, true, &inputs)?;
+    ownership::check_replaceable(&o.out, o.overwrite)?;
+    ownership::write_marker(output.path())?;
     let e = Embodiment::builtin("franka")?;
     let camera = demo_camera()?;
     let actions = demo_actions(&e, o.frames)?;
@@ -234,6 +295,8 @@ pub fn run_demo(o: &DemoOptions, tick: &(dyn Fn() + Sync)) -> Result<DemoReport,
     } else {
         Some(prediction::predict(o, out)?)
     };
+    // Checked again: a file the user put there meanwhile is not lost.
+    ownership::check_replaceable(&o.out, o.overwrite)?;
     output.commit()?;
     Ok(DemoReport {
         out: o.out.clone(),

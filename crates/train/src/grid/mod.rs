@@ -24,6 +24,27 @@ pub struct GridRun {
     pub run: PathBuf,
 }
 
+/// The most clips (rows) of a grid (`eval-grid --clips`, `eval-run
+/// --grid-clips`): every row's frames are held until the GIF is written.
+pub const MAX_GRID_CLIPS: usize = 1024;
+
+/// What a grid of `runs` reads, for refusing an output that overlaps it:
+/// each run's folder, its configuration and the datasets it names
+/// (`data.dataset`, `data.mix[].dataset`). A configuration that cannot be
+/// read adds no dataset here; loading the run names its error.
+pub fn grid_inputs(runs: &[GridRun]) -> Vec<PathBuf> {
+    let mut inputs = Vec::new();
+    for r in runs {
+        inputs.push(r.run.clone());
+        inputs.push(r.config.clone());
+        if let Ok(cfg) = crate::config::TrainConfig::from_file(&r.config) {
+            inputs.push(cfg.data.dataset.clone());
+            inputs.extend(cfg.data.mix.iter().map(|m| m.dataset.clone()));
+        }
+    }
+    inputs
+}
+
 /// What `eval-grid` draws.
 #[derive(Debug, Clone)]
 pub struct GridOptions {
@@ -52,6 +73,7 @@ pub fn write_grids(o: &GridOptions, progress: &dyn Progress) -> Result<Vec<PathB
     if o.clips == 0 {
         return Err(TrainError::input("clips", "must be at least 1"));
     }
+    bridgev2w_io::memory::at_most("clips", o.clips as u64, MAX_GRID_CLIPS as u64, "clips")?;
     let trainers = o
         .runs
         .iter()
@@ -124,4 +146,55 @@ fn split_grid(
     }
     let d = &trainers[0].data;
     Ok((rows, (d.width, d.height)))
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use bridgev2w_io::output::check_no_overlap;
+
+    /// `eval-grid --out` inside a run's dataset is refused (issue 69): the
+    /// datasets its configurations name are among its inputs.
+    #[test]
+    fn the_inputs_of_a_grid_are_its_runs_configs_and_datasets() {
+        let tmp = tempfile::tempdir().unwrap();
+        let data = tmp.path().join("data");
+        let config = tmp.path().join("a.toml");
+        std::fs::write(
+            &config,
+            format!(
+                "[model]\nbackbone = \"random:tiny\"\n[data]\ndataset = {:?}\n\
+                 [[data.mix]]\ndataset = \"other-data\"\n",
+                data.display().to_string()
+            ),
+        )
+        .unwrap();
+        let runs = [
+            GridRun {
+                config: config.clone(),
+                run: tmp.path().join("run-a"),
+            },
+            GridRun {
+                config: tmp.path().join("missing.toml"),
+                run: tmp.path().join("run-b"),
+            },
+        ];
+        let inputs = grid_inputs(&runs);
+        assert_eq!(
+            inputs,
+            [
+                tmp.path().join("run-a"),
+                config,
+                data.clone(),
+                PathBuf::from("other-data"),
+                tmp.path().join("run-b"),
+                tmp.path().join("missing.toml"),
+            ]
+        );
+        let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
+        let e = check_no_overlap(&data.join("grids"), &inputs).unwrap_err();
+        assert!(e.to_string().contains("is inside the input"), "{e}");
+        check_no_overlap(&tmp.path().join("grids"), &inputs).unwrap();
+    }
 }

@@ -56,7 +56,24 @@ impl Trainer {
     /// The model's prediction `[B, 3, T, H, W]` in [-1, 1] for `batch`: from
     /// the first frames (posterior mode) and the run's condition (mask
     /// branch, action MLP, or none for a prior), sampled with `opts`.
+    /// libtorch's panics (a device's out-of-memory among them) are errors
+    /// naming the clips' shapes ([`crate::TrainError::OutOfMemory`]).
     pub fn predict(&self, batch: &Batch, opts: &SampleOptions) -> Result<Tensor> {
+        crate::guarded(|| self.predict_unguarded(batch, opts)).map_err(|e| {
+            e.on_out_of_memory(
+                || {
+                    format!(
+                        "predicting clips {:?} ([B, 3, T, H, W]) with {} denoising steps",
+                        batch.video.size(),
+                        opts.steps_run()
+                    )
+                },
+                bridgev2w_world_model::error::PREDICT_MEMORY_ADVICE,
+            )
+        })
+    }
+
+    fn predict_unguarded(&self, batch: &Batch, opts: &SampleOptions) -> Result<Tensor> {
         let model = &self.model;
         tch::no_grad(|| -> Result<Tensor> {
             let img = model.image_latents(&batch.first_frames, None)?;

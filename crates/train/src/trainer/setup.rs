@@ -35,6 +35,31 @@ pub(super) fn random_preset(backbone: &str) -> Result<Option<(VaeConfig, Transfo
     }
 }
 
+/// A backbone folder's weight files that the run loads, checked before the
+/// data is read and before a model is built (whose clip size might not fit
+/// it): the VAE's always, the transformer's when it is pretrained
+/// (`ablation.pretrained` without `model.transformer`).
+fn check_backbone_weights(cfg: &TrainConfig) -> Result<()> {
+    if random_preset(&cfg.model.backbone)?.is_some() {
+        return Ok(());
+    }
+    let dir = bridgev2w_world_model::hub::resolve_model_dir(Path::new(&cfg.model.backbone))?;
+    let pretrained = cfg.ablation.pretrained && cfg.model.transformer.is_none();
+    let components: &[&str] = if pretrained {
+        &["vae", "transformer"]
+    } else {
+        &["vae"]
+    };
+    for c in components {
+        bridgev2w_world_model::weights::resolve_weight_files(
+            &dir.join(c),
+            bridgev2w_world_model::weights::DIFFUSERS_WEIGHTS_STEM,
+        )
+        .map_err(|e| TrainError::input("config model.backbone", format!("{e}")))?;
+    }
+    Ok(())
+}
+
 /// `train.autocast` on `device`: `auto` is bf16 on CUDA, off on the CPU.
 fn resolve_autocast(setting: Autocast, device: ComputeDevice) -> Option<AutocastDtype> {
     match (setting, device) {
@@ -112,6 +137,7 @@ impl Trainer {
         };
         let autocast = resolve_autocast(cfg.train.autocast, device);
         random_preset(&cfg.model.backbone)?; // an unknown preset fails before the data is read
+        check_backbone_weights(&cfg)?; // as do a folder's missing weights
         let (frames, height, width) = {
             let d = &cfg.data;
             // A random preset's own size (9 frames at 64x96, or the
@@ -129,6 +155,11 @@ impl Trainer {
                 if d.width == 0 { w } else { d.width },
             )
         };
+        check_batch_memory(
+            &cfg,
+            env.as_ref().map_or(1, |e| e.world),
+            (frames, height, width),
+        )?;
         let mut data = ClipDataset::open_sources(
             &cfg.data.sources()?,
             frames,
@@ -279,6 +310,37 @@ impl Trainer {
         t.collective = Some(collective);
         Ok(t)
     }
+}
+
+/// Bytes per pixel of every frame of every clip of a step's batch at the
+/// least: the video as floats (3 channels) and the masks as floats.
+const BATCH_BYTES_PER_PIXEL: u64 = 12 + 4;
+
+/// Refuses a run whose batch (`train.batch_size` clips among `ranks`
+/// processes, of `frames` frames at `height` x `width`) alone exceeds the
+/// machine's memory ([`BATCH_BYTES_PER_PIXEL`] a pixel: a floor, the model,
+/// its activations and gradients come on top), before the data is read.
+fn check_batch_memory(
+    cfg: &TrainConfig,
+    ranks: usize,
+    (frames, height, width): (usize, usize, usize),
+) -> Result<()> {
+    let clips = cfg.train.batch_size.div_ceil(ranks.max(1));
+    let estimate = bridgev2w_io::memory::bytes(&[
+        clips as u64,
+        frames as u64,
+        height as u64,
+        width as u64,
+        BATCH_BYTES_PER_PIXEL,
+    ]);
+    bridgev2w_io::memory::check_fits(
+        &format!(
+            "a training batch of {clips} clip(s) of {frames} frames at {height}x{width} (train.batch_size, data.frames, data.height x data.width)"
+        ),
+        estimate,
+        crate::TRAIN_MEMORY_ADVICE,
+    )?;
+    Ok(())
 }
 
 fn build_model(

@@ -138,6 +138,8 @@ impl Trainer {
     /// writing `OUT/final/weights.safetensors`. `on_step` sees every step's metrics.
     /// A non-finite loss or gradient stops the run with an error naming the
     /// step and the term; the checkpoints written before stay as they were.
+    /// The run holds `OUT`'s lock throughout ([`run_dir::claim`]): a second
+    /// trainer into `OUT` is refused, naming this one's process.
     pub fn run(&mut self, on_step: &mut dyn FnMut(&StepMetrics)) -> Result<Vec<StepMetrics>> {
         if !self.is_primary() {
             // Other ranks: the same steps (their all-reduce is rank 0's), no files.
@@ -151,7 +153,8 @@ impl Trainer {
             return Ok(all);
         }
         let out = self.cfg.train.out.clone();
-        run_dir::claim(&out, &self.cfg, self.existing_run)?;
+        // Held to the end of the run: another trainer into `out` stops.
+        let _lock = run_dir::claim(&out, &self.cfg, self.existing_run)?;
         // From here on the folder is this run's own.
         self.existing_run = ExistingRun::Continue;
         std::fs::create_dir_all(&out).map_err(|e| io_err(&out, e))?;

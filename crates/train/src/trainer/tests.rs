@@ -49,3 +49,78 @@ fn a_panic_in_a_step_is_an_error_and_an_out_of_memory_one_names_the_step() {
         "{e}"
     );
 }
+
+/// A batch within the config's bounds but beyond the machine (65536 clips
+/// of 1024 frames at 8192x8192) is refused before the data is read (the
+/// dataset named here does not exist), with the estimate.
+#[test]
+fn a_training_batch_beyond_the_machine_is_refused_before_the_data_is_read() {
+    let text = "[model]\nbackbone = \"random:tiny\"\ndevice = \"cpu\"\n[data]\ndataset = \"/nonexistent/dataset\"\nframes = 1021\nwidth = 8192\nheight = 8192\n[train]\nbatch_size = 65536\n";
+    let cfg = crate::config::TrainConfig::from_toml(text).unwrap();
+    let e = super::Trainer::new(cfg).map(|_| ()).unwrap_err();
+    let text = e.to_string();
+    if bridgev2w_io::memory::available_bytes().is_some() {
+        assert!(matches!(e, TrainError::Memory(_)), "{text}");
+        assert!(
+            text.starts_with("a training batch of 65536 clip(s) of 1021 frames at 8192x8192"),
+            "{text}"
+        );
+        assert!(
+            text.contains("is available") && text.contains("train.batch_size"),
+            "{text}"
+        );
+    }
+}
+
+/// A backbone folder whose transformer or VAE config is there but not its
+/// weights is named before the data is read (the dataset named here does
+/// not exist) and before a model of the config's clip size is built.
+#[test]
+fn a_backbone_folder_without_its_weights_is_named_before_the_data_is_read() {
+    use bridgev2w_world_model::bridge::{BridgeV2W, BridgeV2WConfig};
+    use bridgev2w_world_model::scheduler::SchedulerConfig;
+    use bridgev2w_world_model::ComputeDevice;
+    let m = BridgeV2W::random(
+        BridgeV2WConfig::tiny(),
+        &VaeConfig::tiny(),
+        &TransformerConfig::tiny(),
+        SchedulerConfig::cogvideox_5b_i2v(),
+        ComputeDevice::Cpu,
+        0,
+    )
+    .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("backbone");
+    m.save_backbone(&root).unwrap();
+    let config = |pretrained: bool| {
+        let text = format!(
+            "[model]\nbackbone = {:?}\ndevice = \"cpu\"\n[data]\ndataset = \"/nonexistent/dataset\"\n[ablation]\npretrained = {pretrained}\n",
+            root.display().to_string()
+        );
+        crate::config::TrainConfig::from_toml(&text).unwrap()
+    };
+    let error = |pretrained| {
+        super::Trainer::new(config(pretrained))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string()
+    };
+    let weights = |c: &str| root.join(c).join("diffusion_pytorch_model.safetensors");
+    std::fs::remove_file(weights("transformer")).unwrap();
+    let e = error(true);
+    assert!(
+        e.contains("model.backbone")
+            && e.contains(&weights("transformer").display().to_string())
+            && e.contains("not its weights"),
+        "{e}"
+    );
+    // A transformer trained from scratch needs the VAE's weights only.
+    let e = error(false);
+    assert!(e.contains("/nonexistent/dataset"), "{e}");
+    std::fs::remove_file(weights("vae")).unwrap();
+    let e = error(false);
+    assert!(
+        e.contains(&weights("vae").display().to_string()) && e.contains("not its weights"),
+        "{e}"
+    );
+}

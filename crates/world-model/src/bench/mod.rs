@@ -137,6 +137,7 @@ pub fn time_model(
                 format!("{}: expected >= 1", shape.batch),
             ));
         }
+        check_shape_memory(tf_cfg, shape, precision, device)?;
         let (lf, lh, lw) = (
             (shape.frames - 1) / t + 1,
             shape.height / s,
@@ -194,6 +195,80 @@ pub fn time_model(
                 crate::error::BENCH_MEMORY_ADVICE,
             )
         })
+}
+
+/// The bench's sizes against their maximum (`--frames` within
+/// [`crate::bridge::MAX_CLIP_FRAMES`], `--height`/`--width` within
+/// [`crate::bridge::MAX_CLIP_SIDE`], `--batch` within
+/// [`crate::bridge::MAX_PREDICT_BATCH`]) and, on a CPU, a floor of its
+/// memory against the machine's: the video `[1, 3, F, H, W]` and one
+/// transformer block's activations (8 x batch x tokens x width) at the
+/// bench's precision.
+fn check_shape_memory(
+    tf_cfg: &TransformerConfig,
+    shape: &ModelBenchShape,
+    precision: Precision,
+    device: ComputeDevice,
+) -> Result<()> {
+    use crate::bridge::{MAX_CLIP_FRAMES, MAX_CLIP_SIDE, MAX_PREDICT_BATCH};
+    use bridgev2w_io::memory::{at_most, bytes, check_fits};
+    let size = |v: i64| v.max(0) as u64;
+    at_most(
+        "--frames",
+        size(shape.frames),
+        MAX_CLIP_FRAMES as u64,
+        "frames",
+    )?;
+    at_most(
+        "--height",
+        size(shape.height),
+        MAX_CLIP_SIDE as u64,
+        "pixels",
+    )?;
+    at_most("--width", size(shape.width), MAX_CLIP_SIDE as u64, "pixels")?;
+    at_most(
+        "--batch",
+        size(shape.batch),
+        MAX_PREDICT_BATCH as u64,
+        "clips",
+    )?;
+    if device != ComputeDevice::Cpu {
+        return Ok(());
+    }
+    let element = match precision {
+        Precision::F32 => 4,
+        Precision::Bf16 => 2,
+    };
+    let video = bytes(&[
+        3,
+        size(shape.frames),
+        size(shape.height),
+        size(shape.width),
+        element,
+    ]);
+    // CogVideoX's tokens: 4x in time, 8x in space and 2x2 patches.
+    let tokens = bytes(&[
+        size(shape.frames) / 4 + 1,
+        size(shape.height) / 16,
+        size(shape.width) / 16,
+    ])
+    .saturating_add(size(shape.text_len));
+    let block = bytes(&[
+        size(shape.batch),
+        tokens,
+        size(tf_cfg.inner_dim()),
+        element,
+        8,
+    ]);
+    check_fits(
+        &format!(
+            "timing the model at batch {} of {} frames at {}x{}",
+            shape.batch, shape.frames, shape.height, shape.width
+        ),
+        video.saturating_add(block),
+        crate::error::BENCH_MEMORY_ADVICE,
+    )?;
+    Ok(())
 }
 
 /// libtorch's intra-op threads (what the peer should use too).

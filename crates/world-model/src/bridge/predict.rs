@@ -77,18 +77,15 @@ impl BridgeV2W {
             ));
         }
         if let Some(max) = opts.max_batch {
-            if max == 0 {
-                return Err(WorldModelError::input(
-                    "max_batch",
-                    "0: expected at least 1 clip per model call",
-                ));
-            }
+            super::check_predict_batch("max_batch", max)?;
             if first_frames.len() > max {
                 return self.predict_in_chunks(first_frames, masks, opts, max, progress);
             }
         }
+        // A batch beyond the machine's memory is refused before it runs;
         // libtorch's ops panic on a device's out-of-memory: caught and
         // reported with what ran.
+        self.check_predict_memory(first_frames.len())?;
         crate::error::guarded(|| self.predict_batch_at_once(first_frames, masks, opts, progress))
             .map_err(|e| {
                 e.on_out_of_memory(
@@ -287,10 +284,25 @@ impl WorldModel for BridgeV2W {
     }
 
     fn encode_image(&self, image: &RgbFrame) -> Result<Vec<f32>> {
-        let x = image_to_tensor(image, Device::Cpu, Kind::Float)?.unsqueeze(2); // [1, 3, 1, H, W]
-        let z = self.vae.encode(&x)?.mode();
-        Ok(Vec::<f32>::try_from(
-            &z.to_kind(Kind::Float).to_device(Device::Cpu).flatten(0, -1),
-        )?)
+        // As a prediction: an op's panic (a device's out-of-memory) is an
+        // error naming what ran.
+        crate::error::guarded(|| {
+            let x = image_to_tensor(image, Device::Cpu, Kind::Float)?.unsqueeze(2); // [1, 3, 1, H, W]
+            let z = self.vae.encode(&x)?.mode();
+            Ok(Vec::<f32>::try_from(
+                &z.to_kind(Kind::Float).to_device(Device::Cpu).flatten(0, -1),
+            )?)
+        })
+        .map_err(|e| {
+            e.on_out_of_memory(
+                || {
+                    format!(
+                        "encoding a {}x{} image with the VAE ({:?} on {:?})",
+                        image.height, image.width, self.kind, self.device
+                    )
+                },
+                crate::error::PREDICT_MEMORY_ADVICE,
+            )
+        })
     }
 }

@@ -418,6 +418,8 @@ impl LoadedTransformer {
     pub fn load(dir: &Path, device: ComputeDevice, precision: Precision) -> Result<Self> {
         let cfg = TransformerConfig::from_file(&dir.join("config.json"))?;
         let device = device.check_available()?;
+        // Missing weights are named before the model is allocated.
+        crate::weights::resolve_weight_files(dir, crate::weights::DIFFUSERS_WEIGHTS_STEM)?;
         let mut me = Self::random(&cfg, ComputeDevice::Cpu, Precision::F32)?;
         load_component(&me.vs, dir)?;
         if precision == Precision::Bf16 {

@@ -9,6 +9,12 @@ use std::path::Path;
 pub const DOWN_BLOCK_TYPE: &str = "CogVideoXDownBlock3D";
 /// The only block type of the decoder.
 pub const UP_BLOCK_TYPE: &str = "CogVideoXUpBlock3D";
+/// The smallest `scaling_factor` accepted (latents are multiplied by it
+/// or by its inverse).
+pub const MIN_SCALING_FACTOR: f64 = 1e-6;
+/// The largest `scaling_factor` accepted (a `vae` stage writes at most
+/// 1e6: one over its latents' standard deviation, floored at 1e-6).
+pub const MAX_SCALING_FACTOR: f64 = 1e6;
 
 /// diffusers' `vae/config.json` of `AutoencoderKLCogVideoX`. Unknown fields
 /// (`_class_name`, `_diffusers_version`, ...) are ignored; missing fields take diffusers'
@@ -324,10 +330,15 @@ impl VaeConfig {
         if self.norm_eps.is_nan() || self.norm_eps <= 0.0 {
             return err("norm_eps", format!("{}: must be > 0", self.norm_eps));
         }
-        if !(self.scaling_factor.is_finite() && self.scaling_factor != 0.0) {
+        // Latents are multiplied by it or by its inverse: both must stay
+        // far from float32's range, or the latents become 0 or infinite.
+        if !(MIN_SCALING_FACTOR..=MAX_SCALING_FACTOR).contains(&self.scaling_factor) {
             return err(
                 "scaling_factor",
-                format!("{}: must be finite and non-zero", self.scaling_factor),
+                format!(
+                    "{}: expected a number in [{MIN_SCALING_FACTOR:e}, {MAX_SCALING_FACTOR:e}] (CogVideoX: 0.7 or 1.15258426)",
+                    self.scaling_factor
+                ),
             );
         }
         if self.sample_height < 2 || self.sample_width < 2 {

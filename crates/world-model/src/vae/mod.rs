@@ -30,7 +30,9 @@ use tch::nn::{self, VarStore};
 use tch::{Kind, Tensor};
 
 pub use coder::{DecoderCache, EncoderCache};
-pub use config::{VaeConfig, DOWN_BLOCK_TYPE, UP_BLOCK_TYPE};
+pub use config::{
+    VaeConfig, DOWN_BLOCK_TYPE, MAX_SCALING_FACTOR, MIN_SCALING_FACTOR, UP_BLOCK_TYPE,
+};
 pub use decode_backward::{BatchReplay, DecodeRecord};
 
 /// Frames with more pixels than this are run through the VAE in tiles by
@@ -135,6 +137,8 @@ impl AutoencoderKLCogVideoX {
     pub fn load(dir: &Path, device: ComputeDevice, precision: Precision) -> Result<Self> {
         let device = device.check_available()?;
         let cfg = VaeConfig::from_file(&dir.join("config.json"))?;
+        // Missing weights are named before the model is allocated.
+        crate::weights::resolve_weight_files(dir, crate::weights::DIFFUSERS_WEIGHTS_STEM)?;
         let mut vs = VarStore::new(tch::Device::Cpu);
         let model = Self::new(&cfg, vs.root())?;
         vs.set_kind(precision.kind());
@@ -276,7 +280,7 @@ impl AutoencoderKLCogVideoX {
                 v = (v - 2) / 2 + 1;
             }
         }
-        check_finite(video, "video")?;
+        check_finite(video, "video", "expected pixel values in [-1, 1]")?;
         if video.numel() > 0 {
             let v = video.to_kind(Kind::Float);
             let (lo, hi) = (v.min().double_value(&[]), v.max().double_value(&[]));
@@ -351,7 +355,11 @@ impl AutoencoderKLCogVideoX {
             self.cfg.latent_channels,
             "latent_channels",
         )?;
-        check_finite(latents, "latents")
+        check_finite(
+            latents,
+            "latents",
+            "a diverged denoising run, or latents scaled by a bad scaling_factor",
+        )
     }
 }
 
@@ -387,14 +395,20 @@ fn check_rank5(x: &Tensor, name: &str, channels: i64, field: &str) -> Result<()>
     Ok(())
 }
 
-fn check_finite(x: &Tensor, name: &str) -> Result<()> {
-    let finite = x.f_isfinite()?.f_all()?.int64_value(&[]) != 0;
-    if finite {
+/// Refuses NaN or infinite values in `x` (the input `name`), saying where
+/// they may come from (`hint`).
+fn check_finite(x: &Tensor, name: &str, hint: &str) -> Result<()> {
+    let bad = x
+        .f_isfinite()?
+        .f_logical_not()?
+        .f_sum(Kind::Int64)?
+        .int64_value(&[]);
+    if bad == 0 {
         Ok(())
     } else {
         Err(WorldModelError::input(
             name,
-            "contains NaN or infinite values",
+            format!("{bad} of {} values are NaN or infinite ({hint})", x.numel()),
         ))
     }
 }

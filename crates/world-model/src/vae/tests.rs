@@ -107,6 +107,50 @@ fn config_parses_diffusers_json() {
     assert_eq!(cfg, VaeConfig::cogvideox_5b_i2v());
 }
 
+#[test]
+fn a_scaling_factor_that_would_make_the_latents_zero_or_infinite_is_refused() {
+    // From a file: the error names the file, the field and the value.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("config.json");
+    for v in ["0", "0.0", "-0.7", "1e30", "1e-30"] {
+        let json =
+            format!(r#"{{"scaling_factor": {v}, "block_out_channels": [128, 256, 256, 512]}}"#);
+        std::fs::write(&path, json).expect("write");
+        let e = VaeConfig::from_file(&path)
+            .map(|_| ())
+            .expect_err("refused")
+            .to_string();
+        assert!(
+            e.contains(&path.display().to_string())
+                && e.contains("scaling_factor")
+                && e.contains("[1e-6, 1e6]"),
+            "{v}: {e}"
+        );
+    }
+    // JSON has no NaN or infinity: a config built in code.
+    for v in [f64::NAN, f64::INFINITY, 0.0] {
+        let cfg = VaeConfig {
+            scaling_factor: v,
+            ..VaeConfig::cogvideox_5b_i2v()
+        };
+        let e = cfg
+            .validate(Path::new("vae preset"))
+            .expect_err("refused")
+            .to_string();
+        assert!(
+            e.contains("scaling_factor") && e.contains(&format!("{v}:")),
+            "{e}"
+        );
+    }
+    for v in [MIN_SCALING_FACTOR, 0.18215, MAX_SCALING_FACTOR] {
+        let cfg = VaeConfig {
+            scaling_factor: v,
+            ..VaeConfig::cogvideox_5b_i2v()
+        };
+        assert!(cfg.validate(Path::new("vae preset")).is_ok(), "{v}");
+    }
+}
+
 /// `decode_recorded` + `decode_backward` (both batch replays) against
 /// `decode` and autograd through `decode_with_grad` on `z`: the same video,
 /// the same gradient of `sum(video * g)` (within 1e-5 of its largest value).
