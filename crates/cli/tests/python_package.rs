@@ -87,7 +87,7 @@ fn pip_install_python_then_its_tests_pass() {
         .expect("run the package's tests with pytest");
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
-    assert!(String::from_utf8_lossy(&o.stdout).contains("17 passed"));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("18 passed"));
     // bridgev2w.rerun: its recordings reloaded with the Rerun SDK (rerun-sdk
     // from the project venv).
     let o = Command::new(venv.join("bin/python"))
