@@ -6,8 +6,9 @@ use crate::{FileError, Result};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// The temporary name beside `path` (hidden, unique to this process).
-fn temporary_beside(path: &Path) -> PathBuf {
+/// A fresh temporary name beside `path`: hidden, carrying this process's id
+/// and a random part, so no user's file is ever taken for it (issue 69).
+pub fn temporary_beside(path: &Path) -> PathBuf {
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
@@ -16,7 +17,11 @@ fn temporary_beside(path: &Path) -> PathBuf {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "file".to_owned());
-    dir.join(format!(".{name}.tmp-{}", std::process::id()))
+    dir.join(format!(
+        ".{name}.bridgev2w-tmp-{}-{:016x}",
+        std::process::id(),
+        rand::random::<u64>()
+    ))
 }
 
 /// Writes `bytes` to `path` atomically (temporary file, `fsync`, rename).
@@ -26,19 +31,38 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// [`write_atomic`] with the bare `std::io::Error`, for callers that wrap
-/// errors in their own type.
+/// errors in their own type. The temporary file is created new (an
+/// existing file of that name is never opened, truncated or removed).
 pub fn write_atomic_io(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let tmp = temporary_beside(path);
+    let (tmp, mut f) = create_temporary(path)?;
     let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
         f.write_all(bytes)?;
         f.sync_all()?;
+        drop(f);
         std::fs::rename(&tmp, path)
     })();
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// A new temporary file beside `path` (a few tries with fresh names).
+fn create_temporary(path: &Path) -> std::io::Result<(PathBuf, std::fs::File)> {
+    let mut last = None;
+    for _ in 0..4 {
+        let tmp = temporary_beside(path);
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+        {
+            Ok(f) => return Ok((tmp, f)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some(e),
+            Err(e) => return Err(e),
+        }
+    }
+    Err(last.unwrap_or_else(|| std::io::Error::other("no free temporary name")))
 }
 
 /// Creates `path`'s parent folders, then writes it atomically.
@@ -63,6 +87,27 @@ mod tests {
         assert_eq!(std::fs::read(&p).unwrap(), b"two");
         let names: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().collect();
         assert_eq!(names.len(), 1, "a temporary file was left behind");
+    }
+
+    #[test]
+    fn a_user_file_named_like_a_temporary_is_left_alone() {
+        let tmp = tempfile::tempdir().unwrap();
+        let p = tmp.path().join("a.txt");
+        // The name this module used before issue 69, and a name of today's
+        // pattern: neither is opened, truncated or removed.
+        let old = tmp
+            .path()
+            .join(format!(".a.txt.tmp-{}", std::process::id()));
+        let today = tmp
+            .path()
+            .join(format!(".a.txt.bridgev2w-tmp-{}-0", std::process::id()));
+        std::fs::write(&old, b"user").unwrap();
+        std::fs::write(&today, b"user too").unwrap();
+        write_atomic(&p, b"one").unwrap();
+        assert_eq!(std::fs::read(&old).unwrap(), b"user");
+        assert_eq!(std::fs::read(&today).unwrap(), b"user too");
+        assert_eq!(std::fs::read(&p).unwrap(), b"one");
+        assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 3);
     }
 
     #[test]

@@ -213,7 +213,7 @@ pub fn save_safetensors(named: &[(String, Tensor)], path: &Path) -> Result<()> {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "weights".to_owned());
-    let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
+    let tmp = bridgev2w_io::atomic::temporary_beside(&dir.join(&file_name));
     let cpu: Vec<(String, Tensor)> = named
         .iter()
         .map(|(k, t)| {
@@ -500,7 +500,7 @@ pub fn save_safetensors_with_metadata(
         while (json.len() + 8) % 8 != 0 {
             json.push(b' ');
         }
-        let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
+        let tmp = bridgev2w_io::atomic::temporary_beside(&dir.join(&file_name));
         let io = |e| WorldModelError::io(&tmp, e);
         let mut src = std::fs::File::open(&plain).map_err(|e| WorldModelError::io(&plain, e))?;
         src.seek(SeekFrom::Start(data_start))
