@@ -6,25 +6,9 @@
 
 mod common;
 
-use common::{run, s};
+use common::{refused, run, s};
 use std::path::Path;
 use std::process::Output;
-
-/// Asserts that `o` failed with status 1 or 2 and that its stderr holds every
-/// one of `needles`; returns the stderr.
-fn refused(o: &Output, needles: &[&str]) -> String {
-    let err = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(
-        matches!(o.status.code(), Some(1 | 2)),
-        "expected exit status 1 or 2, got {:?}; stderr:\n{err}",
-        o.status.code()
-    );
-    for n in needles {
-        assert!(err.contains(n), "stderr lacks {n:?}:\n{err}");
-    }
-    assert!(!err.contains("panicked"), "{err}");
-    err
-}
 
 /// `convert --format agibot SRC --out OUT REST...` (SRC need not exist: the
 /// flags are checked before it is read).

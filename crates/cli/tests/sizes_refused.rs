@@ -8,24 +8,7 @@
 
 mod common;
 
-use common::{run, s};
-use std::process::Output;
-
-/// Asserts that `o` failed with status 1 or 2, without a panic or an abort,
-/// and that its stderr holds every one of `needles`; returns the stderr.
-fn refused(o: &Output, needles: &[&str]) -> String {
-    let err = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(
-        matches!(o.status.code(), Some(1 | 2)),
-        "expected exit status 1 or 2, got {:?}; stderr:\n{err}",
-        o.status.code()
-    );
-    for n in needles {
-        assert!(err.contains(n), "stderr lacks {n:?}:\n{err}");
-    }
-    assert!(!err.contains("panicked"), "{err}");
-    err
-}
+use common::{refused, run, s};
 
 /// Whether this machine's available memory can be read (Linux): the
 /// memory refusals are checked only there.

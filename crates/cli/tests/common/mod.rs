@@ -102,3 +102,19 @@ pub fn raw_fixtures(dir: &Path) -> serde_json::Value {
     }
     expected
 }
+
+/// Asserts that `o` failed with status 1 or 2, without a panic or an abort,
+/// and that its stderr holds every one of `needles`; returns the stderr.
+pub fn refused(o: &Output, needles: &[&str]) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(
+        matches!(o.status.code(), Some(1 | 2)),
+        "expected exit status 1 or 2, got {:?}; stderr:\n{err}",
+        o.status.code()
+    );
+    for n in needles {
+        assert!(err.contains(n), "stderr lacks {n:?}:\n{err}");
+    }
+    assert!(!err.contains("panicked"), "{err}");
+    err
+}
