@@ -596,10 +596,7 @@ impl LeRobotDataset {
     /// The stored ground-truth masks of an episode (`masks/episode_XXXXXX.npy`)
     /// when the dataset has them: `(shape [T, H, W], 0/1 data)`, uint8 (0/1
     /// or 0/255), `T` the episode's length and `H, W` a declared video size.
-    pub fn stored_masks(
-        &self,
-        episode: i64,
-    ) -> Result<Option<StoredMasks>, DatasetError> {
+    pub fn stored_masks(&self, episode: i64) -> Result<Option<StoredMasks>, DatasetError> {
         let length = self.episode(episode)?.length;
         let rel = format!("masks/episode_{episode:06}.npy");
         let Some(path) = self.stored_file(&rel, confine::MAX_DATA_BYTES)? else {
