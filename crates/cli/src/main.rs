@@ -1,6 +1,7 @@
 //! `bridgev2w`: the command-line tool.
 
 mod bench;
+mod calibrate_cmd;
 mod convert_cmd;
 mod demo;
 mod eval_cmd;
@@ -34,6 +35,10 @@ enum Command {
     Masks(masks_cmd::MasksArgs),
     /// Draw rendered masks over a camera's real frames (PNG, GIF) and score them against a ground truth.
     Overlay(overlay_cmd::OverlayArgs),
+    /// Calibrate a fixed camera (pose, focal lengths) from episodes' video and joints: the robot's own motion.
+    Calibrate(calibrate_cmd::CalibrateArgs),
+    /// Measure `calibrate` on synthetic cameras whose truth is known (position, angle, focal errors).
+    CalibrateStudy(calibrate_cmd::CalibrateStudyArgs),
     /// Print a robot's links, actuated joints (the --joints column order) and end effectors.
     RobotInfo(robot_info::RobotInfoArgs),
     /// Run the built-in demo: the Franka doing a pick, masks and a GIF overlay in ./demo-out/.
@@ -106,6 +111,8 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Masks(a) => masks_cmd::run(&a),
         Command::Overlay(a) => overlay_cmd::run(&a),
+        Command::Calibrate(a) => calibrate_cmd::run(&a),
+        Command::CalibrateStudy(a) => calibrate_cmd::run_study(&a),
         Command::RobotInfo(a) => robot_info::run(&a),
         Command::Demo(a) => demo::run(&a),
         Command::Bench(b) => bench::run(&b),

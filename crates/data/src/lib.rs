@@ -8,6 +8,7 @@
 //! angles radians unless a name says otherwise; the world frame of the
 //! synthetic scenes is the robot base frame.
 
+pub mod calibrate;
 pub mod clip_masks;
 pub mod lerobot;
 pub mod mp4;

@@ -1,0 +1,236 @@
+//! `bridgev2w calibrate`: a fixed camera's calibration from the robot's own
+//! motion in one or more episodes; `bridgev2w calibrate-study`: the same on
+//! synthetic cameras whose truth is known.
+
+use crate::masks_cmd::RobotArgs;
+use anyhow::Result;
+use bridgev2w_data::calibrate::study::{synthetic_study, StudyOptions};
+use bridgev2w_data::calibrate::{
+    calibrate, check, load_episode, pair_inputs, report, CalibrateOptions, EpisodeData,
+};
+use bridgev2w_embodiment::camera::Camera;
+use bridgev2w_io::output::OutputDir;
+use std::path::{Path, PathBuf};
+
+/// Search and fit options shared by `calibrate` and `calibrate-study`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FitArgs {
+    /// fy / fx of the start (and of the result unless --fit-aspect): 1 for
+    /// square pixels, 1.0667 (192/180) for DROID's stretched 320x192 videos.
+    #[arg(long, default_value_t = 1.0)]
+    fy_over_fx: f64,
+    /// Fit fy / fx too.
+    #[arg(long)]
+    fit_aspect: bool,
+    /// Fit the principal point too (else the image centre).
+    #[arg(long)]
+    fit_principal_point: bool,
+    /// The analysis grid's largest width (the video is reduced by an integer factor).
+    #[arg(long, default_value_t = 320)]
+    analysis_width: u32,
+    /// Coarse search: azimuth step in degrees (all around the workspace).
+    #[arg(long, default_value_t = 20.0)]
+    azimuth_step_deg: f64,
+    /// Nelder-Mead evaluations per refinement round.
+    #[arg(long, default_value_t = 250)]
+    max_evaluations: usize,
+    /// Flag a held-out IoU below this.
+    #[arg(long, default_value_t = 0.5)]
+    low_iou: f64,
+    /// Refuse an episode whose robot surface moves less than this (metres).
+    #[arg(long, default_value_t = 0.05)]
+    min_motion_m: f64,
+}
+
+impl FitArgs {
+    fn options(&self, guess: Option<Camera>) -> CalibrateOptions {
+        CalibrateOptions {
+            guess,
+            fy_over_fx: self.fy_over_fx,
+            fit_aspect: self.fit_aspect,
+            fit_principal_point: self.fit_principal_point,
+            analysis_width: self.analysis_width,
+            mid_width: CalibrateOptions::default()
+                .mid_width
+                .min(self.analysis_width),
+            coarse_width: CalibrateOptions::default()
+                .coarse_width
+                .min(self.analysis_width),
+            azimuth_step_deg: self.azimuth_step_deg,
+            max_evaluations: self.max_evaluations,
+            low_iou: self.low_iou,
+            min_motion_m: self.min_motion_m,
+            ..CalibrateOptions::default()
+        }
+    }
+}
+
+/// Arguments of `calibrate`.
+#[derive(Debug, clap::Args)]
+pub struct CalibrateArgs {
+    #[command(flatten)]
+    robot: RobotArgs,
+    /// An episode's video from the camera (MP4; repeat for several episodes of one camera).
+    #[arg(long, required = true, value_name = "MP4")]
+    video: Vec<PathBuf>,
+    /// Each --video's joint states, in order: a trajectory file (JSON, CSV,
+    /// .npy; the robot's joint order) or a DROID annotation JSON (`joints`, or
+    /// the 15 Hz `observation.state.*` arrays).
+    #[arg(long, required = true, value_name = "FILE")]
+    joints: Vec<PathBuf>,
+    /// Episodes of the same camera to check the calibration on, not fitted (repeat).
+    #[arg(long, value_name = "MP4")]
+    check_video: Vec<PathBuf>,
+    /// Each --check-video's joint states, in order.
+    #[arg(long, value_name = "FILE")]
+    check_joints: Vec<PathBuf>,
+    /// A rough camera JSON to start from besides the coarse search.
+    #[arg(long, value_name = "JSON")]
+    guess: Option<PathBuf>,
+    #[command(flatten)]
+    fit: FitArgs,
+    /// Output folder: camera.json, residuals.json, overlay/*.gif.
+    #[arg(long)]
+    out: PathBuf,
+    /// Replace an existing --out.
+    #[arg(long)]
+    overwrite: bool,
+}
+
+fn load_all(
+    inputs: &[bridgev2w_data::calibrate::EpisodeInput],
+    e: &bridgev2w_embodiment::embodiment::Embodiment,
+    width: u32,
+) -> Result<Vec<EpisodeData>> {
+    Ok(inputs
+        .iter()
+        .map(|i| load_episode(i, e, width))
+        .collect::<Result<_, _>>()?)
+}
+
+pub fn run(args: &CalibrateArgs) -> Result<()> {
+    let e = args.robot.load()?;
+    let guess = args
+        .guess
+        .as_deref()
+        .map(Camera::from_json_file)
+        .transpose()?;
+    let options = args.fit.options(guess);
+    options.validate()?;
+    let fitted = pair_inputs(&args.video, &args.joints, ("--video", "--joints"))?;
+    let checked = pair_inputs(
+        &args.check_video,
+        &args.check_joints,
+        ("--check-video", "--check-joints"),
+    )?;
+    let mut inputs: Vec<&Path> = args.robot.urdf_file().into_iter().collect();
+    inputs.extend(args.guess.as_deref());
+    for i in fitted.iter().chain(&checked) {
+        inputs.extend([i.video.as_path(), i.joints.as_path()]);
+    }
+    let out = OutputDir::create_for(&args.out, args.overwrite, &inputs)?;
+    let episodes = load_all(&fitted, &e, options.analysis_width)?;
+    let check_episodes = load_all(&checked, &e, options.analysis_width)?;
+    let c = calibrate(&e, &episodes, &options, &|stage| {
+        eprintln!("calibrate: {stage}")
+    })?;
+    let checks = if check_episodes.is_empty() {
+        Vec::new()
+    } else {
+        check(&e, &c.camera, &check_episodes, &options)?
+    };
+    report::write_outputs(
+        out.path(),
+        &e.robot,
+        &c,
+        &episodes,
+        &check_episodes,
+        &checks,
+        &options,
+    )?;
+    let dir = out.commit()?;
+    let t = c.camera.world_from_camera.translation.vector;
+    let k = &c.camera.intrinsics;
+    let mut text = format!(
+        "camera {}x{}: fx {:.1} fy {:.1} cx {:.1} cy {:.1}, position ({:.3}, {:.3}, {:.3}) m; held-out IoU {:.3}, fit IoU {:.3} ({} evaluations, {:.0} s)\n",
+        k.width, k.height, k.fx, k.fy, k.cx, k.cy, t.x, t.y, t.z, c.held_out_iou, c.fit_iou, c.evaluations, c.seconds
+    );
+    for r in c.episodes.iter().chain(&checks) {
+        let kind = if r.fit_frames > 0 {
+            "fitted"
+        } else {
+            "checked"
+        };
+        text.push_str(&format!(
+            "  {kind} {}: held-out IoU {:.3} over {} frames\n",
+            r.name, r.held_out_iou, r.held_out_frames
+        ));
+    }
+    for f in &c.flags {
+        text.push_str(&format!("warning: {}\n", f.message));
+    }
+    text.push_str(&format!(
+        "wrote {}/camera.json, residuals.json, overlay/\n",
+        dir.display()
+    ));
+    crate::print_stdout(&text)
+}
+
+/// Arguments of `calibrate-study`.
+#[derive(Debug, clap::Args)]
+pub struct CalibrateStudyArgs {
+    /// Built-in robot of the synthetic world (franka, franka-robotiq).
+    #[arg(long, default_value = "franka")]
+    robot: String,
+    /// Cameras per split (test and unseen_camera each).
+    #[arg(long, default_value_t = 10)]
+    cameras_per_split: usize,
+    /// Video width (even).
+    #[arg(long, default_value_t = 256)]
+    width: u32,
+    /// Video height (even).
+    #[arg(long, default_value_t = 160)]
+    height: u32,
+    /// Frames per episode.
+    #[arg(long, default_value_t = 40)]
+    frames: usize,
+    /// Dataset seed.
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    #[command(flatten)]
+    fit: FitArgs,
+    /// Output folder: study.json, study.md, videos/*.mp4.
+    #[arg(long)]
+    out: PathBuf,
+    /// Replace an existing --out.
+    #[arg(long)]
+    overwrite: bool,
+}
+
+pub fn run_study(args: &CalibrateStudyArgs) -> Result<()> {
+    let options = StudyOptions {
+        robot: args.robot.clone(),
+        cameras_per_split: args.cameras_per_split,
+        width: args.width,
+        height: args.height,
+        frames: args.frames,
+        seed: args.seed,
+        calibrate: args.fit.options(None),
+    };
+    options.validate()?;
+    let out = OutputDir::create(&args.out, args.overwrite)?;
+    let table = synthetic_study(&options, &out.path().join("videos"), &|line| {
+        eprintln!("{line}")
+    })?;
+    let md = table.to_markdown();
+    bridgev2w_io::atomic::write_atomic(&out.path().join("study.md"), md.as_bytes())?;
+    bridgev2w_io::atomic::write_atomic(
+        &out.path().join("study.json"),
+        serde_json::to_string_pretty(&table)?.as_bytes(),
+    )?;
+    let dir = out.commit()?;
+    crate::print_stdout(&format!(
+        "{md}wrote {}/study.md, study.json\n",
+        dir.display()
+    ))
+}

@@ -1,0 +1,527 @@
+//! How well a camera explains the video.
+//!
+//! The found robot pixels `F_t` (see [`super::foreground`]) are where a frame
+//! differs from the temporal-median background: where the robot is now and
+//! usually is not, and where it usually is (the median shows it) and now is
+//! not. A candidate camera predicts that from the joints: it renders every
+//! link's label map `L_t`, takes each pixel's usual label `U` (the most
+//! frequent over a spread of the episode's frames; 0 = background), and
+//! predicts a change where one of `L_t` and `U` is the robot and the other
+//! the background. Where both are the robot (its parts passing over each
+//! other, or turning), a change may or may not show: found pixels there
+//! count as half missed, and nothing there counts as a false alarm. The
+//! robot's static parts cost nothing either way.
+//!
+//! On a reduced grid the found pixels are fractions (the box average of the
+//! full-grid masks). Predicted `P_t` and found `F_t` are compared by
+//! - the Tversky index `TP / (TP + FN + 0.5 FP)`, pooled over frames: a
+//!   found pixel the camera does not explain weighs twice a predicted one
+//!   that is not found (a robot part the colour of what is behind it);
+//! - IoU, what the residuals report (over the pixels outside the
+//!   robot-over-robot ones);
+//! - for the coarse search only, a chamfer distance (the mean distance from
+//!   each predicted pixel to the nearest found one and back, capped at a
+//!   quarter of the image width) and the distance between the predicted and
+//!   found pixels' centroids, smooth enough to pull a far-off camera in.
+
+use super::foreground::Foreground;
+use bridgev2w_embodiment::camera::{Camera, Intrinsics};
+use bridgev2w_embodiment::masks::render_items;
+use bridgev2w_embodiment::raster::Rasterizer;
+use bridgev2w_embodiment::robot::Robot;
+use nalgebra::Isometry3;
+use rayon::prelude::*;
+
+/// One episode's found robot pixels on one level's grid.
+#[derive(Debug, Clone)]
+pub(crate) struct Level {
+    /// Reduction from the analysis grid.
+    pub factor: usize,
+    /// Width (pixels).
+    pub width: usize,
+    /// Height (pixels).
+    pub height: usize,
+    /// Per frame: the found fraction of each pixel.
+    pub found: Vec<Vec<f32>>,
+    /// Distance cap (pixels).
+    pub cap: f32,
+}
+
+impl Level {
+    /// The level of `foreground`'s masks reduced by `factor`.
+    pub fn new(foreground: &Foreground, factor: usize) -> Level {
+        let (w, h) = (foreground.width, foreground.height);
+        Self::from_masks(&foreground.masks, (w, h), factor)
+    }
+
+    /// The level of 0/1 `masks` on a `w` x `h` grid reduced by `factor`.
+    pub fn from_masks(masks: &[Vec<u8>], (w, h): (usize, usize), factor: usize) -> Level {
+        let (lw, lh) = (w / factor, h / factor);
+        let area = (factor * factor) as f32;
+        let found = masks
+            .par_iter()
+            .map(|m| {
+                let mut out = vec![0f32; lw * lh];
+                for y in 0..lh * factor {
+                    for x in 0..lw * factor {
+                        if m[y * w + x] != 0 {
+                            out[(y / factor) * lw + x / factor] += 1.0 / area;
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        Level {
+            factor,
+            width: lw,
+            height: lh,
+            found,
+            cap: (lw as f32 / 4.0).max(2.0),
+        }
+    }
+
+    /// The analysis-grid camera's intrinsics on this level's grid (exact
+    /// reduction by `factor`, pixel centres kept).
+    pub fn intrinsics(&self, k: &Intrinsics) -> Intrinsics {
+        reduce_intrinsics(k, self.factor as f64, self.width as u32, self.height as u32)
+    }
+}
+
+/// Intrinsics of a grid whose pixel is `factor` x `factor` pixels of `k`'s
+/// (`factor` < 1 enlarges), `width` x `height` pixels.
+pub(crate) fn reduce_intrinsics(
+    k: &Intrinsics,
+    factor: f64,
+    width: u32,
+    height: u32,
+) -> Intrinsics {
+    Intrinsics {
+        fx: k.fx / factor,
+        fy: k.fy / factor,
+        cx: (k.cx + 0.5) / factor - 0.5,
+        cy: (k.cy + 0.5) / factor - 0.5,
+        width,
+        height,
+        distortion: k.distortion,
+    }
+}
+
+/// Two-pass chamfer distance transform (steps 1 and sqrt 2) to the nearest
+/// seed, capped at `cap`.
+pub(crate) fn distance_transform(seeds: &[bool], w: usize, h: usize, cap: f32) -> Vec<f32> {
+    let mut d: Vec<f32> = seeds.iter().map(|&s| if s { 0.0 } else { cap }).collect();
+    let diag = std::f32::consts::SQRT_2;
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let mut v = d[i];
+            if x > 0 {
+                v = v.min(d[i - 1] + 1.0);
+            }
+            if y > 0 {
+                v = v.min(d[i - w] + 1.0);
+                if x > 0 {
+                    v = v.min(d[i - w - 1] + diag);
+                }
+                if x + 1 < w {
+                    v = v.min(d[i - w + 1] + diag);
+                }
+            }
+            d[i] = v;
+        }
+    }
+    for y in (0..h).rev() {
+        for x in (0..w).rev() {
+            let i = y * w + x;
+            let mut v = d[i];
+            if x + 1 < w {
+                v = v.min(d[i + 1] + 1.0);
+            }
+            if y + 1 < h {
+                v = v.min(d[i + w] + 1.0);
+                if x + 1 < w {
+                    v = v.min(d[i + w + 1] + diag);
+                }
+                if x > 0 {
+                    v = v.min(d[i + w - 1] + diag);
+                }
+            }
+            d[i] = v;
+        }
+    }
+    d
+}
+
+/// Renders the robot's 0/1 masks in `frames` (indices into `poses`) through
+/// `camera`.
+pub(crate) fn render_masks(
+    robot: &Robot,
+    poses: &[Vec<Isometry3<f64>>],
+    camera: &Camera,
+    frames: &[usize],
+) -> Vec<Vec<u8>> {
+    let rasterizer = Rasterizer::new(camera);
+    frames
+        .par_iter()
+        .map(|&t| {
+            rasterizer
+                .render_labels(&render_items(robot, &poses[t], true))
+                .iter()
+                .map(|&l| u8::from(l != 0))
+                .collect()
+        })
+        .collect()
+}
+
+/// The most frequent value of `values` (the smallest among ties): counted
+/// when all are below 64 (a robot's link labels), else sorted.
+fn modal(values: &mut [u16]) -> u16 {
+    if values.iter().all(|&v| v < 64) {
+        let mut counts = [0u16; 64];
+        for &v in values.iter() {
+            counts[usize::from(v)] += 1;
+        }
+        let mut best = 0;
+        for (l, &n) in counts.iter().enumerate() {
+            if n > counts[best] {
+                best = l;
+            }
+        }
+        return best as u16;
+    }
+    values.sort_unstable();
+    let (mut best, mut best_n) = (0u16, 0usize);
+    let mut i = 0;
+    while i < values.len() {
+        let mut j = i;
+        while j < values.len() && values[j] == values[i] {
+            j += 1;
+        }
+        if j - i > best_n {
+            (best, best_n) = (values[i], j - i);
+        }
+        i = j;
+    }
+    best
+}
+
+/// The predicted pixels of `frames` through `camera` (on the level's grid):
+/// 1 where the robot appears over its usual background or leaves its usual
+/// place (the rendered label differs from the pixel's usual label over
+/// `mode_frames`, one of them background), [`OVER_ROBOT`] where it shows
+/// over itself, else 0 (see the module documentation).
+pub(crate) fn predicted(
+    robot: &Robot,
+    poses: &[Vec<Isometry3<f64>>],
+    camera: &Camera,
+    frames: &[usize],
+    mode_frames: &[usize],
+) -> Vec<Vec<u8>> {
+    let mut all: Vec<usize> = frames.iter().chain(mode_frames).copied().collect();
+    all.sort_unstable();
+    all.dedup();
+    let rasterizer = Rasterizer::new(camera);
+    let labels: Vec<Vec<u16>> = all
+        .par_iter()
+        .map(|&t| rasterizer.render_labels(&render_items(robot, &poses[t], true)))
+        .collect();
+    let at = |t: usize| all.binary_search(&t).unwrap_or(0);
+    let n = labels.first().map_or(0, Vec::len);
+    let mut usual = vec![0u16; n];
+    usual
+        .par_chunks_mut(256)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            let mut values = Vec::with_capacity(mode_frames.len());
+            for (k, u) in chunk.iter_mut().enumerate() {
+                values.clear();
+                values.extend(mode_frames.iter().map(|&t| labels[at(t)][c * 256 + k]));
+                *u = modal(&mut values);
+            }
+        });
+    frames
+        .par_iter()
+        .map(|&t| {
+            labels[at(t)]
+                .iter()
+                .zip(&usual)
+                .map(|(&l, &u)| match (l != 0 && u != 0, l != u) {
+                    (true, _) => OVER_ROBOT,
+                    (false, change) => u8::from(change),
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The weight of the chamfer and centroid terms of
+/// [`Score::coarse_objective`].
+pub(crate) const COARSE_TERMS_WEIGHT: f64 = 0.25;
+
+/// A predicted pixel where the robot is rendered and usually is too: its
+/// own parts passing over each other may or may not change the pixel.
+pub(crate) const OVER_ROBOT: u8 = 2;
+
+/// How much a found pixel where the robot shows over itself counts as
+/// missed.
+pub(crate) const OVER_ROBOT_MISS_WEIGHT: f64 = 0.5;
+
+/// The weight of a predicted pixel not found relative to a found pixel not
+/// predicted (see [`Score::tversky`]).
+pub(crate) const FALSE_ALARM_WEIGHT: f64 = 0.5;
+
+/// Sums over scored frames.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct Score {
+    /// Soft intersection.
+    pub intersection: f64,
+    /// Soft union.
+    pub union: f64,
+    /// Predicted pixels not found.
+    pub false_alarms: f64,
+    /// Found pixels not predicted.
+    pub misses: f64,
+    /// Sum over frames of the mean chamfer distance (pixels).
+    pub chamfer: f64,
+    /// Sum over frames of the distance between the predicted and the found
+    /// pixels' centroids (pixels; twice the cap when only one has pixels).
+    pub centroid: f64,
+    /// Frames with any predicted or found foreground.
+    pub frames: usize,
+    /// The level's distance cap (pixels).
+    pub cap: f64,
+}
+
+impl Score {
+    /// Adds another episode's sums (same level grid size assumed).
+    pub fn add(&mut self, other: &Score) {
+        self.intersection += other.intersection;
+        self.union += other.union;
+        self.false_alarms += other.false_alarms;
+        self.misses += other.misses;
+        self.chamfer += other.chamfer;
+        self.centroid += other.centroid;
+        self.frames += other.frames;
+        self.cap = self.cap.max(other.cap);
+    }
+
+    /// Pooled soft IoU (1 when nothing is predicted or found anywhere).
+    pub fn iou(&self) -> f64 {
+        if self.union > 0.0 {
+            self.intersection / self.union
+        } else {
+            1.0
+        }
+    }
+
+    /// Mean chamfer distance over frames as a fraction of the cap.
+    pub fn chamfer_fraction(&self) -> f64 {
+        if self.frames == 0 || self.cap <= 0.0 {
+            0.0
+        } else {
+            self.chamfer / self.frames as f64 / self.cap
+        }
+    }
+
+    /// The Tversky index `TP / (TP + FN + b FP)` with `b` =
+    /// [`FALSE_ALARM_WEIGHT`]: a found pixel the camera does not explain
+    /// weighs more than a predicted one not found (a robot part the colour
+    /// of what is behind it).
+    pub fn tversky(&self) -> f64 {
+        let d = self.intersection + self.misses + FALSE_ALARM_WEIGHT * self.false_alarms;
+        if d > 0.0 {
+            self.intersection / d
+        } else {
+            1.0
+        }
+    }
+
+    /// The objective: `1 - Tversky`.
+    pub fn objective(&self) -> f64 {
+        if self.frames == 0 {
+            return 2.0;
+        }
+        1.0 - self.tversky()
+    }
+
+    /// [`Score::objective`] plus a quarter of the chamfer distance and of
+    /// the centroid distance, each over the cap: smooth, for the coarse
+    /// search far from the answer (they would bias a fit, since found pixels
+    /// miss robot parts the colour of the background).
+    pub fn coarse_objective(&self) -> f64 {
+        if self.frames == 0 {
+            return 4.0;
+        }
+        let centroid = self.centroid / self.frames as f64 / self.cap.max(1e-9);
+        self.objective() + COARSE_TERMS_WEIGHT * (self.chamfer_fraction() + centroid)
+    }
+}
+
+/// One frame's score of predicted `m` (0/1) against found fractions `f`
+/// on a `w` x `h` grid, and its IoU when either has pixels; the chamfer
+/// distance only `with_chamfer` (it costs two distance transforms).
+pub(crate) fn frame_score(
+    m: &[u8],
+    f: &[f32],
+    (w, h): (usize, usize),
+    cap: f32,
+    with_chamfer: bool,
+) -> (Score, Option<f64>) {
+    let (mut inter, mut n_m, mut n_f) = (0f64, 0f64, 0f64);
+    let (mut sm, mut sf) = ([0f64; 2], [0f64; 2]);
+    let mut over_robot = 0f64;
+    for (i, (&a, &b)) in m.iter().zip(f).enumerate() {
+        let b = f64::from(b);
+        if a == OVER_ROBOT {
+            over_robot += b;
+            continue;
+        }
+        let (x, y) = ((i % w) as f64, (i / w) as f64);
+        n_f += b;
+        sf[0] += b * x;
+        sf[1] += b * y;
+        if a != 0 {
+            n_m += 1.0;
+            inter += b;
+            sm[0] += x;
+            sm[1] += y;
+        }
+    }
+    if n_m + n_f + over_robot <= 0.0 {
+        return (Score::default(), None);
+    }
+    let union = n_m + n_f - inter;
+    let chamfer = if with_chamfer {
+        let seeds_m: Vec<bool> = m.iter().map(|&v| v == 1).collect();
+        let seeds_f: Vec<bool> = f
+            .iter()
+            .zip(m)
+            .map(|(&v, &a)| v >= 0.5 && a != OVER_ROBOT)
+            .collect();
+        let dm = distance_transform(&seeds_m, w, h, cap);
+        let df = distance_transform(&seeds_f, w, h, cap);
+        let far = |x: &[bool], d: &[f32]| -> (f64, f64) {
+            x.iter()
+                .zip(d)
+                .filter(|(&v, _)| v)
+                .fold((0.0, 0.0), |(s, n), (_, &dv)| (s + f64::from(dv), n + 1.0))
+        };
+        let (a, na) = far(&seeds_m, &df);
+        let (b, nb) = far(&seeds_f, &dm);
+        (FALSE_ALARM_WEIGHT * a + b) / (FALSE_ALARM_WEIGHT * na + nb).max(1.0)
+    } else {
+        0.0
+    };
+    let centroid = if n_m <= 0.0 || n_f <= 0.0 {
+        2.0 * f64::from(cap)
+    } else {
+        ((sm[0] / n_m - sf[0] / n_f).powi(2) + (sm[1] / n_m - sf[1] / n_f).powi(2)).sqrt()
+    };
+    (
+        Score {
+            intersection: inter,
+            union,
+            false_alarms: n_m - inter,
+            misses: n_f - inter + OVER_ROBOT_MISS_WEIGHT * over_robot,
+            chamfer,
+            centroid,
+            frames: 1,
+            cap: f64::from(cap),
+        },
+        Some(if union > 0.0 { inter / union } else { 0.0 }),
+    )
+}
+
+/// The pooled [`Score`] and the per-frame IoUs of the predicted pixels of
+/// `frames` against the level's found ones (chamfer only `with_chamfer`).
+pub(crate) fn score(
+    level: &Level,
+    frames: &[usize],
+    predicted: &[Vec<u8>],
+    with_chamfer: bool,
+) -> (Score, Vec<f64>) {
+    let size = (level.width, level.height);
+    let parts: Vec<(Score, Option<f64>)> = frames
+        .par_iter()
+        .zip(predicted)
+        .map(|(&t, m)| frame_score(m, &level.found[t], size, level.cap, with_chamfer))
+        .collect();
+    let mut total = Score {
+        cap: f64::from(level.cap),
+        ..Score::default()
+    };
+    let mut per_frame = Vec::new();
+    for (s, iou) in &parts {
+        total.add(s);
+        per_frame.extend(iou);
+    }
+    (total, per_frame)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn distance_transform_measures_steps_and_caps() {
+        let (w, h) = (7, 5);
+        let mut seeds = vec![false; w * h];
+        seeds[2 * w + 3] = true;
+        let d = distance_transform(&seeds, w, h, 2.5);
+        assert_eq!(d[2 * w + 3], 0.0);
+        assert_eq!(d[2 * w + 4], 1.0);
+        assert!((d[3 * w + 4] - std::f32::consts::SQRT_2).abs() < 1e-6);
+        assert_eq!(d[2 * w + 6], 2.5, "3 pixels away is capped");
+        assert_eq!(distance_transform(&[false; 4], 2, 2, 9.0), vec![9.0; 4]);
+    }
+
+    #[test]
+    fn score_is_perfect_for_matching_masks_and_worse_when_shifted() {
+        let (w, h) = (20, 10);
+        let mut mask = vec![0u8; w * h];
+        for y in 3..7 {
+            for x in 4..9 {
+                mask[y * w + x] = 1;
+            }
+        }
+        let found: Vec<f32> = mask.iter().map(|&v| f32::from(v)).collect();
+        let (s, iou) = frame_score(&mask, &found, (w, h), 5.0, true);
+        assert_eq!(
+            (s.iou(), s.chamfer, s.centroid, iou),
+            (1.0, 0.0, 0.0, Some(1.0))
+        );
+        assert_eq!(s.tversky(), 1.0);
+        let shifted: Vec<u8> = (0..w * h)
+            .map(|i| if i % w >= 3 { mask[i - 3] } else { 0 })
+            .collect();
+        let (s2, _) = frame_score(&shifted, &found, (w, h), 5.0, true);
+        assert!((s2.iou() - 8.0 / 32.0).abs() < 1e-9, "{}", s2.iou());
+        assert!((s2.centroid - 3.0).abs() < 1e-9, "{}", s2.centroid);
+        assert!(s2.chamfer > 1.0 && s2.objective() > s.objective());
+        assert_eq!(frame_score(&[0; 4], &[0.0; 4], (2, 2), 1.0, true).1, None);
+        // A found half-pixel counts half.
+        let (s3, _) = frame_score(&[1, 0], &[0.5, 0.0], (2, 1), 1.0, false);
+        assert_eq!(
+            (s3.intersection, s3.false_alarms, s3.misses),
+            (0.5, 0.5, 0.0)
+        );
+    }
+
+    #[test]
+    fn the_usual_label_is_the_most_frequent_one() {
+        assert_eq!(modal(&mut [3, 0, 3, 2, 0, 3]), 3);
+        assert_eq!(modal(&mut [1, 0, 0, 1]), 0, "ties go to the smaller label");
+        assert_eq!(modal(&mut [300, 300, 2]), 300);
+        assert_eq!(modal(&mut []), 0);
+    }
+
+    #[test]
+    fn found_masks_are_box_averaged_onto_a_level() {
+        let mask = vec![1u8, 1, 0, 0, 1, 0, 0, 0];
+        let level = Level::from_masks(&[mask], (4, 2), 2);
+        assert_eq!((level.width, level.height), (2, 1));
+        assert_eq!(level.found[0], vec![0.75, 0.0]);
+    }
+}

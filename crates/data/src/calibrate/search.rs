@@ -1,0 +1,453 @@
+//! Finding the camera: a coarse search over poses around the robot's
+//! workspace, then Nelder-Mead refinement on finer and finer grids.
+//!
+//! - Coarse search: cameras on a grid of azimuths (all around), elevations
+//!   and distances, looking at the centroid of the robot's motion, with
+//!   roll 0 (image up = world up). Each is aimed and zoomed twice by image
+//!   moments (the predicted foreground's centroid moved onto the found
+//!   one's by a rotation, its spread matched by the focal length), then
+//!   scored on the coarse grid. No hand-given start is needed; a guess, if
+//!   given, joins the starts.
+//! - Refinement: the best distinct candidates refined on the coarse grid
+//!   (position, rotation, focal length), the best few of those on the
+//!   middle grid with every fitted parameter, the best one on the full
+//!   analysis grid.
+
+use super::nelder_mead::minimize;
+use super::objective::{predicted, score, Score};
+use super::problem::{spread, Prepared};
+use super::CalibrateOptions;
+use bridgev2w_embodiment::camera::{Camera, Intrinsics};
+use bridgev2w_embodiment::robot::Robot;
+use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Parameters, chosen so that the silhouette's near-degeneracies are
+/// single coordinates: orbit about the target (2, radians: azimuth about
+/// world z, elevation), dolly-zoom (log of the distance to the target, the
+/// focal length scaled with it so the target's image keeps its size),
+/// rotation (3, radians, rotation vector in the camera frame), log focal
+/// length, log aspect (fy / fx), principal point (2, fractions of the image
+/// size).
+pub(crate) const N_PARAMS: usize = 10;
+/// The smallest and largest focal length as a fraction of the image width
+/// (a horizontal field of view of about 127 to 19 degrees).
+const FOCAL_RANGE: (f64, f64) = (0.25, 3.0);
+/// The nearest and farthest camera from the motion's centroid (metres).
+const DISTANCE_RANGE_M: (f64, f64) = (0.25, 5.0);
+
+/// Scores analysis-grid cameras on one level over chosen frames.
+#[derive(Debug)]
+pub(crate) struct Evaluator<'a> {
+    robot: &'a Robot,
+    episodes: &'a [Prepared],
+    level: usize,
+    frames: Vec<Vec<usize>>,
+    coarse: bool,
+    evaluations: AtomicUsize,
+}
+
+impl<'a> Evaluator<'a> {
+    /// Scores `frames[e]` of each episode `e` on `level`.
+    pub fn new(
+        robot: &'a Robot,
+        episodes: &'a [Prepared],
+        level: usize,
+        frames: Vec<Vec<usize>>,
+    ) -> Self {
+        Self {
+            robot,
+            episodes,
+            level,
+            frames,
+            coarse: false,
+            evaluations: AtomicUsize::new(0),
+        }
+    }
+
+    /// Scores with [`Score::coarse_objective`] (see [`Evaluator::value`]).
+    pub fn coarse(mut self) -> Self {
+        self.coarse = true;
+        self
+    }
+
+    /// The objective of `camera`: [`Score::coarse_objective`] for a coarse
+    /// evaluator, else [`Score::objective`].
+    pub fn value(&self, camera: &Camera) -> f64 {
+        let s = self.score(camera);
+        if self.coarse {
+            s.coarse_objective()
+        } else {
+            s.objective()
+        }
+    }
+
+    /// At most `n` fitted frames per episode, spread over it.
+    pub fn fit(robot: &'a Robot, episodes: &'a [Prepared], level: usize, n: usize) -> Self {
+        let frames = episodes.iter().map(|e| spread(&e.fit, n)).collect();
+        Self::new(robot, episodes, level, frames)
+    }
+
+    /// Evaluations so far.
+    pub fn evaluations(&self) -> usize {
+        self.evaluations.load(Ordering::Relaxed)
+    }
+
+    fn level_camera(&self, e: &Prepared, camera: &Camera) -> Camera {
+        Camera {
+            intrinsics: e.levels[self.level].intrinsics(&camera.intrinsics),
+            world_from_camera: camera.world_from_camera,
+        }
+    }
+
+    /// Predicted pixels per episode and scored frame.
+    pub fn predicted(&self, camera: &Camera) -> Vec<Vec<Vec<u8>>> {
+        self.episodes
+            .iter()
+            .zip(&self.frames)
+            .map(|(e, frames)| {
+                let c = self.level_camera(e, camera);
+                predicted(self.robot, &e.poses, &c, frames, &e.mode)
+            })
+            .collect()
+    }
+
+    /// Per episode: the score and the per-frame IoU.
+    pub fn detail(&self, camera: &Camera) -> Vec<(Score, Vec<f64>)> {
+        self.evaluations.fetch_add(1, Ordering::Relaxed);
+        let predictions = self.predicted(camera);
+        self.episodes
+            .iter()
+            .zip(&self.frames)
+            .zip(&predictions)
+            .map(|((e, frames), p)| score(&e.levels[self.level], frames, p, self.coarse))
+            .collect()
+    }
+
+    /// The pooled score over episodes.
+    pub fn score(&self, camera: &Camera) -> Score {
+        let mut total = Score::default();
+        for (s, _) in self.detail(camera) {
+            total.add(&s);
+        }
+        total
+    }
+}
+
+/// A camera varied by the parameters of [`N_PARAMS`] around `base`, only
+/// the `active` ones free; orbit and dolly about `target`.
+#[derive(Debug, Clone)]
+pub(crate) struct Parametrization {
+    base: Camera,
+    target: Point3<f64>,
+    active: Vec<usize>,
+}
+
+impl Parametrization {
+    pub fn new(base: Camera, target: Point3<f64>, active: &[usize]) -> Self {
+        Self {
+            base,
+            target,
+            active: active.to_vec(),
+        }
+    }
+
+    /// The camera at the active parameters `x`, or `None` when its focal
+    /// length or principal point leave the plausible range.
+    pub fn camera(&self, x: &[f64]) -> Option<Camera> {
+        let mut p = [0f64; N_PARAMS];
+        for (&i, &v) in self.active.iter().zip(x) {
+            p[i] = v;
+        }
+        let b = &self.base;
+        let k = &b.intrinsics;
+        let (w, h) = (f64::from(k.width), f64::from(k.height));
+        let fx = k.fx * (p[2] + p[6]).exp();
+        let fy = k.fy * (p[2] + p[6] + p[7]).exp();
+        let cx = k.cx + p[8] * w;
+        let cy = k.cy + p[9] * h;
+        let ok = p.iter().all(|v| v.is_finite())
+            && (FOCAL_RANGE.0..=FOCAL_RANGE.1).contains(&(fx / w))
+            && (FOCAL_RANGE.0..=FOCAL_RANGE.1).contains(&(fy / w))
+            && (0.0..=w).contains(&cx)
+            && (0.0..=h).contains(&cy);
+        if !ok {
+            return None;
+        }
+        // Orbit: the camera and its orientation turned about the target.
+        let offset = b.world_from_camera.translation.vector - self.target.coords;
+        let side = Vector3::z().cross(&offset);
+        let side = if side.norm() > 1e-9 {
+            side.normalize()
+        } else {
+            b.world_from_camera.rotation * Vector3::x()
+        };
+        let orbit = UnitQuaternion::from_scaled_axis(Vector3::z() * p[0])
+            * UnitQuaternion::from_scaled_axis(side * -p[1]);
+        let distance = offset.norm() * p[2].exp();
+        if !(DISTANCE_RANGE_M.0..=DISTANCE_RANGE_M.1).contains(&distance) {
+            return None;
+        }
+        let t = self.target.coords + orbit * (offset * p[2].exp());
+        let r = orbit
+            * b.world_from_camera.rotation
+            * UnitQuaternion::from_scaled_axis(Vector3::new(p[3], p[4], p[5]));
+        Some(Camera {
+            intrinsics: Intrinsics {
+                fx,
+                fy,
+                cx,
+                cy,
+                ..*k
+            },
+            world_from_camera: nalgebra::Isometry3::from_parts(Translation3::from(t), r),
+        })
+    }
+}
+
+/// Pooled centroid and RMS spread (analysis-grid pixels) of the rendered
+/// and the found robot pixels: `((cx, cy, spread, n) rendered, found)`.
+type Moments = ([f64; 4], [f64; 4]);
+
+fn moments(ev: &Evaluator, camera: &Camera) -> Moments {
+    let predictions = ev.predicted(camera);
+    let mut acc = [[0f64; 4]; 2];
+    for ((e, frames), preds) in ev.episodes.iter().zip(&ev.frames).zip(&predictions) {
+        let level = &e.levels[ev.level];
+        let f = level.factor as f64;
+        for (&t, m) in frames.iter().zip(preds) {
+            for (i, (&pv, &ov)) in m.iter().zip(&level.found[t]).enumerate() {
+                let x = ((i % level.width) as f64 + 0.5) * f - 0.5;
+                let y = ((i / level.width) as f64 + 0.5) * f - 0.5;
+                for (a, wgt) in acc.iter_mut().zip([f64::from(pv), f64::from(ov)]) {
+                    if wgt > 0.0 {
+                        a[0] += wgt * x;
+                        a[1] += wgt * y;
+                        a[2] += wgt * (x * x + y * y);
+                        a[3] += wgt;
+                    }
+                }
+            }
+        }
+    }
+    let finish = |a: [f64; 4]| {
+        let n = a[3].max(1e-9);
+        let (cx, cy) = (a[0] / n, a[1] / n);
+        let var = (a[2] / n - cx * cx - cy * cy).max(0.0);
+        [cx, cy, var.sqrt(), a[3]]
+    };
+    (finish(acc[0]), finish(acc[1]))
+}
+
+/// Zooms and turns `camera` so that its rendered robot's centroid and
+/// spread match the found robot pixels'; `None` when either is empty.
+fn recentre(ev: &Evaluator, camera: &Camera) -> Option<Camera> {
+    let (p, o) = moments(ev, camera);
+    if p[3] < 3.0 || o[3] < 3.0 || p[2] <= 0.0 {
+        return None;
+    }
+    let k = &camera.intrinsics;
+    let w = f64::from(k.width);
+    let s = (o[2] / p[2]).clamp(1.0 / 3.0, 3.0);
+    let fx = (k.fx * s).clamp(FOCAL_RANGE.0 * w, FOCAL_RANGE.1 * w);
+    let s = fx / k.fx;
+    let fy = k.fy * s;
+    let old = Vector3::new((p[0] - k.cx) / k.fx, (p[1] - k.cy) / k.fy, 1.0);
+    let new = Vector3::new((o[0] - k.cx) / fx, (o[1] - k.cy) / fy, 1.0);
+    let q = UnitQuaternion::rotation_between(&new, &old)?;
+    Some(Camera {
+        intrinsics: Intrinsics { fx, fy, ..*k },
+        world_from_camera: nalgebra::Isometry3::from_parts(
+            camera.world_from_camera.translation,
+            camera.world_from_camera.rotation * q,
+        ),
+    })
+}
+
+/// The coarse search's candidates, scored on `ev`'s level, best first.
+pub(crate) fn coarse_candidates(
+    ev: &Evaluator,
+    target: Point3<f64>,
+    (width, height): (u32, u32),
+    options: &CalibrateOptions,
+) -> Vec<(Camera, f64)> {
+    let f0 = 0.8 * f64::from(width);
+    let intrinsics = Intrinsics {
+        fx: f0,
+        fy: f0 * options.fy_over_fx,
+        cx: (f64::from(width) - 1.0) / 2.0,
+        cy: (f64::from(height) - 1.0) / 2.0,
+        width,
+        height,
+        distortion: None,
+    };
+    let steps = (360.0 / options.azimuth_step_deg).round().max(1.0) as usize;
+    let mut grid = Vec::new();
+    for a in 0..steps {
+        let az = (a as f64 * 360.0 / steps as f64).to_radians();
+        for &el in &options.elevations_deg {
+            for &d in &options.distances_m {
+                let el = el.to_radians();
+                let dir = Vector3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+                grid.push(target + d * dir);
+            }
+        }
+    }
+    let mut out: Vec<(Camera, f64)> = grid
+        .par_iter()
+        .filter_map(|eye| {
+            let mut c = Camera::look_at(intrinsics, *eye, target, Vector3::z()).ok()?;
+            for _ in 0..2 {
+                c = recentre(ev, &c)?;
+            }
+            Some((c.clone(), ev.value(&c)))
+        })
+        .collect();
+    out.sort_by(|a, b| a.1.total_cmp(&b.1));
+    out
+}
+
+/// Angle between two cameras' orientations (radians).
+pub(crate) fn angle_between(a: &Camera, b: &Camera) -> f64 {
+    a.world_from_camera
+        .rotation
+        .angle_to(&b.world_from_camera.rotation)
+}
+
+/// Picks up to `n` candidates, best first, skipping any within 0.1 m and
+/// 8 degrees of one already picked.
+pub(crate) fn distinct(candidates: &[(Camera, f64)], n: usize) -> Vec<(Camera, f64)> {
+    let mut out: Vec<(Camera, f64)> = Vec::new();
+    for c in candidates {
+        if out.len() >= n {
+            break;
+        }
+        let near = out.iter().any(|(o, _)| {
+            let d = (o.world_from_camera.translation.vector
+                - c.0.world_from_camera.translation.vector)
+                .norm();
+            d < 0.1 && angle_between(o, &c.0) < 8f64.to_radians()
+        });
+        if !near {
+            out.push(c.clone());
+        }
+    }
+    out
+}
+
+/// The parameter indices fitted: position, rotation, focal length, and per
+/// options the aspect and the principal point.
+pub(crate) fn active_parameters(options: &CalibrateOptions, all: bool) -> Vec<usize> {
+    let mut active: Vec<usize> = (0..7).collect();
+    if all && options.fit_aspect {
+        active.push(7);
+    }
+    if all && options.fit_principal_point {
+        active.extend([8, 9]);
+    }
+    active
+}
+
+/// Initial simplex steps of the parameters, multiplied by `scale`.
+fn steps(active: &[usize], scale: f64) -> Vec<f64> {
+    active
+        .iter()
+        .map(|&i| {
+            scale
+                * match i {
+                    0 | 1 => 0.06,
+                    2 => 0.08,
+                    3..=5 => 0.03,
+                    6 => 0.05,
+                    7 => 0.01,
+                    _ => 0.01,
+                }
+        })
+        .collect()
+}
+
+/// Refines `start` on `ev` with Nelder-Mead over `active`, `rounds` times
+/// (each restart from the last result with half the steps): the camera and
+/// its objective.
+pub(crate) fn refine(
+    ev: &Evaluator,
+    start: &Camera,
+    target: Point3<f64>,
+    active: &[usize],
+    scale: f64,
+    max_evaluations: usize,
+    rounds: usize,
+) -> (Camera, f64) {
+    let mut camera = start.clone();
+    let mut value = ev.value(&camera);
+    for round in 0..rounds {
+        let param = Parametrization::new(camera.clone(), target, active);
+        let f = |x: &[f64]| param.camera(x).map_or(5.0, |c| ev.value(&c));
+        let s = steps(active, scale * 0.5f64.powi(round as i32));
+        let m = minimize(&f, &vec![0.0; active.len()], &s, max_evaluations, 1e-6);
+        if m.value < value {
+            if let Some(c) = param.camera(&m.x) {
+                camera = c;
+                value = m.value;
+            }
+        }
+    }
+    (camera, value)
+}
+
+/// The directions a silhouette pins down least, probed by [`probe`]:
+/// parameter index and name.
+const PROBES: [(usize, &str); 3] = [
+    (0, "orbit in azimuth"),
+    (1, "orbit in elevation"),
+    (2, "dolly-zoom"),
+];
+
+/// How well `camera` is pinned down: for each of [`PROBES`], each way, the
+/// camera moved by `offset_m` along it (at its distance to `target`) with
+/// the other `active` parameters re-fitted (`evaluations` each); returns
+/// the smallest rise of the objective over `camera`'s and its direction.
+pub(crate) fn probe(
+    ev: &Evaluator,
+    camera: &Camera,
+    target: Point3<f64>,
+    active: &[usize],
+    offset_m: f64,
+    evaluations: usize,
+) -> (f64, &'static str) {
+    let base = ev.value(camera);
+    let distance = (camera.world_from_camera.translation.vector - target.coords)
+        .norm()
+        .max(0.1);
+    let param = Parametrization::new(camera.clone(), target, active);
+    let mut worst = (f64::INFINITY, PROBES[0].1);
+    for (index, name) in PROBES {
+        let Some(slot) = active.iter().position(|&i| i == index) else {
+            continue;
+        };
+        let free: Vec<usize> = (0..active.len()).filter(|&j| j != slot).collect();
+        let free_steps: Vec<f64> = {
+            let all = steps(active, 0.3);
+            free.iter().map(|&j| all[j]).collect()
+        };
+        for sign in [-1.0, 1.0] {
+            let fixed = sign * offset_m / distance;
+            let full = |y: &[f64]| {
+                let mut x = vec![0.0; active.len()];
+                x[slot] = fixed;
+                for (&j, &v) in free.iter().zip(y) {
+                    x[j] = v;
+                }
+                x
+            };
+            let f = |y: &[f64]| param.camera(&full(y)).map_or(5.0, |c| ev.value(&c));
+            let m = minimize(&f, &vec![0.0; free.len()], &free_steps, evaluations, 1e-6);
+            let rise = m.value - base;
+            if rise < worst.0 {
+                worst = (rise, name);
+            }
+        }
+    }
+    worst
+}
