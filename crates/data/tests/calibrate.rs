@@ -18,9 +18,9 @@ use std::path::PathBuf;
 /// A small search (a debug build renders slowly).
 fn small_options() -> CalibrateOptions {
     CalibrateOptions {
-        analysis_width: 128,
-        mid_width: 64,
-        coarse_width: 32,
+        analysis_width: 96,
+        mid_width: 48,
+        coarse_width: 24,
         azimuth_step_deg: 45.0,
         elevations_deg: vec![15.0, 45.0],
         distances_m: vec![0.8, 1.4],
@@ -60,9 +60,9 @@ fn episode_data(name: &str, frames: Vec<Vec<u8>>, joints: Vec<Vec<f64>>) -> Epis
 fn synthetic_cameras_are_calibrated_from_their_video_and_joints_or_flagged() {
     let options = StudyOptions {
         cameras_per_split: 1,
-        width: 128,
-        height: 80,
-        frames: 20,
+        width: 96,
+        height: 64,
+        frames: 16,
         seed: 11,
         calibrate: small_options(),
         ..StudyOptions::default()
