@@ -545,9 +545,12 @@ fn a_mesh_parser_panic_is_a_clean_error_without_the_panic_message() {
     assert!(!err.contains("panicked at"), "{err}");
 }
 
-/// An allocation no machine gives (beyond a 47-bit address space) inside
-/// `bench model`: a clean error naming the shapes, libtorch's figures and
-/// what lowers the memory; no panic, no backtrace.
+/// Sizes no machine gives inside `bench model`: a batch beyond
+/// `MAX_PREDICT_BATCH` is refused by name, and a batch within it whose
+/// memory floor exceeds this machine's is refused up front with the
+/// estimate, what is available and what lowers it; nothing is allocated,
+/// no panic, no backtrace. (Out-of-memory inside libtorch, reachable on a
+/// GPU, is mapped to the same kind of error: `world-model` unit tests.)
 #[test]
 fn bench_model_out_of_memory_is_a_clean_error_naming_the_shapes() {
     let o = run(&[
@@ -562,9 +565,33 @@ fn bench_model_out_of_memory_is_a_clean_error_naming_the_shapes() {
     let err = stderr(&o);
     assert!(!o.status.success(), "{err}");
     assert!(
-        err.contains(
-            "out of device memory while timing the model: batch 10000000000 of 9 frames at 128x192"
-        ) && err.contains("out of memory allocating")
+        err.contains("--batch 10000000000: at most 4096 clips is supported"),
+        "{err}"
+    );
+    assert!(
+        !err.contains("panicked") && !err.contains("frame #"),
+        "{err}"
+    );
+    let o = run(&[
+        "bench",
+        "model",
+        "--layers",
+        "1",
+        "--batch",
+        "4096",
+        "--frames",
+        "1024",
+        "--height",
+        "8192",
+        "--width",
+        "8192",
+        "--no-diffusers",
+    ]);
+    let err = stderr(&o);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("timing the model at batch 4096 of 1024 frames at 8192x8192 needs at least")
+            && err.contains("is available")
             && err.contains("Lower --batch"),
         "{err}"
     );
