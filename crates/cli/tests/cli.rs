@@ -580,7 +580,7 @@ fn bench_model_out_of_memory_is_a_clean_error_naming_the_shapes() {
         "--batch",
         "4096",
         "--frames",
-        "1024",
+        "1021",
         "--height",
         "8192",
         "--width",
@@ -590,7 +590,7 @@ fn bench_model_out_of_memory_is_a_clean_error_naming_the_shapes() {
     let err = stderr(&o);
     assert!(!o.status.success(), "{err}");
     assert!(
-        err.contains("timing the model at batch 4096 of 1024 frames at 8192x8192 needs at least")
+        err.contains("timing the model at batch 4096 of 1021 frames at 8192x8192 needs at least")
             && err.contains("is available")
             && err.contains("Lower --batch"),
         "{err}"

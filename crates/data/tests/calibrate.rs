@@ -282,3 +282,80 @@ fn a_droid_wrist_camera_is_refused_as_moving() {
     );
     eprintln!("{err}");
 }
+
+/// Every episode folder (`.../videos/<split>/<id>`) under `root`, sorted,
+/// with its annotation file.
+fn droid_episodes(root: &std::path::Path) -> Vec<(PathBuf, PathBuf)> {
+    let mut out = Vec::new();
+    let mut stack = vec![root.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().map(Result::unwrap) {
+            let p = e.path();
+            if p.is_dir() {
+                if p.join("0.mp4").is_file() {
+                    let id = p.file_name().unwrap().to_owned();
+                    let split = p.parent().unwrap();
+                    let base = split.parent().unwrap().parent().unwrap();
+                    let ann = base
+                        .join("annotation")
+                        .join(split.file_name().unwrap())
+                        .join(format!("{}.json", id.to_string_lossy()));
+                    out.push((p, ann));
+                } else {
+                    stack.push(p);
+                }
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The fixed-camera rule on DROID's cameras: the two exterior cameras pass,
+/// the wrist camera is a moving one. `n` episodes spread over the 44.
+fn fixed_camera_rule_on_droid(n: usize) {
+    let Some(root) = droid() else { return };
+    let e = Embodiment::builtin("franka-robotiq").unwrap();
+    let o = CalibrateOptions::default();
+    let all = droid_episodes(&root);
+    assert_eq!(all.len(), 44);
+    let step = (all.len() / n).max(1);
+    let mut ranges = [[f64::INFINITY, 0.0f64]; 4];
+    for (dir, ann) in all.iter().step_by(step) {
+        for cam in 0..3 {
+            let input = EpisodeInput {
+                video: dir.join(format!("{cam}.mp4")),
+                joints: ann.clone(),
+            };
+            let episode = load_episode(&input, &e, 320).unwrap();
+            let s = bridgev2w_data::calibrate::find_foreground(&episode, &o.foreground).stats;
+            let moving = s.noise_level >= o.moving_noise_level
+                && s.unstable_fraction >= o.moving_unstable_fraction;
+            assert_eq!(moving, cam == 2, "{} camera {cam}: {s:?}", dir.display());
+            let k = if cam == 2 { 2 } else { 0 };
+            for (r, v) in ranges[k..k + 2]
+                .iter_mut()
+                .zip([s.noise_level, s.unstable_fraction])
+            {
+                r[0] = r[0].min(v);
+                r[1] = r[1].max(v);
+            }
+        }
+    }
+    eprintln!(
+        "exterior: noise {:.2}..{:.2}, unstable {:.3}..{:.3}; wrist: noise {:.2}..{:.2}, unstable {:.3}..{:.3}",
+        ranges[0][0], ranges[0][1], ranges[1][0], ranges[1][1], ranges[2][0], ranges[2][1], ranges[3][0], ranges[3][1]
+    );
+}
+
+#[test]
+fn droid_exterior_cameras_pass_the_fixed_camera_rule_and_wrist_cameras_fail_it() {
+    fixed_camera_rule_on_droid(4);
+}
+
+/// All 44 episodes (slow in a debug build: run with `--release --ignored`).
+#[test]
+#[ignore]
+fn droid_fixed_camera_rule_on_every_episode() {
+    fixed_camera_rule_on_droid(44);
+}

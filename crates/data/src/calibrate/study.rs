@@ -217,7 +217,7 @@ pub fn synthetic_study(
     let mut rows = Vec::new();
     for split in [Split::Test, Split::UnseenCamera] {
         for index in 0..options.cameras_per_split {
-            let task = Task::GENERATED[(index + rows.len()) % Task::GENERATED.len()];
+            let task = Task::GENERATED[rows.len() % Task::GENERATED.len()];
             let episode = world.generate(split, index, task)?;
             let path = work_dir.join(format!("{}_{index:03}.mp4", split.name()));
             let (factor, size, frames) = through_video(
