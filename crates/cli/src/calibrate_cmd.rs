@@ -4,6 +4,7 @@
 
 use crate::masks_cmd::RobotArgs;
 use anyhow::Result;
+use bridgev2w_data::calibrate::droid_study::{droid_study, DroidStudyOptions, DROID_FY_OVER_FX};
 use bridgev2w_data::calibrate::study::{synthetic_study, StudyOptions};
 use bridgev2w_data::calibrate::{
     calibrate, check, load_episode, pair_inputs, report, CalibrateOptions, EpisodeData,
@@ -16,9 +17,10 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, Clone, clap::Args)]
 pub struct FitArgs {
     /// fy / fx of the start (and of the result unless --fit-aspect): 1 for
-    /// square pixels, 1.0667 (192/180) for DROID's stretched 320x192 videos.
-    #[arg(long, default_value_t = 1.0)]
-    fy_over_fx: f64,
+    /// square pixels (the default), 1.0667 (192/180) for DROID's stretched
+    /// 320x192 videos (the default of `calibrate-study --droid`).
+    #[arg(long)]
+    fy_over_fx: Option<f64>,
     /// Fit fy / fx too.
     #[arg(long)]
     fit_aspect: bool,
@@ -43,10 +45,10 @@ pub struct FitArgs {
 }
 
 impl FitArgs {
-    fn options(&self, guess: Option<Camera>) -> CalibrateOptions {
+    fn options(&self, guess: Option<Camera>, default_fy_over_fx: f64) -> CalibrateOptions {
         CalibrateOptions {
             guess,
-            fy_over_fx: self.fy_over_fx,
+            fy_over_fx: self.fy_over_fx.unwrap_or(default_fy_over_fx),
             fit_aspect: self.fit_aspect,
             fit_principal_point: self.fit_principal_point,
             analysis_width: self.analysis_width,
@@ -115,7 +117,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .as_deref()
         .map(Camera::from_json_file)
         .transpose()?;
-    let options = args.fit.options(guess);
+    let options = args.fit.options(guess, 1.0);
     options.validate()?;
     let fitted = pair_inputs(&args.video, &args.joints, ("--video", "--joints"))?;
     let checked = pair_inputs(
@@ -179,6 +181,18 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
 /// Arguments of `calibrate-study`.
 #[derive(Debug, clap::Args)]
 pub struct CalibrateStudyArgs {
+    /// Study real DROID video instead of the synthetic world: every exterior
+    /// camera of every episode under DIR (the Ctrl-World layout), and the
+    /// shared rig's cameras (`droid_new_setup*`) from a few episodes,
+    /// checked on the others.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["robot", "cameras_per_split", "width", "height", "frames", "seed"])]
+    droid: Option<PathBuf>,
+    /// --droid: shared-rig episodes the rig calibration is fitted on.
+    #[arg(long, default_value_t = 3, requires = "droid")]
+    rig_fit_episodes: usize,
+    /// --droid: at most this many episodes per collection.
+    #[arg(long, requires = "droid")]
+    episodes_per_collection: Option<usize>,
     /// Built-in robot of the synthetic world (franka, franka-robotiq).
     #[arg(long, default_value = "franka")]
     robot: String,
@@ -199,7 +213,8 @@ pub struct CalibrateStudyArgs {
     seed: u64,
     #[command(flatten)]
     fit: FitArgs,
-    /// Output folder: study.json, study.md, videos/*.mp4.
+    /// Output folder: study.json, study.md, and videos/*.mp4 (synthetic) or
+    /// a calibration folder per camera (--droid).
     #[arg(long)]
     out: PathBuf,
     /// Replace an existing --out.
@@ -208,6 +223,9 @@ pub struct CalibrateStudyArgs {
 }
 
 pub fn run_study(args: &CalibrateStudyArgs) -> Result<()> {
+    if let Some(root) = &args.droid {
+        return run_droid_study(args, root);
+    }
     let options = StudyOptions {
         robot: args.robot.clone(),
         cameras_per_split: args.cameras_per_split,
@@ -215,7 +233,7 @@ pub fn run_study(args: &CalibrateStudyArgs) -> Result<()> {
         height: args.height,
         frames: args.frames,
         seed: args.seed,
-        calibrate: args.fit.options(None),
+        calibrate: args.fit.options(None, 1.0),
     };
     options.validate()?;
     let out = OutputDir::create(&args.out, args.overwrite)?;
@@ -231,6 +249,30 @@ pub fn run_study(args: &CalibrateStudyArgs) -> Result<()> {
     let dir = out.commit()?;
     crate::print_stdout(&format!(
         "{md}wrote {}/study.md, study.json\n",
+        dir.display()
+    ))
+}
+
+fn run_droid_study(args: &CalibrateStudyArgs, root: &Path) -> Result<()> {
+    let options = DroidStudyOptions {
+        rig_fit_episodes: args.rig_fit_episodes,
+        episodes_per_collection: args.episodes_per_collection,
+        calibrate: args.fit.options(None, DROID_FY_OVER_FX),
+        ..DroidStudyOptions::new(root)
+    };
+    options.validate()?;
+    let e = bridgev2w_embodiment::embodiment::Embodiment::builtin("franka-robotiq")?;
+    let out = OutputDir::create_for(&args.out, args.overwrite, &[root])?;
+    let table = droid_study(&e, &options, out.path(), &|line| eprintln!("{line}"))?;
+    let md = table.to_markdown();
+    bridgev2w_io::atomic::write_atomic(&out.path().join("study.md"), md.as_bytes())?;
+    bridgev2w_io::atomic::write_atomic(
+        &out.path().join("study.json"),
+        serde_json::to_string_pretty(&table)?.as_bytes(),
+    )?;
+    let dir = out.commit()?;
+    crate::print_stdout(&format!(
+        "{md}wrote {}/study.md, study.json and a folder per calibration\n",
         dir.display()
     ))
 }

@@ -479,3 +479,12 @@ fn the_distributed_guide_runs() {
 fn the_planning_guide_runs() {
     run_guide("planning.md", |_| {});
 }
+
+#[test]
+fn the_calibrate_guide_runs() {
+    let d = run_guide("calibrate.md", |_| {});
+    let study =
+        std::fs::read_to_string(d.path().join("calibrate-quick/study.json")).expect("study.json");
+    let v: serde_json::Value = serde_json::from_str(&study).expect("JSON");
+    assert_eq!(v["rows"].as_array().map(Vec::len), Some(2), "{study}");
+}

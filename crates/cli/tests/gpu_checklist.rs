@@ -239,10 +239,10 @@ fn the_gpu_checklist_keeps_to_its_budget_and_still_writes_the_summary() {
             "{name}: {status}"
         );
     }
-    // Enough for the item (the setup before it, importing torch, can take
-    // half a minute on a loaded machine): it runs and passes.
+    // Enough for the item (the setup before it, importing torch, took over two
+    // minutes on a machine loaded by other work): it runs and passes.
     let out = tempfile::tempdir().expect("tempdir");
-    let o = run_checklist(out.path(), &["--dry-run", "--budget", "150", "environment"]);
+    let o = run_checklist(out.path(), &["--dry-run", "--budget", "300", "environment"]);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
     assert_eq!(

@@ -37,8 +37,11 @@ fn small_options() -> CalibrateOptions {
     }
 }
 
-/// Bounds on the small search's errors (measured: see the test's output).
-const BOUND_CM: f64 = 60.0;
+/// Bound on the small search's angle error (measured: see the test's
+/// output). Its position may be far off along the view axis when the tiny
+/// video cannot tell a near, wide camera from a far, narrow one (measured:
+/// 83 cm and 93 % focal, with a held-out IoU above the true camera's); such
+/// a camera is flagged ambiguous.
 const BOUND_DEG: f64 = 30.0;
 
 fn world(frames: usize) -> World {
@@ -81,8 +84,13 @@ fn synthetic_cameras_are_calibrated_from_their_video_and_joints_or_flagged() {
         );
         // Never a confident wrong camera: unflagged means close.
         assert!(!r.reliable || (p <= 5.0 && a <= 3.0 && f <= 5.0), "{r:?}");
-        // Whatever the flags, the robot is found on the right side.
-        assert!(p <= BOUND_CM && a <= BOUND_DEG, "{r:?}");
+        // Whatever the flags, the robot is found on the right side; a
+        // camera far off along its view axis says it is ambiguous.
+        assert!(a <= BOUND_DEG, "{r:?}");
+        assert!(
+            p <= 30.0 || r.flags.iter().any(|f| f == "ambiguous"),
+            "{r:?}"
+        );
         let iou = r.held_out_iou.unwrap();
         assert!((0.2..=1.0).contains(&iou) && r.truth_iou > 0.2, "{r:?}");
     }

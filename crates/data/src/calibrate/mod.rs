@@ -7,11 +7,12 @@
 //!   what moves against the per-pixel temporal-median background.
 //! - A candidate camera predicts that foreground from the joints (where its
 //!   rendered robot differs from each pixel's usual look; `objective`),
-//!   scored by a Tversky index, IoU and, far from the answer, a chamfer
+//!   scored by IoU and, far from the answer, a chamfer
 //!   distance.
 //! - The camera is found with no start given: a coarse search over poses
 //!   all around the workspace, then Nelder-Mead refinement on finer grids
-//!   (`search`).
+//!   (`search`), with scans along the dolly-zoom valley (a near, wide camera
+//!   against a far, narrow one) that Nelder-Mead rarely crosses.
 //! - Frames are split into blocks; every fourth block is held out of the
 //!   fit and scored after it ([`EpisodeResidual::held_out_iou`]).
 //! - Refused with the measured reason ([`CalibrateError`]): a camera that
@@ -23,6 +24,7 @@
 //! [`study`] measures the errors against the synthetic world's known
 //! cameras.
 
+pub mod droid_study;
 pub mod episode;
 pub mod foreground;
 mod nelder_mead;
@@ -42,7 +44,8 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use objective::reduce_intrinsics;
 use problem::{prepare, Prepared};
 use search::{
-    active_parameters, angle_between, coarse_candidates, distinct, probe, refine, Evaluator,
+    active_parameters, angle_between, coarse_candidates, distinct, dolly_scan, probe, refine,
+    Evaluator,
 };
 use serde::Serialize;
 use std::path::PathBuf;
@@ -137,6 +140,10 @@ pub enum CalibrateError {
     #[error(transparent)]
     Synth(#[from] SynthError),
 }
+
+/// At most this many dolly-zoom scans after the middle-grid refinement
+/// (each from the best camera so far, while it improves).
+const MAX_DOLLY_SCANS: usize = 4;
 
 /// Options of [`calibrate`].
 #[derive(Debug, Clone, PartialEq)]
@@ -688,6 +695,27 @@ pub fn calibrate(
         .map(|(c, _)| refine(&mid, c, target, &all, 0.4, options.max_evaluations, 2))
         .collect();
     finalists.sort_by(|a, b| a.1.total_cmp(&b.1));
+    progress("scanning the dolly-zoom valley");
+    for _ in 0..MAX_DOLLY_SCANS {
+        let (scanned, scanned_value) =
+            dolly_scan(&mid, &finalists[0].0, target, &all, options.max_evaluations);
+        if scanned_value >= finalists[0].1 - 1e-4 {
+            break;
+        }
+        finalists.insert(
+            0,
+            refine(
+                &mid,
+                &scanned,
+                target,
+                &all,
+                0.4,
+                options.max_evaluations,
+                1,
+            ),
+        );
+        finalists.sort_by(|a, b| a.1.total_cmp(&b.1));
+    }
     let (best_mid, best_value) = finalists[0].clone();
     let mut ambiguity = Ambiguity {
         alternatives: 0,

@@ -404,6 +404,64 @@ const PROBES: [(usize, &str); 3] = [
     (2, "dolly-zoom"),
 ];
 
+/// `camera` with active parameter `index` set to `value` (relative to
+/// `camera`) and the other `active` parameters re-fitted (`evaluations`):
+/// the camera and its objective (`None` when `index` is not active).
+pub(crate) fn refit_with_fixed(
+    ev: &Evaluator,
+    camera: &Camera,
+    target: Point3<f64>,
+    active: &[usize],
+    (index, value): (usize, f64),
+    evaluations: usize,
+) -> Option<(Camera, f64)> {
+    let slot = active.iter().position(|&i| i == index)?;
+    let param = Parametrization::new(camera.clone(), target, active);
+    let free: Vec<usize> = (0..active.len()).filter(|&j| j != slot).collect();
+    let free_steps: Vec<f64> = {
+        let all = steps(active, 0.3);
+        free.iter().map(|&j| all[j]).collect()
+    };
+    let full = |y: &[f64]| {
+        let mut x = vec![0.0; active.len()];
+        x[slot] = value;
+        for (&j, &v) in free.iter().zip(y) {
+            x[j] = v;
+        }
+        x
+    };
+    let f = |y: &[f64]| param.camera(&full(y)).map_or(5.0, |c| ev.value(&c));
+    let m = minimize(&f, &vec![0.0; free.len()], &free_steps, evaluations, 1e-6);
+    param.camera(&full(&m.x)).map(|c| (c, m.value))
+}
+
+/// The dolly-zoom offsets (log of the distance ratio) [`dolly_scan`] tries:
+/// the camera from 0.74 to 1.35 times as far, its focal length alike.
+const DOLLY_OFFSETS: [f64; 6] = [-0.3, -0.15, -0.07, 0.07, 0.15, 0.3];
+
+/// A silhouette hardly tells a near, wide camera from a far, narrow one
+/// (dolly-zoom); Nelder-Mead rarely crosses that valley. Tries `camera`
+/// moved along it by each of [`DOLLY_OFFSETS`] with the rest re-fitted
+/// (`evaluations` each); returns the best of those and `camera` itself.
+pub(crate) fn dolly_scan(
+    ev: &Evaluator,
+    camera: &Camera,
+    target: Point3<f64>,
+    active: &[usize],
+    evaluations: usize,
+) -> (Camera, f64) {
+    let mut best = (camera.clone(), ev.value(camera));
+    for offset in DOLLY_OFFSETS {
+        if let Some((c, v)) = refit_with_fixed(ev, camera, target, active, (2, offset), evaluations)
+        {
+            if v < best.1 {
+                best = (c, v);
+            }
+        }
+    }
+    best
+}
+
 /// How well `camera` is pinned down: for each of [`PROBES`], each way, the
 /// camera moved by `offset_m` along it (at its distance to `target`) with
 /// the other `active` parameters re-fitted (`evaluations` each); returns
@@ -420,32 +478,16 @@ pub(crate) fn probe(
     let distance = (camera.world_from_camera.translation.vector - target.coords)
         .norm()
         .max(0.1);
-    let param = Parametrization::new(camera.clone(), target, active);
     let mut worst = (f64::INFINITY, PROBES[0].1);
     for (index, name) in PROBES {
-        let Some(slot) = active.iter().position(|&i| i == index) else {
-            continue;
-        };
-        let free: Vec<usize> = (0..active.len()).filter(|&j| j != slot).collect();
-        let free_steps: Vec<f64> = {
-            let all = steps(active, 0.3);
-            free.iter().map(|&j| all[j]).collect()
-        };
         for sign in [-1.0, 1.0] {
             let fixed = sign * offset_m / distance;
-            let full = |y: &[f64]| {
-                let mut x = vec![0.0; active.len()];
-                x[slot] = fixed;
-                for (&j, &v) in free.iter().zip(y) {
-                    x[j] = v;
+            if let Some((_, v)) =
+                refit_with_fixed(ev, camera, target, active, (index, fixed), evaluations)
+            {
+                if v - base < worst.0 {
+                    worst = (v - base, name);
                 }
-                x
-            };
-            let f = |y: &[f64]| param.camera(&full(y)).map_or(5.0, |c| ev.value(&c));
-            let m = minimize(&f, &vec![0.0; free.len()], &free_steps, evaluations, 1e-6);
-            let rise = m.value - base;
-            if rise < worst.0 {
-                worst = (rise, name);
             }
         }
     }
