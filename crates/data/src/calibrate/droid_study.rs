@@ -9,6 +9,7 @@
 //! should land in the same place.
 
 use super::report::write_outputs;
+use super::study::median;
 use super::{calibrate, check, load_episode, CalibrateError, CalibrateOptions, EpisodeInput};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_embodiment::embodiment::Embodiment;
@@ -272,19 +273,6 @@ pub struct DroidStudyTable {
     pub reliable: usize,
     /// Median held-out IoU over calibrated cameras.
     pub median_held_out_iou: f64,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 fn position(c: &Camera) -> [f64; 3] {
