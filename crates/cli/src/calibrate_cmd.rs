@@ -21,6 +21,10 @@ pub struct FitArgs {
     /// 320x192 videos (the default of `calibrate-study --droid`).
     #[arg(long)]
     fy_over_fx: Option<f64>,
+    /// A known focal length: fx at the video's size in pixels (fy = fx x
+    /// --fy-over-fx), kept fixed: only the pose is fitted.
+    #[arg(long, value_name = "PX", conflicts_with = "fit_aspect")]
+    focal_px: Option<f64>,
     /// Fit fy / fx too.
     #[arg(long)]
     fit_aspect: bool,
@@ -49,6 +53,7 @@ impl FitArgs {
         CalibrateOptions {
             guess,
             fy_over_fx: self.fy_over_fx.unwrap_or(default_fy_over_fx),
+            focal_px: self.focal_px,
             fit_aspect: self.fit_aspect,
             fit_principal_point: self.fit_principal_point,
             analysis_width: self.analysis_width,
@@ -211,6 +216,10 @@ pub struct CalibrateStudyArgs {
     /// Dataset seed.
     #[arg(long, default_value_t = 7)]
     seed: u64,
+    /// Give each calibration the true camera's focal length (fit the pose
+    /// only), as a user who knows their camera's intrinsics would.
+    #[arg(long, conflicts_with = "droid")]
+    known_focal: bool,
     #[command(flatten)]
     fit: FitArgs,
     /// Output folder: study.json, study.md, and videos/*.mp4 (synthetic) or
@@ -234,6 +243,7 @@ pub fn run_study(args: &CalibrateStudyArgs) -> Result<()> {
         frames: args.frames,
         seed: args.seed,
         calibrate: args.fit.options(None, 1.0),
+        known_focal: args.known_focal,
     };
     options.validate()?;
     let out = OutputDir::create(&args.out, args.overwrite)?;

@@ -226,6 +226,17 @@ fn bad_joint_files_and_options_are_refused_naming_them() {
     };
     let err = bad.validate().unwrap_err().to_string();
     assert!(err.contains("--fy-over-fx = 0"), "{err}");
+    for f in [0.0, -3.0, f64::NAN] {
+        let bad = CalibrateOptions {
+            focal_px: Some(f),
+            ..CalibrateOptions::default()
+        };
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(
+            err.contains("--focal-px") && err.contains("above 0"),
+            "{err}"
+        );
+    }
     let bad = CalibrateOptions {
         distances_m: vec![],
         ..CalibrateOptions::default()
@@ -366,4 +377,27 @@ fn droid_exterior_cameras_pass_the_fixed_camera_rule_and_wrist_cameras_fail_it()
 #[ignore]
 fn droid_fixed_camera_rule_on_every_episode() {
     fixed_camera_rule_on_droid(44);
+}
+
+/// A known focal length is kept exactly; only the pose is fitted.
+#[test]
+fn a_known_focal_length_is_kept_and_only_the_pose_is_fitted() {
+    let options = StudyOptions {
+        cameras_per_split: 1,
+        width: 96,
+        height: 64,
+        frames: 16,
+        seed: 11,
+        calibrate: small_options(),
+        known_focal: true,
+        ..StudyOptions::default()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let table = synthetic_study(&options, dir.path(), &|line| eprintln!("{line}")).unwrap();
+    eprintln!("{}", table.to_markdown());
+    assert_eq!(table.calibrated, 2, "{:?}", table.rows);
+    for r in &table.rows {
+        assert!(r.focal_error_pct.unwrap() < 1e-9, "{r:?}");
+        assert!(r.angle_error_deg.unwrap() <= BOUND_DEG, "{r:?}");
+    }
 }

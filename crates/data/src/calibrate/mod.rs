@@ -161,6 +161,11 @@ pub struct CalibrateOptions {
     /// `fy / fx` of the start (and of the result unless `fit_aspect`):
     /// 1 for square pixels, 192/180 for DROID's stretched 320x192 videos.
     pub fy_over_fx: f64,
+    /// A known focal length: fx at the video's size (pixels; fy = fx x
+    /// `fy_over_fx`), kept fixed instead of fitted. A silhouette pins the
+    /// focal length down poorly (a near, wide camera against a far,
+    /// narrow one), so a known one removes the search's flattest direction.
+    pub focal_px: Option<f64>,
     /// Fit `fy / fx` too.
     pub fit_aspect: bool,
     /// Fit the principal point too (else the image centre).
@@ -227,6 +232,7 @@ impl Default for CalibrateOptions {
             mid_width: 160,
             coarse_width: 80,
             fy_over_fx: 1.0,
+            focal_px: None,
             fit_aspect: false,
             fit_principal_point: false,
             held_out_every: 4,
@@ -287,6 +293,15 @@ impl CalibrateOptions {
                 ),
                 "coarse <= mid <= analysis width",
             ));
+        }
+        if let Some(f) = self.focal_px {
+            if !(f.is_finite() && f > 0.0 && f <= 1e6) {
+                return Err(option_err(
+                    "--focal-px",
+                    f,
+                    "a focal length in pixels, above 0",
+                ));
+            }
         }
         if !(self.fy_over_fx.is_finite() && (0.5..=2.0).contains(&self.fy_over_fx)) {
             return Err(option_err(
@@ -634,7 +649,9 @@ pub fn calibrate(
     );
     let coarse = Evaluator::fit(robot, &prepared, 2, options.coarse_frames).coarse();
     progress("coarse search");
-    let mut candidates = coarse_candidates(&coarse, target, (w, h), options);
+    // A known focal length on the analysis grid.
+    let focal = options.focal_px.map(|f| f / f64::from(first.factor));
+    let mut candidates = coarse_candidates(&coarse, target, (w, h), options, focal);
     let found = candidates.len();
     if candidates.is_empty() {
         return Err(CalibrateError::NoCamera(
@@ -667,7 +684,11 @@ pub fn calibrate(
         let (vw, vh) = first.video_size;
         let g = g.rescaled(vw, vh);
         let k = reduce_intrinsics(&g.intrinsics, f64::from(first.factor), w, h);
-        let g = Camera::new(k, g.world_from_camera)?;
+        let mut g = Camera::new(k, g.world_from_camera)?;
+        if let Some(f) = focal {
+            g.intrinsics.fx = f;
+            g.intrinsics.fy = f * options.fy_over_fx;
+        }
         let v = coarse.value(&g);
         starts.push((g.clone(), v));
         candidates.push((g, v));

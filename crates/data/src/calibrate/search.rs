@@ -160,6 +160,10 @@ impl Parametrization {
         for (&i, &v) in self.active.iter().zip(x) {
             p[i] = v;
         }
+        if !self.active.contains(&6) {
+            // A fixed focal length: the dolly moves the camera only.
+            p[6] = -p[2];
+        }
         let b = &self.base;
         let k = &b.intrinsics;
         let (w, h) = (f64::from(k.width), f64::from(k.height));
@@ -240,16 +244,21 @@ fn moments(ev: &Evaluator, camera: &Camera) -> Moments {
     (finish(acc[0]), finish(acc[1]))
 }
 
-/// Zooms and turns `camera` so that its rendered robot's centroid and
-/// spread match the found robot pixels'; `None` when either is empty.
-fn recentre(ev: &Evaluator, camera: &Camera) -> Option<Camera> {
+/// Turns `camera` so that its rendered robot's centroid matches the found
+/// robot pixels', and (`zoom`) scales its focal length so their spreads
+/// match; `None` when either is empty.
+fn recentre(ev: &Evaluator, camera: &Camera, zoom: bool) -> Option<Camera> {
     let (p, o) = moments(ev, camera);
     if p[3] < 3.0 || o[3] < 3.0 || p[2] <= 0.0 {
         return None;
     }
     let k = &camera.intrinsics;
     let w = f64::from(k.width);
-    let s = (o[2] / p[2]).clamp(1.0 / 3.0, 3.0);
+    let s = if zoom {
+        (o[2] / p[2]).clamp(1.0 / 3.0, 3.0)
+    } else {
+        1.0
+    };
     let fx = (k.fx * s).clamp(FOCAL_RANGE.0 * w, FOCAL_RANGE.1 * w);
     let s = fx / k.fx;
     let fy = k.fy * s;
@@ -271,8 +280,9 @@ pub(crate) fn coarse_candidates(
     target: Point3<f64>,
     (width, height): (u32, u32),
     options: &CalibrateOptions,
+    focal: Option<f64>,
 ) -> Vec<(Camera, f64)> {
-    let f0 = 0.8 * f64::from(width);
+    let f0 = focal.unwrap_or(0.8 * f64::from(width));
     let intrinsics = Intrinsics {
         fx: f0,
         fy: f0 * options.fy_over_fx,
@@ -299,7 +309,7 @@ pub(crate) fn coarse_candidates(
         .filter_map(|eye| {
             let mut c = Camera::look_at(intrinsics, *eye, target, Vector3::z()).ok()?;
             for _ in 0..2 {
-                c = recentre(ev, &c)?;
+                c = recentre(ev, &c, focal.is_none())?;
             }
             Some((c.clone(), ev.value(&c)))
         })
@@ -336,11 +346,18 @@ pub(crate) fn distinct(candidates: &[(Camera, f64)], n: usize) -> Vec<(Camera, f
     out
 }
 
-/// The parameter indices fitted: position, rotation, focal length, and per
-/// options the aspect and the principal point.
+/// The parameter indices fitted: position, rotation, focal length (unless
+/// known), and per options the aspect (unless the focal length is known)
+/// and the principal point.
 pub(crate) fn active_parameters(options: &CalibrateOptions, all: bool) -> Vec<usize> {
-    let mut active: Vec<usize> = (0..7).collect();
-    if all && options.fit_aspect {
+    // A known focal length: no focal (6) and no aspect (7) parameter.
+    let known = options.focal_px.is_some();
+    let mut active: Vec<usize> = if known {
+        (0..6).collect()
+    } else {
+        (0..7).collect()
+    };
+    if all && options.fit_aspect && !known {
         active.push(7);
     }
     if all && options.fit_principal_point {

@@ -29,6 +29,9 @@ pub struct StudyOptions {
     pub seed: u64,
     /// The calibration's options.
     pub calibrate: CalibrateOptions,
+    /// Give each calibration the true camera's focal length (as a user who
+    /// knows their camera's intrinsics would), fitting the pose only.
+    pub known_focal: bool,
 }
 
 impl Default for StudyOptions {
@@ -41,6 +44,7 @@ impl Default for StudyOptions {
             frames: 40,
             seed: 7,
             calibrate: CalibrateOptions::default(),
+            known_focal: false,
         }
     }
 }
@@ -259,7 +263,15 @@ pub fn synthetic_study(
                 flags: Vec::new(),
                 seconds: 0.0,
             };
-            match calibrate(&world.embodiment, &[data], &options.calibrate, &|_| {}) {
+            let calibrate_options = CalibrateOptions {
+                focal_px: if options.known_focal {
+                    Some(episode.camera.intrinsics.fx)
+                } else {
+                    options.calibrate.focal_px
+                },
+                ..options.calibrate.clone()
+            };
+            match calibrate(&world.embodiment, &[data], &calibrate_options, &|_| {}) {
                 Ok(c) => {
                     let (p, a, f) = camera_errors(&c.camera, &episode.camera);
                     row.position_error_cm = Some(p);
