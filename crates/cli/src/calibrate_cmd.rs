@@ -251,12 +251,7 @@ pub fn run_study(args: &CalibrateStudyArgs) -> Result<()> {
         eprintln!("{line}")
     })?;
     let md = table.to_markdown();
-    bridgev2w_io::atomic::write_atomic(&out.path().join("study.md"), md.as_bytes())?;
-    bridgev2w_io::atomic::write_atomic(
-        &out.path().join("study.json"),
-        serde_json::to_string_pretty(&table)?.as_bytes(),
-    )?;
-    let dir = out.commit()?;
+    let dir = commit_study(out, &md, &serde_json::to_string_pretty(&table)?)?;
     crate::print_stdout(&format!(
         "{md}wrote {}/study.md, study.json\n",
         dir.display()
@@ -275,14 +270,16 @@ fn run_droid_study(args: &CalibrateStudyArgs, root: &Path) -> Result<()> {
     let out = OutputDir::create_for(&args.out, args.overwrite, &[root])?;
     let table = droid_study(&e, &options, out.path(), &|line| eprintln!("{line}"))?;
     let md = table.to_markdown();
-    bridgev2w_io::atomic::write_atomic(&out.path().join("study.md"), md.as_bytes())?;
-    bridgev2w_io::atomic::write_atomic(
-        &out.path().join("study.json"),
-        serde_json::to_string_pretty(&table)?.as_bytes(),
-    )?;
-    let dir = out.commit()?;
+    let dir = commit_study(out, &md, &serde_json::to_string_pretty(&table)?)?;
     crate::print_stdout(&format!(
         "{md}wrote {}/study.md, study.json and a folder per calibration\n",
         dir.display()
     ))
+}
+
+/// Writes `study.md` and `study.json` into `out` and commits it.
+fn commit_study(out: OutputDir, md: &str, json: &str) -> Result<PathBuf> {
+    bridgev2w_io::atomic::write_atomic(&out.path().join("study.md"), md.as_bytes())?;
+    bridgev2w_io::atomic::write_atomic(&out.path().join("study.json"), json.as_bytes())?;
+    Ok(out.commit()?)
 }
