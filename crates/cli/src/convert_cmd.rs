@@ -6,6 +6,7 @@ use anyhow::{bail, Result};
 use bridgev2w_data::raw::agibot::{AgibotOptions, GripperSource};
 use bridgev2w_data::raw::check_camera_list;
 use bridgev2w_data::raw::convert::{ConvertOptions, REPORT_FILE};
+use bridgev2w_data::raw::ctrl_world::{self, CtrlWorldOptions};
 use bridgev2w_data::raw::droid::DroidOptions;
 use bridgev2w_data::raw::droid_calibration::MissingCalibration;
 use bridgev2w_data::raw::source::{convert_source, ConvertProgress, RawSource};
@@ -14,12 +15,15 @@ use bridgev2w_embodiment::robot::LoadOptions;
 use std::path::PathBuf;
 
 /// Source layouts.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Format {
     /// DROID raw episodes (metadata_*.json, trajectory.h5, recordings/MP4).
     Droid,
     /// AgiBot World (proprio_stats, parameters, observations).
     Agibot,
+    /// DROID episodes of the Ctrl-World layout (annotation/<split>/<id>.json,
+    /// videos/<split>/<id>/{0,1,2}.mp4), cameras from --camera.
+    CtrlWorld,
 }
 
 /// Arguments of `convert`.
@@ -56,7 +60,7 @@ pub struct ConvertArgs {
     /// Output height (pixels, even).
     #[arg(long, default_value_t = 64)]
     height: usize,
-    /// Frame rate recorded in the dataset (DROID: 15, AgiBot World: 30).
+    /// Frame rate recorded in the dataset (DROID: 15, AgiBot World: 30, ctrl-world: 5).
     #[arg(long)]
     fps: Option<u32>,
     /// DROID: camera intrinsics: DROID's published intrinsics.json
@@ -75,6 +79,15 @@ pub struct ConvertArgs {
     /// extrinsics in trajectory.h5, counted in the report) or "error".
     #[arg(long, default_value = "recorded", value_parser = parse_from_str::<MissingCalibration>)]
     missing_calibration: MissingCalibration,
+    /// ctrl-world: ROLE=CAMERA_JSON per exterior camera to convert (ext1 is
+    /// 0.mp4, ext2 1.mp4), e.g. the camera.json of `bridgev2w calibrate` on
+    /// the rig; repeatable. The layout has no calibration of its own.
+    #[arg(long = "camera", value_name = "ROLE=JSON")]
+    camera_json: Vec<String>,
+    /// ctrl-world: only these episodes, comma-separated collection/split/id
+    /// (e.g. droid_new_setup_full/drawer/val/0000).
+    #[arg(long)]
+    include: Option<String>,
     /// Cameras, comma-separated (DROID roles ext1,ext2,wrist; AgiBot names head,hand_left,hand_right).
     #[arg(long)]
     cameras: Option<String>,
@@ -131,17 +144,23 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         fps: args.fps.unwrap_or(match args.format {
             Format::Droid => 15,
             Format::Agibot => 30,
+            Format::CtrlWorld => ctrl_world::FPS,
         }),
         joint_names: list(&args.joint_names),
         skip_bad: args.skip_bad,
         split: Some(args.split.clone()),
-        source_format: format!("{:?}", args.format).to_lowercase(),
+        source_format: match args.format {
+            Format::Droid => "droid",
+            Format::Agibot => "agibot",
+            Format::CtrlWorld => "ctrl-world",
+        }
+        .into(),
         overwrite: args.overwrite,
     };
     options.validate()?;
     let robot = args.robot.clone().unwrap_or_else(|| {
         match args.format {
-            Format::Droid => "franka-robotiq",
+            Format::Droid | Format::CtrlWorld => "franka-robotiq",
             Format::Agibot => "agibot-g1",
         }
         .to_string()
@@ -152,7 +171,36 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         &args.ee_links,
         &args.gripper_joints,
     )?;
+    if args.format != Format::CtrlWorld && (!args.camera_json.is_empty() || args.include.is_some())
+    {
+        bail!("--camera/--include apply to --format ctrl-world");
+    }
     let source = match args.format {
+        Format::CtrlWorld => {
+            if args.intrinsics.is_some() || !args.calibration.is_empty() || cameras.is_some() {
+                bail!("--intrinsics/--calibration/--cameras apply to raw DROID and AgiBot World; the ctrl-world layout takes --camera ROLE=CAMERA_JSON");
+            }
+            let cameras = args
+                .camera_json
+                .iter()
+                .map(|c| {
+                    c.split_once('=')
+                        .map(|(r, p)| (r.trim().to_string(), PathBuf::from(p)))
+                        .ok_or_else(|| {
+                            anyhow::anyhow!(
+                                "--camera {c:?}: expected ROLE=CAMERA_JSON (ROLE ext1 or ext2)"
+                            )
+                        })
+                })
+                .collect::<Result<Vec<_>>>()?;
+            RawSource::CtrlWorld {
+                root: args.src.clone(),
+                options: CtrlWorldOptions {
+                    cameras,
+                    include: list(&args.include),
+                },
+            }
+        }
         Format::Droid => {
             let intrinsics = args.intrinsics.as_deref().ok_or_else(|| {
                 anyhow::anyhow!("--intrinsics FILE is required for DROID: the raw episodes' trajectory.h5 records no intrinsics (DROID publishes them as intrinsics.json)")

@@ -40,6 +40,40 @@ fn convert_refuses_a_frame_rate_the_dataset_reader_would_refuse() {
 }
 
 #[test]
+fn convert_ctrl_world_needs_fixed_exterior_cameras() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (src, out) = (tmp.path().join("src"), tmp.path().join("out"));
+    let cw = |rest: &[&str]| {
+        let mut args = vec![
+            "convert",
+            "--format",
+            "ctrl-world",
+            s(&src),
+            "--out",
+            s(&out),
+        ];
+        args.extend_from_slice(rest);
+        run(&args)
+    };
+    refused(&cw(&[]), &["no camera given", "bridgev2w calibrate"]);
+    refused(
+        &cw(&["--camera", "ext1"]),
+        &["--camera \"ext1\"", "ROLE=CAMERA_JSON"],
+    );
+    refused(&cw(&["--camera", "wrist=c.json"]), &["moves with the hand"]);
+    refused(
+        &cw(&["--camera", "ext1=absent.json"]),
+        &["ext1 camera absent.json"],
+    );
+    // The flags belong to this layout only.
+    refused(
+        &convert(tmp.path(), &["--camera", "ext1=c.json"]),
+        &["--camera/--include apply to --format ctrl-world"],
+    );
+    assert!(!out.exists());
+}
+
+#[test]
 fn convert_refuses_duplicate_or_no_cameras() {
     let tmp = tempfile::tempdir().unwrap();
     refused(

@@ -72,130 +72,34 @@ impl DroidStudyOptions {
     }
 }
 
-/// One DROID episode of the Ctrl-World layout.
-#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
-pub struct DroidEpisode {
-    /// Its collection: the folder holding `annotation/` and `videos/`,
-    /// relative to the root (`droid_new_setup_full/drawer`).
-    pub collection: String,
-    /// `train` or `val`.
-    pub split: String,
-    /// The episode's id (its folder name).
-    pub id: String,
-    /// `videos/<split>/<id>`.
-    pub dir: PathBuf,
-    /// `annotation/<split>/<id>.json`.
-    pub annotation: PathBuf,
-}
+/// One DROID episode of the Ctrl-World layout (the importer's type).
+pub use crate::raw::ctrl_world::CtrlWorldEpisode as DroidEpisode;
 
-impl DroidEpisode {
-    /// Whether the episode was recorded on the shared rig
-    /// (`droid_new_setup*`).
-    pub fn shared_rig(&self) -> bool {
-        self.collection.starts_with("droid_new_setup")
-    }
-
-    /// `collection/split/id`.
-    pub fn name(&self) -> String {
-        format!("{}/{}/{}", self.collection, self.split, self.id)
-    }
-
-    /// The input of camera `camera` (`0.mp4` ...).
-    pub fn input(&self, camera: usize) -> EpisodeInput {
-        EpisodeInput {
-            video: self.dir.join(format!("{camera}.mp4")),
-            joints: self.annotation.clone(),
-        }
-    }
-
-    /// A file-name-safe label: `collection_split_id_camN`.
-    fn label(&self, camera: usize) -> String {
-        format!(
-            "{}_{}_{}_cam{camera}",
-            self.collection.replace('/', "_"),
-            self.split,
-            self.id
-        )
+/// The input of camera `camera` (`0.mp4` ...) of an episode.
+fn input(ep: &DroidEpisode, camera: usize) -> EpisodeInput {
+    EpisodeInput {
+        video: ep.video(camera),
+        joints: ep.annotation.clone(),
     }
 }
 
-fn io_err(path: &Path, e: std::io::Error) -> CalibrateError {
-    CalibrateError::Output {
-        path: path.to_path_buf(),
-        message: format!("cannot read: {e}"),
-    }
+/// A file-name-safe label: `collection_split_id_camN`.
+fn label(ep: &DroidEpisode, camera: usize) -> String {
+    format!(
+        "{}_{}_{}_cam{camera}",
+        ep.collection.replace('/', "_"),
+        ep.split,
+        ep.id
+    )
 }
 
-/// Every episode under `root`: each folder `<collection>/videos/<split>/<id>`
-/// holding `0.mp4` whose `<collection>/annotation/<split>/<id>.json` exists,
-/// sorted. Symbolic links are not followed; an empty result is an error
-/// naming the root.
+/// Every episode under `root` ([`crate::raw::ctrl_world::find_episodes`]),
+/// its error as a calibration error naming the root.
 pub fn find_droid_episodes(root: &Path) -> Result<Vec<DroidEpisode>, CalibrateError> {
-    let mut out = Vec::new();
-    let mut stack = vec![root.to_path_buf()];
-    while let Some(dir) = stack.pop() {
-        let videos = dir.join("videos");
-        if videos.is_dir() && dir.join("annotation").is_dir() {
-            // The root itself may be a collection: then its own name.
-            let relative = dir.strip_prefix(root).unwrap_or(&dir);
-            let collection = if relative.as_os_str().is_empty() {
-                file_name(&root.canonicalize().unwrap_or_else(|_| root.to_path_buf()))
-            } else {
-                relative.to_string_lossy().replace('\\', "/")
-            };
-            for split in read_dirs(&videos)? {
-                let split_name = file_name(&split);
-                for ep in read_dirs(&split)? {
-                    let id = file_name(&ep);
-                    let annotation = dir
-                        .join("annotation")
-                        .join(&split_name)
-                        .join(format!("{id}.json"));
-                    if ep.join("0.mp4").is_file() && annotation.is_file() {
-                        out.push(DroidEpisode {
-                            collection: collection.clone(),
-                            split: split_name.clone(),
-                            id,
-                            dir: ep,
-                            annotation,
-                        });
-                    }
-                }
-            }
-        } else {
-            stack.extend(read_dirs(&dir)?);
-        }
-    }
-    if out.is_empty() {
-        return Err(CalibrateError::Episode {
-            episode: root.display().to_string(),
-            message: "no DROID episode found: expected <collection>/videos/<split>/<id>/0.mp4 with <collection>/annotation/<split>/<id>.json (the Ctrl-World layout)".into(),
-        });
-    }
-    out.sort();
-    Ok(out)
-}
-
-fn file_name(p: &Path) -> String {
-    p.file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default()
-}
-
-/// The sub-folders of `dir` (not following symbolic links), sorted.
-fn read_dirs(dir: &Path) -> Result<Vec<PathBuf>, CalibrateError> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir(dir).map_err(|e| io_err(dir, e))? {
-        let e = e.map_err(|e| io_err(dir, e))?;
-        if e.file_type()
-            .map_err(|err| io_err(&e.path(), err))?
-            .is_dir()
-        {
-            v.push(e.path());
-        }
-    }
-    v.sort();
-    Ok(v)
+    crate::raw::ctrl_world::find_episodes(root).map_err(|e| CalibrateError::Episode {
+        episode: root.display().to_string(),
+        message: e.to_string(),
+    })
 }
 
 /// One exterior camera of one episode.
@@ -319,8 +223,8 @@ pub fn droid_study(
     let mut rows = Vec::new();
     for ep in &episodes {
         for camera in EXTERIOR_CAMERAS {
-            let label = ep.label(camera);
-            let data = load_episode(&ep.input(camera), embodiment, o.analysis_width)?;
+            let label = label(ep, camera);
+            let data = load_episode(&input(ep, camera), embodiment, o.analysis_width)?;
             let mut row = DroidRow {
                 episode: ep.name(),
                 camera,
@@ -413,7 +317,7 @@ fn rig_calibration(
     let (fit, rest) = rig.split_at(options.rig_fit_episodes);
     let load = |eps: &[&DroidEpisode]| {
         eps.iter()
-            .map(|e| load_episode(&e.input(camera), embodiment, o.analysis_width))
+            .map(|e| load_episode(&input(e, camera), embodiment, o.analysis_width))
             .collect::<Result<Vec<_>, _>>()
     };
     let fitted = load(fit)?;
@@ -586,7 +490,7 @@ mod tests {
         assert_eq!(found[0].name(), "droid_new_setup_full/drawer/val/0001");
         assert!(found[0].shared_rig());
         assert_eq!(
-            found[0].label(1),
+            label(&found[0], 1),
             "droid_new_setup_full_drawer_val_0001_cam1"
         );
         // The collection itself as the root: named by its folder.
@@ -596,6 +500,9 @@ mod tests {
         let e = find_droid_episodes(empty.path())
             .expect_err("refused")
             .to_string();
-        assert!(e.contains("no DROID episode found"), "{e}");
+        assert!(
+            e.contains("missing DROID episode of the Ctrl-World layout"),
+            "{e}"
+        );
     }
 }

@@ -363,6 +363,19 @@ pub fn convert(
     options: &ConvertOptions,
     on_item: &dyn Fn(&str),
 ) -> Result<ConvertReport, ConvertError> {
+    convert_listing(episodes, Vec::new(), embodiment, out, options, on_item)
+}
+
+/// [`convert`], with items the reader already set aside (e.g. repeated
+/// episodes) listed first among the report's skipped items.
+pub fn convert_listing(
+    episodes: impl IntoIterator<Item = (String, Result<RawEpisode, RawError>)>,
+    set_aside: Vec<Skipped>,
+    embodiment: &Embodiment,
+    out: &Path,
+    options: &ConvertOptions,
+    on_item: &dyn Fn(&str),
+) -> Result<ConvertReport, ConvertError> {
     options.validate()?;
     let arms = embodiment.end_effectors.len();
     let names = |prefix: &str, n: usize| (0..n).map(|i| format!("{prefix}{i}")).collect();
@@ -381,7 +394,10 @@ pub fn convert(
             .collect(),
         names("ee_", 7 * arms),
     )?;
-    let mut report = ConvertReport::default();
+    let mut report = ConvertReport {
+        skipped: set_aside,
+        ..ConvertReport::default()
+    };
     for (item, result) in episodes {
         let outcome = (|| -> Result<Vec<(String, ConvertError)>, ConvertError> {
             let ep = result?;

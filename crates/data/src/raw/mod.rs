@@ -19,6 +19,7 @@
 pub mod agibot;
 pub mod align;
 pub mod convert;
+pub mod ctrl_world;
 pub mod droid;
 pub mod droid_calibration;
 pub mod h5;

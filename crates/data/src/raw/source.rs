@@ -6,7 +6,10 @@
 //! [`convert_source`].
 
 use super::agibot::{self, AgibotOptions};
-use super::convert::{convert, ConvertError, ConvertOptions, ConvertReport};
+use super::convert::{
+    convert, convert_listing, ConvertError, ConvertOptions, ConvertReport, Skipped,
+};
+use super::ctrl_world::{self, CtrlWorldOptions};
 use super::droid::{self, DroidOptions};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_io::output::OutputDir;
@@ -21,6 +24,15 @@ pub enum RawSource {
         root: PathBuf,
         /// Cameras and calibration.
         options: DroidOptions,
+    },
+    /// DROID episodes of the Ctrl-World layout under `root`
+    /// (`<collection>/annotation/<split>/<id>.json`, `videos/...`), with a
+    /// camera JSON per exterior camera ([`ctrl_world`]).
+    CtrlWorld {
+        /// A collection, or a folder holding several.
+        root: PathBuf,
+        /// Cameras and episode selection.
+        options: CtrlWorldOptions,
     },
     /// An AgiBot World root (`proprio_stats/<task>/<episode>/...`).
     Agibot {
@@ -41,6 +53,9 @@ impl RawSource {
     pub fn validate(&self) -> Result<(), String> {
         let (cameras, check) = match self {
             RawSource::Droid { options, .. } => (&options.roles, options.check_roles()),
+            RawSource::CtrlWorld { options, .. } => {
+                return options.validate().map_err(|e| format!("cameras: {e}"))
+            }
             RawSource::Agibot { options, .. } => (
                 &options.cameras,
                 super::check_camera_list(&options.cameras).and_then(|()| {
@@ -79,7 +94,9 @@ pub fn convert_source(
     options.validate()?;
     let limit = limit.unwrap_or(usize::MAX);
     let root = match source {
-        RawSource::Droid { root, .. } | RawSource::Agibot { root, .. } => root,
+        RawSource::Droid { root, .. }
+        | RawSource::CtrlWorld { root, .. }
+        | RawSource::Agibot { root, .. } => root,
     };
     // An output equal to, inside or containing the source would delete it.
     let output = OutputDir::create_for(out, options.overwrite, &[root])
@@ -103,6 +120,25 @@ pub fn convert_source(
                 .iter()
                 .map(|d| (d.display().to_string(), droid::read_episode(d, o)));
             convert(items, embodiment, &tmp, options, &on_item)?
+        }
+        RawSource::CtrlWorld { root, options: o } => {
+            let found = ctrl_world::select(ctrl_world::find_episodes(root)?, o.include.as_deref())?;
+            let (kept, repeats) = ctrl_world::dedupe(found)?;
+            let kept: Vec<_> = kept.into_iter().take(limit).collect();
+            progress(ConvertProgress::Found(kept.len()));
+            let items = kept
+                .iter()
+                .map(|e| (e.name(), ctrl_world::read_episode(e, o)));
+            // Repeats are listed, not converted twice (their frames would
+            // sit on both sides of a train/test split).
+            let repeats = repeats
+                .into_iter()
+                .map(|(repeat, original)| Skipped {
+                    item: repeat,
+                    error: format!("the same joint recording as {original}: not converted twice"),
+                })
+                .collect();
+            convert_listing(items, repeats, embodiment, &tmp, options, &on_item)?
         }
         RawSource::Agibot { root, options: o } => {
             let keys: Vec<_> = agibot::find_episodes(root)?
