@@ -88,6 +88,10 @@ pub struct ConvertArgs {
     /// (e.g. droid_new_setup_full/drawer/val/0000).
     #[arg(long)]
     include: Option<String>,
+    /// ctrl-world: ROLE=SPLIT, the split one camera's views are written with
+    /// instead of --split (e.g. ext2=unseen_camera: a held-out view); repeatable.
+    #[arg(long, value_name = "ROLE=SPLIT")]
+    view_split: Vec<String>,
     /// Cameras, comma-separated (DROID roles ext1,ext2,wrist; AgiBot names head,hand_left,hand_right).
     #[arg(long)]
     cameras: Option<String>,
@@ -171,9 +175,10 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         &args.ee_links,
         &args.gripper_joints,
     )?;
-    if args.format != Format::CtrlWorld && (!args.camera_json.is_empty() || args.include.is_some())
+    if args.format != Format::CtrlWorld
+        && (!args.camera_json.is_empty() || args.include.is_some() || !args.view_split.is_empty())
     {
-        bail!("--camera/--include apply to --format ctrl-world");
+        bail!("--camera/--include/--view-split apply to --format ctrl-world");
     }
     let source = match args.format {
         Format::CtrlWorld => {
@@ -198,6 +203,17 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
                 options: CtrlWorldOptions {
                     cameras,
                     include: list(&args.include),
+                    view_splits: args
+                        .view_split
+                        .iter()
+                        .map(|v| {
+                            v.split_once('=')
+                                .map(|(r, s)| (r.trim().to_string(), s.trim().to_string()))
+                                .ok_or_else(|| {
+                                    anyhow::anyhow!("--view-split {v:?}: expected ROLE=SPLIT (e.g. ext2=unseen_camera)")
+                                })
+                        })
+                        .collect::<Result<Vec<_>>>()?,
                 },
             }
         }

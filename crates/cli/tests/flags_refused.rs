@@ -68,7 +68,7 @@ fn convert_ctrl_world_needs_fixed_exterior_cameras() {
     // The flags belong to this layout only.
     refused(
         &convert(tmp.path(), &["--camera", "ext1=c.json"]),
-        &["--camera/--include apply to --format ctrl-world"],
+        &["--camera/--include/--view-split apply to --format ctrl-world"],
     );
     assert!(!out.exists());
 }

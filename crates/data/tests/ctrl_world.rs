@@ -82,15 +82,16 @@ fn real_episodes_convert_with_their_joints_and_repeats_are_listed_once() {
     let source = RawSource::CtrlWorld {
         root: root.clone(),
         options: CtrlWorldOptions {
-            cameras: vec![("ext1".into(), cam)],
+            cameras: vec![("ext1".into(), cam.clone()), ("ext2".into(), cam)],
             include: Some(include),
+            view_splits: vec![("ext2".into(), "unseen_camera".into())],
         },
     };
     let out = dir.path().join("ds");
     let report =
         convert_source(&source, None, &franka(), &out, &options("test"), &|_| {}).expect("convert");
     assert_eq!(report.episodes, 2, "{report:?}");
-    assert_eq!(report.views_written, 2);
+    assert_eq!(report.views_written, 4);
     assert_eq!(report.skipped.len(), 1, "{:?}", report.skipped);
     assert_eq!(
         report.skipped[0].item,
@@ -137,15 +138,21 @@ fn real_episodes_convert_with_their_joints_and_repeats_are_listed_once() {
         .count();
     assert!(covered * 2 > shape[0], "{covered} of {} frames", shape[0]);
 
-    // Episode 1: droid_subset/train/6, 39 video frames from the 15 Hz
-    // arrays taken every third row.
+    // Its second view (ext2) is written with the split asked for it.
+    let info = ds.episode(1).expect("episode 1");
+    assert_eq!(info.split.as_deref(), Some("unseen_camera"));
+    assert_eq!(info.length, joints.len());
+
+    // Episodes 2 and 3: droid_subset/train/6, 39 video frames from the
+    // 15 Hz arrays taken every third row.
     let ann = annotation(&root.join("droid_subset/annotation/train/6.json"));
     let raw = ann["observation.state.joint_position"]
         .as_array()
         .expect("15 Hz joints");
-    let info = ds.episode(1).expect("episode 1");
+    let info = ds.episode(2).expect("episode 2");
     assert_eq!(info.length, 39);
-    let data = ds.read_episode(1).expect("read");
+    assert_eq!(info.split.as_deref(), Some("test"));
+    let data = ds.read_episode(2).expect("read");
     let t = 10;
     let want = raw[3 * t][2].as_f64().expect("number");
     assert!((f64::from(data.frames[t].state[2]) - want).abs() < 1e-5);
@@ -200,6 +207,7 @@ fn bad_annotations_and_cameras_are_refused_by_name() {
             &CtrlWorldOptions {
                 cameras: vec![("ext1".into(), cam.clone())],
                 include: None,
+                view_splits: Vec::new(),
             },
         )
     };
@@ -250,8 +258,17 @@ fn bad_annotations_and_cameras_are_refused_by_name() {
                 .map(|(r, p)| (r.to_string(), p))
                 .collect(),
             include: None,
+            view_splits: Vec::new(),
         };
         let e = o.validate().expect_err(want);
         assert!(e.contains(want), "{e}");
     }
+    // A view split for a camera not converted.
+    let o = CtrlWorldOptions {
+        cameras: vec![("ext1".into(), cam.clone())],
+        include: None,
+        view_splits: vec![("ext2".into(), "unseen_camera".into())],
+    };
+    let e = o.validate().expect_err("no ext2");
+    assert!(e.contains("no camera ext2 is converted"), "{e}");
 }

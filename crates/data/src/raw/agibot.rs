@@ -503,6 +503,7 @@ pub fn read_episode(
                 frames,
             )?,
             frame_times: None,
+            split: None,
         });
     }
     let mut ep = RawEpisode {

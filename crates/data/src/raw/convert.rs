@@ -462,7 +462,7 @@ pub fn convert_listing(
                 }));
                 writer.add_episode(WriterEpisode {
                     task: &task,
-                    split: options.split.as_deref(),
+                    split: view.split.as_deref().or(options.split.as_deref()),
                     states: pick(&states, &clip.states),
                     actions: pick(&actions, &clip.states),
                     rgb: &clip.rgb,

@@ -82,6 +82,9 @@ pub struct CtrlWorldOptions {
     /// Only these episodes (`collection/split/id`, as [`CtrlWorldEpisode::name`]);
     /// `None`: all. A name that matches no episode is an error.
     pub include: Option<Vec<String>>,
+    /// Per camera role, the split its views are written with instead of
+    /// the conversion's (e.g. `ext2` as `unseen_camera`: a held-out view).
+    pub view_splits: Vec<(String, String)>,
 }
 
 impl CtrlWorldOptions {
@@ -112,6 +115,18 @@ impl CtrlWorldOptions {
             seen.push(role.clone());
             confine::regular_file(path, confine::MAX_METADATA_BYTES)
                 .map_err(|e| format!("{role} camera {}: {e}", path.display()))?;
+        }
+        for (role, split) in &self.view_splits {
+            if !self.cameras.iter().any(|(r, _)| r == role) {
+                return Err(format!(
+                    "view split {role}={split}: no camera {role} is converted (expected one of the --camera roles)"
+                ));
+            }
+            if split.is_empty() || split.contains(['/', '\\']) {
+                return Err(format!(
+                    "view split {role}={split:?}: expected a split name such as unseen_camera"
+                ));
+            }
         }
         Ok(())
     }
@@ -306,12 +321,18 @@ pub fn read_episode(
             confine::MAX_VIDEO_BYTES,
             role.as_str(),
         )?;
+        let split = options
+            .view_splits
+            .iter()
+            .find(|(r, _)| *r == role)
+            .map(|(_, s)| s.clone());
         views.push(RawView {
             name: role,
             video,
             intrinsics: camera.intrinsics,
             world_from_camera: vec![camera.world_from_camera; frames],
             frame_times: None,
+            split,
         });
     }
     let mut raw = RawEpisode {

@@ -376,6 +376,7 @@ pub fn read_episode(dir: &Path, options: &DroidOptions) -> Result<RawEpisode, Ra
             intrinsics,
             world_from_camera,
             frame_times,
+            split: None,
         });
     }
     ep.validate()?;

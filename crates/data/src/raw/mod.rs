@@ -295,6 +295,9 @@ pub struct RawView {
     /// Recorded timestamps matching video frames to states, where the raw
     /// data has them (used only when the counts differ; see [`align`]).
     pub frame_times: Option<align::FrameTimes>,
+    /// The split this view's episode is written with, instead of the
+    /// conversion's (e.g. a held-out camera view as `unseen_camera`).
+    pub split: Option<String>,
 }
 
 impl RawView {
