@@ -7,10 +7,13 @@
 //! link's label map `L_t`, takes each pixel's usual label `U` (the most
 //! frequent over a spread of the episode's frames; 0 = background), and
 //! predicts a change where one of `L_t` and `U` is the robot and the other
-//! the background. Where both are the robot (its parts passing over each
-//! other, or turning), a change may or may not show: found and predicted
-//! pixels there are left out of the score. The robot's static parts cost
-//! nothing either way.
+//! the background. Where both are the robot but different links (its parts
+//! passing over each other), a change may or may not show: found and
+//! predicted pixels there are left out of the score. Where the link usually
+//! there is there now, no change is predicted: a found change there is a
+//! miss. (Leaving those out too let a camera inside the robot's base, which
+//! sees one link everywhere, score a perfect 1 on real DROID video: every
+//! pixel left out.) The robot's static parts cost nothing either way.
 //!
 //! On a reduced grid the found pixels are fractions (the box average of the
 //! full-grid masks). Predicted `P_t` and found `F_t` are compared by
@@ -211,8 +214,9 @@ fn modal(values: &mut [u16]) -> u16 {
 /// The predicted pixels of `frames` through `camera` (on the level's grid):
 /// 1 where the robot appears over its usual background or leaves its usual
 /// place (the rendered label differs from the pixel's usual label over
-/// `mode_frames`, one of them background), [`OVER_ROBOT`] where it shows
-/// over itself, else 0 (see the module documentation).
+/// `mode_frames`, one of them background), [`OVER_ROBOT`] where another
+/// link shows over the one usually there, else 0 (see the module
+/// documentation).
 pub(crate) fn predicted(
     robot: &Robot,
     poses: &[Vec<Isometry3<f64>>],
@@ -248,13 +252,24 @@ pub(crate) fn predicted(
             labels[at(t)]
                 .iter()
                 .zip(&usual)
-                .map(|(&l, &u)| match (l != 0 && u != 0, l != u) {
-                    (true, _) => OVER_ROBOT,
-                    (false, change) => u8::from(change),
-                })
+                .map(|(&l, &u)| change_code(l, u))
                 .collect()
         })
         .collect()
+}
+
+/// The predicted change of a pixel whose rendered label is `l` and usual
+/// label `u` (0 = background): none when they agree, [`OVER_ROBOT`] when
+/// two different links meet, else a change.
+pub(crate) fn change_code(l: u16, u: u16) -> u8 {
+    if l == u {
+        // Background as usual, or the link usually there.
+        0
+    } else if l != 0 && u != 0 {
+        OVER_ROBOT
+    } else {
+        1
+    }
 }
 
 /// The weight of the chamfer and centroid terms of
@@ -488,6 +503,27 @@ mod tests {
             (s3.intersection, s3.false_alarms, s3.misses),
             (0.5, 0.5, 0.0)
         );
+    }
+
+    #[test]
+    fn a_view_filled_by_the_link_usually_there_predicts_no_change() {
+        assert_eq!(change_code(0, 0), 0);
+        assert_eq!(change_code(3, 3), 0);
+        assert_eq!(change_code(3, 0), 1);
+        assert_eq!(change_code(0, 3), 1);
+        assert_eq!(change_code(4, 3), OVER_ROBOT);
+        // A camera inside the base sees link 1 everywhere in every frame:
+        // nothing is left out, so the found changes are all misses (it
+        // scored a perfect IoU of 1 when such pixels were left out).
+        let (w, h) = (8, 6);
+        let labels = vec![1u16; w * h];
+        let predicted: Vec<u8> = labels.iter().map(|&l| change_code(l, 1)).collect();
+        let mut found = vec![0.0f32; w * h];
+        found[..10].iter_mut().for_each(|v| *v = 1.0);
+        let (s, _) = frame_score(&predicted, &found, (w, h), 4.0, false);
+        assert_eq!(s.intersection, 0.0);
+        assert!(s.union >= 10.0, "{s:?}");
+        assert_eq!(s.iou(), 0.0);
     }
 
     #[test]
