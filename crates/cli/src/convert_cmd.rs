@@ -6,7 +6,7 @@ use anyhow::{bail, Result};
 use bridgev2w_data::raw::agibot::{AgibotOptions, GripperSource};
 use bridgev2w_data::raw::check_camera_list;
 use bridgev2w_data::raw::convert::{ConvertOptions, REPORT_FILE};
-use bridgev2w_data::raw::ctrl_world::{self, CtrlWorldOptions};
+use bridgev2w_data::raw::ctrl_world::{self, CtrlWorldOptions, SplitRule};
 use bridgev2w_data::raw::droid::DroidOptions;
 use bridgev2w_data::raw::droid_calibration::MissingCalibration;
 use bridgev2w_data::raw::source::{convert_source, ConvertProgress, RawSource};
@@ -88,10 +88,12 @@ pub struct ConvertArgs {
     /// (e.g. droid_new_setup_full/drawer/val/0000).
     #[arg(long)]
     include: Option<String>,
-    /// ctrl-world: ROLE=SPLIT, the split one camera's views are written with
-    /// instead of --split (e.g. ext2=unseen_camera: a held-out view); repeatable.
-    #[arg(long, value_name = "ROLE=SPLIT")]
-    view_split: Vec<String>,
+    /// ctrl-world: EPISODE[:ROLE]=SPLIT, the split of the matching views
+    /// instead of --split, or - for not converted; EPISODE collection/split/id
+    /// or *; first match wins; repeatable (e.g. "*:ext2=-" and
+    /// "droid_new_setup/val/0002:ext2=unseen_camera": a held-out view).
+    #[arg(long, value_name = "EPISODE[:ROLE]=SPLIT", value_parser = parse_from_str::<SplitRule>)]
+    split_rule: Vec<SplitRule>,
     /// Cameras, comma-separated (DROID roles ext1,ext2,wrist; AgiBot names head,hand_left,hand_right).
     #[arg(long)]
     cameras: Option<String>,
@@ -176,9 +178,9 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
         &args.gripper_joints,
     )?;
     if args.format != Format::CtrlWorld
-        && (!args.camera_json.is_empty() || args.include.is_some() || !args.view_split.is_empty())
+        && (!args.camera_json.is_empty() || args.include.is_some() || !args.split_rule.is_empty())
     {
-        bail!("--camera/--include/--view-split apply to --format ctrl-world");
+        bail!("--camera/--include/--split-rule apply to --format ctrl-world");
     }
     let source = match args.format {
         Format::CtrlWorld => {
@@ -203,17 +205,7 @@ pub fn run(args: &ConvertArgs) -> Result<()> {
                 options: CtrlWorldOptions {
                     cameras,
                     include: list(&args.include),
-                    view_splits: args
-                        .view_split
-                        .iter()
-                        .map(|v| {
-                            v.split_once('=')
-                                .map(|(r, s)| (r.trim().to_string(), s.trim().to_string()))
-                                .ok_or_else(|| {
-                                    anyhow::anyhow!("--view-split {v:?}: expected ROLE=SPLIT (e.g. ext2=unseen_camera)")
-                                })
-                        })
-                        .collect::<Result<Vec<_>>>()?,
+                    split_rules: args.split_rule.clone(),
                 },
             }
         }

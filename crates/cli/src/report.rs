@@ -34,6 +34,13 @@ pub struct EvalReportArgs {
     /// go to the folder named after it: OUT_WITHOUT_.md/figures/.
     #[arg(long, default_value = "docs/results.md")]
     out: PathBuf,
+    /// The section of --out replaced (`video`: the synthetic study's);
+    /// another section's figures are named SECTION-*.png.
+    #[arg(long, default_value = "video")]
+    section: String,
+    /// The section's heading (default: the synthetic study's).
+    #[arg(long)]
+    title: Option<String>,
 }
 
 impl From<&EvalReportArgs> for VideoReportOptions {
@@ -44,6 +51,11 @@ impl From<&EvalReportArgs> for VideoReportOptions {
             training_runs: a.training_runs.clone(),
             grids: a.grids.clone(),
             results: Some(a.out.clone()),
+            section: a.section.clone(),
+            title: a
+                .title
+                .clone()
+                .unwrap_or_else(|| VideoReportOptions::synthetic(Vec::new()).title),
         }
     }
 }
@@ -51,7 +63,7 @@ impl From<&EvalReportArgs> for VideoReportOptions {
 /// `bridgev2w eval-report`.
 pub fn run_eval_report(a: &EvalReportArgs) -> Result<()> {
     let md = video_report(&a.into())?;
-    write_section(&a.out, "video", &md)?;
+    write_section(&a.out, &a.section, &md)?;
     if let Some(w) = bridgev2w_io::plot::missing_font_warning() {
         eprintln!("{w}");
     }

@@ -62,13 +62,21 @@ fn convert_ctrl_world_needs_fixed_exterior_cameras() {
     );
     refused(&cw(&["--camera", "wrist=c.json"]), &["moves with the hand"]);
     refused(
+        &cw(&["--split-rule", "a/val/1:wrist=test"]),
+        &[
+            "split rule \"a/val/1:wrist=test\"",
+            "role \"wrist\"",
+            "EPISODE[:ROLE]=SPLIT",
+        ],
+    );
+    refused(
         &cw(&["--camera", "ext1=absent.json"]),
         &["ext1 camera absent.json"],
     );
     // The flags belong to this layout only.
     refused(
         &convert(tmp.path(), &["--camera", "ext1=c.json"]),
-        &["--camera/--include/--view-split apply to --format ctrl-world"],
+        &["--camera/--include/--split-rule apply to --format ctrl-world"],
     );
     assert!(!out.exists());
 }

@@ -84,14 +84,20 @@ fn real_episodes_convert_with_their_joints_and_repeats_are_listed_once() {
         options: CtrlWorldOptions {
             cameras: vec![("ext1".into(), cam.clone()), ("ext2".into(), cam)],
             include: Some(include),
-            view_splits: vec![("ext2".into(), "unseen_camera".into())],
+            // ext2 only for the first episode, as a held-out view.
+            split_rules: vec![
+                "droid_new_setup/val/0011:ext2=unseen_camera"
+                    .parse()
+                    .expect("rule"),
+                "*:ext2=-".parse().expect("rule"),
+            ],
         },
     };
     let out = dir.path().join("ds");
     let report =
         convert_source(&source, None, &franka(), &out, &options("test"), &|_| {}).expect("convert");
     assert_eq!(report.episodes, 2, "{report:?}");
-    assert_eq!(report.views_written, 4);
+    assert_eq!(report.views_written, 3);
     assert_eq!(report.skipped.len(), 1, "{:?}", report.skipped);
     assert_eq!(
         report.skipped[0].item,
@@ -143,7 +149,7 @@ fn real_episodes_convert_with_their_joints_and_repeats_are_listed_once() {
     assert_eq!(info.split.as_deref(), Some("unseen_camera"));
     assert_eq!(info.length, joints.len());
 
-    // Episodes 2 and 3: droid_subset/train/6, 39 video frames from the
+    // Episode 2: droid_subset/train/6 (its ext2 not converted), 39 video frames from the
     // 15 Hz arrays taken every third row.
     let ann = annotation(&root.join("droid_subset/annotation/train/6.json"));
     let raw = ann["observation.state.joint_position"]
@@ -207,7 +213,7 @@ fn bad_annotations_and_cameras_are_refused_by_name() {
             &CtrlWorldOptions {
                 cameras: vec![("ext1".into(), cam.clone())],
                 include: None,
-                view_splits: Vec::new(),
+                split_rules: Vec::new(),
             },
         )
     };
@@ -258,7 +264,7 @@ fn bad_annotations_and_cameras_are_refused_by_name() {
                 .map(|(r, p)| (r.to_string(), p))
                 .collect(),
             include: None,
-            view_splits: Vec::new(),
+            split_rules: Vec::new(),
         };
         let e = o.validate().expect_err(want);
         assert!(e.contains(want), "{e}");
@@ -267,8 +273,14 @@ fn bad_annotations_and_cameras_are_refused_by_name() {
     let o = CtrlWorldOptions {
         cameras: vec![("ext1".into(), cam.clone())],
         include: None,
-        view_splits: vec![("ext2".into(), "unseen_camera".into())],
+        split_rules: vec!["*:ext2=unseen_camera".parse().expect("rule")],
     };
     let e = o.validate().expect_err("no ext2");
     assert!(e.contains("no camera ext2 is converted"), "{e}");
+    for bad in ["x", "a/val/1:ext9=test", "*=", "a:ext1=b/c"] {
+        let e = bad.parse::<ctrl_world::SplitRule>().expect_err(bad);
+        assert!(e.contains("EPISODE[:ROLE]=SPLIT"), "{e}");
+    }
+    let r: ctrl_world::SplitRule = "a/val/1=-".parse().expect("rule");
+    assert_eq!((r.role, r.split), (None, None));
 }

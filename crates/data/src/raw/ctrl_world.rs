@@ -82,9 +82,68 @@ pub struct CtrlWorldOptions {
     /// Only these episodes (`collection/split/id`, as [`CtrlWorldEpisode::name`]);
     /// `None`: all. A name that matches no episode is an error.
     pub include: Option<Vec<String>>,
-    /// Per camera role, the split its views are written with instead of
-    /// the conversion's (e.g. `ext2` as `unseen_camera`: a held-out view).
-    pub view_splits: Vec<(String, String)>,
+    /// Which split each view is written with, first match wins; a view no
+    /// rule matches takes the conversion's split.
+    pub split_rules: Vec<SplitRule>,
+}
+
+/// `EPISODE:ROLE=SPLIT`: the views of an episode (`collection/split/id`,
+/// or `*` for any) and camera role (`ext1`, `ext2`; omitted or `*` for
+/// any) are written with split SPLIT, or not converted when SPLIT is `-`.
+/// E.g. `droid_new_setup/val/0002:ext2=unseen_camera` (a held-out view),
+/// `*:ext2=-` (that camera only where another rule asks for it).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SplitRule {
+    /// The episode's name; `None`: any.
+    pub episode: Option<String>,
+    /// The camera role; `None`: any.
+    pub role: Option<String>,
+    /// The split; `None`: the view is not converted.
+    pub split: Option<String>,
+}
+
+impl std::str::FromStr for SplitRule {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = |why: &str| {
+            format!("split rule {s:?}: {why}: expected EPISODE[:ROLE]=SPLIT (EPISODE collection/split/id or *, ROLE ext1 or ext2, SPLIT a name or - for not converted)")
+        };
+        let (pattern, split) = s.rsplit_once('=').ok_or_else(|| bad("no '='"))?;
+        let (episode, role) = match pattern.split_once(':') {
+            Some((e, r)) => (e.trim(), r.trim()),
+            None => (pattern.trim(), "*"),
+        };
+        let any = |x: &str| (x != "*").then(|| x.to_string());
+        let role = any(role);
+        if let Some(r) = &role {
+            if r != "ext1" && r != "ext2" {
+                return Err(bad(&format!("role {r:?}")));
+            }
+        }
+        if episode.is_empty() {
+            return Err(bad("no episode"));
+        }
+        let split = split.trim();
+        let split = match split {
+            "-" => None,
+            "" => return Err(bad("no split")),
+            s if s.contains(['/', '\\', ':']) => return Err(bad(&format!("split {s:?}"))),
+            s => Some(s.to_string()),
+        };
+        Ok(SplitRule {
+            episode: any(episode),
+            role,
+            split,
+        })
+    }
+}
+
+impl SplitRule {
+    fn matches(&self, episode: &str, role: &str) -> bool {
+        self.episode.as_deref().is_none_or(|e| e == episode)
+            && self.role.as_deref().is_none_or(|r| r == role)
+    }
 }
 
 impl CtrlWorldOptions {
@@ -116,16 +175,13 @@ impl CtrlWorldOptions {
             confine::regular_file(path, confine::MAX_METADATA_BYTES)
                 .map_err(|e| format!("{role} camera {}: {e}", path.display()))?;
         }
-        for (role, split) in &self.view_splits {
-            if !self.cameras.iter().any(|(r, _)| r == role) {
-                return Err(format!(
-                    "view split {role}={split}: no camera {role} is converted (expected one of the --camera roles)"
-                ));
-            }
-            if split.is_empty() || split.contains(['/', '\\']) {
-                return Err(format!(
-                    "view split {role}={split:?}: expected a split name such as unseen_camera"
-                ));
+        for rule in &self.split_rules {
+            if let Some(role) = &rule.role {
+                if !self.cameras.iter().any(|(r, _)| r == role) {
+                    return Err(format!(
+                        "split rule for {role}: no camera {role} is converted (expected one of the --camera roles)"
+                    ));
+                }
             }
         }
         Ok(())
@@ -321,11 +377,17 @@ pub fn read_episode(
             confine::MAX_VIDEO_BYTES,
             role.as_str(),
         )?;
-        let split = options
-            .view_splits
+        let split = match options
+            .split_rules
             .iter()
-            .find(|(r, _)| *r == role)
-            .map(|(_, s)| s.clone());
+            .find(|r| r.matches(&ep.name(), &role))
+        {
+            Some(rule) => match &rule.split {
+                Some(s) => Some(s.clone()),
+                None => continue, // not converted, as asked
+            },
+            None => None,
+        };
         views.push(RawView {
             name: role,
             video,

@@ -286,6 +286,36 @@ pub struct VideoReportOptions {
     /// to it ([`FigureDir::next_to`]) and every link is relative to it.
     /// `None`: no figures (the grids are then linked from the working folder).
     pub results: Option<PathBuf>,
+    /// The results file's section (`video`: the synthetic study's); another
+    /// section's figures are named `<section>-*.png`.
+    pub section: String,
+    /// The section's heading (without `## `).
+    pub title: String,
+}
+
+impl VideoReportOptions {
+    /// The synthetic study's section (`video`) and heading.
+    pub fn synthetic(entries: Vec<String>) -> Self {
+        Self {
+            entries,
+            preamble: None,
+            training_runs: Vec::new(),
+            grids: None,
+            results: None,
+            section: "video".into(),
+            title: "Video prediction in the synthetic world".into(),
+        }
+    }
+
+    /// A figure's file name: `name`, prefixed with the section unless it is
+    /// the synthetic study's.
+    fn figure_name(&self, name: &str) -> String {
+        if self.section == "video" {
+            name.to_string()
+        } else {
+            format!("{}-{name}", self.section)
+        }
+    }
 }
 
 /// Parses `NAME=DIR` (a training run's folder).
@@ -311,19 +341,21 @@ fn figures_section(opts: &VideoReportOptions, entries: &[(String, RunScores)]) -
             .collect::<Result<Vec<_>>>()?;
         let mut images = Vec::new();
         if !runs.is_empty() {
-            figures::loss_curves(&runs, &fig.path("loss-curves.png"))?;
+            let loss = opts.figure_name("loss-curves.png");
+            figures::loss_curves(&runs, &fig.path(&loss))?;
             let names: Vec<&str> = runs.iter().map(|(n, _)| n.as_str()).collect();
             images.push(format!(
                 "Training loss of each stage ({}; log scale, a moving average over the faint per-step values):\n\n{}",
                 names.join(", "),
-                fig.image("loss-curves.png", "Training loss per stage")
+                fig.image(&loss, "Training loss per stage")
             ));
         }
         if let Some(psnr) = figures::psnr_figure(entries) {
-            bridgev2w_io::plot::write_png(&fig.path("psnr-per-frame.png"), &psnr)?;
+            let name = opts.figure_name("psnr-per-frame.png");
+            bridgev2w_io::plot::write_png(&fig.path(&name), &psnr)?;
             images.push(format!(
                 "PSNR of each predicted frame, averaged over the videos, per split (dashed: copying the first frame, and the VAE's ceiling):\n\n{}",
-                fig.image("psnr-per-frame.png", "PSNR per predicted frame")
+                fig.image(&name, "PSNR per predicted frame")
             ));
         }
         if !images.is_empty() {
@@ -374,7 +406,7 @@ pub fn video_report(opts: &VideoReportOptions) -> Result<String> {
         .iter()
         .map(|e| parse_entry(e))
         .collect::<Result<Vec<_>>>()?;
-    let mut md = String::from("## Video prediction in the synthetic world\n\n");
+    let mut md = format!("## {}\n\n", opts.title);
     if let Some(p) = &opts.preamble {
         md += &std::fs::read_to_string(p).map_err(|source| ReportError::Read {
             path: p.clone(),
@@ -549,8 +581,10 @@ mod tests {
             training_runs: vec![stage("prior"), stage("bridgev2w")],
             grids: Some(grids.clone()),
             results: Some(results.clone()),
+            ..VideoReportOptions::synthetic(Vec::new())
         };
         let md = video_report(&opts).unwrap();
+        assert!(md.starts_with("## Video prediction in the synthetic world\n"));
         let figs = d.join("docs/results/figures");
         // Two stages: one row of two 420x300 panels; two splits likewise.
         for (name, size) in [
@@ -568,6 +602,20 @@ mod tests {
         );
         assert!(md.contains("![test](../grids/test.gif)"), "{md}");
         assert!(md.find("In-Domain**").unwrap() < md.find("Unseen Camera Viewpoint**").unwrap());
+        // Another section: its own heading, its figures named after it
+        // (the synthetic study's are not overwritten).
+        let other = VideoReportOptions {
+            section: "real-video".into(),
+            title: "Video prediction on real DROID video".into(),
+            ..opts.clone()
+        };
+        let md = video_report(&other).unwrap();
+        assert!(md.starts_with("## Video prediction on real DROID video\n"));
+        assert!(figs.join("real-video-loss-curves.png").is_file());
+        assert!(
+            md.contains("(results/figures/real-video-psnr-per-frame.png)"),
+            "{md}"
+        );
         // Bad input names the file.
         std::fs::remove_file(grids.join("test.gif")).unwrap();
         let e = video_report(&opts).unwrap_err().to_string();
