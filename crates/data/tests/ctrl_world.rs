@@ -143,6 +143,18 @@ fn real_episodes_convert_with_their_joints_and_repeats_are_listed_once() {
         .filter(|m| m.iter().any(|&v| v > 0))
         .count();
     assert!(covered * 2 > shape[0], "{covered} of {} frames", shape[0]);
+    // Link labels beside them (for link-coded models), robot pixels
+    // exactly the masks'.
+    let labels =
+        bridgev2w_io::npy::read_npy(&out.join("labels/episode_000000.npy")).expect("labels");
+    assert_eq!(labels.descr, "|u1");
+    assert_eq!(labels.shape, shape);
+    assert!(labels
+        .data
+        .iter()
+        .zip(&masks)
+        .all(|(&l, &m)| (l > 0.0) == (m > 0)));
+    assert!(labels.data.iter().any(|&l| l > 1.0), "more than one link");
 
     // Its second view (ext2) is written with the split asked for it.
     let info = ds.episode(1).expect("episode 1");

@@ -17,7 +17,7 @@ use crate::lerobot::{DatasetError, LeRobotV3Writer, WriterEpisode};
 use crate::video::{VideoError, VideoStream};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_embodiment::embodiment::Embodiment;
-use bridgev2w_embodiment::masks::render_frame_mask;
+use bridgev2w_embodiment::masks::render_frame_labels;
 use bridgev2w_embodiment::raster::Rasterizer;
 use bridgev2w_io::npy::write_atomic;
 use rayon::prelude::*;
@@ -219,6 +219,9 @@ pub struct ViewClip {
     pub rgb: Vec<Vec<u8>>,
     /// 0/1 masks `width * height`.
     pub masks: Vec<Vec<u8>>,
+    /// Link labels `width * height` (0 = background; robot pixels exactly
+    /// the masks'), as `bridgev2w synth` writes them.
+    pub labels: Vec<Vec<u8>>,
     /// Cameras per frame at the output size.
     pub cameras: Vec<Camera>,
     /// The episode's state index of each frame (all states, in order, unless
@@ -295,10 +298,21 @@ pub fn render_view(
         .map(|&(_, s)| view.camera(s).rescaled(width as u32, height as u32))
         .collect();
     let robot = &embodiment.robot;
-    let masks: Vec<Vec<u8>> = pairs
+    // Link labels as `bridgev2w synth` writes them (u8, 0 = background),
+    // for link-coded models, and the 0/1 masks they imply.
+    let labels: Vec<Vec<u8>> = pairs
         .par_iter()
         .zip(&cameras)
-        .map(|(&(_, s), cam)| render_frame_mask(robot, &Rasterizer::new(cam), &q[s]))
+        .map(|(&(_, s), cam)| {
+            render_frame_labels(robot, &Rasterizer::new(cam), &q[s])
+                .iter()
+                .map(|&l| l.min(255) as u8)
+                .collect()
+        })
+        .collect();
+    let masks: Vec<Vec<u8>> = labels
+        .iter()
+        .map(|l| l.iter().map(|&v| u8::from(v != 0)).collect())
         .collect();
     // The slot of each shown frame in the clip (frames the alignment drops
     // have none); frames are resized in parallel chunks as they come.
@@ -348,6 +362,7 @@ pub fn render_view(
     Ok(ViewClip {
         rgb,
         masks,
+        labels,
         cameras,
         states: pairs.iter().map(|p| p.1).collect(),
         notes,
@@ -467,7 +482,7 @@ pub fn convert_listing(
                     actions: pick(&actions, &clip.states),
                     rgb: &clip.rgb,
                     masks: Some(&clip.masks),
-                    labels: None,
+                    labels: Some(&clip.labels),
                     camera: view.is_static().then_some(&clip.cameras[0]),
                 })?;
                 report.views_written += 1;
