@@ -118,16 +118,9 @@ fi
 mkdir -p "$OUT/configs"
 LOG="$OUT/timings.tsv"
 touch "$LOG"
-stage() { # stage NAME COMMAND...: runs it, records its wall time (replacing an earlier record)
-    local name=$1 t0
-    shift
-    echo "== $name: $*"
-    t0=$(date +%s)
-    "$@"
-    awk -F'\t' -v n="$name" '$1 != n' "$LOG" >"$LOG.tmp"
-    printf '%s\t%s\n' "$name" "$(($(date +%s) - t0))" >>"$LOG.tmp"
-    mv "$LOG.tmp" "$LOG"
-}
+DATA_STAGE=synth
+# shellcheck source=scripts/lib/stages.sh
+source "$ROOT/scripts/lib/stages.sh"
 
 # Shared data section: clips of ARG1 (default 9) frames at 96x64 from
 # 17-frame episodes.
@@ -255,20 +248,6 @@ finetune_config "$OUT/bridgev2w" true "$OUT/vae-decoder/final/backbone" >"$OUT/c
 finetune_config "$OUT/ablation-action-mlp" false "$OUT/vae-decoder/final/backbone" \
     >"$OUT/configs/ablation-action-mlp-eval.toml"
 
-fingerprint() { # fingerprint TEXT FILE...: 16 hex digits of TEXT and the files
-    { printf '%s\n' "$1"; shift; cat "$@"; } | sha256sum | cut -c1-16
-}
-fresh() { # fresh NAME FP: moves OUT/NAME aside when it was made from other inputs
-    local name=$1 fp=$2 old
-    old=$(cat "$OUT/$name.inputs" 2>/dev/null || true)
-    if [[ -e $OUT/$name && $old != "$fp" ]]; then
-        echo "== $name: its inputs changed (${old:-unrecorded} -> $fp); moving it to $OUT/$name.stale-${old:-unrecorded} and redoing it"
-        rm -rf "$OUT/$name.stale-${old:-unrecorded}"
-        mv "$OUT/$name" "$OUT/$name.stale-${old:-unrecorded}"
-    fi
-    printf '%s\n' "$fp" >"$OUT/$name.inputs"
-}
-
 SYNTH_ARGS=(--episodes-per-split "$EPISODES" --frames 17 --tasks "$TASKS")
 fresh synth "$(fingerprint "synth ${SYNTH_ARGS[*]}")"
 if [[ -f $OUT/synth/meta/info.json && $MASK_CODING == links && ! -d $OUT/synth/labels ]]; then
@@ -282,40 +261,6 @@ if [[ ! -f $OUT/synth/meta/info.json ]]; then
     rm -rf "$OUT/synth"
     stage synth "$BIN" synth --out "$OUT/synth" "${SYNTH_ARGS[@]}"
 fi
-train() { # train NAME UPSTREAM...: trains unless OUT/NAME/final exists; resumes a cut run
-    local name=$1 resume=() ups=() u fp base steps old_fp old_steps
-    shift
-    for u in synth "$@"; do ups+=("$OUT/$u.inputs"); done
-    fp=$(fingerprint "train $name" "$OUT/configs/$name.toml" "${ups[@]}")
-    # The same inputs but for the step budget (OUT/NAME.base), grown: the
-    # learning rate is constant after warm-up and a resumed run is
-    # bit-identical to an uninterrupted one, so the longer run continues from
-    # the stage's checkpoints instead of starting over.
-    base=$(fingerprint "train $name" <(grep -v '^max_steps = ' "$OUT/configs/$name.toml") "${ups[@]}")
-    steps=$(sed -n 's/^max_steps = //p' "$OUT/configs/$name.toml")
-    old_fp=$(cat "$OUT/$name.inputs" 2>/dev/null || true)
-    old_steps=$(cat "$OUT/$name.steps" 2>/dev/null || true)
-    if [[ -d $OUT/$name/checkpoints && -n $old_fp && $old_fp != "$fp" && -n $old_steps
-        && $(cat "$OUT/$name.base" 2>/dev/null) == "$base" && $steps -ge $old_steps ]]; then
-        echo "== $name: only its step budget changed ($old_steps -> $steps): continuing from its checkpoints"
-        rm -rf "$OUT/$name/final"
-        printf '%s\n' "$fp" >"$OUT/$name.inputs"
-    else
-        fresh "$name" "$fp"
-    fi
-    printf '%s\n' "$base" >"$OUT/$name.base"
-    printf '%s\n' "$steps" >"$OUT/$name.steps"
-    if [[ -f $OUT/$name/final/weights.safetensors ]]; then
-        echo "== $name: done before from the same inputs, kept"
-        return
-    fi
-    if [[ -d $OUT/$name/checkpoints ]]; then
-        resume=(--resume "$OUT/$name")
-    elif [[ -e $OUT/$name ]]; then
-        resume=(--overwrite) # cut before its first checkpoint: nothing to keep
-    fi
-    stage "$name" "$BIN" train "$OUT/configs/$name.toml" --quiet "${resume[@]}"
-}
 train vae-image
 train vae vae-image
 train prior vae

@@ -53,8 +53,8 @@ esac
 
 fn sandbox() -> tempfile::TempDir {
     let root = tempfile::tempdir().expect("tempdir");
-    fs::create_dir(root.path().join("scripts")).expect("mkdir");
-    for script in ["reproduce-synthetic.sh", "export-demo.sh"] {
+    fs::create_dir_all(root.path().join("scripts/lib")).expect("mkdir");
+    for script in ["reproduce-synthetic.sh", "export-demo.sh", "lib/stages.sh"] {
         fs::copy(
             repo().join("scripts").join(script),
             root.path().join("scripts").join(script),

@@ -1,0 +1,66 @@
+# Stage helpers shared by the reproduction scripts (sourced, not run):
+# timed stages, input fingerprints, and resumable training stages.
+# The sourcing script sets OUT (its output folder), BIN (the bridgev2w
+# binary), LOG (the timings file) and DATA_STAGE (the stage whose
+# OUT/DATA_STAGE.inputs every training stage depends on).
+
+stage() { # stage NAME COMMAND...: runs it, records its wall time (replacing an earlier record)
+    local name=$1 t0
+    shift
+    echo "== $name: $*"
+    t0=$(date +%s)
+    "$@"
+    awk -F'\t' -v n="$name" '$1 != n' "$LOG" >"$LOG.tmp"
+    printf '%s\t%s\n' "$name" "$(($(date +%s) - t0))" >>"$LOG.tmp"
+    mv "$LOG.tmp" "$LOG"
+}
+
+fingerprint() { # fingerprint TEXT FILE...: 16 hex digits of TEXT and the files
+    { printf '%s\n' "$1"; shift; cat "$@"; } | sha256sum | cut -c1-16
+}
+
+fresh() { # fresh NAME FP: moves OUT/NAME aside when it was made from other inputs
+    local name=$1 fp=$2 old
+    old=$(cat "$OUT/$name.inputs" 2>/dev/null || true)
+    if [[ -e $OUT/$name && $old != "$fp" ]]; then
+        echo "== $name: its inputs changed (${old:-unrecorded} -> $fp); moving it to $OUT/$name.stale-${old:-unrecorded} and redoing it"
+        rm -rf "$OUT/$name.stale-${old:-unrecorded}"
+        mv "$OUT/$name" "$OUT/$name.stale-${old:-unrecorded}"
+    fi
+    printf '%s\n' "$fp" >"$OUT/$name.inputs"
+}
+
+train() { # train NAME UPSTREAM...: trains OUT/configs/NAME.toml unless OUT/NAME/final exists; resumes a cut run
+    local name=$1 resume=() ups=() u fp base steps old_fp old_steps
+    shift
+    for u in "$DATA_STAGE" "$@"; do ups+=("$OUT/$u.inputs"); done
+    fp=$(fingerprint "train $name" "$OUT/configs/$name.toml" "${ups[@]}")
+    # The same inputs but for the step budget (OUT/NAME.base), grown: the
+    # learning rate is constant after warm-up and a resumed run is
+    # bit-identical to an uninterrupted one, so the longer run continues from
+    # the stage's checkpoints instead of starting over.
+    base=$(fingerprint "train $name" <(grep -v '^max_steps = ' "$OUT/configs/$name.toml") "${ups[@]}")
+    steps=$(sed -n 's/^max_steps = //p' "$OUT/configs/$name.toml")
+    old_fp=$(cat "$OUT/$name.inputs" 2>/dev/null || true)
+    old_steps=$(cat "$OUT/$name.steps" 2>/dev/null || true)
+    if [[ -d $OUT/$name/checkpoints && -n $old_fp && $old_fp != "$fp" && -n $old_steps
+        && $(cat "$OUT/$name.base" 2>/dev/null) == "$base" && $steps -ge $old_steps ]]; then
+        echo "== $name: only its step budget changed ($old_steps -> $steps): continuing from its checkpoints"
+        rm -rf "$OUT/$name/final"
+        printf '%s\n' "$fp" >"$OUT/$name.inputs"
+    else
+        fresh "$name" "$fp"
+    fi
+    printf '%s\n' "$base" >"$OUT/$name.base"
+    printf '%s\n' "$steps" >"$OUT/$name.steps"
+    if [[ -f $OUT/$name/final/weights.safetensors ]]; then
+        echo "== $name: done before from the same inputs, kept"
+        return
+    fi
+    if [[ -d $OUT/$name/checkpoints ]]; then
+        resume=(--resume "$OUT/$name")
+    elif [[ -e $OUT/$name ]]; then
+        resume=(--overwrite) # cut before its first checkpoint: nothing to keep
+    fi
+    stage "$name" "$BIN" train "$OUT/configs/$name.toml" --quiet "${resume[@]}"
+}
