@@ -5,10 +5,9 @@
 use crate::masks_cmd::RobotArgs;
 use anyhow::Result;
 use bridgev2w_data::calibrate::droid_study::{droid_study, DroidStudyOptions, DROID_FY_OVER_FX};
+use bridgev2w_data::calibrate::run::calibrate_to_folder;
 use bridgev2w_data::calibrate::study::{synthetic_study, StudyOptions};
-use bridgev2w_data::calibrate::{
-    calibrate, check, load_episode, pair_inputs, report, CalibrateOptions, EpisodeData,
-};
+use bridgev2w_data::calibrate::{pair_inputs, CalibrateOptions};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_io::output::OutputDir;
 use std::path::{Path, PathBuf};
@@ -104,17 +103,6 @@ pub struct CalibrateArgs {
     overwrite: bool,
 }
 
-fn load_all(
-    inputs: &[bridgev2w_data::calibrate::EpisodeInput],
-    e: &bridgev2w_embodiment::embodiment::Embodiment,
-    width: u32,
-) -> Result<Vec<EpisodeData>> {
-    Ok(inputs
-        .iter()
-        .map(|i| load_episode(i, e, width))
-        .collect::<Result<_, _>>()?)
-}
-
 pub fn run(args: &CalibrateArgs) -> Result<()> {
     let e = args.robot.load()?;
     let guess = args
@@ -123,7 +111,6 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .map(Camera::from_json_file)
         .transpose()?;
     let options = args.fit.options(guess, 1.0);
-    options.validate()?;
     let fitted = pair_inputs(&args.video, &args.joints, ("--video", "--joints"))?;
     let checked = pair_inputs(
         &args.check_video,
@@ -132,55 +119,17 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     )?;
     let mut inputs: Vec<&Path> = args.robot.urdf_file().into_iter().collect();
     inputs.extend(args.guess.as_deref());
-    for i in fitted.iter().chain(&checked) {
-        inputs.extend([i.video.as_path(), i.joints.as_path()]);
-    }
-    let out = OutputDir::create_for(&args.out, args.overwrite, &inputs)?;
-    let episodes = load_all(&fitted, &e, options.analysis_width)?;
-    let check_episodes = load_all(&checked, &e, options.analysis_width)?;
-    let c = calibrate(&e, &episodes, &options, &|stage| {
-        eprintln!("calibrate: {stage}")
-    })?;
-    let checks = if check_episodes.is_empty() {
-        Vec::new()
-    } else {
-        check(&e, &c.camera, &check_episodes, &options)?
-    };
-    report::write_outputs(
-        out.path(),
-        &e.robot,
-        &c,
-        &episodes,
-        &check_episodes,
-        &checks,
+    let run = calibrate_to_folder(
+        &e,
+        &fitted,
+        &checked,
         &options,
+        &args.out,
+        args.overwrite,
+        &inputs,
+        &|stage| eprintln!("calibrate: {stage}"),
     )?;
-    let dir = out.commit()?;
-    let t = c.camera.world_from_camera.translation.vector;
-    let k = &c.camera.intrinsics;
-    let mut text = format!(
-        "camera {}x{}: fx {:.1} fy {:.1} cx {:.1} cy {:.1}, position ({:.3}, {:.3}, {:.3}) m; held-out IoU {:.3}, fit IoU {:.3} ({} evaluations, {:.0} s)\n",
-        k.width, k.height, k.fx, k.fy, k.cx, k.cy, t.x, t.y, t.z, c.held_out_iou, c.fit_iou, c.evaluations, c.seconds
-    );
-    for r in c.episodes.iter().chain(&checks) {
-        let kind = if r.fit_frames > 0 {
-            "fitted"
-        } else {
-            "checked"
-        };
-        text.push_str(&format!(
-            "  {kind} {}: held-out IoU {:.3} over {} frames\n",
-            r.name, r.held_out_iou, r.held_out_frames
-        ));
-    }
-    for f in &c.flags {
-        text.push_str(&format!("warning: {}\n", f.message));
-    }
-    text.push_str(&format!(
-        "wrote {}/camera.json, residuals.json, overlay/\n",
-        dir.display()
-    ));
-    crate::print_stdout(&text)
+    crate::print_stdout(&run.summary())
 }
 
 /// Arguments of `calibrate-study`.

@@ -401,3 +401,77 @@ fn a_known_focal_length_is_kept_and_only_the_pose_is_fitted() {
         assert!(r.angle_error_deg.unwrap() <= BOUND_DEG, "{r:?}");
     }
 }
+
+#[test]
+fn calibrate_to_folder_writes_its_outputs_once_and_refuses_overlapping_ones() {
+    use bridgev2w_data::calibrate::run::calibrate_to_folder;
+    let Some(root) = droid() else { return };
+    // Copies: the refusals below name the inputs as outputs.
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("episode");
+    std::fs::create_dir(&dir).unwrap();
+    let input = EpisodeInput {
+        video: dir.join("0.mp4"),
+        joints: dir.join("0007.json"),
+    };
+    std::fs::copy(
+        root.join("droid_new_setup/videos/val/0007/0.mp4"),
+        &input.video,
+    )
+    .unwrap();
+    std::fs::copy(
+        root.join("droid_new_setup/annotation/val/0007.json"),
+        &input.joints,
+    )
+    .unwrap();
+    let e = Embodiment::builtin("franka-robotiq").unwrap();
+    let options = CalibrateOptions {
+        analysis_width: 80,
+        mid_width: 40,
+        focal_px: Some(133.0),
+        fy_over_fx: 192.0 / 180.0,
+        ..small_options()
+    };
+    let out = tmp.path().join("cal");
+    let run = calibrate_to_folder(
+        &e,
+        std::slice::from_ref(&input),
+        &[],
+        &options,
+        &out,
+        false,
+        &[],
+        &|_| {},
+    )
+    .unwrap();
+    for f in ["camera.json", "residuals.json"] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    assert!(std::fs::read_dir(out.join("overlay")).unwrap().count() == 1);
+    let text = run.summary();
+    assert!(
+        text.contains("fx 133.0") && text.contains("held-out IoU"),
+        "{text}"
+    );
+    // Not again without overwrite; never onto or around an input.
+    for (o, overwrite, want) in [
+        (out.clone(), false, "already exists"),
+        (input.video.clone(), true, "is the input"),
+        (tmp.path().to_path_buf(), true, "contains the input"),
+    ] {
+        let err = calibrate_to_folder(
+            &e,
+            std::slice::from_ref(&input),
+            &[],
+            &options,
+            &o,
+            overwrite,
+            &[],
+            &|_| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains(want), "{err}");
+    }
+    assert!(input.video.is_file() && input.joints.is_file());
+}

@@ -31,6 +31,7 @@ mod nelder_mead;
 mod objective;
 mod problem;
 pub mod report;
+pub mod run;
 mod search;
 pub mod study;
 
