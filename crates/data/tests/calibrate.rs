@@ -449,6 +449,7 @@ fn calibrate_to_folder_writes_its_outputs_once_and_refuses_overlapping_ones() {
     }
     assert!(std::fs::read_dir(out.join("overlay")).unwrap().count() == 1);
     let text = run.summary();
+    eprintln!("{text}");
     assert!(
         text.contains("fx 133.0") && text.contains("held-out IoU"),
         "{text}"

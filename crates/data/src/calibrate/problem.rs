@@ -30,6 +30,45 @@ pub(crate) struct Prepared {
     pub foreground: ForegroundStats,
     /// The robot's motion (see [`motion`]).
     pub motion: Motion,
+    /// Sampled points of the robot's surface over a spread of frames
+    /// (world frame): a fixed camera cannot be where the robot passes.
+    pub surface: Vec<Point3<f64>>,
+}
+
+/// How close a fixed camera may be to the robot's surface in any frame
+/// (metres); nearer, the robot would strike it. On real DROID video, the
+/// search otherwise found cameras inside or against the robot's base,
+/// which a view filled by the robot explains too easily.
+pub(crate) const MIN_CLEARANCE_M: f64 = 0.15;
+
+/// The penalty added to the objective of a camera nearer than
+/// [`MIN_CLEARANCE_M`] to `surface`: 0 at the clearance or beyond, rising
+/// linearly to 1 at the surface (an objective is at most 1).
+pub(crate) fn clearance_penalty(surface: &[Point3<f64>], eye: &Point3<f64>) -> f64 {
+    let nearest_sq = surface
+        .iter()
+        .map(|p| (p - eye).norm_squared())
+        .fold(f64::INFINITY, f64::min);
+    let nearest = nearest_sq.sqrt();
+    if nearest >= MIN_CLEARANCE_M {
+        0.0
+    } else {
+        (MIN_CLEARANCE_M - nearest) / MIN_CLEARANCE_M
+    }
+}
+
+/// The sampled surface points (as [`motion`] samples them) at frames `at`.
+fn surface_points(robot: &Robot, poses: &[Vec<Isometry3<f64>>], at: &[usize]) -> Vec<Point3<f64>> {
+    let mut out = Vec::new();
+    for (i, link) in robot.links.iter().enumerate() {
+        let Some(mesh) = &link.mesh else { continue };
+        let stride = mesh.vertices.len().div_ceil(MOTION_POINTS_PER_LINK).max(1);
+        for v in mesh.vertices.iter().step_by(stride) {
+            let p = Point3::new(f64::from(v.x), f64::from(v.y), f64::from(v.z));
+            out.extend(at.iter().map(|&t| poses[t][i] * p));
+        }
+    }
+    out
 }
 
 /// How far the robot's surface moves over an episode.
@@ -129,13 +168,15 @@ pub(crate) fn prepare(
     let (fit, held) = split_frames(n, block_size(n), held_out_every);
     let all: Vec<usize> = (0..n).collect();
     let levels = factors.iter().map(|&f| Level::new(foreground, f)).collect();
+    let mode = spread(&all, max_mode_frames);
     Prepared {
         name: episode.name.clone(),
         motion: motion(robot, &poses),
+        surface: surface_points(robot, &poses, &mode),
         poses,
         fit,
         held,
-        mode: spread(&all, max_mode_frames),
+        mode,
         levels,
         foreground: foreground.stats.clone(),
     }
@@ -154,5 +195,20 @@ mod tests {
         assert_eq!(block_size(40), 3);
         assert_eq!(spread(&[0, 1, 2, 3, 4, 5, 6, 7, 8], 3), vec![0, 4, 8]);
         assert_eq!(spread(&[3, 4], 5), vec![3, 4]);
+    }
+
+    #[test]
+    fn a_camera_against_the_robot_is_penalised_one_beyond_its_reach_not() {
+        let surface = [Point3::new(0.0, 0.0, 0.5), Point3::new(0.3, 0.0, 0.5)];
+        assert_eq!(
+            clearance_penalty(&surface, &Point3::new(1.0, 0.0, 0.5)),
+            0.0
+        );
+        assert_eq!(
+            clearance_penalty(&surface, &Point3::new(0.3, 0.0, 0.5)),
+            1.0
+        );
+        let half = clearance_penalty(&surface, &Point3::new(0.3, MIN_CLEARANCE_M / 2.0, 0.5));
+        assert!((half - 0.5).abs() < 1e-9, "{half}");
     }
 }

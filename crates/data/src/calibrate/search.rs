@@ -15,7 +15,7 @@
 
 use super::nelder_mead::minimize;
 use super::objective::{predicted, score, Score};
-use super::problem::{spread, Prepared};
+use super::problem::{clearance_penalty, spread, Prepared};
 use super::CalibrateOptions;
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::robot::Robot;
@@ -73,14 +73,22 @@ impl<'a> Evaluator<'a> {
     }
 
     /// The objective of `camera`: [`Score::coarse_objective`] for a coarse
-    /// evaluator, else [`Score::objective`].
+    /// evaluator, else [`Score::objective`]; plus the clearance penalty of
+    /// a camera where the robot's surface passes ([`clearance_penalty`]).
     pub fn value(&self, camera: &Camera) -> f64 {
+        let eye = Point3::from(camera.world_from_camera.translation.vector);
+        let penalty = self
+            .episodes
+            .iter()
+            .map(|e| clearance_penalty(&e.surface, &eye))
+            .fold(0.0, f64::max);
         let s = self.score(camera);
-        if self.coarse {
-            s.coarse_objective()
-        } else {
-            s.objective()
-        }
+        penalty
+            + if self.coarse {
+                s.coarse_objective()
+            } else {
+                s.objective()
+            }
     }
 
     /// At most `n` fitted frames per episode, spread over it.
