@@ -76,3 +76,6 @@ def convert(format: str, src: str, out: str, robot: Robot, joint_names: list[str
 # An episode of a LeRobot dataset: frames (T*H*W*3 RGB8), shape (T, H, W), states, actions,
 # camera (Camera or None), masks (T*H*W bytes or None), tasks, key, split; GIL released.
 def read_episode(root: str, episode: int, key: str | None = ...) -> dict[str, Any]: ...
+# bridgev2w calibrate; returns out, camera (Camera), held_out_iou, fit_iou, reliable, flags,
+# episodes, summary; GIL released.
+def calibrate(robot: Robot, videos: list[str], joints: list[str], out: str, check_videos: list[str], check_joints: list[str], focal_px: float | None, fy_over_fx: float, analysis_width: int, max_evaluations: int, overwrite: bool) -> dict[str, Any]: ...

@@ -37,6 +37,19 @@ class ConvertReport:
     report: dict = field(default_factory=dict)
 
 
+def _robot(robot, default: str) -> Robot:
+    """``robot`` as a :class:`Robot`: itself, a built-in name or a URDF path
+    (``default``, a built-in name, when None)."""
+    if robot is None:
+        return Robot(default)
+    if isinstance(robot, (str, os.PathLike)):
+        name = os.fspath(robot)
+        return Robot(name) if name in _core.builtin_robots().replace(",", " ").split() else Robot.from_urdf(name)
+    if not isinstance(robot, Robot):
+        raise ValueError(f"robot: expected a bridgev2w.Robot, a built-in name or a URDF path, got {robot!r}")
+    return robot
+
+
 def _names(name, value):
     if value is None:
         return None
@@ -81,13 +94,7 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
     ``bridgev2w.Error`` naming the file and field."""
     if format not in _DEFAULT_ROBOT:
         raise ValueError(f"format: {format!r}, expected 'droid' or 'agibot'")
-    if robot is None:
-        robot = Robot(_DEFAULT_ROBOT[format])
-    elif isinstance(robot, (str, os.PathLike)):
-        name = os.fspath(robot)
-        robot = Robot(name) if name in _core.builtin_robots().replace(",", " ").split() else Robot.from_urdf(name)
-    elif not isinstance(robot, Robot):
-        raise ValueError(f"robot: expected a bridgev2w.Robot, a built-in name or a URDF path, got {robot!r}")
+    robot = _robot(robot, _DEFAULT_ROBOT[format])
     if not isinstance(gripper_range, (list, tuple)) or len(gripper_range) != 2:
         raise ValueError(f"gripper_range: expected (open, closed) readings, got {gripper_range!r}")
     grip = (_float("gripper_range[0]", gripper_range[0]), _float("gripper_range[1]", gripper_range[1]))

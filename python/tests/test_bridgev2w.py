@@ -349,6 +349,35 @@ def test_convert_writes_what_the_cli_writes():
     assert (WORK / "bad" / "skipped.json").is_file()
 
 
+def test_calibrate_finds_a_camera_and_writes_its_folder():
+    """bw.calibrate on a real DROID episode (skipped where the shared real
+    data is absent): a known focal length kept, the files written, an
+    existing out refused, bad arguments named."""
+    import pytest
+
+    root = pathlib.Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata" / "droid" / "droid_new_setup"
+    if not root.is_dir():
+        pytest.skip(f"{root} is absent (the shared real-data folder)")
+    video = root / "videos" / "val" / "0007" / "0.mp4"
+    joints = root / "annotation" / "val" / "0007.json"
+    out = WORK / "calibration"
+    c = bw.calibrate(video, joints, out, focal_px=133.0, fy_over_fx=192 / 180, analysis_width=80,
+                     max_evaluations=30)
+    assert isinstance(c.camera, bw.Camera) and c.camera.size == (320, 192), c
+    assert abs(c.camera.K[0, 0] - 133.0) < 1e-9, c.camera.K
+    assert 0.0 <= c.held_out_iou <= 1.0 and len(c.episodes) == 1 and c.episodes[0][3], c
+    assert c.reliable == (not c.flags) and "held-out IoU" in c.summary, c
+    for f in ["camera.json", "residuals.json"]:
+        assert (out / f).is_file(), f
+    assert bw.Camera.from_json(out / "camera.json").size == (320, 192)
+    with pytest.raises(bw.Error, match="exists"):
+        bw.calibrate(video, joints, out, focal_px=133.0, analysis_width=80, max_evaluations=30)
+    with pytest.raises(ValueError, match="check_joints"):
+        bw.calibrate(video, joints, WORK / "c2", check_videos=[video])
+    with pytest.raises(FileNotFoundError, match="absent.mp4"):
+        bw.calibrate(root / "absent.mp4", joints, WORK / "c3")
+
+
 def test_batches_equal_their_single_items():
     robot, cam = bw.Robot("franka"), camera()
     t = np.arange(3)[:, None, None]

@@ -36,6 +36,7 @@ use pyo3::types::{PyByteArray, PyDict};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
+mod calibrate;
 mod camera;
 mod data;
 
@@ -769,5 +770,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(data::synth_generate, m)?)?;
     m.add_function(wrap_pyfunction!(data::convert, m)?)?;
     m.add_function(wrap_pyfunction!(data::read_episode, m)?)?;
+    m.add_function(wrap_pyfunction!(calibrate::calibrate, m)?)?;
     Ok(())
 }
