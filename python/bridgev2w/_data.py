@@ -13,7 +13,7 @@ import numpy as np
 
 from . import Camera, Robot, _core, _float, _int, _path
 
-_DEFAULT_ROBOT = {"droid": "franka-robotiq", "agibot": "agibot-g1"}
+_DEFAULT_ROBOT = {"droid": "franka-robotiq", "agibot": "agibot-g1", "ctrl-world": "franka-robotiq"}
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,8 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
             fps: Optional[int] = None, intrinsics=None, calibration=None, missing_calibration: str = "recorded",
             cameras: Union[Sequence[str], str, None] = None, gripper_source: str = "auto",
             gripper_range=(35.0, 120.0), split: str = "train",
-            skip_bad: bool = False, limit: Optional[int] = None) -> ConvertReport:
+            skip_bad: bool = False, limit: Optional[int] = None, camera_json=None,
+            include: Union[Sequence[str], str, None] = None, split_rules: Sequence[str] = ()) -> ConvertReport:
     """Converts raw episodes under ``src`` into a LeRobot v3.0 training
     dataset at ``out`` (must not exist; written to a temporary folder beside it, then
     renamed): every camera of every episode one episode, frames resized to
@@ -83,7 +84,13 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
     closed) ``state/effector/position`` readings). ``robot``: a :class:`Robot`, a built-in name
     or a URDF path (default ``franka-robotiq`` for DROID, ``agibot-g1`` for AgiBot
     World); ``joint_names`` the robot's names for the recorded joint columns.
-    ``fps`` defaults to 15 (DROID) or 30 (AgiBot World); ``split`` is
+    ``"ctrl-world"``: DROID episodes of the Ctrl-World layout
+    (``annotation/<split>/<id>.json``, ``videos/<split>/<id>/{0,1,2}.mp4``),
+    with ``camera_json`` a dict ``{"ext1": camera.json, "ext2": ...}`` (what
+    :func:`bridgev2w.calibrate` writes), ``include`` the episodes
+    (``collection/split/id``) and ``split_rules`` as ``--split-rule``
+    (``"EPISODE[:ROLE]=SPLIT"``, ``-`` for not converted).
+    ``fps`` defaults to 15 (DROID), 30 (AgiBot World) or 5 (ctrl-world); ``split`` is
     recorded for every episode; ``skip_bad`` records failing episodes in
     ``out/skipped.json`` and goes on; ``limit`` converts at most that many
     episodes. The GIL is released while it runs.
@@ -93,7 +100,15 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
     argument a ``ValueError`` naming it, an unreadable episode a
     ``bridgev2w.Error`` naming the file and field."""
     if format not in _DEFAULT_ROBOT:
-        raise ValueError(f"format: {format!r}, expected 'droid' or 'agibot'")
+        raise ValueError(f"format: {format!r}, expected 'droid', 'agibot' or 'ctrl-world'")
+    if camera_json is None:
+        camera_json = {}
+    if not isinstance(camera_json, dict):
+        raise ValueError(f"camera_json: expected a dict of role -> camera JSON path, got {camera_json!r}")
+    if format != "ctrl-world" and (camera_json or include is not None or split_rules):
+        raise ValueError("camera_json, include, split_rules: apply to format='ctrl-world'")
+    if isinstance(split_rules, str) or not all(isinstance(r, str) for r in split_rules):
+        raise ValueError(f"split_rules: expected a list of 'EPISODE[:ROLE]=SPLIT' strings, got {split_rules!r}")
     robot = _robot(robot, _DEFAULT_ROBOT[format])
     if not isinstance(gripper_range, (list, tuple)) or len(gripper_range) != 2:
         raise ValueError(f"gripper_range: expected (open, closed) readings, got {gripper_range!r}")
@@ -111,7 +126,9 @@ def convert(src, out, *, format: str, robot: Union[Robot, str, None] = None,
         None if fps is None else _int("fps", fps, 1, 2 ** 32 - 1),
         _path("intrinsics", intrinsics, optional=True), calibration, str(missing_calibration),
         _names("cameras", cameras), str(gripper_source), grip, split, bool(skip_bad),
-        None if limit is None else _int("limit", limit, 1))
+        None if limit is None else _int("limit", limit, 1),
+        [(str(r), _path(f"camera_json[{r!r}]", p)) for r, p in camera_json.items()],
+        _names("include", include), list(split_rules))
     d["report"] = json.loads(d.pop("report_json"))
     return ConvertReport(**d)
 

@@ -372,6 +372,21 @@ def test_calibrate_finds_a_camera_and_writes_its_folder():
     assert bw.Camera.from_json(out / "camera.json").size == (320, 192)
     with pytest.raises(bw.Error, match="exists"):
         bw.calibrate(video, joints, out, focal_px=133.0, analysis_width=80, max_evaluations=30)
+    # Its camera converts the rig's episodes (the Ctrl-World layout), as the CLI does.
+    rig = root.parent
+    args = dict(format="ctrl-world", width=32, height=24, camera_json={"ext1": out / "camera.json"},
+                include=["droid_new_setup/val/0007", "droid_new_setup/val/0011"],
+                split_rules=["droid_new_setup/val/0011=test"])
+    r = bw.convert(rig, WORK / "cw-py", **args)
+    assert (r.episodes, r.views_written, r.skipped) == (2, 2, []), r
+    assert bw.read_episode(WORK / "cw-py", 1).split == "test"
+    subprocess.run([BIN, "convert", "--format", "ctrl-world", str(rig), "--out", str(WORK / "cw-cli"),
+                    "--width", "32", "--height", "24", "--camera", f"ext1={out / 'camera.json'}",
+                    "--include", ",".join(args["include"]), "--split-rule", args["split_rules"][0]],
+                   check=True, capture_output=True)
+    same_tree(WORK / "cw-py", WORK / "cw-cli")
+    with pytest.raises(ValueError, match="wrist"):
+        bw.convert(rig, WORK / "cw-bad", format="ctrl-world", camera_json={"wrist": out / "camera.json"})
     with pytest.raises(ValueError, match="check_joints"):
         bw.calibrate(video, joints, WORK / "c2", check_videos=[video])
     with pytest.raises(FileNotFoundError, match="absent.mp4"):

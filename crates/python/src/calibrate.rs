@@ -37,8 +37,12 @@ pub(crate) fn calibrate<'py>(
         e => err(e),
     };
     let fitted = pair_inputs(&videos, &joints, ("videos", "joints")).map_err(value_err)?;
-    let checked = pair_inputs(&check_videos, &check_joints, ("check_videos", "check_joints"))
-        .map_err(value_err)?;
+    let checked = pair_inputs(
+        &check_videos,
+        &check_joints,
+        ("check_videos", "check_joints"),
+    )
+    .map_err(value_err)?;
     for i in fitted.iter().chain(&checked) {
         for p in [&i.video, &i.joints] {
             if !p.is_file() {
@@ -102,7 +106,14 @@ pub(crate) fn calibrate<'py>(
         .episodes
         .iter()
         .chain(&run.checks)
-        .map(|r| (r.name.clone(), r.held_out_iou, r.held_out_frames, r.fit_frames > 0))
+        .map(|r| {
+            (
+                r.name.clone(),
+                r.held_out_iou,
+                r.held_out_frames,
+                r.fit_frames > 0,
+            )
+        })
         .collect();
     d.set_item("episodes", episodes)?;
     d.set_item("summary", run.summary())?;

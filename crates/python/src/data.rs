@@ -99,7 +99,7 @@ fn missing(path: &Path, what: &str) -> PyErr {
 /// `ee_frames`, and `report_json`: the whole conversion report, notes
 /// included, as JSON text).
 #[pyfunction]
-#[pyo3(signature = (format, src, out, robot, joint_names, width, height, fps, intrinsics, calibration, missing_calibration, cameras, gripper_source, gripper_range, split, skip_bad, limit))]
+#[pyo3(signature = (format, src, out, robot, joint_names, width, height, fps, intrinsics, calibration, missing_calibration, cameras, gripper_source, gripper_range, split, skip_bad, limit, camera_json = Vec::new(), include = None, split_rules = Vec::new()))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert<'py>(
     py: Python<'py>,
@@ -120,13 +120,31 @@ pub(crate) fn convert<'py>(
     split: String,
     skip_bad: bool,
     limit: Option<usize>,
+    camera_json: Vec<(String, PathBuf)>,
+    include: Option<Vec<String>>,
+    split_rules: Vec<String>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let droid = match format {
         "droid" => true,
         "agibot" => false,
+        "ctrl-world" => {
+            return convert_ctrl_world(
+                py,
+                src,
+                out,
+                robot,
+                (width, height, fps),
+                camera_json,
+                include,
+                split_rules,
+                split,
+                skip_bad,
+                limit,
+            )
+        }
         other => {
             return Err(PyValueError::new_err(format!(
-                "format: {other:?}, expected \"droid\" or \"agibot\""
+                "format: {other:?}, expected \"droid\", \"agibot\" or \"ctrl-world\""
             )))
         }
     };
@@ -169,12 +187,7 @@ pub(crate) fn convert<'py>(
         source_format: format.to_string(),
         overwrite: false,
     };
-    let to_py = |e: ConvertError| match e {
-        ConvertError::Raw(RawError::Missing { path, what }) => {
-            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
-        }
-        e => err(e),
-    };
+    let to_py = convert_err;
     let source = match intrinsics {
         Some(intrinsics) => {
             let mut options = DroidOptions::from_calibration_files(&intrinsics, &calibration)
@@ -204,11 +217,33 @@ pub(crate) fn convert<'py>(
     };
     // Cameras: at least one, none twice (a library check the CLI shares).
     source.validate().map_err(PyValueError::new_err)?;
+    run_convert(py, &source, limit, robot, &out, &options)
+}
+
+/// A conversion error: a missing file or folder as `FileNotFoundError`.
+fn convert_err(e: ConvertError) -> PyErr {
+    match e {
+        ConvertError::Raw(RawError::Missing { path, what }) => {
+            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
+        }
+        e => err(e),
+    }
+}
+
+/// Converts `source` with the GIL released; the report as a dict.
+fn run_convert<'py>(
+    py: Python<'py>,
+    source: &RawSource,
+    limit: Option<usize>,
+    robot: &Robot,
+    out: &Path,
+    options: &ConvertOptions,
+) -> PyResult<Bound<'py, PyDict>> {
     let embodiment = &robot.inner;
-    let run = || convert_source(&source, limit, embodiment, &out, &options, &|_| {});
+    let run = || convert_source(source, limit, embodiment, out, options, &|_| {});
     let report = py
         .detach(|| no_panic("convert", || Ok(run())))?
-        .map_err(to_py)?;
+        .map_err(convert_err)?;
     let d = PyDict::new(py);
     d.set_item("out", out.to_string_lossy().into_owned())?;
     d.set_item("episodes", report.episodes)?;
@@ -226,6 +261,59 @@ pub(crate) fn convert<'py>(
         serde_json::to_string(&report).map_err(|e| PyValueError::new_err(e.to_string()))?,
     )?;
     Ok(d)
+}
+
+/// `convert(format="ctrl-world")`: DROID episodes of the Ctrl-World layout
+/// with a camera JSON per exterior role.
+#[allow(clippy::too_many_arguments)]
+fn convert_ctrl_world<'py>(
+    py: Python<'py>,
+    src: PathBuf,
+    out: PathBuf,
+    robot: &Robot,
+    (width, height, fps): (usize, usize, Option<u32>),
+    camera_json: Vec<(String, PathBuf)>,
+    include: Option<Vec<String>>,
+    split_rules: Vec<String>,
+    split: String,
+    skip_bad: bool,
+    limit: Option<usize>,
+) -> PyResult<Bound<'py, PyDict>> {
+    use bridgev2w_data::raw::ctrl_world::{CtrlWorldOptions, SplitRule, FPS};
+    if !src.exists() {
+        return Err(missing(&src, "source folder"));
+    }
+    for (_, p) in &camera_json {
+        if !p.is_file() {
+            return Err(missing(p, "file"));
+        }
+    }
+    let split_rules = split_rules
+        .iter()
+        .map(|r| r.parse::<SplitRule>())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| PyValueError::new_err(format!("split_rules: {e}")))?;
+    let source = RawSource::CtrlWorld {
+        root: src,
+        options: CtrlWorldOptions {
+            cameras: camera_json,
+            include,
+            split_rules,
+        },
+    };
+    source.validate().map_err(PyValueError::new_err)?;
+    check_new_output(&out)?;
+    let options = ConvertOptions {
+        width,
+        height,
+        fps: fps.unwrap_or(FPS),
+        joint_names: None,
+        skip_bad,
+        split: Some(split),
+        source_format: "ctrl-world".into(),
+        overwrite: false,
+    };
+    run_convert(py, &source, limit, robot, &out, &options)
 }
 
 /// One episode of a LeRobot v3.0/v2.1 dataset (what `synth` and `convert`
