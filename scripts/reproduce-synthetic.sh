@@ -107,20 +107,10 @@ binary | links) ;;
 *) echo "error: MASK_CODING=$MASK_CODING: expected binary or links" >&2; exit 1 ;;
 esac
 
-BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
-if [[ -z ${BRIDGEV2W:-} ]]; then
-    echo "== building bridgev2w (release)"
-    scripts/setup-venv.sh
-    cargo build --release -p bridgev2w-cli
-fi
-[[ -x $BIN ]] || { echo "error: $BIN is not an executable (set BRIDGEV2W)" >&2; exit 1; }
-
-mkdir -p "$OUT/configs"
-LOG="$OUT/timings.tsv"
-touch "$LOG"
 DATA_STAGE=synth
 # shellcheck source=scripts/lib/stages.sh
 source "$ROOT/scripts/lib/stages.sh"
+setup_run
 
 # Shared data section: clips of ARG1 (default 9) frames at 96x64 from
 # 17-frame episodes.

@@ -1,8 +1,22 @@
 # Stage helpers shared by the reproduction scripts (sourced, not run):
 # timed stages, input fingerprints, and resumable training stages.
-# The sourcing script sets OUT (its output folder), BIN (the bridgev2w
-# binary), LOG (the timings file) and DATA_STAGE (the stage whose
-# OUT/DATA_STAGE.inputs every training stage depends on).
+# The sourcing script sets ROOT (the repository), OUT (its output folder)
+# and DATA_STAGE (the stage whose OUT/DATA_STAGE.inputs every training stage
+# depends on), then calls setup_run, which sets BIN (the bridgev2w binary)
+# and LOG (the timings file).
+
+setup_run() { # BIN: $BRIDGEV2W, or target/release/bridgev2w built now; OUT/configs and LOG made
+    BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
+    if [[ -z ${BRIDGEV2W:-} ]]; then
+        echo "== building bridgev2w (release)"
+        "$ROOT/scripts/setup-venv.sh"
+        cargo build --release -p bridgev2w-cli
+    fi
+    [[ -x $BIN ]] || { echo "error: $BIN is not an executable (set BRIDGEV2W)" >&2; exit 1; }
+    mkdir -p "$OUT/configs"
+    LOG="$OUT/timings.tsv"
+    touch "$LOG"
+}
 
 stage() { # stage NAME COMMAND...: runs it, records its wall time (replacing an earlier record)
     local name=$1 t0

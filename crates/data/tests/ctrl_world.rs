@@ -13,16 +13,7 @@ use serde_json::Value;
 use std::path::{Path, PathBuf};
 
 fn droid_root() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/droid");
-    if root.is_dir() {
-        Some(root)
-    } else {
-        eprintln!(
-            "skipped: {} is absent (the shared real-data folder)",
-            root.display()
-        );
-        None
-    }
+    bridgev2w_io::realdata::dir(env!("CARGO_MANIFEST_DIR"), "droid")
 }
 
 /// A camera looking at the Franka's workspace from the front-left, at the
