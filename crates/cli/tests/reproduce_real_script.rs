@@ -4,6 +4,9 @@
 //! and a rerun keeping what is done. Run on a copy of the script with a fake
 //! `bridgev2w` that records its calls, over a fake Ctrl-World folder.
 
+mod common;
+
+use common::trained;
 use std::fs;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -89,37 +92,13 @@ fn sandbox() -> tempfile::TempDir {
 }
 
 fn run(root: &Path, env: &[(&str, &str)]) -> Vec<String> {
-    let log = root.join("calls.log");
-    let _ = fs::remove_file(&log);
-    let mut cmd = Command::new("bash");
-    cmd.arg(root.join("scripts/reproduce-real-droid.sh"))
-        .arg("runs/real")
-        .env("BRIDGEV2W", root.join("bridgev2w"))
-        .env("DROID", root.join("droid"))
-        .env("PRIOR", root.join("prior"))
-        .env("RESULTS", "results.md");
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
-    let o = cmd.output().expect("run bash");
-    assert!(
-        o.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    fs::read_to_string(&log)
-        .unwrap_or_default()
-        .lines()
-        .map(str::to_string)
-        .collect()
-}
-
-fn trained(calls: &[String]) -> Vec<&str> {
-    calls
-        .iter()
-        .filter_map(|c| c.strip_prefix("train "))
-        .collect()
+    let (droid, prior) = (root.join("droid"), root.join("prior"));
+    let mut all = vec![
+        ("DROID", droid.to_str().expect("utf-8")),
+        ("PRIOR", prior.to_str().expect("utf-8")),
+    ];
+    all.extend_from_slice(env);
+    common::run_script(root, "reproduce-real-droid.sh", "runs/real", &all)
 }
 
 #[test]

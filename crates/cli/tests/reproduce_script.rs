@@ -4,6 +4,9 @@
 //! demo config whose paths are relative to the repository root. Run on a copy
 //! of the script with a fake `bridgev2w` that records its calls.
 
+mod common;
+
+use common::trained;
 use std::fs;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -69,35 +72,7 @@ fn sandbox() -> tempfile::TempDir {
 
 /// Runs the script in `root` with `env`; returns the fake's calls of this run.
 fn run(root: &Path, env: &[(&str, &str)]) -> Vec<String> {
-    let log = root.join("calls.log");
-    let _ = fs::remove_file(&log);
-    let mut cmd = Command::new("bash");
-    cmd.arg(root.join("scripts/reproduce-synthetic.sh"))
-        .arg("runs/r")
-        .env("BRIDGEV2W", root.join("bridgev2w"))
-        .env("RESULTS", "results.md");
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
-    let o = cmd.output().expect("run bash");
-    assert!(
-        o.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    fs::read_to_string(&log)
-        .unwrap_or_default()
-        .lines()
-        .map(str::to_string)
-        .collect()
-}
-
-fn trained(calls: &[String]) -> Vec<&str> {
-    calls
-        .iter()
-        .filter_map(|c| c.strip_prefix("train "))
-        .collect()
+    common::run_script(root, "reproduce-synthetic.sh", "runs/r", env)
 }
 
 fn evaluated(calls: &[String]) -> usize {

@@ -118,3 +118,40 @@ pub fn refused(o: &Output, needles: &[&str]) -> String {
     assert!(!err.contains("panicked"), "{err}");
     err
 }
+
+/// Runs a copy of a reproduction script (`root/scripts/SCRIPT`, with
+/// `root/bridgev2w` a fake binary that appends its calls to
+/// `root/calls.log`) with output folder `out` and `env`; asserts it
+/// succeeded and returns the fake's calls of this run.
+pub fn run_script(root: &Path, script: &str, out: &str, env: &[(&str, &str)]) -> Vec<String> {
+    let log = root.join("calls.log");
+    let _ = std::fs::remove_file(&log);
+    let mut cmd = Command::new("bash");
+    cmd.arg(root.join("scripts").join(script))
+        .arg(out)
+        .env("BRIDGEV2W", root.join("bridgev2w"))
+        .env("RESULTS", "results.md");
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let o = cmd.output().expect("run bash");
+    assert!(
+        o.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    std::fs::read_to_string(&log)
+        .unwrap_or_default()
+        .lines()
+        .map(str::to_string)
+        .collect()
+}
+
+/// The names trained in `calls` (`train NAME [--resume]`).
+pub fn trained(calls: &[String]) -> Vec<&str> {
+    calls
+        .iter()
+        .filter_map(|c| c.strip_prefix("train "))
+        .collect()
+}
