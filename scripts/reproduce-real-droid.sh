@@ -59,20 +59,10 @@ PRIOR=${PRIOR:-$ROOT/assets/demo-model/backbone}
 [[ -d $PRIOR ]] || { echo "error: PRIOR=$PRIOR is not a model folder (assets/demo-model/backbone)" >&2; exit 1; }
 DROID=$(cd "$DROID" && pwd)
 
-BIN=${BRIDGEV2W:-$ROOT/target/release/bridgev2w}
-if [[ -z ${BRIDGEV2W:-} ]]; then
-    echo "== building bridgev2w (release)"
-    scripts/setup-venv.sh
-    cargo build --release -p bridgev2w-cli
-fi
-[[ -x $BIN ]] || { echo "error: $BIN is not an executable (set BRIDGEV2W)" >&2; exit 1; }
-
-mkdir -p "$OUT/configs"
-LOG="$OUT/timings.tsv"
-touch "$LOG"
 DATA_STAGE=data
 # shellcheck source=scripts/lib/stages.sh
 source "$ROOT/scripts/lib/stages.sh"
+setup_run
 
 # The split, by episode (names relative to DROID; repeats of these under
 # other names are listed by convert and not converted). Held out: one or two
