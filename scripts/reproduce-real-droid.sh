@@ -251,12 +251,17 @@ if [[ $SCRATCH == 1 ]]; then
 fi
 
 GRIDS="${RESULTS%.md}/grids-real"
-fp=$(fingerprint "grid --out $GRIDS --steps $EVAL_STEPS ${KEEP_ARGS[*]}" "$OUT/bridgev2w.inputs" "$OUT/ablation-action-mlp.inputs")
+COMPARE=(--compare "$OUT/configs/ablation-action-mlp.toml" "$OUT/ablation-action-mlp")
+GRID_RUNS=("$OUT/bridgev2w.inputs" "$OUT/ablation-action-mlp.inputs")
+if [[ $SCRATCH == 1 ]]; then
+    COMPARE+=(--compare "$OUT/configs/bridgev2w-scratch.toml" "$OUT/bridgev2w-scratch")
+    GRID_RUNS+=("$OUT/bridgev2w-scratch.inputs")
+fi
+fp=$(fingerprint "grid --out $GRIDS --steps $EVAL_STEPS ${KEEP_ARGS[*]}" "${GRID_RUNS[@]}")
 if [[ ! -f $GRIDS/test.gif || ! -f $GRIDS/unseen_camera.gif || $(cat "$OUT/grids.inputs" 2>/dev/null) != "$fp" ]]; then
     rm -f "$OUT/grids.inputs"
     stage grids "$BIN" eval-grid "$OUT/configs/bridgev2w.toml" --run "$OUT/bridgev2w" \
-        --compare "$OUT/configs/ablation-action-mlp.toml" "$OUT/ablation-action-mlp" \
-        --splits test,unseen_camera --out "$GRIDS" --overwrite --clips 4 --steps "$EVAL_STEPS" "${KEEP_ARGS[@]}"
+        "${COMPARE[@]}" --splits test,unseen_camera --out "$GRIDS" --overwrite --clips 4 --steps "$EVAL_STEPS" "${KEEP_ARGS[@]}"
     printf '%s\n' "$fp" >"$OUT/grids.inputs"
 fi
 
@@ -266,7 +271,8 @@ iou() { # iou ROLE: the calibration's held-out IoU on the test episodes
 PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-real-droid.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
-    echo "Data: the ${#RIG[@]} DROID episodes of the Ctrl-World authors' rig (\`droid_new_setup*\` of \`../shared/realdata/droid\`, CC BY 4.0; repeats of one recording under two names converted once: \`$OUT/data/skipped.json\`), real video at 5 Hz, 320x192 resized to 96x64; clips of 9 frames (1.8 s)."
+    repeats=$(python3 -c 'import json,sys; print(len(json.load(open(sys.argv[1]))["skipped"]))' "$OUT/data/skipped.json")
+    echo "Data: the ${#RIG[@]} DROID episodes of the Ctrl-World authors' rig (\`droid_new_setup*\` of \`../shared/realdata/droid\`, CC BY 4.0), $((${#RIG[@]} - repeats)) distinct ($repeats repeat another's joint recording under another name and are converted once: \`$OUT/data/skipped.json\`); real video at 5 Hz, 320x192 resized to 96x64; clips of 9 frames (1.8 s)."
     echo "Split by episode: ${#TEST[@]} held-out episodes (\`${TEST[*]}\`) are *In-Domain* (exterior camera 1, the view trained on) and *Unseen Camera Viewpoint* (exterior camera 2, which no training episode shows); the others are the training split (camera 1 only)."
     echo "Masks and link labels: rendered from the recorded joints through the cameras calibrated from the robot's own motion (\`bridgev2w calibrate\`, robot \`franka-robotiq\`: Franka + Robotiq 2F-85 as DROID's; focal length fixed at the ZED 2's nominal $FOCAL_PX px, pose fitted on ${#CALIB_FIT[@]} training episodes): held-out-episode IoU of the rendered robot against the robot pixels found in the video $(iou ext1) (camera 1), $(iou ext2) (camera 2). They are not ground truth: Mask-IoU below is against these masks."
     echo "Models: BridgeV2W (ControlNet of 2 blocks + LoRA rank 64, link-coded masks) and the \`mask_action = false\` ablation fine-tuned $FT_STEPS steps each (batch 4) from the synthetic world's action-free prior (\`assets/demo-model/backbone\`: VAE and transformer trained on the synthetic world only)$([[ $SCRATCH == 1 ]] && echo "; *from scratch*: a small2x VAE ($SCRATCH_VAE_IMAGE_STEPS steps on single frames, $SCRATCH_VAE_STEPS on clips) and an action-free prior ($SCRATCH_PRIOR_STEPS steps) trained on the training split's real frames, then BridgeV2W $FT_STEPS steps")."
@@ -274,6 +280,8 @@ PRE="$OUT/preamble.md"
     if [[ -n $KEEP_STATIC ]]; then
         echo "Predictions keep the static scene (\`--keep-static $KEEP_STATIC\`) as in the synthetic study; the row *every pixel generated* is BridgeV2W without it."
     fi
+    echo
+    echo "Wall time of the run that finished each stage: a stage resumed after a cut counts from its resume, and the machine's other work at the time is in it."
     echo
     echo "| stage | wall time (s) |"
     echo "|---|---|"
