@@ -87,7 +87,12 @@ fn pip_install_python_then_its_tests_pass() {
         .expect("run the package's tests with pytest");
     eprintln!("{}", String::from_utf8_lossy(&o.stdout));
     ok(&o);
-    assert!(String::from_utf8_lossy(&o.stdout).contains("18 passed"));
+    // bw.calibrate's test reads ../shared/realdata and skips where it is absent.
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("19 passed") || out.contains("18 passed, 1 skipped"),
+        "{out}"
+    );
     // bridgev2w.rerun: its recordings reloaded with the Rerun SDK (rerun-sdk
     // from the project venv).
     let o = Command::new(venv.join("bin/python"))

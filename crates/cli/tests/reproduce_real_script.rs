@@ -166,12 +166,12 @@ fn the_real_video_experiment_runs_its_stages_in_order_and_resumes() {
     }
     let preamble = fs::read_to_string(r.join("runs/real/preamble.md")).expect("preamble");
     assert!(preamble.contains("0.500 (camera 1)"), "{preamble}");
-    assert!(preamble.contains("the 33 DROID episodes") && preamble.contains("31 distinct"), "{preamble}");
-    // The grids draw every trained arm.
     assert!(
-        first.iter().any(|c| c == "eval-grid"),
-        "{first:?}"
+        preamble.contains("the 33 DROID episodes") && preamble.contains("31 distinct"),
+        "{preamble}"
     );
+    // The grids draw every trained arm.
+    assert!(first.iter().any(|c| c == "eval-grid"), "{first:?}");
     // Same inputs: nothing is calibrated, converted, trained or evaluated
     // again; only the section is rewritten.
     let second = run(r, &[]);
