@@ -24,7 +24,7 @@
 
 use super::droid::{EE_FRAME, JOINT_NAMES};
 use super::report::Note;
-use super::{confined, io_err, json_err, read_json, RawEpisode, RawError, RawView};
+use super::{confined, json_err, read_json, sub_dirs, RawEpisode, RawError, RawView};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_io::confine;
 use serde_json::Value;
@@ -225,9 +225,9 @@ pub fn find_episodes(root: &Path) -> Result<Vec<CtrlWorldEpisode>, RawError> {
             } else {
                 relative.to_string_lossy().replace('\\', "/")
             };
-            for split in read_dirs(&videos)? {
+            for split in sub_dirs(&videos)? {
                 let split_name = file_name(&split);
-                for ep in read_dirs(&split)? {
+                for ep in sub_dirs(&split)? {
                     let id = file_name(&ep);
                     let annotation = dir
                         .join("annotation")
@@ -245,7 +245,7 @@ pub fn find_episodes(root: &Path) -> Result<Vec<CtrlWorldEpisode>, RawError> {
                 }
             }
         } else {
-            stack.extend(read_dirs(&dir)?);
+            stack.extend(sub_dirs(&dir)?);
         }
     }
     if out.is_empty() {
@@ -548,17 +548,4 @@ fn file_name(p: &Path) -> String {
     p.file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default()
-}
-
-/// The sub-folders of `dir` (not following symbolic links), sorted.
-fn read_dirs(dir: &Path) -> Result<Vec<PathBuf>, RawError> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir(dir).map_err(io_err(dir))? {
-        let e = e.map_err(io_err(dir))?;
-        if e.file_type().map_err(io_err(dir))?.is_dir() {
-            v.push(e.path());
-        }
-    }
-    v.sort();
-    Ok(v)
 }

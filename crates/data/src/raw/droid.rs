@@ -146,12 +146,7 @@ pub fn find_episodes(root: &Path) -> Result<Vec<PathBuf>, RawError> {
             out.push(dir);
             continue;
         }
-        for entry in std::fs::read_dir(&dir).map_err(io_err(&dir))? {
-            let entry = entry.map_err(io_err(&dir))?;
-            if entry.file_type().map_err(io_err(&dir))?.is_dir() {
-                stack.push(entry.path());
-            }
-        }
+        stack.extend(super::sub_dirs(&dir)?);
     }
     out.sort();
     Ok(out)

@@ -109,6 +109,20 @@ pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RawError + '
     }
 }
 
+/// The sub-folders of `dir` (symbolic links to folders not followed),
+/// sorted: how the readers walk a dataset's tree.
+pub(crate) fn sub_dirs(dir: &Path) -> Result<Vec<PathBuf>, RawError> {
+    let mut v = Vec::new();
+    for e in std::fs::read_dir(dir).map_err(io_err(dir))? {
+        let e = e.map_err(io_err(dir))?;
+        if e.file_type().map_err(io_err(dir))?.is_dir() {
+            v.push(e.path());
+        }
+    }
+    v.sort();
+    Ok(v)
+}
+
 pub(crate) fn json_err(path: &Path, field: &str, message: impl Into<String>) -> RawError {
     RawError::Json {
         path: path.to_path_buf(),
