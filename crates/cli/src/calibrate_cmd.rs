@@ -55,19 +55,13 @@ impl FitArgs {
             focal_px: self.focal_px,
             fit_aspect: self.fit_aspect,
             fit_principal_point: self.fit_principal_point,
-            analysis_width: self.analysis_width,
-            mid_width: CalibrateOptions::default()
-                .mid_width
-                .min(self.analysis_width),
-            coarse_width: CalibrateOptions::default()
-                .coarse_width
-                .min(self.analysis_width),
             azimuth_step_deg: self.azimuth_step_deg,
             max_evaluations: self.max_evaluations,
             low_iou: self.low_iou,
             min_motion_m: self.min_motion_m,
             ..CalibrateOptions::default()
         }
+        .with_analysis_width(self.analysis_width)
     }
 }
 

@@ -476,3 +476,16 @@ fn calibrate_to_folder_writes_its_outputs_once_and_refuses_overlapping_ones() {
     }
     assert!(input.video.is_file() && input.joints.is_file());
 }
+
+#[test]
+fn an_analysis_width_caps_the_middle_and_coarse_grids() {
+    let o = CalibrateOptions::default().with_analysis_width(64);
+    assert_eq!(
+        (o.analysis_width, o.mid_width, o.coarse_width),
+        (64, 64, 64)
+    );
+    o.validate().unwrap();
+    let d = CalibrateOptions::default();
+    let o = CalibrateOptions::default().with_analysis_width(1000);
+    assert_eq!((o.mid_width, o.coarse_width), (d.mid_width, d.coarse_width));
+}

@@ -53,16 +53,13 @@ pub(crate) fn calibrate<'py>(
             }
         }
     }
-    let defaults = CalibrateOptions::default();
     let options = CalibrateOptions {
         focal_px,
         fy_over_fx,
-        analysis_width,
-        mid_width: defaults.mid_width.min(analysis_width),
-        coarse_width: defaults.coarse_width.min(analysis_width),
         max_evaluations,
-        ..defaults
-    };
+        ..CalibrateOptions::default()
+    }
+    .with_analysis_width(analysis_width);
     options.validate().map_err(value_err)?;
     let embodiment = &robot.inner;
     let run = py

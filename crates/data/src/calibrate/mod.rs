@@ -273,6 +273,16 @@ fn option_err(field: &'static str, value: impl ToString, expected: &str) -> Cali
 }
 
 impl CalibrateOptions {
+    /// The options with the analysis grid at most `width` pixels wide and
+    /// the middle and coarse grids no wider than it (what a user's
+    /// `--analysis-width` sets; the CLI and the Python package share it).
+    pub fn with_analysis_width(mut self, width: u32) -> Self {
+        self.analysis_width = width;
+        self.mid_width = self.mid_width.min(width);
+        self.coarse_width = self.coarse_width.min(width);
+        self
+    }
+
     /// Checks every option; the error names the command-line flag.
     pub fn validate(&self) -> Result<(), CalibrateError> {
         let widths = [
