@@ -26,11 +26,15 @@ class Calibration:
     fit_iou: float
     #: False when a flag was raised (a low held-out IoU, an ambiguous fit).
     reliable: bool
-    #: ``(code, message)`` per flag (``low_held_out_iou``, ``ambiguous``).
+    #: ``(code, message)`` per flag (``low_held_out_iou``, ``ambiguous``,
+    #: ``marks_disagree``).
     flags: list = field(default_factory=list)
     #: ``(name, held_out_iou, held_out_frames, fitted)`` per episode, the
     #: fitted ones first, then the checked ones.
     episodes: list = field(default_factory=list)
+    #: ``(name, median_px, max_px, marks)`` per episode with hand marks:
+    #: the tool point's reprojection error at the video's size.
+    marks: list = field(default_factory=list)
     #: What ``bridgev2w calibrate`` prints.
     summary: str = ""
 
@@ -46,7 +50,7 @@ def _paths(name, value):
 def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
               check_videos: Sequence = (), check_joints: Sequence = (),
               focal_px: Optional[float] = None, fy_over_fx: float = 1.0, analysis_width: int = 320,
-              max_evaluations: int = 250, overwrite: bool = False) -> Calibration:
+              max_evaluations: int = 250, marks=None, overwrite: bool = False) -> Calibration:
     """Finds the fixed camera of ``videos`` (one MP4 or a list, one per
     episode) from the robot's joints in each (``joints``, in the same order:
     trajectory files, or DROID annotation JSONs of the Ctrl-World layout),
@@ -55,7 +59,10 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
     ``bridgev2w calibrate``. ``robot`` defaults to ``franka-robotiq``;
     ``focal_px`` is a known fx at the video's size (then only the pose is
     fitted); ``fy_over_fx`` 1.0667 for DROID's 320x192 videos (stretched
-    from 320x180). The GIL is released while it runs (minutes).
+    from 320x180). ``marks``: a JSON file of hand-marked tool-point pixels
+    (see the calibrate guide): each marked episode's reprojection error is
+    reported in ``marks``; on fitted episodes 4 or more marks start and pull
+    the fit. The GIL is released while it runs (minutes).
 
     Missing files are a ``FileNotFoundError``, bad arguments a ``ValueError``
     naming them, an existing ``out`` without ``overwrite`` or a video the
@@ -69,6 +76,7 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
         _paths("check_videos", list(check_videos)), _paths("check_joints", list(check_joints)),
         None if focal_px is None else _float("focal_px", focal_px),
         _float("fy_over_fx", fy_over_fx), _int("analysis_width", analysis_width, 16, 4096),
-        _int("max_evaluations", max_evaluations, 10, 100000), bool(overwrite))
+        _int("max_evaluations", max_evaluations, 10, 100000),
+        None if marks is None else _path("marks", marks), bool(overwrite))
     d["camera"] = Camera(_core_camera=d["camera"])
     return Calibration(**d)

@@ -361,8 +361,11 @@ def test_calibrate_finds_a_camera_and_writes_its_folder():
     video = root / "videos" / "val" / "0007" / "0.mp4"
     joints = root / "annotation" / "val" / "0007.json"
     out = WORK / "calibration"
+    marks = pathlib.Path(__file__).resolve().parents[2] / "crates" / "data" / "tests" / "data" / "droid_marks.json"
     c = bw.calibrate(video, joints, out, focal_px=133.0, fy_over_fx=192 / 180, analysis_width=80,
-                     max_evaluations=30)
+                     max_evaluations=30, marks=marks)
+    # The hand marks of this video (6 in the file) are measured in pixels.
+    assert len(c.marks) == 1 and c.marks[0][3] == 6 and 0 <= c.marks[0][1] <= c.marks[0][2], c.marks
     assert isinstance(c.camera, bw.Camera) and c.camera.size == (320, 192), c
     assert abs(c.camera.K[0, 0] - 133.0) < 1e-9, c.camera.K
     assert 0.0 <= c.held_out_iou <= 1.0 and len(c.episodes) == 1 and c.episodes[0][3], c
@@ -391,6 +394,8 @@ def test_calibrate_finds_a_camera_and_writes_its_folder():
         bw.calibrate(video, joints, WORK / "c2", check_videos=[video])
     with pytest.raises(FileNotFoundError, match="absent.mp4"):
         bw.calibrate(root / "absent.mp4", joints, WORK / "c3")
+    with pytest.raises(FileNotFoundError, match="absent-marks.json"):
+        bw.calibrate(video, joints, WORK / "c4", marks=WORK / "absent-marks.json")
 
 
 def test_batches_equal_their_single_items():

@@ -5,6 +5,7 @@
 use crate::masks_cmd::RobotArgs;
 use anyhow::Result;
 use bridgev2w_data::calibrate::droid_study::{droid_study, DroidStudyOptions, DROID_FY_OVER_FX};
+use bridgev2w_data::calibrate::marks::Marks;
 use bridgev2w_data::calibrate::run::calibrate_to_folder;
 use bridgev2w_data::calibrate::study::{synthetic_study, StudyOptions};
 use bridgev2w_data::calibrate::{pair_inputs, CalibrateOptions};
@@ -87,6 +88,9 @@ pub struct CalibrateArgs {
     /// A rough camera JSON to start from besides the coarse search.
     #[arg(long, value_name = "JSON")]
     guess: Option<PathBuf>,
+    /// Hand marks of the tool point (JSON: `{"videos": [{"video": "val/0002/0.mp4", "marks": [[frame, u, v], ...]}]}`, pixels at the video's size; see the calibrate guide): each marked episode's reprojection error is reported; on fitted episodes, 4 or more marks start and pull the fit
+    #[arg(long, value_name = "JSON")]
+    marks: Option<PathBuf>,
     #[command(flatten)]
     fit: FitArgs,
     /// Output folder: camera.json, residuals.json, overlay/*.gif.
@@ -104,7 +108,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .as_deref()
         .map(Camera::from_json_file)
         .transpose()?;
-    let options = args.fit.options(guess, 1.0);
+    let mut options = args.fit.options(guess, 1.0);
+    options.marks = args.marks.as_deref().map(Marks::read).transpose()?;
     let fitted = pair_inputs(&args.video, &args.joints, ("--video", "--joints"))?;
     let checked = pair_inputs(
         &args.check_video,
@@ -113,6 +118,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     )?;
     let mut inputs: Vec<&Path> = args.robot.urdf_file().into_iter().collect();
     inputs.extend(args.guess.as_deref());
+    inputs.extend(args.marks.as_deref());
     let run = calibrate_to_folder(
         &e,
         &fitted,

@@ -389,3 +389,47 @@ fn result_files_are_not_overwritten_without_overwrite() {
     );
     assert!(d.join("grids/keep.txt").is_file());
 }
+
+#[test]
+fn calibrate_refuses_marks_that_fit_no_episode() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (video, joints, marks) = (
+        tmp.path().join("0002/0.mp4"),
+        tmp.path().join("0002.json"),
+        tmp.path().join("marks.json"),
+    );
+    let out = tmp.path().join("cal");
+    let cal = |marks_text: &str| {
+        std::fs::write(&marks, marks_text).unwrap();
+        run(&[
+            "calibrate",
+            "--robot",
+            "franka-robotiq",
+            "--video",
+            s(&video),
+            "--joints",
+            s(&joints),
+            "--marks",
+            s(&marks),
+            "--out",
+            s(&out),
+        ])
+    };
+    refused(
+        &cal(r#"{"videos": [{"video": "0003/0.mp4", "marks": [[0, 1, 2]]}]}"#),
+        &[
+            "marks.json",
+            "none of its videos (0003/0.mp4)",
+            "0002/0.mp4",
+        ],
+    );
+    refused(
+        &cal(r#"{"videos": [{"video": "0002/0.mp4", "marks": [[0, 1, 2], [0, 3, 4]]}]}"#),
+        &[
+            "marks.json",
+            "videos[0].marks[1]",
+            "frame 0 is marked twice",
+        ],
+    );
+    assert!(!out.exists());
+}

@@ -3,6 +3,7 @@
 //! released.
 
 use super::*;
+use bridgev2w_data::calibrate::marks::Marks;
 use bridgev2w_data::calibrate::run::calibrate_to_folder;
 use bridgev2w_data::calibrate::{pair_inputs, CalibrateError, CalibrateOptions};
 
@@ -14,9 +15,10 @@ use bridgev2w_data::calibrate::{pair_inputs, CalibrateError, CalibrateOptions};
 /// Returns a dict: `out`, `camera` (a `Camera`), `held_out_iou`, `fit_iou`,
 /// `reliable`, `flags` (`(code, message)` pairs), `episodes` (per fitted
 /// and checked episode: `(name, held_out_iou, held_out_frames, fitted)`),
-/// `summary` (the CLI's text).
+/// `marks` (per episode with hand marks: `(name, median_px, max_px,
+/// marks)`), `summary` (the CLI's text).
 #[pyfunction]
-#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, overwrite))]
+#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, marks, overwrite))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn calibrate<'py>(
     py: Python<'py>,
@@ -30,6 +32,7 @@ pub(crate) fn calibrate<'py>(
     fy_over_fx: f64,
     analysis_width: u32,
     max_evaluations: usize,
+    marks: Option<PathBuf>,
     overwrite: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let value_err = |e: CalibrateError| match e {
@@ -53,10 +56,22 @@ pub(crate) fn calibrate<'py>(
             }
         }
     }
+    if let Some(p) = marks.as_ref().filter(|p| !p.is_file()) {
+        return Err(PyFileNotFoundError::new_err(format!(
+            "{}: no such file",
+            p.display()
+        )));
+    }
+    let marks = marks
+        .as_deref()
+        .map(Marks::read)
+        .transpose()
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
     let options = CalibrateOptions {
         focal_px,
         fy_over_fx,
         max_evaluations,
+        marks,
         ..CalibrateOptions::default()
     }
     .with_analysis_width(analysis_width);
@@ -113,6 +128,16 @@ pub(crate) fn calibrate<'py>(
         })
         .collect();
     d.set_item("episodes", episodes)?;
+    let marks: Vec<(String, f64, f64, usize)> = c
+        .episodes
+        .iter()
+        .chain(&run.checks)
+        .filter_map(|r| {
+            let m = r.marks.as_ref()?;
+            Some((r.name.clone(), m.median_px, m.max_px, m.marks))
+        })
+        .collect();
+    d.set_item("marks", marks)?;
     d.set_item("summary", run.summary())?;
     Ok(d)
 }

@@ -70,6 +70,9 @@ pub struct EpisodeData {
     pub joints: Vec<Vec<f64>>,
     /// What was adapted on reading (frame-count mismatch, subsampling).
     pub notes: Vec<String>,
+    /// Hand marks of the tool point (see [`super::marks`]); none unless
+    /// given.
+    pub marks: Vec<super::marks::Mark>,
 }
 
 impl EpisodeData {
@@ -113,6 +116,7 @@ impl EpisodeData {
             frames,
             joints,
             notes: Vec::new(),
+            marks: Vec::new(),
         })
     }
 }

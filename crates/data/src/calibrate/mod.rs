@@ -27,8 +27,10 @@
 pub mod droid_study;
 pub mod episode;
 pub mod foreground;
+pub mod marks;
 mod nelder_mead;
 mod objective;
+mod options;
 mod problem;
 pub mod report;
 pub mod run;
@@ -37,6 +39,7 @@ pub mod study;
 
 pub use episode::{load_episode, pair_inputs, EpisodeData, EpisodeInput};
 pub use foreground::{find_foreground, Foreground, ForegroundOptions, ForegroundStats};
+pub use options::CalibrateOptions;
 
 use crate::synth::SynthError;
 use crate::video::VideoError;
@@ -45,8 +48,8 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use objective::reduce_intrinsics;
 use problem::{prepare, Prepared};
 use search::{
-    active_parameters, angle_between, coarse_candidates, distinct, dolly_scan, probe, refine,
-    Evaluator,
+    active_parameters, angle_between, coarse_candidates, distinct, dolly_scan, marks_start, probe,
+    refine, start_intrinsics, Evaluator,
 };
 use serde::Serialize;
 use std::path::PathBuf;
@@ -137,6 +140,14 @@ pub enum CalibrateError {
         /// What failed.
         message: String,
     },
+    /// A marks file is unreadable or does not fit the episodes.
+    #[error("{}: {message}", path.display())]
+    Marks {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
     /// The synthetic world failed (the study).
     #[error(transparent)]
     Synth(#[from] SynthError),
@@ -145,272 +156,6 @@ pub enum CalibrateError {
 /// At most this many dolly-zoom scans after the middle-grid refinement
 /// (each from the best camera so far, while it improves).
 const MAX_DOLLY_SCANS: usize = 4;
-
-/// Options of [`calibrate`].
-#[derive(Debug, Clone, PartialEq)]
-pub struct CalibrateOptions {
-    /// A rough camera to start from besides the coarse search (any image
-    /// size: rescaled to the video's).
-    pub guess: Option<Camera>,
-    /// The analysis grid's largest width (the video is box-reduced by an
-    /// integer factor to fit).
-    pub analysis_width: u32,
-    /// The middle refinement grid's largest width.
-    pub mid_width: u32,
-    /// The coarse search grid's largest width.
-    pub coarse_width: u32,
-    /// `fy / fx` of the start (and of the result unless `fit_aspect`):
-    /// 1 for square pixels, 192/180 for DROID's stretched 320x192 videos.
-    pub fy_over_fx: f64,
-    /// A known focal length: fx at the video's size (pixels; fy = fx x
-    /// `fy_over_fx`), kept fixed instead of fitted. A silhouette pins the
-    /// focal length down poorly (a near, wide camera against a far,
-    /// narrow one), so a known one removes the search's flattest direction.
-    pub focal_px: Option<f64>,
-    /// Fit `fy / fx` too.
-    pub fit_aspect: bool,
-    /// Fit the principal point too (else the image centre).
-    pub fit_principal_point: bool,
-    /// Hold out every n-th block of frames (about 16 blocks per episode).
-    pub held_out_every: usize,
-    /// Coarse search: azimuth step (degrees), all around.
-    pub azimuth_step_deg: f64,
-    /// Coarse search: elevations (degrees above the motion's centroid).
-    pub elevations_deg: Vec<f64>,
-    /// Coarse search: distances from the motion's centroid (metres).
-    pub distances_m: Vec<f64>,
-    /// Coarse-search candidates screened by a short refinement.
-    pub screened: usize,
-    /// Nelder-Mead evaluations of each screening.
-    pub screen_evaluations: usize,
-    /// Screened candidates refined.
-    pub starts: usize,
-    /// Of those, the best refined on the middle grid.
-    pub finalists: usize,
-    /// Frames per episode scored in the coarse search.
-    pub coarse_frames: usize,
-    /// Frames per episode scored in the refinement.
-    pub fit_frames: usize,
-    /// Frames per episode whose masks give the background model's robot.
-    pub mode_frames: usize,
-    /// Nelder-Mead evaluations per round.
-    pub max_evaluations: usize,
-    /// Refuse an episode whose robot surface moves less (metres).
-    pub min_motion_m: f64,
-    /// Refuse an episode with fewer frames showing robot pixels.
-    pub min_robot_frames: usize,
-    /// Refuse an episode with a smaller share of frames showing robot pixels.
-    pub min_robot_frame_fraction: f64,
-    /// A camera is moving when its noise level reaches this...
-    pub moving_noise_level: f64,
-    /// ...and its unstable fraction reaches this.
-    pub moving_unstable_fraction: f64,
-    /// Flag a held-out IoU below this.
-    pub low_iou: f64,
-    /// Flag as ambiguous when the camera moved by `ambiguous_position_m`
-    /// (orbit or dolly-zoom, the rest re-fitted) fits less than this worse,
-    /// or a refined alternative within this margin differs by more than
-    /// `ambiguous_position_m`, `ambiguous_angle_deg` or
-    /// `ambiguous_focal_fraction`.
-    pub ambiguous_margin: f64,
-    /// Nelder-Mead evaluations of each such re-fit.
-    pub probe_evaluations: usize,
-    /// See `ambiguous_margin` (metres).
-    pub ambiguous_position_m: f64,
-    /// See `ambiguous_margin` (degrees).
-    pub ambiguous_angle_deg: f64,
-    /// See `ambiguous_margin` (fraction of the focal length).
-    pub ambiguous_focal_fraction: f64,
-    /// Foreground detection.
-    pub foreground: ForegroundOptions,
-}
-
-impl Default for CalibrateOptions {
-    fn default() -> Self {
-        Self {
-            guess: None,
-            analysis_width: 320,
-            mid_width: 160,
-            coarse_width: 80,
-            fy_over_fx: 1.0,
-            focal_px: None,
-            fit_aspect: false,
-            fit_principal_point: false,
-            held_out_every: 4,
-            azimuth_step_deg: 20.0,
-            elevations_deg: vec![-10.0, 5.0, 20.0, 35.0, 50.0, 65.0, 80.0],
-            distances_m: vec![0.5, 0.75, 1.1, 1.6, 2.3, 3.0],
-            screened: 24,
-            screen_evaluations: 60,
-            starts: 6,
-            finalists: 3,
-            coarse_frames: 8,
-            fit_frames: 24,
-            mode_frames: 24,
-            max_evaluations: 250,
-            min_motion_m: 0.05,
-            min_robot_frames: 6,
-            min_robot_frame_fraction: 0.3,
-            moving_noise_level: 7.25,
-            moving_unstable_fraction: 0.5,
-            low_iou: 0.5,
-            ambiguous_margin: 0.01,
-            probe_evaluations: 60,
-            ambiguous_position_m: 0.05,
-            ambiguous_angle_deg: 3.0,
-            ambiguous_focal_fraction: 0.05,
-            foreground: ForegroundOptions::default(),
-        }
-    }
-}
-
-fn option_err(field: &'static str, value: impl ToString, expected: &str) -> CalibrateError {
-    CalibrateError::Option {
-        field,
-        value: value.to_string(),
-        expected: expected.to_string(),
-    }
-}
-
-impl CalibrateOptions {
-    /// The options with the analysis grid at most `width` pixels wide and
-    /// the middle and coarse grids no wider than it (what a user's
-    /// `--analysis-width` sets; the CLI and the Python package share it).
-    pub fn with_analysis_width(mut self, width: u32) -> Self {
-        self.analysis_width = width;
-        self.mid_width = self.mid_width.min(width);
-        self.coarse_width = self.coarse_width.min(width);
-        self
-    }
-
-    /// Checks every option; the error names the command-line flag.
-    pub fn validate(&self) -> Result<(), CalibrateError> {
-        let widths = [
-            ("--analysis-width", self.analysis_width),
-            ("--mid-width", self.mid_width),
-            ("--coarse-width", self.coarse_width),
-        ];
-        for (field, w) in widths {
-            if !(16..=4096).contains(&w) {
-                return Err(option_err(field, w, "16..=4096 pixels"));
-            }
-        }
-        if !(self.coarse_width <= self.mid_width && self.mid_width <= self.analysis_width) {
-            return Err(option_err(
-                "--coarse-width",
-                format!(
-                    "{} (mid {}, analysis {})",
-                    self.coarse_width, self.mid_width, self.analysis_width
-                ),
-                "coarse <= mid <= analysis width",
-            ));
-        }
-        if let Some(f) = self.focal_px {
-            if !(f.is_finite() && f > 0.0 && f <= 1e6) {
-                return Err(option_err(
-                    "--focal-px",
-                    f,
-                    "a focal length in pixels, above 0",
-                ));
-            }
-        }
-        if !(self.fy_over_fx.is_finite() && (0.5..=2.0).contains(&self.fy_over_fx)) {
-            return Err(option_err(
-                "--fy-over-fx",
-                self.fy_over_fx,
-                "a pixel aspect of 0.5..=2",
-            ));
-        }
-        if !(2..=100).contains(&self.held_out_every) {
-            return Err(option_err(
-                "--held-out-every",
-                self.held_out_every,
-                "2..=100",
-            ));
-        }
-        if !(self.azimuth_step_deg.is_finite() && (1.0..=180.0).contains(&self.azimuth_step_deg)) {
-            return Err(option_err(
-                "--azimuth-step-deg",
-                self.azimuth_step_deg,
-                "1..=180 degrees",
-            ));
-        }
-        if self.elevations_deg.is_empty()
-            || self
-                .elevations_deg
-                .iter()
-                .any(|e| !(e.is_finite() && (-85.0..=85.0).contains(e)))
-        {
-            return Err(option_err(
-                "--elevations-deg",
-                format!("{:?}", self.elevations_deg),
-                "one or more elevations of -85..=85 degrees",
-            ));
-        }
-        if self.distances_m.is_empty()
-            || self
-                .distances_m
-                .iter()
-                .any(|d| !(d.is_finite() && (0.1..=20.0).contains(d)))
-        {
-            return Err(option_err(
-                "--distances-m",
-                format!("{:?}", self.distances_m),
-                "one or more distances of 0.1..=20 m",
-            ));
-        }
-        let counts = [
-            ("--screened", self.screened, 1, 1000),
-            ("--screen-evaluations", self.screen_evaluations, 10, 100_000),
-            ("--starts", self.starts, 1, 64),
-            ("--finalists", self.finalists, 1, 64),
-            ("--coarse-frames", self.coarse_frames, 2, 1000),
-            ("--fit-frames", self.fit_frames, 2, 1000),
-            ("--mode-frames", self.mode_frames, 3, 1000),
-            ("--max-evaluations", self.max_evaluations, 10, 100_000),
-            ("--min-robot-frames", self.min_robot_frames, 1, 100_000),
-            ("--probe-evaluations", self.probe_evaluations, 1, 100_000),
-        ];
-        for (field, v, lo, hi) in counts {
-            if !(lo..=hi).contains(&v) {
-                return Err(option_err(field, v, &format!("{lo}..={hi}")));
-            }
-        }
-        let fractions = [
-            ("--min-robot-frame-fraction", self.min_robot_frame_fraction),
-            ("--moving-unstable-fraction", self.moving_unstable_fraction),
-            ("--low-iou", self.low_iou),
-            ("--ambiguous-focal-fraction", self.ambiguous_focal_fraction),
-            (
-                "--min-robot-pixels-fraction",
-                self.foreground.min_robot_pixels_fraction,
-            ),
-        ];
-        for (field, v) in fractions {
-            if !(v.is_finite() && (0.0..=1.0).contains(&v)) {
-                return Err(option_err(field, v, "a fraction of 0..=1"));
-            }
-        }
-        let positive = [
-            ("--min-motion-m", self.min_motion_m),
-            ("--moving-noise-level", self.moving_noise_level),
-            ("--ambiguous-margin", self.ambiguous_margin),
-            ("--ambiguous-position-m", self.ambiguous_position_m),
-            ("--ambiguous-angle-deg", self.ambiguous_angle_deg),
-            ("--min-threshold", self.foreground.min_threshold),
-            ("--noise-factor", self.foreground.noise_factor),
-        ];
-        for (field, v) in positive {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(option_err(field, v, "a finite value >= 0"));
-            }
-        }
-        if let Some(g) = &self.guess {
-            g.intrinsics.validate()?;
-        }
-        Ok(())
-    }
-}
 
 /// A calibration's residuals on one episode.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -438,12 +183,14 @@ pub struct EpisodeResidual {
     pub foreground: ForegroundStats,
     /// What was adapted reading the episode.
     pub notes: Vec<String>,
+    /// The reprojection error of its hand marks, when it has any.
+    pub marks: Option<marks::MarksResidual>,
 }
 
 /// Something about a calibration that makes it less than trustworthy.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Flag {
-    /// `low_held_out_iou`, `ambiguous`.
+    /// `low_held_out_iou`, `ambiguous`, `marks_disagree`.
     pub code: &'static str,
     /// With the measured values.
     pub message: String,
@@ -511,6 +258,7 @@ fn prepare_all(
     let Some(first) = episodes.first() else {
         return Err(CalibrateError::NoCamera("no episodes given".into()));
     };
+    let mark_link = marked_link(embodiment, options)?;
     let mut out = Vec::with_capacity(episodes.len());
     for e in episodes {
         if (e.video_size, e.factor, e.width, e.height)
@@ -538,6 +286,10 @@ fn prepare_all(
             options.held_out_every,
             options.mode_frames,
         );
+        let p = Prepared {
+            marks: place_marks(e, &p.poses, mark_link, options)?,
+            ..p
+        };
         if refuse {
             if s.noise_level >= options.moving_noise_level
                 && s.unstable_fraction >= options.moving_unstable_fraction
@@ -571,6 +323,70 @@ fn prepare_all(
             }
         }
         out.push(p);
+    }
+    Ok(out)
+}
+
+/// The robot link whose origin the marks show: the marks file's `link`,
+/// else the first end effector's link.
+fn marked_link(
+    embodiment: &Embodiment,
+    options: &CalibrateOptions,
+) -> Result<usize, CalibrateError> {
+    let robot = &embodiment.robot;
+    match options
+        .marks
+        .as_ref()
+        .and_then(|m| m.link.as_deref().map(|l| (m, l)))
+    {
+        Some((m, name)) => robot.link_index(name).ok_or_else(|| CalibrateError::Marks {
+            path: m.path.clone(),
+            message: format!(
+                "link {name:?} is not a link of {}: expected one of {}",
+                robot.name,
+                robot
+                    .links
+                    .iter()
+                    .map(|l| l.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }),
+        None => Ok(embodiment.end_effectors.first().map_or(0, |e| e.link)),
+    }
+}
+
+/// `episode`'s marks placed for scoring: the marked link's origin at each
+/// marked frame and the mark on the analysis grid.
+fn place_marks(
+    episode: &EpisodeData,
+    poses: &[Vec<nalgebra::Isometry3<f64>>],
+    link: usize,
+    options: &CalibrateOptions,
+) -> Result<Vec<marks::PlacedMark>, CalibrateError> {
+    let mut out = Vec::with_capacity(episode.marks.len());
+    for m in &episode.marks {
+        let Some(pose) = poses.get(m.frame) else {
+            let path = options
+                .marks
+                .as_ref()
+                .map(|f| f.path.clone())
+                .unwrap_or_default();
+            return Err(CalibrateError::Marks {
+                path,
+                message: format!(
+                    "{}: frame {} is marked but the episode has {} frames (0..{})",
+                    episode.name,
+                    m.frame,
+                    poses.len(),
+                    poses.len()
+                ),
+            });
+        };
+        out.push(marks::PlacedMark {
+            world: nalgebra::Point3::from(pose[link].translation.vector),
+            pixel: marks::to_analysis(m.u, m.v, f64::from(episode.factor)),
+        });
     }
     Ok(out)
 }
@@ -629,6 +445,7 @@ fn residuals(
                 motion_range_m: p.motion.range_m,
                 foreground: p.foreground.clone(),
                 notes: episodes[i].notes.clone(),
+                marks: marks::residual(&p.marks, camera, f64::from(episodes[i].factor)),
             }
         })
         .collect()
@@ -703,6 +520,16 @@ pub fn calibrate(
         let v = coarse.value(&g);
         starts.push((g.clone(), v));
         candidates.push((g, v));
+    }
+    let fitted_marks: usize = prepared.iter().map(|p| p.marks.len()).sum();
+    if fitted_marks >= marks::MIN_MARKS_TO_START {
+        progress(&format!("fitting a start to {fitted_marks} hand marks"));
+        let k = start_intrinsics((w, h), options, focal);
+        if let Some((c, _)) = marks_start(&prepared, k, target, options, focal) {
+            let v = coarse.value(&c);
+            starts.push((c.clone(), v));
+            candidates.push((c, v));
+        }
     }
     let fit = Evaluator::fit(robot, &prepared, 2, options.fit_frames).coarse();
     progress(&format!(
@@ -821,6 +648,7 @@ pub fn calibrate(
             ),
         });
     }
+    flags.extend(marks_flags(&episode_residuals, first.video_size.0, options));
     if rise < options.ambiguous_margin {
         flags.push(Flag {
             code: "ambiguous",
@@ -861,6 +689,34 @@ pub fn calibrate(
         evaluations,
         seconds: started.elapsed().as_secs_f64(),
     })
+}
+
+/// A `marks_disagree` flag for each episode whose hand marks' median
+/// reprojection error exceeds `max_marks_error_fraction` of the width
+/// (`width` pixels, the video's).
+pub fn marks_flags(
+    residuals: &[EpisodeResidual],
+    width: u32,
+    options: &CalibrateOptions,
+) -> Vec<Flag> {
+    let limit = options.max_marks_error_fraction * f64::from(width);
+    residuals
+        .iter()
+        .filter_map(|r| {
+            let m = r.marks.as_ref()?;
+            (m.median_px > limit).then(|| Flag {
+                code: "marks_disagree",
+                message: format!(
+                    "{}: the tool point lands a median {:.1} px (largest {:.1}) from its {} hand marks, above {limit:.1} px ({:.0}% of the width): the camera is off",
+                    r.name,
+                    m.median_px,
+                    m.max_px,
+                    m.marks,
+                    100.0 * options.max_marks_error_fraction
+                ),
+            })
+        })
+        .collect()
 }
 
 /// Scores a calibrated `camera` (any image size: rescaled to the videos')

@@ -4,6 +4,7 @@
 
 use super::episode::EpisodeData;
 use super::foreground::{Foreground, ForegroundStats};
+use super::marks::PlacedMark;
 use super::objective::Level;
 use bridgev2w_embodiment::robot::Robot;
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -33,6 +34,8 @@ pub(crate) struct Prepared {
     /// Sampled points of the robot's surface over a spread of frames
     /// (world frame): a fixed camera cannot be where the robot passes.
     pub surface: Vec<Point3<f64>>,
+    /// Hand marks of the tool point (see [`super::marks`]).
+    pub marks: Vec<PlacedMark>,
 }
 
 /// How close a fixed camera may be to the robot's surface in any frame
@@ -179,6 +182,7 @@ pub(crate) fn prepare(
         mode,
         levels,
         foreground: foreground.stats.clone(),
+        marks: Vec::new(),
     }
 }
 

@@ -7,8 +7,10 @@
 //! is, contains or lies inside an input).
 
 use super::report::write_outputs;
-use super::{calibrate, check, load_episode, CalibrateError, CalibrateOptions, Calibration};
-use super::{EpisodeInput, EpisodeResidual};
+use super::{
+    calibrate, check, load_episode, marks_flags, CalibrateError, CalibrateOptions, Calibration,
+};
+use super::{EpisodeData, EpisodeInput, EpisodeResidual};
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_io::output::OutputDir;
 use std::path::{Path, PathBuf};
@@ -41,8 +43,14 @@ impl CalibrationRun {
             } else {
                 "checked"
             };
+            let marks = r.marks.as_ref().map_or(String::new(), |m| {
+                format!(
+                    "; hand marks {:.1} px median, {:.1} max ({} marks)",
+                    m.median_px, m.max_px, m.marks
+                )
+            });
             text.push_str(&format!(
-                "  {kind} {}: held-out IoU {:.3} over {} frames\n",
+                "  {kind} {}: held-out IoU {:.3} over {} frames{marks}\n",
                 r.name, r.held_out_iou, r.held_out_frames
             ));
         }
@@ -94,14 +102,37 @@ pub fn calibrate_to_folder(
             .map(|i| load_episode(i, embodiment, options.analysis_width))
             .collect::<Result<Vec<_>, _>>()
     };
-    let episodes = load(fitted)?;
-    let check_episodes = load(checked)?;
-    let calibration = calibrate(embodiment, &episodes, options, progress)?;
+    if let Some(m) = &options.marks {
+        let videos: Vec<&Path> = fitted
+            .iter()
+            .chain(checked)
+            .map(|i| i.video.as_path())
+            .collect();
+        m.check_some_used(&videos)?;
+    }
+    let attach = |list: &[EpisodeInput], mut episodes: Vec<EpisodeData>| {
+        if let Some(m) = &options.marks {
+            for (i, e) in list.iter().zip(&mut episodes) {
+                if let Some(v) = m.for_video(&i.video) {
+                    e.marks = v.marks.clone();
+                }
+            }
+        }
+        episodes
+    };
+    let episodes = attach(fitted, load(fitted)?);
+    let check_episodes = attach(checked, load(checked)?);
+    let mut calibration = calibrate(embodiment, &episodes, options, progress)?;
     let checks = if check_episodes.is_empty() {
         Vec::new()
     } else {
         check(embodiment, &calibration.camera, &check_episodes, options)?
     };
+    let check_flags = marks_flags(&checks, calibration.camera.intrinsics.width, options);
+    if !check_flags.is_empty() {
+        calibration.reliable = false;
+        calibration.flags.extend(check_flags);
+    }
     write_outputs(
         dir.path(),
         &embodiment.robot,

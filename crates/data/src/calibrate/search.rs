@@ -13,6 +13,7 @@
 //!   middle grid with every fitted parameter, the best one on the full
 //!   analysis grid.
 
+use super::marks::{rms_px, PlacedMark, MARKS_WEIGHT};
 use super::nelder_mead::minimize;
 use super::objective::{predicted, score, Score};
 use super::problem::{clearance_penalty, spread, Prepared};
@@ -84,11 +85,21 @@ impl<'a> Evaluator<'a> {
             .fold(0.0, f64::max);
         let s = self.score(camera);
         penalty
+            + self.marks_term(camera)
             + if self.coarse {
                 s.coarse_objective()
             } else {
                 s.objective()
             }
+    }
+
+    /// [`MARKS_WEIGHT`] times the RMS reprojection error of the episodes'
+    /// hand marks over the image width (0 without marks).
+    pub fn marks_term(&self, camera: &Camera) -> f64 {
+        let marks: Vec<PlacedMark> = self.episodes.iter().flat_map(|e| e.marks.clone()).collect();
+        rms_px(&marks, camera).map_or(0.0, |rms| {
+            MARKS_WEIGHT * rms / f64::from(camera.intrinsics.width)
+        })
     }
 
     /// At most `n` fitted frames per episode, spread over it.
@@ -282,16 +293,15 @@ fn recentre(ev: &Evaluator, camera: &Camera, zoom: bool) -> Option<Camera> {
     })
 }
 
-/// The coarse search's candidates, scored on `ev`'s level, best first.
-pub(crate) fn coarse_candidates(
-    ev: &Evaluator,
-    target: Point3<f64>,
+/// The search's starting intrinsics on the analysis grid: the known focal
+/// length or 0.8 x the width, `fy_over_fx`, the principal point centred.
+pub(crate) fn start_intrinsics(
     (width, height): (u32, u32),
     options: &CalibrateOptions,
     focal: Option<f64>,
-) -> Vec<(Camera, f64)> {
+) -> Intrinsics {
     let f0 = focal.unwrap_or(0.8 * f64::from(width));
-    let intrinsics = Intrinsics {
+    Intrinsics {
         fx: f0,
         fy: f0 * options.fy_over_fx,
         cx: (f64::from(width) - 1.0) / 2.0,
@@ -299,7 +309,12 @@ pub(crate) fn coarse_candidates(
         width,
         height,
         distortion: None,
-    };
+    }
+}
+
+/// The coarse grid's camera positions: every azimuth step all around,
+/// each elevation and distance from `target`.
+fn grid_eyes(target: Point3<f64>, options: &CalibrateOptions) -> Vec<Point3<f64>> {
     let steps = (360.0 / options.azimuth_step_deg).round().max(1.0) as usize;
     let mut grid = Vec::new();
     for a in 0..steps {
@@ -312,7 +327,56 @@ pub(crate) fn coarse_candidates(
             }
         }
     }
-    let mut out: Vec<(Camera, f64)> = grid
+    grid
+}
+
+/// The camera that best projects the hand marks of `episodes` onto their
+/// pixels: from every coarse-grid pose looking at `target`, the pose (and,
+/// unless `focal` is known, the focal length) fitted to the marks alone by
+/// Nelder-Mead; the best, or `None` without marks.
+pub(crate) fn marks_start(
+    episodes: &[Prepared],
+    intrinsics: Intrinsics,
+    target: Point3<f64>,
+    options: &CalibrateOptions,
+    focal: Option<f64>,
+) -> Option<(Camera, f64)> {
+    let marks: Vec<PlacedMark> = episodes.iter().flat_map(|e| e.marks.clone()).collect();
+    if marks.is_empty() {
+        return None;
+    }
+    let mut active = vec![0, 1, 2, 3, 4, 5];
+    if focal.is_none() {
+        active.push(6);
+    }
+    let rms = |c: &Camera| rms_px(&marks, c).unwrap_or(f64::INFINITY);
+    grid_eyes(target, options)
+        .par_iter()
+        .filter_map(|eye| {
+            let mut camera = Camera::look_at(intrinsics, *eye, target, Vector3::z()).ok()?;
+            for round in 0..3 {
+                let param = Parametrization::new(camera.clone(), target, &active);
+                let f = |x: &[f64]| param.camera(x).map_or(f64::INFINITY, |c| rms(&c));
+                let s = steps(&active, 0.5f64.powi(round));
+                let m = minimize(&f, &vec![0.0; active.len()], &s, 400, 1e-9);
+                camera = param.camera(&m.x)?;
+            }
+            let v = rms(&camera);
+            v.is_finite().then_some((camera, v))
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// The coarse search's candidates, scored on `ev`'s level, best first.
+pub(crate) fn coarse_candidates(
+    ev: &Evaluator,
+    target: Point3<f64>,
+    (width, height): (u32, u32),
+    options: &CalibrateOptions,
+    focal: Option<f64>,
+) -> Vec<(Camera, f64)> {
+    let intrinsics = start_intrinsics((width, height), options, focal);
+    let mut out: Vec<(Camera, f64)> = grid_eyes(target, options)
         .par_iter()
         .filter_map(|eye| {
             let mut c = Camera::look_at(intrinsics, *eye, target, Vector3::z()).ok()?;
