@@ -477,6 +477,26 @@ class WorldModel:
             return torch.from_numpy(out).to(as_torch.device)
         return out
 
+    def predict_files(self, image, masks, out, *, steps: int = 50, seed: int = 42, guidance: float = 6.0,
+                      batch_size: int = 4, overwrite: bool = False) -> dict:
+        """``bridgev2w predict`` from files, by the same library call: the
+        first frame ``image`` (any image, resized to the model's size), mask
+        files ``masks`` (one path, a folder of ``.npy`` files, or a list of
+        either: link labels uint8/uint16 as a dataset's ``labels/`` or
+        ``bridgev2w masks``' ``labels.npy``, or binary 0/1 or 0/255 masks),
+        predictions in batches of ``batch_size``, written to ``out`` as the
+        CLI writes them (``frames/``, ``video.npy``, ``video.mp4`` per clip,
+        ``clips.json`` when there are several). Returns ``{"out", "clips"
+        [(name or None, mask file)], "frames", "seconds"}``. A model with
+        link-coded masks refuses binary masks, naming its coding
+        (``ValueError``); a missing file is a ``FileNotFoundError``."""
+        paths = masks if isinstance(masks, (list, tuple)) else [masks]
+        out_dir, clips, frames, seconds = self._m.predict_files(
+            _path("image", image), [_path(f"masks[{i}]", m) for i, m in enumerate(paths)], _path("out", out),
+            _int("steps", steps, 1), _int("seed", seed, 0, 2 ** 64 - 1), _float("guidance", guidance),
+            _int("batch_size", batch_size, 1), bool(overwrite))
+        return {"out": out_dir, "clips": clips, "frames": frames, "seconds": seconds}
+
     def __repr__(self) -> str:
         return repr(self._m)
 

@@ -187,6 +187,22 @@ def test_world_model_predicts_as_the_cli_does():
     diff = np.abs(np.load(tmp / "out-tiled" / "video.npy").astype(int) - tiled.astype(int))
     assert diff.max() <= 1 and diff.mean() < 0.01, (diff.max(), diff.mean())
     assert (tiled != video).any(), "the tiles must be used"
+    # predict_files: the CLI's library call, the same files.
+    r = wm.predict_files(tmp / "first.png", tmp / "masks.npy", tmp / "out-py", steps=2, seed=3)
+    assert r["frames"] == t and r["clips"] == [(None, str(tmp / "masks.npy"))], r
+    assert sorted(files(tmp / "out-py")) == sorted(files(tmp / "out"))
+    diff = np.abs(np.load(tmp / "out-py" / "video.npy").astype(int) - cli.astype(int))
+    assert diff.max() <= 1 and diff.mean() < 0.01, (diff.max(), diff.mean())
+    try:
+        wm.predict_files(tmp / "first.png", tmp / "masks.npy", tmp / "out-py", steps=2)
+        raise AssertionError("an existing output was replaced")
+    except bw.Error as e:
+        assert "already exists" in str(e), e
+    try:
+        wm.predict_files(tmp / "first.png", tmp / "absent.npy", tmp / "out-x")
+        raise AssertionError("a missing mask file passed")
+    except FileNotFoundError as e:
+        assert "absent.npy" in str(e), e
     # Link labels pass through as labels: a binary-coded model sees robot vs
     # background, so labels give the video their silhouette gives.
     labels = masks * 7

@@ -105,12 +105,25 @@ fn predict_writes_frames_and_video_deterministically() {
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("dtype <f4") && err.contains("binary"), "{err}");
-    let grey: Vec<u8> = masks.iter().map(|&v| v * 128).collect();
+    // A grey (anti-aliased) mask: 255 inside, 128 on the edge.
+    let grey: Vec<u8> = masks
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| {
+            if v == 0 {
+                0
+            } else if i % 2 == 0 {
+                128
+            } else {
+                255
+            }
+        })
+        .collect();
     write_npy(&d.join("grey.npy"), &[9, 64, 96], &grey).expect("npy");
     a[6] = s(&d.join("grey.npy")).into();
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("a value of 128"), "{err}");
+    assert!(err.contains("a value of 128 next to 255"), "{err}");
     assert!(
         !d.join("e").exists()
             && std::fs::read_dir(d).expect("read_dir").all(|e| !e
@@ -624,4 +637,74 @@ fn predict_refuses_an_output_over_its_inputs_and_clip_names_that_are_paths() {
         "{err}"
     );
     assert!(!d.join("o").exists());
+}
+
+/// A synthetic dataset's own files feed `predict` as they are (issue 73):
+/// its `labels/` (uint8 link labels) for the shipped link-coded model, and
+/// for a binary model both its `labels/` and its `masks/` (the same
+/// silhouette, the same video); the link-coded model refuses the binary
+/// masks, naming its coding.
+#[test]
+fn predict_takes_a_datasets_own_labels_and_masks_for_both_codings() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let d = tmp.path();
+    let ds = d.join("ds");
+    let o = run(&[
+        "synth",
+        "--out",
+        s(&ds),
+        "--episodes-per-split",
+        "1,0,0,0",
+        "--frames",
+        "9",
+        "--tasks",
+        "push",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mp4 = ds.join("videos/observation.images.main/chunk-000/file-000.mp4");
+    let v = bridgev2w_data::video::decode_mp4(&mp4).expect("decode");
+    let first = d.join("first.png");
+    image::RgbImage::from_raw(v.width as u32, v.height as u32, v.frames[0].clone())
+        .expect("frame")
+        .save(&first)
+        .expect("png");
+    let (labels, masks) = (
+        ds.join("labels/episode_000000.npy"),
+        ds.join("masks/episode_000000.npy"),
+    );
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo-model");
+    let predict = |model: &[&str], m: &Path, out: &str| {
+        let mut a = vec!["predict"];
+        a.extend_from_slice(model);
+        let out = d.join(out);
+        a.extend(["--image", s(&first), "--masks", s(m), "--steps", "2"]);
+        a.extend(["--out", s(&out)]);
+        run(&a)
+    };
+    let (backbone, weights) = (
+        shipped.join("backbone"),
+        shipped.join("bridgev2w.safetensors"),
+    );
+    let links = ["--model", s(&backbone), "--weights", s(&weights)];
+    let o = predict(&links, &labels, "links-labels");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(d.join("links-labels/video.npy").is_file());
+    let o = predict(&links, &masks, "links-masks");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && err.contains("episode_000000.npy")
+            && err.contains("binary masks")
+            && err.contains("mask_coding = \"links\""),
+        "{err}"
+    );
+    assert!(!d.join("links-masks").exists());
+    let binary = ["--model", "random:tiny"];
+    for (m, out) in [(&labels, "bin-labels"), (&masks, "bin-masks")] {
+        let o = predict(&binary, m, out);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let a = read_npy(&d.join("bin-labels/video.npy")).expect("video");
+    let b = read_npy(&d.join("bin-masks/video.npy")).expect("video");
+    assert_eq!(a.data, b.data, "a binary model sees the labels' silhouette");
 }

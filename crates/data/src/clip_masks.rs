@@ -180,7 +180,8 @@ pub fn calc_masks(
 
 /// The dataset's link labels of `episode` (`labels/episode_XXXXXX.npy`,
 /// uint8 `[T, H, W]`, 0 = background, else the link's label, as `bridgev2w
-/// synth` writes them), when it has them. They must have `masks`' shape and
+/// synth` and `convert` write them; uint16 labels up to 255, as `bridgev2w
+/// masks` writes its `labels.npy`, are read too), when it has them. They must have `masks`' shape and
 /// cover exactly its robot pixels; anything else (a FIFO, a folder or a
 /// link out of the dataset in its place included) is an error naming the file.
 pub fn read_link_labels(
@@ -194,15 +195,25 @@ pub fn read_link_labels(
     };
     let a = read_npy(&path).map_err(|e| field_err(&path, episode, "labels", e.to_string()))?;
     let shape = [masks.frames, masks.height, masks.width];
-    if a.descr != "|u1" || a.shape != shape {
+    if !matches!(a.descr.as_str(), "|u1" | "<u2" | ">u2") || a.shape != shape {
         return Err(field_err(
             &path,
             episode,
             "labels",
             format!(
-                "{} {:?}: expected uint8 link labels of the masks' shape {shape:?}",
+                "{} {:?}: expected uint8 or uint16 link labels of the masks' shape {shape:?}",
                 a.descr, a.shape
             ),
+        ));
+    }
+    // uint16 (as `bridgev2w masks` writes labels.npy): a link-coded model
+    // reads labels up to 255.
+    if let Some(v) = a.data.iter().find(|&&v| v > 255.0) {
+        return Err(field_err(
+            &path,
+            episode,
+            "labels",
+            format!("link label {v}: expected labels up to 255"),
         ));
     }
     let labels: Vec<u8> = a.data.iter().map(|&v| v as u8).collect();

@@ -372,8 +372,19 @@ fn link_labels_are_stored_next_to_the_masks_and_must_match_them() {
         labels.iter().any(|&l| l > 1),
         "link labels, not a binary mask"
     );
-    // A label where the mask has background is refused, naming the pixel.
+    // The same labels as uint16 (labels.npy of `bridgev2w masks`): read
+    // alike; a label above 255 refused.
     let path = out.join("labels/episode_000000.npy");
+    let wide: Vec<u16> = labels.iter().map(|&l| u16::from(l)).collect();
+    write_npy(&path, &shape, &wide).unwrap();
+    assert_eq!(read_link_labels(&ds, 0, &masks).unwrap().unwrap(), labels);
+    let mut big = wide.clone();
+    let on = masks.data.iter().position(|&m| m != 0).unwrap();
+    big[on] = 300;
+    write_npy(&path, &shape, &big).unwrap();
+    let msg = read_link_labels(&ds, 0, &masks).unwrap_err().to_string();
+    assert!(msg.contains("link label 300"), "{msg}");
+    // A label where the mask has background is refused, naming the pixel.
     let i = masks.data.iter().position(|&m| m == 0).unwrap();
     let mut bad = labels.clone();
     bad[i] = 5;

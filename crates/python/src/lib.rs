@@ -69,6 +69,10 @@ fn size_err(e: bridgev2w_io::memory::MemoryError) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
 
+/// `(out, clips [(name or None, mask file)], frames, seconds)` of
+/// `WorldModel.predict_files`.
+type PredictFilesRun = (String, Vec<(Option<String>, String)>, usize, f64);
+
 /// A robot: its kinematic tree, link meshes and end effectors.
 #[pyclass(module = "bridgev2w._core", frozen)]
 struct Robot {
@@ -707,6 +711,80 @@ impl WorldModel {
             .flat_map(|v| v.data.iter().map(|&x| u8_from_unit(x)))
             .collect();
         Ok(PyByteArray::new(py, &bytes))
+    }
+
+    /// `bridgev2w predict` from files: the first frame `image`, mask files
+    /// (or folders of them) `masks`, outputs written to `out` by the
+    /// library's `PredictJob` (the CLI's call). Returns `(out, clips,
+    /// frames, seconds)`; `clips` the `(name or None, mask file)` pairs. The
+    /// GIL is released while the model runs.
+    #[pyo3(signature = (image, masks, out, steps, seed, guidance, batch_size, overwrite))]
+    #[allow(clippy::too_many_arguments)]
+    fn predict_files(
+        &self,
+        py: Python<'_>,
+        image: PathBuf,
+        masks: Vec<PathBuf>,
+        out: PathBuf,
+        steps: usize,
+        seed: u64,
+        guidance: f64,
+        batch_size: usize,
+        overwrite: bool,
+    ) -> PyResult<PredictFilesRun> {
+        use bridgev2w_train::predict_files::{PredictFilesError, PredictJob};
+        for p in masks.iter().chain([&image]) {
+            if !p.exists() {
+                return Err(PyFileNotFoundError::new_err(format!(
+                    "{}: no such file",
+                    p.display()
+                )));
+            }
+        }
+        let job = PredictJob {
+            image,
+            masks,
+            out,
+            overwrite,
+            batch_size,
+            sample: SampleOptions {
+                steps,
+                guidance_scale: guidance,
+                seed,
+                batch_noise: BatchNoise::Shared,
+                ..SampleOptions::default()
+            },
+            other_inputs: Vec::new(),
+        };
+        let value_err = |e: PredictFilesError| match e {
+            e @ PredictFilesError::Input { .. } => PyValueError::new_err(e.to_string()),
+            PredictFilesError::Model(e @ WorldModelError::Input { .. }) => {
+                PyValueError::new_err(e.to_string())
+            }
+            e => err(e),
+        };
+        let job = job.prepare().map_err(value_err)?;
+        let model = &self.inner;
+        let run = py.detach(|| {
+            no_panic("predict_files", || {
+                let m = model
+                    .lock()
+                    .map_err(|_| Error::new_err("an earlier prediction failed mid-way"))?;
+                job.run(&m, &bridgev2w_io::progress::Silent)
+                    .map_err(value_err)
+            })
+        })?;
+        let clips = run
+            .clips
+            .iter()
+            .map(|c| (c.name.clone(), c.masks.to_string_lossy().into_owned()))
+            .collect();
+        Ok((
+            run.out.to_string_lossy().into_owned(),
+            clips,
+            run.frames,
+            run.seconds,
+        ))
     }
 
     fn __repr__(&self) -> String {

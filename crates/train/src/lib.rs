@@ -25,6 +25,7 @@ pub mod flow;
 pub mod grid;
 pub mod losses;
 pub mod optim;
+pub mod predict_files;
 pub mod report;
 pub mod run_dir;
 pub mod score;
