@@ -91,6 +91,9 @@ pub struct CalibrateArgs {
     /// Hand marks of the tool point (JSON: `{"videos": [{"video": "val/0002/0.mp4", "marks": [[frame, u, v], ...]}]}`, pixels at the video's size; see the calibrate guide): each marked episode's reprojection error is reported; on fitted episodes, 4 or more marks start and pull the fit
     #[arg(long, value_name = "JSON")]
     marks: Option<PathBuf>,
+    /// Only measure the --marks, do not fit them: the automatic calibration's error in pixels
+    #[arg(long, requires = "marks")]
+    marks_only_check: bool,
     #[command(flatten)]
     fit: FitArgs,
     /// Output folder: camera.json, residuals.json, overlay/*.gif.
@@ -110,6 +113,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .transpose()?;
     let mut options = args.fit.options(guess, 1.0);
     options.marks = args.marks.as_deref().map(Marks::read).transpose()?;
+    options.fit_marks = !args.marks_only_check;
     let fitted = pair_inputs(&args.video, &args.joints, ("--video", "--joints"))?;
     let checked = pair_inputs(
         &args.check_video,

@@ -96,15 +96,31 @@ fn marks_bring_a_search_without_a_nearby_start_to_the_true_camera() {
             .to_degrees();
         (100.0 * dp, da)
     };
-    // Without marks the off-grid search ends far from the truth.
-    let mut unmarked = data.clone();
-    unmarked.marks.clear();
-    let c = calibrate(&w.embodiment, &[unmarked], &options, &|_| {}).unwrap();
+    // Marks only checked (not fitted): the off-grid search ends far from
+    // the truth, and the marks measure it.
+    let check_only = CalibrateOptions {
+        fit_marks: false,
+        ..options.clone()
+    };
+    let c = calibrate(
+        &w.embodiment,
+        std::slice::from_ref(&data),
+        &check_only,
+        &|_| {},
+    )
+    .unwrap();
     let (cm, deg) = error(&c.camera);
-    eprintln!("without marks: {cm:.1} cm, {deg:.2} deg");
+    let m = c.episodes[0].marks.clone().unwrap();
+    eprintln!("marks only checked: {cm:.1} cm, {deg:.2} deg, marks {m:?}");
     assert!(
         cm > 30.0,
         "{cm:.1} cm: the grid was meant to hold no nearby camera"
+    );
+    assert!(m.median_px > 3.84, "{m:?}");
+    assert!(
+        c.flags.iter().any(|f| f.code == "marks_disagree"),
+        "{:?}",
+        c.flags
     );
     let c = calibrate(&w.embodiment, std::slice::from_ref(&data), &options, &|s| {
         eprintln!("{s}")

@@ -462,7 +462,19 @@ pub fn calibrate(
     let started = std::time::Instant::now();
     options.validate()?;
     let factors = level_factors(episodes.first().map_or(1, |e| e.width), options);
-    let prepared = prepare_all(embodiment, episodes, options, &factors, true)?;
+    let scored = prepare_all(embodiment, episodes, options, &factors, true)?;
+    // Marks only checked: the fit does not see them, the residuals do.
+    let prepared: Vec<Prepared> = if options.fit_marks {
+        scored.clone()
+    } else {
+        scored
+            .iter()
+            .map(|p| Prepared {
+                marks: Vec::new(),
+                ..p.clone()
+            })
+            .collect()
+    };
     let first = &episodes[0];
     let (w, h) = (first.width as u32, first.height as u32);
     let robot = &embodiment.robot;
@@ -624,7 +636,7 @@ pub fn calibrate(
     ambiguity.probe_direction = direction;
     let evaluations =
         coarse.evaluations() + fit.evaluations() + mid.evaluations() + full.evaluations();
-    let episode_residuals = residuals(embodiment, &prepared, episodes, &camera, true);
+    let episode_residuals = residuals(embodiment, &scored, episodes, &camera, true);
     let pooled = |held: bool| {
         let ev = Evaluator::new(
             robot,

@@ -86,6 +86,9 @@ pub struct CalibrateOptions {
     /// Hand marks of the tool point (see [`super::marks`]): checked on
     /// every marked episode; on fitted ones they start and pull the fit.
     pub marks: Option<Marks>,
+    /// Fit the marks of fitted episodes (a start and a pull); when false
+    /// they are only measured, as a check of the automatic calibration.
+    pub fit_marks: bool,
     /// Flag a marked episode whose median reprojection error exceeds this
     /// fraction of the image width.
     pub max_marks_error_fraction: f64,
@@ -127,6 +130,7 @@ impl Default for CalibrateOptions {
             ambiguous_focal_fraction: 0.05,
             foreground: ForegroundOptions::default(),
             marks: None,
+            fit_marks: true,
             max_marks_error_fraction: 0.03,
         }
     }
