@@ -464,16 +464,18 @@ pub fn calibrate(
     let factors = level_factors(episodes.first().map_or(1, |e| e.width), options);
     let scored = prepare_all(embodiment, episodes, options, &factors, true)?;
     // Marks only checked: the fit does not see them, the residuals do.
-    let prepared: Vec<Prepared> = if options.fit_marks {
-        scored.clone()
+    let unmarked: Vec<Prepared>;
+    let prepared: &[Prepared] = if options.fit_marks {
+        &scored
     } else {
-        scored
+        unmarked = scored
             .iter()
             .map(|p| Prepared {
                 marks: Vec::new(),
                 ..p.clone()
             })
-            .collect()
+            .collect();
+        &unmarked
     };
     let first = &episodes[0];
     let (w, h) = (first.width as u32, first.height as u32);
@@ -487,7 +489,7 @@ pub fn calibrate(
             .sum::<nalgebra::Vector3<f64>>()
             / frames.max(1) as f64,
     );
-    let coarse = Evaluator::fit(robot, &prepared, 2, options.coarse_frames).coarse();
+    let coarse = Evaluator::fit(robot, prepared, 2, options.coarse_frames).coarse();
     progress("coarse search");
     // A known focal length on the analysis grid.
     let focal = options.focal_px.map(|f| f / f64::from(first.factor));
@@ -537,13 +539,13 @@ pub fn calibrate(
     if fitted_marks >= marks::MIN_MARKS_TO_START {
         progress(&format!("fitting a start to {fitted_marks} hand marks"));
         let k = start_intrinsics((w, h), options, focal);
-        if let Some((c, _)) = marks_start(&prepared, k, target, options, focal) {
+        if let Some((c, _)) = marks_start(prepared, k, target, options, focal) {
             let v = coarse.value(&c);
             starts.push((c.clone(), v));
             candidates.push((c, v));
         }
     }
-    let fit = Evaluator::fit(robot, &prepared, 2, options.fit_frames).coarse();
+    let fit = Evaluator::fit(robot, prepared, 2, options.fit_frames).coarse();
     progress(&format!(
         "refining {} starts on the coarse grid",
         starts.len()
@@ -555,7 +557,7 @@ pub fn calibrate(
         .collect();
     refined.sort_by(|a, b| a.1.total_cmp(&b.1));
     let all = active_parameters(options, true);
-    let mid = Evaluator::fit(robot, &prepared, 1, options.fit_frames);
+    let mid = Evaluator::fit(robot, prepared, 1, options.fit_frames);
     progress(&format!(
         "refining {} on the middle grid",
         options.finalists.min(refined.len())
@@ -612,7 +614,7 @@ pub fn calibrate(
         ambiguity.max_focal_fraction = ambiguity.max_focal_fraction.max(df);
     }
     progress("refining on the full grid");
-    let full = Evaluator::fit(robot, &prepared, 0, 2 * options.fit_frames);
+    let full = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames);
     let (camera, _) = refine(
         &full,
         &best_mid,
@@ -640,7 +642,7 @@ pub fn calibrate(
     let pooled = |held: bool| {
         let ev = Evaluator::new(
             robot,
-            &prepared,
+            prepared,
             0,
             prepared
                 .iter()
