@@ -2,36 +2,27 @@
 //! training dataset with `calc` embodiment masks (one episode per camera).
 
 use crate::masks_cmd::progress_bar;
-use anyhow::{bail, Result};
-use bridgev2w_data::raw::agibot::{AgibotOptions, GripperSource};
+use anyhow::Result;
+use bridgev2w_data::raw::agibot::GripperSource;
 use bridgev2w_data::raw::check_camera_list;
-use bridgev2w_data::raw::convert::{ConvertOptions, REPORT_FILE};
-use bridgev2w_data::raw::ctrl_world::{self, CtrlWorldOptions, SplitRule};
-use bridgev2w_data::raw::droid::DroidOptions;
+use bridgev2w_data::raw::ctrl_world::SplitRule;
 use bridgev2w_data::raw::droid_calibration::MissingCalibration;
-use bridgev2w_data::raw::source::{convert_source, ConvertProgress, RawSource};
+use bridgev2w_data::raw::request::{ConvertRequest, SourceFormat};
+use bridgev2w_data::raw::source::ConvertProgress;
 use bridgev2w_embodiment::embodiment::Embodiment;
 use bridgev2w_embodiment::robot::LoadOptions;
 use std::path::PathBuf;
 
-/// Source layouts.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Format {
-    /// DROID raw episodes (metadata_*.json, trajectory.h5, recordings/MP4).
-    Droid,
-    /// AgiBot World (proprio_stats, parameters, observations).
-    Agibot,
-    /// DROID episodes of the Ctrl-World layout (annotation/<split>/<id>.json,
-    /// videos/<split>/<id>/{0,1,2}.mp4), cameras from --camera.
-    CtrlWorld,
-}
-
 /// Arguments of `convert`.
 #[derive(Debug, clap::Args)]
 pub struct ConvertArgs {
-    /// Source layout.
-    #[arg(long, value_enum)]
-    format: Format,
+    /// Source layout: droid (DROID raw episodes: metadata_*.json,
+    /// trajectory.h5, recordings/MP4), agibot (AgiBot World: proprio_stats,
+    /// parameters, observations) or ctrl-world (DROID episodes of the
+    /// Ctrl-World layout: annotation/<split>/<id>.json,
+    /// videos/<split>/<id>/{0,1,2}.mp4; cameras from --camera).
+    #[arg(long, value_parser = parse_from_str::<SourceFormat>)]
+    format: SourceFormat,
     /// Source: a DROID directory (searched for episodes) or an AgiBot World root.
     src: PathBuf,
     /// Output dataset directory (must not exist unless --overwrite, nor
@@ -142,180 +133,70 @@ fn camera_list(s: &Option<String>) -> Result<Option<Vec<String>>> {
     Ok(Some(c))
 }
 
+/// `--camera ROLE=JSON` flags as (role, file) pairs.
+fn camera_files(flags: &[String]) -> Result<Vec<(String, PathBuf)>> {
+    flags
+        .iter()
+        .map(|c| {
+            c.split_once('=')
+                .map(|(r, p)| (r.trim().to_string(), PathBuf::from(p)))
+                .ok_or_else(|| {
+                    anyhow::anyhow!("--camera {c:?}: expected ROLE=CAMERA_JSON (ROLE ext1 or ext2)")
+                })
+        })
+        .collect()
+}
+
+/// `--gripper-range OPEN,CLOSED`.
+fn gripper_range(text: &str) -> Result<(f64, f64)> {
+    text.split_once(',')
+        .and_then(|(a, b)| Some((a.trim().parse::<f64>().ok()?, b.trim().parse::<f64>().ok()?)))
+        .ok_or_else(|| {
+            anyhow::anyhow!("--gripper-range {text:?}: expected OPEN,CLOSED (two numbers)")
+        })
+}
+
 pub fn run(args: &ConvertArgs) -> Result<()> {
-    let cameras = camera_list(&args.cameras)?;
-    let options = ConvertOptions {
+    let request = ConvertRequest {
+        overwrite: args.overwrite,
+        joint_names: list(&args.joint_names),
         width: args.width,
         height: args.height,
-        fps: args.fps.unwrap_or(match args.format {
-            Format::Droid => 15,
-            Format::Agibot => 30,
-            Format::CtrlWorld => ctrl_world::FPS,
-        }),
-        joint_names: list(&args.joint_names),
+        fps: args.fps,
+        intrinsics: args.intrinsics.clone(),
+        calibration: args.calibration.clone(),
+        missing_calibration: args.missing_calibration,
+        cameras: camera_list(&args.cameras)?,
+        camera_json: camera_files(&args.camera_json)?,
+        include: list(&args.include),
+        split_rules: args.split_rule.clone(),
+        gripper_source: args.gripper_source,
+        gripper_range: gripper_range(&args.gripper_range)?,
+        split: args.split.clone(),
         skip_bad: args.skip_bad,
-        split: Some(args.split.clone()),
-        source_format: match args.format {
-            Format::Droid => "droid",
-            Format::Agibot => "agibot",
-            Format::CtrlWorld => "ctrl-world",
-        }
-        .into(),
-        overwrite: args.overwrite,
+        limit: args.limit,
+        ..ConvertRequest::new(args.format, args.src.clone(), args.out.clone())
     };
-    options.validate()?;
-    let robot = args.robot.clone().unwrap_or_else(|| {
-        match args.format {
-            Format::Droid | Format::CtrlWorld => "franka-robotiq",
-            Format::Agibot => "agibot-g1",
-        }
-        .to_string()
-    });
+    let robot = (args.robot.as_deref()).unwrap_or(args.format.default_robot());
     let embodiment = Embodiment::load(
-        &robot,
+        robot,
         &LoadOptions::default(),
         &args.ee_links,
         &args.gripper_joints,
     )?;
-    if args.format != Format::CtrlWorld
-        && (!args.camera_json.is_empty() || args.include.is_some() || !args.split_rule.is_empty())
-    {
-        bail!("--camera/--include/--split-rule apply to --format ctrl-world");
-    }
-    let source = match args.format {
-        Format::CtrlWorld => {
-            if args.intrinsics.is_some() || !args.calibration.is_empty() || cameras.is_some() {
-                bail!("--intrinsics/--calibration/--cameras apply to raw DROID and AgiBot World; the ctrl-world layout takes --camera ROLE=CAMERA_JSON");
-            }
-            let cameras = args
-                .camera_json
-                .iter()
-                .map(|c| {
-                    c.split_once('=')
-                        .map(|(r, p)| (r.trim().to_string(), PathBuf::from(p)))
-                        .ok_or_else(|| {
-                            anyhow::anyhow!(
-                                "--camera {c:?}: expected ROLE=CAMERA_JSON (ROLE ext1 or ext2)"
-                            )
-                        })
-                })
-                .collect::<Result<Vec<_>>>()?;
-            RawSource::CtrlWorld {
-                root: args.src.clone(),
-                options: CtrlWorldOptions {
-                    cameras,
-                    include: list(&args.include),
-                    split_rules: args.split_rule.clone(),
-                },
-            }
-        }
-        Format::Droid => {
-            let intrinsics = args.intrinsics.as_deref().ok_or_else(|| {
-                anyhow::anyhow!("--intrinsics FILE is required for DROID: the raw episodes' trajectory.h5 records no intrinsics (DROID publishes them as intrinsics.json)")
-            })?;
-            let mut opts = DroidOptions::from_calibration_files(intrinsics, &args.calibration)?;
-            opts.missing_calibration = args.missing_calibration;
-            if let Some(c) = cameras {
-                opts.roles = c;
-            }
-            RawSource::Droid {
-                root: args.src.clone(),
-                options: opts,
-            }
-        }
-        Format::Agibot => {
-            if args.intrinsics.is_some() || !args.calibration.is_empty() {
-                bail!("--intrinsics/--calibration apply to DROID; AgiBot World episodes carry their camera parameters");
-            }
-            let (open, closed) = args
-                .gripper_range
-                .split_once(',')
-                .and_then(|(a, b)| {
-                    Some((a.trim().parse::<f64>().ok()?, b.trim().parse::<f64>().ok()?))
-                })
-                .ok_or_else(|| {
-                    anyhow::anyhow!(
-                        "--gripper-range {:?}: expected OPEN,CLOSED (two numbers)",
-                        args.gripper_range
-                    )
-                })?;
-            let mut opts = AgibotOptions {
-                gripper: args.gripper_source,
-                gripper_open: open,
-                gripper_closed: closed,
-                ..AgibotOptions::default()
-            };
-            if let Some(c) = cameras {
-                opts.cameras = c;
-            }
-            opts.check_cameras().map_err(anyhow::Error::msg)?;
-            RawSource::Agibot {
-                root: args.src.clone(),
-                options: opts,
-            }
-        }
-    };
     let pb = std::sync::OnceLock::new();
-    let report = convert_source(
-        &source,
-        args.limit,
-        &embodiment,
-        &args.out,
-        &options,
-        &|p| match p {
-            ConvertProgress::Found(n) => {
-                let _ = pb.set(progress_bar(n, "converting episodes"));
+    let report = request.run(&embodiment, &|p| match p {
+        ConvertProgress::Found(n) => {
+            let _ = pb.set(progress_bar(n, "converting episodes"));
+        }
+        ConvertProgress::Done(_) => {
+            if let Some(pb) = pb.get() {
+                pb.inc(1);
             }
-            ConvertProgress::Done(_) => {
-                if let Some(pb) = pb.get() {
-                    pb.inc(1);
-                }
-            }
-        },
-    );
+        }
+    });
     if let Some(pb) = pb.get() {
         pb.finish_and_clear();
     }
-    let report = report?;
-    let mut text = format!(
-        "wrote {} (LeRobot v3.0): {} episodes read, {} camera episodes of {}x{} with calc masks, robot {}\n",
-        args.out.display(),
-        report.episodes,
-        report.views_written,
-        args.width,
-        args.height,
-        robot
-    );
-    if !report.skipped.is_empty() {
-        text.push_str(&format!(
-            "  skipped {} item(s), listed in {}:\n",
-            report.skipped.len(),
-            args.out.join("skipped.json").display()
-        ));
-        for s in &report.skipped {
-            text.push_str(&format!("    {}: {}\n", s.item, s.error));
-        }
-    }
-    if !report.ee_frames.is_empty() {
-        text.push_str(&format!(
-            "  actions: flange poses of {} (meta/info.json bridgev2w_source.ee_frame)\n",
-            report.ee_frames.join(", ")
-        ));
-    }
-    for (kind, notes, episodes, warning) in report.note_summary() {
-        text.push_str(&format!(
-            "  {}{kind}: {notes} in {episodes} episode(s)\n",
-            if warning { "warning: " } else { "" }
-        ));
-    }
-    if !report.notes.is_empty() {
-        text.push_str(&format!(
-            "  details: {}\n",
-            args.out.join(REPORT_FILE).display()
-        ));
-    }
-    for v in &report.empty_mask_views {
-        text.push_str(&format!("  warning: {v}: the robot is outside the image in every frame (check the calibration)\n"));
-    }
-    crate::print_stdout(&text)
+    crate::print_stdout(&report?.summary(&request, robot))
 }

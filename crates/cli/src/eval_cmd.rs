@@ -6,6 +6,7 @@
 use anyhow::{anyhow, Result};
 use bridgev2w_eval::policy_rates::{compare, read_rates};
 use bridgev2w_io::json::write_json_atomic;
+use bridgev2w_io::output::check_new_file;
 use bridgev2w_train::score::{score_videos, MaskFolders, ScoreOptions, VideoMetric};
 use clap::Args;
 use std::path::PathBuf;
@@ -105,30 +106,9 @@ impl TryFrom<&EvalArgs> for ScoreOptions {
 /// `--overwrite`) or whose folder does not.
 fn check_json_out(json: Option<&std::path::Path>, overwrite: bool) -> Result<()> {
     let Some(path) = json else { return Ok(()) };
-    if path.exists() && !overwrite {
-        anyhow::bail!(
-            "--json {}: already exists (choose another file, or pass --overwrite to replace it)",
-            path.display()
-        );
-    }
-    if path.is_dir() {
-        anyhow::bail!(
-            "--json {}: is a folder, expected a file name",
-            path.display()
-        );
-    }
-    let parent = path.parent().filter(|p| !p.as_os_str().is_empty());
-    if let Some(dir) = parent.filter(|d| !d.is_dir()) {
-        anyhow::bail!(
-            "--json {}: the folder {} does not exist",
-            path.display(),
-            dir.display()
-        );
-    }
-    Ok(())
+    check_new_file(path, overwrite).map_err(|e| anyhow!("--json {e}"))
 }
 
-/// `bridgev2w eval`.
 pub fn run_eval(a: &EvalArgs) -> Result<()> {
     check_json_out(a.json.as_deref(), a.overwrite)?;
     let opts = ScoreOptions::try_from(a)?;

@@ -1,20 +1,14 @@
 //! `bridgev2w masks`.
 
 pub use crate::progress::progress_bar;
-use anyhow::{bail, Context, Result};
-use bridgev2w_embodiment::actions::{
-    actions_to_joints, check_joint_trajectory, FrameResidual, Trajectory,
-};
-use bridgev2w_embodiment::camera::{read_poses_npy, CameraTrack};
+use anyhow::{bail, Result};
 use bridgev2w_embodiment::embodiment::Embodiment;
-use bridgev2w_embodiment::kinematics::IkOptions;
-use bridgev2w_embodiment::masks::{render_track, render_track_labels, write_outputs, WriteOptions};
-use bridgev2w_embodiment::raster::RenderOutput;
+use bridgev2w_embodiment::masks::WriteOptions;
+use bridgev2w_embodiment::masks_folder::{MasksJob, MasksProgress, TrajectoryFile};
 use bridgev2w_embodiment::robot::LoadOptions;
-use bridgev2w_io::npy::write_npy;
-use bridgev2w_io::output::OutputDir;
 use indicatif::ProgressBar;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 /// Which robot, shared by several commands.
 #[derive(Debug, Clone, clap::Args)]
@@ -116,209 +110,74 @@ pub struct MasksArgs {
     pub no_png: bool,
 }
 
-impl MasksArgs {
-    /// The files `masks` reads (a URDF, the camera, its poses, the
-    /// trajectory): `--out` equal to, inside or containing one is refused.
-    pub fn inputs(&self) -> Vec<&Path> {
-        let files = [&self.camera_poses, &self.joints, &self.actions];
-        let mut inputs: Vec<&Path> = self.robot.urdf_file().into_iter().collect();
-        inputs.push(&self.camera);
-        inputs.extend(files.into_iter().flatten().map(PathBuf::as_path));
-        inputs
+/// `--joints` or `--actions` as a trajectory file.
+pub fn trajectory_file(joints: Option<&Path>, actions: Option<&Path>) -> Result<TrajectoryFile> {
+    match (joints, actions) {
+        (Some(p), _) => Ok(TrajectoryFile::Joints(p.to_path_buf())),
+        (None, Some(p)) => Ok(TrajectoryFile::Actions(p.to_path_buf())),
+        (None, None) => bail!("give --joints or --actions"),
     }
 }
 
-pub fn load_camera(path: &Path, width: u32, height: u32) -> Result<CameraTrack> {
-    let max = bridgev2w_embodiment::camera::MAX_IMAGE_SIDE;
-    if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
-        bail!("--width {width} --height {height}: expected sizes of 1..={max} pixels");
-    }
-    let camera = CameraTrack::from_json_file(path)?;
-    let camera = camera.rescaled(width, height);
-    camera
-        .intrinsics
-        .validate()
-        .with_context(|| format!("{} at --width {width} --height {height}", path.display()))?;
-    Ok(camera)
-}
-
-/// Joint trajectory from `--joints` or `--actions`, with IK residuals for actions.
-pub fn joint_trajectory(
-    e: &Embodiment,
-    joints: Option<&Path>,
-    actions: Option<&Path>,
-    ik: &IkOptions,
-    allow_residual: bool,
-) -> Result<(Vec<Vec<f64>>, Vec<FrameResidual>)> {
-    if let Some(p) = joints {
-        let t = Trajectory::read(p)?;
-        if t.dim() != e.robot.dof() {
-            bail!(
-                "{}: {} values per frame but robot \"{}\" has {} actuated joints ({}); see `bridgev2w robot-info --robot {}`{}",
-                p.display(),
-                t.dim(),
-                e.robot.name,
-                e.robot.dof(),
-                e.robot.dof_names().join(", "),
-                e.robot.source_name,
-                if t.dim() == e.action_dim() { "; these look like end-effector actions: use --actions" } else { "" }
-            );
+/// Progress of a masks job on the terminal: a spinner for IK, a bar for rendering.
+pub fn masks_progress() -> impl Fn(MasksProgress) + Sync {
+    let bar: Mutex<Option<ProgressBar>> = Mutex::new(None);
+    move |p| {
+        let mut bar = bar.lock().unwrap_or_else(|e| e.into_inner());
+        match p {
+            MasksProgress::Ik(n) => {
+                *bar = Some(crate::progress::spinner(&format!(
+                    "inverse kinematics for {n} frames"
+                )))
+            }
+            MasksProgress::Rendering(n) => {
+                if let Some(b) = bar.take() {
+                    b.finish_and_clear();
+                }
+                *bar = Some(progress_bar(n, "rendering masks"));
+            }
+            MasksProgress::Rendered => {
+                if let Some(b) = bar.as_ref() {
+                    b.inc(1);
+                }
+            }
+            MasksProgress::RenderDone => {
+                if let Some(b) = bar.take() {
+                    b.finish_and_clear();
+                }
+            }
         }
-        check_joint_trajectory(&e.robot, &t)?;
-        return Ok((t.rows, Vec::new()));
     }
-    let Some(p) = actions else {
-        bail!("give --joints or --actions")
-    };
-    let t = Trajectory::read(p)?;
-    let spinner = ProgressBar::new_spinner()
-        .with_message(format!("inverse kinematics for {} frames", t.len()));
-    let result = actions_to_joints(&e.robot, &e.end_effectors, &t, &e.home, ik, allow_residual);
-    spinner.finish_and_clear();
-    Ok(result?)
-}
-
-/// Renders every frame of `joints` from `camera` with a progress bar:
-/// labels and depth maps with `depth`, else labels alone (`depth_m` left
-/// empty), the faster path when only masks and labels are written.
-pub fn render_with_progress(
-    e: &Embodiment,
-    camera: &CameraTrack,
-    joints: &[Vec<f64>],
-    depth: bool,
-) -> Vec<RenderOutput> {
-    let pb = progress_bar(joints.len(), "rendering masks");
-    let tick = || pb.inc(1);
-    let frames = if depth {
-        render_track(&e.robot, camera, joints, &tick)
-    } else {
-        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-        render_track_labels(&e.robot, camera, joints, &tick)
-            .into_iter()
-            .map(|labels| RenderOutput {
-                width,
-                height,
-                labels,
-                depth_m: Vec::new(),
-            })
-            .collect()
-    };
-    pb.finish_and_clear();
-    frames
-}
-
-/// Writes the residual report `ik.json`.
-pub fn write_ik_report(dir: &Path, residuals: &[FrameResidual]) -> Result<()> {
-    Ok(bridgev2w_embodiment::actions::write_ik_report(
-        dir, residuals,
-    )?)
 }
 
 pub fn run(args: &MasksArgs) -> Result<()> {
     let e = args.robot.load()?;
-    let mut camera = load_camera(&args.camera, args.width, args.height)?;
-    if let Some(p) = &args.camera_poses {
-        camera = camera.with_poses(read_poses_npy(p)?);
-    }
-    if !(args.ik_tol_mm > 0.0 && args.ik_tol_deg > 0.0) {
-        bail!(
-            "--ik-tol-mm {} --ik-tol-deg {}: expected positive tolerances",
-            args.ik_tol_mm,
-            args.ik_tol_deg
-        );
-    }
-    let ik = IkOptions {
-        position_tolerance_m: args.ik_tol_mm * 1e-3,
-        rotation_tolerance_rad: args.ik_tol_deg.to_radians(),
-        ..IkOptions::default()
-    };
-    let (joints, residuals) = joint_trajectory(
-        &e,
-        args.joints.as_deref(),
-        args.actions.as_deref(),
-        &ik,
-        args.allow_ik_residual,
-    )?;
-    let camera_origin = args
-        .camera_poses
-        .as_deref()
-        .unwrap_or(&args.camera)
-        .display()
-        .to_string();
-    camera.check(&e.robot, joints.len(), &camera_origin)?;
-    let source = match (&args.joints, &args.actions) {
-        (Some(p), _) => format!("--joints {}: frames", p.display()),
-        (None, Some(p)) => format!("--actions {}: frames", p.display()),
-        (None, None) => "frames".to_owned(),
-    };
-    bridgev2w_embodiment::masks::check_render_size(
-        &source,
-        joints.len(),
-        args.width,
-        args.height,
-        args.depth,
-    )?;
-    let violations = e.robot.limit_violations(&joints, 1e-6);
-    let out = OutputDir::create_for(&args.out, args.overwrite, &args.inputs())?;
-    let frames = render_with_progress(&e, &camera, &joints, args.depth);
-    let written = write_outputs(
-        out.path(),
-        &e.robot,
-        &frames,
-        WriteOptions {
+    let job = MasksJob {
+        camera: args.camera.clone(),
+        camera_poses: args.camera_poses.clone(),
+        trajectory: trajectory_file(args.joints.as_deref(), args.actions.as_deref())?,
+        width: args.width,
+        height: args.height,
+        out: args.out.clone(),
+        overwrite: args.overwrite,
+        allow_ik_residual: args.allow_ik_residual,
+        ik_tol_mm: args.ik_tol_mm,
+        ik_tol_deg: args.ik_tol_deg,
+        write: WriteOptions {
             pngs: !args.no_png,
             depth: args.depth,
         },
-    )?;
-    let flat: Vec<f64> = joints.iter().flatten().copied().collect();
-    write_npy(
-        &out.path().join("joints.npy"),
-        &[joints.len(), e.robot.dof()],
-        &flat,
-    )?;
-    if !residuals.is_empty() {
-        write_ik_report(out.path(), &residuals)?;
-    }
-    if !violations.is_empty() {
-        let text = serde_json::to_string_pretty(&violations)?;
-        bridgev2w_io::atomic::write_atomic(&out.path().join("limits.json"), text.as_bytes())?;
-    }
-    out.commit()?;
-    for v in &violations {
-        eprintln!(
-            "warning: {v}; rendered as given, not clamped (see {})",
-            args.out.join("limits.json").display()
-        );
-    }
-    if !residuals.is_empty() {
-        let missed: Vec<usize> = residuals
-            .iter()
-            .filter(|r| !r.reached)
-            .map(|r| r.frame)
-            .collect();
-        if !missed.is_empty() {
-            eprintln!(
-                "warning: IK did not reach the target within tolerance in {} frame(s) (first: {:?}); see {}",
-                missed.len(),
-                &missed[..missed.len().min(10)],
-                args.out.join("ik.json").display()
-            );
-        }
-    }
-    report_empty(&written.empty_frames, frames.len());
-    println!(
-        "wrote {} frames ({}x{}) of robot \"{}\" to {}",
-        frames.len(),
-        args.width,
-        args.height,
-        e.robot.name,
-        args.out.display()
-    );
-    Ok(())
-}
-
-pub fn report_empty(empty: &[usize], total: usize) {
-    if let Some(w) = bridgev2w_embodiment::masks::empty_masks_warning(empty, total) {
+        other_inputs: args
+            .robot
+            .urdf_file()
+            .map(Path::to_path_buf)
+            .into_iter()
+            .collect(),
+    };
+    let run = job.run(&e, &masks_progress())?;
+    for w in run.warnings() {
         eprintln!("{w}");
     }
+    println!("{}", run.summary());
+    Ok(())
 }

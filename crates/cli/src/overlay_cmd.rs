@@ -1,13 +1,12 @@
 //! `bridgev2w overlay`: rendered masks over a camera's real frames, scored
 //! against a ground truth where one is given.
 
-use crate::masks_cmd::{joint_trajectory, progress_bar, RobotArgs};
-use anyhow::{bail, Result};
-use bridgev2w_data::overlay::{overlay, FrameSource, OverlayOptions};
-use bridgev2w_embodiment::camera::{read_poses_npy, CameraTrack};
-use bridgev2w_embodiment::kinematics::IkOptions;
-use bridgev2w_io::output::OutputDir;
+use crate::masks_cmd::{progress_bar, trajectory_file, RobotArgs};
+use anyhow::Result;
+use bridgev2w_data::overlay::{FrameSource, OverlayJob, OverlayOptions};
+use indicatif::ProgressBar;
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 /// Arguments of `overlay`.
 #[derive(Debug, clap::Args)]
@@ -51,58 +50,42 @@ pub struct OverlayArgs {
     allow_ik_residual: bool,
 }
 
-impl OverlayArgs {
-    /// The files and folders `overlay` reads (a URDF, the camera, its poses,
-    /// the trajectory, the frames, the truths): `--out` equal to, inside or
-    /// containing one is refused.
-    fn inputs(&self) -> Vec<&Path> {
-        let files = [
-            &self.camera_poses,
-            &self.joints,
-            &self.actions,
-            &self.truth_masks,
-            &self.truth_points,
-        ];
-        let mut inputs: Vec<&Path> = self.robot.urdf_file().into_iter().collect();
-        inputs.extend([self.camera.as_path(), self.frames.as_path()]);
-        inputs.extend(files.into_iter().flatten().map(PathBuf::as_path));
-        inputs
-    }
-}
-
 pub fn run(args: &OverlayArgs) -> Result<()> {
-    if !(args.point_tolerance_px.is_finite() && args.point_tolerance_px >= 0.0) {
-        bail!(
-            "--point-tolerance-px {}: expected a distance >= 0 (pixels)",
-            args.point_tolerance_px
-        );
-    }
     let e = args.robot.load()?;
-    let mut camera = CameraTrack::from_json_file(&args.camera)?;
-    if let Some(p) = &args.camera_poses {
-        camera = camera.with_poses(read_poses_npy(p)?);
-    }
-    let (joints, _) = joint_trajectory(
-        &e,
-        args.joints.as_deref(),
-        args.actions.as_deref(),
-        &IkOptions::default(),
-        args.allow_ik_residual,
-    )?;
-    let options = OverlayOptions {
-        frames: FrameSource::from_path(&args.frames)?,
-        truth_masks: args.truth_masks.clone(),
-        truth_points: args.truth_points.clone(),
-        point_tolerance_px: args.point_tolerance_px,
-        ..OverlayOptions::default()
+    let job = OverlayJob {
+        camera: args.camera.clone(),
+        camera_poses: args.camera_poses.clone(),
+        trajectory: trajectory_file(args.joints.as_deref(), args.actions.as_deref())?,
+        allow_ik_residual: args.allow_ik_residual,
+        frames: args.frames.clone(),
+        options: OverlayOptions {
+            frames: FrameSource::Images(Vec::new()),
+            truth_masks: args.truth_masks.clone(),
+            truth_points: args.truth_points.clone(),
+            point_tolerance_px: args.point_tolerance_px,
+            ..OverlayOptions::default()
+        },
+        out: args.out.clone(),
+        overwrite: args.overwrite,
+        other_inputs: args
+            .robot
+            .urdf_file()
+            .map(Path::to_path_buf)
+            .into_iter()
+            .collect(),
     };
-    let out = OutputDir::create_for(&args.out, args.overwrite, &args.inputs())?;
-    let pb = progress_bar(joints.len(), "rendering masks");
-    let report = overlay(&e.robot, &camera, &joints, &options, out.path(), &|| {
-        pb.inc(1)
-    })?;
-    pb.finish_and_clear();
-    out.commit()?;
+    let pb = OnceLock::new();
+    let report = job.run(
+        &e,
+        &|n| {
+            let _ = pb.set(progress_bar(n, "rendering masks"));
+        },
+        &|| pb.get().into_iter().for_each(|b: &ProgressBar| b.inc(1)),
+    );
+    if let Some(b) = pb.get() {
+        b.finish_and_clear();
+    }
+    let report = report?;
     println!(
         "{} frames ({}x{}) of robot \"{}\" over {} in {}",
         report.frames,
@@ -112,13 +95,8 @@ pub fn run(args: &OverlayArgs) -> Result<()> {
         args.frames.display(),
         args.out.display()
     );
-    if let Some(iou) = report.mean_iou {
-        println!(
-            "mean IoU against {}: {iou:.4}",
-            args.truth_masks
-                .as_ref()
-                .map_or(String::new(), |p| p.display().to_string())
-        );
+    if let (Some(iou), Some(p)) = (report.mean_iou, &args.truth_masks) {
+        println!("mean IoU against {}: {iou:.4}", p.display());
     }
     if report.points > 0 {
         println!(

@@ -67,31 +67,10 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         eprintln!("resumed at step {}", trainer.step);
     }
     let total = trainer.total_steps();
-    eprintln!(
-        "training {} step(s) ({} per epoch), flow estimator {}, {}, output {}",
-        total,
-        trainer.steps_per_epoch(),
-        trainer.flow_estimator_name(),
-        match trainer.autocast_dtype() {
-            Some(d) => format!("{:?} autocast", d.kind()),
-            None => "f32".to_string(),
-        },
-        trainer.cfg.train.out.display()
-    );
-    let primary = trainer.is_primary();
-    if let Some(name) = trainer.collective_name() {
-        let (rank, world) = trainer.rank_and_world();
-        eprintln!(
-            "rank {rank} of {world}: {} of {} batch items per step, {name} all-reduce{}",
-            trainer.cfg.train.batch_size / world,
-            trainer.cfg.train.batch_size,
-            if primary {
-                ""
-            } else {
-                " (rank 0 writes the outputs)"
-            }
-        );
+    for line in trainer.describe() {
+        eprintln!("{line}");
     }
+    let primary = trainer.is_primary();
     let pb = if args.quiet || !primary {
         ProgressBar::hidden()
     } else {
@@ -106,17 +85,7 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     };
     let quiet = args.quiet && primary;
     let result = trainer.run(&mut |m| {
-        let msg = if m.diffusion == 0.0 && (m.recon > 0.0 || m.kl > 0.0) {
-            format!(
-                "loss {:.4} (L1 {:.4} KL {:.3}) lr {:.2e} |g| {:.3}",
-                m.loss, m.recon, m.kl, m.lr, m.grad_norm
-            )
-        } else {
-            format!(
-                "loss {:.4} (diff {:.4} dyn {:.4} flow {:.4}) lr {:.2e} |g| {:.3}",
-                m.loss, m.diffusion, m.dynamics, m.flow, m.lr, m.grad_norm
-            )
-        };
+        let msg = m.summary();
         if quiet {
             eprintln!("step {} {msg} {:.2} it/s", m.step, 1.0 / m.secs.max(1e-9));
         }

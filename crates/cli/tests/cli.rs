@@ -384,7 +384,7 @@ fn convert_droid_and_agibot_with_skip_report() {
         d.join("x").to_str().expect("utf8"),
     ]);
     assert!(
-        stderr(&o).contains("--intrinsics FILE is required"),
+        stderr(&o).contains("intrinsics: a file is required for DROID"),
         "{}",
         stderr(&o)
     );

@@ -76,7 +76,7 @@ fn convert_ctrl_world_needs_fixed_exterior_cameras() {
     // The flags belong to this layout only.
     refused(
         &convert(tmp.path(), &["--camera", "ext1=c.json"]),
-        &["--camera/--include/--split-rule apply to --format ctrl-world"],
+        &["camera (ROLE=CAMERA_JSON), include, split rules: apply to the ctrl-world format"],
     );
     assert!(!out.exists());
 }

@@ -66,10 +66,7 @@ fn masks_beyond_the_machine_are_refused_with_the_estimate() {
         );
         assert!(!out.exists());
     }
-    refused(
-        &masks(&joints, "16385", &[]),
-        &["--width 16385", "1..=16384"],
-    );
+    refused(&masks(&joints, "16385", &[]), &["width 16385", "1..=16384"]);
     // Normal sizes pass.
     let o = masks(&few, "48", &["--no-png"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

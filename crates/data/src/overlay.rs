@@ -6,11 +6,15 @@
 //! through the calibration, or hand-clicked points) fall inside the mask.
 
 use crate::video::{decode_mp4, VideoError};
-use bridgev2w_embodiment::camera::CameraTrack;
+use bridgev2w_embodiment::camera::{read_poses_npy, CameraTrack};
+use bridgev2w_embodiment::embodiment::Embodiment;
+use bridgev2w_embodiment::kinematics::IkOptions;
 use bridgev2w_embodiment::masks::render_track_labels;
+use bridgev2w_embodiment::masks_folder::{read_joint_trajectory, MasksJobError, TrajectoryFile};
 use bridgev2w_embodiment::overlay::{draw_outlines, write_gif, OverlayError as GifError};
 use bridgev2w_embodiment::robot::Robot;
 use bridgev2w_io::npy::{read_npy, write_npy, NpyError};
+use bridgev2w_io::output::{OutputDir, OutputError};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -37,6 +41,12 @@ pub enum OverlayError {
     /// The inputs do not fit together (frame counts, sizes, camera).
     #[error("{0}")]
     Mismatch(String),
+    /// The camera or the trajectory ([`OverlayJob`]).
+    #[error(transparent)]
+    Inputs(#[from] MasksJobError),
+    /// The output folder ([`OverlayJob`]).
+    #[error(transparent)]
+    Output(#[from] OutputError),
 }
 
 fn file_err(path: &Path, message: impl Into<String>) -> OverlayError {
@@ -398,4 +408,83 @@ pub fn overlay(
     bridgev2w_io::atomic::write_atomic(&p, text.as_bytes())
         .map_err(|e| file_err(&p, e.to_string()))?;
     Ok(report)
+}
+
+/// An overlay from files, as `bridgev2w overlay` makes it: the camera
+/// (optionally with per-frame poses), a trajectory, the real frames and
+/// any truth, written as a transaction into `out`.
+#[derive(Debug, Clone)]
+pub struct OverlayJob {
+    /// The camera JSON.
+    pub camera: PathBuf,
+    /// A moving camera's `world_from_camera` per frame (`.npy [T, 4, 4]`).
+    pub camera_poses: Option<PathBuf>,
+    /// The trajectory (joints, or actions through IK).
+    pub trajectory: TrajectoryFile,
+    /// Render frames whose IK target is out of reach instead of failing.
+    pub allow_ik_residual: bool,
+    /// The real frames as the user named them: an `.mp4`, a `.png` or a
+    /// folder of PNGs ([`FrameSource::from_path`]); an output overlapping
+    /// this path is refused.
+    pub frames: PathBuf,
+    /// The truth and drawing (its `frames` are replaced by those of `frames`).
+    pub options: OverlayOptions,
+    /// The output folder.
+    pub out: PathBuf,
+    /// Replace an existing `out`.
+    pub overwrite: bool,
+    /// Further inputs `out` must not overlap (e.g. the URDF).
+    pub other_inputs: Vec<PathBuf>,
+}
+
+impl OverlayJob {
+    fn inputs(&self) -> Vec<&Path> {
+        let mut inputs: Vec<&Path> = self.other_inputs.iter().map(PathBuf::as_path).collect();
+        inputs.push(&self.camera);
+        inputs.push(self.trajectory.path());
+        inputs.extend(self.camera_poses.as_deref());
+        inputs.extend(self.options.truth_masks.as_deref());
+        inputs.extend(self.options.truth_points.as_deref());
+        inputs.push(&self.frames);
+        inputs
+    }
+
+    /// Reads and checks the inputs, renders, draws, scores and commits the
+    /// folder. `on_frames(n)` is called once the trajectory is known,
+    /// `on_frame` per rendered frame.
+    pub fn run(
+        &self,
+        e: &Embodiment,
+        on_frames: &dyn Fn(usize),
+        on_frame: &(dyn Fn() + Sync),
+    ) -> Result<OverlayReport, OverlayError> {
+        let tolerance = self.options.point_tolerance_px;
+        if !(tolerance.is_finite() && tolerance >= 0.0) {
+            return Err(OverlayError::Mismatch(format!(
+                "point tolerance {tolerance} px: expected a distance >= 0 (pixels)"
+            )));
+        }
+        let mut camera = CameraTrack::from_json_file(&self.camera)
+            .map_err(|e| OverlayError::Inputs(e.into()))?;
+        if let Some(p) = &self.camera_poses {
+            camera =
+                camera.with_poses(read_poses_npy(p).map_err(|e| OverlayError::Inputs(e.into()))?);
+        }
+        let (joints, _) = read_joint_trajectory(
+            e,
+            &self.trajectory,
+            &IkOptions::default(),
+            self.allow_ik_residual,
+            &|_| {},
+        )?;
+        let options = OverlayOptions {
+            frames: FrameSource::from_path(&self.frames)?,
+            ..self.options.clone()
+        };
+        let out = OutputDir::create_for(&self.out, self.overwrite, &self.inputs())?;
+        on_frames(joints.len());
+        let report = overlay(&e.robot, &camera, &joints, &options, out.path(), on_frame)?;
+        out.commit()?;
+        Ok(report)
+    }
 }

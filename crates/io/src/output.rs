@@ -49,6 +49,20 @@ pub enum OutputError {
         /// The output.
         path: PathBuf,
     },
+    /// An output file's name is a folder.
+    #[error("{}: is a folder, expected a file name", path.display())]
+    IsADir {
+        /// The output.
+        path: PathBuf,
+    },
+    /// An output file's folder does not exist.
+    #[error("{}: the folder {} does not exist", path.display(), dir.display())]
+    NoFolder {
+        /// The output.
+        path: PathBuf,
+        /// Its folder.
+        dir: PathBuf,
+    },
     /// The output path does not end in a folder name (`.`, `..`, `/`).
     #[error("{}: expected an output path that ends in a folder name", path.display())]
     NoName {
@@ -296,6 +310,28 @@ impl Drop for OutputDir {
             let _ = std::fs::remove_dir_all(&self.tmp);
         }
     }
+}
+
+/// Checks, before any work, that the output file `path` can be written:
+/// not existing unless `overwrite`, not a folder, its folder present (the
+/// file itself is then written atomically, e.g. with
+/// [`crate::json::write_json_atomic`]).
+pub fn check_new_file(path: &Path, overwrite: bool) -> Result<(), OutputError> {
+    let path_buf = || path.to_path_buf();
+    if path.is_dir() {
+        return Err(OutputError::IsADir { path: path_buf() });
+    }
+    if path.exists() && !overwrite {
+        return Err(OutputError::Exists { path: path_buf() });
+    }
+    let parent = path.parent().filter(|p| !p.as_os_str().is_empty());
+    if let Some(dir) = parent.filter(|d| !d.is_dir()) {
+        return Err(OutputError::NoFolder {
+            path: path_buf(),
+            dir: dir.to_path_buf(),
+        });
+    }
+    Ok(())
 }
 
 /// Refuses an output `out` equal to, inside, or containing any of `inputs`
@@ -600,5 +636,28 @@ mod tests {
         let e = o.commit().unwrap_err().to_string();
         assert!(e.contains("the folder it replaces"), "{e}");
         assert_eq!(names(&out), ["other"]);
+    }
+
+    #[test]
+    fn check_new_file_refuses_an_existing_file_a_folder_and_a_missing_folder() {
+        let tmp = tempfile::tempdir().unwrap();
+        let file = tmp.path().join("scores.json");
+        check_new_file(&file, false).unwrap();
+        std::fs::write(&file, b"{}").unwrap();
+        let e = check_new_file(&file, false).unwrap_err().to_string();
+        assert!(
+            e.contains("scores.json: already exists") && e.contains("--overwrite"),
+            "{e}"
+        );
+        check_new_file(&file, true).unwrap();
+        let e = check_new_file(tmp.path(), true).unwrap_err().to_string();
+        assert!(e.contains("is a folder, expected a file name"), "{e}");
+        let e = check_new_file(&tmp.path().join("no/x.json"), false)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("the folder") && e.contains("does not exist"),
+            "{e}"
+        );
     }
 }

@@ -91,13 +91,13 @@ fn missing(path: &Path, what: &str) -> PyErr {
     PyFileNotFoundError::new_err(format!("{}: no such {what}", path.display()))
 }
 
-/// Converts raw DROID (`format="droid"`) or AgiBot World (`"agibot"`)
-/// episodes under `src` into a LeRobot v3.0 training dataset at `out` with
-/// `calc` masks of `robot`, as `bridgev2w convert` does, with the GIL
-/// released; returns the report as a dict (`out`, `episodes`,
-/// `views_written`, `skipped` as `(item, error)` pairs, `empty_mask_views`,
-/// `ee_frames`, and `report_json`: the whole conversion report, notes
-/// included, as JSON text).
+/// Converts raw DROID (`format="droid"`), AgiBot World (`"agibot"`) or
+/// Ctrl-World (`"ctrl-world"`) episodes under `src` into a LeRobot v3.0
+/// training dataset at `out` with `calc` masks of `robot`, as `bridgev2w
+/// convert` does (the same [`ConvertRequest`]), with the GIL released;
+/// returns the report as a dict (`out`, `episodes`, `views_written`,
+/// `skipped` as `(item, error)` pairs, `empty_mask_views`, `ee_frames`, and
+/// `report_json`: the whole conversion report, notes included, as JSON text).
 #[pyfunction]
 #[pyo3(signature = (format, src, out, robot, joint_names, width, height, fps, intrinsics, calibration, missing_calibration, cameras, gripper_source, gripper_range, split, skip_bad, limit, camera_json = Vec::new(), include = None, split_rules = Vec::new()))]
 #[allow(clippy::too_many_arguments)]
@@ -124,128 +124,44 @@ pub(crate) fn convert<'py>(
     include: Option<Vec<String>>,
     split_rules: Vec<String>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let droid = match format {
-        "droid" => true,
-        "agibot" => false,
-        "ctrl-world" => {
-            return convert_ctrl_world(
-                py,
-                src,
-                out,
-                robot,
-                (width, height, fps),
-                camera_json,
-                include,
-                split_rules,
-                split,
-                skip_bad,
-                limit,
-            )
-        }
-        other => {
-            return Err(PyValueError::new_err(format!(
-                "format: {other:?}, expected \"droid\", \"agibot\" or \"ctrl-world\""
-            )))
-        }
-    };
-    if !src.exists() {
-        return Err(missing(&src, "source folder"));
+    fn value(field: &'static str) -> impl Fn(String) -> PyErr {
+        move |e| PyValueError::new_err(format!("{field}: {e}"))
     }
-    for p in intrinsics.iter().chain(&calibration) {
-        if !p.is_file() {
-            return Err(missing(p, "file"));
-        }
-    }
-    let intrinsics = match (droid, intrinsics) {
-        (true, Some(p)) => Some(p),
-        (true, None) => {
-            return Err(PyValueError::new_err(
-                "intrinsics: required for DROID (a JSON file of intrinsics per camera serial): neither the raw episodes nor RLDS record them",
-            ))
-        }
-        (false, None) if calibration.is_empty() => None,
-        (false, _) => {
-            return Err(PyValueError::new_err(
-                "intrinsics, calibration: apply to DROID; AgiBot World episodes carry their camera parameters",
-            ))
-        }
-    };
-    let (open, closed) = gripper_range;
-    if !(open.is_finite() && closed.is_finite()) || open == closed {
-        return Err(PyValueError::new_err(format!(
-            "gripper_range: ({open}, {closed}), expected two different finite readings (open, closed)"
-        )));
-    }
-    check_new_output(&out)?;
-    let options = ConvertOptions {
+    let request = ConvertRequest {
+        joint_names,
         width,
         height,
-        fps: fps.unwrap_or(if droid { 15 } else { 30 }),
-        joint_names,
+        fps,
+        intrinsics,
+        calibration,
+        missing_calibration: missing_calibration
+            .parse()
+            .map_err(value("missing_calibration"))?,
+        cameras,
+        camera_json,
+        include,
+        split_rules: split_rules
+            .iter()
+            .map(|r| r.parse::<SplitRule>())
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(value("split_rules"))?,
+        gripper_source: gripper_source.parse().map_err(value("gripper_source"))?,
+        gripper_range,
+        split,
         skip_bad,
-        split: Some(split),
-        source_format: format.to_string(),
-        overwrite: false,
+        limit,
+        ..ConvertRequest::new(format.parse().map_err(value("format"))?, src, out)
     };
-    let to_py = convert_err;
-    let source = match intrinsics {
-        Some(intrinsics) => {
-            let mut options = DroidOptions::from_calibration_files(&intrinsics, &calibration)
-                .map_err(|e| to_py(e.into()))?;
-            options.missing_calibration = missing_calibration
-                .parse()
-                .map_err(|e: String| PyValueError::new_err(format!("missing_calibration: {e}")))?;
-            if let Some(c) = cameras {
-                options.roles = c;
-            }
-            RawSource::Droid { root: src, options }
-        }
-        None => {
-            let mut options = AgibotOptions {
-                gripper: gripper_source
-                    .parse()
-                    .map_err(|e: String| PyValueError::new_err(format!("gripper_source: {e}")))?,
-                gripper_open: open,
-                gripper_closed: closed,
-                ..AgibotOptions::default()
-            };
-            if let Some(c) = cameras {
-                options.cameras = c;
-            }
-            RawSource::Agibot { root: src, options }
-        }
-    };
-    // Cameras: at least one, none twice (a library check the CLI shares).
-    source.validate().map_err(PyValueError::new_err)?;
-    run_convert(py, &source, limit, robot, &out, &options)
-}
-
-/// A conversion error: a missing file or folder as `FileNotFoundError`.
-fn convert_err(e: ConvertError) -> PyErr {
-    match e {
-        ConvertError::Raw(RawError::Missing { path, what }) => {
-            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
-        }
-        e => err(e),
-    }
-}
-
-/// Converts `source` with the GIL released; the report as a dict.
-fn run_convert<'py>(
-    py: Python<'py>,
-    source: &RawSource,
-    limit: Option<usize>,
-    robot: &Robot,
-    out: &Path,
-    options: &ConvertOptions,
-) -> PyResult<Bound<'py, PyDict>> {
+    // Every option checked before the output is looked at.
+    request.source().map_err(convert_err)?;
+    check_new_output(&request.out)?;
     let embodiment = &robot.inner;
-    let run = || convert_source(source, limit, embodiment, out, options, &|_| {});
+    let run = || request.run(embodiment, &|_| {});
     let report = py
         .detach(|| no_panic("convert", || Ok(run())))?
         .map_err(convert_err)?;
     let d = PyDict::new(py);
-    d.set_item("out", out.to_string_lossy().into_owned())?;
+    d.set_item("out", request.out.to_string_lossy().into_owned())?;
     d.set_item("episodes", report.episodes)?;
     d.set_item("views_written", report.views_written)?;
     let skipped: Vec<(String, String)> = report
@@ -263,57 +179,16 @@ fn run_convert<'py>(
     Ok(d)
 }
 
-/// `convert(format="ctrl-world")`: DROID episodes of the Ctrl-World layout
-/// with a camera JSON per exterior role.
-#[allow(clippy::too_many_arguments)]
-fn convert_ctrl_world<'py>(
-    py: Python<'py>,
-    src: PathBuf,
-    out: PathBuf,
-    robot: &Robot,
-    (width, height, fps): (usize, usize, Option<u32>),
-    camera_json: Vec<(String, PathBuf)>,
-    include: Option<Vec<String>>,
-    split_rules: Vec<String>,
-    split: String,
-    skip_bad: bool,
-    limit: Option<usize>,
-) -> PyResult<Bound<'py, PyDict>> {
-    use bridgev2w_data::raw::ctrl_world::{CtrlWorldOptions, SplitRule, FPS};
-    if !src.exists() {
-        return Err(missing(&src, "source folder"));
-    }
-    for (_, p) in &camera_json {
-        if !p.is_file() {
-            return Err(missing(p, "file"));
+/// A conversion error: a missing file or folder as `FileNotFoundError`, a
+/// bad option as `ValueError`.
+fn convert_err(e: ConvertError) -> PyErr {
+    match e {
+        ConvertError::Raw(RawError::Missing { path, what }) => {
+            PyFileNotFoundError::new_err(format!("{}: missing {what}", path.display()))
         }
+        ConvertError::Options(m) => PyValueError::new_err(m),
+        e => err(e),
     }
-    let split_rules = split_rules
-        .iter()
-        .map(|r| r.parse::<SplitRule>())
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| PyValueError::new_err(format!("split_rules: {e}")))?;
-    let source = RawSource::CtrlWorld {
-        root: src,
-        options: CtrlWorldOptions {
-            cameras: camera_json,
-            include,
-            split_rules,
-        },
-    };
-    source.validate().map_err(PyValueError::new_err)?;
-    check_new_output(&out)?;
-    let options = ConvertOptions {
-        width,
-        height,
-        fps: fps.unwrap_or(FPS),
-        joint_names: None,
-        skip_bad,
-        split: Some(split),
-        source_format: "ctrl-world".into(),
-        overwrite: false,
-    };
-    run_convert(py, &source, limit, robot, &out, &options)
 }
 
 /// One episode of a LeRobot v3.0/v2.1 dataset (what `synth` and `convert`

@@ -4,10 +4,9 @@
 //! the results as numpy arrays. Rendering and inverse kinematics run with the
 //! GIL released, on the embodiment crate's thread pool.
 
-use bridgev2w_data::raw::agibot::AgibotOptions;
-use bridgev2w_data::raw::convert::{ConvertError, ConvertOptions};
-use bridgev2w_data::raw::droid::DroidOptions;
-use bridgev2w_data::raw::source::{convert_source, RawSource};
+use bridgev2w_data::raw::convert::ConvertError;
+use bridgev2w_data::raw::ctrl_world::SplitRule;
+use bridgev2w_data::raw::request::ConvertRequest;
 use bridgev2w_data::raw::RawError;
 use bridgev2w_data::synth::{
     plan, write_dataset, SynthConfig, SynthError, Task, WriteDatasetError,

@@ -133,6 +133,15 @@ pub enum WorldModelError {
         #[source]
         source: Box<WorldModelError>,
     },
+    /// Running a parity fixture failed.
+    #[error("parity fixture {}", path.display())]
+    Fixture {
+        /// The fixture folder.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: Box<WorldModelError>,
+    },
 }
 
 /// Result alias of this crate.

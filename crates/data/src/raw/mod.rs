@@ -24,6 +24,7 @@ pub mod droid;
 pub mod droid_calibration;
 pub mod h5;
 pub mod report;
+pub mod request;
 pub mod source;
 
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};

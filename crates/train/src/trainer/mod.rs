@@ -97,6 +97,25 @@ pub struct StepMetrics {
     pub cuda_peak_reserved_mib: Option<f64>,
 }
 
+impl StepMetrics {
+    /// The step's losses, learning rate and gradient norm on one line (the
+    /// `vae` stage's reconstruction and KL, else the diffusion, dynamics
+    /// and flow losses).
+    pub fn summary(&self) -> String {
+        if self.diffusion == 0.0 && (self.recon > 0.0 || self.kl > 0.0) {
+            format!(
+                "loss {:.4} (L1 {:.4} KL {:.3}) lr {:.2e} |g| {:.3}",
+                self.loss, self.recon, self.kl, self.lr, self.grad_norm
+            )
+        } else {
+            format!(
+                "loss {:.4} (diff {:.4} dyn {:.4} flow {:.4}) lr {:.2e} |g| {:.3}",
+                self.loss, self.diffusion, self.dynamics, self.flow, self.lr, self.grad_norm
+            )
+        }
+    }
+}
+
 /// The losses of one forward pass.
 #[derive(Debug)]
 pub struct Losses {
@@ -174,6 +193,37 @@ impl Trainer {
         } else {
             self.cfg.train.epochs * self.steps_per_epoch()
         }
+    }
+
+    /// What the run is about to do, for its log: the steps, the flow
+    /// estimator, the precision, the output and, data-parallel, this rank's
+    /// share of each batch.
+    pub fn describe(&self) -> Vec<String> {
+        let mut lines = vec![format!(
+            "training {} step(s) ({} per epoch), flow estimator {}, {}, output {}",
+            self.total_steps(),
+            self.steps_per_epoch(),
+            self.flow_estimator_name(),
+            match self.autocast_dtype() {
+                Some(d) => format!("{:?} autocast", d.kind()),
+                None => "f32".to_string(),
+            },
+            self.cfg.train.out.display()
+        )];
+        if let Some(name) = self.collective_name() {
+            let (rank, world) = self.rank_and_world();
+            let batch = self.cfg.train.batch_size;
+            let writer = if self.is_primary() {
+                ""
+            } else {
+                " (rank 0 writes the outputs)"
+            };
+            lines.push(format!(
+                "rank {rank} of {world}: {} of {batch} batch items per step, {name} all-reduce{writer}",
+                batch / world
+            ));
+        }
+        lines
     }
 }
 

@@ -19,10 +19,12 @@ mod i3d;
 mod lpips;
 mod raft;
 mod scheduler;
+mod table;
 mod transformer;
 mod vae;
 
 pub use bf16::{run_fixture_bf16, Bf16Error, Bf16Output, Bf16Report, BF16_EPSILON, BF16_FACTOR};
+pub use table::{parity_table, parity_table_bf16, ParityTable};
 
 use crate::device::Precision;
 use crate::error::{Result, WorldModelError};
