@@ -347,6 +347,7 @@ impl MasksJob {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
     use crate::camera::{Camera, Intrinsics};
