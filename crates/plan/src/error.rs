@@ -85,6 +85,16 @@ pub enum PlanError {
     /// memory (refused before the first trial).
     #[error(transparent)]
     Memory(#[from] bridgev2w_io::memory::MemoryError),
+    /// A policy from outside failed (unreachable, closed, slow, a bad chunk).
+    #[error("policy {policy}{}: {message}", step.map(|s| format!(", step {s}")).unwrap_or_default())]
+    Policy {
+        /// The policy's name.
+        policy: String,
+        /// The query that failed (0-based, per trial), if any.
+        step: Option<usize>,
+        /// What failed, naming the field.
+        message: String,
+    },
     /// A setting or argument with a value it cannot take.
     #[error("{name}: {message}")]
     Input {

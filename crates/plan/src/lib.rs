@@ -30,6 +30,7 @@ pub mod goal_latent;
 pub mod model;
 pub mod mpc;
 pub mod policy;
+pub mod served;
 pub mod synthetic;
 
 pub use error::{PlanError, Result};

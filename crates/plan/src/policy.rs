@@ -355,6 +355,9 @@ pub struct PolicyEvalReport {
     pub pearson: f64,
     /// The graded alternative, when the judge grades (see [`Verdict`]).
     pub progress: Option<ProgressAgreement>,
+    /// Policies whose evaluation stopped (a served policy unreachable,
+    /// closed, slow or answering badly): name and error.
+    pub failed: Vec<(String, String)>,
 }
 
 /// Mean world-model goal progress per policy and its agreement with the
@@ -382,6 +385,7 @@ impl PolicyEvalReport {
             mmrv,
             pearson,
             progress: None,
+            failed: Vec::new(),
         })
     }
 

@@ -4,7 +4,7 @@
 use super::{parse_split, parse_task, progress, ModelArgs};
 use anyhow::Result;
 use bridgev2w_data::synth::{Split, Task};
-use bridgev2w_plan::experiment::rollout::parse_offsets_mm;
+use bridgev2w_plan::experiment::rollout::{parse_offsets_mm, ServedSpec};
 use bridgev2w_plan::experiment::{rollout_report, RolloutOptions};
 use std::path::PathBuf;
 
@@ -18,9 +18,20 @@ pub struct EvalRolloutArgs {
     pub trials: usize,
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Offset standard deviations of the scripted policies (mm, comma-separated).
-    #[arg(long, default_value = "0,10,20,30,50")]
-    pub offsets_mm: String,
+    /// Offset standard deviations of the scripted policies (mm,
+    /// comma-separated; default 0,10,20,30,50, none with --policy unless given).
+    #[arg(long)]
+    pub offsets_mm: Option<String>,
+    /// A policy served over openpi's websocket protocol, [NAME=]ws://HOST:PORT
+    /// (repeatable): it gets the rollout's frame, joints and pose and returns
+    /// end-effector action chunks, as --policy-config maps them.
+    #[arg(long = "policy", value_name = "[NAME=]URL", value_parser = parse_served)]
+    pub policies: Vec<ServedSpec>,
+    /// How observations and actions map to the served policies' keys (TOML;
+    /// default openpi's DROID example keys, absolute end-effector actions;
+    /// see docs/guide/planning.md).
+    #[arg(long, value_name = "TOML", requires = "policies")]
+    pub policy_config: Option<PathBuf>,
     /// Per-action jitter of the scripted policies (mm).
     #[arg(long, default_value_t = 2.0)]
     pub jitter_mm: f64,
@@ -45,12 +56,22 @@ pub struct EvalRolloutArgs {
 }
 
 /// `bridgev2w eval-policy-rollout`.
+fn parse_served(s: &str) -> Result<ServedSpec, String> {
+    s.parse()
+}
+
 pub fn run(a: &EvalRolloutArgs) -> Result<()> {
     let o = RolloutOptions {
         task: a.task,
         trials: a.trials,
         model: (&a.model).into(),
-        offsets_mm: parse_offsets_mm(&a.offsets_mm)?,
+        offsets_mm: match (&a.offsets_mm, a.policies.is_empty()) {
+            (Some(text), _) => parse_offsets_mm(text)?,
+            (None, true) => RolloutOptions::new(a.task).offsets_mm,
+            (None, false) => Vec::new(),
+        },
+        served: a.policies.clone(),
+        served_config: a.policy_config.clone(),
         jitter_mm: a.jitter_mm,
         chunk: a.chunk,
         ratio: a.ratio,

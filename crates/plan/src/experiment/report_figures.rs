@@ -164,6 +164,7 @@ mod tests {
                 mmrv: 0.0,
                 pearson: 0.97,
                 progress: None,
+                failed: Vec::new(),
             },
         )];
         let md = figures_section(&results, "planning", &plans, &evals).unwrap();

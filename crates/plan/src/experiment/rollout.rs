@@ -1,14 +1,19 @@
 //! Policy evaluation by world-model rollouts in the synthetic world
-//! (`bridgev2w eval-policy-rollout`): scripted policies of growing offset,
-//! each rolled out in the world model and in the synthetic world, and their
-//! success rates compared (MMRV, Pearson r).
+//! (`bridgev2w eval-policy-rollout`): scripted policies of growing offset
+//! and policies served over openpi's websocket protocol
+//! ([`crate::served`]), each rolled out in the world model and in the
+//! synthetic world, and their success rates compared (MMRV, Pearson r). A
+//! served policy that fails (unreachable, closed, slow, a bad chunk) is
+//! reported by name with its error; the others' results are kept.
 
 use super::{LoadedModel, ModelOptions};
 use crate::policy::{
     evaluate_trial, report_from_tallies, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport,
     PolicyTally, ScriptedPolicy, SuccessJudge,
 };
+use crate::served::{ServedPolicy, ServedPolicyConfig};
 use crate::synthetic::TaskInstance;
+use crate::{EeAction, Observation};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_io::frame::RgbFrame;
@@ -24,8 +29,13 @@ pub struct RolloutOptions {
     /// The world model.
     pub model: ModelOptions,
     /// Offset standard deviations of the scripted policies (mm), one policy
-    /// each; at least two.
+    /// each (with the served ones, at least two policies in all).
     pub offsets_mm: Vec<f64>,
+    /// Policies served over openpi's websocket protocol.
+    pub served: Vec<ServedSpec>,
+    /// How observations and actions map to the served policies' keys
+    /// (default [`ServedPolicyConfig::default`]).
+    pub served_config: Option<PathBuf>,
     /// Per-action jitter of the scripted policies (mm).
     pub jitter_mm: f64,
     /// Actions per policy chunk (at most the model's clip frames - 1).
@@ -50,6 +60,8 @@ impl RolloutOptions {
             trials: 10,
             model: ModelOptions::default(),
             offsets_mm: vec![0.0, 10.0, 20.0, 30.0, 50.0],
+            served: Vec::new(),
+            served_config: None,
             jitter_mm: 2.0,
             chunk: 8,
             ratio: 0.5,
@@ -58,6 +70,54 @@ impl RolloutOptions {
             episode_frames: 25,
             seed: 0,
         }
+    }
+}
+
+/// A served policy: its name in the report and its URL.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ServedSpec {
+    /// The name in the report.
+    pub name: String,
+    /// `ws://HOST:PORT`.
+    pub url: String,
+}
+
+impl std::str::FromStr for ServedSpec {
+    type Err = String;
+    /// `[NAME=]ws://HOST:PORT` (the name defaults to the URL).
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let (name, url) = match s.split_once('=') {
+            Some((n, u)) if !n.contains("://") => (n.trim(), u.trim()),
+            _ => (s.trim(), s.trim()),
+        };
+        if !url.contains("://") || name.is_empty() {
+            return Err(format!(
+                "{s:?}: expected [NAME=]ws://HOST:PORT (a policy served over openpi's websocket protocol)"
+            ));
+        }
+        Ok(Self {
+            name: name.to_string(),
+            url: url.to_string(),
+        })
+    }
+}
+
+/// A scripted policy whose expert follows the trial (instance `i` is trial `i`).
+struct PerTrialExpert {
+    inner: ScriptedPolicy,
+    experts: Vec<Vec<EeAction>>,
+}
+
+impl Policy for PerTrialExpert {
+    fn name(&self) -> String {
+        self.inner.name()
+    }
+    fn reset(&mut self, trial: usize) {
+        self.inner.expert = self.experts.get(trial).cloned().unwrap_or_default();
+        self.inner.reset(trial);
+    }
+    fn act(&mut self, obs: &Observation) -> Result<Vec<EeAction>> {
+        self.inner.act(obs)
     }
 }
 
@@ -93,11 +153,14 @@ pub fn rollout_report(
             format!("{bad} is not a non-negative number"),
         ));
     }
-    if o.offsets_mm.len() < 2 {
+    if o.offsets_mm.len() + o.served.len() < 2 {
         return Err(PlanError::input(
             "--offsets-mm",
-            "at least two policies are needed for a correlation",
+            "at least two policies (scripted offsets and served policies) are needed for a correlation",
         ));
+    }
+    if let Some(p) = &o.served_config {
+        ServedPolicyConfig::read(p).map_err(|e| PlanError::input("--policy-config", e))?;
     }
     o.model.check_sizes()?;
     super::sizes::check_trials("--trials", o.trials)?;
@@ -119,35 +182,78 @@ pub(crate) fn rollout_with(
         .map(|i| TaskInstance::new(&world, o.split, i, o.task))
         .collect::<Result<_>>()?;
     let labels = o.labels.as_deref().map(LabelJudge::read).transpose()?;
+    let served_config = match &o.served_config {
+        Some(p) => {
+            ServedPolicyConfig::read(p).map_err(|e| PlanError::input("--policy-config", e))?
+        }
+        None => ServedPolicyConfig::default(),
+    };
     let horizon = o.episode_frames - 1;
+    let experts: Vec<Vec<EeAction>> = instances.iter().map(TaskInstance::expert_actions).collect();
     let mut names = Vec::new();
     let mut tallies = Vec::new();
-    // One instance at a time so each gets its own model (camera, scene).
-    for (pi, off) in o.offsets_mm.iter().enumerate() {
-        let mut policy = ScriptedPolicy::new(
+    let mut failed = Vec::new();
+    let scripted = o.offsets_mm.iter().enumerate().map(|(pi, off)| {
+        let inner = ScriptedPolicy::new(
             Vec::new(),
             o.chunk,
             off / 1e3,
             o.jitter_mm / 1e3,
             o.seed ^ (pi as u64 + 1).wrapping_mul(0xA076_1D64_78BD_642F),
         );
-        let name = policy.name();
+        (inner.name(), None)
+    });
+    let served = o.served.iter().map(|s| (s.name.clone(), Some(s)));
+    let sources: Vec<(String, Option<&ServedSpec>)> = scripted.chain(served).collect();
+    for (pi, (name, spec)) in sources.into_iter().enumerate() {
+        let mut policy: Box<dyn Policy> = match spec {
+            None => Box::new(PerTrialExpert {
+                inner: ScriptedPolicy::new(
+                    Vec::new(),
+                    o.chunk,
+                    o.offsets_mm[pi] / 1e3,
+                    o.jitter_mm / 1e3,
+                    o.seed ^ (pi as u64 + 1).wrapping_mul(0xA076_1D64_78BD_642F),
+                ),
+                experts: experts.clone(),
+            }),
+            Some(s) => match ServedPolicy::connect(&s.name, &s.url, served_config.clone()) {
+                Ok(p) => Box::new(p),
+                Err(e) => {
+                    progress(&format!("{name}: not evaluated: {e}"));
+                    failed.push((name, e.to_string()));
+                    continue;
+                }
+            },
+        };
         let mut tally = PolicyTally::default();
-        for (trial, inst) in instances.iter().enumerate() {
-            policy.expert = inst.expert_actions();
-            let outcome = loaded.with_model(&world, inst, &mut |m| {
-                let encode = |img: &RgbFrame| m.encode(img);
-                let goal_judge = GoalDistanceJudge {
-                    encode: &encode,
-                    ratio: o.ratio,
-                };
-                let judge: &dyn SuccessJudge = match &labels {
-                    Some(l) => l,
-                    None => &goal_judge,
-                };
-                evaluate_trial(&world, inst, trial, &mut policy, m, judge, horizon)
-            })?;
-            tally.add(&outcome);
+        let mut run = || -> Result<()> {
+            // One instance at a time so each gets its own model (camera, scene).
+            for (trial, inst) in instances.iter().enumerate() {
+                let outcome = loaded.with_model(&world, inst, &mut |m| {
+                    let encode = |img: &RgbFrame| m.encode(img);
+                    let goal_judge = GoalDistanceJudge {
+                        encode: &encode,
+                        ratio: o.ratio,
+                    };
+                    let judge: &dyn SuccessJudge = match &labels {
+                        Some(l) => l,
+                        None => &goal_judge,
+                    };
+                    evaluate_trial(&world, inst, trial, policy.as_mut(), m, judge, horizon)
+                })?;
+                tally.add(&outcome);
+            }
+            Ok(())
+        };
+        match run() {
+            Ok(()) => {}
+            Err(e @ PlanError::Policy { .. }) => {
+                progress(&format!("{name}: stopped: {e}"));
+                failed.push((name, e.to_string()));
+                continue;
+            }
+            Err(e) => return Err(e),
         }
         progress(&format!(
             "{name}: world model {:.2}{}, synthetic world {:.2}",
@@ -161,7 +267,17 @@ pub(crate) fn rollout_with(
         names.push(name);
         tallies.push(tally);
     }
-    report_from_tallies(names, &tallies)
+    if names.len() < 2 {
+        let why: Vec<String> = failed.iter().map(|(_, e)| e.clone()).collect();
+        return Err(PlanError::Invalid(format!(
+            "{} of the policies finished: a correlation needs two; {}",
+            names.len(),
+            why.join("; ")
+        )));
+    }
+    let mut report = report_from_tallies(names, &tallies)?;
+    report.failed = failed;
+    Ok(report)
 }
 
 impl PolicyEvalReport {
@@ -199,6 +315,9 @@ impl PolicyEvalReport {
                 "Goal progress vs synthetic-world success: MMRV {:.3}, Pearson r {:.3}\n",
                 pr.mmrv, pr.pearson
             );
+        }
+        for (name, error) in &self.failed {
+            s += &format!("\nNot evaluated: {name}: {error}\n");
         }
         s
     }

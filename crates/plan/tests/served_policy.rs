@@ -1,0 +1,171 @@
+//! `ServedPolicy` against a real server of openpi's websocket protocol
+//! (`tests/data/openpi_server.py`, written with openpi-client's own
+//! msgpack-numpy and `websockets`, in `.venv-policy`: `./run test` makes it
+//! with `scripts/setup-policy-venv.sh`): observations arrive as the server
+//! checks them, chunks come back as end-effector actions, and a server that
+//! answers with the wrong shape, non-finite values, a non-numeric dtype, an
+//! error, too slowly, or closes is an error naming the policy, the step and
+//! the field.
+
+use bridgev2w_io::frame::RgbFrame;
+use bridgev2w_plan::policy::Policy;
+use bridgev2w_plan::served::{ActionLayout, ServedPolicy, ServedPolicyConfig};
+use bridgev2w_plan::Observation;
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// A running server, killed when dropped.
+struct Server {
+    child: Child,
+    url: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn server(mode: &str, extra: &[&str]) -> Server {
+    let python = repo().join(".venv-policy/bin/python");
+    assert!(
+        python.is_file(),
+        "{}: no policy test venv (./run test makes it: scripts/setup-policy-venv.sh)",
+        python.display()
+    );
+    let mut child = Command::new(python)
+        .arg(repo().join("crates/plan/tests/data/openpi_server.py"))
+        .args(["--mode", mode])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("start the policy server");
+    let mut line = String::new();
+    let stdout = child.stdout.take().expect("stdout");
+    BufReader::new(stdout).read_line(&mut line).expect("port");
+    let port: u16 = line.trim().parse().expect("the server prints its port");
+    Server {
+        child,
+        url: format!("ws://127.0.0.1:{port}"),
+    }
+}
+
+fn config() -> ServedPolicyConfig {
+    let mut c = ServedPolicyConfig::default();
+    c.observation.ee_pose = "observation/ee_pose".into();
+    c.timeout_s = 20.0;
+    c
+}
+
+fn observation() -> Observation {
+    let (w, h) = (96, 64);
+    Observation {
+        image: RgbFrame {
+            width: w,
+            height: h,
+            rgb: (0..w * h * 3).map(|i| (i % 251) as f32 / 255.0).collect(),
+        },
+        joints: vec![0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785, 0.04],
+        ee: [0.4, 0.0, 0.4, std::f64::consts::PI, 0.0, 0.0, 0.3],
+        scene: None,
+    }
+}
+
+fn error_of(mode: &str, extra: &[&str], c: ServedPolicyConfig) -> String {
+    let s = server(mode, extra);
+    let mut p = ServedPolicy::connect("srv", &s.url, c).expect("connect");
+    p.act(&observation()).expect_err("a failure").to_string()
+}
+
+#[test]
+fn a_served_policy_answers_with_end_effector_chunks() {
+    let s = server("good", &[]);
+    let mut p = ServedPolicy::connect("srv", &s.url, config()).expect("connect");
+    let meta = p.metadata().to_string();
+    assert!(
+        meta.contains("\"policy\"") && meta.contains("\"test\""),
+        "{meta}"
+    );
+    p.reset(0);
+    for _ in 0..2 {
+        let chunk = p.act(&observation()).expect("a chunk");
+        assert_eq!(chunk.len(), 4);
+        assert!((chunk[0][0] - 0.41).abs() < 1e-6 && (chunk[3][0] - 0.44).abs() < 1e-6);
+        assert!((chunk[0][3] - std::f64::consts::PI).abs() < 1e-6);
+        assert!((chunk[2][6] - 0.3).abs() < 1e-6, "{chunk:?}");
+    }
+    // Deltas are added to the observed pose; `execute` keeps the first rows.
+    let d = server("delta", &[]);
+    let mut c = config();
+    c.action.layout = ActionLayout::EeDelta;
+    c.action.execute = 2;
+    let mut p = ServedPolicy::connect("delta", &d.url, c).expect("connect");
+    let chunk = p.act(&observation()).expect("a chunk");
+    assert_eq!(chunk.len(), 2);
+    assert!((chunk[1][0] - 0.42).abs() < 1e-6, "{chunk:?}");
+}
+
+#[test]
+fn bad_answers_are_named_by_policy_step_and_field() {
+    let cases: [(&str, &[&str], &[&str]); 5] = [
+        ("wrong_shape", &[], &["shape [4, 6]", "expected [steps, 7]"]),
+        ("non_finite", &[], &["row 1, column 2 is NaN"]),
+        ("strings", &[], &["dtype <U1", "numeric"]),
+        (
+            "error",
+            &[],
+            &[
+                "the server reported an error",
+                "inference failed on purpose",
+            ],
+        ),
+        ("close", &[], &["closed the connection"]),
+    ];
+    for (mode, extra, wants) in cases {
+        let e = error_of(mode, extra, config());
+        assert!(e.starts_with("policy srv, step 0: "), "{mode}: {e}");
+        for w in wants {
+            assert!(e.contains(w), "{mode}: {w:?} not in {e}");
+        }
+    }
+    // A server that takes longer than the timeout.
+    let mut quick = config();
+    quick.timeout_s = 0.5;
+    let e = error_of("slow", &["--delay", "3"], quick);
+    assert!(e.contains("no answer within 0.5 s"), "{e}");
+    // An observation the server does not expect: its check names the key.
+    let mut small = config();
+    small.observation.image_size = [100, 120];
+    let e = error_of("good", &[], small);
+    assert!(e.contains("image uint8 (100, 120, 3)"), "{e}");
+}
+
+#[test]
+fn unreachable_servers_and_other_schemes_are_refused() {
+    // A port nothing listens on: bind one, then free it.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let e = ServedPolicy::connect("gone", &format!("ws://127.0.0.1:{port}"), config())
+        .expect_err("nothing listens")
+        .to_string();
+    assert!(
+        e.contains("policy gone: ") && e.contains("cannot connect"),
+        "{e}"
+    );
+    let e = ServedPolicy::connect("tls", "wss://example.org:443", config())
+        .expect_err("no TLS")
+        .to_string();
+    assert!(e.contains("wss:// (TLS) is not built in"), "{e}");
+    let e = ServedPolicy::connect("http", "http://127.0.0.1:1", config())
+        .expect_err("not a websocket URL")
+        .to_string();
+    assert!(e.contains("expected a ws://HOST:PORT URL"), "{e}");
+}
