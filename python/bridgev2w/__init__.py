@@ -43,7 +43,7 @@ from . import _core, metrics  # noqa: E402
 from ._core import Error  # noqa: E402
 
 __all__ = ["Robot", "Camera", "Residual", "render_masks", "WorldModel", "metrics", "lerobot", "synth",
-           "convert", "ConvertReport", "read_episode", "Episode", "calibrate", "Calibration", "Error",
+           "convert", "ConvertReport", "read_episode", "Episode", "calibrate", "Calibration", "evaluate_policies", "PolicyEvaluation", "Error",
            "builtin_robots"]
 
 
@@ -517,3 +517,4 @@ def builtin_robots() -> str:
 from . import lerobot, synth  # noqa: E402  (use the names above)
 from ._data import ConvertReport, Episode, convert, read_episode  # noqa: E402
 from ._calibrate import Calibration, calibrate  # noqa: E402
+from ._policy import PolicyEvaluation, evaluate_policies  # noqa: E402

@@ -560,6 +560,42 @@ def test_flange_actions_and_moving_cameras():
         assert "no_such_link" in str(e), e
 
 
+def test_python_functions_are_evaluated_as_policies():
+    import pytest
+
+    seen = {}
+
+    def stay(obs):
+        seen["obs"] = (obs["image"].shape, obs["image"].dtype, obs["joints"].shape, obs["ee"].shape)
+        return np.repeat(obs["ee"][None], 4, axis=0)
+
+    def broken(obs):
+        if obs["step"] == 1:
+            raise RuntimeError("policy bug on purpose")
+        return obs["ee"]
+
+    def wide(obs):
+        return np.zeros((3, 8))
+
+    r = bw.evaluate_policies({"stay": stay, "broken": broken, "wide": wide}, task="reach", trials=2,
+                             episode_frames=9, offsets_mm=[0, 50])
+    assert r.policies == ["scripted(offset 0 mm)", "scripted(offset 50 mm)", "stay"], r
+    assert seen["obs"] == ((64, 96, 3), np.uint8, (8,), (7,)), seen
+    assert r.real[0] == 1.0 and r.real[2] == 0.0 and r.predicted[2] == 0.0, r
+    assert "| stay |" in r.markdown
+    failed = dict(r.failed)
+    assert failed.keys() == {"broken", "wide"}, r.failed
+    assert "policy broken, step 1" in failed["broken"] and "policy bug on purpose" in failed["broken"]
+    assert "Traceback" in failed["broken"] and "in broken" in failed["broken"], failed["broken"]
+    assert "returned shape (3, 8)" in failed["wide"] and "step 0" in failed["wide"], failed["wide"]
+    with pytest.raises(ValueError, match=r"policies\['x'\]: expected a function"):
+        bw.evaluate_policies({"x": 3})
+    with pytest.raises(ValueError, match="task"):
+        bw.evaluate_policies({"stay": stay}, task="fly", offsets_mm=[0])
+    with pytest.raises(ValueError, match="two policies"):
+        bw.evaluate_policies({"stay": stay}, task="reach")
+
+
 def test_bad_input_is_a_python_exception_naming_it():
     robot, cam = bw.Robot("franka"), camera()
     wm = bw.WorldModel.from_pretrained("random:tiny")

@@ -6,43 +6,9 @@
 
 mod common;
 use common::{ok, run, s};
-use std::io::{BufRead, BufReader};
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
-
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-/// Starts the test server in `mode`; its URL.
-fn server(mode: &str) -> (Server, String) {
-    let python = repo().join(".venv-policy/bin/python");
-    assert!(
-        python.is_file(),
-        "{}: no policy test venv (./run test makes it: scripts/setup-policy-venv.sh)",
-        python.display()
-    );
-    let mut child = Command::new(python)
-        .arg(repo().join("crates/plan/tests/data/openpi_server.py"))
-        .args(["--mode", mode])
-        .stdout(Stdio::piped())
-        .spawn()
-        .expect("start the policy server");
-    let mut line = String::new();
-    let out = child.stdout.take().expect("stdout");
-    BufReader::new(out).read_line(&mut line).expect("port");
-    let port = line.trim().to_string();
-    (Server(child), format!("ws://127.0.0.1:{port}"))
-}
+#[path = "../../plan/tests/support/policy_server.rs"]
+mod policy_server;
+use policy_server::{free_port, server};
 
 #[test]
 fn a_served_policy_is_ranked_beside_scripted_ones_and_a_lost_one_is_named() {
@@ -53,11 +19,9 @@ fn a_served_policy_is_ranked_beside_scripted_ones_and_a_lost_one_is_named() {
         "[observation]\nee_pose = \"observation/ee_pose\"\nprompt = \"reach the goal\"\n",
     )
     .expect("write the config");
-    let (_good, url) = server("good");
-    let gone = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port();
+    let good = server("good", &[]);
+    let url = good.url.clone();
+    let gone = free_port();
     let o = run(&[
         "eval-policy-rollout",
         "--task",

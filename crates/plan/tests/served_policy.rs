@@ -7,54 +7,14 @@
 //! error, too slowly, or closes is an error naming the policy, the step and
 //! the field.
 
+#[path = "support/policy_server.rs"]
+mod policy_server;
+
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::policy::Policy;
 use bridgev2w_plan::served::{ActionLayout, ServedPolicy, ServedPolicyConfig};
 use bridgev2w_plan::Observation;
-use std::io::{BufRead, BufReader};
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-/// A running server, killed when dropped.
-struct Server {
-    child: Child,
-    url: String,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn server(mode: &str, extra: &[&str]) -> Server {
-    let python = repo().join(".venv-policy/bin/python");
-    assert!(
-        python.is_file(),
-        "{}: no policy test venv (./run test makes it: scripts/setup-policy-venv.sh)",
-        python.display()
-    );
-    let mut child = Command::new(python)
-        .arg(repo().join("crates/plan/tests/data/openpi_server.py"))
-        .args(["--mode", mode])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .spawn()
-        .expect("start the policy server");
-    let mut line = String::new();
-    let stdout = child.stdout.take().expect("stdout");
-    BufReader::new(stdout).read_line(&mut line).expect("port");
-    let port: u16 = line.trim().parse().expect("the server prints its port");
-    Server {
-        child,
-        url: format!("ws://127.0.0.1:{port}"),
-    }
-}
+use policy_server::{free_port, server};
 
 fn config() -> ServedPolicyConfig {
     let mut c = ServedPolicyConfig::default();
@@ -148,11 +108,7 @@ fn bad_answers_are_named_by_policy_step_and_field() {
 
 #[test]
 fn unreachable_servers_and_other_schemes_are_refused() {
-    // A port nothing listens on: bind one, then free it.
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port();
+    let port = free_port();
     let e = ServedPolicy::connect("gone", &format!("ws://127.0.0.1:{port}"), config())
         .expect_err("nothing listens")
         .to_string();

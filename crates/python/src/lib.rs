@@ -38,6 +38,7 @@ use std::path::{Path, PathBuf};
 mod calibrate;
 mod camera;
 mod data;
+mod policy;
 
 use camera::{camera_err, Camera};
 
@@ -848,5 +849,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(data::convert, m)?)?;
     m.add_function(wrap_pyfunction!(data::read_episode, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate::calibrate, m)?)?;
+    m.add_function(wrap_pyfunction!(policy::evaluate_policies, m)?)?;
     Ok(())
 }

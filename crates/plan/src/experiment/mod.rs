@@ -29,7 +29,7 @@ pub use fidelity_study::{fidelity_study, FidelityOptions, FidelityStudy};
 pub use models::{LoadedModel, ModelOptions};
 pub use planning::{plan_summary, PlanOptions, PlanSummary};
 pub use report::{plan_report, PlanReportOptions, ReportModel};
-pub use rollout::{rollout_report, RolloutOptions};
+pub use rollout::{rollout_report, rollout_report_with, RolloutOptions};
 
 pub use bridgev2w_io::seed::trial_seed;
 

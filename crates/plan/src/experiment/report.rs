@@ -311,7 +311,7 @@ fn policy_evaluation(
             ..RolloutOptions::new(Task::PickPlace)
         };
         let loaded = LoadedModel::load(options)?;
-        let r = rollout_with(&loaded, &ro, progress)?;
+        let r = rollout_with(&loaded, &ro, Vec::new(), progress)?;
         evals.push((model.label(), r.clone()));
         md += &format!(
             "\n#### Model: {}{}\n\n{}",

@@ -102,6 +102,16 @@ impl std::str::FromStr for ServedSpec {
     }
 }
 
+/// Where a policy of the evaluation comes from.
+enum Source<'o, 'p> {
+    /// The scripted policy of `offsets_mm[i]`.
+    Scripted(usize),
+    /// A served policy.
+    Served(&'o ServedSpec),
+    /// The caller's.
+    External(Box<dyn Policy + 'p>),
+}
+
 /// A scripted policy whose expert follows the trial (instance `i` is trial `i`).
 struct PerTrialExpert {
     inner: ScriptedPolicy,
@@ -144,6 +154,17 @@ pub fn rollout_report(
     o: &RolloutOptions,
     progress: &mut dyn FnMut(&str),
 ) -> Result<PolicyEvalReport> {
+    rollout_report_with(o, Vec::new(), progress)
+}
+
+/// [`rollout_report`] with policies of the caller's after the options'
+/// (e.g. the Python package's callables); one that fails with
+/// [`PlanError::Policy`] is reported like a served one.
+pub fn rollout_report_with(
+    o: &RolloutOptions,
+    external: Vec<Box<dyn Policy + '_>>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<PolicyEvalReport> {
     if o.trials == 0 {
         return Err(PlanError::input("--trials", "must be at least 1"));
     }
@@ -153,7 +174,7 @@ pub fn rollout_report(
             format!("{bad} is not a non-negative number"),
         ));
     }
-    if o.offsets_mm.len() + o.served.len() < 2 {
+    if o.offsets_mm.len() + o.served.len() + external.len() < 2 {
         return Err(PlanError::input(
             "--offsets-mm",
             "at least two policies (scripted offsets and served policies) are needed for a correlation",
@@ -168,13 +189,14 @@ pub fn rollout_report(
     let loaded = LoadedModel::load(&o.model)?;
     // One clip per model call.
     super::sizes::check_candidates_memory(&loaded, "a rollout", 1)?;
-    rollout_with(&loaded, o, progress)
+    rollout_with(&loaded, o, external, progress)
 }
 
 /// [`rollout_report`] with a model already loaded.
-pub(crate) fn rollout_with(
+pub(crate) fn rollout_with<'p>(
     loaded: &LoadedModel,
     o: &RolloutOptions,
+    external: Vec<Box<dyn Policy + 'p>>,
     progress: &mut dyn FnMut(&str),
 ) -> Result<PolicyEvalReport> {
     let world = loaded.world(o.episode_frames, o.seed)?;
@@ -193,21 +215,13 @@ pub(crate) fn rollout_with(
     let mut names = Vec::new();
     let mut tallies = Vec::new();
     let mut failed = Vec::new();
-    let scripted = o.offsets_mm.iter().enumerate().map(|(pi, off)| {
-        let inner = ScriptedPolicy::new(
-            Vec::new(),
-            o.chunk,
-            off / 1e3,
-            o.jitter_mm / 1e3,
-            o.seed ^ (pi as u64 + 1).wrapping_mul(0xA076_1D64_78BD_642F),
-        );
-        (inner.name(), None)
-    });
-    let served = o.served.iter().map(|s| (s.name.clone(), Some(s)));
-    let sources: Vec<(String, Option<&ServedSpec>)> = scripted.chain(served).collect();
-    for (pi, (name, spec)) in sources.into_iter().enumerate() {
-        let mut policy: Box<dyn Policy> = match spec {
-            None => Box::new(PerTrialExpert {
+    // The scripted policies, the served ones, the caller's.
+    let mut sources: Vec<Source<'_, 'p>> = (0..o.offsets_mm.len()).map(Source::Scripted).collect();
+    sources.extend(o.served.iter().map(Source::Served));
+    sources.extend(external.into_iter().map(Source::External));
+    for source in sources {
+        let mut policy: Box<dyn Policy + 'p> = match source {
+            Source::Scripted(pi) => Box::new(PerTrialExpert {
                 inner: ScriptedPolicy::new(
                     Vec::new(),
                     o.chunk,
@@ -217,15 +231,19 @@ pub(crate) fn rollout_with(
                 ),
                 experts: experts.clone(),
             }),
-            Some(s) => match ServedPolicy::connect(&s.name, &s.url, served_config.clone()) {
-                Ok(p) => Box::new(p),
-                Err(e) => {
-                    progress(&format!("{name}: not evaluated: {e}"));
-                    failed.push((name, e.to_string()));
-                    continue;
+            Source::Served(s) => {
+                match ServedPolicy::connect(&s.name, &s.url, served_config.clone()) {
+                    Ok(p) => Box::new(p),
+                    Err(e) => {
+                        progress(&format!("{}: not evaluated: {e}", s.name));
+                        failed.push((s.name.clone(), e.to_string()));
+                        continue;
+                    }
                 }
-            },
+            }
+            Source::External(p) => p,
         };
+        let name = policy.name();
         let mut tally = PolicyTally::default();
         let mut run = || -> Result<()> {
             // One instance at a time so each gets its own model (camera, scene).
