@@ -138,27 +138,8 @@ EOF
 }
 finetune_config() { # finetune_config OUT MASK_ACTION BACKBONE
     local coding=""
-    [[ $2 == true ]] && coding='mask_coding = "links"'$'\n'
-    cat <<EOF
-[model]
-backbone = "$3"
-${coding}lora_rank = 64
-lora_alpha = 64
-controlnet_layers = 2
-action_hidden = 128
-image_conditioning = "every_frame"
-$(data_section)
-[train]
-out = "$1"
-batch_size = 4
-max_steps = $FT_STEPS
-lr = 5e-4
-warmup_steps = 100
-e_switch = 5
-checkpoint_every = 250
-[ablation]
-mask_action = $2
-EOF
+    [[ $2 == true ]] && coding='mask_coding = "links"'
+    finetune_toml "$3" "$coding" every_frame "$1" "$2"
 }
 finetune_config "$OUT/bridgev2w" true "$PRIOR" >"$OUT/configs/bridgev2w.toml"
 finetune_config "$OUT/ablation-action-mlp" false "$PRIOR" >"$OUT/configs/ablation-action-mlp.toml"

@@ -197,27 +197,8 @@ EOF
 
 finetune_config() { # finetune_config OUT MASK_ACTION [BACKBONE]: BACKBONE defaults to the prior's
     local coding="" backbone=${3:-$OUT/prior/final/backbone}
-    [[ $2 == true && $MASK_CODING != binary ]] && coding="mask_coding = \"$MASK_CODING\""$'\n'
-    cat <<EOF
-[model]
-backbone = "$backbone"
-${coding}lora_rank = 64
-lora_alpha = 64
-controlnet_layers = 2
-action_hidden = 128
-image_conditioning = "$IMAGE_CONDITIONING"
-$(data_section)
-[train]
-out = "$1"
-batch_size = 4
-max_steps = $FT_STEPS
-lr = 5e-4
-warmup_steps = 100
-e_switch = 5
-checkpoint_every = 250
-[ablation]
-mask_action = $2
-EOF
+    [[ $2 == true && $MASK_CODING != binary ]] && coding="mask_coding = \"$MASK_CODING\""
+    finetune_toml "$backbone" "$coding" "$IMAGE_CONDITIONING" "$1" "$2"
 }
 finetune_config "$OUT/bridgev2w" true >"$OUT/configs/bridgev2w.toml"
 # The planning model: the fine-tuned BridgeV2W continued on 3-frame clips

@@ -78,3 +78,28 @@ train() { # train NAME UPSTREAM...: trains OUT/configs/NAME.toml unless OUT/NAME
     fi
     stage "$name" "$BIN" train "$OUT/configs/$name.toml" --quiet "${resume[@]}"
 }
+
+finetune_toml() { # BACKBONE CODING_LINE IMAGE_CONDITIONING OUT MASK_ACTION: a fine-tuning run's config (the script's data_section and FT_STEPS)
+    local coding=""
+    [[ -n $2 ]] && coding="$2"$'\n'
+    cat <<EOF
+[model]
+backbone = "$1"
+${coding}lora_rank = 64
+lora_alpha = 64
+controlnet_layers = 2
+action_hidden = 128
+image_conditioning = "$3"
+$(data_section)
+[train]
+out = "$4"
+batch_size = 4
+max_steps = $FT_STEPS
+lr = 5e-4
+warmup_steps = 100
+e_switch = 5
+checkpoint_every = 250
+[ablation]
+mask_action = $5
+EOF
+}
