@@ -38,8 +38,20 @@ fn a_served_policy_is_ranked_beside_scripted_ones_and_a_lost_one_is_named() {
         &format!("gone=ws://127.0.0.1:{gone}"),
         "--policy-config",
         s(&config),
+        "--json",
+        s(&dir.path().join("report.json")),
     ]);
     ok(&o);
+    let json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("report.json")).expect("report.json"),
+    )
+    .expect("JSON");
+    assert_eq!(json["policies"].as_array().map(Vec::len), Some(3), "{json}");
+    assert_eq!(json["policies"][2]["policy"], "served", "{json}");
+    assert_eq!(json["not_evaluated"][0]["policy"], "gone", "{json}");
+    assert!(json["not_evaluated"][0]["error"]
+        .as_str()
+        .is_some_and(|e| e.contains("cannot connect")));
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(out.contains("| served |"), "{out}");
     assert!(

@@ -4,6 +4,8 @@
 use super::{parse_split, parse_task, progress, ModelArgs};
 use anyhow::Result;
 use bridgev2w_data::synth::{Split, Task};
+use bridgev2w_io::json::write_json_atomic;
+use bridgev2w_io::output::check_new_file;
 use bridgev2w_plan::experiment::rollout::{parse_offsets_mm, ServedSpec};
 use bridgev2w_plan::experiment::{rollout_report, RolloutOptions};
 use std::path::PathBuf;
@@ -53,14 +55,24 @@ pub struct EvalRolloutArgs {
     /// Seed of the world and the policies.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Also write the report as JSON (rates, agreement, the policies not
+    /// evaluated and why).
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
+    /// Replace an existing --json file.
+    #[arg(long, requires = "json")]
+    pub overwrite: bool,
 }
 
-/// `bridgev2w eval-policy-rollout`.
 fn parse_served(s: &str) -> Result<ServedSpec, String> {
     s.parse()
 }
 
+/// `bridgev2w eval-policy-rollout`.
 pub fn run(a: &EvalRolloutArgs) -> Result<()> {
+    if let Some(path) = &a.json {
+        check_new_file(path, a.overwrite).map_err(|e| anyhow::anyhow!("--json {e}"))?;
+    }
     let o = RolloutOptions {
         task: a.task,
         trials: a.trials,
@@ -81,5 +93,8 @@ pub fn run(a: &EvalRolloutArgs) -> Result<()> {
         seed: a.seed,
     };
     let r = rollout_report(&o, &mut progress)?;
+    if let Some(path) = &a.json {
+        write_json_atomic(path, &r.to_json())?;
+    }
     crate::print_stdout(&r.markdown())
 }

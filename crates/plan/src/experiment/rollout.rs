@@ -299,6 +299,35 @@ pub(crate) fn rollout_with<'p>(
 }
 
 impl PolicyEvalReport {
+    /// The report as JSON: per policy its rates (and goal progress), the
+    /// agreement metrics, and the policies not evaluated with their errors.
+    pub fn to_json(&self) -> serde_json::Value {
+        let progress = self.progress.as_ref();
+        let rows: Vec<serde_json::Value> = (0..self.policies.len())
+            .map(|i| {
+                serde_json::json!({
+                    "policy": self.policies[i],
+                    "world_model_success": self.predicted[i],
+                    "synthetic_world_success": self.real[i],
+                    "world_model_goal_progress": progress.map(|p| p.mean[i]),
+                })
+            })
+            .collect();
+        let failed: Vec<serde_json::Value> = self
+            .failed
+            .iter()
+            .map(|(policy, error)| serde_json::json!({"policy": policy, "error": error}))
+            .collect();
+        serde_json::json!({
+            "policies": rows,
+            "mmrv": self.mmrv,
+            "pearson": self.pearson,
+            "progress_mmrv": progress.map(|p| p.mmrv),
+            "progress_pearson": progress.map(|p| p.pearson),
+            "not_evaluated": failed,
+        })
+    }
+
     /// The report as a markdown table with its agreement metrics.
     pub fn markdown(&self) -> String {
         let progress = self.progress.as_ref();
