@@ -12,7 +12,7 @@ mod policy_server;
 
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::policy::Policy;
-use bridgev2w_plan::served::{ActionLayout, ServedPolicy, ServedPolicyConfig};
+use bridgev2w_plan::served::{ActionLayout, ServedPolicy, ServedPolicyConfig, TcpKinematics};
 use bridgev2w_plan::Observation;
 use policy_server::{free_port, server};
 
@@ -69,6 +69,58 @@ fn a_served_policy_answers_with_end_effector_chunks() {
     let chunk = p.act(&observation()).expect("a chunk");
     assert_eq!(chunk.len(), 2);
     assert!((chunk[1][0] - 0.42).abs() < 1e-6, "{chunk:?}");
+}
+
+#[test]
+fn joint_chunks_go_through_forward_kinematics() {
+    let e = bridgev2w_embodiment::embodiment::Embodiment::builtin("franka").expect("franka");
+    let k = TcpKinematics {
+        robot: std::sync::Arc::new(e.robot.clone()),
+        link: e.end_effectors[0].link,
+    };
+    let mut obs = observation();
+    obs.joints = e.home.clone();
+    let home = k.pose(&obs.joints);
+    obs.ee[..6].copy_from_slice(&home);
+    // Joint positions: the observed joints give the observed pose back.
+    let s = server("joints", &[]);
+    let mut c = config();
+    c.action.layout = ActionLayout::JointPosition;
+    let mut p = ServedPolicy::connect("joints", &s.url, c.clone()).expect("connect");
+    let e1 = p.act(&obs).expect_err("no kinematics").to_string();
+    assert!(e1.contains("forward kinematics"), "{e1}");
+    p.set_kinematics(Some(k.clone()));
+    let chunk = p.act(&obs).expect("a chunk");
+    assert_eq!(chunk.len(), 4);
+    for a in &chunk {
+        for (x, y) in a.iter().zip(&obs.ee) {
+            assert!((x - y).abs() < 1e-9, "{a:?} vs {:?}", obs.ee);
+        }
+    }
+    // Joint velocities: 0.1 rad/s on joint 1 at 10 rows per second, chained.
+    let v = server("joint_velocity", &[]);
+    c.action.layout = ActionLayout::JointVelocity;
+    c.action.control_hz = 10.0;
+    let mut p = ServedPolicy::connect("vel", &v.url, c.clone()).expect("connect");
+    p.set_kinematics(Some(k.clone()));
+    let chunk = p.act(&obs).expect("a chunk");
+    for (i, a) in chunk.iter().enumerate() {
+        let mut q = obs.joints.clone();
+        q[0] += 0.01 * (i + 1) as f64;
+        let want = k.pose(&q);
+        for (x, y) in a.iter().zip(&want) {
+            assert!((x - y).abs() < 1e-9, "row {i}: {a:?} vs {want:?}");
+        }
+    }
+    // A 7-wide chunk is not [steps, 8] for 7 arm joints and the gripper.
+    let g = server("good", &[]);
+    let mut p = ServedPolicy::connect("wide", &g.url, c).expect("connect");
+    p.set_kinematics(Some(k));
+    let e2 = p.act(&obs).expect_err("wrong width").to_string();
+    assert!(
+        e2.contains("expected [steps, 8] (7 arm joints and the gripper per step)"),
+        "{e2}"
+    );
 }
 
 #[test]

@@ -11,7 +11,7 @@ use crate::policy::{
     evaluate_trial, report_from_tallies, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport,
     PolicyTally, ScriptedPolicy, SuccessJudge,
 };
-use crate::served::{ServedPolicy, ServedPolicyConfig};
+use crate::served::{ServedPolicy, ServedPolicyConfig, TcpKinematics};
 use crate::synthetic::TaskInstance;
 use crate::{EeAction, Observation};
 use crate::{PlanError, Result};
@@ -131,6 +131,27 @@ impl Policy for PerTrialExpert {
     }
 }
 
+/// A served policy whose joint-space chunks go through the forward
+/// kinematics of the trial's acting arm.
+struct ServedInWorld {
+    inner: ServedPolicy,
+    kinematics: Vec<TcpKinematics>,
+}
+
+impl Policy for ServedInWorld {
+    fn name(&self) -> String {
+        self.inner.name()
+    }
+    fn reset(&mut self, trial: usize) {
+        self.inner
+            .set_kinematics(self.kinematics.get(trial).cloned());
+        self.inner.reset(trial);
+    }
+    fn act(&mut self, obs: &Observation) -> Result<Vec<EeAction>> {
+        self.inner.act(obs)
+    }
+}
+
 /// Parses comma-separated non-negative offsets (mm).
 pub fn parse_offsets_mm(text: &str) -> Result<Vec<f64>> {
     text.split(',')
@@ -212,6 +233,14 @@ pub(crate) fn rollout_with<'p>(
     };
     let horizon = o.episode_frames - 1;
     let experts: Vec<Vec<EeAction>> = instances.iter().map(TaskInstance::expert_actions).collect();
+    let robot = std::sync::Arc::new(world.embodiment.robot.clone());
+    let kinematics: Vec<TcpKinematics> = instances
+        .iter()
+        .map(|inst| TcpKinematics {
+            robot: robot.clone(),
+            link: world.embodiment.end_effectors[inst.expert.meta.arm].link,
+        })
+        .collect();
     let mut names = Vec::new();
     let mut tallies = Vec::new();
     let mut failed = Vec::new();
@@ -233,7 +262,10 @@ pub(crate) fn rollout_with<'p>(
             }),
             Source::Served(s) => {
                 match ServedPolicy::connect(&s.name, &s.url, served_config.clone()) {
-                    Ok(p) => Box::new(p),
+                    Ok(p) => Box::new(ServedInWorld {
+                        inner: p,
+                        kinematics: kinematics.clone(),
+                    }),
                     Err(e) => {
                         progress(&format!("{}: not evaluated: {e}", s.name));
                         failed.push((s.name.clone(), e.to_string()));

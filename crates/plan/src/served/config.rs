@@ -22,8 +22,10 @@
 //!
 //! [action]
 //! key = "actions"
-//! layout = "ee_absolute"        # [x, y, z, roll, pitch, yaw, gripper] per step; "ee_delta": added to the current pose
+//! layout = "ee_absolute"        # [x, y, z, roll, pitch, yaw, gripper] per step; "ee_delta": added to the current pose;
+//!                               # "joint_position" / "joint_velocity": [arm joints.., gripper] through forward kinematics
 //! execute = 0                   # actions of each chunk executed (0: all)
+//! control_hz = 15.0             # rows per second of joint velocities
 //! ```
 
 use super::msgpack_numpy::KeyStyle;
@@ -55,6 +57,14 @@ pub enum ActionLayout {
     /// before the chunk (each row relative to that pose, not chained); the
     /// gripper absolute.
     EeDelta,
+    /// `[q_1 .. q_n, gripper]` with `n = observation.arm_joints`: the arm's
+    /// joint positions (radians), through the robot's forward kinematics.
+    JointPosition,
+    /// `[dq_1/dt .. dq_n/dt, gripper]`: joint velocities (radians per
+    /// second), integrated over `action.control_hz` from the joints before
+    /// the chunk, row after row (openpi's DROID policies), then forward
+    /// kinematics.
+    JointVelocity,
 }
 
 impl FromStr for ActionLayout {
@@ -63,7 +73,11 @@ impl FromStr for ActionLayout {
         match s {
             "ee_absolute" => Ok(Self::EeAbsolute),
             "ee_delta" => Ok(Self::EeDelta),
-            _ => Err(format!("{s:?}: expected \"ee_absolute\" or \"ee_delta\"")),
+            "joint_position" => Ok(Self::JointPosition),
+            "joint_velocity" => Ok(Self::JointVelocity),
+            _ => Err(format!(
+                "{s:?}: expected \"ee_absolute\", \"ee_delta\", \"joint_position\" or \"joint_velocity\""
+            )),
         }
     }
 }
@@ -121,6 +135,8 @@ pub struct ActionMap {
     pub layout: ActionLayout,
     /// Actions of each chunk executed before the policy is asked again (0: all).
     pub execute: usize,
+    /// Rows per second of a `joint_velocity` chunk (DROID: 15).
+    pub control_hz: f64,
 }
 
 impl Default for ActionMap {
@@ -129,6 +145,7 @@ impl Default for ActionMap {
             key: "actions".into(),
             layout: ActionLayout::EeAbsolute,
             execute: 0,
+            control_hz: 15.0,
         }
     }
 }
@@ -183,6 +200,12 @@ impl ServedPolicyConfig {
         }
         if self.observation.image.is_empty() {
             return Err("observation.image: expected the image's key".into());
+        }
+        if !(self.action.control_hz.is_finite() && self.action.control_hz > 0.0) {
+            return Err(format!(
+                "action.control_hz = {}: expected rows per second > 0",
+                self.action.control_hz
+            ));
         }
         if self.action.key.is_empty() {
             return Err("action.key: expected the action chunk's key".into());

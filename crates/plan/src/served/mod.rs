@@ -21,11 +21,14 @@ use crate::error::{PlanError, Result};
 use crate::policy::Policy;
 use crate::{EeAction, Observation};
 use bridgev2w_data::raw::convert::resize_rgb;
+use bridgev2w_embodiment::kinematics::xyz_rpy_from_pose;
+use bridgev2w_embodiment::robot::Robot;
 use bridgev2w_io::frame::u8_from_unit;
 pub use config::{ActionLayout, ImageLayout, ServedPolicyConfig};
 use msgpack_numpy::{as_array, insert, kind, lookup, NdArray, Packed};
 use rmpv::Value;
 use std::net::{TcpStream, ToSocketAddrs};
+use std::sync::Arc;
 use std::time::Duration;
 use tungstenite::{Message, WebSocket};
 
@@ -37,6 +40,7 @@ pub struct ServedPolicy {
     socket: WebSocket<TcpStream>,
     metadata: Value,
     step: usize,
+    kinematics: Option<TcpKinematics>,
 }
 
 impl std::fmt::Debug for ServedPolicy {
@@ -110,6 +114,7 @@ impl ServedPolicy {
             socket,
             metadata,
             step: 0,
+            kinematics: None,
         })
     }
 
@@ -168,11 +173,18 @@ impl ServedPolicy {
         Packed::Map(map)
     }
 
-    /// The chunk in a response, as end-effector actions from `current`.
+    /// Sets the forward kinematics that `joint_position` and
+    /// `joint_velocity` chunks go through.
+    pub fn set_kinematics(&mut self, kinematics: Option<TcpKinematics>) {
+        self.kinematics = kinematics;
+    }
+
+    /// The chunk in a response, as end-effector actions from the
+    /// observation `obs` (its pose for deltas, its joints for joint actions).
     pub fn chunk(
         &self,
         response: &Value,
-        current: &EeAction,
+        obs: &Observation,
     ) -> std::result::Result<Vec<EeAction>, String> {
         let a = &self.config.action;
         if response.as_map().is_none() {
@@ -187,12 +199,23 @@ impl ServedPolicy {
         })?;
         let arr = as_array(v).map_err(|e| format!("{:?}: {e}", a.key))?;
         let values = arr.to_f64().map_err(|e| format!("{:?}: {e}", a.key))?;
+        let arm = self.config.observation.arm_joints.min(obs.joints.len());
+        let (width, what) = match a.layout {
+            ActionLayout::EeAbsolute | ActionLayout::EeDelta => (
+                7,
+                "[x, y, z, roll, pitch, yaw, gripper] per step".to_string(),
+            ),
+            ActionLayout::JointPosition | ActionLayout::JointVelocity => (
+                arm + 1,
+                format!("{arm} arm joints and the gripper per step"),
+            ),
+        };
         let rows = match arr.shape[..] {
-            [n, 7] => n,
-            [7] => 1,
+            [n, w] if w == width => n,
+            [w] if w == width => 1,
             _ => {
                 return Err(format!(
-                    "{:?}: shape {:?}, expected [steps, 7] ([x, y, z, roll, pitch, yaw, gripper] per step)",
+                    "{:?}: shape {:?}, expected [steps, {width}] ({what})",
                     a.key, arr.shape
                 ))
             }
@@ -201,8 +224,8 @@ impl ServedPolicy {
             return Err(format!(
                 "{:?}: row {}, column {} is {}, expected finite numbers",
                 a.key,
-                i / 7,
-                i % 7,
+                i / width,
+                i % width,
                 values[i]
             ));
         }
@@ -214,20 +237,59 @@ impl ServedPolicy {
         } else {
             a.execute.min(rows)
         };
-        Ok(values
-            .chunks_exact(7)
-            .take(take)
-            .map(|r| {
-                let mut act: EeAction = [0.0; 7];
-                act.copy_from_slice(r);
-                if a.layout == ActionLayout::EeDelta {
-                    for (x, c) in act.iter_mut().zip(current).take(6) {
-                        *x += c;
+        let rows = values.chunks_exact(width).take(take);
+        match a.layout {
+            ActionLayout::EeAbsolute | ActionLayout::EeDelta => Ok(rows
+                .map(|r| {
+                    let mut act: EeAction = [0.0; 7];
+                    act.copy_from_slice(r);
+                    if a.layout == ActionLayout::EeDelta {
+                        for (x, c) in act.iter_mut().zip(&obs.ee).take(6) {
+                            *x += c;
+                        }
                     }
-                }
-                act
-            })
-            .collect())
+                    act
+                })
+                .collect()),
+            ActionLayout::JointPosition | ActionLayout::JointVelocity => {
+                let k = self.kinematics.as_ref().ok_or(
+                    "joint actions need the robot's forward kinematics (ServedPolicy::set_kinematics)",
+                )?;
+                let mut q = obs.joints.clone();
+                let dt = 1.0 / a.control_hz;
+                Ok(rows
+                    .map(|r| {
+                        for (qi, ri) in q.iter_mut().zip(&r[..arm]) {
+                            if a.layout == ActionLayout::JointPosition {
+                                *qi = *ri;
+                            } else {
+                                *qi += ri * dt;
+                            }
+                        }
+                        let p = k.pose(&q);
+                        [p[0], p[1], p[2], p[3], p[4], p[5], r[arm]]
+                    })
+                    .collect())
+            }
+        }
+    }
+}
+
+/// The end-effector pose of a joint vector: a robot and the link whose
+/// pose actions give (e.g. the TCP), for joint-space chunks.
+#[derive(Debug, Clone)]
+pub struct TcpKinematics {
+    /// The robot.
+    pub robot: Arc<Robot>,
+    /// The link (index into the robot's links).
+    pub link: usize,
+}
+
+impl TcpKinematics {
+    /// `[x, y, z, roll, pitch, yaw]` of the link at joints `q` (the robot's
+    /// actuated order), in the robot's base frame.
+    pub fn pose(&self, q: &[f64]) -> [f64; 6] {
+        xyz_rpy_from_pose(&self.robot.link_pose(self.link, q))
     }
 }
 
@@ -317,7 +379,7 @@ impl Policy for ServedPolicy {
             .send(Message::Binary(bytes.into()))
             .map_err(|e| fail(format!("sending the observation: {e}")))?;
         let response = read_message(&mut self.socket, self.config.timeout_s).map_err(&fail)?;
-        self.chunk(&response, &obs.ee).map_err(fail)
+        self.chunk(&response, obs).map_err(fail)
     }
 }
 

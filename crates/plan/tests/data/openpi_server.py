@@ -9,6 +9,8 @@ message when inference fails. It prints the port it listens on, then serves.
 Modes (--mode) make the failures the client must name:
   good         absolute end-effector actions: the observed pose moved +1 cm in x per step
   delta        the same as deltas from the observed pose
+  joints       the observed arm joints and gripper, [steps, 8] (joint positions)
+  joint_velocity  0.1 rad/s on the first joint, [steps, 8] (joint velocities)
   wrong_shape  "actions" of shape [steps, 6]
   non_finite   a NaN in row 1, column 2
   strings      "actions" holding a string array's bytes as dtype <U4
@@ -50,12 +52,20 @@ def check(obs):
     pose = obs["observation/ee_pose"]
     assert pose.shape == (6,), f"ee_pose {pose.shape}"
     assert isinstance(obs["prompt"], str), "prompt: expected a string"
-    return pose, float(g[0])
+    return pose, float(g[0]), q
 
 
 def infer(obs):
-    pose, grip = check(obs)
+    pose, grip, q = check(obs)
     n = args.steps
+    if args.mode in ("joints", "joint_velocity"):
+        rows = np.zeros((n, 8))
+        if args.mode == "joints":
+            rows[:, :7] = q
+        else:
+            rows[:, 0] = 0.1
+        rows[:, 7] = grip
+        return {"actions": rows}
     rows = np.zeros((n, 7))
     for i in range(n):
         rows[i, :6] = pose
