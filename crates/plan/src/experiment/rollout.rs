@@ -262,10 +262,20 @@ pub(crate) fn rollout_with<'p>(
             }),
             Source::Served(s) => {
                 match ServedPolicy::connect(&s.name, &s.url, served_config.clone()) {
-                    Ok(p) => Box::new(ServedInWorld {
-                        inner: p,
-                        kinematics: kinematics.clone(),
-                    }),
+                    Ok(p) => {
+                        let mut meta = p.metadata().to_string();
+                        if meta.chars().count() > 200 {
+                            meta = meta.chars().take(200).collect::<String>() + "...";
+                        }
+                        progress(&format!(
+                            "{}: connected to {} (server metadata {meta})",
+                            s.name, s.url
+                        ));
+                        Box::new(ServedInWorld {
+                            inner: p,
+                            kinematics: kinematics.clone(),
+                        })
+                    }
                     Err(e) => {
                         progress(&format!("{}: not evaluated: {e}", s.name));
                         failed.push((s.name.clone(), e.to_string()));
