@@ -54,6 +54,12 @@ fn a_served_policy_is_ranked_beside_scripted_ones_and_a_lost_one_is_named() {
         .is_some_and(|e| e.contains("cannot connect")));
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(out.contains("| served |"), "{out}");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("served: connected to ws://127.0.0.1:")
+            && err.contains("\"policy\": \"test\""),
+        "{err}"
+    );
     assert!(
         out.contains("| scripted(offset 0 mm) | ") && out.contains("| scripted(offset 50 mm) | "),
         "{out}"
