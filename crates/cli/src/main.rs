@@ -74,6 +74,8 @@ enum Command {
     PlanFidelity(plan_cmd::fidelity::PlanFidelityArgs),
     /// Policy evaluation by autoregressive world-model rollouts vs synthetic-world success.
     EvalPolicyRollout(plan_cmd::rollout::EvalRolloutArgs),
+    /// Drift of autoregressive rollouts from the synthetic world over many chunks (PSNR/SSIM by chunk).
+    EvalDrift(plan_cmd::drift::DriftArgs),
     /// Run planning on all tasks and the policy evaluation; write docs/results.md.
     PlanReport(plan_cmd::report::PlanReportArgs),
 }
@@ -130,6 +132,7 @@ fn main() -> Result<()> {
         Command::Plan(a) => plan_cmd::plan::run(&a),
         Command::PlanFidelity(a) => plan_cmd::fidelity::run(&a),
         Command::EvalPolicyRollout(a) => plan_cmd::rollout::run(&a),
+        Command::EvalDrift(a) => plan_cmd::drift::run(&a),
         Command::PlanReport(a) => plan_cmd::report::run(&a),
     }
 }

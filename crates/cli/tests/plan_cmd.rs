@@ -339,3 +339,41 @@ fn plan_fidelity_of_the_perfect_model() {
         "{e}"
     );
 }
+
+#[test]
+fn eval_drift_with_the_perfect_model_is_exact_and_bad_sizes_are_refused() {
+    // The perfect model is the world: no drift at any chunk, while copying
+    // the first frame falls behind.
+    let o = run(&[
+        "eval-drift",
+        "--task",
+        "pick_place",
+        "--trials",
+        "2",
+        "--chunks",
+        "5",
+        "--model",
+        "perfect",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    let rows: Vec<&str> = out
+        .lines()
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| chunk"))
+        .collect();
+    assert_eq!(rows.len(), 5, "{out}");
+    for (k, row) in rows.iter().enumerate() {
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        assert_eq!(cells[1], (k + 1).to_string(), "{row}");
+        assert_eq!(cells[2], ((k + 1) * 8).to_string(), "{row}");
+        assert_eq!((cells[3], cells[4]), ("100.00", "1.000"), "{row}");
+        let copy: f64 = cells[5].parse().expect("copying's PSNR");
+        assert!(copy < 40.0, "{row}");
+    }
+    let o = run(&["eval-drift", "--model", "perfect", "--chunks", "0"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--chunks: 0: expected 1..=50 chunks"),
+        "{}",
+        stderr(&o)
+    );
+}

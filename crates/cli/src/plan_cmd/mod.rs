@@ -2,6 +2,7 @@
 //! `plan-report`): their arguments, turned into `bridgev2w_plan::experiment`
 //! options, one library call each.
 
+pub mod drift;
 pub mod fidelity;
 pub mod plan;
 pub mod report;

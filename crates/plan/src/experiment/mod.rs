@@ -7,6 +7,8 @@
 //!   random-action baseline on the same instances ([`plan_summary`]);
 //! * [`rollout`]: policy evaluation by world-model rollouts
 //!   ([`rollout_report`]);
+//! * [`drift`]: how far autoregressive rollouts drift from the world over
+//!   many chunks ([`drift_study`]);
 //! * [`fidelity_study`]: whether a model orders candidate actions as the
 //!   world does ([`fidelity_study()`]);
 //! * [`report`]: all of them as the `planning` sections of `docs/results.md`
@@ -17,6 +19,7 @@
 //! The world model of each is named by [`ModelOptions`] and loaded once
 //! ([`LoadedModel`]).
 
+pub mod drift;
 pub mod fidelity_study;
 mod models;
 pub mod planning;
@@ -25,6 +28,7 @@ pub mod report_figures;
 pub mod rollout;
 pub mod sizes;
 
+pub use drift::{drift_study, DriftOptions, DriftReport};
 pub use fidelity_study::{fidelity_study, FidelityOptions, FidelityStudy};
 pub use models::{LoadedModel, ModelOptions};
 pub use planning::{plan_summary, PlanOptions, PlanSummary};

@@ -151,6 +151,16 @@ pub enum LoadedModel {
 }
 
 impl LoadedModel {
+    /// Frames per predicted clip (a chunk of actions is one fewer).
+    pub fn clip_frames(&self) -> usize {
+        match self {
+            Self::Perfect { clip_frames, .. } => *clip_frames,
+            Self::Diffusion { model, .. } => {
+                bridgev2w_world_model::pipeline::WorldModel::clip_frames(model.as_ref())
+            }
+        }
+    }
+
     /// Loads the model `o` names.
     pub fn load(o: &ModelOptions) -> Result<Self> {
         o.check_inputs()?;
