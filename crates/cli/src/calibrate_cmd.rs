@@ -4,13 +4,14 @@
 
 use crate::masks_cmd::RobotArgs;
 use anyhow::Result;
-use bridgev2w_data::calibrate::droid_study::{droid_study, DroidStudyOptions, DROID_FY_OVER_FX};
+use bridgev2w_data::calibrate::droid_study::{
+    droid_study_to_folder, DroidStudyOptions, DROID_FY_OVER_FX,
+};
 use bridgev2w_data::calibrate::marks::Marks;
 use bridgev2w_data::calibrate::run::calibrate_to_folder;
-use bridgev2w_data::calibrate::study::{synthetic_study, StudyOptions};
+use bridgev2w_data::calibrate::study::{synthetic_study_to_folder, StudyOptions};
 use bridgev2w_data::calibrate::{pair_inputs, CalibrateOptions};
 use bridgev2w_embodiment::camera::Camera;
-use bridgev2w_io::output::OutputDir;
 use std::path::{Path, PathBuf};
 
 /// Search and fit options shared by `calibrate` and `calibrate-study`.
@@ -185,54 +186,35 @@ pub struct CalibrateStudyArgs {
 }
 
 pub fn run_study(args: &CalibrateStudyArgs) -> Result<()> {
-    if let Some(root) = &args.droid {
-        return run_droid_study(args, root);
-    }
-    let options = StudyOptions {
-        robot: args.robot.clone(),
-        cameras_per_split: args.cameras_per_split,
-        width: args.width,
-        height: args.height,
-        frames: args.frames,
-        seed: args.seed,
-        calibrate: args.fit.options(None, 1.0),
-        known_focal: args.known_focal,
+    let progress = |line: &str| eprintln!("{line}");
+    let (md, dir) = if let Some(root) = &args.droid {
+        let options = DroidStudyOptions {
+            rig_fit_episodes: args.rig_fit_episodes,
+            episodes_per_collection: args.episodes_per_collection,
+            calibrate: args.fit.options(None, DROID_FY_OVER_FX),
+            ..DroidStudyOptions::new(root)
+        };
+        let e = bridgev2w_embodiment::embodiment::Embodiment::builtin("franka-robotiq")?;
+        let (table, dir) =
+            droid_study_to_folder(&e, &options, &args.out, args.overwrite, &progress)?;
+        (table.to_markdown(), dir)
+    } else {
+        let options = StudyOptions {
+            robot: args.robot.clone(),
+            cameras_per_split: args.cameras_per_split,
+            width: args.width,
+            height: args.height,
+            frames: args.frames,
+            seed: args.seed,
+            calibrate: args.fit.options(None, 1.0),
+            known_focal: args.known_focal,
+        };
+        let (table, dir) =
+            synthetic_study_to_folder(&options, &args.out, args.overwrite, &progress)?;
+        (table.to_markdown(), dir)
     };
-    options.validate()?;
-    let out = OutputDir::create(&args.out, args.overwrite)?;
-    let table = synthetic_study(&options, &out.path().join("videos"), &|line| {
-        eprintln!("{line}")
-    })?;
-    let md = table.to_markdown();
-    let dir = commit_study(out, &md, &serde_json::to_string_pretty(&table)?)?;
     crate::print_stdout(&format!(
-        "{md}wrote {}/study.md, study.json\n",
+        "{md}wrote {}/study.md, study.json and the calibrations' files\n",
         dir.display()
     ))
-}
-
-fn run_droid_study(args: &CalibrateStudyArgs, root: &Path) -> Result<()> {
-    let options = DroidStudyOptions {
-        rig_fit_episodes: args.rig_fit_episodes,
-        episodes_per_collection: args.episodes_per_collection,
-        calibrate: args.fit.options(None, DROID_FY_OVER_FX),
-        ..DroidStudyOptions::new(root)
-    };
-    options.validate()?;
-    let e = bridgev2w_embodiment::embodiment::Embodiment::builtin("franka-robotiq")?;
-    let out = OutputDir::create_for(&args.out, args.overwrite, &[root])?;
-    let table = droid_study(&e, &options, out.path(), &|line| eprintln!("{line}"))?;
-    let md = table.to_markdown();
-    let dir = commit_study(out, &md, &serde_json::to_string_pretty(&table)?)?;
-    crate::print_stdout(&format!(
-        "{md}wrote {}/study.md, study.json and a folder per calibration\n",
-        dir.display()
-    ))
-}
-
-/// Writes `study.md` and `study.json` into `out` and commits it.
-fn commit_study(out: OutputDir, md: &str, json: &str) -> Result<PathBuf> {
-    bridgev2w_io::atomic::write_atomic(&out.path().join("study.md"), md.as_bytes())?;
-    bridgev2w_io::atomic::write_atomic(&out.path().join("study.json"), json.as_bytes())?;
-    Ok(out.commit()?)
 }

@@ -4,7 +4,7 @@
 //! `OUT/<split>.gif`.
 
 use anyhow::Result;
-use bridgev2w_train::grid::{grid_inputs, write_grids, GridOptions, GridRun};
+use bridgev2w_train::grid::{write_grids_folder, GridOptions, GridRun};
 use std::path::PathBuf;
 
 /// Arguments of `eval-grid`.
@@ -42,7 +42,6 @@ pub struct EvalGridArgs {
 
 /// `bridgev2w eval-grid`.
 pub fn run(a: &EvalGridArgs) -> Result<()> {
-    let splits = crate::train_cmd::split_list(&a.splits)?;
     let mut runs = vec![GridRun {
         config: a.config.clone(),
         run: a.run.clone(),
@@ -51,24 +50,19 @@ pub fn run(a: &EvalGridArgs) -> Result<()> {
         config: c[0].clone(),
         run: c[1].clone(),
     }));
-    // Its runs, their configurations and datasets: an output overlapping one is refused.
-    let inputs = grid_inputs(&runs);
-    let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
-    let out = bridgev2w_io::output::OutputDir::create_for(&a.out, a.overwrite, &inputs)?;
     let o = GridOptions {
-        runs: runs.clone(),
-        splits,
+        runs,
+        splits: crate::train_cmd::split_list(&a.splits)?,
         clips: a.clips,
         sampling: a.sampling.eval_options(),
         weights: a.weights,
-        out: out.path().to_path_buf(),
+        out: a.out.clone(),
     };
-    let written = write_grids(&o, &crate::progress::TerminalProgress::default())?;
-    out.commit()?;
+    let progress = crate::progress::TerminalProgress::default();
+    let written = write_grids_folder(&o, a.overwrite, &progress)?;
     let lines: Vec<String> = written
         .iter()
-        .filter_map(|p| p.file_name())
-        .map(|name| format!("wrote {}", a.out.join(name).display()))
+        .map(|p| format!("wrote {}", p.display()))
         .collect();
     crate::print_stdout(&(lines.join("\n") + "\n"))
 }

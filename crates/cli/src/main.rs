@@ -42,7 +42,7 @@ enum Command {
     /// Print a robot's links, actuated joints (the --joints column order) and end effectors.
     RobotInfo(robot_info::RobotInfoArgs),
     /// Run the built-in demo: the Franka doing a pick, masks and a GIF overlay in ./demo-out/.
-    Demo(demo::DemoArgs),
+    Demo(bridgev2w_train::demo::DemoOptions),
     /// Benchmarks against peers measured in the same run.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -75,7 +75,7 @@ enum Command {
     /// Policy evaluation by autoregressive world-model rollouts vs synthetic-world success.
     EvalPolicyRollout(plan_cmd::rollout::EvalRolloutArgs),
     /// Drift of autoregressive rollouts from the synthetic world over many chunks (PSNR/SSIM by chunk).
-    EvalDrift(plan_cmd::drift::DriftArgs),
+    EvalDrift(bridgev2w_plan::experiment::DriftOptions),
     /// Run planning on all tasks and the policy evaluation; write docs/results.md.
     PlanReport(plan_cmd::report::PlanReportArgs),
 }
@@ -147,5 +147,18 @@ pub fn print_stdout(text: &str) -> Result<()> {
     {
         Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
         _ => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own checks of every command's flags (unique names, valid
+    /// defaults and relations), which otherwise only fire when a command
+    /// is run: the options that the libraries define as flags are flattened
+    /// beside the commands' own.
+    #[test]
+    fn every_command_line_is_well_formed() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
     }
 }

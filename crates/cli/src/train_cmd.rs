@@ -199,6 +199,9 @@ pub struct EvalRunArgs {
     /// Also write the scores as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Replace an existing --json file.
+    #[arg(long, requires = "json")]
+    overwrite: bool,
     /// The weights to score: `averaged` (the run's moving averages when it
     /// keeps them, `train.ema_decay > 0`; else its parameters) or `raw`.
     #[arg(long, default_value = "averaged")]
@@ -220,6 +223,10 @@ pub struct EvalRunArgs {
 /// next to the copy-the-first-frame baseline.
 pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
     let splits = split_list(&args.splits)?;
+    if let Some(path) = &args.json {
+        bridgev2w_io::output::check_new_file(path, args.overwrite)
+            .map_err(|e| anyhow::anyhow!("--json {e}"))?;
+    }
     let o = EvalRunOptions {
         config: args.config.clone(),
         run: args.run.clone(),
@@ -235,10 +242,7 @@ pub fn run_eval_run(args: &EvalRunArgs) -> Result<()> {
     };
     let evaluation = evaluate_run(&o, &crate::progress::TerminalProgress::default())?;
     if let Some(path) = &args.json {
-        bridgev2w_io::atomic::write_atomic(
-            path,
-            serde_json::to_string_pretty(&evaluation.to_json())?.as_bytes(),
-        )?;
+        bridgev2w_io::json::write_json_atomic(path, &evaluation.to_json())?;
     }
     crate::print_stdout(&evaluation.markdown())
 }

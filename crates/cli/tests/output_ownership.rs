@@ -202,3 +202,33 @@ fn outputs_overlapping_an_input_are_refused() {
     );
     assert!(!d.path().join("model/trace").exists());
 }
+
+/// `eval-run --json FILE` refuses an existing file before the run is
+/// opened (its scores are minutes of work); `--overwrite` gets past the
+/// check (and then the missing run is named).
+#[test]
+fn eval_run_refuses_an_existing_json_file() {
+    let d = tempfile::tempdir().expect("tmp");
+    let json = write(d.path(), "scores.json", "{\"mine\": 1}");
+    let run_dir = d.path().join("no-run").display().to_string();
+    let args = |extra: &[&str]| {
+        let mut a = vec!["eval-run", "no-config.toml", "--run", &run_dir, "--json"];
+        a.push(&json);
+        a.extend_from_slice(extra);
+        run(&a)
+    };
+    let o = args(&[]);
+    let e = stderr(&o);
+    assert!(
+        !o.status.success() && e.contains("--json") && e.contains("already exists"),
+        "{e}"
+    );
+    assert_eq!(std::fs::read_to_string(&json).unwrap(), "{\"mine\": 1}");
+    let o = args(&["--overwrite"]);
+    let e = stderr(&o);
+    assert!(
+        !o.status.success() && !e.contains("already exists") && e.contains("no-config.toml"),
+        "{e}"
+    );
+    assert_eq!(std::fs::read_to_string(&json).unwrap(), "{\"mine\": 1}");
+}

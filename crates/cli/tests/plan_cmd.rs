@@ -367,9 +367,21 @@ fn eval_drift_with_the_perfect_model_is_exact_and_bad_sizes_are_refused() {
         assert_eq!(cells[1], (k + 1).to_string(), "{row}");
         assert_eq!(cells[2], ((k + 1) * 8).to_string(), "{row}");
         assert_eq!((cells[3], cells[4]), ("100.00", "1.000"), "{row}");
-        let copy: f64 = cells[5].parse().expect("copying's PSNR");
+        let copy: f64 = cells[6].parse().expect("copying's PSNR");
         assert!(copy < 40.0, "{row}");
+        // Mask-IoU: the model's frame is the world's, so it scores the
+        // segmenter's ceiling, which finds most of the robot.
+        assert_eq!(cells[5], cells[8], "{row}");
+        let ceiling: f64 = cells[8].parse().expect("the segmenter's ceiling");
+        assert!(ceiling > 0.5, "{row}");
     }
+    // By the last chunk the arm has left where it started: copying the
+    // first frame finds less of it than the model.
+    let last: Vec<&str> = rows[4].split('|').map(str::trim).collect();
+    let copy_iou: f64 = last[7].parse().expect("copying's Mask-IoU");
+    let iou: f64 = last[5].parse().expect("Mask-IoU");
+    assert!(copy_iou < iou, "{}", rows[4]);
+    assert!(out.contains("colour segmenter"), "{out}");
     let o = run(&["eval-drift", "--model", "perfect", "--chunks", "0"]);
     assert!(
         !o.status.success() && stderr(&o).contains("--chunks: 0: expected 1..=50 chunks"),

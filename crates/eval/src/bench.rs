@@ -35,17 +35,23 @@ pub enum BenchError {
 
 /// What `bench metrics` scores.
 #[derive(Debug, Clone, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct MetricsBenchOptions {
     /// Frame pairs scored.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = MetricsBenchOptions::default().frames))]
     pub frames: usize,
     /// Frame width (at least 11, the SSIM window).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = MetricsBenchOptions::default().width))]
     pub width: usize,
     /// Frame height (at least 11).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = MetricsBenchOptions::default().height))]
     pub height: usize,
-    /// Worker processes for scikit-image (default: rayon's threads).
+    /// Worker processes for scikit-image (default: all cores, like this crate's threads).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub workers: Option<usize>,
-    /// Repository root (holds `scripts/bench/`); default: found from the
+    /// Repository root (holds scripts/bench/); default: found from the
     /// current directory.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub repo: Option<PathBuf>,
 }
 

@@ -389,6 +389,23 @@ impl PolicyEvalReport {
         })
     }
 
+    /// World-model minus synthetic-world success rate per policy: the
+    /// paper's bias of a model trained on successful demonstrations (it
+    /// "recovers" small errors) shows as a positive overestimate.
+    pub fn overestimate(&self) -> Vec<f64> {
+        self.predicted
+            .iter()
+            .zip(&self.real)
+            .map(|(p, r)| p - r)
+            .collect()
+    }
+
+    /// The mean of [`Self::overestimate`] over the policies (0 for none).
+    pub fn mean_overestimate(&self) -> f64 {
+        let o = self.overestimate();
+        o.iter().sum::<f64>() / o.len().max(1) as f64
+    }
+
     /// Adds the mean goal progress per policy (same order as the rates).
     pub fn with_progress(mut self, mean: Vec<f64>) -> Result<Self> {
         let mmrv = bridgev2w_eval::ranking::mmrv(&mean, &self.real)?;
@@ -707,5 +724,27 @@ mod tests {
         .unwrap();
         assert!((s.mmrv - (0.2 + 0.2) / 3.0).abs() < 1e-12, "{}", s.mmrv);
         assert!(PolicyEvalReport::new(vec![], vec![0.1], vec![]).is_err());
+    }
+
+    #[test]
+    fn overestimate_is_world_model_minus_real_success() {
+        let r = PolicyEvalReport::new(
+            vec!["a".into(), "b".into(), "c".into()],
+            vec![0.9, 0.5, 0.1],
+            vec![0.8, 0.6, 0.1],
+        )
+        .unwrap();
+        let o = r.overestimate();
+        for (got, want) in o.iter().zip([0.1, -0.1, 0.0]) {
+            assert!((got - want).abs() < 1e-12, "{o:?}");
+        }
+        assert!(r.mean_overestimate().abs() < 1e-12);
+        let md = r.markdown();
+        assert!(md.contains("| a | 0.90 | 0.80 | +0.10 |"), "{md}");
+        assert!(md.contains("| b | 0.50 | 0.60 | -0.10 |"), "{md}");
+        assert!(md.contains("+0.000 on average"), "{md}");
+        let json = r.to_json();
+        assert_eq!(json["policies"][1]["policy"], "b");
+        assert!((json["policies"][1]["overestimate"].as_f64().unwrap() + 0.1).abs() < 1e-12);
     }
 }

@@ -1,6 +1,6 @@
 //! `bridgev2w bench`: speed against peers measured in the same run. Each
-//! subcommand turns its flags into the library bench's options, runs it and
-//! prints its report.
+//! subcommand's flags are the library bench's options (but `model`'s
+//! precisions): it runs the bench and prints its report.
 
 mod flow;
 mod kinematics;
@@ -15,21 +15,21 @@ use anyhow::Result;
 pub enum BenchCommand {
     /// Mask rendering: this renderer vs pybullet's getCameraImage (TinyRenderer) on
     /// pybullet's own franka_panda/panda.urdf with its OBJ meshes.
-    Masks(masks::MasksBench),
+    Masks(bridgev2w_embodiment::bench::MasksBenchOptions),
     /// Forward kinematics poses/s and warm-started IK time per solve (built-in Franka).
-    Kinematics(kinematics::KinematicsBench),
+    Kinematics(bridgev2w_embodiment::bench::KinematicsBenchOptions),
     /// PSNR + SSIM frames/s: bridgev2w-eval vs scikit-image on the same frames.
-    Metrics(metrics::MetricsBench),
+    Metrics(bridgev2w_eval::bench::MetricsBenchOptions),
     /// One transformer forward and one VAE encode/decode: this crate vs diffusers
     /// on the same configs, shapes, threads and precision (random weights).
     Model(model::ModelBench),
     /// Clip loader throughput (clips/s): decoding + masks (stored, rendered calc,
     /// cached calc) and batch assembly, on a dataset or a generated synthetic one.
-    Loader(loader::LoaderBench),
+    Loader(bridgev2w_train::bench::LoaderBenchOptions),
     /// The flow loss's decode and gradient through the VAE: autograd through the
     /// whole decode vs the recorded batch-by-batch backward, whole or unit by unit;
     /// seconds and peak memory.
-    Flow(flow::FlowBench),
+    Flow(bridgev2w_train::bench::FlowBenchOptions),
 }
 
 pub fn run(cmd: &BenchCommand) -> Result<()> {

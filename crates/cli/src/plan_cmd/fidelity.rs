@@ -1,22 +1,23 @@
 //! `bridgev2w plan-fidelity`: does a model's goal distance order candidate
 //! actions as the synthetic world does (Spearman)?
 
-use super::{parse_split, parse_task, progress, ModelArgs};
+use super::progress;
 use anyhow::Result;
 use bridgev2w_data::synth::{Split, Task};
+use bridgev2w_plan::experiment::ModelOptions;
 use bridgev2w_plan::experiment::{fidelity_study, FidelityOptions};
 use std::path::PathBuf;
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct PlanFidelityArgs {
     /// reach, push or pick_place.
-    #[arg(long, value_parser = parse_task, default_value = "reach")]
+    #[arg(long, value_parser = Task::parse_goal_task, default_value = "reach")]
     pub task: Task,
     /// Trials (task instances of the split), each one start/goal pair.
     #[arg(long, default_value_t = 6)]
     pub trials: usize,
     #[command(flatten)]
-    pub model: ModelArgs,
+    pub model: ModelOptions,
     /// Candidate actions per trial, drawn as CEM's first iteration draws
     /// them (translation only, kept in the workspace).
     #[arg(long, default_value_t = 24)]
@@ -36,7 +37,7 @@ pub struct PlanFidelityArgs {
     #[arg(long, default_value_t = 2)]
     pub frames_per_action: usize,
     /// Split of the task instances.
-    #[arg(long, default_value = "test", value_parser = parse_split)]
+    #[arg(long, default_value = "test", value_parser = Split::parse_named)]
     pub split: Split,
     /// Seed of the world and the candidates.
     #[arg(long, default_value_t = 0)]
@@ -56,7 +57,7 @@ pub fn run(a: &PlanFidelityArgs) -> Result<()> {
     let o = FidelityOptions {
         task: a.task,
         trials: a.trials,
-        model: (&a.model).into(),
+        model: a.model.clone(),
         candidates: a.candidates,
         translation_std_m: a.translation_std_m,
         waypoints: super::waypoint_spacing(a.waypoints, a.waypoint_every_m),

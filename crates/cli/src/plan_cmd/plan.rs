@@ -1,25 +1,27 @@
 //! `bridgev2w plan`: goal-image CEM-MPC executed in the synthetic world, vs
 //! random actions.
 
-use super::{parse_split, parse_task, progress, CemArgs, GoalArgs, ModelArgs};
+use super::{progress, GoalArgs};
 use anyhow::Result;
 use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_plan::cem::RotationSearch;
+use bridgev2w_plan::experiment::planning::CemSizes;
+use bridgev2w_plan::experiment::ModelOptions;
 use bridgev2w_plan::experiment::{plan_summary, PlanOptions};
 use bridgev2w_plan::mpc::GripperChoice;
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct PlanArgs {
     /// reach, push or pick_place.
-    #[arg(long, value_parser = parse_task)]
+    #[arg(long, value_parser = Task::parse_goal_task)]
     pub task: Task,
     /// Trials (task instances of the split).
     #[arg(long, default_value_t = 20)]
     pub trials: usize,
     #[command(flatten)]
-    pub model: ModelArgs,
+    pub model: ModelOptions,
     #[command(flatten)]
-    pub cem: CemArgs,
+    pub cem: CemSizes,
     /// Clip frames per planned action.
     #[arg(long, default_value_t = 2)]
     pub frames_per_action: usize,
@@ -54,7 +56,7 @@ pub struct PlanArgs {
     #[arg(long)]
     pub no_workspace: bool,
     /// Split of the task instances.
-    #[arg(long, default_value = "test", value_parser = parse_split)]
+    #[arg(long, default_value = "test", value_parser = Split::parse_named)]
     pub split: Split,
     /// Frames of the scripted expert episodes (start, goals).
     #[arg(long, default_value_t = 25)]
@@ -77,8 +79,8 @@ impl From<&PlanArgs> for PlanOptions {
         Self {
             task: a.task,
             trials: a.trials,
-            model: (&a.model).into(),
-            cem: (&a.cem).into(),
+            model: a.model.clone(),
+            cem: a.cem.clone(),
             frames_per_action: a.frames_per_action,
             max_steps: a.max_steps,
             translation_std_m: a.translation_std_m,

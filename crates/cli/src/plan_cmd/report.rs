@@ -1,9 +1,10 @@
 //! `bridgev2w plan-report`: planning on all tasks and the policy
 //! evaluation, written as one section of docs/results.md.
 
-use super::{parse_task, progress, CemArgs, GoalArgs, SamplingArgs};
+use super::{progress, GoalArgs, SamplingArgs};
 use anyhow::Result;
 use bridgev2w_data::synth::Task;
+use bridgev2w_plan::experiment::planning::CemSizes;
 use bridgev2w_plan::experiment::report::report_models;
 use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
 use bridgev2w_world_model::pipeline::DecodeFrames;
@@ -24,7 +25,7 @@ pub struct PlanReportArgs {
     #[arg(long, default_value_t = 10)]
     pub eval_trials: usize,
     #[command(flatten)]
-    pub cem: CemArgs,
+    pub cem: CemSizes,
     /// Executed actions at most.
     #[arg(long, default_value_t = 25)]
     pub max_steps: usize,
@@ -95,14 +96,14 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
     let o = PlanReportOptions {
         trials: a.trials,
         eval_trials: a.eval_trials,
-        cem: (&a.cem).into(),
+        cem: a.cem.clone(),
         max_steps: a.max_steps,
         translation_std_m: a.translation_std_m,
         goals: (&a.goals).into(),
         tasks: a
             .tasks
             .split(',')
-            .map(|t| parse_task(t.trim()).map_err(anyhow::Error::msg))
+            .map(|t| Task::parse_goal_task(t.trim()).map_err(anyhow::Error::msg))
             .collect::<Result<Vec<Task>>>()?,
         models: report_models(
             a.models.as_deref(),

@@ -192,6 +192,27 @@ fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
         .sqrt()
 }
 
+/// [`droid_study`] into a new folder `out` (never one overlapping the
+/// DROID folder): a calibration folder per camera, `study.md` and
+/// `study.json`, written as a transaction (an existing `out` is refused
+/// unless `overwrite`). Returns the table and the folder.
+pub fn droid_study_to_folder(
+    embodiment: &Embodiment,
+    options: &DroidStudyOptions,
+    out: &Path,
+    overwrite: bool,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<(DroidStudyTable, PathBuf), CalibrateError> {
+    options.validate()?;
+    super::report::study_folder(
+        out,
+        overwrite,
+        &[options.root.as_path()],
+        |dir| droid_study(embodiment, options, dir, progress),
+        DroidStudyTable::to_markdown,
+    )
+}
+
 /// Calibrates every exterior camera of every episode under
 /// `options.root` (DROID's robot: `franka-robotiq`), then the shared rig's cameras from a few episodes,
 /// checked on the others. Each calibration's `camera.json`,

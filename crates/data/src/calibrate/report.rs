@@ -30,6 +30,29 @@ fn write_text(path: &Path, text: &str) -> Result<(), CalibrateError> {
     bridgev2w_io::atomic::write_atomic(path, text.as_bytes()).map_err(|e| out_err(path, e))
 }
 
+/// A study's output folder as a transaction: `fill` writes its files
+/// (videos, a calibration folder per camera) into the temporary folder and
+/// returns the table; `study.md` (`markdown` of it) and `study.json` go
+/// beside them and the folder is renamed into place. An existing `out` is
+/// refused unless `overwrite`, one that is, contains or is inside one of
+/// `inputs` always. Returns the table and the folder.
+pub(super) fn study_folder<T: serde::Serialize>(
+    out: &Path,
+    overwrite: bool,
+    inputs: &[&Path],
+    fill: impl FnOnce(&Path) -> Result<T, CalibrateError>,
+    markdown: impl Fn(&T) -> String,
+) -> Result<(T, PathBuf), CalibrateError> {
+    let dir = bridgev2w_io::output::OutputDir::create_for(out, overwrite, inputs)
+        .map_err(|e| out_err(out, e))?;
+    let table = fill(dir.path())?;
+    write_text(&dir.path().join("study.md"), &markdown(&table))?;
+    let json = serde_json::to_string_pretty(&table).map_err(|e| out_err(out, e))?;
+    write_text(&dir.path().join("study.json"), &json)?;
+    let path = dir.commit().map_err(|e| out_err(out, e))?;
+    Ok((table, path))
+}
+
 /// The `residuals.json` document of `calibration`, with the residuals of
 /// episodes only checked (`checks`).
 pub fn residuals_json(calibration: &Calibration, checks: &[EpisodeResidual]) -> serde_json::Value {
@@ -198,5 +221,54 @@ mod tests {
             "03_0007_1.gif"
         );
         assert_eq!(gif_name(0, "cam.mp4"), "00_cam.gif");
+    }
+
+    #[test]
+    fn a_study_folder_is_a_transaction() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("study");
+        let md = |t: &Vec<u32>| format!("| n |\n| {} |\n", t.len());
+        let fill = |dir: &Path| {
+            std::fs::write(dir.join("videos.txt"), "v").unwrap();
+            Ok(vec![1u32, 2])
+        };
+        let (table, dir) = study_folder(&out, false, &[], fill, md).unwrap();
+        assert_eq!((table, dir.clone()), (vec![1, 2], out.clone()));
+        assert_eq!(
+            std::fs::read_to_string(out.join("study.md")).unwrap(),
+            "| n |\n| 2 |\n"
+        );
+        assert_eq!(
+            std::fs::read_to_string(out.join("study.json")).unwrap(),
+            "[\n  1,\n  2\n]"
+        );
+        assert!(out.join("videos.txt").is_file());
+        // An existing folder is refused before anything is filled.
+        let e = study_folder(
+            &out,
+            false,
+            &[],
+            |_| -> Result<Vec<u32>, _> { panic!("filled") },
+            md,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("already exists"), "{e}");
+        // A study that fails leaves the earlier folder as it was.
+        let failing = |dir: &Path| {
+            std::fs::write(dir.join("half.txt"), "h").unwrap();
+            Err(CalibrateError::Output {
+                path: dir.to_path_buf(),
+                message: "stopped".into(),
+            })
+        };
+        let e = study_folder::<Vec<u32>>(&out, true, &[], failing, md).unwrap_err();
+        assert!(e.to_string().contains("stopped"), "{e}");
+        assert!(out.join("videos.txt").is_file() && !out.join("half.txt").exists());
+        // An output inside an input is refused.
+        let e = study_folder(&out.join("inner"), true, &[out.as_path()], fill, md)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("inside the input"), "{e}");
     }
 }

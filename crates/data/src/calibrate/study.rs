@@ -10,7 +10,7 @@ use crate::synth::{Split, SynthConfig, Task, World};
 use crate::video::{Mp4VideoWriter, VideoStream};
 use bridgev2w_embodiment::camera::Camera;
 use serde::Serialize;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Options of [`synthetic_study`].
 #[derive(Debug, Clone, PartialEq)]
@@ -192,6 +192,25 @@ fn through_video(
         frames.push(reduce_rgb(&f.rgb, w as usize, factor as usize, size));
     }
     Ok((factor, size, frames))
+}
+
+/// [`synthetic_study`] into a new folder `out`: `videos/*.mp4`, `study.md`
+/// and `study.json`, written as a transaction (an existing `out` is
+/// refused unless `overwrite`). Returns the table and the folder.
+pub fn synthetic_study_to_folder(
+    options: &StudyOptions,
+    out: &Path,
+    overwrite: bool,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<(StudyTable, PathBuf), CalibrateError> {
+    options.validate()?;
+    super::report::study_folder(
+        out,
+        overwrite,
+        &[],
+        |dir| synthetic_study(options, &dir.join("videos"), progress),
+        StudyTable::to_markdown,
+    )
 }
 
 /// Calibrates `cameras_per_split` synthetic cameras of the `test` and

@@ -105,6 +105,13 @@ impl Split {
         Split::ALL.into_iter().find(|x| x.name() == s)
     }
 
+    /// Parses [`Split::name`], or says what was expected (a flag's parser).
+    pub fn parse_named(s: &str) -> Result<Split, String> {
+        Split::parse(s).ok_or_else(|| {
+            format!("unknown split {s:?}: expected train, test, unseen_camera or unseen_scene")
+        })
+    }
+
     fn stream_id(self) -> u64 {
         match self {
             Split::Train => 1,
@@ -151,6 +158,14 @@ impl Task {
     /// Parses [`Task::name`] (any of [`Task::GENERATED`]).
     pub fn parse(s: &str) -> Option<Task> {
         Task::GENERATED.into_iter().find(|x| x.name() == s)
+    }
+
+    /// Parses the name of a task with a goal ([`Task::ALL`]), or says what
+    /// was expected (a flag's parser).
+    pub fn parse_goal_task(s: &str) -> Result<Task, String> {
+        Task::parse(s)
+            .filter(|t| Task::ALL.contains(t))
+            .ok_or_else(|| format!("unknown task {s:?}: expected reach, push or pick_place"))
     }
 
     /// The natural-language task string stored in `meta/tasks.parquet`.

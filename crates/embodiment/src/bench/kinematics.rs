@@ -13,10 +13,13 @@ const TCP: &str = "panda_hand_tcp";
 
 /// How many evaluations `bench kinematics` times.
 #[derive(Debug, Clone, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct KinematicsBenchOptions {
     /// Forward-kinematics evaluations.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = KinematicsBenchOptions::default().fk))]
     pub fk: usize,
     /// Warm-started IK solves along a smooth trajectory.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = KinematicsBenchOptions::default().ik))]
     pub ik: usize,
 }
 

@@ -18,25 +18,34 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-/// What `bench masks` renders and against what.
+/// What `bench masks` renders and against what (the command's flags).
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct MasksBenchOptions {
     /// Frames in the joint trajectory.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = MasksBenchOptions::default().frames))]
     pub frames: usize,
     /// Times the trajectory is rendered (by each renderer).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = MasksBenchOptions::default().repeat))]
     pub repeat: usize,
     /// Image width in pixels.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = MasksBenchOptions::default().width))]
     pub width: u32,
     /// Image height in pixels.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = MasksBenchOptions::default().height))]
     pub height: u32,
-    /// Worker processes for pybullet (default: rayon's threads).
+    /// Worker processes for pybullet (default: all cores, like this renderer's threads).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub workers: Option<usize>,
-    /// Run pybullet too (else only this renderer, which then needs `urdf`).
+    /// `--no-pybullet`: only measure this renderer (no Python needed) on the given --urdf.
+    #[cfg_attr(feature = "clap", arg(long = "no-pybullet", action = clap::ArgAction::SetFalse))]
     pub pybullet: bool,
-    /// URDF to render (default: pybullet's `franka_panda/panda.urdf`).
+    /// URDF to render (default: pybullet's franka_panda/panda.urdf).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub urdf: Option<PathBuf>,
-    /// Repository root (holds `scripts/bench/`); default: found from the
+    /// Repository root (holds scripts/bench/); default: found from the
     /// current directory.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub repo: Option<PathBuf>,
 }
 

@@ -16,49 +16,77 @@ use bridgev2w_world_model::vae::VaeTiling;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
-/// Which world model to plan or evaluate with.
+/// Which world model to plan or evaluate with, and how a diffusion model
+/// samples (flags of the planning commands).
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct ModelOptions {
-    /// The model: the perfect renderer, random weights or a folder.
+    /// `perfect` (the synthetic world's own renderer), `random` (BridgeV2W
+    /// with random tiny weights at 64x96, 9 frames: a smoke test), or a
+    /// CogVideoX image-to-video diffusers folder (with --weights).
+    #[cfg_attr(feature = "clap", arg(long, default_value = "perfect"))]
     pub model: PlanModel,
     /// BridgeV2W weights (ControlNet + LoRA safetensors) for a model folder.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub weights: Option<PathBuf>,
     /// The fixed prompt's T5 embedding for a model folder.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub prompt_embeds: Option<PathBuf>,
     /// Denoising steps of a diffusion model.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().denoise_steps))]
     pub denoise_steps: usize,
-    /// How the noise of a batch of candidates is drawn: shared (common random
-    /// numbers, so candidates differ by their actions alone) or independent.
+    /// How a diffusion model draws the noise of a batch of candidates:
+    /// `shared` (common random numbers: candidates differ by their actions
+    /// alone) or `independent`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().batch_noise))]
     pub batch_noise: BatchNoise,
-    /// Where a diffusion model's sampling starts ([`SampleOptions::strength`]:
-    /// 1 from pure noise, less from the noised first frame).
+    /// Where a diffusion model's sampling starts, in (0, 1]: 1 from pure
+    /// noise; s < 1 from the first frame's latent in every frame, noised to
+    /// the level a fraction s from the end (only the last ceil(s * steps)
+    /// denoising steps run; `SampleOptions::strength`).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().strength))]
     pub strength: f64,
-    /// Keep the static scene of a diffusion model's predictions outside the
-    /// robot's swept region, this many pixels around it
-    /// ([`SampleOptions::keep_static_margin_px`]; `None`: off).
+    /// Keep the static scene of a diffusion model's predictions (beyond the
+    /// paper): outside the region the candidate's masks have swept so far,
+    /// dilated by this many pixels, each frame is the first frame. Off when
+    /// not given.
+    #[cfg_attr(feature = "clap", arg(long = "keep-static", value_name = "MARGIN_PX"))]
     pub keep_static_margin_px: Option<u32>,
-    /// The latent of a diffusion model's goal distances (the perfect model's
-    /// is always its pyramid).
+    /// Where goal distances are measured: `model` (a diffusion model's VAE
+    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
+    /// perfect model's latent: it keeps growing with the arm's displacement
+    /// where a fine latent is flat; beyond the paper).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().goal_latent))]
     pub goal_latent: GoalLatent,
-    /// The device of a diffusion model.
+    /// cpu, cuda, cuda:N or auto.
+    #[cfg_attr(feature = "clap", arg(long, default_value = "auto"))]
     pub device: ComputeDevice,
-    /// The precision of a diffusion model's weights and activations.
+    /// Precision of a diffusion model: f32 or bf16 (bf16 halves the memory
+    /// of a GPU run).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().precision))]
     pub precision: Precision,
-    /// At most this many candidates through a diffusion model at once
-    /// (`None`: all of a CEM iteration's at once): bounds device memory.
+    /// At most this many candidates through a diffusion model at once (all
+    /// of a CEM iteration's by default): a smaller batch bounds the device
+    /// memory; with shared batch noise the plan is the same.
+    #[cfg_attr(feature = "clap", arg(long, value_name = "N"))]
     pub max_batch: Option<usize>,
-    /// Image width of the synthetic world with the perfect model (pixels).
+    /// Image width of the synthetic world with the perfect model (pixels, even).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().width))]
     pub width: u32,
-    /// Image height of the synthetic world with the perfect model (pixels).
+    /// Image height of the synthetic world with the perfect model (pixels, even).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().height))]
     pub height: u32,
-    /// Frames of each predicted clip (`None`: the model's own, 9 for the
+    /// Frames of each predicted clip (default: the model's own, 9 for the
     /// perfect model, a diffusion model's training clip). A planned action
-    /// of `frames_per_action` x `horizon` frames needs only one more: a
-    /// shorter clip is cheaper (beyond the paper).
+    /// needs one more than its frames; a shorter clip is cheaper (beyond
+    /// the paper).
+    #[cfg_attr(feature = "clap", arg(long, value_name = "N"))]
     pub clip_frames: Option<usize>,
-    /// Which frames of a diffusion model's predictions are decoded: all, or
-    /// the last few only (the planner scores the last frame; beyond the
-    /// paper, see [`DecodeFrames::Last`]).
+    /// Which frames of a diffusion model's predictions are decoded: `all`,
+    /// or `last` (only the VAE decoder's last batch of latent frames: the
+    /// planner scores the clip's last frame; without the earlier frames'
+    /// conv cache, an approximation; beyond the paper).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().decode_frames))]
     pub decode_frames: DecodeFrames,
 }
 

@@ -16,30 +16,47 @@ use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-/// The CEM sizes of an experiment.
+/// The CEM sizes of an experiment (flags of `plan` and `plan-report`).
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct CemSizes {
-    /// Samples S per iteration.
+    /// CEM samples S per iteration.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = CemSizes::default().samples))]
     pub samples: usize,
-    /// Elites k.
+    /// CEM elites k.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = CemSizes::default().elites))]
     pub elites: usize,
-    /// Iterations T.
+    /// CEM iterations T.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = CemSizes::default().iters))]
     pub iters: usize,
-    /// Planning horizon H (actions).
+    /// Planning horizon H (actions). With H > 1 only the terminal frame is
+    /// scored, so the executed first action of the best sequence is
+    /// unconstrained; H = 1 scores exactly the executed action's outcome.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = CemSizes::default().horizon))]
     pub horizon: usize,
-    /// Carry each iteration's elites into the next selection (iCEM).
+    /// Carry each CEM iteration's elites into the next selection (iCEM; off
+    /// in the paper's algorithm).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub keep_elites: bool,
     /// Execute the best evaluated candidate's first action instead of the
     /// refined mean's (the paper executes the mean).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub execute_best: bool,
-    /// Actions of the chosen plan executed before planning again (1 to
-    /// `horizon`; the paper executes 1).
+    /// Actions of the chosen plan executed before planning again, 1 to the
+    /// horizon (the paper: 1). With `--horizon N --execute-actions N` one
+    /// search pays for N actions, each chunk judged by its terminal frame
+    /// (beyond the paper).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = CemSizes::default().execute_actions))]
     pub execute_actions: usize,
-    /// Evaluate the distribution's mean as one of the samples (iCEM; the
-    /// zero move in an MPC step's first iteration).
+    /// Evaluate the sampling distribution's mean as one of the S samples
+    /// (iCEM): in a step's first iteration that is staying put, so a step
+    /// that no sample improves on holds the pose (beyond the paper).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub include_mean: bool,
-    /// After each stalled step the search's spread shrinks by this factor
-    /// (1: off; [`MpcConfig::stall_std_factor`]).
+    /// After each stalled step (no 1% progress) multiply the next search's
+    /// standard deviations by this factor in (0, 1]; progress or a new goal
+    /// restores them. 1: off (beyond the paper; `MpcConfig::stall_std_factor`).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = CemSizes::default().shrink_on_stall, value_name = "FACTOR"))]
     pub shrink_on_stall: f64,
 }
 

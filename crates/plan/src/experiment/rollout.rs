@@ -21,34 +21,54 @@ use std::path::PathBuf;
 
 /// One policy evaluation.
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct RolloutOptions {
-    /// The task.
+    /// reach, push or pick_place.
+    #[cfg_attr(feature = "clap", arg(long, value_parser = Task::parse_goal_task))]
     pub task: Task,
     /// Trials per policy (task instances of the split).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).trials))]
     pub trials: usize,
     /// The world model.
+    #[cfg_attr(feature = "clap", command(flatten))]
     pub model: ModelOptions,
     /// Offset standard deviations of the scripted policies (mm), one policy
     /// each (with the served ones, at least two policies in all).
+    #[cfg_attr(feature = "clap", arg(skip))]
     pub offsets_mm: Vec<f64>,
-    /// Policies served over openpi's websocket protocol.
+    /// A policy served over openpi's websocket protocol, [NAME=]ws://HOST:PORT
+    /// (repeatable): it gets the rollout's frame, joints and pose and returns
+    /// end-effector action chunks, as --policy-config maps them.
+    #[cfg_attr(feature = "clap", arg(long = "policy", value_name = "[NAME=]URL"))]
     pub served: Vec<ServedSpec>,
-    /// How observations and actions map to the served policies' keys
-    /// (default [`ServedPolicyConfig::default`]).
+    /// How observations and actions map to the served policies' keys (TOML;
+    /// default openpi's DROID example keys, absolute end-effector actions,
+    /// `ServedPolicyConfig::default`; see docs/guide/planning.md).
+    #[cfg_attr(
+        feature = "clap",
+        arg(long = "policy-config", value_name = "TOML", requires = "served")
+    )]
     pub served_config: Option<PathBuf>,
     /// Per-action jitter of the scripted policies (mm).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).jitter_mm))]
     pub jitter_mm: f64,
     /// Actions per policy chunk (at most the model's clip frames - 1).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).chunk))]
     pub chunk: usize,
     /// Goal-distance judge: success when d(last, goal) <= ratio * d(start, goal).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).ratio))]
     pub ratio: f64,
     /// Judge by labels instead (CSV policy,trial,success).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub labels: Option<PathBuf>,
     /// Split of the task instances.
+    #[cfg_attr(feature = "clap", arg(long, default_value = "test", value_parser = Split::parse_named))]
     pub split: Split,
     /// Frames of the scripted expert episodes (the rollout horizon is this minus one).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).episode_frames))]
     pub episode_frames: usize,
     /// Seed of the world and the policies.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).seed))]
     pub seed: u64,
 }
 
@@ -345,12 +365,14 @@ impl PolicyEvalReport {
     /// agreement metrics, and the policies not evaluated with their errors.
     pub fn to_json(&self) -> serde_json::Value {
         let progress = self.progress.as_ref();
+        let over = self.overestimate();
         let rows: Vec<serde_json::Value> = (0..self.policies.len())
             .map(|i| {
                 serde_json::json!({
                     "policy": self.policies[i],
                     "world_model_success": self.predicted[i],
                     "synthetic_world_success": self.real[i],
+                    "overestimate": over[i],
                     "world_model_goal_progress": progress.map(|p| p.mean[i]),
                 })
             })
@@ -364,6 +386,7 @@ impl PolicyEvalReport {
             "policies": rows,
             "mmrv": self.mmrv,
             "pearson": self.pearson,
+            "mean_overestimate": self.mean_overestimate(),
             "progress_mmrv": progress.map(|p| p.mmrv),
             "progress_pearson": progress.map(|p| p.pearson),
             "not_evaluated": failed,
@@ -377,11 +400,12 @@ impl PolicyEvalReport {
         if progress.is_some() {
             s += " world-model goal progress |";
         }
-        s += " synthetic-world success |\n|---|---|---|";
+        s += " synthetic-world success | overestimate |\n|---|---|---|---|";
         if progress.is_some() {
             s += "---|";
         }
         s += "\n";
+        let over = self.overestimate();
         for (i, ((p, w), g)) in self
             .policies
             .iter()
@@ -393,11 +417,13 @@ impl PolicyEvalReport {
             if let Some(pr) = progress {
                 s += &format!(" {:+.3} |", pr.mean[i]);
             }
-            s += &format!(" {g:.2} |\n");
+            s += &format!(" {g:.2} | {:+.2} |\n", over[i]);
         }
         s += &format!(
-            "\nSuccess rates: MMRV {:.3} (lower is better), Pearson r {:.3}\n",
-            self.mmrv, self.pearson
+            "\nSuccess rates: MMRV {:.3} (lower is better), Pearson r {:.3}; overestimate (world model minus synthetic world) {:+.3} on average\n",
+            self.mmrv,
+            self.pearson,
+            self.mean_overestimate()
         );
         if let Some(pr) = progress {
             s += &format!(

@@ -79,29 +79,52 @@ bridgev2w_world_model::named_enum!(FlowBenchEstimator, TrainError, TrainError::i
     RaftLarge => "raft_large",
 });
 
-/// What `bench flow` measures.
+/// What `bench flow` measures (the command's flags).
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct FlowBenchOptions {
-    /// The VAE preset (random weights, PyTorch's initialisation, seed 0).
+    /// VAE preset with random weights (PyTorch's initialisation, seed 0):
+    /// cogvideox (2B and 5B's architecture), tiny, small, small2x.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = FlowBenchOptions::default().vae))]
     pub vae: FlowBenchVae,
-    /// Pixel frames of the clip (the VAE's `kt + 1`).
+    /// Pixel frames (the VAE's 4k + 1 for cogvideox). The defaults run in
+    /// about a minute on 2 cores; the full size is `--frames 25 --height 480
+    /// --width 720 --tile 240x360 --precision bf16 --device cuda`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = FlowBenchOptions::default().frames))]
     pub frames: i64,
     /// Pixel height.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = FlowBenchOptions::default().height))]
     pub height: i64,
     /// Pixel width.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = FlowBenchOptions::default().width))]
     pub width: i64,
-    /// Spatial tiles of this many pixels (height, width), as training and
-    /// `predict` tile above 256x256; `None`: whole frames.
+    /// Spatial tiles of HxW pixels (training and `predict` tile above
+    /// 256x256 with the VAE's default tiles, half its sample size); default:
+    /// whole frames.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub tile: Option<TileSize>,
-    /// The VAE's precision.
+    /// f32 or bf16.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = FlowBenchOptions::default().precision))]
     pub precision: Precision,
-    /// Where it runs.
+    /// cpu, cuda or cuda:N.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = FlowBenchOptions::default().device))]
     pub device: ComputeDevice,
-    /// The modes, in order; the first one's gradient is the reference.
+    /// The modes, comma-separated, in order (the first one's gradient is the reference).
+    #[cfg_attr(
+        feature = "clap",
+        arg(
+            long,
+            value_delimiter = ',',
+            default_value = "autograd,recorded,stepwise"
+        )
+    )]
     pub modes: Vec<FlowBackward>,
-    /// The flow estimator.
+    /// Flow estimator: lucas_kanade (the CPU stand-in), raft_small or
+    /// raft_large (random weights: the cost, not the flow, is measured).
+    #[cfg_attr(feature = "clap", arg(long = "flow", default_value_t = FlowBenchOptions::default().estimator))]
     pub estimator: FlowBenchEstimator,
     /// RAFT's refinement iterations (torchvision's default 12).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = FlowBenchOptions::default().raft_iterations))]
     pub raft_iterations: usize,
 }
 

@@ -9,26 +9,50 @@ use std::fmt;
 use std::path::PathBuf;
 use std::time::Instant;
 
-/// What `bench loader` loads.
+/// What `bench loader` loads (the command's flags).
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct LoaderBenchOptions {
-    /// Dataset (LeRobot with `masks/` or calibration); `None`: a synthetic
+    /// Dataset (LeRobot with masks/ or calibration); default: a synthetic
     /// one generated in a temporary folder.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub dataset: Option<PathBuf>,
-    /// Robot for rendering calc masks of the synthetic dataset.
+    /// Robot for rendering calc masks (when the dataset has calibration and joint states).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = LoaderBenchOptions::default().robot))]
     pub robot: String,
-    /// Episodes of the synthetic dataset.
+    /// Episodes of the generated dataset.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = LoaderBenchOptions::default().episodes))]
     pub episodes: usize,
     /// Clip frames.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = LoaderBenchOptions::default().frames))]
     pub frames: usize,
     /// Clip width.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = LoaderBenchOptions::default().width))]
     pub width: usize,
     /// Clip height.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = LoaderBenchOptions::default().height))]
     pub height: usize,
     /// Clips per batch.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = LoaderBenchOptions::default().batch))]
     pub batch: usize,
     /// Batches assembled.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = LoaderBenchOptions::default().steps))]
     pub steps: usize,
+}
+
+impl Default for LoaderBenchOptions {
+    fn default() -> Self {
+        Self {
+            dataset: None,
+            robot: "franka".to_owned(),
+            episodes: 8,
+            frames: 25,
+            width: 96,
+            height: 64,
+            batch: 4,
+            steps: 50,
+        }
+    }
 }
 
 /// One timed opening of the dataset.

@@ -106,25 +106,38 @@ pub enum DemoError {
 
 /// The settings of the demo.
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct DemoOptions {
-    /// Output folder (written to a temporary folder, then renamed).
+    /// Output directory (written to a temporary folder beside it, then
+    /// renamed). An earlier demo's output there (a folder marked
+    /// `.bridgev2w-demo` holding nothing but the demo's files) is replaced;
+    /// any other existing folder is refused unless --overwrite.
+    #[cfg_attr(feature = "clap", arg(long, default_value = "demo-out"))]
     pub out: PathBuf,
-    /// Replace an existing `out` that is not an earlier demo's output (one
-    /// marked [`DEMO_MARKER`] holding nothing but [`DEMO_FILES`] and
-    /// `frames/`, which is replaced anyway).
+    /// Replace an existing --out folder that is not an earlier demo's output.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub overwrite: bool,
-    /// Frames in the trajectory.
+    /// Frames in the trajectory (CogVideoX clips are 49 frames).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DemoOptions::default().frames))]
     pub frames: usize,
-    /// The world model folder (`backbone/` + `bridgev2w.safetensors`);
-    /// `None`: the shipped demo model.
+    /// The world model for the prediction: a folder with `backbone/` (a
+    /// diffusers CogVideoX I2V folder) and `bridgev2w.safetensors`; default:
+    /// the shipped demo model (assets/demo-model).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub model: Option<PathBuf>,
-    /// Skip the world-model prediction.
+    /// Skip the world-model prediction (masks and overlay only).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub no_predict: bool,
-    /// Denoising steps of the prediction.
+    /// Denoising steps of the prediction (2: chosen on the training split,
+    /// see docs/results.md "Fewer denoising steps").
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DemoOptions::default().steps))]
     pub steps: usize,
     /// Sampling seed of the prediction.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DemoOptions::default().seed))]
     pub seed: u64,
-    /// The first latent frame of the prediction.
+    /// The first latent frame of the prediction: `generated` (diffusers'
+    /// sampler) or `replaced` by the image latent at every step.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DemoOptions::default().first_frame))]
     pub first_frame: FirstFrame,
 }
 

@@ -64,6 +64,35 @@ pub struct GridOptions {
     pub out: PathBuf,
 }
 
+/// `eval-grid`'s job: the grids of [`write_grids`] written into a new
+/// folder `o.out` as a transaction (a temporary folder beside it, renamed
+/// when every grid is written); an existing `o.out` is refused unless
+/// `overwrite`, and one that is, contains or is inside a run, its
+/// configuration or its datasets always ([`grid_inputs`]). Returns the GIFs
+/// at their final paths.
+pub fn write_grids_folder(
+    o: &GridOptions,
+    overwrite: bool,
+    progress: &dyn Progress,
+) -> Result<Vec<PathBuf>> {
+    let inputs = grid_inputs(&o.runs);
+    let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
+    let output_err = |e: bridgev2w_io::output::OutputError| TrainError::input("out", e.to_string());
+    let out = bridgev2w_io::output::OutputDir::create_for(&o.out, overwrite, &inputs)
+        .map_err(output_err)?;
+    let staged = GridOptions {
+        out: out.path().to_path_buf(),
+        ..o.clone()
+    };
+    let written = write_grids(&staged, progress)?;
+    let dir = out.commit().map_err(output_err)?;
+    Ok(written
+        .iter()
+        .filter_map(|p| p.file_name())
+        .map(|name| dir.join(name))
+        .collect())
+}
+
 /// Draws a grid per split with every run's predictions and returns the
 /// GIFs written. `progress` sees each split as a stage and a tick per clip.
 pub fn write_grids(o: &GridOptions, progress: &dyn Progress) -> Result<Vec<PathBuf>> {

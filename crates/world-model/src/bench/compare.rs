@@ -39,40 +39,60 @@ impl ModelStyle {
     }
 }
 
-/// What `bench model` builds and times.
+/// What `bench model` builds and times (the command's flags, but for the
+/// precisions and the limit).
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct ModelBenchOptions {
-    /// Architecture family.
+    /// Architecture family: `2b` (sin-cos positions) or `5b-i2v` (RoPE, learned positions, I2V input).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().style))]
     pub style: ModelStyle,
-    /// Transformer blocks.
+    /// Transformer blocks (the full models have 30 / 42).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().layers))]
     pub layers: i64,
-    /// Pixel frames (`4k + 1`).
+    /// Pixel frames (4k + 1). The defaults keep a 2-core CPU run near two minutes;
+    /// `--frames 25 --height 256 --width 384` is the mid-size setting
+    /// (the full-width VAE then dominates: tens of minutes on 2 cores).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().frames))]
     pub frames: i64,
     /// Pixel height.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().height))]
     pub height: i64,
     /// Pixel width.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().width))]
     pub width: i64,
-    /// Transformer batch (2 is one denoising step with classifier-free guidance).
+    /// Transformer batch: 2 times one denoising step with classifier-free
+    /// guidance (the pipeline's conditional and unconditional halves).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().batch))]
     pub batch: i64,
     /// Timed runs per operation (best is reported), after one warm-up.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().repeat))]
     pub repeat: usize,
     /// Precision of weights and activations.
+    #[cfg_attr(feature = "clap", arg(skip = Precision::F32))]
     pub precision: Precision,
-    /// Where both sides run.
+    /// cpu, cuda or cuda:N.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelBenchOptions::default().device))]
     pub device: ComputeDevice,
-    /// Time diffusers too.
+    /// `--no-diffusers`: skip diffusers (time this crate only).
+    #[cfg_attr(feature = "clap", arg(long = "no-diffusers", action = clap::ArgAction::SetFalse))]
     pub diffusers: bool,
-    /// Python with torch and diffusers (default: the project venv's).
+    /// Python with torch + diffusers (default: the project venv's).
+    #[cfg_attr(feature = "clap", arg(long))]
     pub python: Option<PathBuf>,
-    /// Repository root (holds `scripts/bench/`); default: found from the
+    /// Repository root (holds scripts/bench/); default: found from the
     /// current directory.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub repo: Option<PathBuf>,
-    /// Time the VAE with spatial tiling (both sides).
+    /// Time the VAE with spatial tiling on both sides (diffusers'
+    /// `enable_tiling()`, default tiles), as `predict` runs it above 256x256.
+    #[cfg_attr(feature = "clap", arg(long))]
     pub vae_tiling: bool,
     /// Each of diffusers' operations may run this long from its start (its
     /// warm-up and timed runs); one still running then is stopped and
     /// bounded, and the operations after it run in a new process (`None`:
     /// no limit).
+    #[cfg_attr(feature = "clap", arg(skip))]
     pub diffusers_limit: Option<Duration>,
 }
 
