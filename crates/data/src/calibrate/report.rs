@@ -211,6 +211,7 @@ pub fn rendered_masks(
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
