@@ -2,7 +2,7 @@
 
 use crate::masks_cmd::progress_bar;
 use anyhow::{bail, Result};
-use bridgev2w_data::synth::{plan, write_dataset, SynthConfig, Task};
+use bridgev2w_data::synth::{plan, write_dataset, Perturbation, SynthConfig, Task};
 use std::path::PathBuf;
 
 /// Arguments of `synth`.
@@ -37,6 +37,15 @@ pub struct SynthArgs {
     /// repeat a task to weigh it (e.g. `reach,push,pick_place,play,play,play`).
     #[arg(long, default_value = "reach,push,pick_place")]
     tasks: String,
+    /// Perturbed demonstrations: this fraction of the train split's reach,
+    /// push and pick_place episodes get one offset added to every action's
+    /// position (normal, --perturb-mm per axis); the world executes them,
+    /// so some fail the task (recorded per episode in meta/synth.json).
+    #[arg(long, default_value_t = 0.0, value_name = "FRACTION")]
+    perturbed_fraction: f64,
+    /// Standard deviation of the perturbed demonstrations' offset (mm).
+    #[arg(long, default_value_t = 30.0, value_name = "MM")]
+    perturb_mm: f64,
 }
 
 fn parse_counts(s: &str) -> Result<[usize; 4]> {
@@ -71,6 +80,10 @@ pub fn run(args: &SynthArgs) -> Result<()> {
         seed: args.seed,
         tasks,
         episodes_per_split: parse_counts(&args.episodes_per_split)?,
+        perturb: Perturbation {
+            fraction: args.perturbed_fraction,
+            offset_mm: args.perturb_mm,
+        },
     };
     config.validate()?;
     let n = plan(&config).len();
@@ -103,5 +116,11 @@ pub fn run(args: &SynthArgs) -> Result<()> {
         "  object contacts (push/grasp frames): {}\n",
         summary.contact_events
     ));
+    if summary.perturbed > 0 {
+        text.push_str(&format!(
+            "  perturbed demonstrations (train): {}, of which {} fail the task\n",
+            summary.perturbed, summary.perturbed_failed
+        ));
+    }
     crate::print_stdout(&text)
 }

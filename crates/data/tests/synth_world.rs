@@ -356,3 +356,92 @@ fn sizes_beyond_the_limits_are_refused_before_anything_is_allocated() {
         );
     }
 }
+
+/// Perturbed demonstrations (issue 71, item 4): with fraction 1 every
+/// goal-task training episode is the expert's with one offset on every
+/// action's position after the first frame, its outcome judged against the
+/// expert's; other splits, play episodes and fraction 0 are the expert's
+/// own; large offsets make grasps fail; bad settings are refused.
+#[test]
+fn perturbed_demonstrations_shift_the_expert_and_record_their_outcome() {
+    use bridgev2w_data::synth::{Perturbation, SUCCESS_TOLERANCE_M};
+    let plain = World::new(&config("franka")).unwrap();
+    let with = |fraction: f64, offset_mm: f64| {
+        World::new(&SynthConfig {
+            perturb: Perturbation {
+                fraction,
+                offset_mm,
+            },
+            ..config("franka")
+        })
+        .unwrap()
+    };
+    let perturbed = with(1.0, 30.0);
+    let expert = plain.generate(Split::Train, 0, Task::PickPlace).unwrap();
+    let e = perturbed
+        .generate(Split::Train, 0, Task::PickPlace)
+        .unwrap();
+    let outcome = e.meta.perturbation.clone().expect("perturbed");
+    assert!(expert.meta.perturbation.is_none());
+    assert_eq!(e.actions[0], expert.actions[0]);
+    for (a, b) in e.actions.iter().zip(&expert.actions).skip(1) {
+        for k in 0..3 {
+            assert!((a[k] - b[k] - outcome.offset_m[k]).abs() < 1e-12);
+        }
+        assert_eq!(a[3..], b[3..]);
+    }
+    let norm = outcome.offset_m.iter().map(|v| v * v).sum::<f64>().sqrt();
+    assert!(norm > 1e-4 && norm < 0.2, "{outcome:?}");
+    assert_eq!(outcome.error_m, perturbed.task_error_m(&expert, &e));
+    assert_eq!(outcome.success, outcome.error_m < SUCCESS_TOLERANCE_M);
+    assert_eq!(perturbed.task_error_m(&expert, &expert), 0.0);
+    assert_ne!(e.rgb, expert.rgb);
+    // The test split, play episodes and fraction 0: the expert's own.
+    let t = perturbed.generate(Split::Test, 0, Task::PickPlace).unwrap();
+    assert_eq!(
+        t.actions,
+        plain
+            .generate(Split::Test, 0, Task::PickPlace)
+            .unwrap()
+            .actions
+    );
+    assert!(t.meta.perturbation.is_none());
+    let p = perturbed.generate(Split::Train, 1, Task::Play).unwrap();
+    assert!(p.meta.perturbation.is_none());
+    let zero = with(0.0, 30.0)
+        .generate(Split::Train, 0, Task::PickPlace)
+        .unwrap();
+    assert_eq!(zero.actions, expert.actions);
+    // 15 cm offsets: most pick-and-places miss the object.
+    let far = with(1.0, 150.0);
+    let outcomes: Vec<bool> = (0..4)
+        .filter_map(|i| {
+            far.generate(Split::Train, i, Task::PickPlace)
+                .unwrap()
+                .meta
+                .perturbation
+        })
+        .map(|o| o.success)
+        .collect();
+    assert!(
+        outcomes.iter().filter(|s| !**s).count() >= 2,
+        "{outcomes:?}"
+    );
+    for (fraction, offset_mm, flag) in [
+        (1.5, 30.0, "--perturbed-fraction"),
+        (f64::NAN, 30.0, "--perturbed-fraction"),
+        (0.5, 0.0, "--perturb-mm"),
+        (0.5, 600.0, "--perturb-mm"),
+    ] {
+        let e = World::new(&SynthConfig {
+            perturb: Perturbation {
+                fraction,
+                offset_mm,
+            },
+            ..config("franka")
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains(flag), "{e}");
+    }
+}

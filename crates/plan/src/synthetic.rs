@@ -19,13 +19,9 @@ use bridgev2w_io::frame::{unit_from_u8, RgbFrame};
 use nalgebra::Isometry3;
 use rayon::prelude::*;
 
-/// Success tolerance: TCP (reach) or object (push, pick-and-place) within
-/// this distance of the expert's final one (metres, horizontal for objects).
-pub const SUCCESS_TOLERANCE_M: f64 = 0.03;
-
-/// The object push and pick_place move: the scene's first (the scripted
-/// expert's choice).
-pub const TASK_OBJECT: usize = 0;
+/// Success tolerance and the task object: the synthetic world's (the
+/// perturbed demonstrations of `synth` are judged by them too).
+pub use bridgev2w_data::synth::{SUCCESS_TOLERANCE_M, TASK_OBJECT};
 
 /// Lowest planned TCP height above the table top (metres).
 pub const WORKSPACE_CLEARANCE_M: f64 = 0.02;

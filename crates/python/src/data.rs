@@ -52,6 +52,7 @@ pub(crate) fn synth_generate<'py>(
         seed,
         tasks,
         episodes_per_split,
+        ..SynthConfig::default()
     };
     config
         .validate()

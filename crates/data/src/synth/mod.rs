@@ -18,12 +18,14 @@
 
 mod contacts;
 mod draw;
+mod perturb;
 mod scene;
 mod tasks;
 mod world;
 mod writer;
 
 pub use contacts::Contact;
+pub use perturb::{Perturbation, PerturbedOutcome, SUCCESS_TOLERANCE_M, TASK_OBJECT};
 pub use scene::{
     split_specs, CameraRegion, ObjectPose, Pattern, SceneFrame, SceneLook, SceneObject,
     ScenePalette, Shape, SplitSpec,
@@ -198,6 +200,9 @@ pub struct SynthConfig {
     pub tasks: Vec<Task>,
     /// Episodes per split, in [`Split::ALL`] order.
     pub episodes_per_split: [usize; 4],
+    /// Perturbed (and so sometimes failed) demonstrations in the `train`
+    /// split ([`Perturbation`]; none by default).
+    pub perturb: Perturbation,
 }
 
 impl Default for SynthConfig {
@@ -211,6 +216,7 @@ impl Default for SynthConfig {
             seed: 0,
             tasks: Task::ALL.to_vec(),
             episodes_per_split: [8, 2, 2, 2],
+            perturb: Perturbation::default(),
         }
     }
 }
@@ -258,7 +264,7 @@ impl SynthConfig {
         if self.tasks.is_empty() {
             return bad("at least one task is needed".into());
         }
-        Ok(())
+        self.perturb.validate()
     }
 }
 

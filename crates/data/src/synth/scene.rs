@@ -529,6 +529,7 @@ impl World {
             look,
             objects,
             max_ik_residual_m: 0.0,
+            perturbation: None,
         };
         Ok((meta, camera, actions))
     }

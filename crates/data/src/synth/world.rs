@@ -12,6 +12,10 @@ use bridgev2w_embodiment::mesh::TriMesh;
 use nalgebra::{Isometry3, Point3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+
+/// The seed stream of the perturbation draws (`derive_seed` with the
+/// episode's seed).
+const PERTURB_STREAM: u64 = 0x5045_5254_5552_4221;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -40,6 +44,10 @@ pub struct EpisodeMeta {
     pub objects: Vec<SceneObject>,
     /// Worst IK position residual over frames and arms (metres).
     pub max_ik_residual_m: f64,
+    /// A perturbed demonstration's offset and outcome
+    /// ([`super::Perturbation`]); `None` for the expert's own actions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub perturbation: Option<super::PerturbedOutcome>,
 }
 
 /// One rendered clip.
@@ -218,7 +226,16 @@ impl World {
             }
             let mut meta = meta;
             meta.max_ik_residual_m = worst;
-            return Ok(self.finish(meta, camera, actions, joints));
+            let expert = self.finish(meta, camera, actions, joints);
+            if self.config.perturb.fraction <= 0.0 {
+                return Ok(expert);
+            }
+            // Its own stream: the expert episodes stay as without perturbation.
+            let mut rng = ChaCha8Rng::seed_from_u64(bridgev2w_io::seed::derive_seed(&[
+                base_seed,
+                PERTURB_STREAM,
+            ]));
+            return self.perturbed(expert, &self.config.perturb, &mut rng);
         }
         Err(SynthError::Unreachable {
             split: split.name().into(),
@@ -230,7 +247,7 @@ impl World {
     }
 
     /// Simulates the objects and renders the clip.
-    fn finish(
+    pub(super) fn finish(
         &self,
         meta: EpisodeMeta,
         camera: Camera,

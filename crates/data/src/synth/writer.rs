@@ -43,6 +43,10 @@ pub struct DatasetSummary {
     pub total_frames: usize,
     /// Object-moving contacts (push, grasp) over all episodes.
     pub contact_events: usize,
+    /// Perturbed demonstrations ([`super::Perturbation`]).
+    pub perturbed: usize,
+    /// Of those, the ones that fail the task.
+    pub perturbed_failed: usize,
 }
 
 /// The camera's video key in the dataset.
@@ -92,6 +96,8 @@ pub fn write_dataset(
         episodes_per_task: Default::default(),
         total_frames: 0,
         contact_events: 0,
+        perturbed: 0,
+        perturbed_failed: 0,
     };
     let mut metas = Vec::new();
     for chunk in plan.chunks(batch) {
@@ -128,6 +134,10 @@ pub fn write_dataset(
                 .entry(e.meta.task.name().into())
                 .or_default() += 1;
             summary.total_frames += e.rgb.len();
+            if let Some(p) = &e.meta.perturbation {
+                summary.perturbed += 1;
+                summary.perturbed_failed += usize::from(!p.success);
+            }
             summary.contact_events += e
                 .contacts
                 .iter()
