@@ -389,3 +389,79 @@ fn eval_drift_with_the_perfect_model_is_exact_and_bad_sizes_are_refused() {
         stderr(&o)
     );
 }
+
+/// `eval-policy-rollout --calibrate-judge N`: the perfect model's rollouts
+/// of the expert end on the goal image, so the floor is 0 and the judge
+/// (and every rate) is the fixed one's; the calibration is printed and
+/// written to the JSON; with --labels, or a quantile outside (0, 1], it is
+/// refused.
+#[test]
+fn a_calibrated_judge_keeps_the_fixed_judge_for_the_perfect_model() {
+    let d = tempfile::tempdir().expect("tmp");
+    let json = d.path().join("rates.json");
+    let args = |extra: &[&str]| {
+        let mut a = vec![
+            "eval-policy-rollout",
+            "--task",
+            "reach",
+            "--trials",
+            "2",
+            "--episode-frames",
+            "9",
+            "--offsets-mm",
+            "0,50",
+        ];
+        a.extend_from_slice(extra);
+        run(&a)
+    };
+    let table = |o: &Output| -> Vec<String> {
+        String::from_utf8_lossy(&o.stdout)
+            .lines()
+            .filter(|l| l.starts_with("| scripted"))
+            .map(String::from)
+            .collect()
+    };
+    let fixed = args(&[]);
+    assert!(fixed.status.success(), "{}", stderr(&fixed));
+    let calibrated = args(&[
+        "--calibrate-judge",
+        "2",
+        "--json",
+        json.to_str().expect("utf-8"),
+    ]);
+    assert!(calibrated.status.success(), "{}", stderr(&calibrated));
+    assert_eq!(table(&fixed), table(&calibrated));
+    assert_eq!(table(&fixed).len(), 2);
+    let out = String::from_utf8_lossy(&calibrated.stdout);
+    assert!(
+        out.contains("judged above a floor of 0.000 (the 0.8 quantile")
+            && out.contains("in 2 train episodes): ratio 0.500"),
+        "{out}"
+    );
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    assert_eq!(j["judge_calibration"]["episodes"], 2);
+    assert_eq!(j["judge_calibration"]["floor"], 0.0);
+    let labels = d.path().join("labels.csv");
+    std::fs::write(&labels, "policy,trial,success\n").expect("labels");
+    let o = args(&[
+        "--calibrate-judge",
+        "2",
+        "--labels",
+        labels.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        !o.status.success()
+            && stderr(&o).contains("--calibrate-judge")
+            && stderr(&o).contains("--labels"),
+        "{}",
+        stderr(&o)
+    );
+    let o = args(&["--calibrate-judge", "2", "--calibration-quantile", "0"]);
+    assert!(
+        !o.status.success()
+            && stderr(&o).contains("--calibration-quantile: 0: expected a quantile in (0, 1]"),
+        "{}",
+        stderr(&o)
+    );
+}

@@ -358,6 +358,9 @@ pub struct PolicyEvalReport {
     /// Policies whose evaluation stopped (a served policy unreachable,
     /// closed, slow or answering badly): name and error.
     pub failed: Vec<(String, String)>,
+    /// The goal-distance judge's ratio when it was calibrated on the
+    /// model's own expert rollouts (`--calibrate-judge`).
+    pub calibration: Option<crate::experiment::judge_calibration::JudgeCalibration>,
 }
 
 /// Mean world-model goal progress per policy and its agreement with the
@@ -386,6 +389,7 @@ impl PolicyEvalReport {
             pearson,
             progress: None,
             failed: Vec::new(),
+            calibration: None,
         })
     }
 

@@ -21,6 +21,7 @@
 
 pub mod drift;
 pub mod fidelity_study;
+pub mod judge_calibration;
 mod models;
 pub mod planning;
 pub mod report;

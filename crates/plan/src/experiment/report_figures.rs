@@ -165,6 +165,7 @@ mod tests {
                 pearson: 0.97,
                 progress: None,
                 failed: Vec::new(),
+                calibration: None,
             },
         )];
         let md = figures_section(&results, "planning", &plans, &evals).unwrap();

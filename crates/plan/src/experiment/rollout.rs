@@ -6,6 +6,7 @@
 //! served policy that fails (unreachable, closed, slow, a bad chunk) is
 //! reported by name with its error; the others' results are kept.
 
+use super::judge_calibration::calibrate_ratio;
 use super::{LoadedModel, ModelOptions};
 use crate::policy::{
     evaluate_trial, report_from_tallies, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport,
@@ -58,6 +59,18 @@ pub struct RolloutOptions {
     /// Goal-distance judge: success when d(last, goal) <= ratio * d(start, goal).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).ratio))]
     pub ratio: f64,
+    /// Calibrate the goal-distance judge on the model's own rollouts of the
+    /// expert's actions in this many episodes of the train split: their
+    /// --calibration-quantile of d_last / d_start is a floor f, and success
+    /// is d_last / d_start <= f + ratio (1 - f), for models whose blurred
+    /// predictions never come within a fixed --ratio of the sharp goal image
+    /// (0: the fixed --ratio; beyond the paper).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).calibrate_judge, value_name = "N"))]
+    pub calibrate_judge: usize,
+    /// The quantile of the expert rollouts' d_last / d_start that
+    /// --calibrate-judge takes as the ratio, in (0, 1].
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).calibration_quantile))]
+    pub calibration_quantile: f64,
     /// Judge by labels instead (CSV policy,trial,success).
     #[cfg_attr(feature = "clap", arg(long))]
     pub labels: Option<PathBuf>,
@@ -85,6 +98,8 @@ impl RolloutOptions {
             jitter_mm: 2.0,
             chunk: 8,
             ratio: 0.5,
+            calibrate_judge: 0,
+            calibration_quantile: 0.8,
             labels: None,
             split: Split::Test,
             episode_frames: 25,
@@ -226,6 +241,8 @@ pub fn rollout_report_with(
     }
     o.model.check_sizes()?;
     super::sizes::check_trials("--trials", o.trials)?;
+    super::sizes::check_trials("--calibrate-judge", o.calibrate_judge)?;
+    super::judge_calibration::check(o)?;
     super::sizes::check_episode_frames(o.episode_frames)?;
     let loaded = LoadedModel::load(&o.model)?;
     // One clip per model call.
@@ -245,6 +262,21 @@ pub(crate) fn rollout_with<'p>(
         .map(|i| TaskInstance::new(&world, o.split, i, o.task))
         .collect::<Result<_>>()?;
     let labels = o.labels.as_deref().map(LabelJudge::read).transpose()?;
+    let calibration = match o.calibrate_judge {
+        0 => None,
+        n => {
+            progress(&format!(
+                "judge: calibrating on the model's rollouts of the expert in {n} train episodes"
+            ));
+            let c = calibrate_ratio(loaded, &world, o)?;
+            progress(&format!(
+                "judge: floor {:.3} (the {} quantile of the expert rollouts' d_last / d_start), ratio {:.3}",
+                c.floor, c.quantile, c.ratio
+            ));
+            Some(c)
+        }
+    };
+    let ratio = calibration.as_ref().map_or(o.ratio, |c| c.ratio);
     let served_config = match &o.served_config {
         Some(p) => {
             ServedPolicyConfig::read(p).map_err(|e| PlanError::input("--policy-config", e))?
@@ -314,7 +346,7 @@ pub(crate) fn rollout_with<'p>(
                     let encode = |img: &RgbFrame| m.encode(img);
                     let goal_judge = GoalDistanceJudge {
                         encode: &encode,
-                        ratio: o.ratio,
+                        ratio,
                     };
                     let judge: &dyn SuccessJudge = match &labels {
                         Some(l) => l,
@@ -357,6 +389,7 @@ pub(crate) fn rollout_with<'p>(
     }
     let mut report = report_from_tallies(names, &tallies)?;
     report.failed = failed;
+    report.calibration = calibration;
     Ok(report)
 }
 
@@ -387,6 +420,7 @@ impl PolicyEvalReport {
             "mmrv": self.mmrv,
             "pearson": self.pearson,
             "mean_overestimate": self.mean_overestimate(),
+            "judge_calibration": self.calibration,
             "progress_mmrv": progress.map(|p| p.mmrv),
             "progress_pearson": progress.map(|p| p.pearson),
             "not_evaluated": failed,
@@ -429,6 +463,12 @@ impl PolicyEvalReport {
             s += &format!(
                 "Goal progress vs synthetic-world success: MMRV {:.3}, Pearson r {:.3}\n",
                 pr.mmrv, pr.pearson
+            );
+        }
+        if let Some(c) = &self.calibration {
+            s += &format!(
+                "World-model success judged above a floor of {:.3} (the {} quantile of d_last / d_start over the model's rollouts of the expert's actions in {} train episodes): ratio {:.3}\n",
+                c.floor, c.quantile, c.episodes, c.ratio
             );
         }
         for (name, error) in &self.failed {
