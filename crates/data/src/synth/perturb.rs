@@ -15,9 +15,8 @@
 //! task object (push, pick_place: horizontally, and released) within
 //! [`SUCCESS_TOLERANCE_M`] of where the expert's ended.
 
+use super::world::{MAX_IK_RESIDUAL_M, MAX_IK_RESIDUAL_RAD};
 use super::{Contact, Episode, Split, SynthError, Task, World};
-use bridgev2w_embodiment::actions::{actions_to_joints, Trajectory};
-use bridgev2w_embodiment::kinematics::IkOptions;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -132,7 +131,8 @@ impl World {
 
     /// The expert episode perturbed as `p` says, when it applies to the
     /// episode (else `expert` unchanged). Draws from `rng`; an offset whose
-    /// targets the arm cannot reach (IK residual over 1 cm) is drawn again,
+    /// targets the arm cannot reach (IK residual over 1 cm or 5 degrees) is
+    /// drawn again,
     /// [`ATTEMPTS`] times, then the expert episode is kept.
     pub(super) fn perturbed(
         &self,
@@ -154,28 +154,14 @@ impl World {
                     row[7 * arm + k] += o;
                 }
             }
-            let traj = Trajectory::new("perturbed demonstration", actions.clone())?;
-            let opts = IkOptions {
-                restarts: 8,
-                seed: expert.meta.seed.wrapping_add(attempt as u64),
-                ..IkOptions::default()
-            };
-            let (joints, residuals) = actions_to_joints(
-                &self.embodiment.robot,
-                &self.embodiment.end_effectors,
-                &traj,
-                &self.embodiment.home,
-                &opts,
-                true,
-            )?;
-            if residuals.iter().any(|r| r.position_error_m > 0.01) {
+            let seed = expert.meta.seed.wrapping_add(attempt as u64);
+            let (joints, worst, worst_rot) =
+                self.episode_joints("perturbed demonstration", &actions, seed)?;
+            if worst > MAX_IK_RESIDUAL_M || worst_rot > MAX_IK_RESIDUAL_RAD {
                 continue;
             }
             let mut meta = expert.meta.clone();
-            meta.max_ik_residual_m = residuals
-                .iter()
-                .map(|r| r.position_error_m)
-                .fold(0.0, f64::max);
+            meta.max_ik_residual_m = worst;
             let mut episode = self.finish(meta, expert.camera.clone(), actions, joints);
             let error_m = self.task_error_m(&expert, &episode);
             episode.meta.perturbation = Some(PerturbedOutcome {

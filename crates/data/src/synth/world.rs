@@ -13,6 +13,11 @@ use nalgebra::{Isometry3, Point3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+/// The worst IK position residual an episode may have (metres).
+pub(super) const MAX_IK_RESIDUAL_M: f64 = 0.01;
+/// The worst IK rotation residual an episode may have (radians; 5 degrees).
+pub(super) const MAX_IK_RESIDUAL_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+
 /// The seed stream of the perturbation draws (`derive_seed` with the
 /// episode's seed).
 const PERTURB_STREAM: u64 = 0x5045_5254_5552_4221;
@@ -198,30 +203,9 @@ impl World {
             let seed = base_seed.wrapping_add(attempt as u64);
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
             let (meta, camera, actions) = self.sample(split, index, task, seed, &mut rng)?;
-            let traj = Trajectory::new("synth", actions.clone())?;
-            let opts = IkOptions {
-                restarts: 8,
-                seed,
-                ..IkOptions::default()
-            };
-            let (joints, residuals) = actions_to_joints(
-                &self.embodiment.robot,
-                &self.embodiment.end_effectors,
-                &traj,
-                &self.embodiment.home,
-                &opts,
-                true,
-            )?;
-            let worst = residuals
-                .iter()
-                .map(|r| r.position_error_m)
-                .fold(0.0, f64::max);
-            let worst_rot = residuals
-                .iter()
-                .map(|r| r.rotation_error_rad)
-                .fold(0.0, f64::max);
+            let (joints, worst, worst_rot) = self.episode_joints("synth", &actions, seed)?;
             last_residual = worst;
-            if worst > 0.01 || worst_rot > 5f64.to_radians() {
+            if worst > MAX_IK_RESIDUAL_M || worst_rot > MAX_IK_RESIDUAL_RAD {
                 continue;
             }
             let mut meta = meta;
@@ -244,6 +228,37 @@ impl World {
             attempts: ATTEMPTS,
             residual_mm: last_residual * 1e3,
         })
+    }
+
+    /// The joints of an episode's end-effector `actions` by IK from the
+    /// home pose (8 restarts, `seed`), with the worst position (metres) and
+    /// rotation (radians) residuals over its frames and arms.
+    pub(super) fn episode_joints(
+        &self,
+        what: &str,
+        actions: &[Vec<f64>],
+        seed: u64,
+    ) -> Result<(Vec<Vec<f64>>, f64, f64), SynthError> {
+        let traj = Trajectory::new(what, actions.to_vec())?;
+        let opts = IkOptions {
+            restarts: 8,
+            seed,
+            ..IkOptions::default()
+        };
+        let (joints, residuals) = actions_to_joints(
+            &self.embodiment.robot,
+            &self.embodiment.end_effectors,
+            &traj,
+            &self.embodiment.home,
+            &opts,
+            true,
+        )?;
+        let worst = |f: fn(&_) -> f64| residuals.iter().map(f).fold(0.0, f64::max);
+        let (position_m, rotation_rad) = (
+            worst(|r| r.position_error_m),
+            worst(|r| r.rotation_error_rad),
+        );
+        Ok((joints, position_m, rotation_rad))
     }
 
     /// Simulates the objects and renders the clip.

@@ -15,7 +15,10 @@
 //! applied above that floor: success when `d_last / d_start <= f + ratio *
 //! (1 - f)`. A model whose expert rollouts end on the goal (`f = 0`, the
 //! perfect model) keeps the fixed judge; a blurred one is no longer asked
-//! to come nearer the goal than the expert's own actions take it.
+//! to come nearer the goal than the expert's own actions take it (its
+//! floor may exceed 1: its rollouts of the expert end farther from the
+//! sharp goal image than the sharp start is; the judge then accepts a
+//! rollout ending between 1 and `f`, the nearer to 1 the smaller `ratio`).
 
 use super::rollout::RolloutOptions;
 use super::LoadedModel;
@@ -113,7 +116,10 @@ pub(super) fn calibrate_ratio(
             o.calibrate_judge
         ))
     })?;
-    let floor = floor.clamp(0.0, 1.0);
+    // At least 0; above 1 where the model's rollouts of the expert end
+    // farther from the goal image than the start is (a blurred last frame
+    // against a sharp goal in the model's latent).
+    let floor = floor.max(0.0);
     Ok(JudgeCalibration {
         floor,
         ratio: floor + o.ratio * (1.0 - floor),
