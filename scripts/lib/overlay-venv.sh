@@ -2,7 +2,8 @@
 # creates VENV with the pins of LOCK (installed with --no-deps) and a .pth
 # file putting .venv's site-packages on its path, then runs the Python
 # statement CHECK in it. Idempotent: a venv whose stamp matches LOCK is kept.
-# Sourced by scripts/setup-lerobot-venv.sh and scripts/setup-policy-venv.sh.
+# Sourced by scripts/setup-lerobot-venv.sh, scripts/setup-policy-venv.sh and
+# scripts/setup-mujoco-venv.sh.
 make_overlay_venv() {
   local root venv="$1" lock="$2" check="$3" stamp project_site site
   root="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
