@@ -360,7 +360,24 @@ pub struct PolicyEvalReport {
     pub failed: Vec<(String, String)>,
     /// The goal-distance judge's ratio when it was calibrated on the
     /// model's own expert rollouts (`--calibrate-judge`).
-    pub calibration: Option<crate::experiment::judge_calibration::JudgeCalibration>,
+    pub calibration: Option<JudgeCalibration>,
+}
+
+/// The goal-distance judge calibrated on the model's own rollouts of the
+/// expert (`crate::experiment::judge_calibration`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct JudgeCalibration {
+    /// The floor: the quantile of the expert rollouts' `d_last / d_start`.
+    pub floor: f64,
+    /// The judge's ratio above the floor: success when `d_last <= ratio *
+    /// d_start` with `ratio = floor + fixed * (1 - floor)`.
+    pub ratio: f64,
+    /// Expert rollouts it was measured on (`train` split episodes).
+    pub episodes: usize,
+    /// The quantile of their `d_last / d_start` taken.
+    pub quantile: f64,
+    /// Each expert rollout's `d_last / d_start`, in episode order.
+    pub expert_ratios: Vec<f64>,
 }
 
 /// Mean world-model goal progress per policy and its agreement with the

@@ -20,29 +20,31 @@
 //! sharp goal image than the sharp start is; the judge then accepts a
 //! rollout ending between 1 and `f`, the nearer to 1 the smaller `ratio`).
 
-use super::rollout::RolloutOptions;
 use super::LoadedModel;
 use crate::model::latent_l1;
-use crate::policy::{rollout_in_model, Policy, ScriptedPolicy};
+use crate::policy::{rollout_in_model, JudgeCalibration, Policy, ScriptedPolicy};
 use crate::synthetic::{SyntheticEnv, TaskInstance};
 use crate::{PlanError, Result};
-use bridgev2w_data::synth::{Split, World};
-use serde::Serialize;
+use bridgev2w_data::synth::{Split, Task, World};
 
-/// The judge's ratio found by [`calibrate_ratio`].
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct JudgeCalibration {
-    /// The floor: the quantile of the expert rollouts' `d_last / d_start`.
-    pub floor: f64,
-    /// The judge's ratio above the floor: success when `d_last <= ratio *
-    /// d_start` with `ratio = floor + fixed * (1 - floor)`.
-    pub ratio: f64,
-    /// Expert rollouts it was measured on (`train` split episodes).
+/// What to calibrate on: the task's training episodes and how the
+/// policies are rolled out.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct CalibrationRun {
+    /// The task.
+    pub task: Task,
+    /// Training episodes whose expert actions are rolled out.
     pub episodes: usize,
-    /// The quantile of their `d_last / d_start` taken.
+    /// The quantile of their `d_last / d_start` taken as the floor.
     pub quantile: f64,
-    /// Each expert rollout's `d_last / d_start`, in episode order.
-    pub expert_ratios: Vec<f64>,
+    /// The fixed judge's ratio, applied above the floor.
+    pub ratio: f64,
+    /// Actions per policy chunk.
+    pub chunk: usize,
+    /// Actions per rollout.
+    pub horizon: usize,
+    /// Seed of the scripted replay.
+    pub seed: u64,
 }
 
 /// The `q` quantile of `values` (linear between order statistics).
@@ -57,17 +59,17 @@ fn quantile(values: &[f64], q: f64) -> Option<f64> {
     Some(v[lo] + (v[hi] - v[lo]) * (pos - lo as f64))
 }
 
-/// Checks `o.calibration_quantile` (the episode count is checked by the
-/// trials' size check).
-pub(super) fn check(o: &RolloutOptions) -> Result<()> {
-    let q = o.calibration_quantile;
+/// Checks the quantile, and that the judge calibrated is the one used (no
+/// `labels`); the episode count is checked by the trials' size check.
+pub(super) fn check(episodes: usize, quantile: f64, labels: bool) -> Result<()> {
+    let q = quantile;
     if !(q.is_finite() && q > 0.0 && q <= 1.0) {
         return Err(PlanError::input(
             "--calibration-quantile",
             format!("{q}: expected a quantile in (0, 1]"),
         ));
     }
-    if o.calibrate_judge > 0 && o.labels.is_some() {
+    if episodes > 0 && labels {
         return Err(PlanError::input(
             "--calibrate-judge",
             "calibrates the goal-distance judge, which --labels replaces: give one of them",
@@ -76,28 +78,27 @@ pub(super) fn check(o: &RolloutOptions) -> Result<()> {
     Ok(())
 }
 
-/// Rolls the expert's actions of `o.calibrate_judge` training episodes out
-/// in `loaded` and returns the judge's floor (the `o.calibration_quantile`
-/// quantile of their `d_last / d_start`) and its ratio above it.
+/// Rolls the expert's actions of `c.episodes` training episodes out in
+/// `loaded` and returns the judge's floor (the `c.quantile` quantile of
+/// their `d_last / d_start`) and its ratio above it.
 pub(super) fn calibrate_ratio(
     loaded: &LoadedModel,
     world: &World,
-    o: &RolloutOptions,
+    c: &CalibrationRun,
 ) -> Result<JudgeCalibration> {
-    let horizon = o.episode_frames - 1;
-    let mut expert_ratios = Vec::with_capacity(o.calibrate_judge);
-    for i in 0..o.calibrate_judge {
-        let inst = TaskInstance::new(world, Split::Train, i, o.task)?;
+    let mut expert_ratios = Vec::with_capacity(c.episodes);
+    for i in 0..c.episodes {
+        let inst = TaskInstance::new(world, Split::Train, i, c.task)?;
         let goal = inst
             .goal_images()
             .pop()
             .ok_or_else(|| PlanError::Invalid("a task instance without a goal image".into()))?;
         let start = SyntheticEnv::new(world, inst.clone()).observe();
         // The expert's own actions, without offset or jitter.
-        let mut expert = ScriptedPolicy::new(inst.expert_actions(), o.chunk, 0.0, 0.0, o.seed);
+        let mut expert = ScriptedPolicy::new(inst.expert_actions(), c.chunk, 0.0, 0.0, c.seed);
         let (d_start, d_last) = loaded.with_model(world, &inst, &mut |m| {
             expert.reset(i);
-            let rolled = rollout_in_model(m, &mut expert, start.clone(), horizon)?;
+            let rolled = rollout_in_model(m, &mut expert, start.clone(), c.horizon)?;
             let g = m.encode(&goal)?;
             Ok((
                 latent_l1(&m.encode(&start.image)?, &g)?,
@@ -110,10 +111,10 @@ pub(super) fn calibrate_ratio(
             f64::NAN
         });
     }
-    let floor = quantile(&expert_ratios, o.calibration_quantile).ok_or_else(|| {
+    let floor = quantile(&expert_ratios, c.quantile).ok_or_else(|| {
         PlanError::Invalid(format!(
             "--calibrate-judge {}: no expert rollout started away from its goal",
-            o.calibrate_judge
+            c.episodes
         ))
     })?;
     // At least 0; above 1 where the model's rollouts of the expert end
@@ -122,9 +123,9 @@ pub(super) fn calibrate_ratio(
     let floor = floor.max(0.0);
     Ok(JudgeCalibration {
         floor,
-        ratio: floor + o.ratio * (1.0 - floor),
-        episodes: o.calibrate_judge,
-        quantile: o.calibration_quantile,
+        ratio: floor + c.ratio * (1.0 - floor),
+        episodes: c.episodes,
+        quantile: c.quantile,
         expert_ratios,
     })
 }

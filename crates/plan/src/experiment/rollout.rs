@@ -6,7 +6,7 @@
 //! served policy that fails (unreachable, closed, slow, a bad chunk) is
 //! reported by name with its error; the others' results are kept.
 
-use super::judge_calibration::calibrate_ratio;
+use super::judge_calibration::{calibrate_ratio, CalibrationRun};
 use super::{LoadedModel, ModelOptions};
 use crate::policy::{
     evaluate_trial, report_from_tallies, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport,
@@ -242,7 +242,11 @@ pub fn rollout_report_with(
     o.model.check_sizes()?;
     super::sizes::check_trials("--trials", o.trials)?;
     super::sizes::check_trials("--calibrate-judge", o.calibrate_judge)?;
-    super::judge_calibration::check(o)?;
+    super::judge_calibration::check(
+        o.calibrate_judge,
+        o.calibration_quantile,
+        o.labels.is_some(),
+    )?;
     super::sizes::check_episode_frames(o.episode_frames)?;
     let loaded = LoadedModel::load(&o.model)?;
     // One clip per model call.
@@ -262,13 +266,23 @@ pub(crate) fn rollout_with<'p>(
         .map(|i| TaskInstance::new(&world, o.split, i, o.task))
         .collect::<Result<_>>()?;
     let labels = o.labels.as_deref().map(LabelJudge::read).transpose()?;
+    let horizon = o.episode_frames - 1;
     let calibration = match o.calibrate_judge {
         0 => None,
         n => {
             progress(&format!(
                 "judge: calibrating on the model's rollouts of the expert in {n} train episodes"
             ));
-            let c = calibrate_ratio(loaded, &world, o)?;
+            let run = CalibrationRun {
+                task: o.task,
+                episodes: n,
+                quantile: o.calibration_quantile,
+                ratio: o.ratio,
+                chunk: o.chunk,
+                horizon,
+                seed: o.seed,
+            };
+            let c = calibrate_ratio(loaded, &world, &run)?;
             progress(&format!(
                 "judge: floor {:.3} (the {} quantile of the expert rollouts' d_last / d_start), ratio {:.3}",
                 c.floor, c.quantile, c.ratio
@@ -283,7 +297,6 @@ pub(crate) fn rollout_with<'p>(
         }
         None => ServedPolicyConfig::default(),
     };
-    let horizon = o.episode_frames - 1;
     let experts: Vec<Vec<EeAction>> = instances.iter().map(TaskInstance::expert_actions).collect();
     let robot = std::sync::Arc::new(world.embodiment.robot.clone());
     let kinematics: Vec<TcpKinematics> = instances
