@@ -31,6 +31,11 @@ class PolicyEvaluation:
     #: ``(name, error)`` of each policy whose evaluation stopped (a function
     #: that raised, with its traceback and step; a server that failed).
     failed: list = field(default_factory=list)
+    #: World-model minus synthetic-world success rate per policy.
+    overestimate: list = field(default_factory=list)
+    #: The calibrated judge (``calibrate_judge``): ``floor``, ``ratio``,
+    #: ``episodes``, ``quantile``, ``expert_ratios``; None for the fixed one.
+    calibration: Optional[dict] = None
     #: The table ``bridgev2w eval-policy-rollout`` prints.
     markdown: str = ""
 
@@ -67,7 +72,8 @@ def _wrap(name: str, fn: Callable):
 def evaluate_policies(policies: Mapping[str, Callable], *, task: str = "pick_place", trials: int = 10,
                       model: str = "perfect", weights=None, offsets_mm: Sequence[float] = (),
                       served: Sequence[str] = (), served_config=None, episode_frames: int = 25,
-                      chunk: int = 8, ratio: float = 0.5, split: str = "test",
+                      chunk: int = 8, ratio: float = 0.5, calibrate_judge: int = 0,
+                      calibration_quantile: float = 0.8, split: str = "test",
                       seed: int = 0) -> PolicyEvaluation:
     """Evaluates each function of ``policies`` (name -> function) by
     rollouts in the world model ``model`` (``"perfect"``, ``"random"`` or a
@@ -83,7 +89,14 @@ def evaluate_policies(policies: Mapping[str, Callable], *, task: str = "pick_pla
     closure in the robot's base frame. A function that raises, or returns
     another shape or non-finite values, stops its own evaluation: it is
     listed in ``failed`` with the traceback and the step, and the other
-    policies' results are kept."""
+    policies' results are kept.
+
+    ``calibrate_judge=N`` calibrates the goal-distance judge on the model's
+    own rollouts of the expert's actions in N train-split episodes (their
+    ``calibration_quantile`` of ``d_last / d_start`` is a floor ``f``;
+    success is ``d_last / d_start <= f + ratio (1 - f)``), as
+    ``eval-policy-rollout --calibrate-judge``; ``calibration`` then holds
+    the floor and the ratio."""
     if not isinstance(policies, Mapping):
         raise ValueError(f"policies: expected a dict of name -> function, got {type(policies).__name__}")
     for name, fn in policies.items():
@@ -96,5 +109,6 @@ def evaluate_policies(policies: Mapping[str, Callable], *, task: str = "pick_pla
         wrapped, str(task), _int("trials", trials, 1), str(model), _path("weights", weights, optional=True),
         [_float(f"offsets_mm[{i}]", v) for i, v in enumerate(offsets_mm)], [str(s) for s in served],
         _path("served_config", served_config, optional=True), _int("episode_frames", episode_frames, 2),
-        _int("chunk", chunk, 1), _float("ratio", ratio), str(split), _int("seed", seed, 0))
+        _int("chunk", chunk, 1), _float("ratio", ratio), _int("calibrate_judge", calibrate_judge, 0),
+        _float("calibration_quantile", calibration_quantile), str(split), _int("seed", seed, 0))
     return PolicyEvaluation(**d)

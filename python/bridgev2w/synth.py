@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Sequence, Union
 
 from . import _core
-from . import _int, _path
+from . import _float, _int, _path
 
 #: The tasks the generator scripts.
 TASKS = ("reach", "push", "pick_place", "play")
@@ -34,11 +34,16 @@ class SynthSummary:
     episodes_per_task: dict = field(default_factory=dict)
     #: Object-moving contacts (push and grasp frames) over all episodes.
     contact_events: int = 0
+    #: Perturbed demonstrations in the train split (``perturbed_fraction``).
+    perturbed: int = 0
+    #: Of those, the ones that fail the task.
+    perturbed_failed: int = 0
 
 
 def generate(out, *, robot: str = "franka", episodes_per_split: Union[int, Sequence[int]] = (8, 2, 2, 2),
              frames: int = 25, width: int = 96, height: int = 64, fps: int = 10, seed: int = 0,
-             tasks: Union[str, Sequence[str]] = ("reach", "push", "pick_place")) -> SynthSummary:
+             tasks: Union[str, Sequence[str]] = ("reach", "push", "pick_place"),
+             perturbed_fraction: float = 0.0, perturb_mm: float = 30.0) -> SynthSummary:
     """Writes a synthetic tabletop dataset (LeRobot v3.0) to ``out``, which
     must not exist (written to a temporary folder beside it, then renamed), and returns its
     :class:`SynthSummary`. The arguments and defaults are ``bridgev2w
@@ -46,7 +51,10 @@ def generate(out, *, robot: str = "franka", episodes_per_split: Union[int, Seque
     all of :data:`SPLITS` or four; ``frames`` per episode (2..10000);
     ``width`` and ``height`` even, 16..4096 pixels; ``fps``; ``seed`` (same
     seed, same bytes); ``tasks`` from :data:`TASKS`, assigned round-robin (a
-    list or a comma-separated string; repeat one to weigh it). Episodes are
+    list or a comma-separated string; repeat one to weigh it);
+    ``perturbed_fraction`` of the train split's goal-task episodes get one
+    normal offset of ``perturb_mm`` per axis on every action's position, so
+    that some fail (``--perturbed-fraction``, ``--perturb-mm``). Episodes are
     rendered in parallel on the Rust thread pool with the GIL released.
     ``out`` existing is a ``FileExistsError``, a bad argument a
     ``ValueError`` naming it, anything else a ``bridgev2w.Error``."""
@@ -69,5 +77,6 @@ def generate(out, *, robot: str = "franka", episodes_per_split: Union[int, Seque
     d = _core.synth_generate(
         _path("out", out), robot, counts, _int("frames", frames, 2, 10_000),
         _int("width", width, 16, 4096, even=True), _int("height", height, 16, 4096, even=True),
-        _int("fps", fps, 1, 2 ** 32 - 1), _int("seed", seed, 0, 2 ** 64 - 1), list(tasks))
+        _int("fps", fps, 1, 2 ** 32 - 1), _int("seed", seed, 0, 2 ** 64 - 1), list(tasks),
+        _float("perturbed_fraction", perturbed_fraction), _float("perturb_mm", perturb_mm))
     return SynthSummary(**d)

@@ -296,6 +296,17 @@ def test_synth_generate_writes_what_the_cli_writes():
         raise AssertionError("an existing out passed")
     except FileExistsError as e:
         assert "synth-py" in str(e), e
+    # Perturbed demonstrations: the CLI's bytes again, the counts reported.
+    p = bw.synth.generate(WORK / "synth-py-perturbed", episodes_per_split=(3, 1, 0, 0), frames=5, width=32,
+                          height=24, seed=4, tasks=["reach", "push"], perturbed_fraction=1.0, perturb_mm=40)
+    assert p.perturbed == 3 and 0 <= p.perturbed_failed <= 3, p
+    subprocess.run([BIN, "synth", "--out", str(WORK / "synth-cli-perturbed"), "--episodes-per-split", "3,1,0,0",
+                    "--frames", "5", "--width", "32", "--height", "24", "--seed", "4", "--tasks", "reach,push",
+                    "--perturbed-fraction", "1", "--perturb-mm", "40"], check=True, capture_output=True)
+    assert same_tree(WORK / "synth-py-perturbed", WORK / "synth-cli-perturbed") > 8
+    import pytest
+    with pytest.raises(ValueError, match="perturbed-fraction"):
+        bw.synth.generate(WORK / "synth-py-bad", perturbed_fraction=2.0)
 
 
 def test_read_episode_checks_shapes_against_the_declared_features():
@@ -588,6 +599,15 @@ def test_python_functions_are_evaluated_as_policies():
     assert "policy broken, step 1" in failed["broken"] and "policy bug on purpose" in failed["broken"]
     assert "Traceback" in failed["broken"] and "in broken" in failed["broken"], failed["broken"]
     assert "returned shape (3, 8)" in failed["wide"] and "step 0" in failed["wide"], failed["wide"]
+    assert r.calibration is None
+    assert r.overestimate == [p - q for p, q in zip(r.predicted, r.real)], r.overestimate
+    # The judge calibrated on the perfect model's expert rollouts: a floor
+    # of 0, so the fixed judge's rates.
+    c = bw.evaluate_policies({"stay": stay}, task="reach", trials=2, episode_frames=9, offsets_mm=[0, 50],
+                             calibrate_judge=2)
+    assert c.calibration["floor"] == 0.0 and c.calibration["ratio"] == 0.5, c.calibration
+    assert c.calibration["episodes"] == 2 and len(c.calibration["expert_ratios"]) == 2, c.calibration
+    assert c.predicted == r.predicted and c.real == r.real, (c, r)
     with pytest.raises(ValueError, match=r"policies\['x'\]: expected a function"):
         bw.evaluate_policies({"x": 3})
     with pytest.raises(ValueError, match="task"):

@@ -17,9 +17,10 @@ fn check_new_output(out: &Path) -> PyResult<()> {
 /// Writes the synthetic tabletop dataset (LeRobot v3.0) of `bridgev2w synth`
 /// to `out` (written to a temporary folder beside it, then renamed) with the GIL released;
 /// returns its summary as a dict (`out`, `episodes`, `total_frames`,
-/// `episodes_per_split`, `episodes_per_task`, `contact_events`).
+/// `episodes_per_split`, `episodes_per_task`, `contact_events`,
+/// `perturbed`, `perturbed_failed`).
 #[pyfunction]
-#[pyo3(signature = (out, robot, episodes_per_split, frames, width, height, fps, seed, tasks))]
+#[pyo3(signature = (out, robot, episodes_per_split, frames, width, height, fps, seed, tasks, perturbed_fraction, perturb_mm))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn synth_generate<'py>(
     py: Python<'py>,
@@ -32,6 +33,8 @@ pub(crate) fn synth_generate<'py>(
     fps: u32,
     seed: u64,
     tasks: Vec<String>,
+    perturbed_fraction: f64,
+    perturb_mm: f64,
 ) -> PyResult<Bound<'py, PyDict>> {
     let tasks = tasks
         .iter()
@@ -52,7 +55,10 @@ pub(crate) fn synth_generate<'py>(
         seed,
         tasks,
         episodes_per_split,
-        ..SynthConfig::default()
+        perturb: Perturbation {
+            fraction: perturbed_fraction,
+            offset_mm: perturb_mm,
+        },
     };
     config
         .validate()
@@ -85,6 +91,8 @@ pub(crate) fn synth_generate<'py>(
     d.set_item("episodes_per_split", summary.episodes_per_split)?;
     d.set_item("episodes_per_task", summary.episodes_per_task)?;
     d.set_item("contact_events", summary.contact_events)?;
+    d.set_item("perturbed", summary.perturbed)?;
+    d.set_item("perturbed_failed", summary.perturbed_failed)?;
     Ok(d)
 }
 

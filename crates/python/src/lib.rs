@@ -9,7 +9,7 @@ use bridgev2w_data::raw::ctrl_world::SplitRule;
 use bridgev2w_data::raw::request::ConvertRequest;
 use bridgev2w_data::raw::RawError;
 use bridgev2w_data::synth::{
-    plan, write_dataset, SynthConfig, SynthError, Task, WriteDatasetError,
+    plan, write_dataset, Perturbation, SynthConfig, SynthError, Task, WriteDatasetError,
 };
 use bridgev2w_embodiment::actions::{actions_to_joints, check_joint_trajectory, Trajectory};
 use bridgev2w_embodiment::camera::CameraTrack;

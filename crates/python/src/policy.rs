@@ -92,9 +92,12 @@ impl Policy for PyPolicy {
 /// by rollouts in `model` (`perfect`, `random` or a model folder with
 /// `weights`) and in the synthetic world; returns a dict: `policies`,
 /// `predicted`, `real`, `mmrv`, `pearson`, `progress` (mean goal progress
-/// per policy, or None), `failed` (`(name, error)` pairs), `markdown`.
+/// per policy, or None), `failed` (`(name, error)` pairs), `overestimate`
+/// (world-model minus synthetic-world success per policy), `calibration`
+/// (the calibrated judge's `{floor, ratio, episodes, quantile,
+/// expert_ratios}`, or None), `markdown`.
 #[pyfunction]
-#[pyo3(signature = (policies, task, trials, model, weights, offsets_mm, served, served_config, episode_frames, chunk, ratio, split, seed))]
+#[pyo3(signature = (policies, task, trials, model, weights, offsets_mm, served, served_config, episode_frames, chunk, ratio, calibrate_judge, calibration_quantile, split, seed))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn evaluate_policies<'py>(
     py: Python<'py>,
@@ -109,6 +112,8 @@ pub(crate) fn evaluate_policies<'py>(
     episode_frames: usize,
     chunk: usize,
     ratio: f64,
+    calibrate_judge: usize,
+    calibration_quantile: f64,
     split: &str,
     seed: u64,
 ) -> PyResult<Bound<'py, PyDict>> {
@@ -153,6 +158,8 @@ pub(crate) fn evaluate_policies<'py>(
         episode_frames,
         chunk,
         ratio,
+        calibrate_judge,
+        calibration_quantile,
         split,
         seed,
         ..RolloutOptions::new(task)
@@ -189,6 +196,17 @@ pub(crate) fn evaluate_policies<'py>(
     d.set_item("pearson", report.pearson)?;
     d.set_item("progress", report.progress.as_ref().map(|p| p.mean.clone()))?;
     d.set_item("failed", report.failed.clone())?;
+    d.set_item("overestimate", report.overestimate())?;
+    let calibration = report.calibration.as_ref().map(|c| {
+        let c_dict = PyDict::new(py);
+        c_dict.set_item("floor", c.floor)?;
+        c_dict.set_item("ratio", c.ratio)?;
+        c_dict.set_item("episodes", c.episodes)?;
+        c_dict.set_item("quantile", c.quantile)?;
+        c_dict.set_item("expert_ratios", c.expert_ratios.clone())?;
+        Ok::<_, PyErr>(c_dict)
+    });
+    d.set_item("calibration", calibration.transpose()?)?;
     d.set_item("markdown", report.markdown())?;
     Ok(d)
 }
