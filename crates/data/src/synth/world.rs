@@ -16,7 +16,7 @@ use rand_chacha::ChaCha8Rng;
 /// The worst IK position residual an episode may have (metres).
 pub(super) const MAX_IK_RESIDUAL_M: f64 = 0.01;
 /// The worst IK rotation residual an episode may have (radians; 5 degrees).
-pub(super) const MAX_IK_RESIDUAL_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+pub(super) const MAX_IK_RESIDUAL_RAD: f64 = 5.0 * (std::f64::consts::PI / 180.0);
 
 /// The seed stream of the perturbation draws (`derive_seed` with the
 /// episode's seed).
