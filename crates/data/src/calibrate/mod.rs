@@ -11,8 +11,9 @@
 //!   distance.
 //! - The camera is found with no start given: a coarse search over poses
 //!   all around the workspace, then Nelder-Mead refinement on finer grids
-//!   (`search`), with scans along the dolly-zoom valley (a near, wide camera
-//!   against a far, narrow one) that Nelder-Mead rarely crosses.
+//!   (`search`), with a walk along the objective's valleys (the dolly-zoom:
+//!   a near, wide camera against a far, narrow one; the orbits) that
+//!   Nelder-Mead rarely follows.
 //! - Frames are split into blocks; every fourth block is held out of the
 //!   fit and scored after it ([`EpisodeResidual::held_out_iou`]).
 //! - Refused with the measured reason ([`CalibrateError`]): a camera that
@@ -48,8 +49,8 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use objective::reduce_intrinsics;
 use problem::{prepare, Prepared};
 use search::{
-    active_parameters, angle_between, coarse_candidates, distinct, dolly_scan, marks_start, probe,
-    refine, start_intrinsics, Evaluator,
+    active_parameters, angle_between, coarse_candidates, distinct, marks_start, probe, refine,
+    start_intrinsics, walk_step, Evaluator,
 };
 use serde::Serialize;
 use std::path::PathBuf;
@@ -153,9 +154,9 @@ pub enum CalibrateError {
     Synth(#[from] SynthError),
 }
 
-/// At most this many dolly-zoom scans after the middle-grid refinement
-/// (each from the best camera so far, while it improves).
-const MAX_DOLLY_SCANS: usize = 4;
+/// At most this many steps of the valley walk after the middle-grid
+/// refinement (each from the best camera so far, while it improves).
+const MAX_WALK_STEPS: usize = 8;
 
 /// A calibration's residuals on one episode.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -568,25 +569,19 @@ pub fn calibrate(
         .map(|(c, _)| refine(&mid, c, target, &all, 0.4, options.max_evaluations, 2))
         .collect();
     finalists.sort_by(|a, b| a.1.total_cmp(&b.1));
-    progress("scanning the dolly-zoom valley");
-    for _ in 0..MAX_DOLLY_SCANS {
-        let (scanned, scanned_value) =
-            dolly_scan(&mid, &finalists[0].0, target, &all, options.max_evaluations);
-        if scanned_value >= finalists[0].1 - 1e-4 {
+    progress("walking the orbit and dolly-zoom valleys");
+    for _ in 0..MAX_WALK_STEPS {
+        let Some((moved, _, _)) = walk_step(
+            &mid,
+            &finalists[0].0,
+            target,
+            &all,
+            options.walk_evaluations,
+        ) else {
             break;
-        }
-        finalists.insert(
-            0,
-            refine(
-                &mid,
-                &scanned,
-                target,
-                &all,
-                0.4,
-                options.max_evaluations,
-                1,
-            ),
-        );
+        };
+        let step = refine(&mid, &moved, target, &all, 0.4, options.max_evaluations, 1);
+        finalists.insert(0, step);
         finalists.sort_by(|a, b| a.1.total_cmp(&b.1));
     }
     let (best_mid, best_value) = finalists[0].clone();

@@ -55,6 +55,9 @@ pub struct CalibrateOptions {
     pub mode_frames: usize,
     /// Nelder-Mead evaluations per round.
     pub max_evaluations: usize,
+    /// Nelder-Mead evaluations of each re-fit of the valley walk (the
+    /// camera moved along an orbit or the dolly-zoom, the rest re-fitted).
+    pub walk_evaluations: usize,
     /// Refuse an episode whose robot surface moves less (metres).
     pub min_motion_m: f64,
     /// Refuse an episode with fewer frames showing robot pixels.
@@ -117,6 +120,7 @@ impl Default for CalibrateOptions {
             fit_frames: 24,
             mode_frames: 24,
             max_evaluations: 250,
+            walk_evaluations: 120,
             min_motion_m: 0.05,
             min_robot_frames: 6,
             min_robot_frame_fraction: 0.3,
@@ -242,6 +246,7 @@ impl CalibrateOptions {
             ("--max-evaluations", self.max_evaluations, 10, 100_000),
             ("--min-robot-frames", self.min_robot_frames, 1, 100_000),
             ("--probe-evaluations", self.probe_evaluations, 1, 100_000),
+            ("--walk-evaluations", self.walk_evaluations, 1, 100_000),
         ];
         for (field, v, lo, hi) in counts {
             if !(lo..=hi).contains(&v) {

@@ -532,27 +532,42 @@ pub(crate) fn refit_with_fixed(
     param.camera(&full(&m.x)).map(|c| (c, m.value))
 }
 
-/// The dolly-zoom offsets (log of the distance ratio) [`dolly_scan`] tries:
-/// the camera from 0.74 to 1.35 times as far, its focal length alike.
-const DOLLY_OFFSETS: [f64; 6] = [-0.3, -0.15, -0.07, 0.07, 0.15, 0.3];
+/// The moves [`walk_step`] tries along each of [`PROBES`]: for the
+/// dolly-zoom the log of the distance ratio (0.74 to 1.35 times as far, the
+/// focal length alike), for the orbits a third of it in radians (1.3 to 5.7
+/// degrees about the motion's centroid).
+const WALK_OFFSETS: [f64; 6] = [-0.3, -0.15, -0.07, 0.07, 0.15, 0.3];
+
+/// The smallest fall of the objective [`walk_step`] takes as a move.
+const WALK_MIN_GAIN: f64 = 1e-4;
 
 /// A silhouette hardly tells a near, wide camera from a far, narrow one
-/// (dolly-zoom); Nelder-Mead rarely crosses that valley. Tries `camera`
-/// moved along it by each of [`DOLLY_OFFSETS`] with the rest re-fitted
-/// (`evaluations` each); returns the best of those and `camera` itself.
-pub(crate) fn dolly_scan(
+/// (dolly-zoom), nor, when little of the robot is in view, one orbit angle
+/// from a nearby one with the camera turned back onto the robot; the
+/// objective's valleys run diagonally across the parameters and Nelder-Mead
+/// stalls in them. One step of the valley walk tries `camera` moved along
+/// each of [`PROBES`] by each of [`WALK_OFFSETS`] with the other `active`
+/// parameters re-fitted (`evaluations` each) and returns the best move, its
+/// objective and the direction's name when it improves on `camera` by at
+/// least [`WALK_MIN_GAIN`].
+pub(crate) fn walk_step(
     ev: &Evaluator,
     camera: &Camera,
     target: Point3<f64>,
     active: &[usize],
     evaluations: usize,
-) -> (Camera, f64) {
-    let mut best = (camera.clone(), ev.value(camera));
-    for offset in DOLLY_OFFSETS {
-        if let Some((c, v)) = refit_with_fixed(ev, camera, target, active, (2, offset), evaluations)
-        {
-            if v < best.1 {
-                best = (c, v);
+) -> Option<(Camera, f64, &'static str)> {
+    let mut best: Option<(Camera, f64, &'static str)> = None;
+    let mut bar = ev.value(camera) - WALK_MIN_GAIN;
+    for (index, name) in PROBES {
+        let scale = if index == 2 { 1.0 } else { 1.0 / 3.0 };
+        for offset in WALK_OFFSETS {
+            let fixed = (index, scale * offset);
+            if let Some((c, v)) = refit_with_fixed(ev, camera, target, active, fixed, evaluations) {
+                if v < bar {
+                    bar = v;
+                    best = Some((c, v, name));
+                }
             }
         }
     }
@@ -589,4 +604,65 @@ pub(crate) fn probe(
         }
     }
     worst
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+    use crate::calibrate::episode::EpisodeData;
+    use crate::calibrate::foreground::find_foreground;
+    use crate::calibrate::problem::prepare;
+    use crate::calibrate::study::camera_errors;
+    use crate::synth::{Split, SynthConfig, Task, World};
+
+    #[test]
+    fn the_valley_walk_brings_an_orbited_camera_back_towards_the_truth() {
+        let world = World::new(&SynthConfig {
+            frames: 16,
+            width: 128,
+            height: 80,
+            seed: 3,
+            ..SynthConfig::default()
+        })
+        .unwrap();
+        let ep = world.generate(Split::Test, 0, Task::PickPlace).unwrap();
+        let truth = &ep.camera;
+        let data = EpisodeData::new(
+            "synthetic",
+            (128, 80),
+            1,
+            (128, 80),
+            ep.rgb.clone(),
+            ep.joints.clone(),
+        )
+        .unwrap();
+        let options = CalibrateOptions {
+            focal_px: Some(truth.intrinsics.fx),
+            ..CalibrateOptions::default()
+        };
+        let robot = &world.embodiment.robot;
+        let fg = find_foreground(&data, &options.foreground);
+        let prepared = [prepare(robot, &data, &fg, &[1], 4, 16)];
+        let target = prepared[0].motion.centroid;
+        let ev = Evaluator::fit(robot, &prepared, 0, 16);
+        let active = active_parameters(&options, true);
+        // The truth orbited 0.1 rad (5.7 degrees) up, the rest re-fitted: a
+        // camera stalled in the valley, where Nelder-Mead stops.
+        let (start, start_value) =
+            refit_with_fixed(&ev, truth, target, &active, (1, 0.1), 80).unwrap();
+        let (moved, value, direction) =
+            walk_step(&ev, &start, target, &active, 60).expect("a move that improves");
+        assert!(
+            value < start_value - WALK_MIN_GAIN,
+            "{value} vs {start_value}"
+        );
+        assert!(PROBES.iter().any(|(_, n)| *n == direction));
+        let (before_cm, _, _) = camera_errors(&start, truth);
+        let (after_cm, _, _) = camera_errors(&moved, truth);
+        assert!(
+            after_cm < 0.7 * before_cm,
+            "{after_cm:.2} cm after the step, {before_cm:.2} cm before ({direction})"
+        );
+    }
 }
