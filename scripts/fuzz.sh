@@ -21,13 +21,25 @@
 # fixed number of cases per run and a fresh random seed each run: they are
 # rerun until SECONDS have passed. A failure stops the script and prints the
 # case (MESH_FUZZ_STRICT=1 also fails on caught parser panics).
+#
+# FUZZ_PROFILE picks the cargo profile: release (the default: the most cases
+# per second) or dev (the test suite's: it reuses the test build, whose
+# features `--workspace` resolves, instead of a release build of its own).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+case "${FUZZ_PROFILE:-release}" in
+  release) profile=(--release) ;;
+  dev) profile=() ;;
+  *)
+    echo "error: FUZZ_PROFILE=${FUZZ_PROFILE}: expected release or dev" >&2
+    exit 2
+    ;;
+esac
 targets="mp4, npy, camera, trajectory, safetensors, model-config, train-config, lerobot, h5, urdf, mesh"
 target=${1:?usage: scripts/fuzz.sh TARGET SECONDS (TARGET: mp4, npy, camera, trajectory, safetensors, model-config, train-config, lerobot, h5, urdf, mesh)}
 seconds=${2:?usage: scripts/fuzz.sh TARGET SECONDS}
 timed() { # timed PACKAGE TEST [NAME]: a self-timed target
-  FUZZ_SECONDS=$seconds exec cargo test --release -p "$1" --test "$2" -- --exact "${3:-}" --nocapture
+  FUZZ_SECONDS=$seconds exec cargo test "${profile[@]}" --workspace --test "$2" -- --exact "${3:-}" --nocapture
 }
 case "$target" in
   mp4 | npy | camera | trajectory | safetensors | model-config | train-config | lerobot | h5 | urdf | mesh) ;;
@@ -49,11 +61,11 @@ case "$target" in
   h5) timed bridgev2w-data fuzz_h5 mutated_hdf5_files_never_panic_nor_over_allocate ;;
   urdf | mesh)
     test=${target}_fuzz
-    cargo test --release -p bridgev2w-embodiment --test "$test" --no-run
+    cargo test "${profile[@]}" --workspace --test "$test" --no-run
     end=$((SECONDS + seconds))
     runs=0
     while ((SECONDS < end)); do
-      cargo test -q --release -p bridgev2w-embodiment --test "$test" >/dev/null
+      cargo test -q "${profile[@]}" --workspace --test "$test" >/dev/null
       runs=$((runs + 1))
     done
     echo "fuzz $target: $runs runs of the proptest cases in ${seconds} s, no failure"

@@ -9,8 +9,12 @@
 //! Python guides' examples (`docs/guide/python.md`, `own-robot.md`,
 //! `rerun.md`: every ```` ```sh ```` and ```` ```python ```` block, in order,
 //! in a sandbox).
-//! The wheel is built in its own target folder (`target/python`): this test
-//! runs inside `cargo test`, which holds the workspace's.
+//! The wheel is built in the dev profile in the workspace's own target
+//! folder, where `cargo test` has just built the libraries with the features
+//! the module asks for (`the_module_resolves_the_test_builds_features`): only
+//! PyO3 and the module itself are compiled for it. The venv sits at a fixed
+//! path under the target folder, so that PyO3's build configuration (which
+//! names the interpreter) stays the same from one run to the next.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -26,6 +30,47 @@ fn repo() -> PathBuf {
         .expect("repo root")
 }
 
+/// The target folder this test was built in (the workspace's).
+fn target_dir() -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .parent()
+        .expect("target folder")
+        .to_path_buf()
+}
+
+/// `cargo tree`'s `package features` lines, one per package and feature set.
+fn resolved_features(args: &[&str]) -> std::collections::BTreeSet<String> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let o = Command::new(cargo)
+        .arg("tree")
+        .args(args)
+        .args(["--format", "{p} {f}", "--prefix", "none"])
+        .current_dir(repo())
+        .output()
+        .expect("cargo tree");
+    ok(&o);
+    String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| l.trim_end_matches(" (*)").to_string())
+        .collect()
+}
+
+/// Every package the module depends on resolves the same features alone
+/// (what maturin builds) as in the whole workspace with its dev-dependencies
+/// (what `cargo test --workspace` builds): else the module's build compiles
+/// those packages, and everything above them, a second time.
+#[test]
+fn the_module_resolves_the_test_builds_features() {
+    let module = resolved_features(&["-p", "bridgev2w-python", "-e", "normal,build"]);
+    let workspace = resolved_features(&["--workspace"]);
+    let drifted: Vec<&String> = module.difference(&workspace).collect();
+    assert!(
+        module.len() > 100 && drifted.is_empty(),
+        "packages whose features differ between the module's build and the test build \
+         (align them in crates/python/Cargo.toml): {drifted:#?}"
+    );
+}
+
 #[test]
 fn pip_install_python_then_its_tests_pass() {
     let project_python = repo().join(".venv/bin/python");
@@ -35,9 +80,9 @@ fn pip_install_python_then_its_tests_pass() {
         project_python.display()
     );
     let dir = tempfile::tempdir().expect("tempdir");
-    let venv = dir.path().join("venv");
+    let venv = target_dir().join("tmp/python-package-venv");
     ok(&Command::new("python3")
-        .args(["-m", "venv"])
+        .args(["-m", "venv", "--clear"])
         .arg(&venv)
         .output()
         .expect("python3 -m venv"));
@@ -67,7 +112,8 @@ fn pip_install_python_then_its_tests_pass() {
     let install = Command::new(venv.join("bin/pip"))
         .args(["install", "--disable-pip-version-check", "-q"])
         .arg(repo().join("python"))
-        .env("CARGO_TARGET_DIR", repo().join("target/python"))
+        .env("CARGO_TARGET_DIR", target_dir())
+        .env("MATURIN_PEP517_ARGS", "--profile dev")
         .output()
         .expect("pip install ./python");
     ok(&install);

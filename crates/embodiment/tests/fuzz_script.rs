@@ -13,9 +13,10 @@ fn fuzz(args: &[&str]) -> Output {
     Command::new("bash")
         .arg(repo().join("scripts/fuzz.sh"))
         .args(args)
-        // Its own target folder: the release build must not wait on the
-        // lock of the build that runs this test.
-        .env("CARGO_TARGET_DIR", repo().join("target/fuzz-script"))
+        // The dev profile over the build that runs this test (cargo holds no
+        // lock while tests run): nothing to compile, where a release build
+        // of its own cost minutes.
+        .env("FUZZ_PROFILE", "dev")
         .output()
         .expect("run bash")
 }
@@ -36,6 +37,18 @@ fn fuzz_script_refuses_bad_arguments() {
     let o = fuzz(&["npy"]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("usage"));
+    let o = Command::new("bash")
+        .arg(repo().join("scripts/fuzz.sh"))
+        .args(["npy", "1"])
+        .env("FUZZ_PROFILE", "fast")
+        .output()
+        .expect("run bash");
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(
+        e.contains("FUZZ_PROFILE=fast: expected release or dev"),
+        "{e}"
+    );
 }
 
 #[test]
