@@ -50,7 +50,8 @@ def _paths(name, value):
 def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
               check_videos: Sequence = (), check_joints: Sequence = (),
               focal_px: Optional[float] = None, fy_over_fx: float = 1.0, analysis_width: int = 320,
-              max_evaluations: int = 250, marks=None, overwrite: bool = False) -> Calibration:
+              max_evaluations: int = 250, walk_evaluations: int = 120, marks=None,
+              overwrite: bool = False) -> Calibration:
     """Finds the fixed camera of ``videos`` (one MP4 or a list, one per
     episode) from the robot's joints in each (``joints``, in the same order:
     trajectory files, or DROID annotation JSONs of the Ctrl-World layout),
@@ -62,7 +63,9 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
     from 320x180). ``marks``: a JSON file of hand-marked tool-point pixels
     (see the calibrate guide): each marked episode's reprojection error is
     reported in ``marks``; on fitted episodes 4 or more marks start and pull
-    the fit. The GIL is released while it runs (minutes).
+    the fit. ``walk_evaluations``: the evaluations of each re-fit of the
+    search's walk along the orbit and dolly-zoom valleys (0 skips the walk,
+    about half the time). The GIL is released while it runs (minutes).
 
     Missing files are a ``FileNotFoundError``, bad arguments a ``ValueError``
     naming them, an existing ``out`` without ``overwrite`` or a video the
@@ -77,6 +80,7 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
         None if focal_px is None else _float("focal_px", focal_px),
         _float("fy_over_fx", fy_over_fx), _int("analysis_width", analysis_width, 16, 4096),
         _int("max_evaluations", max_evaluations, 10, 100000),
+        _int("walk_evaluations", walk_evaluations, 0, 100000),
         None if marks is None else _path("marks", marks), bool(overwrite))
     d["camera"] = Camera(_core_camera=d["camera"])
     return Calibration(**d)

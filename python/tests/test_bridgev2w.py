@@ -390,7 +390,7 @@ def test_calibrate_finds_a_camera_and_writes_its_folder():
     out = WORK / "calibration"
     marks = pathlib.Path(__file__).resolve().parents[2] / "crates" / "data" / "tests" / "data" / "droid_marks.json"
     c = bw.calibrate(video, joints, out, focal_px=133.0, fy_over_fx=192 / 180, analysis_width=80,
-                     max_evaluations=30, marks=marks)
+                     max_evaluations=30, walk_evaluations=0, marks=marks)
     # The hand marks of this video (6 in the file) are measured in pixels.
     assert len(c.marks) == 1 and c.marks[0][3] == 6 and 0 <= c.marks[0][1] <= c.marks[0][2], c.marks
     assert isinstance(c.camera, bw.Camera) and c.camera.size == (320, 192), c
@@ -423,6 +423,8 @@ def test_calibrate_finds_a_camera_and_writes_its_folder():
         bw.calibrate(root / "absent.mp4", joints, WORK / "c3")
     with pytest.raises(FileNotFoundError, match="absent-marks.json"):
         bw.calibrate(video, joints, WORK / "c4", marks=WORK / "absent-marks.json")
+    with pytest.raises(ValueError, match=r"walk_evaluations: -1, expected an integer in \[0, 100000\]"):
+        bw.calibrate(video, joints, WORK / "c5", walk_evaluations=-1)
 
 
 def test_batches_equal_their_single_items():

@@ -41,6 +41,10 @@ pub struct FitArgs {
     /// Nelder-Mead evaluations per refinement round.
     #[arg(long, default_value_t = 250)]
     max_evaluations: usize,
+    /// Nelder-Mead evaluations of each re-fit of the valley walk (the camera
+    /// moved along an orbit or the dolly-zoom); 0 skips the walk.
+    #[arg(long, default_value_t = CalibrateOptions::default().walk_evaluations)]
+    walk_evaluations: usize,
     /// Flag a held-out IoU below this.
     #[arg(long, default_value_t = 0.5)]
     low_iou: f64,
@@ -59,6 +63,7 @@ impl FitArgs {
             fit_principal_point: self.fit_principal_point,
             azimuth_step_deg: self.azimuth_step_deg,
             max_evaluations: self.max_evaluations,
+            walk_evaluations: self.walk_evaluations,
             low_iou: self.low_iou,
             min_motion_m: self.min_motion_m,
             ..CalibrateOptions::default()

@@ -246,6 +246,21 @@ fn bad_joint_files_and_options_are_refused_naming_them() {
         .unwrap_err()
         .to_string()
         .contains("--distances-m"));
+    // No valley walk is a choice (0); a budget past the range is refused.
+    let no_walk = CalibrateOptions {
+        walk_evaluations: 0,
+        ..CalibrateOptions::default()
+    };
+    no_walk.validate().unwrap();
+    let bad = CalibrateOptions {
+        walk_evaluations: 100_001,
+        ..CalibrateOptions::default()
+    };
+    let err = bad.validate().unwrap_err().to_string();
+    assert!(
+        err.contains("--walk-evaluations = 100001") && err.contains("0..=100000"),
+        "{err}"
+    );
 }
 
 fn droid() -> Option<PathBuf> {
@@ -425,14 +440,17 @@ fn calibrate_to_folder_writes_its_outputs_once_and_refuses_overlapping_ones() {
     )
     .unwrap();
     let e = Embodiment::builtin("franka-robotiq").unwrap();
+    // No valley walk (0): the files, not the fit, are under test here.
     let options = CalibrateOptions {
         analysis_width: 80,
         mid_width: 40,
         focal_px: Some(133.0),
         fy_over_fx: 192.0 / 180.0,
+        walk_evaluations: 0,
         ..small_options()
     };
     let out = tmp.path().join("cal");
+    let stages = std::sync::Mutex::new(Vec::<String>::new());
     let run = calibrate_to_folder(
         &e,
         std::slice::from_ref(&input),
@@ -441,9 +459,15 @@ fn calibrate_to_folder_writes_its_outputs_once_and_refuses_overlapping_ones() {
         &out,
         false,
         &[],
-        &|_| {},
+        &|line| stages.lock().unwrap().push(line.to_string()),
     )
     .unwrap();
+    let stages = stages.into_inner().unwrap();
+    assert!(
+        stages.iter().any(|l| l.contains("refining"))
+            && !stages.iter().any(|l| l.contains("walking")),
+        "{stages:?}"
+    );
     for f in ["camera.json", "residuals.json"] {
         assert!(out.join(f).is_file(), "{f}");
     }

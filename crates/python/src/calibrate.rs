@@ -18,7 +18,7 @@ use bridgev2w_data::calibrate::{pair_inputs, CalibrateError, CalibrateOptions};
 /// `marks` (per episode with hand marks: `(name, median_px, max_px,
 /// marks)`), `summary` (the CLI's text).
 #[pyfunction]
-#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, marks, overwrite))]
+#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, walk_evaluations, marks, overwrite))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn calibrate<'py>(
     py: Python<'py>,
@@ -32,6 +32,7 @@ pub(crate) fn calibrate<'py>(
     fy_over_fx: f64,
     analysis_width: u32,
     max_evaluations: usize,
+    walk_evaluations: usize,
     marks: Option<PathBuf>,
     overwrite: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
@@ -71,6 +72,7 @@ pub(crate) fn calibrate<'py>(
         focal_px,
         fy_over_fx,
         max_evaluations,
+        walk_evaluations,
         marks,
         ..CalibrateOptions::default()
     }

@@ -569,8 +569,13 @@ pub fn calibrate(
         .map(|(c, _)| refine(&mid, c, target, &all, 0.4, options.max_evaluations, 2))
         .collect();
     finalists.sort_by(|a, b| a.1.total_cmp(&b.1));
-    progress("walking the orbit and dolly-zoom valleys");
-    for _ in 0..MAX_WALK_STEPS {
+    let walk_steps = if options.walk_evaluations == 0 {
+        0
+    } else {
+        progress("walking the orbit and dolly-zoom valleys");
+        MAX_WALK_STEPS
+    };
+    for _ in 0..walk_steps {
         let Some((moved, _, _)) = walk_step(
             &mid,
             &finalists[0].0,

@@ -56,7 +56,9 @@ pub struct CalibrateOptions {
     /// Nelder-Mead evaluations per round.
     pub max_evaluations: usize,
     /// Nelder-Mead evaluations of each re-fit of the valley walk (the
-    /// camera moved along an orbit or the dolly-zoom, the rest re-fitted).
+    /// camera moved along an orbit or the dolly-zoom, the rest re-fitted);
+    /// 0 skips the walk (a quick look: the walk costs about as much again
+    /// as the rest of the search).
     pub walk_evaluations: usize,
     /// Refuse an episode whose robot surface moves less (metres).
     pub min_motion_m: f64,
@@ -246,7 +248,7 @@ impl CalibrateOptions {
             ("--max-evaluations", self.max_evaluations, 10, 100_000),
             ("--min-robot-frames", self.min_robot_frames, 1, 100_000),
             ("--probe-evaluations", self.probe_evaluations, 1, 100_000),
-            ("--walk-evaluations", self.walk_evaluations, 1, 100_000),
+            ("--walk-evaluations", self.walk_evaluations, 0, 100_000),
         ];
         for (field, v, lo, hi) in counts {
             if !(lo..=hi).contains(&v) {
