@@ -44,17 +44,7 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     // Data parallelism from torchrun's variables: RANK / WORLD_SIZE / MASTER_ADDR / MASTER_PORT.
     let dist = DistEnv::from_env()?;
     if let Some(d) = &dist {
-        eprintln!(
-            "data-parallel: rank {} of {}, c10d store at {} (hosted by {})",
-            d.rank,
-            d.world,
-            d.master(),
-            if d.use_agent_store {
-                "torchrun's agent"
-            } else {
-                "rank 0"
-            }
-        );
+        eprintln!("{}", d.describe());
     }
     let mut trainer = Trainer::new_distributed(cfg, dist).context("setting up training")?;
     if args.overwrite {
@@ -102,20 +92,15 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         );
         return Ok(());
     }
+    let weights = trainer.cfg.train.out.join("final/weights.safetensors");
     eprintln!(
         "done: {} steps; weights in {}",
         trainer.step,
-        trainer
-            .cfg
-            .train
-            .out
-            .join("final/weights.safetensors")
-            .display()
+        weights.display()
     );
     Ok(())
 }
 
-/// Arguments of `eval-run`.
 /// The sampling flags of `eval-run` and `eval-grid`.
 #[derive(Debug, clap::Args)]
 pub struct SamplingArgs {

@@ -721,3 +721,26 @@ fn a_bad_cpu_bf16_setting_stops_naming_the_variable_and_the_choices() {
         );
     }
 }
+
+/// The binary stays thin (issue 73): command files parse, call one library
+/// function and print; the work lives in the library crates, at most 2,500
+/// lines of CLI in all.
+#[test]
+fn the_cli_crate_stays_thin() {
+    fn lines(dir: &Path) -> usize {
+        std::fs::read_dir(dir)
+            .expect("read_dir")
+            .map(|e| e.expect("entry").path())
+            .map(|p| match p.extension() {
+                _ if p.is_dir() => lines(&p),
+                Some(x) if x == "rs" => std::fs::read_to_string(&p).expect("read").lines().count(),
+                _ => 0,
+            })
+            .sum()
+    }
+    let n = lines(&Path::new(env!("CARGO_MANIFEST_DIR")).join("src"));
+    assert!(
+        (1000..=2500).contains(&n),
+        "crates/cli/src holds {n} lines: at most 2,500 (move file work into the libraries)"
+    );
+}

@@ -205,6 +205,21 @@ impl DistEnv {
     pub fn master(&self) -> String {
         format!("{}:{}", self.master_addr, self.master_port)
     }
+
+    /// One line for the log: rank, world size and who hosts the store.
+    pub fn describe(&self) -> String {
+        let host = if self.use_agent_store {
+            "torchrun's agent"
+        } else {
+            "rank 0"
+        };
+        format!(
+            "data-parallel: rank {} of {}, c10d store at {} (hosted by {host})",
+            self.rank,
+            self.world,
+            self.master()
+        )
+    }
 }
 
 /// The collective operations data-parallel training needs.
