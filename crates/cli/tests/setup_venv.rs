@@ -98,32 +98,3 @@ fn a_venv_stamped_with_the_lock_is_kept_as_it_is() {
     assert!(!o.status.success());
     assert!(root.path().join("python3-called").exists());
 }
-
-/// `scripts/test-suite.sh` (`./run test` with no arguments) refuses a lane
-/// count it does not know and a slow-lane test binary the workspace lacks,
-/// before building or running anything, naming the value.
-#[test]
-fn the_test_suite_script_refuses_bad_lanes_by_name() {
-    let run = |vars: &[(&str, &str)]| -> Output {
-        let mut c = Command::new("bash");
-        c.arg(repo().join("scripts/test-suite.sh"));
-        for (k, v) in vars {
-            c.env(k, v);
-        }
-        c.output().expect("run scripts/test-suite.sh")
-    };
-    let o = run(&[("TEST_LANES", "3")]);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{stderr}");
-    assert!(
-        stderr.contains("TEST_LANES=3") && stderr.contains("1 or 2"),
-        "{stderr}"
-    );
-    let o = run(&[("SLOW_LANE", "python_package python_pakage")]);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{stderr}");
-    assert!(
-        stderr.contains("python_pakage") && stderr.contains("no test target"),
-        "{stderr}"
-    );
-}
