@@ -51,7 +51,7 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
               check_videos: Sequence = (), check_joints: Sequence = (),
               focal_px: Optional[float] = None, fy_over_fx: float = 1.0, analysis_width: int = 320,
               max_evaluations: int = 250, walk_evaluations: int = 120, marks=None,
-              overwrite: bool = False) -> Calibration:
+              static_changes: str = "score", overwrite: bool = False) -> Calibration:
     """Finds the fixed camera of ``videos`` (one MP4 or a list, one per
     episode) from the robot's joints in each (``joints``, in the same order:
     trajectory files, or DROID annotation JSONs of the Ctrl-World layout),
@@ -65,7 +65,10 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
     reported in ``marks``; on fitted episodes 4 or more marks start and pull
     the fit. ``walk_evaluations``: the evaluations of each re-fit of the
     search's walk along the orbit and dolly-zoom valleys (0 skips the walk,
-    about half the time). The GIL is released while it runs (minutes).
+    about half the time). ``static_changes``: ``"score"`` every found pixel,
+    or ``"leave-out"`` the found pixels that keep their colour over the
+    frames around them (a moved object at rest, an exposure drift) of the
+    score. The GIL is released while it runs (minutes).
 
     Missing files are a ``FileNotFoundError``, bad arguments a ``ValueError``
     naming them, an existing ``out`` without ``overwrite`` or a video the
@@ -81,6 +84,7 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
         _float("fy_over_fx", fy_over_fx), _int("analysis_width", analysis_width, 16, 4096),
         _int("max_evaluations", max_evaluations, 10, 100000),
         _int("walk_evaluations", walk_evaluations, 0, 100000),
-        None if marks is None else _path("marks", marks), bool(overwrite))
+        None if marks is None else _path("marks", marks), str(static_changes),
+        bool(overwrite))
     d["camera"] = Camera(_core_camera=d["camera"])
     return Calibration(**d)

@@ -10,7 +10,7 @@ use bridgev2w_data::calibrate::droid_study::{
 use bridgev2w_data::calibrate::marks::Marks;
 use bridgev2w_data::calibrate::run::calibrate_to_folder;
 use bridgev2w_data::calibrate::study::{synthetic_study_to_folder, StudyOptions};
-use bridgev2w_data::calibrate::{pair_inputs, CalibrateOptions};
+use bridgev2w_data::calibrate::{pair_inputs, CalibrateOptions, ForegroundOptions, StaticChanges};
 use bridgev2w_embodiment::camera::Camera;
 use std::path::{Path, PathBuf};
 
@@ -45,6 +45,9 @@ pub struct FitArgs {
     /// moved along an orbit or the dolly-zoom); 0 skips the walk.
     #[arg(long, default_value_t = CalibrateOptions::default().walk_evaluations)]
     walk_evaluations: usize,
+    /// Found pixels that keep their colour over the frames around (a moved object at rest, a drift): `score` them or `leave-out` of the score.
+    #[arg(long, default_value_t = StaticChanges::Score)]
+    static_changes: StaticChanges,
     /// Flag a held-out IoU below this.
     #[arg(long, default_value_t = 0.5)]
     low_iou: f64,
@@ -66,6 +69,10 @@ impl FitArgs {
             walk_evaluations: self.walk_evaluations,
             low_iou: self.low_iou,
             min_motion_m: self.min_motion_m,
+            foreground: ForegroundOptions {
+                static_changes: self.static_changes,
+                ..ForegroundOptions::default()
+            },
             ..CalibrateOptions::default()
         }
         .with_analysis_width(self.analysis_width)

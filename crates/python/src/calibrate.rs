@@ -5,7 +5,9 @@
 use super::*;
 use bridgev2w_data::calibrate::marks::Marks;
 use bridgev2w_data::calibrate::run::calibrate_to_folder;
-use bridgev2w_data::calibrate::{pair_inputs, CalibrateError, CalibrateOptions};
+use bridgev2w_data::calibrate::{
+    pair_inputs, CalibrateError, CalibrateOptions, ForegroundOptions, StaticChanges,
+};
 
 /// Calibrates the camera of the `videos` (MP4, one per episode) from the
 /// robot's joints (`joints`, one file per video: a trajectory file or a
@@ -18,7 +20,7 @@ use bridgev2w_data::calibrate::{pair_inputs, CalibrateError, CalibrateOptions};
 /// `marks` (per episode with hand marks: `(name, median_px, max_px,
 /// marks)`), `summary` (the CLI's text).
 #[pyfunction]
-#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, walk_evaluations, marks, overwrite))]
+#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, walk_evaluations, marks, static_changes, overwrite))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn calibrate<'py>(
     py: Python<'py>,
@@ -34,8 +36,12 @@ pub(crate) fn calibrate<'py>(
     max_evaluations: usize,
     walk_evaluations: usize,
     marks: Option<PathBuf>,
+    static_changes: &str,
     overwrite: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let static_changes: StaticChanges = static_changes
+        .parse()
+        .map_err(|e: String| PyValueError::new_err(format!("static_changes: {e}")))?;
     let value_err = |e: CalibrateError| match e {
         CalibrateError::Option { .. } => PyValueError::new_err(e.to_string()),
         e => err(e),
@@ -74,6 +80,10 @@ pub(crate) fn calibrate<'py>(
         max_evaluations,
         walk_evaluations,
         marks,
+        foreground: ForegroundOptions {
+            static_changes,
+            ..ForegroundOptions::default()
+        },
         ..CalibrateOptions::default()
     }
     .with_analysis_width(analysis_width);

@@ -11,6 +11,14 @@
 //! 3. Cleanup: a 3 x 3 majority filter removes isolated pixels and fills
 //!    pinholes.
 //!
+//! 4. Optionally ([`StaticChanges::LeaveOut`]), a found pixel whose colour
+//!    stays put over the frames around it (within half the threshold over
+//!    `static_window` frames each side) is marked *unknown*: a moved object
+//!    at rest in its new place, the place it left, a slow exposure drift, or
+//!    the robot itself at rest. Unknown pixels are left out of the score, of
+//!    the found and the predicted pixels alike, so they cost no camera
+//!    anything; what moves (the robot, and the shadows it drags) is scored.
+//!
 //! A pixel the robot covers in most frames is part of the median, so there
 //! the robot's *absence* is foreground; the calibration's model of the
 //! foreground accounts for that (see `objective`). The same pass measures
@@ -23,6 +31,47 @@ use super::episode::EpisodeData;
 use rayon::prelude::*;
 use serde::Serialize;
 
+/// What the score does with found pixels that do not move (see the module
+/// documentation, step 4).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StaticChanges {
+    /// Every found pixel is scored.
+    #[default]
+    Score,
+    /// Found pixels whose colour stays put around their frame are left out
+    /// of the score.
+    LeaveOut,
+}
+
+impl StaticChanges {
+    /// The names [`std::str::FromStr`] takes.
+    pub const NAMES: [&'static str; 2] = ["score", "leave-out"];
+}
+
+impl std::str::FromStr for StaticChanges {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "score" => Ok(Self::Score),
+            "leave-out" => Ok(Self::LeaveOut),
+            other => Err(format!(
+                "unknown static-changes mode {other:?}: expected one of {}",
+                Self::NAMES.join(", ")
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for StaticChanges {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Score => "score",
+            Self::LeaveOut => "leave-out",
+        })
+    }
+}
+
 /// Options of [`find_foreground`].
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ForegroundOptions {
@@ -34,6 +83,11 @@ pub struct ForegroundOptions {
     /// A frame counts as showing the robot when at least this fraction of
     /// its pixels is foreground.
     pub min_robot_pixels_fraction: f64,
+    /// Found pixels that do not move: scored, or left out.
+    pub static_changes: StaticChanges,
+    /// Frames on each side of a frame over which a found pixel must keep
+    /// its colour to count as static.
+    pub static_window: usize,
 }
 
 impl Default for ForegroundOptions {
@@ -42,6 +96,8 @@ impl Default for ForegroundOptions {
             min_threshold: 20.0,
             noise_factor: 4.0,
             min_robot_pixels_fraction: 0.002,
+            static_changes: StaticChanges::Score,
+            static_window: 2,
         }
     }
 }
@@ -67,6 +123,9 @@ pub struct ForegroundStats {
     /// background exceeds 4: about 0.1-0.35 for DROID's fixed cameras, 0.7
     /// and more for its wrist cameras.
     pub unstable_fraction: f64,
+    /// Fraction of the found pixels left out as static (0 unless
+    /// [`StaticChanges::LeaveOut`]).
+    pub static_fraction: f64,
 }
 
 /// Foreground masks of one episode (analysis grid).
@@ -78,6 +137,9 @@ pub struct Foreground {
     pub height: usize,
     /// Per frame, 0/1 row-major.
     pub masks: Vec<Vec<u8>>,
+    /// Per frame, 1 where a found pixel is static and left out of the score
+    /// (see [`StaticChanges`]); empty when none is.
+    pub unknown: Vec<Vec<u8>>,
     /// The background (RGB8).
     pub background: Vec<u8>,
     /// Measurements.
@@ -286,11 +348,20 @@ pub fn find_foreground(episode: &EpisodeData, options: &ForegroundOptions) -> Fo
         .filter(|&&f| f64::from(f) >= options.min_robot_pixels_fraction)
         .count();
     let (noise_level, unstable_fraction) = fixed_camera_stats(&frames, w);
+    let unknown = match options.static_changes {
+        StaticChanges::Score => Vec::new(),
+        StaticChanges::LeaveOut => {
+            static_pixels(&frames, &masks, options.static_window, threshold / 2.0)
+        }
+    };
+    let found_total: usize = masks.iter().flatten().map(|&v| usize::from(v)).sum();
+    let static_total: usize = unknown.iter().flatten().map(|&v| usize::from(v)).sum();
     let n = masks.len();
     Foreground {
         width: w,
         height: h,
         masks,
+        unknown,
         background,
         stats: ForegroundStats {
             frames: n,
@@ -300,8 +371,46 @@ pub fn find_foreground(episode: &EpisodeData, options: &ForegroundOptions) -> Fo
             threshold,
             noise_level,
             unstable_fraction,
+            static_fraction: static_total as f64 / found_total.max(1) as f64,
         },
     }
+}
+
+/// Per frame, 1 where a found pixel (`masks`) keeps its colour (largest
+/// channel difference at most `tolerance`) in every frame within `window`
+/// frames on each side (those that exist; at least `window` of them).
+fn static_pixels(
+    frames: &[Vec<u8>],
+    masks: &[Vec<u8>],
+    window: usize,
+    tolerance: f64,
+) -> Vec<Vec<u8>> {
+    let n = frames.len();
+    (0..n)
+        .into_par_iter()
+        .map(|t| {
+            let others: Vec<&Vec<u8>> = (t.saturating_sub(window)..(t + window + 1).min(n))
+                .filter(|&s| s != t)
+                .map(|s| &frames[s])
+                .collect();
+            let frame = &frames[t];
+            masks[t]
+                .iter()
+                .enumerate()
+                .map(|(p, &m)| {
+                    if m == 0 || others.len() < window.max(1) {
+                        return 0;
+                    }
+                    let still = others.iter().all(|o| {
+                        (0..3).all(|c| {
+                            f64::from(o[3 * p + c].abs_diff(frame[3 * p + c])) <= tolerance
+                        })
+                    });
+                    u8::from(still)
+                })
+                .collect()
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -349,6 +458,72 @@ mod tests {
         assert_eq!(fg.stats.frames_with_robot, 20);
         assert!(fg.stats.noise_level < 2.0, "{:?}", fg.stats);
         assert!(fg.stats.unstable_fraction < 0.1, "{:?}", fg.stats);
+    }
+
+    #[test]
+    fn a_moved_object_at_rest_is_left_out_and_the_moving_square_is_not() {
+        let (w, h) = (64, 48);
+        let background: Vec<u8> = (0..w * h * 3).map(|i| ((i * 37) % 97) as u8 + 60).collect();
+        let paint = |f: &mut Vec<u8>, x0: usize, y0: usize, rgb: [u8; 3]| {
+            for y in y0..y0 + 8 {
+                for x in x0..x0 + 8 {
+                    f[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&rgb);
+                }
+            }
+        };
+        // A red box sits at (40, 30) for the first 14 frames (the median's
+        // place), then at (40, 4) (moved once); a white square crosses the
+        // image all along.
+        let frames: Vec<Vec<u8>> = (0..20)
+            .map(|t| {
+                let mut f = background.clone();
+                paint(&mut f, 40, if t < 14 { 30 } else { 4 }, [200, 20, 20]);
+                paint(&mut f, 2 * t + 2, 14, [250, 250, 250]);
+                f
+            })
+            .collect();
+        let e = episode(frames, w, h);
+        let scored = find_foreground(&e, &ForegroundOptions::default());
+        assert!(scored.unknown.is_empty());
+        assert_eq!(scored.stats.static_fraction, 0.0);
+        let options = ForegroundOptions {
+            static_changes: StaticChanges::LeaveOut,
+            ..ForegroundOptions::default()
+        };
+        let fg = find_foreground(&e, &options);
+        assert_eq!(fg.masks, scored.masks, "the found pixels are the same");
+        for t in 0..20 {
+            // The square's second column: a frame later the square has left it.
+            let square = 2 * t + 3;
+            // The box where it rests after the move, and the place it left:
+            // found, and static once it has rested two frames.
+            if t >= 14 {
+                for row in [7, 33] {
+                    assert_eq!(fg.masks[t][row * w + 44], 1, "frame {t}");
+                    assert_eq!(fg.unknown[t][row * w + 44], u8::from(t >= 16), "frame {t}");
+                }
+            }
+            // What the moving square leaves behind next is never static
+            // (the last frame has no next).
+            assert_eq!(fg.masks[t][17 * w + square], 1, "frame {t}");
+            if t < 19 {
+                assert_eq!(fg.unknown[t][17 * w + square], 0, "frame {t}");
+            }
+        }
+        assert!(
+            fg.stats.static_fraction > 0.1 && fg.stats.static_fraction < 0.9,
+            "{:?}",
+            fg.stats
+        );
+        assert_eq!(
+            "leave-out".parse::<StaticChanges>(),
+            Ok(StaticChanges::LeaveOut)
+        );
+        let err = "leaveout".parse::<StaticChanges>().unwrap_err();
+        assert!(
+            err.contains("leaveout") && err.contains("score, leave-out"),
+            "{err}"
+        );
     }
 
     #[test]

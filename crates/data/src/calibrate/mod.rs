@@ -39,7 +39,9 @@ mod search;
 pub mod study;
 
 pub use episode::{load_episode, pair_inputs, EpisodeData, EpisodeInput};
-pub use foreground::{find_foreground, Foreground, ForegroundOptions, ForegroundStats};
+pub use foreground::{
+    find_foreground, Foreground, ForegroundOptions, ForegroundStats, StaticChanges,
+};
 pub use options::CalibrateOptions;
 
 use crate::synth::SynthError;

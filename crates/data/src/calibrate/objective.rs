@@ -46,8 +46,11 @@ pub(crate) struct Level {
     pub width: usize,
     /// Height (pixels).
     pub height: usize,
-    /// Per frame: the found fraction of each pixel.
+    /// Per frame: the found fraction of each pixel (of its known part).
     pub found: Vec<Vec<f32>>,
+    /// Per frame: the known (scored) fraction of each pixel; empty when
+    /// every pixel is known (see [`super::foreground::StaticChanges`]).
+    pub known: Vec<Vec<f32>>,
     /// Distance cap (pixels).
     pub cap: f32,
 }
@@ -56,34 +59,59 @@ impl Level {
     /// The level of `foreground`'s masks reduced by `factor`.
     pub fn new(foreground: &Foreground, factor: usize) -> Level {
         let (w, h) = (foreground.width, foreground.height);
-        Self::from_masks(&foreground.masks, (w, h), factor)
+        Self::from_masks(&foreground.masks, &foreground.unknown, (w, h), factor)
     }
 
-    /// The level of 0/1 `masks` on a `w` x `h` grid reduced by `factor`.
-    pub fn from_masks(masks: &[Vec<u8>], (w, h): (usize, usize), factor: usize) -> Level {
+    /// The level of 0/1 `masks` on a `w` x `h` grid reduced by `factor`,
+    /// leaving out the pixels where `unknown` (per frame, or empty) is 1.
+    pub fn from_masks(
+        masks: &[Vec<u8>],
+        unknown: &[Vec<u8>],
+        (w, h): (usize, usize),
+        factor: usize,
+    ) -> Level {
         let (lw, lh) = (w / factor, h / factor);
         let area = (factor * factor) as f32;
-        let found = masks
-            .par_iter()
-            .map(|m| {
-                let mut out = vec![0f32; lw * lh];
-                for y in 0..lh * factor {
-                    for x in 0..lw * factor {
-                        if m[y * w + x] != 0 {
-                            out[(y / factor) * lw + x / factor] += 1.0 / area;
-                        }
+        let reduce = |m: &Vec<u8>, value: u8| {
+            let mut out = vec![0f32; lw * lh];
+            for y in 0..lh * factor {
+                for x in 0..lw * factor {
+                    if m[y * w + x] == value {
+                        out[(y / factor) * lw + x / factor] += 1.0 / area;
                     }
                 }
-                out
+            }
+            out
+        };
+        let found = masks
+            .par_iter()
+            .enumerate()
+            .map(|(t, m)| match unknown.get(t) {
+                // Found and known.
+                Some(u) => reduce(
+                    &m.iter()
+                        .zip(u)
+                        .map(|(&f, &u)| u8::from(f != 0 && u == 0))
+                        .collect(),
+                    1,
+                ),
+                None => reduce(&m.iter().map(|&f| u8::from(f != 0)).collect(), 1),
             })
             .collect();
+        let known = unknown.par_iter().map(|u| reduce(u, 0)).collect();
         Level {
             factor,
             width: lw,
             height: lh,
             found,
+            known,
             cap: (lw as f32 / 4.0).max(2.0),
         }
+    }
+
+    /// The known fractions of frame `t`'s pixels, or `None` when all are.
+    pub fn known(&self, t: usize) -> Option<&[f32]> {
+        self.known.get(t).map(Vec::as_slice)
     }
 
     /// The analysis-grid camera's intrinsics on this level's grid (exact
@@ -357,9 +385,12 @@ impl Score {
 /// One frame's score of predicted `m` (0/1) against found fractions `f`
 /// on a `w` x `h` grid, and its IoU when either has pixels; the chamfer
 /// distance only `with_chamfer` (it costs two distance transforms).
+/// `known` (or `None`: all known) weighs each predicted pixel by its known
+/// fraction; `f` counts only known pixels already.
 pub(crate) fn frame_score(
     m: &[u8],
     f: &[f32],
+    known: Option<&[f32]>,
     (w, h): (usize, usize),
     cap: f32,
     with_chamfer: bool,
@@ -378,10 +409,11 @@ pub(crate) fn frame_score(
         sf[0] += b * x;
         sf[1] += b * y;
         if a != 0 {
-            n_m += 1.0;
+            let k = known.map_or(1.0, |k| f64::from(k[i]));
+            n_m += k;
             inter += b;
-            sm[0] += x;
-            sm[1] += y;
+            sm[0] += k * x;
+            sm[1] += k * y;
         }
     }
     if n_m + n_f + over_robot <= 0.0 {
@@ -389,7 +421,11 @@ pub(crate) fn frame_score(
     }
     let union = n_m + n_f - inter;
     let chamfer = if with_chamfer {
-        let seeds_m: Vec<bool> = m.iter().map(|&v| v == 1).collect();
+        let seeds_m: Vec<bool> = m
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| v == 1 && known.is_none_or(|k| k[i] >= 0.5))
+            .collect();
         let seeds_f: Vec<bool> = f
             .iter()
             .zip(m)
@@ -441,7 +477,16 @@ pub(crate) fn score(
     let parts: Vec<(Score, Option<f64>)> = frames
         .par_iter()
         .zip(predicted)
-        .map(|(&t, m)| frame_score(m, &level.found[t], size, level.cap, with_chamfer))
+        .map(|(&t, m)| {
+            frame_score(
+                m,
+                &level.found[t],
+                level.known(t),
+                size,
+                level.cap,
+                with_chamfer,
+            )
+        })
         .collect();
     let mut total = Score {
         cap: f64::from(level.cap),
@@ -483,7 +528,7 @@ mod tests {
             }
         }
         let found: Vec<f32> = mask.iter().map(|&v| f32::from(v)).collect();
-        let (s, iou) = frame_score(&mask, &found, (w, h), 5.0, true);
+        let (s, iou) = frame_score(&mask, &found, None, (w, h), 5.0, true);
         assert_eq!(
             (s.iou(), s.chamfer, s.centroid, iou),
             (1.0, 0.0, 0.0, Some(1.0))
@@ -492,13 +537,16 @@ mod tests {
         let shifted: Vec<u8> = (0..w * h)
             .map(|i| if i % w >= 3 { mask[i - 3] } else { 0 })
             .collect();
-        let (s2, _) = frame_score(&shifted, &found, (w, h), 5.0, true);
+        let (s2, _) = frame_score(&shifted, &found, None, (w, h), 5.0, true);
         assert!((s2.iou() - 8.0 / 32.0).abs() < 1e-9, "{}", s2.iou());
         assert!((s2.centroid - 3.0).abs() < 1e-9, "{}", s2.centroid);
         assert!(s2.chamfer > 1.0 && s2.objective() > s.objective());
-        assert_eq!(frame_score(&[0; 4], &[0.0; 4], (2, 2), 1.0, true).1, None);
+        assert_eq!(
+            frame_score(&[0; 4], &[0.0; 4], None, (2, 2), 1.0, true).1,
+            None
+        );
         // A found half-pixel counts half.
-        let (s3, _) = frame_score(&[1, 0], &[0.5, 0.0], (2, 1), 1.0, false);
+        let (s3, _) = frame_score(&[1, 0], &[0.5, 0.0], None, (2, 1), 1.0, false);
         assert_eq!(
             (s3.intersection, s3.false_alarms, s3.misses),
             (0.5, 0.5, 0.0)
@@ -520,10 +568,34 @@ mod tests {
         let predicted: Vec<u8> = labels.iter().map(|&l| change_code(l, 1)).collect();
         let mut found = vec![0.0f32; w * h];
         found[..10].iter_mut().for_each(|v| *v = 1.0);
-        let (s, _) = frame_score(&predicted, &found, (w, h), 4.0, false);
+        let (s, _) = frame_score(&predicted, &found, None, (w, h), 4.0, false);
         assert_eq!(s.intersection, 0.0);
         assert!(s.union >= 10.0, "{s:?}");
         assert_eq!(s.iou(), 0.0);
+    }
+
+    #[test]
+    fn unknown_pixels_cost_no_camera_anything() {
+        // Found: pixels 0..4, of which 2 and 3 are unknown (static).
+        let found = vec![1u8, 1, 1, 1, 0, 0, 0, 0];
+        let unknown = vec![0u8, 0, 1, 1, 0, 0, 0, 0];
+        let level = Level::from_masks(&[found], &[unknown], (8, 1), 1);
+        assert_eq!(level.found[0], vec![1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let known = level.known(0);
+        // Predicting the known found pixels is perfect, whatever is predicted
+        // on the unknown ones.
+        for m in [[1u8, 1, 0, 0, 0, 0, 0, 0], [1, 1, 1, 1, 0, 0, 0, 0]] {
+            let (s, iou) = frame_score(&m, &level.found[0], known, (8, 1), 2.0, true);
+            assert_eq!((s.iou(), iou), (1.0, Some(1.0)), "{m:?}");
+        }
+        // A known pixel predicted but not found still costs.
+        let m = [1u8, 1, 0, 0, 1, 0, 0, 0];
+        let (s, _) = frame_score(&m, &level.found[0], known, (8, 1), 2.0, false);
+        assert!((s.iou() - 2.0 / 3.0).abs() < 1e-9, "{s:?}");
+        // Box-averaged: two of a 2 x 2 cell's pixels found, one of them
+        // unknown.
+        let level = Level::from_masks(&[vec![1, 1, 0, 0]], &[vec![0, 1, 0, 0]], (2, 2), 2);
+        assert_eq!((level.found[0][0], level.known[0][0]), (0.25, 0.75));
     }
 
     #[test]
@@ -537,7 +609,7 @@ mod tests {
     #[test]
     fn found_masks_are_box_averaged_onto_a_level() {
         let mask = vec![1u8, 1, 0, 0, 1, 0, 0, 0];
-        let level = Level::from_masks(&[mask], (4, 2), 2);
+        let level = Level::from_masks(&[mask], &[], (4, 2), 2);
         assert_eq!((level.width, level.height), (2, 1));
         assert_eq!(level.found[0], vec![0.75, 0.0]);
     }

@@ -249,6 +249,7 @@ impl CalibrateOptions {
             ("--min-robot-frames", self.min_robot_frames, 1, 100_000),
             ("--probe-evaluations", self.probe_evaluations, 1, 100_000),
             ("--walk-evaluations", self.walk_evaluations, 0, 100_000),
+            ("--static-window", self.foreground.static_window, 1, 100),
         ];
         for (field, v, lo, hi) in counts {
             if !(lo..=hi).contains(&v) {

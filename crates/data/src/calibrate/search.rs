@@ -248,7 +248,9 @@ fn moments(ev: &Evaluator, camera: &Camera) -> Moments {
         let level = &e.levels[ev.level];
         let f = level.factor as f64;
         for (&t, m) in frames.iter().zip(preds) {
+            let known = level.known(t);
             for (i, (&pv, &ov)) in m.iter().zip(&level.found[t]).enumerate() {
+                let pv = f32::from(pv) * known.map_or(1.0, |k| k[i]);
                 let x = ((i % level.width) as f64 + 0.5) * f - 0.5;
                 let y = ((i / level.width) as f64 + 0.5) * f - 0.5;
                 for (a, wgt) in acc.iter_mut().zip([f64::from(pv), f64::from(ov)]) {
