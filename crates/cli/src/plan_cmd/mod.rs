@@ -9,45 +9,11 @@ pub mod report;
 pub mod rollout;
 
 use bridgev2w_plan::experiment::planning::GoalOptions;
-use bridgev2w_plan::goal_latent::GoalLatent;
 use bridgev2w_plan::synthetic::WaypointSpacing;
-use bridgev2w_world_model::pipeline::BatchNoise;
 
 /// Prints a progress line to stderr.
 pub(crate) fn progress(line: &str) {
     eprintln!("{line}");
-}
-
-/// How a diffusion model samples and how goal distances are measured, for
-/// `plan-report` (the other planning commands take them as
-/// `bridgev2w_plan::experiment::ModelOptions`).
-#[derive(Debug, Clone, clap::Args)]
-pub struct SamplingArgs {
-    /// Denoising steps of a diffusion model.
-    #[arg(long, default_value_t = 4)]
-    pub denoise_steps: usize,
-    /// How a diffusion model draws the noise of a batch of candidates:
-    /// `shared` (common random numbers: candidates differ by their actions
-    /// alone) or `independent`.
-    #[arg(long, default_value = "shared")]
-    pub batch_noise: BatchNoise,
-    /// Where a diffusion model's sampling starts, in (0, 1]: 1 from pure
-    /// noise; s < 1 from the first frame's latent in every frame, noised to
-    /// the level a fraction s from the end (only the last ceil(s * steps)
-    /// denoising steps run).
-    #[arg(long, default_value_t = 1.0)]
-    pub strength: f64,
-    /// Keep the static scene of a diffusion model's predictions (beyond the
-    /// paper): outside the region the candidate's masks have swept so far,
-    /// dilated by this many pixels, each frame is the first frame.
-    #[arg(long, value_name = "MARGIN_PX")]
-    pub keep_static: Option<u32>,
-    /// Where goal distances are measured: `model` (a diffusion model's VAE
-    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
-    /// perfect model's latent: it keeps growing with the arm's displacement
-    /// where a fine latent is flat; beyond the paper).
-    #[arg(long, default_value = "model")]
-    pub goal_latent: GoalLatent,
 }
 
 /// The goal sequence and its switching, shared by `plan` and `plan-report`.

@@ -1,12 +1,12 @@
 //! `bridgev2w plan-report`: planning on all tasks and the policy
 //! evaluation, written as one section of docs/results.md.
 
-use super::{progress, GoalArgs, SamplingArgs};
+use super::{progress, GoalArgs};
 use anyhow::Result;
 use bridgev2w_data::synth::Task;
 use bridgev2w_plan::experiment::planning::CemSizes;
 use bridgev2w_plan::experiment::report::report_models;
-use bridgev2w_plan::experiment::{plan_report, PlanReportOptions};
+use bridgev2w_plan::experiment::{plan_report, PlanReportOptions, Sampling};
 use bridgev2w_world_model::pipeline::DecodeFrames;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
@@ -66,7 +66,7 @@ pub struct PlanReportArgs {
     #[arg(long, value_name = "FILE")]
     pub plan_weights: Option<PathBuf>,
     #[command(flatten)]
-    pub sampling: SamplingArgs,
+    pub sampling: Sampling,
     /// cpu, cuda, cuda:N or auto: the device of the diffusion models.
     #[arg(long, default_value = "cpu")]
     pub device: ComputeDevice,
@@ -111,11 +111,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
             a.trained.as_deref(),
         )?,
         section: a.section.clone(),
-        denoise_steps: a.sampling.denoise_steps,
-        batch_noise: a.sampling.batch_noise,
-        strength: a.sampling.strength,
-        keep_static_margin_px: a.sampling.keep_static,
-        goal_latent: a.sampling.goal_latent,
+        sampling: a.sampling,
         device: a.device,
         precision: a.precision,
         plan_weights: a.plan_weights.clone(),

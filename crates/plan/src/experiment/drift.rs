@@ -15,7 +15,7 @@
 //! ceiling (its Mask-IoU on the world's own frame) and copying the first
 //! frame (how far the arm has moved from where it started).
 
-use super::{LoadedModel, ModelOptions};
+use super::{LoadedModel, ModelOptions, Sampling};
 use crate::synthetic::image_from_rgb8;
 use crate::synthetic::{SyntheticEnv, TaskInstance};
 use crate::{EeAction, PlanError, Result};
@@ -261,7 +261,10 @@ pub fn drift_study(o: &DriftOptions, progress: &mut dyn FnMut(&str)) -> Result<D
         None => None,
         Some(margin) => {
             let kept = LoadedModel::load(&ModelOptions {
-                keep_static_margin_px: Some(margin),
+                sampling: Sampling {
+                    keep_static_margin_px: Some(margin),
+                    ..o.model.sampling
+                },
                 ..o.model.clone()
             })?;
             progress(&format!(

@@ -207,14 +207,9 @@ impl FidelityStudy {
                 ", the TCP kept in the camera's view ({f} of the image's smaller side from its edges, as `plan --view-margin {f}`)"
             )),
             o.frames_per_action,
-            o.model.denoise_steps,
-            o.model.batch_noise,
-            crate::experiment::report::sampling_note(
-                o.model.strength,
-                o.model.keep_static_margin_px,
-                o.model.goal_latent,
-                o.model.decode_frames,
-            ),
+            o.model.sampling.denoise_steps,
+            o.model.sampling.batch_noise,
+            crate::experiment::report::sampling_note(&o.model.sampling, o.model.decode_frames),
             o.trials,
         )
     }

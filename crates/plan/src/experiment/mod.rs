@@ -31,7 +31,7 @@ pub mod sizes;
 
 pub use drift::{drift_study, DriftOptions, DriftReport};
 pub use fidelity_study::{fidelity_study, FidelityOptions, FidelityStudy};
-pub use models::{LoadedModel, ModelOptions};
+pub use models::{LoadedModel, ModelOptions, Sampling};
 pub use planning::{plan_summary, PlanOptions, PlanSummary};
 pub use report::{plan_report, PlanReportOptions, ReportModel};
 pub use rollout::{rollout_report, rollout_report_with, RolloutOptions};

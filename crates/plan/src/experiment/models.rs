@@ -16,6 +16,51 @@ use bridgev2w_world_model::vae::VaeTiling;
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
 
+/// How a diffusion model samples and where goal distances are measured
+/// (flags of the planning commands and of `plan-report`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+pub struct Sampling {
+    /// Denoising steps of a diffusion model.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = Sampling::default().denoise_steps))]
+    pub denoise_steps: usize,
+    /// How a diffusion model draws the noise of a batch of candidates:
+    /// `shared` (common random numbers: candidates differ by their actions
+    /// alone) or `independent`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = Sampling::default().batch_noise))]
+    pub batch_noise: BatchNoise,
+    /// Where a diffusion model's sampling starts, in (0, 1]: 1 from pure
+    /// noise; s < 1 from the first frame's latent in every frame, noised to
+    /// the level a fraction s from the end (only the last ceil(s * steps)
+    /// denoising steps run; `SampleOptions::strength`).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = Sampling::default().strength))]
+    pub strength: f64,
+    /// Keep the static scene of a diffusion model's predictions (beyond the
+    /// paper): outside the region the candidate's masks have swept so far,
+    /// dilated by this many pixels, each frame is the first frame. Off when
+    /// not given.
+    #[cfg_attr(feature = "clap", arg(long = "keep-static", value_name = "MARGIN_PX"))]
+    pub keep_static_margin_px: Option<u32>,
+    /// Where goal distances are measured: `model` (a diffusion model's VAE
+    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
+    /// perfect model's latent: it keeps growing with the arm's displacement
+    /// where a fine latent is flat; beyond the paper).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = Sampling::default().goal_latent))]
+    pub goal_latent: GoalLatent,
+}
+
+impl Default for Sampling {
+    fn default() -> Self {
+        Self {
+            denoise_steps: 4,
+            batch_noise: BatchNoise::Shared,
+            strength: 1.0,
+            keep_static_margin_px: None,
+            goal_latent: GoalLatent::Model,
+        }
+    }
+}
+
 /// Which world model to plan or evaluate with, and how a diffusion model
 /// samples (flags of the planning commands).
 #[derive(Debug, Clone)]
@@ -32,32 +77,9 @@ pub struct ModelOptions {
     /// The fixed prompt's T5 embedding for a model folder.
     #[cfg_attr(feature = "clap", arg(long))]
     pub prompt_embeds: Option<PathBuf>,
-    /// Denoising steps of a diffusion model.
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().denoise_steps))]
-    pub denoise_steps: usize,
-    /// How a diffusion model draws the noise of a batch of candidates:
-    /// `shared` (common random numbers: candidates differ by their actions
-    /// alone) or `independent`.
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().batch_noise))]
-    pub batch_noise: BatchNoise,
-    /// Where a diffusion model's sampling starts, in (0, 1]: 1 from pure
-    /// noise; s < 1 from the first frame's latent in every frame, noised to
-    /// the level a fraction s from the end (only the last ceil(s * steps)
-    /// denoising steps run; `SampleOptions::strength`).
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().strength))]
-    pub strength: f64,
-    /// Keep the static scene of a diffusion model's predictions (beyond the
-    /// paper): outside the region the candidate's masks have swept so far,
-    /// dilated by this many pixels, each frame is the first frame. Off when
-    /// not given.
-    #[cfg_attr(feature = "clap", arg(long = "keep-static", value_name = "MARGIN_PX"))]
-    pub keep_static_margin_px: Option<u32>,
-    /// Where goal distances are measured: `model` (a diffusion model's VAE
-    /// latent, the paper) or `pyramid` (a Gaussian pyramid of the image, the
-    /// perfect model's latent: it keeps growing with the arm's displacement
-    /// where a fine latent is flat; beyond the paper).
-    #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().goal_latent))]
-    pub goal_latent: GoalLatent,
+    /// How a diffusion model samples and where goal distances are measured.
+    #[cfg_attr(feature = "clap", command(flatten))]
+    pub sampling: Sampling,
     /// cpu, cuda, cuda:N or auto.
     #[cfg_attr(feature = "clap", arg(long, default_value = "auto"))]
     pub device: ComputeDevice,
@@ -100,11 +122,7 @@ impl Default for ModelOptions {
             model: PlanModel::Perfect,
             weights: None,
             prompt_embeds: None,
-            denoise_steps: 4,
-            batch_noise: BatchNoise::Shared,
-            strength: 1.0,
-            keep_static_margin_px: None,
-            goal_latent: GoalLatent::Model,
+            sampling: Sampling::default(),
             device: ComputeDevice::auto(),
             precision: Precision::F32,
             max_batch: None,
@@ -161,16 +179,8 @@ pub enum LoadedModel {
     Diffusion {
         /// The model.
         model: Box<BridgeV2W>,
-        /// Denoising steps per prediction.
-        denoise_steps: usize,
-        /// How a batch's noise is drawn.
-        batch_noise: BatchNoise,
-        /// Where sampling starts.
-        strength: f64,
-        /// The static scene kept outside the swept region (margin in pixels).
-        keep_static_margin_px: Option<u32>,
-        /// The latent of goal distances.
-        goal_latent: GoalLatent,
+        /// How it samples and where goal distances are measured.
+        sampling: Sampling,
         /// At most this many candidates per model call.
         max_batch: Option<usize>,
         /// Which frames are decoded.
@@ -216,11 +226,7 @@ impl LoadedModel {
                     .set_tiling(VaeTiling::Auto, resolution, "the VAE's tiles")?;
                 Self::Diffusion {
                     model: Box::new(model),
-                    denoise_steps: o.denoise_steps,
-                    batch_noise: o.batch_noise,
-                    strength: o.strength,
-                    keep_static_margin_px: o.keep_static_margin_px,
-                    goal_latent: o.goal_latent,
+                    sampling: o.sampling,
                     max_batch: o.max_batch,
                     decode_frames: o.decode_frames,
                 }
@@ -270,21 +276,17 @@ impl LoadedModel {
             }),
             Self::Diffusion {
                 model,
-                denoise_steps,
-                batch_noise,
-                strength,
-                keep_static_margin_px,
-                goal_latent,
+                sampling,
                 max_batch,
                 decode_frames,
             } => {
                 let predict = PredictOptions {
                     sample: SampleOptions {
-                        steps: *denoise_steps,
+                        steps: sampling.denoise_steps,
                         guidance_scale: 1.0,
-                        batch_noise: *batch_noise,
-                        strength: *strength,
-                        keep_static_margin_px: *keep_static_margin_px,
+                        batch_noise: sampling.batch_noise,
+                        strength: sampling.strength,
+                        keep_static_margin_px: sampling.keep_static_margin_px,
                         ..SampleOptions::default()
                     },
                     max_batch: *max_batch,
@@ -298,7 +300,7 @@ impl LoadedModel {
                     inst.expert.actions[0].clone(),
                     predict,
                 )?;
-                wrapped.goal_latent = *goal_latent;
+                wrapped.goal_latent = sampling.goal_latent;
                 f(&wrapped)
             }
         }

@@ -3,13 +3,13 @@
 
 use super::planning::{plan_with, CemSizes, GoalOptions, PlanOptions};
 use super::rollout::{rollout_with, RolloutOptions};
-use super::{LoadedModel, ModelOptions};
+use super::{LoadedModel, ModelOptions, Sampling};
 use crate::choice::PlanModel;
 use crate::goal_latent::GoalLatent;
 use crate::policy::PolicyEvalReport;
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::Task;
-use bridgev2w_world_model::pipeline::{BatchNoise, DecodeFrames};
+use bridgev2w_world_model::pipeline::DecodeFrames;
 use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
 use bridgev2w_world_model::{ComputeDevice, Precision};
 use std::path::PathBuf;
@@ -59,11 +59,7 @@ impl ReportModel {
             model,
             weights,
             prompt_embeds: None,
-            denoise_steps: o.denoise_steps,
-            batch_noise: o.batch_noise,
-            strength: o.strength,
-            keep_static_margin_px: o.keep_static_margin_px,
-            goal_latent: o.goal_latent,
+            sampling: o.sampling,
             device: o.device,
             precision: o.precision,
             decode_frames: o.decode_frames,
@@ -97,17 +93,8 @@ pub struct PlanReportOptions {
     /// The results file's section the tables replace: its name decides the
     /// heading (the default `planning` names no models).
     pub section: String,
-    /// Denoising steps of the diffusion models' predictions.
-    pub denoise_steps: usize,
-    /// How the diffusion models draw a batch's noise.
-    pub batch_noise: BatchNoise,
-    /// Where the diffusion models' sampling starts (1 = pure noise).
-    pub strength: f64,
-    /// The static scene of the diffusion models' predictions kept outside
-    /// the robot's swept region (margin in pixels; `None`: off).
-    pub keep_static_margin_px: Option<u32>,
-    /// The latent of the diffusion models' goal distances.
-    pub goal_latent: GoalLatent,
+    /// How the diffusion models sample and where goal distances are measured.
+    pub sampling: Sampling,
     /// The device of the diffusion models.
     pub device: ComputeDevice,
     /// Precision of the diffusion models.
@@ -320,14 +307,9 @@ fn policy_evaluation(
                 ReportModel::Perfect => String::new(),
                 _ => format!(
                     " ({} denoising steps, {} noise{})",
-                    o.denoise_steps,
-                    o.batch_noise,
-                    sampling_note(
-                        o.strength,
-                        o.keep_static_margin_px,
-                        o.goal_latent,
-                        o.decode_frames
-                    )
+                    o.sampling.denoise_steps,
+                    o.sampling.batch_noise,
+                    sampling_note(&o.sampling, o.decode_frames)
                 ),
             },
             r.markdown()
@@ -450,20 +432,15 @@ fn planner_label(model: &ReportModel, plan_weights: Option<&std::path::Path>) ->
 /// image` when they are not measured in the VAE's latent, and `, only the
 /// last latent-frame batch decoded` with [`DecodeFrames::Last`]; else
 /// nothing.
-pub(crate) fn sampling_note(
-    strength: f64,
-    keep_static_margin_px: Option<u32>,
-    goal_latent: GoalLatent,
-    decode_frames: DecodeFrames,
-) -> String {
+pub(crate) fn sampling_note(sampling: &Sampling, decode_frames: DecodeFrames) -> String {
     let mut note = String::new();
-    if strength < 1.0 {
-        note += &format!(", strength {strength}");
+    if sampling.strength < 1.0 {
+        note += &format!(", strength {}", sampling.strength);
     }
-    if let Some(m) = keep_static_margin_px {
+    if let Some(m) = sampling.keep_static_margin_px {
         note += &format!(", the static scene kept outside the swept region (+{m} px)");
     }
-    if goal_latent == GoalLatent::Pyramid {
+    if sampling.goal_latent == GoalLatent::Pyramid {
         note += ", goal distances on a Gaussian pyramid of the image";
     }
     if decode_frames == DecodeFrames::Last {
