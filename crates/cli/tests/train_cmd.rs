@@ -501,6 +501,29 @@ fn bench_flow_out_of_memory_is_a_clean_error_naming_the_shapes() {
     assert!(!e.contains("panicked") && !e.contains("frame #"), "{e}");
 }
 
+/// A clip the causal VAE cannot return at its length (an even count of
+/// latent frames decodes to more frames) is refused before any work, by the
+/// VAE's own rule (`VaeConfig::frames_error`), as the model refuses it.
+#[test]
+fn bench_flow_refuses_frames_the_vae_does_not_round_trip() {
+    for (frames, expected) in [
+        (
+            "5",
+            "frames: 5: 2 latent frames, an even count, which the causal VAE decodes to 8 frames",
+        ),
+        ("6", "frames: 6: expected 4k + 1"),
+        ("1", "frames: 1: expected at least 2"),
+    ] {
+        let o = common::run(&["bench", "flow", "--vae", "tiny", "--frames", frames]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(expected), "{frames}: {e}");
+        assert!(
+            !e.contains("panicked") && !e.contains("flow loss: videos"),
+            "{e}"
+        );
+    }
+}
+
 #[test]
 fn bench_flow_refuses_tiles_that_do_not_join() {
     let o = common::run(&["bench", "flow", "--vae", "tiny", "--tile", "64x96"]);

@@ -123,27 +123,8 @@ impl BridgeV2WConfig {
         if let Some((field, message)) = self.size_error() {
             return Err(WorldModelError::input(field, message));
         }
-        let t = vae.temporal_compression_ratio as usize;
-        if self.frames == 0 || (self.frames - 1) % t.max(1) != 0 {
-            return Err(WorldModelError::input(
-                "frames",
-                format!(
-                    "{}: expected {t}k + 1 (the VAE's temporal compression)",
-                    self.frames
-                ),
-            ));
-        }
-        let latents = self.latent_frames(vae);
-        if t > 1 && latents > 1 && latents % 2 == 0 {
-            return Err(WorldModelError::input(
-                "frames",
-                format!(
-                    "{}: {latents} latent frames, an even count, which the causal VAE decodes to {} frames (its upsampler keeps the first latent frame apart only for odd counts); expected {}k + 1 frames, e.g. 9, 17, 25 or 49",
-                    self.frames,
-                    latents * t,
-                    2 * t
-                ),
-            ));
+        if let Some(message) = vae.frames_error(self.frames) {
+            return Err(WorldModelError::input("frames", message));
         }
         let m = (vae.spatial_compression() * tf.patch_size) as usize;
         if self.height == 0 || self.width == 0 || self.height % m != 0 || self.width % m != 0 {

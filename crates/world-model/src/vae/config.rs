@@ -178,6 +178,28 @@ impl VaeConfig {
         self.temporal_compression_ratio.log2().floor() as i64
     }
 
+    /// Why `frames` pixel frames do not round-trip through this VAE, or
+    /// `None`: a count must be `tk + 1` (the temporal compression `t`), and
+    /// with more than one latent frame their count must be odd, since the
+    /// causal upsampler keeps the first latent frame apart only for odd counts
+    /// (5 frames, 2 latent frames, would decode to 8).
+    pub fn frames_error(&self, frames: usize) -> Option<String> {
+        let t = (self.temporal_compression_ratio as usize).max(1);
+        if frames == 0 || (frames - 1) % t != 0 {
+            return Some(format!(
+                "{frames}: expected {t}k + 1 (the VAE's temporal compression)"
+            ));
+        }
+        let latents = (frames - 1) / t + 1;
+        (t > 1 && latents > 1 && latents % 2 == 0).then(|| {
+            format!(
+                "{frames}: {latents} latent frames, an even count, which the causal VAE decodes to {} frames (its upsampler keeps the first latent frame apart only for odd counts); expected {}k + 1 frames, e.g. 9, 17, 25 or 49",
+                latents * t,
+                2 * t
+            )
+        })
+    }
+
     /// Spatial compression: `2^(blocks - 1)` (8 for CogVideoX).
     pub fn spatial_compression(&self) -> i64 {
         1 << (self.block_out_channels.len().saturating_sub(1))
