@@ -309,6 +309,28 @@ fn robot_info_prints_joint_order() {
     assert_eq!(v["action_dim"], 14);
     assert_eq!(v["joints"][0]["name"], "left_arm_joint1");
     assert_eq!(v["end_effectors"][1]["arm"], "right");
+    // `--list` (which `--robot`'s help points to): every built-in robot,
+    // each of which `--robot NAME` then loads.
+    let o = run(&["robot-info", "--list", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let list: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
+    let names: Vec<&str> = list
+        .as_array()
+        .expect("array")
+        .iter()
+        .map(|r| r["name"].as_str().expect("name"))
+        .collect();
+    assert_eq!(names, ["franka", "dual-arm", "agibot-g1", "franka-robotiq"]);
+    let text = String::from_utf8_lossy(&run(&["robot-info", "--list"]).stdout).to_string();
+    for name in names {
+        assert!(text.contains(&format!("  {name} ")), "{text}");
+        assert!(
+            run(&["robot-info", "--robot", name]).status.success(),
+            "{name}"
+        );
+    }
+    let o = run(&["robot-info", "--list", "--robot", "franka"]);
+    assert!(!o.status.success() && stderr(&o).contains("cannot be used with"));
 }
 
 #[test]

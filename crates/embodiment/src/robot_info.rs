@@ -3,7 +3,7 @@
 //! and their label values, its end effectors (the order of actions), as
 //! text or JSON.
 
-use crate::embodiment::{builtin, Embodiment};
+use crate::embodiment::{builtin, Embodiment, BUILTIN_ROBOTS};
 use crate::masks::label_of_link;
 use std::fmt::Write as _;
 
@@ -16,6 +16,42 @@ fn flange(name: &str, arm: &str) -> Option<&'static str> {
 
 fn finite_or_null(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)
+}
+
+/// The built-in robots, one line each (name, description, folder), as
+/// `robot-info --list` prints them.
+pub fn builtin_robots_text() -> String {
+    let mut out = String::from("built-in robots (--robot NAME; or give a URDF file):\n");
+    for b in BUILTIN_ROBOTS {
+        let _ = writeln!(
+            out,
+            "  {:<15} {}{} (crates/embodiment/robots/{})",
+            b.name,
+            b.description,
+            if b.synthetic_world {
+                "; synth's tabletop world is laid out for it"
+            } else {
+                ""
+            },
+            b.folder
+        );
+    }
+    out
+}
+
+/// The built-in robots as JSON: `[{name, description, folder, synthetic_world}]`.
+pub fn builtin_robots_json() -> serde_json::Value {
+    BUILTIN_ROBOTS
+        .iter()
+        .map(|b| {
+            serde_json::json!({
+                "name": b.name,
+                "description": b.description,
+                "description_folder": format!("crates/embodiment/robots/{}", b.folder),
+                "synthetic_world": b.synthetic_world,
+            })
+        })
+        .collect()
 }
 
 /// The description as JSON (`name`, `source`, `description`,
