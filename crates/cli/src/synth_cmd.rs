@@ -2,7 +2,7 @@
 
 use crate::masks_cmd::progress_bar;
 use anyhow::{bail, Result};
-use bridgev2w_data::synth::{plan, write_dataset, Perturbation, SynthConfig, Task};
+use bridgev2w_data::synth::{plan, write_dataset, Engine, Perturbation, SynthConfig, Task};
 use std::path::PathBuf;
 
 /// Arguments of `synth`.
@@ -46,6 +46,12 @@ pub struct SynthArgs {
     /// Standard deviation of the perturbed demonstrations' offset (mm).
     #[arg(long, default_value_t = 30.0, value_name = "MM")]
     perturb_mm: f64,
+    /// What simulates and renders: `builtin` (this project's world: contact
+    /// rules, flat shading; fast) or `mujoco` (MuJoCo's physics and renderer,
+    /// the robot's real meshes; needs scripts/setup-mujoco-venv.sh; the
+    /// masks checked against MuJoCo's segmentation).
+    #[arg(long, default_value_t = Engine::Builtin)]
+    engine: Engine,
 }
 
 fn parse_counts(s: &str) -> Result<[usize; 4]> {
@@ -84,6 +90,7 @@ pub fn run(args: &SynthArgs) -> Result<()> {
             fraction: args.perturbed_fraction,
             offset_mm: args.perturb_mm,
         },
+        engine: args.engine,
     };
     config.validate()?;
     let n = plan(&config).len();
@@ -96,31 +103,5 @@ pub fn run(args: &SynthArgs) -> Result<()> {
     let pb = progress_bar(n, "rendering episodes");
     let summary = write_dataset(&config, &args.out, &|| pb.inc(1))?;
     pb.finish_and_clear();
-    let mut text = format!(
-        "wrote {} (LeRobot v3.0): {} episodes, {} frames of {}x{} at {} fps, robot {}\n",
-        summary.out.display(),
-        n,
-        summary.total_frames,
-        args.width,
-        args.height,
-        args.fps,
-        args.robot
-    );
-    for (split, k) in &summary.episodes_per_split {
-        text.push_str(&format!("  split {split}: {k} episodes\n"));
-    }
-    for (task, k) in &summary.episodes_per_task {
-        text.push_str(&format!("  task {task}: {k} episodes\n"));
-    }
-    text.push_str(&format!(
-        "  object contacts (push/grasp frames): {}\n",
-        summary.contact_events
-    ));
-    if summary.perturbed > 0 {
-        text.push_str(&format!(
-            "  perturbed demonstrations (train): {}, of which {} fail the task\n",
-            summary.perturbed, summary.perturbed_failed
-        ));
-    }
-    crate::print_stdout(&text)
+    crate::print_stdout(&summary.report(&config))
 }

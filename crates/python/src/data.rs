@@ -20,7 +20,7 @@ fn check_new_output(out: &Path) -> PyResult<()> {
 /// `episodes_per_split`, `episodes_per_task`, `contact_events`,
 /// `perturbed`, `perturbed_failed`).
 #[pyfunction]
-#[pyo3(signature = (out, robot, episodes_per_split, frames, width, height, fps, seed, tasks, perturbed_fraction, perturb_mm))]
+#[pyo3(signature = (out, robot, episodes_per_split, frames, width, height, fps, seed, tasks, perturbed_fraction, perturb_mm, engine = "builtin".to_string()))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn synth_generate<'py>(
     py: Python<'py>,
@@ -35,6 +35,7 @@ pub(crate) fn synth_generate<'py>(
     tasks: Vec<String>,
     perturbed_fraction: f64,
     perturb_mm: f64,
+    engine: String,
 ) -> PyResult<Bound<'py, PyDict>> {
     let tasks = tasks
         .iter()
@@ -59,6 +60,9 @@ pub(crate) fn synth_generate<'py>(
             fraction: perturbed_fraction,
             offset_mm: perturb_mm,
         },
+        engine: engine
+            .parse()
+            .map_err(|e: String| PyValueError::new_err(format!("engine: {e}")))?,
     };
     config
         .validate()

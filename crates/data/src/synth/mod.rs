@@ -18,6 +18,7 @@
 
 mod contacts;
 mod draw;
+pub mod mujoco;
 mod perturb;
 mod scene;
 mod tasks;
@@ -53,6 +54,9 @@ pub enum SynthError {
     /// Bad configuration.
     #[error("invalid synth configuration: {0}")]
     Config(String),
+    /// The simulation engine (MuJoCo) could not run.
+    #[error("synth --engine mujoco: {0}")]
+    Engine(String),
     /// No reachable trajectory after retries.
     #[error("episode {episode} of split {split}: no reachable {task} trajectory after {attempts} attempts (last IK residual {residual_mm:.1} mm)")]
     Unreachable {
@@ -203,6 +207,54 @@ pub struct SynthConfig {
     /// Perturbed (and so sometimes failed) demonstrations in the `train`
     /// split ([`Perturbation`]; none by default).
     pub perturb: Perturbation,
+    /// What simulates and renders the episodes.
+    pub engine: Engine,
+}
+
+/// What simulates and renders the synthetic world's episodes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Engine {
+    /// This project's world: kinematic contact rules, a flat-shaded software
+    /// renderer (fast; the tests' fixture).
+    #[default]
+    Builtin,
+    /// MuJoCo ([`mujoco`]): physics with contact and friction, OpenGL
+    /// rendering with lights and shadows, the robot's real meshes.
+    Mujoco,
+}
+
+impl Engine {
+    /// Every engine's name.
+    pub const NAMES: &'static str = "builtin, mujoco";
+
+    /// The engine's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Builtin => "builtin",
+            Self::Mujoco => "mujoco",
+        }
+    }
+}
+
+impl std::fmt::Display for Engine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Engine {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "builtin" => Ok(Self::Builtin),
+            "mujoco" => Ok(Self::Mujoco),
+            _ => Err(format!(
+                "unknown engine {s:?}: expected one of {}",
+                Self::NAMES
+            )),
+        }
+    }
 }
 
 impl Default for SynthConfig {
@@ -217,6 +269,7 @@ impl Default for SynthConfig {
             tasks: Task::ALL.to_vec(),
             episodes_per_split: [8, 2, 2, 2],
             perturb: Perturbation::default(),
+            engine: Engine::Builtin,
         }
     }
 }

@@ -530,6 +530,7 @@ impl World {
             objects,
             max_ik_residual_m: 0.0,
             perturbation: None,
+            mujoco: None,
         };
         Ok((meta, camera, actions))
     }

@@ -53,6 +53,9 @@ pub struct EpisodeMeta {
     /// ([`super::Perturbation`]); `None` for the expert's own actions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub perturbation: Option<super::PerturbedOutcome>,
+    /// MuJoCo's run of the episode (`synth --engine mujoco`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mujoco: Option<super::mujoco::MujocoCheck>,
 }
 
 /// One rendered clip.

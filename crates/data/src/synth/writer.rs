@@ -47,6 +47,67 @@ pub struct DatasetSummary {
     pub perturbed: usize,
     /// Of those, the ones that fail the task.
     pub perturbed_failed: usize,
+    /// `--engine mujoco`: episodes dropped because MuJoCo's physics went
+    /// unstable (never written), and the first one's reason.
+    pub dropped_unstable: usize,
+    /// The first dropped episode and why.
+    pub first_unstable: Option<String>,
+    /// `--engine mujoco`: over the written episodes, the mean of their mean
+    /// per-frame IoU of this project's masks against MuJoCo's segmentation,
+    /// and the lowest frame's.
+    pub mujoco_mask_iou: Option<(f64, f64)>,
+    /// `--engine mujoco`: written episodes whose MuJoCo run ends as the
+    /// home-made world's run of the same actions (within 3 cm).
+    pub mujoco_as_planned: usize,
+}
+
+impl DatasetSummary {
+    /// What `synth` prints: the folder, counts per split and task, contacts,
+    /// perturbed demonstrations, and with MuJoCo the masks' check and the
+    /// episodes dropped.
+    pub fn report(&self, config: &SynthConfig) -> String {
+        let written: usize = self.episodes_per_split.values().sum();
+        let mut text = format!(
+            "wrote {} (LeRobot v3.0): {written} episodes, {} frames of {}x{} at {} fps, robot {}, engine {}\n",
+            self.out.display(),
+            self.total_frames,
+            config.width,
+            config.height,
+            config.fps,
+            config.robot,
+            config.engine
+        );
+        for (split, k) in &self.episodes_per_split {
+            text.push_str(&format!("  split {split}: {k} episodes\n"));
+        }
+        for (task, k) in &self.episodes_per_task {
+            text.push_str(&format!("  task {task}: {k} episodes\n"));
+        }
+        text.push_str(&format!(
+            "  object contacts (push/grasp frames): {}\n",
+            self.contact_events
+        ));
+        if self.perturbed > 0 {
+            text.push_str(&format!(
+                "  perturbed demonstrations (train): {}, of which {} fail the task\n",
+                self.perturbed, self.perturbed_failed
+            ));
+        }
+        if let Some((mean, min)) = self.mujoco_mask_iou {
+            text.push_str(&format!(
+                "  masks vs MuJoCo's segmentation of the robot: IoU mean {mean:.4}, lowest frame {min:.4}\n  ended as the home-made world's run of the same actions (within 3 cm): {} of {written}\n",
+                self.mujoco_as_planned
+            ));
+        }
+        if self.dropped_unstable > 0 {
+            text.push_str(&format!(
+                "  dropped: {} episode(s) whose physics went unstable (first: {})\n",
+                self.dropped_unstable,
+                self.first_unstable.as_deref().unwrap_or("?")
+            ));
+        }
+        text
+    }
 }
 
 /// The camera's video key in the dataset.
@@ -65,6 +126,13 @@ pub fn write_dataset(
     use crate::lerobot::{LeRobotV3Writer, WriterEpisode};
     use bridgev2w_io::output::{OutputDir, OutputError};
     let world = World::new(config)?;
+    let engine = match config.engine {
+        super::Engine::Builtin => None,
+        super::Engine::Mujoco => Some(super::mujoco::MujocoEngine::new(
+            &config.robot,
+            super::mujoco::find_python()?,
+        )?),
+    };
     // Removed again if anything below fails.
     let output = OutputDir::create(out, false).map_err(|e| match e {
         OutputError::Exists { path } => WriteDatasetError::Exists(path),
@@ -98,17 +166,47 @@ pub fn write_dataset(
         contact_events: 0,
         perturbed: 0,
         perturbed_failed: 0,
+        dropped_unstable: 0,
+        first_unstable: None,
+        mujoco_mask_iou: None,
+        mujoco_as_planned: 0,
     };
+    let mut ious: Vec<(f64, f64)> = Vec::new();
     let mut metas = Vec::new();
     for chunk in plan.chunks(batch) {
-        let episodes: Vec<Episode> = chunk
+        let episodes: Vec<Result<Episode, String>> = chunk
             .par_iter()
             .map(|&(split, i, task)| {
-                let e = world.generate(split, i, task);
+                let e = world.generate(split, i, task)?;
+                let e = match &engine {
+                    None => Ok(e),
+                    Some(engine) => match engine.simulate(&world, e)? {
+                        super::mujoco::Simulated::Stable(e) => Ok(*e),
+                        super::mujoco::Simulated::Unstable { reason } => {
+                            Err(format!("episode {i} of split {}: {reason}", split.name()))
+                        }
+                    },
+                };
                 on_episode();
-                e
+                Ok::<_, SynthError>(e)
             })
             .collect::<Result<_, _>>()?;
+        let (episodes, dropped): (Vec<_>, Vec<_>) = episodes.into_iter().partition(Result::is_ok);
+        summary.dropped_unstable += dropped.len();
+        if summary.first_unstable.is_none() {
+            summary.first_unstable = dropped.into_iter().find_map(Result::err);
+        }
+        let episodes: Vec<Episode> = episodes.into_iter().flatten().collect();
+        summary.mujoco_as_planned += episodes
+            .iter()
+            .filter(|e| e.meta.mujoco.as_ref().is_some_and(|m| m.as_planned))
+            .count();
+        ious.extend(
+            episodes
+                .iter()
+                .filter_map(|e| e.meta.mujoco.as_ref())
+                .map(|m| (m.mask_iou_mean, m.mask_iou_min)),
+        );
         for e in &episodes {
             let f32s = |rows: &[Vec<f64>]| -> Vec<Vec<f32>> {
                 rows.iter()
@@ -150,6 +248,19 @@ pub fn write_dataset(
             }
             metas.push(m);
         }
+    }
+    if metas.is_empty() && summary.dropped_unstable > 0 {
+        return Err(SynthError::Engine(format!(
+            "every episode's physics went unstable, nothing to write (first: {})",
+            summary.first_unstable.as_deref().unwrap_or("?")
+        ))
+        .into());
+    }
+    if !ious.is_empty() {
+        summary.mujoco_mask_iou = Some((
+            ious.iter().map(|p| p.0).sum::<f64>() / ious.len() as f64,
+            ious.iter().map(|p| p.1).fold(1.0, f64::min),
+        ));
     }
     let specs = serde_json::to_value(&world.specs).unwrap_or_default();
     // The links the actions are poses of (the TCPs), as `convert` names

@@ -1,0 +1,403 @@
+//! The synthetic world simulated and rendered by MuJoCo (`synth --engine
+//! mujoco`, issue 72): each episode the home-made world plans (scene,
+//! camera, the expert's joints by IK) is run again in MuJoCo, a real
+//! physics engine and an OpenGL renderer: the robot (its URDF, real meshes
+//! where the description has them) position-controlled along the planned
+//! joints, the objects free bodies with contact and friction on a static
+//! table, lights and shadows. The RGB frames, the joints the arm reached and
+//! the objects' poses come from MuJoCo; the embodiment masks are this
+//! project's rasterizer on the reached joints, checked per frame against
+//! MuJoCo's own segmentation of the robot's geoms (IoU in the episode's
+//! metadata).
+//!
+//! MuJoCo runs in Python (PyPI `mujoco`, the venv `scripts/setup-mujoco-venv.sh`
+//! makes): the worker script `mujoco_world.py` is compiled into the binary
+//! and written to a temporary folder with the robot's description.
+
+use super::{Contact, Episode, ObjectPose, Pattern, Shape, SynthError, World};
+use bridgev2w_embodiment::embodiment::builtin;
+use bridgev2w_embodiment::masks::render_trajectory_labels;
+use bridgev2w_io::npy::{read_npy, NpyArray};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The worker, run once per episode.
+const WORKER: &str = include_str!("mujoco_world.py");
+
+/// The environment variable naming the Python that has `mujoco`.
+pub const PYTHON_ENV: &str = "BRIDGEV2W_MUJOCO_PYTHON";
+
+/// How an object higher than this above the table while the robot touches
+/// it counts as carried (metres).
+const CARRIED_ABOVE_TABLE_M: f64 = 0.005;
+
+/// What MuJoCo reported of one episode, kept in its metadata.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MujocoCheck {
+    /// MuJoCo's version.
+    pub mujoco: String,
+    /// Physics steps per frame.
+    pub substeps: usize,
+    /// Mean over frames of the IoU of this project's masks (on the reached
+    /// joints) and MuJoCo's segmentation of the robot.
+    pub mask_iou_mean: f64,
+    /// The lowest frame's IoU.
+    pub mask_iou_min: f64,
+    /// The largest difference between planned and reached arm joints over
+    /// frames (radians or metres; the grippers left out): the position
+    /// control's tracking error.
+    pub max_tracking_error: f64,
+    /// The task error of MuJoCo's run against the home-made world's run of
+    /// the same actions ([`World::task_error_m`]: the final TCP for reach
+    /// and play, the task object's final place for push and pick_place;
+    /// metres; `None` when pick_place ends with the object still held).
+    pub task_error_m: Option<f64>,
+    /// Whether MuJoCo's run ends where the home-made world's does, within
+    /// [`super::SUCCESS_TOLERANCE_M`]: the scripted expert's task done with
+    /// real contact and friction.
+    pub as_planned: bool,
+}
+
+/// An episode MuJoCo ran, or why it was dropped.
+#[derive(Debug)]
+pub enum Simulated {
+    /// The episode with MuJoCo's frames, joints and objects.
+    Stable(Box<Episode>),
+    /// The physics went unstable (a non-finite state, an object through the
+    /// table): never written as training data.
+    Unstable {
+        /// What MuJoCo's run showed.
+        reason: String,
+    },
+}
+
+/// The MuJoCo side: a Python with `mujoco` and a folder with the worker and
+/// the robot's description.
+#[derive(Debug)]
+pub struct MujocoEngine {
+    python: PathBuf,
+    dir: tempfile::TempDir,
+    urdf: PathBuf,
+}
+
+#[derive(Deserialize)]
+struct WorkerReport {
+    stable: bool,
+    reason: String,
+    mujoco: String,
+    substeps: usize,
+}
+
+fn engine_error(message: impl Into<String>) -> SynthError {
+    SynthError::Engine(message.into())
+}
+
+/// The Python to run MuJoCo with: `BRIDGEV2W_MUJOCO_PYTHON`, else
+/// `.venv-mujoco/bin/python` in the current folder or a folder above it or
+/// above the running binary (a checkout's `target/*/bridgev2w`).
+pub fn find_python() -> Result<PathBuf, SynthError> {
+    if let Some(p) = std::env::var_os(PYTHON_ENV) {
+        let p = PathBuf::from(p);
+        return if p.is_file() {
+            Ok(p)
+        } else {
+            Err(engine_error(format!(
+                "{PYTHON_ENV}={}: no such file (expected a Python with the mujoco package, e.g. .venv-mujoco/bin/python)",
+                p.display()
+            )))
+        };
+    }
+    let mut starts: Vec<PathBuf> = std::env::current_dir().into_iter().collect();
+    starts.extend(
+        std::env::current_exe()
+            .ok()
+            .and_then(|e| e.parent().map(Path::to_path_buf)),
+    );
+    for start in &starts {
+        for dir in start.ancestors() {
+            let p = dir.join(".venv-mujoco/bin/python");
+            if p.is_file() {
+                return Ok(p);
+            }
+        }
+    }
+    Err(engine_error(format!(
+        "no Python with MuJoCo: run scripts/setup-mujoco-venv.sh (it makes .venv-mujoco from PyPI) or set {PYTHON_ENV} to a Python that imports mujoco"
+    )))
+}
+
+impl MujocoEngine {
+    /// The engine for built-in robot `robot`, with the Python `python`
+    /// (see [`find_python`]); checks that it imports `mujoco` and can render
+    /// offscreen.
+    pub fn new(robot: &str, python: PathBuf) -> Result<Self, SynthError> {
+        let spec = builtin(robot).ok_or_else(|| {
+            engine_error(format!(
+                "robot {robot:?}: the MuJoCo engine runs the built-in robots (their description folders)"
+            ))
+        })?;
+        let dir =
+            tempfile::tempdir().map_err(|e| engine_error(format!("a temporary folder: {e}")))?;
+        let write = |rel: &str, bytes: &[u8]| -> Result<(), SynthError> {
+            let path = dir.path().join("robot").join(rel);
+            if let Some(parent) = path.parent() {
+                std::fs::create_dir_all(parent)
+                    .map_err(|e| engine_error(format!("{}: {e}", parent.display())))?;
+            }
+            std::fs::write(&path, bytes)
+                .map_err(|e| engine_error(format!("{}: {e}", path.display())))
+        };
+        let urdf_name = format!("{}.urdf", spec.folder);
+        write(&urdf_name, spec.urdf.as_bytes())?;
+        for (rel, bytes) in spec.files {
+            write(rel, bytes)?;
+        }
+        write("../mujoco_world.py", WORKER.as_bytes())?;
+        let engine = Self {
+            python,
+            urdf: dir.path().join("robot").join(urdf_name),
+            dir,
+        };
+        engine.check_python()?;
+        Ok(engine)
+    }
+
+    fn check_python(&self) -> Result<(), SynthError> {
+        let o = Command::new(&self.python)
+            .args(["-c", "import mujoco; print(mujoco.__version__)"])
+            .output()
+            .map_err(|e| engine_error(format!("{}: cannot run it: {e}", self.python.display())))?;
+        if !o.status.success() {
+            return Err(engine_error(format!(
+                "{} cannot import mujoco ({}): run scripts/setup-mujoco-venv.sh or set {PYTHON_ENV}",
+                self.python.display(),
+                String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or("").trim()
+            )));
+        }
+        Ok(())
+    }
+
+    /// Runs `episode` (planned by `world`) in MuJoCo.
+    pub fn simulate(&self, world: &World, episode: Episode) -> Result<Simulated, SynthError> {
+        let name = format!(
+            "{}-{}",
+            episode.meta.split.name(),
+            episode.meta.index_in_split
+        );
+        let input = self.dir.path().join(format!("{name}.json"));
+        let out = self.dir.path().join(name);
+        let text = serde_json::to_string(&self.episode_json(world, &episode))
+            .map_err(|e| engine_error(format!("episode JSON: {e}")))?;
+        std::fs::write(&input, text)
+            .map_err(|e| engine_error(format!("{}: {e}", input.display())))?;
+        let o = Command::new(&self.python)
+            .arg(self.dir.path().join("mujoco_world.py"))
+            .arg(&input)
+            .arg(&out)
+            .env(
+                "MUJOCO_GL",
+                std::env::var("MUJOCO_GL").unwrap_or_else(|_| "egl".into()),
+            )
+            .output()
+            .map_err(|e| engine_error(format!("{}: cannot run it: {e}", self.python.display())))?;
+        if !o.status.success() {
+            let stderr = String::from_utf8_lossy(&o.stderr);
+            return Err(engine_error(format!(
+                "episode {} of split {}: MuJoCo's worker failed ({}): {}",
+                episode.meta.index_in_split,
+                episode.meta.split.name(),
+                o.status,
+                stderr.trim()
+            )));
+        }
+        let report: WorkerReport = bridgev2w_io::json::read_json(&out.join("report.json"))
+            .map_err(|e| engine_error(e.to_string()))?;
+        if !report.stable {
+            return Ok(Simulated::Unstable {
+                reason: report.reason,
+            });
+        }
+        let planned = episode.clone();
+        let result = self.read_back(world, episode, &out, &report).map(|mut e| {
+            let error_m = world.task_error_m(&planned, &e);
+            if let Some(m) = e.meta.mujoco.as_mut() {
+                m.task_error_m = error_m.is_finite().then_some(error_m);
+                m.as_planned = error_m < super::SUCCESS_TOLERANCE_M;
+            }
+            e
+        });
+        let _ = std::fs::remove_dir_all(&out);
+        let _ = std::fs::remove_file(&input);
+        result.map(|e| Simulated::Stable(Box::new(e)))
+    }
+
+    fn episode_json(&self, world: &World, e: &Episode) -> serde_json::Value {
+        let f = &world.frame;
+        let look = &e.meta.look;
+        let checker = match look.table_pattern {
+            Pattern::Checker { period } => Some(period),
+            _ => None,
+        };
+        let camera: serde_json::Value =
+            serde_json::from_str(&e.camera.to_json()).unwrap_or_default();
+        let objects: Vec<_> = e
+            .meta
+            .objects
+            .iter()
+            .map(|o| {
+                let mut v = match o.shape {
+                    Shape::Box { size_m } => serde_json::json!({"kind": "box", "size_m": size_m}),
+                    Shape::Cylinder { radius_m, height_m } => serde_json::json!({
+                        "kind": "cylinder", "radius_m": radius_m, "height_m": height_m
+                    }),
+                };
+                v["color"] = serde_json::json!(o.color);
+                v["position_m"] = serde_json::json!(o.initial.position_m);
+                v["yaw_rad"] = serde_json::json!(o.initial.yaw_rad);
+                v
+            })
+            .collect();
+        let robot = &world.embodiment.robot;
+        serde_json::json!({
+            "urdf": self.urdf,
+            "joint_names": robot.dof_names(),
+            "joints": e.joints,
+            "fps": world.config.fps,
+            "camera": camera,
+            "table": {
+                "z_m": f.table_z_m, "x_m": f.table_x_m, "y_m": f.table_y_m,
+                "colors": look.table_colors, "checker_period_m": checker,
+            },
+            "background": look.background_colors,
+            "to_light_world": look.to_light_world,
+            "objects": objects,
+        })
+    }
+
+    fn read_back(
+        &self,
+        world: &World,
+        mut e: Episode,
+        out: &Path,
+        report: &WorkerReport,
+    ) -> Result<Episode, SynthError> {
+        let (t, h, w) = (
+            e.rgb.len(),
+            e.camera.intrinsics.height as usize,
+            e.camera.intrinsics.width as usize,
+        );
+        let dofs = world.embodiment.robot.dof_names().len();
+        let k = e.meta.objects.len();
+        let read = |file: &str, shape: &[usize]| -> Result<NpyArray, SynthError> {
+            let path = out.join(file);
+            let a = read_npy(&path).map_err(|e| engine_error(e.to_string()))?;
+            if a.shape != shape {
+                return Err(engine_error(format!(
+                    "{}: shape {:?}, expected {shape:?}",
+                    path.display(),
+                    a.shape
+                )));
+            }
+            Ok(a)
+        };
+        let rgb = read("rgb.npy", &[t, h, w, 3])?;
+        let robot_px = read("robot.npy", &[t, h, w])?;
+        let joints = read("joints.npy", &[t, dofs])?;
+        let objects = read("objects.npy", &[t, k, 4])?;
+        let touched = read("contacts.npy", &[t, k])?;
+        let reached: Vec<Vec<f64>> = joints.data.chunks(dofs).map(<[f64]>::to_vec).collect();
+        // The arm's tracking (a gripper closed on an object stops short of
+        // its command by design).
+        let grippers: Vec<usize> = world
+            .embodiment
+            .end_effectors
+            .iter()
+            .filter_map(|ee| ee.gripper_dof)
+            .collect();
+        let max_tracking_error = reached
+            .iter()
+            .zip(&e.joints)
+            .flat_map(|(a, b)| {
+                a.iter()
+                    .zip(b)
+                    .enumerate()
+                    .filter(|(d, _)| !grippers.contains(d))
+                    .map(|(_, (x, y))| (x - y).abs())
+            })
+            .fold(0.0, f64::max);
+        let labels = render_trajectory_labels(&world.embodiment.robot, &e.camera, &reached, &|| {});
+        let ious: Vec<f64> = labels
+            .iter()
+            .zip(robot_px.data.chunks(h * w))
+            .map(|(ours, theirs)| {
+                let (mut both, mut either) = (0usize, 0usize);
+                for (&a, &b) in ours.iter().zip(theirs) {
+                    let (a, b) = (a != 0, b != 0.0);
+                    both += usize::from(a && b);
+                    either += usize::from(a || b);
+                }
+                if either == 0 {
+                    1.0
+                } else {
+                    both as f64 / either as f64
+                }
+            })
+            .collect();
+        e.rgb = rgb
+            .data
+            .chunks(h * w * 3)
+            .map(|f| f.iter().map(|&v| v as u8).collect())
+            .collect();
+        e.masks = labels
+            .iter()
+            .map(|l| l.iter().map(|&v| u8::from(v != 0)).collect())
+            .collect();
+        e.labels = labels
+            .iter()
+            .map(|l| l.iter().map(|&v| v.min(255) as u8).collect())
+            .collect();
+        e.joints = reached;
+        let table_z = world.frame.table_z_m;
+        e.object_poses = objects
+            .data
+            .chunks(k * 4)
+            .map(|f| {
+                f.chunks(4)
+                    .map(|p| ObjectPose {
+                        position_m: [p[0], p[1], p[2]],
+                        yaw_rad: p[3],
+                    })
+                    .collect()
+            })
+            .collect();
+        e.contacts = e
+            .object_poses
+            .iter()
+            .zip(touched.data.chunks(k.max(1)))
+            .map(|(poses, touch)| {
+                poses
+                    .iter()
+                    .zip(touch)
+                    .map(|(p, &c)| match c != 0.0 {
+                        false => Contact::None,
+                        true if p.position_m[2] > table_z + CARRIED_ABOVE_TABLE_M => {
+                            Contact::Carried
+                        }
+                        true => Contact::Pushed,
+                    })
+                    .collect()
+            })
+            .collect();
+        e.meta.mujoco = Some(MujocoCheck {
+            mujoco: report.mujoco.clone(),
+            substeps: report.substeps,
+            mask_iou_mean: ious.iter().sum::<f64>() / ious.len().max(1) as f64,
+            mask_iou_min: ious.iter().copied().fold(1.0, f64::min),
+            max_tracking_error,
+            task_error_m: None,
+            as_planned: false,
+        });
+        Ok(e)
+    }
+}
