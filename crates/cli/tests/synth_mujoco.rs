@@ -101,6 +101,12 @@ fn mujoco_runs_the_episodes_and_its_segmentation_matches_the_masks() {
             .expect("masks")
             .data
     };
+    // MuJoCo's own robot pixels, saved beside the masks.
+    let theirs = bridgev2w_io::npy::read_npy(&with.join("mujoco_masks/episode_000001.npy"))
+        .expect("mujoco_masks");
+    assert_eq!(theirs.shape, [16, 96, 128]);
+    assert!(theirs.data.contains(&1.0));
+    assert!(!without.join("mujoco_masks").exists());
     let (a, c) = (masks(&with), masks(&without));
     assert_eq!(a.len(), 16 * 96 * 128);
     let both = a

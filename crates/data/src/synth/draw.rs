@@ -23,6 +23,36 @@ fn mix(a: [f32; 3], b: [f32; 3], w: f32) -> [f32; 3] {
     ]
 }
 
+/// The table top as the built-in renderer colours it (its pattern and
+/// colours, unshaded), `width x height` pixels (sRGB8, row-major) over the
+/// table's extent: row 0 at the table's largest y, column 0 at its smallest
+/// x (an image laid on the table seen from above, x right, y up).
+pub(super) fn table_texture(
+    world: &World,
+    meta: &EpisodeMeta,
+    width: usize,
+    height: usize,
+) -> Vec<u8> {
+    let (fr, look) = (&world.frame, &meta.look);
+    let table = look.table_colors.map(srgb_to_linear);
+    let mut out = Vec::with_capacity(width * height * 3);
+    for row in 0..height {
+        let y = fr.table_y_m[1]
+            - (row as f64 + 0.5) / height as f64 * (fr.table_y_m[1] - fr.table_y_m[0]);
+        for col in 0..width {
+            let x = fr.table_x_m[0]
+                + (col as f64 + 0.5) / width as f64 * (fr.table_x_m[1] - fr.table_x_m[0]);
+            let c = linear_to_srgb(mix(
+                table[0],
+                table[1],
+                look.table_pattern.weight(x, y) as f32,
+            ));
+            out.extend(c.map(|v| (v * 255.0).round() as u8));
+        }
+    }
+    out
+}
+
 /// Link colours (sRGB), by link index.
 const LINK_COLORS: [[u8; 3]; 6] = [
     [235, 235, 232],

@@ -14,7 +14,7 @@
 //! makes): the worker script `mujoco_world.py` is compiled into the binary
 //! and written to a temporary folder with the robot's description.
 
-use super::{Contact, Episode, ObjectPose, Pattern, Shape, SynthError, World};
+use super::{Contact, Episode, ObjectPose, Shape, SynthError, World};
 use bridgev2w_embodiment::embodiment::builtin;
 use bridgev2w_embodiment::masks::render_trajectory_labels;
 use bridgev2w_io::npy::{read_npy, NpyArray};
@@ -31,6 +31,10 @@ pub const PYTHON_ENV: &str = "BRIDGEV2W_MUJOCO_PYTHON";
 /// How an object higher than this above the table while the robot touches
 /// it counts as carried (metres).
 const CARRIED_ABOVE_TABLE_M: f64 = 0.005;
+
+/// The side of the table's texture (pixels): the built-in world's pattern,
+/// drawn by its own code.
+const TABLE_TEXTURE_PX: usize = 512;
 
 /// What MuJoCo reported of one episode, kept in its metadata.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -186,9 +190,19 @@ impl MujocoEngine {
             episode.meta.index_in_split
         );
         let input = self.dir.path().join(format!("{name}.json"));
+        let texture = self.dir.path().join(format!("{name}-table.png"));
+        let png = bridgev2w_io::png::encode_rgb8(
+            TABLE_TEXTURE_PX as u32,
+            TABLE_TEXTURE_PX as u32,
+            &super::draw::table_texture(world, &episode.meta, TABLE_TEXTURE_PX, TABLE_TEXTURE_PX),
+        );
+        std::fs::write(&texture, png)
+            .map_err(|e| engine_error(format!("{}: {e}", texture.display())))?;
         let out = self.dir.path().join(name);
-        let text = serde_json::to_string(&self.episode_json(world, &episode))
-            .map_err(|e| engine_error(format!("episode JSON: {e}")))?;
+        let mut json = self.episode_json(world, &episode);
+        json["table"]["texture_png"] = serde_json::json!(texture);
+        let text =
+            serde_json::to_string(&json).map_err(|e| engine_error(format!("episode JSON: {e}")))?;
         std::fs::write(&input, text)
             .map_err(|e| engine_error(format!("{}: {e}", input.display())))?;
         let o = Command::new(&self.python)
@@ -229,16 +243,13 @@ impl MujocoEngine {
         });
         let _ = std::fs::remove_dir_all(&out);
         let _ = std::fs::remove_file(&input);
+        let _ = std::fs::remove_file(&texture);
         result.map(|e| Simulated::Stable(Box::new(e)))
     }
 
     fn episode_json(&self, world: &World, e: &Episode) -> serde_json::Value {
         let f = &world.frame;
         let look = &e.meta.look;
-        let checker = match look.table_pattern {
-            Pattern::Checker { period } => Some(period),
-            _ => None,
-        };
         let camera: serde_json::Value =
             serde_json::from_str(&e.camera.to_json()).unwrap_or_default();
         let objects: Vec<_> = e
@@ -267,7 +278,7 @@ impl MujocoEngine {
             "camera": camera,
             "table": {
                 "z_m": f.table_z_m, "x_m": f.table_x_m, "y_m": f.table_y_m,
-                "colors": look.table_colors, "checker_period_m": checker,
+                "colors": look.table_colors,
             },
             "background": look.background_colors,
             "to_light_world": look.to_light_world,
@@ -358,6 +369,13 @@ impl MujocoEngine {
             .map(|l| l.iter().map(|&v| v.min(255) as u8).collect())
             .collect();
         e.joints = reached;
+        e.mujoco_masks = Some(
+            robot_px
+                .data
+                .chunks(h * w)
+                .map(|f| f.iter().map(|&v| u8::from(v != 0.0)).collect())
+                .collect(),
+        );
         let table_z = world.frame.table_z_m;
         e.object_poses = objects
             .data

@@ -13,7 +13,7 @@ EPISODE.json (written by the Rust side, `synth::mujoco`):
   joints          [T][n] commanded joint positions per frame
   fps             frames per second of the episode
   camera          fx, fy, cx, cy, width, height, world_from_camera (4x4)
-  table           z_m, x_m [lo, hi], y_m [lo, hi], colors [[r,g,b] x2], checker_period_m (or null)
+  table           z_m, x_m [lo, hi], y_m [lo, hi], colors [[r,g,b] x2], texture_png (optional)
   background      [[r,g,b] x2]
   to_light_world  unit vector towards the light
   objects         [{kind: box|cylinder, size_m | radius_m+height_m, color, position_m (bottom centre), yaw_rad}]
@@ -135,21 +135,25 @@ def build(mujoco, ep: dict):
     t = ep["table"]
     cx, cy = (t["x_m"][0] + t["x_m"][1]) / 2, (t["y_m"][0] + t["y_m"][1]) / 2
     hx, hy = (t["x_m"][1] - t["x_m"][0]) / 2, (t["y_m"][1] - t["y_m"][0]) / 2
+    # The table: a thick box that objects rest on (not drawn), its top a
+    # plane drawn with the built-in world's pattern (texture_png, the table's
+    # extent, row 0 at its largest y) or its first colour.
     mat = "table"
-    c0, c1 = t["colors"]
-    if t.get("checker_period_m"):
-        period = float(t["checker_period_m"])
+    if t.get("texture_png"):
+        # The compiler strips folders from file names (strippath, for the
+        # URDF's meshes): the texture is found in texturedir.
+        spec.compiler.texturedir = os.path.dirname(os.path.abspath(t["texture_png"]))
         tex = spec.add_texture(name="table", type=mujoco.mjtTexture.mjTEXTURE_2D,
-                               builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-                               rgb1=rgba(c0)[:3], rgb2=rgba(c1)[:3], width=64, height=64)
-        m = spec.add_material(name=mat, texrepeat=[hx / period, hy / period])
+                               file=os.path.basename(t["texture_png"]))
+        m = spec.add_material(name=mat, texrepeat=[1, 1], texuniform=False)
         m.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = tex.name
     else:
-        spec.add_material(name=mat, rgba=rgba(c0))
-    # Thick, so that nothing pressed onto it tunnels through.
+        spec.add_material(name=mat, rgba=rgba(t["colors"][0]))
     world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[cx, cy, t["z_m"] - 0.1],
-                   size=[hx, hy, 0.1], material=mat, contype=1, conaffinity=3,
+                   size=[hx, hy, 0.1], rgba=rgba(t["colors"][0]), group=3, contype=1, conaffinity=3,
                    friction=[1.0, 0.01, 0.001], condim=4)
+    world.add_geom(name="table_top", type=mujoco.mjtGeom.mjGEOM_PLANE, pos=[cx, cy, t["z_m"]],
+                   size=[hx, hy, 0.05], material=mat, contype=0, conaffinity=0)
     b0, b1 = ep["background"]
     spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
                      builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,

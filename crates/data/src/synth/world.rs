@@ -80,6 +80,9 @@ pub struct Episode {
     pub object_poses: Vec<Vec<ObjectPose>>,
     /// Per frame, per object: contact event.
     pub contacts: Vec<Vec<Contact>>,
+    /// `--engine mujoco`: per frame, MuJoCo's segmentation of the robot
+    /// (0/1, `height * width`), an independent renderer's robot pixels.
+    pub mujoco_masks: Option<Vec<Vec<u8>>>,
 }
 
 /// The dynamic state of a scene between frames: what [`World::step`]
@@ -301,6 +304,7 @@ impl World {
             joints,
             object_poses,
             contacts,
+            mujoco_masks: None,
         }
     }
 

@@ -223,6 +223,20 @@ pub fn write_dataset(
                 labels: Some(&e.labels),
                 camera: Some(&e.camera),
             })?;
+            if let Some(frames) = &e.mujoco_masks {
+                let (h, w) = (config.height as usize, config.width as usize);
+                let path = tmp.join(format!("mujoco_masks/episode_{index:06}.npy"));
+                let flat: Vec<u8> = frames.concat();
+                std::fs::create_dir_all(tmp.join("mujoco_masks"))
+                    .and_then(|()| {
+                        bridgev2w_io::npy::write_npy(&path, &[frames.len(), h, w], &flat)
+                            .map_err(std::io::Error::other)
+                    })
+                    .map_err(|source| WriteDatasetError::Io {
+                        path: path.clone(),
+                        source,
+                    })?;
+            }
             *summary
                 .episodes_per_split
                 .entry(e.meta.split.name().into())
