@@ -144,13 +144,14 @@ fn a_missing_mujoco_or_an_unstable_run_is_named_and_nothing_is_written() {
         "{e}"
     );
     assert!(!out.exists());
-    // A run whose physics goes unstable (a stand-in worker reporting it):
+    // A run whose physics goes unstable (a stand-in worker speaking the
+    // session's protocol reports it):
     // dropped with the reason; with every episode dropped, nothing written.
     let fake = dir.path().join("python");
     std::fs::write(
         &fake,
-        "#!/bin/sh\nif [ \"$1\" = -c ]; then echo 4.0.1; exit 0; fi\nmkdir -p \"$3\"\n\
-         echo '{\"stable\": false, \"reason\": \"frame 3: the state is not finite (NaN or inf)\", \"mujoco\": \"4.0.1\", \"substeps\": 50}' > \"$3/report.json\"\n",
+        "#!/bin/sh\nif [ \"$1\" = -c ]; then echo 4.0.1; exit 0; fi\n\
+         while read -r line; do echo '{\"frames\": [], \"stable\": false, \"reason\": \"frame 3: the state is not finite (NaN or inf)\", \"mujoco\": \"4.0.1\", \"substeps\": 50}'; done\n",
     )
     .expect("write");
     #[cfg(unix)]

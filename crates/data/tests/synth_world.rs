@@ -445,3 +445,63 @@ fn perturbed_demonstrations_shift_the_expert_and_record_their_outcome() {
         assert!(e.contains(flag), "{e}");
     }
 }
+
+/// The MuJoCo session a planner executes chunks in (issue 72): stepping a
+/// plan in two chunks ends where stepping it at once does (the physics is
+/// deterministic), only asked frames are rendered, and a worker that stops
+/// is an error carrying what it said.
+#[test]
+fn a_mujoco_session_steps_in_chunks_as_at_once_and_names_a_worker_that_stops() {
+    use bridgev2w_data::synth::mujoco::{MujocoEngine, Render};
+    let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let python = repo.join(".venv-mujoco/bin/python");
+    assert!(
+        python.is_file(),
+        "{}: no MuJoCo venv (./run test makes it: scripts/setup-mujoco-venv.sh)",
+        python.display()
+    );
+    let world = World::new(&config("franka-robotiq")).unwrap();
+    let e = world.generate(Split::Test, 0, Task::Push).unwrap();
+    let engine = MujocoEngine::new("franka-robotiq", python).unwrap();
+    let scene = engine.scene_json(&world, &e, "chunks").unwrap();
+    let size = (32, 48);
+    let run = |chunks: &[std::ops::Range<usize>]| {
+        let mut s = engine.session("chunks").unwrap();
+        let start = s.reset(&scene, size).unwrap();
+        assert_eq!(start.frames.len(), 1);
+        assert_eq!(
+            start.frames[0].rgb.as_ref().map(Vec::len),
+            Some(32 * 48 * 3)
+        );
+        let mut last = None;
+        for c in chunks {
+            let r = s.step(&e.joints[c.clone()], Render::Last).unwrap();
+            assert!(r.unstable.is_none(), "{:?}", r.unstable);
+            assert_eq!(r.frames.len(), c.len());
+            let rendered: Vec<bool> = r.frames.iter().map(|f| f.rgb.is_some()).collect();
+            assert_eq!(rendered.iter().filter(|&&x| x).count(), 1);
+            assert!(rendered[c.len() - 1]);
+            last = r.frames.last().cloned();
+        }
+        last.unwrap()
+    };
+    let n = e.joints.len();
+    let (whole, halves) = (run(&[1..n]), run(&[1..n / 2, n / 2..n]));
+    assert_eq!(whole.joints, halves.joints);
+    assert_eq!(whole.objects, halves.objects);
+    assert_eq!(whole.rgb, halves.rgb);
+    // The arm follows its plan (radians, the arm's seven joints).
+    for (a, b) in whole.joints.iter().zip(&e.joints[n - 1]).take(7) {
+        assert!((a - b).abs() < 0.1, "{a} against {b}");
+    }
+    // A step before any reset: the worker refuses and stops; the error says why.
+    let mut s = engine.session("early").unwrap();
+    let err = s
+        .step(&e.joints[1..2], Render::None)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("MuJoCo's worker stopped") && err.contains("expected reset"),
+        "{err}"
+    );
+}

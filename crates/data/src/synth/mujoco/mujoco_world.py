@@ -1,36 +1,31 @@
-"""One synthetic episode simulated and rendered by MuJoCo (issue 72).
+"""The synthetic world's scenes simulated and rendered by MuJoCo (issue 72).
 
 Run by `bridgev2w synth --engine mujoco` (embedded in the binary, written to
-a temporary file and run with the MuJoCo venv's Python), one call per
-episode:
+a temporary folder with the robot's description and run with the MuJoCo
+venv's Python) as a session over stdin and stdout (`--serve`; the protocol
+in `serve`, the Rust side in `session.rs`).
 
-    python mujoco_world.py EPISODE.json OUT_DIR
-
-EPISODE.json (written by the Rust side, `synth::mujoco`):
+An episode (the JSON of a reset, written by the Rust side):
   urdf            path of the robot's URDF (meshes beside it, in meshes/)
   joint_names     the actuated joints, the columns of `joints`
   mimic           optional {joint: [source, multiplier, offset]}; default: the URDF's <mimic> tags
-  joints          [T][n] commanded joint positions per frame
-  fps             frames per second of the episode
+  joints          [T][n] joint positions; the first row is the start
+  fps             frames per second (physics steps per frame = 1 / (fps x 2 ms))
   camera          fx, fy, cx, cy, width, height, world_from_camera (4x4)
   table           z_m, x_m [lo, hi], y_m [lo, hi], colors [[r,g,b] x2], texture_png (optional)
   background      [[r,g,b] x2]
   to_light_world  unit vector towards the light
   objects         [{kind: box|cylinder, size_m | radius_m+height_m, color, position_m (bottom centre), yaw_rad}]
-  substeps        physics steps per frame
-
-OUT_DIR receives rgb.npy (uint8 [T,H,W,3]), robot.npy (uint8 [T,H,W], 1
-where MuJoCo's segmentation shows a robot geom), joints.npy (float64 [T,n],
-the joints the position-controlled arm reached), objects.npy (float64
-[T,K,4]: bottom-centre x, y, z and yaw), contacts.npy (uint8 [T,K], 1 where
-a robot geom touches the object in that frame) and report.json ({"stable":
-bool, "reason": str, "mujoco": version}).
 
 The robot is position-controlled (a position actuator per actuated joint,
 its gravity compensated), mimic joints follow by equality constraints; the
 objects are free bodies with MuJoCo's contact and friction; the table is
-static. Exit code 0 also for an unstable episode (report.json says why);
-2 for bad input or a missing MuJoCo/OpenGL, with the reason on stderr.
+static. Each frame reports the joints the arm reached (within their
+limits), the objects' poses (bottom centre and yaw), which objects a robot
+geom touched, and when rendered the RGB frame and MuJoCo's segmentation of
+the robot's geoms. An unstable frame (a non-finite state, an object through
+the table) ends the reply with "stable": false and the reason. Exit code 2
+for bad input or a missing MuJoCo/OpenGL, with the reason on stderr.
 """
 
 from __future__ import annotations
@@ -206,103 +201,172 @@ def build(mujoco, ep: dict):
     return model, (w, h)
 
 
-def main() -> None:
-    if len(sys.argv) != 3:
-        fail("usage: mujoco_world.py EPISODE.json OUT_DIR")
+class Sim:
+    """One scene: reset at the plan's first joints, then stepped frame by frame."""
+
+    def __init__(self, mujoco, ep: dict):
+        self.mj = mujoco
+        model, (w, h) = build(mujoco, ep)
+        cam = ep["camera"]
+        for key, centre in (("cx", (w - 1) / 2), ("cy", (h - 1) / 2)):
+            if abs(float(cam[key]) - centre) > 1e-6:
+                fail(f"camera {key} {cam[key]}: expected the image centre {centre} (MuJoCo's camera is a field of view)")
+        if abs(float(cam["fx"]) - float(cam["fy"])) > 1e-6:
+            fail(f"camera fx {cam['fx']}, fy {cam['fy']}: expected square pixels")
+        self.model, self.w, self.h = model, w, h
+        self.data = mujoco.MjData(model)
+        try:
+            self.renderer = mujoco.Renderer(model, h, w)
+            self.seg = mujoco.Renderer(model, h, w)
+        except Exception as e:
+            fail(f"MuJoCo cannot render offscreen ({e}): set MUJOCO_GL=egl (Mesa's libEGL, Debian's libegl1 libegl-mesa0 libgl1-mesa-dri) or MUJOCO_GL=osmesa (libosmesa6)")
+        self.seg.enable_segmentation_rendering()
+        names = ep["joint_names"]
+        self.names = names
+        jid = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n)
+        self.qadr = [model.jnt_qposadr[jid(n)] for n in names]
+        jids = [jid(n) for n in names]
+        limited = np.array([bool(model.jnt_limited[j]) for j in jids])
+        self.lo = np.where(limited, [model.jnt_range[j][0] for j in jids], -np.inf)
+        self.hi = np.where(limited, [model.jnt_range[j][1] for j in jids], np.inf)
+        self.mimic = ep.get("mimic", {})
+        self.madr = {j: model.jnt_qposadr[jid(j)] for j in self.mimic}
+        self.objects = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"object{i}") for i in range(len(ep["objects"]))]
+        # The robot's geoms: those of bodies other than the world and the objects.
+        self.robot_geoms = np.array([model.geom_bodyid[g] != 0 and model.geom_bodyid[g] not in self.objects
+                                     for g in range(model.ngeom)])
+        self.object_geoms = {model.body_geomadr[b]: i for i, b in enumerate(self.objects)}
+        self.half_h = [(o["size_m"][2] if o["kind"] == "box" else o["height_m"]) / 2 for o in ep["objects"]]
+        self.substeps = max(1, int(round(1.0 / (float(ep["fps"]) * model.opt.timestep))))
+        self.table_z = float(ep["table"]["z_m"])
+        self.frame_index = 0
+        # Start at the first joints, at rest, and let the objects settle.
+        first = np.asarray(ep["joints"][0], float)
+        if first.shape != (len(names),):
+            fail(f"joints: rows of {first.shape}, expected {len(names)} values ({', '.join(names)})")
+        self.data.qpos[self.qadr] = first
+        for j, (source, k, offset) in self.mimic.items():
+            self.data.qpos[self.madr[j]] = k * first[names.index(source)] + offset
+        self.data.ctrl[:] = first
+        self.target = first
+        mujoco.mj_forward(model, self.data)
+        for _ in range(100):
+            mujoco.mj_step(model, self.data)
+
+    def step(self, target) -> np.ndarray:
+        """One frame towards the joints `target`: the robot's touches per object."""
+        mujoco, model, data = self.mj, self.model, self.data
+        target = np.asarray(target, float)
+        if target.shape != (len(self.names),):
+            fail(f"joints: a row of {target.shape}, expected {len(self.names)} values")
+        touched = np.zeros(len(self.objects), np.uint8)
+        for s in range(self.substeps):
+            a = (s + 1) / self.substeps
+            data.ctrl[:] = (1 - a) * self.target + a * target
+            mujoco.mj_step(model, data)
+            for ci in range(data.ncon):
+                con = data.contact[ci]
+                for g, other in ((con.geom1, con.geom2), (con.geom2, con.geom1)):
+                    if g in self.object_geoms and self.robot_geoms[other]:
+                        touched[self.object_geoms[g]] = 1
+        self.target = target
+        self.frame_index += 1
+        return touched
+
+    def state(self):
+        """(reached joints, object poses [K, 4], why it is unstable or "")."""
+        data = self.data
+        t = self.frame_index
+        if not np.all(np.isfinite(data.qpos)):
+            return None, None, f"frame {t}: the state is not finite (NaN or inf)"
+        # The reached joints within their limits (the solver's soft limits
+        # let a joint pass them by a hair).
+        reached = np.clip(data.qpos[self.qadr], self.lo, self.hi)
+        poses = np.zeros((len(self.objects), 4))
+        reason = ""
+        for i, b in enumerate(self.objects):
+            pos = data.xpos[b]
+            m = data.xmat[b].reshape(3, 3)
+            poses[i] = [pos[0], pos[1], pos[2] - self.half_h[i], math.atan2(m[1, 0], m[0, 0])]
+            if pos[2] < self.table_z - 0.05 and not reason:
+                reason = f"frame {t}: object {i} is {self.table_z - pos[2]:.3f} m below the table top"
+        return reached, poses, reason
+
+    def render(self):
+        """(RGB [H, W, 3] uint8, robot pixels [H, W] uint8)."""
+        self.renderer.update_scene(self.data, camera="c")
+        rgb = self.renderer.render()
+        self.seg.update_scene(self.data, camera="c")
+        ids = self.seg.render()
+        geom = np.where(ids[..., 1] == int(self.mj.mjtObj.mjOBJ_GEOM), ids[..., 0], -1)
+        robot = ((geom >= 0) & self.robot_geoms[np.clip(geom, 0, self.model.ngeom - 1)]).astype(np.uint8)
+        return rgb, robot
+
+
+def import_mujoco():
     try:
         import mujoco
     except ImportError as e:
         fail(f"cannot import mujoco ({e}): run scripts/setup-mujoco-venv.sh (it makes .venv-mujoco)")
-    ep = json.load(open(sys.argv[1], encoding="utf-8"))
-    out = sys.argv[2]
-    model, (w, h) = build(mujoco, ep)
-    cam = ep["camera"]
-    for key, centre in (("cx", (w - 1) / 2), ("cy", (h - 1) / 2)):
-        if abs(float(cam[key]) - centre) > 1e-6:
-            fail(f"camera {key} {cam[key]}: expected the image centre {centre} (MuJoCo's camera is a field of view)")
-    if abs(float(cam["fx"]) - float(cam["fy"])) > 1e-6:
-        fail(f"camera fx {cam['fx']}, fy {cam['fy']}: expected square pixels")
-    data = mujoco.MjData(model)
-    try:
-        renderer = mujoco.Renderer(model, h, w)
-        seg = mujoco.Renderer(model, h, w)
-    except Exception as e:
-        fail(f"MuJoCo cannot render offscreen ({e}): set MUJOCO_GL=egl (Mesa's libEGL, Debian's libegl1 libegl-mesa0 libgl1-mesa-dri) or MUJOCO_GL=osmesa (libosmesa6)")
-    seg.enable_segmentation_rendering()
-    names = ep["joint_names"]
-    joints = np.asarray(ep["joints"], float)
-    if joints.ndim != 2 or joints.shape[1] != len(names):
-        fail(f"joints: shape {joints.shape}, expected [T, {len(names)}] ({', '.join(names)})")
-    qadr = [model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n)] for n in names]
-    mimic = ep.get("mimic", {})
-    jids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n) for n in names]
-    limited = np.array([bool(model.jnt_limited[j]) for j in jids])
-    lo = np.where(limited, [model.jnt_range[j][0] for j in jids], -np.inf)
-    hi = np.where(limited, [model.jnt_range[j][1] for j in jids], np.inf)
-    madr = {j: model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in mimic}
-    # Start at the first frame's joints, at rest, and let the objects settle.
-    data.qpos[qadr] = joints[0]
-    for j, (source, k, offset) in mimic.items():
-        data.qpos[madr[j]] = k * joints[0][names.index(source)] + offset
-    data.ctrl[:] = joints[0]
-    mujoco.mj_forward(model, data)
-    for _ in range(100):
-        mujoco.mj_step(model, data)
-    objects = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"object{i}") for i in range(len(ep["objects"]))]
-    # The robot's geoms: those of bodies other than the world and the objects.
-    robot_geoms = np.array([model.geom_bodyid[g] != 0 and model.geom_bodyid[g] not in objects
-                            for g in range(model.ngeom)])
-    object_geoms = {model.body_geomadr[b]: i for i, b in enumerate(objects)}
-    half_h = []
-    for o in ep["objects"]:
-        half_h.append((o["size_m"][2] if o["kind"] == "box" else o["height_m"]) / 2)
-    substeps = max(1, int(round(1.0 / (float(ep["fps"]) * model.opt.timestep))))
-    T = len(joints)
-    rgb = np.zeros((T, h, w, 3), np.uint8)
-    robot = np.zeros((T, h, w), np.uint8)
-    reached = np.zeros((T, len(names)))
-    poses = np.zeros((T, len(objects), 4))
-    contacts = np.zeros((T, len(objects)), np.uint8)
-    stable, reason = True, ""
-    table_z = float(ep["table"]["z_m"])
-    for t in range(T):
-        if t > 0:
-            for s in range(substeps):
-                a = (s + 1) / substeps
-                data.ctrl[:] = (1 - a) * joints[t - 1] + a * joints[t]
-                mujoco.mj_step(model, data)
-                for ci in range(data.ncon):
-                    con = data.contact[ci]
-                    for g, other in ((con.geom1, con.geom2), (con.geom2, con.geom1)):
-                        if g in object_geoms and robot_geoms[other]:
-                            contacts[t, object_geoms[g]] = 1
-        if not np.all(np.isfinite(data.qpos)):
-            stable, reason = False, f"frame {t}: the state is not finite (NaN or inf)"
+    return mujoco
+
+
+def serve() -> None:
+    """A session over stdin/stdout, one JSON object a line each way:
+    {"cmd": "reset", "episode": EPISODE} (its `joints` holds at least the
+    first row) and {"cmd": "step", "joints": [[...], ...], "render": "last"
+    | "all" | "none"} answer {"frames": [{"joints", "objects", "touched",
+    "rgb" and "robot" (base64 of the raw uint8 arrays, when rendered)}],
+    "stable", "reason"}; a reset answers its start frame, rendered. Anything
+    else MuJoCo prints goes to stderr."""
+    import base64
+
+    mujoco = import_mujoco()
+    reply = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)
+    sim = None
+
+    def record(q, p, touched, rendered):
+        r = {"joints": q.tolist(), "objects": p.tolist(), "touched": touched.tolist()}
+        if rendered:
+            rgb, robot = sim.render()
+            r["rgb"] = base64.b64encode(rgb.tobytes()).decode()
+            r["robot"] = base64.b64encode(robot.tobytes()).decode()
+        return r
+
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        msg = json.loads(line)
+        frames, reason = [], ""
+        if msg.get("cmd") == "reset":
+            sim = Sim(mujoco, msg["episode"])
+            q, p, reason = sim.state()
+            if not reason:
+                frames.append(record(q, p, np.zeros(len(sim.objects), np.uint8), True))
+        elif msg.get("cmd") == "step" and sim is not None:
+            rows = msg["joints"]
+            render = msg.get("render", "last")
+            for i, row in enumerate(rows):
+                touched = sim.step(row)
+                q, p, reason = sim.state()
+                if reason:
+                    break
+                last = i == len(rows) - 1
+                frames.append(record(q, p, touched, render == "all" or (render == "last" and last)))
+        elif msg.get("cmd") == "close":
             break
-        # The reached joints within their limits (the solver's soft limits
-        # let a joint pass them by a hair).
-        reached[t] = np.clip(data.qpos[qadr], lo, hi)
-        for i, b in enumerate(objects):
-            pos = data.xpos[b]
-            m = data.xmat[b].reshape(3, 3)
-            poses[t, i] = [pos[0], pos[1], pos[2] - half_h[i], math.atan2(m[1, 0], m[0, 0])]
-            if pos[2] < table_z - 0.05 and stable:
-                stable, reason = False, f"frame {t}: object {i} is {table_z - pos[2]:.3f} m below the table top"
-        renderer.update_scene(data, camera="c")
-        rgb[t] = renderer.render()
-        seg.update_scene(data, camera="c")
-        ids = seg.render()
-        geom = np.where(ids[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), ids[..., 0], -1)
-        robot[t] = (geom >= 0) & robot_geoms[np.clip(geom, 0, model.ngeom - 1)]
-    os.makedirs(out, exist_ok=True)
-    np.save(os.path.join(out, "rgb.npy"), rgb)
-    np.save(os.path.join(out, "robot.npy"), robot)
-    np.save(os.path.join(out, "joints.npy"), reached)
-    np.save(os.path.join(out, "objects.npy"), poses)
-    np.save(os.path.join(out, "contacts.npy"), contacts)
-    with open(os.path.join(out, "report.json"), "w", encoding="utf-8") as f:
-        json.dump({"stable": stable, "reason": reason, "mujoco": mujoco.__version__,
-                   "substeps": substeps}, f)
+        else:
+            fail(f"unknown or early command {msg.get('cmd')!r} (expected reset, then step or close)")
+        reply.write(json.dumps({"frames": frames, "stable": not reason, "reason": reason,
+                                "mujoco": mujoco.__version__, "substeps": sim.substeps}) + "\n")
+        reply.flush()
+
+
+def main() -> None:
+    if sys.argv[1:] != ["--serve"]:
+        fail("usage: mujoco_world.py --serve (a session over stdin and stdout)")
+    serve()
 
 
 if __name__ == "__main__":

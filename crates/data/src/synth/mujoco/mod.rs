@@ -12,17 +12,21 @@
 //!
 //! MuJoCo runs in Python (PyPI `mujoco`, the venv `scripts/setup-mujoco-venv.sh`
 //! makes): the worker script `mujoco_world.py` is compiled into the binary
-//! and written to a temporary folder with the robot's description.
+//! and written to a temporary folder with the robot's description; a
+//! [`MujocoSession`] talks to it.
 
-use super::{Contact, Episode, ObjectPose, Shape, SynthError, World};
+mod session;
+
+pub use session::{MujocoSession, Render, SimFrame, SimReply};
+
+use super::{Contact, Episode, Shape, SynthError, World};
 use bridgev2w_embodiment::embodiment::builtin;
 use bridgev2w_embodiment::masks::render_trajectory_labels;
-use bridgev2w_io::npy::{read_npy, NpyArray};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// The worker, run once per episode.
+/// The worker script.
 const WORKER: &str = include_str!("mujoco_world.py");
 
 /// The environment variable naming the Python that has `mujoco`.
@@ -85,15 +89,7 @@ pub struct MujocoEngine {
     urdf: PathBuf,
 }
 
-#[derive(Deserialize)]
-struct WorkerReport {
-    stable: bool,
-    reason: String,
-    mujoco: String,
-    substeps: usize,
-}
-
-fn engine_error(message: impl Into<String>) -> SynthError {
+pub(super) fn engine_error(message: impl Into<String>) -> SynthError {
     SynthError::Engine(message.into())
 }
 
@@ -182,14 +178,25 @@ impl MujocoEngine {
         Ok(())
     }
 
-    /// Runs `episode` (planned by `world`) in MuJoCo.
-    pub fn simulate(&self, world: &World, episode: Episode) -> Result<Simulated, SynthError> {
-        let name = format!(
-            "{}-{}",
-            episode.meta.split.name(),
-            episode.meta.index_in_split
-        );
-        let input = self.dir.path().join(format!("{name}.json"));
+    /// A new session (its worker process), its errors written beside the
+    /// script as `name.stderr`.
+    pub fn session(&self, name: &str) -> Result<MujocoSession, SynthError> {
+        MujocoSession::start(
+            &self.python,
+            &self.dir.path().join("mujoco_world.py"),
+            &self.dir.path().join(format!("{name}.stderr")),
+        )
+    }
+
+    /// The worker's description of `episode`'s scene (planned by `world`):
+    /// robot, camera, table (its pattern written as a texture beside the
+    /// script, `name-table.png`), light, objects, and the plan's joints.
+    pub fn scene_json(
+        &self,
+        world: &World,
+        episode: &Episode,
+        name: &str,
+    ) -> Result<serde_json::Value, SynthError> {
         let texture = self.dir.path().join(format!("{name}-table.png"));
         let png = bridgev2w_io::png::encode_rgb8(
             TABLE_TEXTURE_PX as u32,
@@ -198,53 +205,44 @@ impl MujocoEngine {
         );
         std::fs::write(&texture, png)
             .map_err(|e| engine_error(format!("{}: {e}", texture.display())))?;
-        let out = self.dir.path().join(name);
-        let mut json = self.episode_json(world, &episode);
+        let mut json = self.episode_json(world, episode);
         json["table"]["texture_png"] = serde_json::json!(texture);
-        let text =
-            serde_json::to_string(&json).map_err(|e| engine_error(format!("episode JSON: {e}")))?;
-        std::fs::write(&input, text)
-            .map_err(|e| engine_error(format!("{}: {e}", input.display())))?;
-        let o = Command::new(&self.python)
-            .arg(self.dir.path().join("mujoco_world.py"))
-            .arg(&input)
-            .arg(&out)
-            .env(
-                "MUJOCO_GL",
-                std::env::var("MUJOCO_GL").unwrap_or_else(|_| "egl".into()),
-            )
-            .output()
-            .map_err(|e| engine_error(format!("{}: cannot run it: {e}", self.python.display())))?;
-        if !o.status.success() {
-            let stderr = String::from_utf8_lossy(&o.stderr);
-            return Err(engine_error(format!(
-                "episode {} of split {}: MuJoCo's worker failed ({}): {}",
-                episode.meta.index_in_split,
-                episode.meta.split.name(),
-                o.status,
-                stderr.trim()
-            )));
+        Ok(json)
+    }
+
+    /// Runs `episode` (planned by `world`) in MuJoCo.
+    pub fn simulate(&self, world: &World, episode: Episode) -> Result<Simulated, SynthError> {
+        let name = format!(
+            "{}-{}",
+            episode.meta.split.name(),
+            episode.meta.index_in_split
+        );
+        let json = self.scene_json(world, &episode, &name)?;
+        let size = (
+            episode.camera.intrinsics.height as usize,
+            episode.camera.intrinsics.width as usize,
+        );
+        let mut session = self.session(&name)?;
+        let start = session.reset(&json, size)?;
+        let mut reply = match start.unstable {
+            Some(reason) => return Ok(Simulated::Unstable { reason }),
+            None => session.step(&episode.joints[1..], Render::All)?,
+        };
+        drop(session);
+        let _ = std::fs::remove_file(self.dir.path().join(format!("{name}-table.png")));
+        if let Some(reason) = reply.unstable {
+            return Ok(Simulated::Unstable { reason });
         }
-        let report: WorkerReport = bridgev2w_io::json::read_json(&out.join("report.json"))
-            .map_err(|e| engine_error(e.to_string()))?;
-        if !report.stable {
-            return Ok(Simulated::Unstable {
-                reason: report.reason,
-            });
-        }
+        let mut frames = start.frames;
+        frames.append(&mut reply.frames);
         let planned = episode.clone();
-        let result = self.read_back(world, episode, &out, &report).map(|mut e| {
-            let error_m = world.task_error_m(&planned, &e);
-            if let Some(m) = e.meta.mujoco.as_mut() {
-                m.task_error_m = error_m.is_finite().then_some(error_m);
-                m.as_planned = error_m < super::SUCCESS_TOLERANCE_M;
-            }
-            e
-        });
-        let _ = std::fs::remove_dir_all(&out);
-        let _ = std::fs::remove_file(&input);
-        let _ = std::fs::remove_file(&texture);
-        result.map(|e| Simulated::Stable(Box::new(e)))
+        let mut e = self.read_back(world, episode, frames, &reply)?;
+        let error_m = world.task_error_m(&planned, &e);
+        if let Some(m) = e.meta.mujoco.as_mut() {
+            m.task_error_m = error_m.is_finite().then_some(error_m);
+            m.as_planned = error_m < super::SUCCESS_TOLERANCE_M;
+        }
+        Ok(Simulated::Stable(Box::new(e)))
     }
 
     fn episode_json(&self, world: &World, e: &Episode) -> serde_json::Value {
@@ -290,34 +288,26 @@ impl MujocoEngine {
         &self,
         world: &World,
         mut e: Episode,
-        out: &Path,
-        report: &WorkerReport,
+        frames: Vec<SimFrame>,
+        reply: &SimReply,
     ) -> Result<Episode, SynthError> {
-        let (t, h, w) = (
-            e.rgb.len(),
-            e.camera.intrinsics.height as usize,
-            e.camera.intrinsics.width as usize,
-        );
-        let dofs = world.embodiment.robot.dof_names().len();
-        let k = e.meta.objects.len();
-        let read = |file: &str, shape: &[usize]| -> Result<NpyArray, SynthError> {
-            let path = out.join(file);
-            let a = read_npy(&path).map_err(|e| engine_error(e.to_string()))?;
-            if a.shape != shape {
-                return Err(engine_error(format!(
-                    "{}: shape {:?}, expected {shape:?}",
-                    path.display(),
-                    a.shape
-                )));
-            }
-            Ok(a)
-        };
-        let rgb = read("rgb.npy", &[t, h, w, 3])?;
-        let robot_px = read("robot.npy", &[t, h, w])?;
-        let joints = read("joints.npy", &[t, dofs])?;
-        let objects = read("objects.npy", &[t, k, 4])?;
-        let touched = read("contacts.npy", &[t, k])?;
-        let reached: Vec<Vec<f64>> = joints.data.chunks(dofs).map(<[f64]>::to_vec).collect();
+        if frames.len() != e.joints.len() {
+            return Err(engine_error(format!(
+                "MuJoCo returned {} frames of the episode's {}",
+                frames.len(),
+                e.joints.len()
+            )));
+        }
+        let missing = || engine_error("MuJoCo returned a frame unrendered");
+        let rgb: Vec<Vec<u8>> = frames
+            .iter()
+            .map(|f| f.rgb.clone().ok_or_else(missing))
+            .collect::<Result<_, _>>()?;
+        let theirs: Vec<Vec<u8>> = frames
+            .iter()
+            .map(|f| f.robot.clone().ok_or_else(missing))
+            .collect::<Result<_, _>>()?;
+        let reached: Vec<Vec<f64>> = frames.iter().map(|f| f.joints.clone()).collect();
         // The arm's tracking (a gripper closed on an object stops short of
         // its command by design).
         let grippers: Vec<usize> = world
@@ -340,11 +330,11 @@ impl MujocoEngine {
         let labels = render_trajectory_labels(&world.embodiment.robot, &e.camera, &reached, &|| {});
         let ious: Vec<f64> = labels
             .iter()
-            .zip(robot_px.data.chunks(h * w))
+            .zip(&theirs)
             .map(|(ours, theirs)| {
                 let (mut both, mut either) = (0usize, 0usize);
                 for (&a, &b) in ours.iter().zip(theirs) {
-                    let (a, b) = (a != 0, b != 0.0);
+                    let (a, b) = (a != 0, b != 0);
                     both += usize::from(a && b);
                     either += usize::from(a || b);
                 }
@@ -355,11 +345,7 @@ impl MujocoEngine {
                 }
             })
             .collect();
-        e.rgb = rgb
-            .data
-            .chunks(h * w * 3)
-            .map(|f| f.iter().map(|&v| v as u8).collect())
-            .collect();
+        e.rgb = rgb;
         e.masks = labels
             .iter()
             .map(|l| l.iter().map(|&v| u8::from(v != 0)).collect())
@@ -369,35 +355,16 @@ impl MujocoEngine {
             .map(|l| l.iter().map(|&v| v.min(255) as u8).collect())
             .collect();
         e.joints = reached;
-        e.mujoco_masks = Some(
-            robot_px
-                .data
-                .chunks(h * w)
-                .map(|f| f.iter().map(|&v| u8::from(v != 0.0)).collect())
-                .collect(),
-        );
+        e.mujoco_masks = Some(theirs);
         let table_z = world.frame.table_z_m;
-        e.object_poses = objects
-            .data
-            .chunks(k * 4)
-            .map(|f| {
-                f.chunks(4)
-                    .map(|p| ObjectPose {
-                        position_m: [p[0], p[1], p[2]],
-                        yaw_rad: p[3],
-                    })
-                    .collect()
-            })
-            .collect();
-        e.contacts = e
-            .object_poses
+        e.object_poses = frames.iter().map(|f| f.objects.clone()).collect();
+        e.contacts = frames
             .iter()
-            .zip(touched.data.chunks(k.max(1)))
-            .map(|(poses, touch)| {
-                poses
+            .map(|f| {
+                f.objects
                     .iter()
-                    .zip(touch)
-                    .map(|(p, &c)| match c != 0.0 {
+                    .zip(&f.touched)
+                    .map(|(p, &c)| match c {
                         false => Contact::None,
                         true if p.position_m[2] > table_z + CARRIED_ABOVE_TABLE_M => {
                             Contact::Carried
@@ -408,8 +375,8 @@ impl MujocoEngine {
             })
             .collect();
         e.meta.mujoco = Some(MujocoCheck {
-            mujoco: report.mujoco.clone(),
-            substeps: report.substeps,
+            mujoco: reply.mujoco.clone(),
+            substeps: reply.substeps,
             mask_iou_mean: ious.iter().sum::<f64>() / ious.len().max(1) as f64,
             mask_iou_min: ious.iter().copied().fold(1.0, f64::min),
             max_tracking_error,
