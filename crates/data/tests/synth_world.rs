@@ -495,6 +495,26 @@ fn a_mujoco_session_steps_in_chunks_as_at_once_and_names_a_worker_that_stops() {
     for (a, b) in whole.joints.iter().zip(&e.joints[n - 1]).take(7) {
         assert!((a - b).abs() < 0.1, "{a} against {b}");
     }
+    // Rollouts of candidates from a saved state (a perfect model of the
+    // MuJoCo world): each ends where stepping it does, and the scene is
+    // left at the saved state.
+    let mut s = engine.session("rollouts").unwrap();
+    s.reset(&scene, size).unwrap();
+    let saved = s.save("start").unwrap();
+    let candidates = vec![e.joints[1..n].to_vec(), e.joints[1..n / 2].to_vec()];
+    let ends = s.rollouts("start", &candidates, true).unwrap();
+    let first = ends[0].as_ref().unwrap();
+    assert_eq!(first.joints, whole.joints);
+    assert_eq!(first.objects, whole.objects);
+    assert_eq!(first.rgb, whole.rgb);
+    assert_ne!(ends[1].as_ref().unwrap().joints, whole.joints);
+    let back = s.restore("start").unwrap();
+    assert_eq!(back.frames[0].joints, saved.frames[0].joints);
+    let err = s
+        .rollouts("nowhere", &candidates, false)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("nothing saved there"), "{err}");
     // A step before any reset: the worker refuses and stops; the error says why.
     let mut s = engine.session("early").unwrap();
     let err = s

@@ -273,6 +273,21 @@ class Sim:
         self.frame_index += 1
         return touched
 
+    def save(self):
+        """The whole simulation state (physics, the controller's target, the frame count)."""
+        mj = self.mj
+        spec = int(mj.mjtState.mjSTATE_INTEGRATION)
+        buf = np.zeros(mj.mj_stateSize(self.model, spec))
+        mj.mj_getState(self.model, self.data, buf, spec)
+        return buf, self.target.copy(), self.frame_index
+
+    def restore(self, saved) -> None:
+        mj = self.mj
+        buf, target, frame_index = saved
+        mj.mj_setState(self.model, self.data, buf, int(mj.mjtState.mjSTATE_INTEGRATION))
+        mj.mj_forward(self.model, self.data)
+        self.target, self.frame_index = target.copy(), frame_index
+
     def state(self):
         """(reached joints, object poses [K, 4], why it is unstable or "")."""
         data = self.data
@@ -317,14 +332,20 @@ def serve() -> None:
     first row) and {"cmd": "step", "joints": [[...], ...], "render": "last"
     | "all" | "none"} answer {"frames": [{"joints", "objects", "touched",
     "rgb" and "robot" (base64 of the raw uint8 arrays, when rendered)}],
-    "stable", "reason"}; a reset answers its start frame, rendered. Anything
-    else MuJoCo prints goes to stderr."""
+    "stable", "reason"}; a reset answers its start frame, rendered.
+    {"cmd": "save", "slot": NAME} keeps the current state; {"cmd":
+    "rollouts", "slot": NAME, "candidates": [ROWS, ...], "render": "last" |
+    "none"} steps each candidate's rows from that state and answers its last
+    frame (or {"unstable": reason}), the scene left at the saved state;
+    {"cmd": "restore", "slot": NAME} goes back to it. Anything else MuJoCo
+    prints goes to stderr."""
     import base64
 
     mujoco = import_mujoco()
     reply = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)
     sim = None
+    saved = {}
 
     def record(q, p, touched, rendered):
         r = {"joints": q.tolist(), "objects": p.tolist(), "touched": touched.tolist()}
@@ -340,7 +361,7 @@ def serve() -> None:
         msg = json.loads(line)
         frames, reason = [], ""
         if msg.get("cmd") == "reset":
-            sim = Sim(mujoco, msg["episode"])
+            sim, saved = Sim(mujoco, msg["episode"]), {}
             q, p, reason = sim.state()
             if not reason:
                 frames.append(record(q, p, np.zeros(len(sim.objects), np.uint8), True))
@@ -354,10 +375,44 @@ def serve() -> None:
                     break
                 last = i == len(rows) - 1
                 frames.append(record(q, p, touched, render == "all" or (render == "last" and last)))
+        elif msg.get("cmd") == "save" and sim is not None:
+            # The current state kept under a name; answers the current frame, unrendered.
+            saved[msg["slot"]] = sim.save()
+            q, p, reason = sim.state()
+            if not reason:
+                frames.append(record(q, p, np.zeros(len(sim.objects), np.uint8), False))
+        elif msg.get("cmd") == "rollouts" and sim is not None:
+            # From a saved state, each candidate's joint rows stepped and its
+            # last frame answered (rendered as `render` says: last or none);
+            # the scene is left at the saved state.
+            start = saved.get(msg["slot"])
+            if start is None:
+                fail(f"rollouts from slot {msg['slot']!r}: nothing saved there (save first)")
+            for rows in msg["candidates"]:
+                sim.restore(start)
+                touched = np.zeros(len(sim.objects), np.uint8)
+                reason_c = ""
+                for row in rows:
+                    touched |= sim.step(row)
+                q, p, reason_c = sim.state()
+                if reason_c:
+                    # An unstable candidate: its frame says so, the others go on.
+                    frames.append({"unstable": reason_c})
+                    continue
+                frames.append(record(q, p, touched, msg.get("render", "last") == "last"))
+            sim.restore(start)
+        elif msg.get("cmd") == "restore" and sim is not None:
+            start = saved.get(msg["slot"])
+            if start is None:
+                fail(f"restore slot {msg['slot']!r}: nothing saved there (save first)")
+            sim.restore(start)
+            q, p, reason = sim.state()
+            if not reason:
+                frames.append(record(q, p, np.zeros(len(sim.objects), np.uint8), False))
         elif msg.get("cmd") == "close":
             break
         else:
-            fail(f"unknown or early command {msg.get('cmd')!r} (expected reset, then step or close)")
+            fail(f"unknown or early command {msg.get('cmd')!r} (expected reset, then step, save, rollouts, restore or close)")
         reply.write(json.dumps({"frames": frames, "stable": not reason, "reason": reason,
                                 "mujoco": mujoco.__version__, "substeps": sim.substeps}) + "\n")
         reply.flush()

@@ -72,9 +72,17 @@ struct WireFrame {
     robot: Option<String>,
 }
 
+/// A frame, or (a rollout's) why its physics went unstable.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum WireEntry {
+    Unstable { unstable: String },
+    Frame(WireFrame),
+}
+
 #[derive(Deserialize)]
 struct WireReply {
-    frames: Vec<WireFrame>,
+    frames: Vec<WireEntry>,
     stable: bool,
     reason: String,
     mujoco: String,
@@ -143,7 +151,68 @@ impl MujocoSession {
         self.call(&serde_json::json!({"cmd": "step", "joints": joints, "render": render.name()}))
     }
 
+    /// Keeps the current state under `slot` (for [`MujocoSession::rollouts`]
+    /// and [`MujocoSession::restore`]); returns the current frame, unrendered.
+    pub fn save(&mut self, slot: &str) -> Result<SimReply, SynthError> {
+        self.call(&serde_json::json!({"cmd": "save", "slot": slot}))
+    }
+
+    /// Goes back to the state saved under `slot`.
+    pub fn restore(&mut self, slot: &str) -> Result<SimReply, SynthError> {
+        self.call(&serde_json::json!({"cmd": "restore", "slot": slot}))
+    }
+
+    /// From the state saved under `slot`, each candidate's joint rows
+    /// stepped, its last frame returned (rendered when `render`), or why its
+    /// physics went unstable; the scene is left at the saved state. What a
+    /// perfect model of the MuJoCo world predicts for a batch of candidates.
+    pub fn rollouts(
+        &mut self,
+        slot: &str,
+        candidates: &[Vec<Vec<f64>>],
+        render: bool,
+    ) -> Result<Vec<Result<SimFrame, String>>, SynthError> {
+        let wire = self.call_raw(&serde_json::json!({
+            "cmd": "rollouts", "slot": slot, "candidates": candidates,
+            "render": if render { "last" } else { "none" },
+        }))?;
+        if wire.frames.len() != candidates.len() {
+            return Err(engine_error(format!(
+                "the MuJoCo worker answered {} rollouts of {}",
+                wire.frames.len(),
+                candidates.len()
+            )));
+        }
+        wire.frames
+            .iter()
+            .map(|entry| match entry {
+                WireEntry::Unstable { unstable } => Ok(Err(unstable.clone())),
+                WireEntry::Frame(f) => self.frame(f).map(Ok),
+            })
+            .collect()
+    }
+
     fn call(&mut self, message: &serde_json::Value) -> Result<SimReply, SynthError> {
+        let wire = self.call_raw(message)?;
+        let frames = wire
+            .frames
+            .iter()
+            .map(|entry| match entry {
+                WireEntry::Frame(f) => self.frame(f),
+                WireEntry::Unstable { unstable } => Err(engine_error(format!(
+                    "the MuJoCo worker answered a rollout's instability ({unstable}) to another command"
+                ))),
+            })
+            .collect::<Result<_, SynthError>>()?;
+        Ok(SimReply {
+            frames,
+            unstable: (!wire.stable).then_some(wire.reason),
+            mujoco: wire.mujoco,
+            substeps: wire.substeps,
+        })
+    }
+
+    fn call_raw(&mut self, message: &serde_json::Value) -> Result<WireReply, SynthError> {
         let mut line = message.to_string();
         line.push('\n');
         let sent = self
@@ -155,11 +224,14 @@ impl MujocoSession {
         if !matches!(read, Ok(n) if n > 0) {
             return Err(self.died());
         }
-        let wire: WireReply = serde_json::from_str(&answer).map_err(|e| {
+        serde_json::from_str(&answer).map_err(|e| {
             engine_error(format!(
                 "the MuJoCo worker answered something else than its protocol ({e})"
             ))
-        })?;
+        })
+    }
+
+    fn frame(&self, f: &WireFrame) -> Result<SimFrame, SynthError> {
         let (h, w) = self.size;
         let decode =
             |what: &str, b64: &Option<String>, len: usize| -> Result<Option<Vec<u8>>, SynthError> {
@@ -175,31 +247,19 @@ impl MujocoSession {
                 }
                 Ok(Some(bytes))
             };
-        let frames = wire
-            .frames
-            .iter()
-            .map(|f| {
-                Ok(SimFrame {
-                    joints: f.joints.clone(),
-                    objects: f
-                        .objects
-                        .iter()
-                        .map(|p| ObjectPose {
-                            position_m: [p[0], p[1], p[2]],
-                            yaw_rad: p[3],
-                        })
-                        .collect(),
-                    touched: f.touched.iter().map(|&t| t != 0).collect(),
-                    rgb: decode("frame", &f.rgb, h * w * 3)?,
-                    robot: decode("segmentation", &f.robot, h * w)?,
+        Ok(SimFrame {
+            joints: f.joints.clone(),
+            objects: f
+                .objects
+                .iter()
+                .map(|p| ObjectPose {
+                    position_m: [p[0], p[1], p[2]],
+                    yaw_rad: p[3],
                 })
-            })
-            .collect::<Result<_, SynthError>>()?;
-        Ok(SimReply {
-            frames,
-            unstable: (!wire.stable).then_some(wire.reason),
-            mujoco: wire.mujoco,
-            substeps: wire.substeps,
+                .collect(),
+            touched: f.touched.iter().map(|&t| t != 0).collect(),
+            rgb: decode("frame", &f.rgb, h * w * 3)?,
+            robot: decode("segmentation", &f.robot, h * w)?,
         })
     }
 
