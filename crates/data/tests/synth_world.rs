@@ -526,3 +526,39 @@ fn a_mujoco_session_steps_in_chunks_as_at_once_and_names_a_worker_that_stops() {
         "{err}"
     );
 }
+
+/// A task's scene executed in MuJoCo a chunk of end-effector actions at a
+/// time (what a planner acts on in the MuJoCo world): the expert's actions
+/// end where MuJoCo's run of the expert's plan ends.
+#[test]
+fn a_mujoco_scene_executes_the_experts_actions_as_the_engine_runs_its_plan() {
+    use bridgev2w_data::synth::mujoco::{MujocoEngine, MujocoScene, Simulated};
+    let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let python = repo.join(".venv-mujoco/bin/python");
+    assert!(
+        python.is_file(),
+        "{}: no MuJoCo venv (./run test makes it)",
+        python.display()
+    );
+    let world = World::new(&config("franka-robotiq")).unwrap();
+    let e = world.generate(Split::Test, 0, Task::Reach).unwrap();
+    let engine = MujocoEngine::new("franka-robotiq", python).unwrap();
+    let Simulated::Stable(run) = engine.simulate(&world, e.clone()).unwrap() else {
+        panic!("unstable")
+    };
+    let mut scene = MujocoScene::start(&engine, &world, &e, "scene").unwrap();
+    assert_eq!(scene.rgb().len(), 32 * 48 * 3);
+    assert_eq!(scene.state().object_poses, run.object_poses[0]);
+    for chunk in e.actions[1..].chunks(4) {
+        let out = scene.step(&world, chunk).unwrap();
+        assert_eq!((out.joints.len(), out.rgb.len()), (chunk.len(), 1));
+        assert_eq!(scene.state().joints, *out.joints.last().unwrap());
+    }
+    let tcp = |q: &[f64]| world.world_from_tcp(&e.meta, q).translation.vector;
+    let gap = (tcp(&scene.state().joints) - tcp(run.joints.last().unwrap())).norm();
+    assert!(
+        gap < 0.01,
+        "{gap} m between the executed and the simulated plan"
+    );
+    assert!(scene.state().held_object().is_none());
+}

@@ -334,6 +334,32 @@ impl World {
         self.embodiment.robot.link_pose(ee.link, q)
     }
 
+    /// The joints of a step's end-effector `actions` (full rows, 7 per
+    /// arm), by IK warm-started from `from` (2 restarts, the episode's seed):
+    /// what [`World::step`] executes, and a MuJoCo scene's targets.
+    pub fn step_joints(
+        &self,
+        meta: &EpisodeMeta,
+        from: &[f64],
+        actions: &[Vec<f64>],
+    ) -> Result<Vec<Vec<f64>>, SynthError> {
+        let traj = Trajectory::new("scene step", actions.to_vec())?;
+        let opts = IkOptions {
+            restarts: 2,
+            seed: meta.seed,
+            ..IkOptions::default()
+        };
+        let (joints, _) = actions_to_joints(
+            &self.embodiment.robot,
+            &self.embodiment.end_effectors,
+            &traj,
+            from,
+            &opts,
+            true,
+        )?;
+        Ok(joints)
+    }
+
     /// Steps a scene from `state` through end-effector `actions` (one row
     /// per frame, 7 values per arm as in [`Episode::actions`]): IK warm-started
     /// from the state's joints (targets out of reach leave a residual rather
@@ -348,20 +374,7 @@ impl World {
         actions: &[Vec<f64>],
         render: RenderFrames,
     ) -> Result<(StepOutput, SceneState), SynthError> {
-        let traj = Trajectory::new("scene step", actions.to_vec())?;
-        let opts = IkOptions {
-            restarts: 2,
-            seed: meta.seed,
-            ..IkOptions::default()
-        };
-        let (joints, _) = actions_to_joints(
-            &self.embodiment.robot,
-            &self.embodiment.end_effectors,
-            &traj,
-            &state.joints,
-            &opts,
-            true,
-        )?;
+        let joints = self.step_joints(meta, &state.joints, actions)?;
         let mut next = state.clone();
         let meshes: Vec<TriMesh> = meta.objects.iter().map(|o| o.shape.mesh()).collect();
         let mut out = StepOutput {

@@ -15,8 +15,10 @@
 //! and written to a temporary folder with the robot's description; a
 //! [`MujocoSession`] talks to it.
 
+mod scene;
 mod session;
 
+pub use scene::MujocoScene;
 pub use session::{MujocoSession, Render, SimFrame, SimReply};
 
 use super::{Contact, Episode, Shape, SynthError, World};
