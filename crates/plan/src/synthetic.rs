@@ -13,6 +13,7 @@ use crate::error::{PlanError, Result};
 use crate::goal_latent::pyramid_latent;
 use crate::model::{check_image_size, full_rows, pad_to_clip, ActionWorldModel, Workspace};
 use crate::{EeAction, Observation};
+use bridgev2w_data::synth::mujoco::{MujocoEngine, MujocoScene, Simulated};
 use bridgev2w_data::synth::{Episode, RenderFrames, SceneState, Split, Task, World};
 use bridgev2w_embodiment::kinematics::xyz_rpy_from_pose;
 use bridgev2w_io::frame::{unit_from_u8, RgbFrame};
@@ -88,6 +89,11 @@ pub struct TaskInstance {
     /// pick-and-place, the end of the push, the half-way pose of reach);
     /// goals before it are waypoints ([`TaskInstance::with_waypoints`]).
     pub first_key_goal: usize,
+    /// The expert's episode as the executing world ran it, when that is
+    /// not the built-in world ([`TaskInstance::in_mujoco`]): the success
+    /// reference (its final TCP and object poses); the goal images stay the
+    /// planner's model's (the built-in world's).
+    pub executed_expert: Option<Episode>,
 }
 
 impl TaskInstance {
@@ -113,7 +119,29 @@ impl TaskInstance {
             expert,
             goal_frames,
             first_key_goal: 0,
+            executed_expert: None,
         })
+    }
+
+    /// The instance with MuJoCo executing it (issue 72): the expert's plan
+    /// run in MuJoCo becomes the success reference (where the expert's
+    /// pushes and grasps end with real contact).
+    pub fn in_mujoco(mut self, world: &World, engine: &MujocoEngine) -> Result<Self> {
+        match engine.simulate(world, self.expert.clone())? {
+            Simulated::Stable(run) => self.executed_expert = Some(*run),
+            Simulated::Unstable { reason } => return Err(PlanError::Invalid(format!(
+                "{} instance {} of split {}: MuJoCo's run of the expert went unstable ({reason})",
+                self.task.name(),
+                self.expert.meta.index_in_split,
+                self.expert.meta.split.name()
+            ))),
+        }
+        Ok(self)
+    }
+
+    /// The success reference: the expert as the executing world ran it.
+    fn reference(&self) -> &Episode {
+        self.executed_expert.as_ref().unwrap_or(&self.expert)
     }
 
     /// Inserts waypoint goals (expert frames) before every key goal,
@@ -260,7 +288,7 @@ impl TaskInstance {
             }
             Task::Push | Task::PickPlace => {
                 let (Some(want), Some(got)) = (
-                    self.expert
+                    self.reference()
                         .object_poses
                         .last()
                         .and_then(|p| p.get(TASK_OBJECT)),
@@ -291,7 +319,7 @@ impl TaskInstance {
         state: &SceneState,
     ) -> (Isometry3<f64>, Isometry3<f64>) {
         let meta = &self.expert.meta;
-        let last = self.expert.joints.last().unwrap_or(&state.joints);
+        let last = self.reference().joints.last().unwrap_or(&state.joints);
         (
             world.world_from_tcp(meta, last),
             world.world_from_tcp(meta, &state.joints),
@@ -327,6 +355,9 @@ pub struct SyntheticEnv<'w> {
     /// chunk: a pick_place success with it was a grasp and a carry, not a
     /// push into place.
     pub carried_task_object: bool,
+    /// MuJoCo executing the actions instead of the built-in world
+    /// ([`SyntheticEnv::in_mujoco`]).
+    pub mujoco: Option<MujocoScene>,
 }
 
 impl<'w> SyntheticEnv<'w> {
@@ -339,11 +370,40 @@ impl<'w> SyntheticEnv<'w> {
             state,
             frames_executed: 0,
             carried_task_object: false,
+            mujoco: None,
         }
+    }
+
+    /// At the instance's start state in MuJoCo (issue 72): actions are
+    /// executed and observed there, the success judged on MuJoCo's state
+    /// against the instance's reference ([`TaskInstance::in_mujoco`]).
+    pub fn in_mujoco(
+        world: &'w World,
+        instance: TaskInstance,
+        engine: &MujocoEngine,
+    ) -> Result<Self> {
+        let name = format!(
+            "{}-{}-{}",
+            instance.task.name(),
+            instance.expert.meta.split.name(),
+            instance.expert.meta.index_in_split
+        );
+        let scene = MujocoScene::start(engine, world, &instance.expert, &name)?;
+        Ok(Self {
+            world,
+            state: scene.state().clone(),
+            instance,
+            frames_executed: 0,
+            carried_task_object: false,
+            mujoco: Some(scene),
+        })
     }
 
     /// The current observation.
     pub fn observe(&self) -> Observation {
+        if let Some(scene) = &self.mujoco {
+            return observe(self.world, &self.instance, &self.state, scene.rgb());
+        }
         let rgb = self.world.render_state(
             &self.instance.expert.meta,
             &self.instance.expert.camera,
@@ -357,9 +417,15 @@ impl<'w> SyntheticEnv<'w> {
         crate::error::check_finite("executed actions", actions)?;
         let e = &self.instance.expert;
         let rows = full_rows(actions, e.meta.arm, &e.actions[0]);
-        let (out, next) =
-            self.world
-                .step(&e.meta, &e.camera, &self.state, &rows, RenderFrames::Last)?;
+        let (out, next) = match self.mujoco.as_mut() {
+            Some(scene) => {
+                let out = scene.step(self.world, &rows)?;
+                (out, scene.state().clone())
+            }
+            None => self
+                .world
+                .step(&e.meta, &e.camera, &self.state, &rows, RenderFrames::Last)?,
+        };
         self.state = next;
         self.frames_executed += actions.len();
         self.carried_task_object |= self.state.held_object() == Some(TASK_OBJECT);

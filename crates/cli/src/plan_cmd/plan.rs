@@ -72,6 +72,12 @@ pub struct PlanArgs {
     /// prediction of the best candidate, the observed frame).
     #[arg(long)]
     pub trace: Option<std::path::PathBuf>,
+    /// What executes the planned actions: `builtin` (the synthetic world's
+    /// contact rules) or `mujoco` (MuJoCo's physics, the success judged on
+    /// its object poses; with --model perfect, which stays the built-in
+    /// world's; needs scripts/setup-mujoco-venv.sh).
+    #[arg(long, default_value_t = bridgev2w_data::synth::Engine::Builtin)]
+    pub engine: bridgev2w_data::synth::Engine,
 }
 
 impl From<&PlanArgs> for PlanOptions {
@@ -95,6 +101,7 @@ impl From<&PlanArgs> for PlanOptions {
             split: a.split,
             episode_frames: a.episode_frames,
             seed: a.seed,
+            engine: a.engine,
             trace: a.trace.clone(),
         }
     }

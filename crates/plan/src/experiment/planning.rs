@@ -7,6 +7,8 @@ use crate::model::ViewLimit;
 use crate::mpc::{run_mpc, run_random, GripperChoice, GripperPolicy, MpcConfig, MpcTraceStep};
 use crate::synthetic::{SyntheticEnv, TaskInstance, WaypointSpacing};
 use crate::{PlanError, Result};
+use bridgev2w_data::synth::mujoco::{find_python, MujocoEngine};
+use bridgev2w_data::synth::Engine;
 use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_embodiment::camera::Camera;
 use bridgev2w_io::frame::RgbFrame;
@@ -171,6 +173,11 @@ pub struct PlanOptions {
     pub episode_frames: usize,
     /// Seed of the world and the planner.
     pub seed: u64,
+    /// What executes the planned actions ("the real robot"): the built-in
+    /// world, or MuJoCo (issue 72; the planner's model stays the built-in
+    /// world's perfect model, its goal images the built-in world's; success
+    /// judged on MuJoCo's state against MuJoCo's run of the expert).
+    pub engine: Engine,
     /// Write the planner's trace into this new folder: `trials.jsonl`, one
     /// JSON line per trial ([`TrialTrace`]), and `trial-N.png` per trial, a
     /// row per executed step: the goal image pursued, the model's
@@ -220,6 +227,7 @@ impl PlanOptions {
             split: Split::Test,
             episode_frames: 25,
             seed: 0,
+            engine: Engine::Builtin,
             trace: None,
         }
     }
@@ -375,6 +383,16 @@ pub(crate) fn plan_with(
     progress: &mut dyn FnMut(&str),
 ) -> Result<PlanSummary> {
     let world = loaded.world(o.episode_frames, o.seed)?;
+    let engine = match o.engine {
+        Engine::Builtin => None,
+        Engine::Mujoco if loaded.is_diffusion() => {
+            return Err(PlanError::input(
+                "--engine mujoco",
+                "plans with --model perfect (the built-in world as the planner's model, executed in MuJoCo); a diffusion model would see MuJoCo's frames against goal images of the built-in world",
+            ))
+        }
+        Engine::Mujoco => Some(MujocoEngine::new(&world.config.robot, find_python()?)?),
+    };
     let t0 = Instant::now();
     let (mut planned, mut planned_carried, mut random) = (0, 0, 0);
     let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);
@@ -408,7 +426,14 @@ pub(crate) fn plan_with(
             cfg.workspace = Some(inst.workspace(&world));
         }
         cfg.view = o.goals.view_limit(&inst.expert.camera);
-        let mut env = SyntheticEnv::new(&world, inst.clone());
+        if let Some(engine) = &engine {
+            inst = inst.in_mujoco(&world, engine)?;
+        }
+        let start_env = |inst: &TaskInstance| match &engine {
+            None => Ok(SyntheticEnv::new(&world, inst.clone())),
+            Some(engine) => SyntheticEnv::in_mujoco(&world, inst.clone(), engine),
+        };
+        let mut env = start_env(&inst)?;
         let out = loaded.with_model(&world, &inst, &mut |m| {
             run_mpc(
                 m,
@@ -436,7 +461,7 @@ pub(crate) fn plan_with(
             });
         }
         let rot = inst.tcp_rotation_error_rad(&world, &env.state);
-        let mut base = SyntheticEnv::new(&world, inst.clone());
+        let mut base = start_env(&inst)?;
         run_random(&mut base, &cfg, &mut ChaCha8Rng::seed_from_u64(seed))?;
         let rok = base.success();
         let rerr = inst.error_m(&world, &base.state);
