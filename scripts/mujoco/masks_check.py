@@ -24,17 +24,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
-import tempfile
 import xml.etree.ElementTree as ET
 
 import numpy as np
 
-
-def fail(message: str) -> None:
-    print(f"masks_check: {message}", file=sys.stderr)
-    sys.exit(2)
+# The URDF import and the camera placement are the MuJoCo engine's own
+# (`bridgev2w synth --engine mujoco`): one home for both.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "../../crates/data/src/synth/mujoco"))
+from mujoco_world import add_camera, fail, urdf_mimics, urdf_spec  # noqa: E402
 
 
 def load_model(urdf: str, camera: dict):
@@ -43,47 +41,9 @@ def load_model(urdf: str, camera: dict):
         import mujoco
     except ImportError as e:
         fail(f"cannot import mujoco ({e}): run scripts/setup-mujoco-venv.sh and use .venv-mujoco/bin/python")
-    folder = os.path.dirname(os.path.abspath(urdf))
-    text = open(urdf, encoding="utf-8").read()
-    # MuJoCo's URDF extension: keep visual geoms, keep every link a body,
-    # meshes by file name from the description's meshes/ folder.
-    ext = (
-        f'<mujoco><compiler meshdir="{folder}/meshes" strippath="true" '
-        'discardvisual="false" fusestatic="false"/></mujoco>'
-    )
-    text, n = re.subn(r"(<robot[^>]*>)", lambda m: m.group(1) + ext, text, count=1)
-    if n != 1:
-        fail(f"{urdf}: no <robot> element")
-    with tempfile.NamedTemporaryFile("w", suffix=".urdf", delete=False) as f:
-        f.write(text)
-        tmp = f.name
-    try:
-        spec = mujoco.MjSpec.from_file(tmp)
-    finally:
-        os.unlink(tmp)
-    w, h = int(camera["width"]), int(camera["height"])
-    for key, centre in (("cx", (w - 1) / 2), ("cy", (h - 1) / 2)):
-        if abs(float(camera[key]) - centre) > 1e-6:
-            fail(f"camera {key} {camera[key]}: expected the image centre {centre} (MuJoCo's camera is a field of view)")
-    if abs(float(camera["fx"]) - float(camera["fy"])) > 1e-6:
-        fail(f"camera fx {camera['fx']}, fy {camera['fy']}: expected square pixels")
-    world_from_camera = np.asarray(camera["world_from_camera"], float)
-    rotation = world_from_camera[:3, :3] @ np.diag([1.0, -1.0, -1.0])
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, rotation.flatten())
-    cam = spec.worldbody.add_camera(name="c", pos=world_from_camera[:3, 3], quat=quat)
-    cam.fovy = float(np.degrees(2 * np.arctan((h / 2) / float(camera["fy"]))))
+    spec = urdf_spec(mujoco, urdf, balance_inertia=False)
+    w, h = add_camera(mujoco, spec, camera)
     return mujoco, spec.compile(), (w, h)
-
-
-def mimics(urdf: str) -> dict[str, tuple[str, float, float]]:
-    """`joint -> (source joint, multiplier, offset)` of the URDF's <mimic> tags."""
-    out = {}
-    for j in ET.parse(urdf).getroot().findall("joint"):
-        m = j.find("mimic")
-        if m is not None:
-            out[j.get("name")] = (m.get("joint"), float(m.get("multiplier", 1)), float(m.get("offset", 0)))
-    return out
 
 
 def actuated(urdf: str) -> list[str]:
@@ -112,7 +72,7 @@ def main() -> None:
         fail(f"{a.masks}: shape {masks.shape}, expected {(len(rows), h, w)} (frames of {a.joints}, the camera's size)")
     if any(len(r) != len(names) for r in rows):
         fail(f"{a.joints}: rows of {sorted({len(r) for r in rows})} values, expected {len(names)} ({', '.join(names)})")
-    mimic = mimics(a.urdf)
+    mimic = urdf_mimics(a.urdf)
     data = mujoco.MjData(model)
     try:
         renderer = mujoco.Renderer(model, h, w)

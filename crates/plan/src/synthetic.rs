@@ -129,12 +129,14 @@ impl TaskInstance {
     pub fn in_mujoco(mut self, world: &World, engine: &MujocoEngine) -> Result<Self> {
         match engine.simulate(world, self.expert.clone())? {
             Simulated::Stable(run) => self.executed_expert = Some(*run),
-            Simulated::Unstable { reason } => return Err(PlanError::Invalid(format!(
+            Simulated::Unstable { reason } => {
+                return Err(PlanError::Invalid(format!(
                 "{} instance {} of split {}: MuJoCo's run of the expert went unstable ({reason})",
                 self.task.name(),
                 self.expert.meta.index_in_split,
                 self.expert.meta.split.name()
-            ))),
+            )))
+            }
         }
         Ok(self)
     }

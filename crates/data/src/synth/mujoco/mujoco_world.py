@@ -66,14 +66,16 @@ def urdf_mimics(urdf: str) -> dict:
     return out
 
 
-def build(mujoco, ep: dict):
-    urdf = ep["urdf"]
-    ep.setdefault("mimic", urdf_mimics(urdf))
+def urdf_spec(mujoco, urdf: str, balance_inertia: bool = True):
+    """The URDF as MuJoCo's importer reads it: visual geoms kept, every link a
+    body, meshes by file name from the description's meshes/ folder."""
     folder = os.path.dirname(os.path.abspath(urdf))
     text = open(urdf, encoding="utf-8").read()
     ext = (
         f'<mujoco><compiler meshdir="{folder}/meshes" strippath="true" '
-        'discardvisual="false" fusestatic="false" balanceinertia="true"/></mujoco>'
+        'discardvisual="false" fusestatic="false"'
+        + (' balanceinertia="true"' if balance_inertia else "")
+        + "/></mujoco>"
     )
     text, n = re.subn(r"(<robot[^>]*>)", lambda m: m.group(1) + ext, text, count=1)
     if n != 1:
@@ -82,11 +84,37 @@ def build(mujoco, ep: dict):
         f.write(text)
         tmp = f.name
     try:
-        spec = mujoco.MjSpec.from_file(tmp)
+        return mujoco.MjSpec.from_file(tmp)
     except Exception as e:  # the importer's own message names the element
         fail(f"{urdf}: MuJoCo cannot load it: {e}")
     finally:
         os.unlink(tmp)
+
+
+def add_camera(mujoco, spec, camera: dict, name: str = "c"):
+    """A camera JSON's camera in `spec`: OpenCV axes (x right, y down, z
+    forward) turned into MuJoCo's (looking along -z, y up), the vertical
+    field of view from fy. Square pixels and a centred principal point are
+    required (MuJoCo's camera is a field of view). Returns (width, height)."""
+    w, h = int(camera["width"]), int(camera["height"])
+    for key, centre in (("cx", (w - 1) / 2), ("cy", (h - 1) / 2)):
+        if abs(float(camera[key]) - centre) > 1e-6:
+            fail(f"camera {key} {camera[key]}: expected the image centre {centre} (MuJoCo's camera is a field of view)")
+    if abs(float(camera["fx"]) - float(camera["fy"])) > 1e-6:
+        fail(f"camera fx {camera['fx']}, fy {camera['fy']}: expected square pixels")
+    world_from_camera = np.asarray(camera["world_from_camera"], float)
+    rotation = world_from_camera[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, rotation.flatten())
+    c = spec.worldbody.add_camera(name=name, pos=world_from_camera[:3, 3], quat=quat)
+    c.fovy = float(np.degrees(2 * np.arctan((h / 2) / float(camera["fy"]))))
+    return w, h
+
+
+def build(mujoco, ep: dict):
+    urdf = ep["urdf"]
+    ep.setdefault("mimic", urdf_mimics(urdf))
+    spec = urdf_spec(mujoco, urdf)
     spec.option.timestep = 0.002
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
     spec.option.impratio = 10
@@ -183,15 +211,7 @@ def build(mujoco, ep: dict):
         body.add_freejoint(name=f"object{i}")
         body.add_geom(name=f"object{i}", type=kind, size=size, rgba=rgba(o["color"]), density=400,
                       contype=1, conaffinity=3, friction=[1.5, 0.01, 0.001], condim=4)
-    # The camera: OpenCV axes (x right, y down, z forward) to MuJoCo's (looking along -z, y up).
-    cam = ep["camera"]
-    w, h = int(cam["width"]), int(cam["height"])
-    world_from_camera = np.asarray(cam["world_from_camera"], float)
-    rotation = world_from_camera[:3, :3] @ np.diag([1.0, -1.0, -1.0])
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, rotation.flatten())
-    c = world.add_camera(name="c", pos=world_from_camera[:3, 3], quat=quat)
-    c.fovy = float(np.degrees(2 * np.arctan((h / 2) / float(cam["fy"]))))
+    w, h = add_camera(mujoco, spec, ep["camera"])
     spec.visual.global_.offwidth = max(w, 640)
     spec.visual.global_.offheight = max(h, 480)
     try:
@@ -207,12 +227,6 @@ class Sim:
     def __init__(self, mujoco, ep: dict):
         self.mj = mujoco
         model, (w, h) = build(mujoco, ep)
-        cam = ep["camera"]
-        for key, centre in (("cx", (w - 1) / 2), ("cy", (h - 1) / 2)):
-            if abs(float(cam[key]) - centre) > 1e-6:
-                fail(f"camera {key} {cam[key]}: expected the image centre {centre} (MuJoCo's camera is a field of view)")
-        if abs(float(cam["fx"]) - float(cam["fy"])) > 1e-6:
-            fail(f"camera fx {cam['fx']}, fy {cam['fy']}: expected square pixels")
         self.model, self.w, self.h = model, w, h
         self.data = mujoco.MjData(model)
         try:
