@@ -173,3 +173,38 @@ fn a_missing_mujoco_or_an_unstable_run_is_named_and_nothing_is_written() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("builtin, mujoco"), "{e}");
 }
+
+/// `eval-policy-rollout --engine mujoco`: the policies' true success from
+/// executing them in MuJoCo, named so in the report and its JSON.
+#[test]
+fn policies_are_executed_in_mujoco_for_their_true_success() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let json = dir.path().join("report.json");
+    let o = run(&[
+        "eval-policy-rollout",
+        "--task",
+        "pick_place",
+        "--trials",
+        "1",
+        "--model",
+        "perfect",
+        "--offsets-mm",
+        "0,30",
+        "--engine",
+        "mujoco",
+        "--json",
+        s(&json),
+    ]);
+    ok(&o);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout.contains("MuJoCo-world success") && !stdout.contains("synthetic-world"),
+        "{stdout}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("JSON");
+    assert_eq!(v["executed_in"], "mujoco");
+    // The expert's own actions, executed in MuJoCo, succeed against MuJoCo's
+    // run of the expert's plan.
+    assert_eq!(v["policies"][0]["synthetic_world_success"], 1.0, "{v}");
+}

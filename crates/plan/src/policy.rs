@@ -8,6 +8,8 @@ use crate::error::{check_finite, PlanError, Result};
 use crate::model::{latent_l1, ActionWorldModel};
 use crate::synthetic::{SyntheticEnv, TaskInstance};
 use crate::{EeAction, Observation};
+use bridgev2w_data::synth::mujoco::MujocoEngine;
+use bridgev2w_data::synth::Engine;
 use bridgev2w_io::frame::RgbFrame;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -361,6 +363,8 @@ pub struct PolicyEvalReport {
     /// The goal-distance judge's ratio when it was calibrated on the
     /// model's own expert rollouts (`--calibrate-judge`).
     pub calibration: Option<JudgeCalibration>,
+    /// What executed the policies for their true success.
+    pub executed_in: Engine,
 }
 
 /// The goal-distance judge calibrated on the model's own rollouts of the
@@ -407,6 +411,7 @@ impl PolicyEvalReport {
             progress: None,
             failed: Vec::new(),
             calibration: None,
+            executed_in: Engine::Builtin,
         })
     }
 
@@ -514,6 +519,11 @@ pub struct TrialOutcome {
 /// (judged by `judge` on the images, against the instance's final goal
 /// image) and executed in the synthetic world (judged by the task's state
 /// check).
+/// With `mujoco`, the policy is executed in MuJoCo instead
+/// ([`SyntheticEnv::in_mujoco`]; the instance's success reference should be
+/// MuJoCo's run, [`TaskInstance::in_mujoco`]); the model's rollout starts
+/// from the built-in world's frame either way.
+#[allow(clippy::too_many_arguments)]
 pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
     world: &bridgev2w_data::synth::World,
     instance: &TaskInstance,
@@ -522,14 +532,18 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
     model: &M,
     judge: &dyn SuccessJudge,
     horizon: usize,
+    mujoco: Option<&MujocoEngine>,
 ) -> Result<TrialOutcome> {
     let name = policy.name();
     let goal = instance
         .goal_images()
         .pop()
         .ok_or_else(|| PlanError::Invalid("a task instance without a goal image".into()))?;
-    let mut env = SyntheticEnv::new(world, instance.clone());
-    let start = env.observe();
+    let start = SyntheticEnv::new(world, instance.clone()).observe();
+    let mut env = match mujoco {
+        None => SyntheticEnv::new(world, instance.clone()),
+        Some(engine) => SyntheticEnv::in_mujoco(world, instance.clone(), engine)?,
+    };
     policy.reset(trial);
     let r = rollout_in_model(model, policy, start.clone(), horizon)?;
     let model_verdict = judge.judge(&JudgeInput {
@@ -577,6 +591,7 @@ pub fn evaluate_policies<M: ActionWorldModel>(
                 &model,
                 judge,
                 horizon,
+                None,
             )?);
         }
         names.push(p.name());

@@ -166,6 +166,7 @@ mod tests {
                 progress: None,
                 failed: Vec::new(),
                 calibration: None,
+                executed_in: bridgev2w_data::synth::Engine::Builtin,
             },
         )];
         let md = figures_section(&results, "planning", &plans, &evals).unwrap();

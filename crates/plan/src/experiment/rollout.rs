@@ -16,6 +16,8 @@ use crate::served::{ServedPolicy, ServedPolicyConfig, TcpKinematics};
 use crate::synthetic::TaskInstance;
 use crate::{EeAction, Observation};
 use crate::{PlanError, Result};
+use bridgev2w_data::synth::mujoco::{find_python, MujocoEngine};
+use bridgev2w_data::synth::Engine;
 use bridgev2w_data::synth::{Split, Task};
 use bridgev2w_io::frame::RgbFrame;
 use std::path::PathBuf;
@@ -83,6 +85,12 @@ pub struct RolloutOptions {
     /// Seed of the world and the policies.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = RolloutOptions::new(Task::Reach).seed))]
     pub seed: u64,
+    /// What executes the policies for their true success: `builtin` (the
+    /// synthetic world's contact rules) or `mujoco` (MuJoCo's physics, judged
+    /// on its state against its run of the expert; the model's rollouts
+    /// unchanged; needs scripts/setup-mujoco-venv.sh).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = Engine::Builtin))]
+    pub engine: Engine,
 }
 
 impl RolloutOptions {
@@ -104,6 +112,7 @@ impl RolloutOptions {
             split: Split::Test,
             episode_frames: 25,
             seed: 0,
+            engine: Engine::Builtin,
         }
     }
 }
@@ -262,8 +271,18 @@ pub(crate) fn rollout_with<'p>(
     progress: &mut dyn FnMut(&str),
 ) -> Result<PolicyEvalReport> {
     let world = loaded.world(o.episode_frames, o.seed)?;
+    let engine = match o.engine {
+        Engine::Builtin => None,
+        Engine::Mujoco => Some(MujocoEngine::new(&world.config.robot, find_python()?)?),
+    };
     let instances: Vec<TaskInstance> = (0..o.trials)
-        .map(|i| TaskInstance::new(&world, o.split, i, o.task))
+        .map(|i| {
+            let inst = TaskInstance::new(&world, o.split, i, o.task)?;
+            match &engine {
+                None => Ok(inst),
+                Some(e) => inst.in_mujoco(&world, e),
+            }
+        })
         .collect::<Result<_>>()?;
     let labels = o.labels.as_deref().map(LabelJudge::read).transpose()?;
     let horizon = o.episode_frames - 1;
@@ -365,7 +384,16 @@ pub(crate) fn rollout_with<'p>(
                         Some(l) => l,
                         None => &goal_judge,
                     };
-                    evaluate_trial(&world, inst, trial, policy.as_mut(), m, judge, horizon)
+                    evaluate_trial(
+                        &world,
+                        inst,
+                        trial,
+                        policy.as_mut(),
+                        m,
+                        judge,
+                        horizon,
+                        engine.as_ref(),
+                    )
                 })?;
                 tally.add(&outcome);
             }
@@ -381,12 +409,13 @@ pub(crate) fn rollout_with<'p>(
             Err(e) => return Err(e),
         }
         progress(&format!(
-            "{name}: world model {:.2}{}, synthetic world {:.2}",
+            "{name}: world model {:.2}{}, {} {:.2}",
             tally.model_rate(),
             tally
                 .mean_progress()
                 .map(|p| format!(" (goal progress {p:+.3})"))
                 .unwrap_or_default(),
+            world_name(o.engine).replace('-', " "),
             tally.real_rate()
         ));
         names.push(name);
@@ -403,7 +432,17 @@ pub(crate) fn rollout_with<'p>(
     let mut report = report_from_tallies(names, &tallies)?;
     report.failed = failed;
     report.calibration = calibration;
+    report.executed_in = o.engine;
     Ok(report)
+}
+
+/// The world the policies were executed in, as the reports name it (as
+/// an adjective: "synthetic-world success").
+fn world_name(engine: Engine) -> &'static str {
+    match engine {
+        Engine::Builtin => "synthetic-world",
+        Engine::Mujoco => "MuJoCo-world",
+    }
 }
 
 impl PolicyEvalReport {
@@ -432,6 +471,7 @@ impl PolicyEvalReport {
             "policies": rows,
             "mmrv": self.mmrv,
             "pearson": self.pearson,
+            "executed_in": self.executed_in.name(),
             "mean_overestimate": self.mean_overestimate(),
             "judge_calibration": self.calibration,
             "progress_mmrv": progress.map(|p| p.mmrv),
@@ -447,7 +487,8 @@ impl PolicyEvalReport {
         if progress.is_some() {
             s += " world-model goal progress |";
         }
-        s += " synthetic-world success | overestimate |\n|---|---|---|---|";
+        let world = world_name(self.executed_in);
+        s += &format!(" {world} success | overestimate |\n|---|---|---|---|");
         if progress.is_some() {
             s += "---|";
         }
@@ -467,14 +508,15 @@ impl PolicyEvalReport {
             s += &format!(" {g:.2} | {:+.2} |\n", over[i]);
         }
         s += &format!(
-            "\nSuccess rates: MMRV {:.3} (lower is better), Pearson r {:.3}; overestimate (world model minus synthetic world) {:+.3} on average\n",
+            "\nSuccess rates: MMRV {:.3} (lower is better), Pearson r {:.3}; overestimate (world model minus {}) {:+.3} on average\n",
             self.mmrv,
             self.pearson,
+            world.replace('-', " "),
             self.mean_overestimate()
         );
         if let Some(pr) = progress {
             s += &format!(
-                "Goal progress vs synthetic-world success: MMRV {:.3}, Pearson r {:.3}\n",
+                "Goal progress vs {world} success: MMRV {:.3}, Pearson r {:.3}\n",
                 pr.mmrv, pr.pearson
             );
         }
