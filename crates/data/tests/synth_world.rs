@@ -446,13 +446,8 @@ fn perturbed_demonstrations_shift_the_expert_and_record_their_outcome() {
     }
 }
 
-/// The MuJoCo session a planner executes chunks in (issue 72): stepping a
-/// plan in two chunks ends where stepping it at once does (the physics is
-/// deterministic), only asked frames are rendered, and a worker that stops
-/// is an error carrying what it said.
-#[test]
-fn a_mujoco_session_steps_in_chunks_as_at_once_and_names_a_worker_that_stops() {
-    use bridgev2w_data::synth::mujoco::{MujocoEngine, Render};
+/// The MuJoCo venv's Python (`./run test` makes it).
+fn mujoco_python() -> std::path::PathBuf {
     let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let python = repo.join(".venv-mujoco/bin/python");
     assert!(
@@ -460,6 +455,17 @@ fn a_mujoco_session_steps_in_chunks_as_at_once_and_names_a_worker_that_stops() {
         "{}: no MuJoCo venv (./run test makes it: scripts/setup-mujoco-venv.sh)",
         python.display()
     );
+    python
+}
+
+/// The MuJoCo session a planner executes chunks in (issue 72): stepping a
+/// plan in two chunks ends where stepping it at once does (the physics is
+/// deterministic), only asked frames are rendered, and a worker that stops
+/// is an error carrying what it said.
+#[test]
+fn a_mujoco_session_steps_in_chunks_as_at_once_and_names_a_worker_that_stops() {
+    use bridgev2w_data::synth::mujoco::{MujocoEngine, Render};
+    let python = mujoco_python();
     let world = World::new(&config("franka-robotiq")).unwrap();
     let e = world.generate(Split::Test, 0, Task::Push).unwrap();
     let engine = MujocoEngine::new("franka-robotiq", python).unwrap();
@@ -533,13 +539,7 @@ fn a_mujoco_session_steps_in_chunks_as_at_once_and_names_a_worker_that_stops() {
 #[test]
 fn a_mujoco_scene_executes_the_experts_actions_as_the_engine_runs_its_plan() {
     use bridgev2w_data::synth::mujoco::{MujocoEngine, MujocoScene, Simulated};
-    let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let python = repo.join(".venv-mujoco/bin/python");
-    assert!(
-        python.is_file(),
-        "{}: no MuJoCo venv (./run test makes it)",
-        python.display()
-    );
+    let python = mujoco_python();
     let world = World::new(&config("franka-robotiq")).unwrap();
     let e = world.generate(Split::Test, 0, Task::Reach).unwrap();
     let engine = MujocoEngine::new("franka-robotiq", python).unwrap();
