@@ -229,7 +229,7 @@ pub struct OverlayReport {
 }
 
 /// Intersection over union of two binary masks (1.0 when both are empty).
-fn iou(a: &[u16], b: &[u8]) -> f64 {
+pub(crate) fn iou(a: &[u16], b: &[u8]) -> f64 {
     let (mut inter, mut union) = (0usize, 0usize);
     for (&x, &y) in a.iter().zip(b) {
         let (x, y) = (x != 0, y != 0);

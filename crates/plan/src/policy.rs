@@ -539,11 +539,11 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
         .goal_images()
         .pop()
         .ok_or_else(|| PlanError::Invalid("a task instance without a goal image".into()))?;
-    let start = SyntheticEnv::new(world, instance.clone()).observe();
-    let mut env = match mujoco {
-        None => SyntheticEnv::new(world, instance.clone()),
-        Some(engine) => SyntheticEnv::in_mujoco(world, instance.clone(), engine)?,
-    };
+    let mut env = SyntheticEnv::new(world, instance.clone());
+    let start = env.observe();
+    if let Some(engine) = mujoco {
+        env = SyntheticEnv::in_mujoco(world, instance.clone(), engine)?;
+    }
     policy.reset(trial);
     let r = rollout_in_model(model, policy, start.clone(), horizon)?;
     let model_verdict = judge.judge(&JudgeInput {

@@ -21,7 +21,7 @@ mod session;
 pub use scene::MujocoScene;
 pub use session::{MujocoSession, Render, SimFrame, SimReply};
 
-use super::{Contact, Episode, Shape, SynthError, World};
+use super::{Episode, Shape, SynthError, World};
 use bridgev2w_embodiment::embodiment::builtin;
 use bridgev2w_embodiment::masks::render_trajectory_labels;
 use serde::{Deserialize, Serialize};
@@ -33,10 +33,6 @@ const WORKER: &str = include_str!("mujoco_world.py");
 
 /// The environment variable naming the Python that has `mujoco`.
 pub const PYTHON_ENV: &str = "BRIDGEV2W_MUJOCO_PYTHON";
-
-/// How an object higher than this above the table while the robot touches
-/// it counts as carried (metres).
-const CARRIED_ABOVE_TABLE_M: f64 = 0.005;
 
 /// The side of the table's texture (pixels): the built-in world's pattern,
 /// drawn by its own code.
@@ -131,8 +127,8 @@ pub fn find_python() -> Result<PathBuf, SynthError> {
 
 impl MujocoEngine {
     /// The engine for built-in robot `robot`, with the Python `python`
-    /// (see [`find_python`]); checks that it imports `mujoco` and can render
-    /// offscreen.
+    /// (see [`find_python`]); checks that it imports `mujoco` (a failing
+    /// offscreen renderer is named at the first scene, with the fix).
     pub fn new(robot: &str, python: PathBuf) -> Result<Self, SynthError> {
         let spec = builtin(robot).ok_or_else(|| {
             engine_error(format!(
@@ -333,19 +329,7 @@ impl MujocoEngine {
         let ious: Vec<f64> = labels
             .iter()
             .zip(&theirs)
-            .map(|(ours, theirs)| {
-                let (mut both, mut either) = (0usize, 0usize);
-                for (&a, &b) in ours.iter().zip(theirs) {
-                    let (a, b) = (a != 0, b != 0);
-                    both += usize::from(a && b);
-                    either += usize::from(a || b);
-                }
-                if either == 0 {
-                    1.0
-                } else {
-                    both as f64 / either as f64
-                }
-            })
+            .map(|(ours, theirs)| crate::overlay::iou(ours, theirs))
             .collect();
         e.rgb = rgb;
         e.masks = labels
@@ -360,22 +344,7 @@ impl MujocoEngine {
         e.mujoco_masks = Some(theirs);
         let table_z = world.frame.table_z_m;
         e.object_poses = frames.iter().map(|f| f.objects.clone()).collect();
-        e.contacts = frames
-            .iter()
-            .map(|f| {
-                f.objects
-                    .iter()
-                    .zip(&f.touched)
-                    .map(|(p, &c)| match c {
-                        false => Contact::None,
-                        true if p.position_m[2] > table_z + CARRIED_ABOVE_TABLE_M => {
-                            Contact::Carried
-                        }
-                        true => Contact::Pushed,
-                    })
-                    .collect()
-            })
-            .collect();
+        e.contacts = frames.iter().map(|f| f.contacts(table_z)).collect();
         e.meta.mujoco = Some(MujocoCheck {
             mujoco: reply.mujoco.clone(),
             substeps: reply.substeps,

@@ -9,10 +9,6 @@ use super::{engine_error, MujocoEngine, MujocoSession, Render, SimFrame};
 use crate::synth::{Contact, Episode, EpisodeMeta, SceneState, StepOutput, SynthError, World};
 use nalgebra::Isometry3;
 
-/// How high above the table (metres) an object the robot touches counts as
-/// held.
-const HELD_ABOVE_TABLE_M: f64 = 0.005;
-
 /// One scene in a MuJoCo session.
 #[derive(Debug)]
 pub struct MujocoScene {
@@ -100,24 +96,10 @@ impl MujocoScene {
             }
             out.joints.push(frame.joints.clone());
             out.object_poses.push(frame.objects.clone());
-            out.contacts.push(contacts(frame, self.table_z_m));
+            out.contacts.push(frame.contacts(self.table_z_m));
         }
         Ok(out)
     }
-}
-
-/// Per object: carried (touched, above the table), pushed (touched) or none.
-fn contacts(frame: &SimFrame, table_z_m: f64) -> Vec<Contact> {
-    frame
-        .objects
-        .iter()
-        .zip(&frame.touched)
-        .map(|(p, &touched)| match touched {
-            false => Contact::None,
-            true if p.position_m[2] > table_z_m + HELD_ABOVE_TABLE_M => Contact::Carried,
-            true => Contact::Pushed,
-        })
-        .collect()
 }
 
 /// `state` as MuJoCo's `frame` left it (the held object: one the robot
@@ -130,7 +112,8 @@ fn update(
 ) -> Result<Vec<u8>, SynthError> {
     state.joints = frame.joints.clone();
     state.object_poses = frame.objects.clone();
-    state.held = contacts(frame, table_z_m)
+    state.held = frame
+        .contacts(table_z_m)
         .iter()
         .position(|c| *c == Contact::Carried)
         .map(|i| (i, Isometry3::identity()));

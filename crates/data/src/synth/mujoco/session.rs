@@ -6,7 +6,7 @@
 //! per trial.
 
 use super::engine_error;
-use crate::synth::{ObjectPose, SynthError};
+use crate::synth::{Contact, ObjectPose, SynthError};
 use base64::Engine as _;
 use serde::Deserialize;
 use std::io::{BufRead, BufReader, Write};
@@ -48,6 +48,26 @@ pub struct SimFrame {
     /// MuJoCo's segmentation of the robot (0/1), `height * width`, when
     /// rendered.
     pub robot: Option<Vec<u8>>,
+}
+
+/// How high above the table (metres) an object the robot touches counts as
+/// carried (held).
+const CARRIED_ABOVE_TABLE_M: f64 = 0.005;
+
+impl SimFrame {
+    /// Per object: carried (touched by the robot, above the table top at
+    /// `table_z_m`), pushed (touched) or none.
+    pub fn contacts(&self, table_z_m: f64) -> Vec<Contact> {
+        self.objects
+            .iter()
+            .zip(&self.touched)
+            .map(|(p, &touched)| match touched {
+                false => Contact::None,
+                true if p.position_m[2] > table_z_m + CARRIED_ABOVE_TABLE_M => Contact::Carried,
+                true => Contact::Pushed,
+            })
+            .collect()
+    }
 }
 
 /// What a reset or a step returned.
