@@ -31,6 +31,11 @@
 #   VAE_IMAGE_STEPS VAE_STEPS PRIOR_STEPS DECODER_STEPS FT_STEPS SHORT_STEPS EVAL_VIDEOS
 #   EVAL_STEPS RESULTS
 #   EPISODES TASKS PRESET IMAGE_CONDITIONING MASK_CODING
+# ENGINE=mujoco simulates and renders the dataset in MuJoCo (`synth --engine
+# mujoco`, the MuJoCo venv of scripts/setup-mujoco-venv.sh) instead of the
+# built-in world; its results go to the `video-mujoco` section of RESULTS and
+# its GIFs to RESULTS_without_.md/grids-mujoco/ (run it with another OUT_DIR,
+# e.g. runs/reproduce-mujoco).
 # Rerunning resumes: a finished stage is kept, a cut one resumes from its last
 # checkpoint. Each stage records a fingerprint of its inputs (its config and
 # the fingerprints of the stages it starts from) in OUT/NAME.inputs; a stage
@@ -102,6 +107,11 @@ IMAGE_CONDITIONING=${IMAGE_CONDITIONING:-every_frame}
 # made before this setting keep their fingerprints. links is the default
 # since session 28 (+2.3 to +2.9 dB over binary masks, docs/results.md).
 MASK_CODING=${MASK_CODING:-links}
+ENGINE=${ENGINE:-builtin}
+case $ENGINE in
+builtin | mujoco) ;;
+*) echo "error: ENGINE=$ENGINE: expected builtin or mujoco" >&2; exit 1 ;;
+esac
 case $MASK_CODING in
 binary | links) ;;
 *) echo "error: MASK_CODING=$MASK_CODING: expected binary or links" >&2; exit 1 ;;
@@ -220,6 +230,13 @@ finetune_config "$OUT/ablation-action-mlp" false "$OUT/vae-decoder/final/backbon
     >"$OUT/configs/ablation-action-mlp-eval.toml"
 
 SYNTH_ARGS=(--episodes-per-split "$EPISODES" --frames 17 --tasks "$TASKS")
+# Only a non-default engine joins the arguments (and so the fingerprint):
+# the built-in world's runs keep theirs.
+if [[ $ENGINE == mujoco ]]; then
+    "$ROOT/scripts/setup-mujoco-venv.sh"
+    export BRIDGEV2W_MUJOCO_PYTHON=${BRIDGEV2W_MUJOCO_PYTHON:-$ROOT/.venv-mujoco/bin/python}
+    SYNTH_ARGS+=(--engine mujoco --robot franka-robotiq)
+fi
 fresh synth "$(fingerprint "synth ${SYNTH_ARGS[*]}")"
 if [[ -f $OUT/synth/meta/info.json && $MASK_CODING == links && ! -d $OUT/synth/labels ]]; then
     # Written before synth stored link labels: the same arguments give the
@@ -266,6 +283,13 @@ train bridgev2w-short bridgev2w vae-decoder
 # file (docs/results/ for docs/results.md): eval-report writes figures/,
 # eval-grid grids/.
 GRIDS="${RESULTS%.md}/grids"
+SECTION=video
+WORLD="the synthetic world"
+if [[ $ENGINE == mujoco ]]; then
+    GRIDS="${RESULTS%.md}/grids-mujoco"
+    SECTION=video-mujoco
+    WORLD="the MuJoCo world"
+fi
 GRID_CLIPS=4
 grids() { # the side-by-side GIFs, kept when both runs and the settings are unchanged
     local fp split missing=0
@@ -288,7 +312,7 @@ grids
 PRE="$OUT/preamble.md"
 {
     echo "Produced by \`scripts/reproduce-synthetic.sh\` on $(nproc) CPU core(s) ($(date -u +%Y-%m-%d))."
-    echo "Dataset: \`bridgev2w synth --tasks $TASKS\`, Franka, 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
+    echo "Dataset: \`bridgev2w synth --tasks $TASKS$([[ $ENGINE == mujoco ]] && echo ' --engine mujoco --robot franka-robotiq')\`, $([[ $ENGINE == mujoco ]] && echo 'Franka with a Robotiq gripper, simulated and rendered by MuJoCo' || echo Franka), 96x64, episodes of 17 frames ($EPISODES train/test/unseen_camera/unseen_scene); clips of 9 frames."
     echo "Models: \`random:$PRESET\` VAE ($([[ $PRESET == small2x* ]] && echo '4 latent channels, 2 blocks, 2x space, no time compression' || echo '16 latent channels, 3 blocks, 4x space, 4x time')) trained $VAE_IMAGE_STEPS steps on single frames (batch 16), then $VAE_STEPS steps on clips (batch 4$([[ $INFLATE == true ]] && echo ', starting from the image autoencoder applied frame by frame')) (L1 + KL, colours permuted and inverted at random);"
     echo "action-free I2V prior (4 layers, $([[ $PRESET == small2x-wide ]] && echo 8 || echo 4) heads x 32, patches of $([[ $PRESET == small2x* ]] && echo 4 || echo 2) latent pixels) trained $PRIOR_STEPS steps; then the VAE's decoder alone $DECODER_STEPS more steps on clips (encoder and latents unchanged; every model below is scored with it); BridgeV2W (ControlNet of 2 blocks + LoRA rank 64$([[ $MASK_CODING == links ]] && echo ', link-coded masks: `model.mask_coding = "links"`'))"
     echo "and the \`mask_action = false\` ablation (end-effector actions through an MLP, LoRA rank 64) fine-tuned $FT_STEPS steps each from the prior,"
@@ -313,7 +337,7 @@ PRE="$OUT/preamble.md"
     --training-run "prior=$OUT/prior" --training-run "vae-decoder=$OUT/vae-decoder" \
     --training-run "bridgev2w=$OUT/bridgev2w" \
     --training-run "ablation-action-mlp=$OUT/ablation-action-mlp" \
-    --grids "$GRIDS"
+    --grids "$GRIDS" --section "$SECTION" --title "Video prediction in $WORLD"
 
 if [[ ${EXPORT_DEMO:-0} == 1 ]]; then
     scripts/export-demo.sh "$OUT"

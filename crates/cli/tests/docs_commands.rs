@@ -16,7 +16,7 @@
 //!   demo` is what `cli.rs`'s demo tests run, `./run test` what CI runs).
 //! - `configs/train.example.toml` is what the training guide shows.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

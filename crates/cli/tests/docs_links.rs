@@ -2,7 +2,7 @@
 //! exist: README.md, ARCHITECTURE.md and every markdown file under docs/
 //! (run logs under docs/results/logs excepted).
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

@@ -11,7 +11,7 @@ use bridgev2w_data::video::psnr_db;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-mod common;
+use crate::common;
 
 use common::{ok, run, s, synth_tiny, TINY_MODEL_TOML};
 

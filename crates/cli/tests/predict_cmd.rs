@@ -4,7 +4,7 @@
 use bridgev2w_io::npy::{read_npy, write_npy};
 use std::path::Path;
 
-mod common;
+use crate::common;
 
 use common::{ok, run, s};
 

@@ -4,7 +4,7 @@
 //! and a rerun keeping what is done. Run on a copy of the script with a fake
 //! `bridgev2w` that records its calls, over a fake Ctrl-World folder.
 
-mod common;
+use crate::common;
 
 use common::trained;
 use std::fs;

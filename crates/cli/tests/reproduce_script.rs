@@ -4,7 +4,7 @@
 //! demo config whose paths are relative to the repository root. Run on a copy
 //! of the script with a fake `bridgev2w` that records its calls.
 
-mod common;
+use crate::common;
 
 use common::trained;
 use std::fs;

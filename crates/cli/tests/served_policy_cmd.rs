@@ -4,10 +4,9 @@
 //! policies in the perfect model; a served policy that cannot be reached is
 //! reported by name and the others' results are kept.
 
-mod common;
+use crate::common;
+use crate::policy_server;
 use common::{ok, run, s};
-#[path = "../../plan/tests/support/policy_server.rs"]
-mod policy_server;
 use policy_server::{free_port, server};
 
 #[test]

@@ -3,7 +3,7 @@
 //! scripts/setup-mujoco-venv.sh), the masks checked against MuJoCo's
 //! segmentation; what is missing or unstable named, never written.
 
-mod common;
+use crate::common;
 
 use common::{ok, run, s};
 use std::path::{Path, PathBuf};
@@ -207,4 +207,47 @@ fn policies_are_executed_in_mujoco_for_their_true_success() {
     // The expert's own actions, executed in MuJoCo, succeed against MuJoCo's
     // run of the expert's plan.
     assert_eq!(v["policies"][0]["synthetic_world_success"], 1.0, "{v}");
+}
+
+/// `plan-report --engine mujoco` (issue 72): plans and policies executed in
+/// MuJoCo, the section saying so, both tables filled.
+#[test]
+fn plan_report_runs_its_trials_in_mujoco() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let results = dir.path().join("results.md");
+    let o = run(&[
+        "plan-report",
+        "--engine",
+        "mujoco",
+        "--tasks",
+        "push",
+        "--models",
+        "perfect",
+        "--trials",
+        "1",
+        "--eval-trials",
+        "1",
+        "--samples",
+        "8",
+        "--elites",
+        "2",
+        "--iters",
+        "1",
+        "--max-steps",
+        "2",
+        "--section",
+        "planning-mujoco",
+        "--out",
+        s(&results),
+    ]);
+    ok(&o);
+    let md = std::fs::read_to_string(&results).expect("results");
+    assert!(
+        md.contains("## Goal-image planning and policy evaluation in the MuJoCo world")
+            && md.contains("MuJoCo (the synthetic world's scenes")
+            && md.contains("| push | perfect | ")
+            && md.contains("MuJoCo-world success: the task's state check on MuJoCo's state")
+            && !md.contains("synthetic-world success |"),
+        "{md}"
+    );
 }

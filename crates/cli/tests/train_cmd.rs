@@ -1,7 +1,7 @@
 //! `bridgev2w train` end to end: `bridgev2w synth` a tiny dataset, train three
 //! steps on the `random:tiny` backbone, resume to five, and the errors a user meets first.
 
-mod common;
+use crate::common;
 
 use common::{ok, run, s, synth_tiny, TINY_MODEL_TOML};
 

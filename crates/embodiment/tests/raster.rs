@@ -7,8 +7,7 @@ use bridgev2w_embodiment::raster::{Rasterizer, RenderItem, RenderOutput};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
 
-#[path = "support/cameras.rs"]
-mod cameras;
+use crate::cameras;
 
 use cameras::{identity_camera, intrinsics, lens};
 

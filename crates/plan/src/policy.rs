@@ -6,7 +6,7 @@
 
 use crate::error::{check_finite, PlanError, Result};
 use crate::model::{latent_l1, ActionWorldModel};
-use crate::synthetic::{SyntheticEnv, TaskInstance};
+use crate::synthetic::{GoalLook, SyntheticEnv, TaskInstance};
 use crate::{EeAction, Observation};
 use bridgev2w_data::synth::mujoco::MujocoEngine;
 use bridgev2w_data::synth::Engine;
@@ -519,10 +519,10 @@ pub struct TrialOutcome {
 /// (judged by `judge` on the images, against the instance's final goal
 /// image) and executed in the synthetic world (judged by the task's state
 /// check).
-/// With `mujoco`, the policy is executed in MuJoCo instead
+/// With `exec.mujoco`, the policy is executed in MuJoCo instead
 /// ([`SyntheticEnv::in_mujoco`]; the instance's success reference should be
-/// MuJoCo's run, [`TaskInstance::in_mujoco`]); the model's rollout starts
-/// from the built-in world's frame either way.
+/// MuJoCo's run, [`TaskInstance::in_mujoco`]); the model's start frame and
+/// goal image are drawn in `exec.look`.
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
     world: &bridgev2w_data::synth::World,
@@ -532,18 +532,28 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
     model: &M,
     judge: &dyn SuccessJudge,
     horizon: usize,
-    mujoco: Option<&MujocoEngine>,
+    exec: Execution<'_>,
 ) -> Result<TrialOutcome> {
     let name = policy.name();
     let goal = instance
-        .goal_images()
+        .goal_images(world, exec.look)
         .pop()
         .ok_or_else(|| PlanError::Invalid("a task instance without a goal image".into()))?;
-    let mut env = SyntheticEnv::new(world, instance.clone());
-    let start = env.observe();
-    if let Some(engine) = mujoco {
-        env = SyntheticEnv::in_mujoco(world, instance.clone(), engine)?;
-    }
+    let builtin = SyntheticEnv::new(world, instance.clone());
+    let (mut env, start) = match exec.mujoco {
+        None => {
+            let start = builtin.observe();
+            (builtin, start)
+        }
+        Some(engine) => {
+            let env = SyntheticEnv::in_mujoco(world, instance.clone(), engine)?;
+            let start = match exec.look {
+                GoalLook::Builtin => builtin.observe(),
+                GoalLook::Executed => env.observe(),
+            };
+            (env, start)
+        }
+    };
     policy.reset(trial);
     let r = rollout_in_model(model, policy, start.clone(), horizon)?;
     let model_verdict = judge.judge(&JudgeInput {
@@ -564,6 +574,24 @@ pub fn evaluate_trial<M: ActionWorldModel + ?Sized>(
         model: model_verdict,
         real_success: env.success(),
     })
+}
+
+/// Where a trial's policy is executed and how its model sees the scene
+/// ([`evaluate_trial`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Execution<'a> {
+    /// MuJoCo executes the policy; `None`: the built-in world.
+    pub mujoco: Option<&'a MujocoEngine>,
+    /// How the model's start frame and goal image are drawn.
+    pub look: GoalLook,
+}
+
+impl Execution<'static> {
+    /// The built-in world executes; the model sees its frames.
+    pub const BUILTIN: Self = Self {
+        mujoco: None,
+        look: GoalLook::Builtin,
+    };
 }
 
 /// Evaluates policies on task instances (instance `i` is trial `i`) with
@@ -591,7 +619,7 @@ pub fn evaluate_policies<M: ActionWorldModel>(
                 &model,
                 judge,
                 horizon,
-                None,
+                Execution::BUILTIN,
             )?);
         }
         names.push(p.name());

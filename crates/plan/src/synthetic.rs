@@ -76,6 +76,21 @@ impl WaypointSpacing {
     }
 }
 
+/// How a world model sees the scene: the start frame it is given and the
+/// goal images it is asked to reach are drawn in its own look.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GoalLook {
+    /// Drawn by the built-in world's renderer: its kinematic model
+    /// ([`PerfectWorldModel`]) and models trained on its data. In MuJoCo
+    /// the goals are the states MuJoCo's run of the expert reached, drawn
+    /// by the built-in renderer.
+    Builtin,
+    /// As the executing world rendered them: MuJoCo's own frames when the
+    /// instance runs in MuJoCo (models trained on `synth --engine mujoco`),
+    /// the built-in world's otherwise.
+    Executed,
+}
+
 /// One task instance: the scripted expert episode and its goals.
 #[derive(Debug, Clone)]
 pub struct TaskInstance {
@@ -91,8 +106,8 @@ pub struct TaskInstance {
     pub first_key_goal: usize,
     /// The expert's episode as the executing world ran it, when that is
     /// not the built-in world ([`TaskInstance::in_mujoco`]): the success
-    /// reference (its final TCP and object poses); the goal images stay the
-    /// planner's model's (the built-in world's).
+    /// reference (its final TCP and object poses) and the states the goal
+    /// images show ([`TaskInstance::goal_images`]).
     pub executed_expert: Option<Episode>,
 }
 
@@ -217,20 +232,35 @@ impl TaskInstance {
         )
     }
 
-    /// The goal images, subgoal first.
-    pub fn goal_images(&self) -> Vec<RgbFrame> {
+    /// The goal images, subgoal first: the success reference's frames
+    /// ([`TaskInstance::in_mujoco`]: MuJoCo's run of the expert, else the
+    /// expert), drawn in `look`.
+    pub fn goal_images(&self, world: &World, look: GoalLook) -> Vec<RgbFrame> {
         let (h, w) = self.resolution();
+        let reference = self.reference();
         self.goal_frames
             .iter()
-            .map(|&f| image_from_rgb8(&self.expert.rgb[f], h, w))
+            .map(|&f| match (look, &self.executed_expert) {
+                (GoalLook::Builtin, Some(run)) => image_from_rgb8(
+                    &world.render_poses(
+                        &run.meta,
+                        &run.camera,
+                        &run.joints[f],
+                        &run.object_poses[f],
+                    ),
+                    h,
+                    w,
+                ),
+                _ => image_from_rgb8(&reference.rgb[f], h, w),
+            })
             .collect()
     }
 
-    /// World positions (metres) of the expert's TCP at each goal image.
+    /// World positions (metres) of the reference's TCP at each goal image.
     pub fn goal_tcp_m(&self, world: &World) -> Vec<[f64; 3]> {
         self.goal_frames
             .iter()
-            .filter_map(|&f| self.expert.joints.get(f))
+            .filter_map(|&f| self.reference().joints.get(f))
             .map(|q| {
                 let t = world
                     .world_from_tcp(&self.expert.meta, q)

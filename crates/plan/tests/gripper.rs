@@ -2,7 +2,7 @@
 //! goal, and the release (at the end, or before the final goal).
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::cem::CemConfig;

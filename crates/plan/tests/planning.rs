@@ -21,7 +21,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::sync::Mutex;
 
-mod common;
+use crate::common;
 use common::*;
 
 #[test]

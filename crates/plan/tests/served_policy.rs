@@ -7,8 +7,7 @@
 //! error, too slowly, or closes is an error naming the policy, the step and
 //! the field.
 
-#[path = "support/policy_server.rs"]
-mod policy_server;
+use crate::policy_server;
 
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_plan::policy::Policy;

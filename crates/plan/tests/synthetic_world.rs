@@ -6,7 +6,9 @@ use bridgev2w_data::synth::{Split, SynthConfig, Task, World};
 use bridgev2w_plan::cem::CemConfig;
 use bridgev2w_plan::model::ViewLimit;
 use bridgev2w_plan::mpc::{run_mpc, run_random, Environment, MpcConfig};
-use bridgev2w_plan::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance, WaypointSpacing};
+use bridgev2w_plan::synthetic::{
+    GoalLook, PerfectWorldModel, SyntheticEnv, TaskInstance, WaypointSpacing,
+};
 use bridgev2w_plan::{EeAction, Observation, Result};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -39,7 +41,7 @@ fn waypoints_are_expert_frames_before_each_key_goal() {
     let e = TaskInstance::new(&world, Split::Test, 0, Task::Play).unwrap_err();
     assert!(e.to_string().contains("task play has no goal"), "{e}");
     assert_eq!(wp.first_key_goal, 2);
-    assert_eq!(wp.goal_images().len(), 6);
+    assert_eq!(wp.goal_images(&world, GoalLook::Builtin).len(), 6);
     let none = inst
         .clone()
         .with_waypoints(WaypointSpacing::Frames(0))
@@ -197,7 +199,7 @@ fn perfect_model_planning_reaches_more_often_than_random() {
             .unwrap()
             .with_waypoints(WaypointSpacing::Frames(2))
             .unwrap();
-        let goals = inst.goal_images();
+        let goals = inst.goal_images(&world, GoalLook::Builtin);
         let model = PerfectWorldModel {
             world: &world,
             instance: inst.clone(),
@@ -305,4 +307,68 @@ fn the_view_limit_keeps_the_tcp_in_view() {
     }
     assert!(worst_with < 1e-6, "{worst_with} px beyond the start");
     assert!(left_without > 3.0, "{left_without} px");
+}
+
+/// Goal images in MuJoCo (issue 72): they show MuJoCo's run of the expert,
+/// the success reference; as MuJoCo rendered it for a model trained on its
+/// frames, drawn by the built-in renderer for the perfect model.
+#[test]
+fn goal_images_in_mujoco_show_mujocos_run_of_the_expert() {
+    use bridgev2w_data::synth::mujoco::MujocoEngine;
+    use bridgev2w_plan::synthetic::image_from_rgb8;
+    let python =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../.venv-mujoco/bin/python");
+    assert!(
+        python.is_file(),
+        "{}: no MuJoCo venv (./run test makes it: scripts/setup-mujoco-venv.sh)",
+        python.display()
+    );
+    let world = World::new(&SynthConfig {
+        frames: 17,
+        width: 48,
+        height: 32,
+        seed: 1,
+        robot: "franka-robotiq".into(),
+        ..SynthConfig::default()
+    })
+    .unwrap();
+    let engine = MujocoEngine::new("franka-robotiq", python).unwrap();
+    let plain = TaskInstance::new(&world, Split::Test, 0, Task::Push).unwrap();
+    let inst = plain.clone().in_mujoco(&world, &engine).unwrap();
+    let run = inst.executed_expert.clone().unwrap();
+    let last = *inst.goal_frames.last().unwrap();
+    let (h, w) = inst.resolution();
+    let executed = inst.goal_images(&world, GoalLook::Executed);
+    let drawn = inst.goal_images(&world, GoalLook::Builtin);
+    assert_eq!((executed.len(), drawn.len()), (2, 2));
+    assert_eq!(executed[1], image_from_rgb8(&run.rgb[last], h, w));
+    assert_eq!(
+        drawn[1],
+        image_from_rgb8(
+            &world.render_poses(
+                &run.meta,
+                &run.camera,
+                &run.joints[last],
+                &run.object_poses[last]
+            ),
+            h,
+            w
+        )
+    );
+    // Built-in drawings of MuJoCo's states: not MuJoCo's pictures, and not
+    // the built-in world's own run of the push (MuJoCo's object ends
+    // elsewhere).
+    let differs = |a: &bridgev2w_io::frame::RgbFrame, b: &bridgev2w_io::frame::RgbFrame| {
+        a.rgb
+            .iter()
+            .zip(&b.rgb)
+            .map(|(x, y)| (x - y).abs())
+            .sum::<f32>()
+            / a.rgb.len() as f32
+    };
+    assert!(differs(&drawn[1], &executed[1]) > 0.01);
+    let builtin = plain.goal_images(&world, GoalLook::Builtin);
+    assert_eq!(builtin, plain.goal_images(&world, GoalLook::Executed));
+    assert!(differs(&drawn[1], &builtin[1]) > 0.0);
+    assert_eq!(inst.goal_tcp_m(&world).len(), 2);
 }

@@ -3,7 +3,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bridgev2w_world_model::nets::i3d::{I3d, NUM_CLASSES};
 use bridgev2w_world_model::parity::{run_fixture, DEFAULT_TOLERANCE};

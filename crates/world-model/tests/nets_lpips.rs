@@ -2,7 +2,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bridgev2w_io::frame::RgbFrame;
 use bridgev2w_world_model::nets::lpips::Lpips;

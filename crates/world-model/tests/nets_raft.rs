@@ -3,7 +3,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bridgev2w_world_model::nets::raft::{Raft, RaftConfig};
 use bridgev2w_world_model::parity::{run_fixture, DEFAULT_TOLERANCE};

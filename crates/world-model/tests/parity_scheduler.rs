@@ -2,7 +2,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bridgev2w_world_model::parity::{run_fixture, DEFAULT_TOLERANCE};
 use bridgev2w_world_model::scheduler::{

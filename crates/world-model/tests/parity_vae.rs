@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bridgev2w_world_model::parity::{
     run_fixture, run_fixture_bf16, BF16_EPSILON, BF16_FACTOR, DEFAULT_TOLERANCE,

@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bridgev2w_world_model::checkpoint::PromptEmbedding;
 use std::process::Command;

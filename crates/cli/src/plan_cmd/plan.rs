@@ -74,8 +74,9 @@ pub struct PlanArgs {
     pub trace: Option<std::path::PathBuf>,
     /// What executes the planned actions: `builtin` (the synthetic world's
     /// contact rules) or `mujoco` (MuJoCo's physics, the success judged on
-    /// its object poses; with --model perfect, which stays the built-in
-    /// world's; needs scripts/setup-mujoco-venv.sh).
+    /// its object poses; the perfect model stays the built-in world's, a
+    /// diffusion model sees MuJoCo's frames: train it on `synth --engine
+    /// mujoco`; needs scripts/setup-mujoco-venv.sh).
     #[arg(long, default_value_t = bridgev2w_data::synth::Engine::Builtin)]
     pub engine: bridgev2w_data::synth::Engine,
 }

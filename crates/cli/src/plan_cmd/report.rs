@@ -88,6 +88,10 @@ pub struct PlanReportArgs {
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// What executes the plans and the policies: `builtin` or `mujoco`
+    /// (as `plan --engine`).
+    #[arg(long, default_value_t = bridgev2w_data::synth::Engine::Builtin)]
+    pub engine: bridgev2w_data::synth::Engine,
 }
 
 /// `bridgev2w plan-report`: runs planning on all tasks and the policy
@@ -119,6 +123,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         decode_frames: a.decode_frames,
         seed: a.seed,
         results: Some(a.out.clone()),
+        engine: a.engine,
     };
     let command = std::env::args().collect::<Vec<_>>().join(" ");
     let md = plan_report(&o, &command, &mut progress)?;

@@ -66,8 +66,21 @@ const LINK_COLORS: [[u8; 3]; 6] = [
 impl World {
     /// Renders the scene in `state` (interleaved RGB8).
     pub fn render_state(&self, meta: &EpisodeMeta, camera: &Camera, state: &SceneState) -> Vec<u8> {
+        self.render_poses(meta, camera, &state.joints, &state.object_poses)
+    }
+
+    /// Renders the scene with the robot at `joints` (URDF actuated order)
+    /// and the objects at `object_poses` (interleaved RGB8): e.g. a frame of
+    /// an episode another engine simulated, drawn as this world draws.
+    pub fn render_poses(
+        &self,
+        meta: &EpisodeMeta,
+        camera: &Camera,
+        joints: &[f64],
+        object_poses: &[ObjectPose],
+    ) -> Vec<u8> {
         let meshes: Vec<TriMesh> = meta.objects.iter().map(|o| o.shape.mesh()).collect();
-        self.render_rgb(meta, camera, &meshes, &state.joints, &state.object_poses)
+        self.render_rgb(meta, camera, &meshes, joints, object_poses)
     }
 
     pub(super) fn render_rgb(

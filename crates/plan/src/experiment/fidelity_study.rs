@@ -8,7 +8,7 @@ use super::{mean_std, trial_seed, LoadedModel, ModelOptions};
 use crate::cem::standard_normal;
 use crate::fidelity::{rank_fidelity, RankFidelity};
 use crate::model::{apply_increment, ActionWorldModel};
-use crate::synthetic::{PerfectWorldModel, SyntheticEnv, TaskInstance, WaypointSpacing};
+use crate::synthetic::{GoalLook, PerfectWorldModel, SyntheticEnv, TaskInstance, WaypointSpacing};
 use crate::{EeAction, PlanError, Result};
 use bridgev2w_data::synth::{Split, Task};
 use rand::SeedableRng;
@@ -110,7 +110,7 @@ pub fn fidelity_study(
         let inst =
             TaskInstance::new(&world, o.split, trial, o.task)?.with_waypoints(o.waypoints)?;
         let goal = inst
-            .goal_images()
+            .goal_images(&world, GoalLook::Builtin)
             .into_iter()
             .next()
             .ok_or_else(|| PlanError::Invalid("the task instance has no goal image".into()))?;

@@ -23,7 +23,7 @@
 use super::LoadedModel;
 use crate::model::latent_l1;
 use crate::policy::{rollout_in_model, JudgeCalibration, Policy, ScriptedPolicy};
-use crate::synthetic::{SyntheticEnv, TaskInstance};
+use crate::synthetic::{GoalLook, SyntheticEnv, TaskInstance};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::{Split, Task, World};
 
@@ -90,7 +90,7 @@ pub(super) fn calibrate_ratio(
     for i in 0..c.episodes {
         let inst = TaskInstance::new(world, Split::Train, i, c.task)?;
         let goal = inst
-            .goal_images()
+            .goal_images(world, GoalLook::Builtin)
             .pop()
             .ok_or_else(|| PlanError::Invalid("a task instance without a goal image".into()))?;
         let start = SyntheticEnv::new(world, inst.clone()).observe();

@@ -5,7 +5,7 @@ use super::{trial_seed, LoadedModel, ModelOptions};
 use crate::cem::{CemConfig, RotationSearch};
 use crate::model::ViewLimit;
 use crate::mpc::{run_mpc, run_random, GripperChoice, GripperPolicy, MpcConfig, MpcTraceStep};
-use crate::synthetic::{SyntheticEnv, TaskInstance, WaypointSpacing};
+use crate::synthetic::{GoalLook, SyntheticEnv, TaskInstance, WaypointSpacing};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::mujoco::{find_python, MujocoEngine};
 use bridgev2w_data::synth::Engine;
@@ -174,9 +174,11 @@ pub struct PlanOptions {
     /// Seed of the world and the planner.
     pub seed: u64,
     /// What executes the planned actions ("the real robot"): the built-in
-    /// world, or MuJoCo (issue 72; the planner's model stays the built-in
-    /// world's perfect model, its goal images the built-in world's; success
-    /// judged on MuJoCo's state against MuJoCo's run of the expert).
+    /// world, or MuJoCo (issue 72: success judged on MuJoCo's state against
+    /// MuJoCo's run of the expert, whose states the goal images show; the
+    /// perfect model stays the built-in world stepped kinematically and sees
+    /// them drawn by the built-in renderer, a diffusion model sees MuJoCo's
+    /// frames and should have been trained on `synth --engine mujoco`).
     pub engine: Engine,
     /// Write the planner's trace into this new folder: `trials.jsonl`, one
     /// JSON line per trial ([`TrialTrace`]), and `trial-N.png` per trial, a
@@ -385,13 +387,15 @@ pub(crate) fn plan_with(
     let world = loaded.world(o.episode_frames, o.seed)?;
     let engine = match o.engine {
         Engine::Builtin => None,
-        Engine::Mujoco if loaded.is_diffusion() => {
-            return Err(PlanError::input(
-                "--engine mujoco",
-                "plans with --model perfect (the built-in world as the planner's model, executed in MuJoCo); a diffusion model would see MuJoCo's frames against goal images of the built-in world",
-            ))
-        }
         Engine::Mujoco => Some(MujocoEngine::new(&world.config.robot, find_python()?)?),
+    };
+    // A diffusion model plans on the executing world's frames (in MuJoCo: a
+    // model trained on `synth --engine mujoco`); the perfect model, the
+    // built-in world stepped kinematically, on the built-in renderer's
+    // drawing of the same states.
+    let look = match loaded.is_diffusion() {
+        true => GoalLook::Executed,
+        false => GoalLook::Builtin,
     };
     let t0 = Instant::now();
     let (mut planned, mut planned_carried, mut random) = (0, 0, 0);
@@ -411,7 +415,10 @@ pub(crate) fn plan_with(
         if !o.single_goal {
             inst = inst.with_waypoints(o.goals.waypoints)?;
         }
-        let mut goals: Vec<RgbFrame> = inst.goal_images();
+        if let Some(engine) = &engine {
+            inst = inst.in_mujoco(&world, engine)?;
+        }
+        let mut goals: Vec<RgbFrame> = inst.goal_images(&world, look);
         if o.single_goal {
             goals.drain(..goals.len() - 1);
         }
@@ -426,9 +433,6 @@ pub(crate) fn plan_with(
             cfg.workspace = Some(inst.workspace(&world));
         }
         cfg.view = o.goals.view_limit(&inst.expert.camera);
-        if let Some(engine) = &engine {
-            inst = inst.in_mujoco(&world, engine)?;
-        }
         let start_env = |inst: &TaskInstance| match &engine {
             None => Ok(SyntheticEnv::new(&world, inst.clone())),
             Some(engine) => SyntheticEnv::in_mujoco(&world, inst.clone(), engine),

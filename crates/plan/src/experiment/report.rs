@@ -8,7 +8,7 @@ use crate::choice::PlanModel;
 use crate::goal_latent::GoalLatent;
 use crate::policy::PolicyEvalReport;
 use crate::{PlanError, Result};
-use bridgev2w_data::synth::Task;
+use bridgev2w_data::synth::{Engine, Task};
 use bridgev2w_world_model::pipeline::DecodeFrames;
 use bridgev2w_world_model::spec::{ModelSpec, RandomPreset};
 use bridgev2w_world_model::{ComputeDevice, Precision};
@@ -116,6 +116,8 @@ pub struct PlanReportOptions {
     /// to it (`<results without .md>/figures/<section>-*.png`) and linked
     /// from the section; `None`: no figures.
     pub results: Option<PathBuf>,
+    /// What executes the plans and the policies ([`PlanOptions::engine`]).
+    pub engine: Engine,
 }
 
 /// The models of the report from a comma-separated list (or, without one,
@@ -235,11 +237,12 @@ pub fn plan_report(
             ));
         }
     }
-    let mut md = String::from(match (o.trials > 0, o.eval_trials > 0) {
-        (true, true) => "## Goal-image planning and policy evaluation in the synthetic world",
-        (true, false) => "## Goal-image planning in the synthetic world",
-        (false, _) => "## Policy evaluation in the synthetic world",
-    });
+    let world = super::rollout::world_name(o.engine).replace('-', " ");
+    let mut md = match (o.trials > 0, o.eval_trials > 0) {
+        (true, true) => format!("## Goal-image planning and policy evaluation in the {world}"),
+        (true, false) => format!("## Goal-image planning in the {world}"),
+        (false, _) => format!("## Policy evaluation in the {world}"),
+    };
     if o.section != "planning" {
         // A trained model that plans with other weights is named with them,
         // as in the planning table.
@@ -254,14 +257,16 @@ pub fn plan_report(
     }
     md += "\n\n";
     md += &format!(
-        "Produced by `{command}` (diffusion models on `{}`{}). The synthetic tabletop world (Franka, {}x{} images, split `test`) is the real robot; each table names the world model that plans or rolls policies out.\n\n",
+        "Produced by `{command}` (diffusion models on `{}`{}). {} is the real robot; each table names the world model that plans or rolls policies out.\n\n",
         o.device,
         match o.precision {
             Precision::F32 => "",
             Precision::Bf16 => " in bfloat16",
         },
-        96,
-        64
+        match o.engine {
+            Engine::Builtin => "The synthetic tabletop world (Franka, 96x64 images, split `test`)".to_string(),
+            Engine::Mujoco => "MuJoCo (the synthetic world's scenes, split `test`, simulated with physics: position-controlled arm, free objects with contact and friction; 96x64 images)".to_string() + ": every plan and policy is executed there and judged on MuJoCo's object poses against MuJoCo's run of the scripted expert, whose states the goal images show (the perfect model, the built-in world stepped kinematically, sees them drawn by the built-in renderer; a diffusion model sees MuJoCo's frames)",
+        },
     );
     let mut plans = Vec::new();
     if o.trials > 0 {
@@ -287,11 +292,20 @@ fn policy_evaluation(
     evals: &mut Vec<(String, PolicyEvalReport)>,
 ) -> Result<String> {
     let mut md = format!(
-        "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). World-model goal progress: the mean over trials of (d_start - d_last) / max(d_start, d_last) for those latent distances (1: at the goal, 0: no nearer, negative: farther); it ranks policies even when no rollout succeeds. Synthetic-world success: the task's state check.\n",
-        o.eval_trials
+        "\n### Policy evaluation by world-model rollouts ({} trials per policy, pick_place)\n\nScripted policies replay the expert with a per-trial offset of the given standard deviation (z: half) plus 2 mm jitter, in chunks of 8 actions padded to the 9-frame clip. World-model success: goal-distance judge (final predicted frame at most 0.5x the start's latent distance to the goal). World-model goal progress: the mean over trials of (d_start - d_last) / max(d_start, d_last) for those latent distances (1: at the goal, 0: no nearer, negative: farther); it ranks policies even when no rollout succeeds. {}: the task's state check{}.\n",
+        o.eval_trials,
+        match o.engine {
+            Engine::Builtin => "Synthetic-world success",
+            Engine::Mujoco => "MuJoCo-world success",
+        },
+        match o.engine {
+            Engine::Builtin => "",
+            Engine::Mujoco => " on MuJoCo's state, against MuJoCo's run of the expert",
+        }
     );
     for (model, options) in models {
         let ro = RolloutOptions {
+            engine: o.engine,
             trials: o.eval_trials,
             model: options.clone(),
             seed: o.seed,
@@ -381,6 +395,7 @@ fn plan_tables(
     for &task in &o.tasks {
         for ((&(planner, _), options), loaded) in planners.iter().zip(&planning).zip(&loaded) {
             let po = PlanOptions {
+                engine: o.engine,
                 trials: o.trials,
                 model: options.clone(),
                 cem: o.cem.clone(),

@@ -9,11 +9,11 @@
 use super::judge_calibration::{calibrate_ratio, CalibrationRun};
 use super::{LoadedModel, ModelOptions};
 use crate::policy::{
-    evaluate_trial, report_from_tallies, GoalDistanceJudge, LabelJudge, Policy, PolicyEvalReport,
-    PolicyTally, ScriptedPolicy, SuccessJudge,
+    evaluate_trial, report_from_tallies, Execution, GoalDistanceJudge, LabelJudge, Policy,
+    PolicyEvalReport, PolicyTally, ScriptedPolicy, SuccessJudge,
 };
 use crate::served::{ServedPolicy, ServedPolicyConfig, TcpKinematics};
-use crate::synthetic::TaskInstance;
+use crate::synthetic::{GoalLook, TaskInstance};
 use crate::{EeAction, Observation};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::mujoco::{find_python, MujocoEngine};
@@ -286,6 +286,13 @@ pub(crate) fn rollout_with<'p>(
         .collect::<Result<_>>()?;
     let labels = o.labels.as_deref().map(LabelJudge::read).transpose()?;
     let horizon = o.episode_frames - 1;
+    // A diffusion model sees the executing world's frames (in MuJoCo: a
+    // model trained on `synth --engine mujoco`); the kinematic models the
+    // built-in world's.
+    let look = match loaded.is_diffusion() {
+        true => GoalLook::Executed,
+        false => GoalLook::Builtin,
+    };
     let calibration = match o.calibrate_judge {
         0 => None,
         n => {
@@ -392,7 +399,10 @@ pub(crate) fn rollout_with<'p>(
                         m,
                         judge,
                         horizon,
-                        engine.as_ref(),
+                        Execution {
+                            mujoco: engine.as_ref(),
+                            look,
+                        },
                     )
                 })?;
                 tally.add(&outcome);
@@ -438,7 +448,7 @@ pub(crate) fn rollout_with<'p>(
 
 /// The world the policies were executed in, as the reports name it (as
 /// an adjective: "synthetic-world success").
-fn world_name(engine: Engine) -> &'static str {
+pub(crate) fn world_name(engine: Engine) -> &'static str {
     match engine {
         Engine::Builtin => "synthetic-world",
         Engine::Mujoco => "MuJoCo-world",
