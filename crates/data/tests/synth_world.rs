@@ -562,3 +562,46 @@ fn a_mujoco_scene_executes_the_experts_actions_as_the_engine_runs_its_plan() {
     );
     assert!(scene.state().held_object().is_none());
 }
+
+/// The MuJoCo engine draws the built-in world's backdrop (its pattern and
+/// colours, new ones in unseen_scene) where MuJoCo's rays meet nothing:
+/// the built-in frame's backdrop pixels are the same bytes in MuJoCo's.
+#[test]
+fn mujoco_frames_show_the_built_in_backdrop() {
+    use bridgev2w_data::synth::mujoco::{MujocoEngine, Simulated};
+    let python = mujoco_python();
+    let world = World::new(&SynthConfig {
+        frames: 5,
+        width: 96,
+        height: 64,
+        ..config("franka-robotiq")
+    })
+    .unwrap();
+    let engine = MujocoEngine::new("franka-robotiq", python).unwrap();
+    for split in [Split::Test, Split::UnseenScene] {
+        let e = world.generate(split, 0, Task::Reach).unwrap();
+        let Simulated::Stable(run) = engine.simulate(&world, e.clone()).unwrap() else {
+            panic!("unstable")
+        };
+        let back = world.backdrop(&e.meta, &e.camera);
+        let px = |f: &[u8], i: usize| [f[3 * i], f[3 * i + 1], f[3 * i + 2]];
+        let n = back.len() / 3;
+        let seen: Vec<usize> = (0..n)
+            .filter(|&i| px(&e.rgb[0], i) == px(&back, i))
+            .collect();
+        let same = seen
+            .iter()
+            .filter(|&&i| px(&run.rgb[0], i) == px(&back, i))
+            .count();
+        assert!(
+            seen.len() > n / 20,
+            "{split:?}: {} backdrop pixels of {n}",
+            seen.len()
+        );
+        assert!(
+            same as f64 > 0.95 * seen.len() as f64,
+            "{split:?}: {same} of the built-in frame's {} backdrop pixels in MuJoCo's",
+            seen.len()
+        );
+    }
+}

@@ -27,6 +27,36 @@ fn mix(a: [f32; 3], b: [f32; 3], w: f32) -> [f32; 3] {
 /// colours, unshaded), `width x height` pixels (sRGB8, row-major) over the
 /// table's extent: row 0 at the table's largest y, column 0 at its smallest
 /// x (an image laid on the table seen from above, x right, y up).
+/// The backdrop seen along the world-frame ray `dir` (linear RGB): the
+/// look's background pattern over azimuth and elevation, darker towards
+/// the floor.
+fn backdrop_linear(look: &super::SceneLook, back: [[f32; 3]; 2], dir: &Vector3<f64>) -> [f32; 3] {
+    let az = dir.y.atan2(dir.x);
+    let el = dir.z.clamp(-1.0, 1.0).asin();
+    let wgt = look.background_pattern.weight(az, el) as f32;
+    let shade = 0.75 + 0.25 * (el as f32 + 0.5).clamp(0.0, 1.0);
+    mix(back[0], back[1], wgt).map(|v| v * shade)
+}
+
+/// [`World::backdrop`].
+fn backdrop_image(meta: &EpisodeMeta, camera: &Camera) -> Vec<u8> {
+    let look = &meta.look;
+    let back = look.background_colors.map(srgb_to_linear);
+    let (w, h) = (
+        camera.intrinsics.width as usize,
+        camera.intrinsics.height as usize,
+    );
+    let mut out = Vec::with_capacity(w * h * 3);
+    for y in 0..h {
+        for x in 0..w {
+            let (_, dir) = pixel_ray_world(camera, x as f64, y as f64);
+            let c = linear_to_srgb(backdrop_linear(look, back, &dir));
+            out.extend(c.map(|v| (v * 255.0).round() as u8));
+        }
+    }
+    out
+}
+
 pub(super) fn table_texture(
     world: &World,
     meta: &EpisodeMeta,
@@ -64,6 +94,14 @@ const LINK_COLORS: [[u8; 3]; 6] = [
 ];
 
 impl World {
+    /// The backdrop as `camera` sees it behind everything (interleaved
+    /// sRGB8, the camera's size): what the renderer draws where a pixel's
+    /// ray meets neither the table nor an object nor the robot. The MuJoCo
+    /// engine draws it behind its scene.
+    pub fn backdrop(&self, meta: &EpisodeMeta, camera: &Camera) -> Vec<u8> {
+        backdrop_image(meta, camera)
+    }
+
     /// Renders the scene in `state` (interleaved RGB8).
     pub fn render_state(&self, meta: &EpisodeMeta, camera: &Camera, state: &SceneState) -> Vec<u8> {
         self.render_poses(meta, camera, &state.joints, &state.object_poses)
@@ -125,11 +163,7 @@ impl World {
                     }
                 }
                 if !hit {
-                    let az = dir.y.atan2(dir.x);
-                    let el = dir.z.clamp(-1.0, 1.0).asin();
-                    let wgt = look.background_pattern.weight(az, el) as f32;
-                    let shade = 0.75 + 0.25 * (el as f32 + 0.5).clamp(0.0, 1.0);
-                    canvas.rgb[i] = mix(back[0], back[1], wgt).map(|v| v * shade);
+                    canvas.rgb[i] = backdrop_linear(look, back, &dir);
                 }
             }
         }

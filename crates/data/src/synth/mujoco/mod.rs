@@ -188,7 +188,11 @@ impl MujocoEngine {
 
     /// The worker's description of `episode`'s scene (planned by `world`):
     /// robot, camera, table (its pattern written as a texture beside the
-    /// script, `name-table.png`), light, objects, and the plan's joints.
+    /// script, `name-table.png`), the backdrop as the camera sees it
+    /// (`name-backdrop.rgb`, raw sRGB8 at the camera's size: the built-in
+    /// world's, drawn where MuJoCo's rays meet nothing), light, objects, and
+    /// the plan's joints. The worker reads the files on reset;
+    /// [`MujocoEngine::remove_scene_files`] removes them.
     pub fn scene_json(
         &self,
         world: &World,
@@ -203,9 +207,21 @@ impl MujocoEngine {
         );
         std::fs::write(&texture, png)
             .map_err(|e| engine_error(format!("{}: {e}", texture.display())))?;
+        let backdrop = self.dir.path().join(format!("{name}-backdrop.rgb"));
+        std::fs::write(&backdrop, world.backdrop(&episode.meta, &episode.camera))
+            .map_err(|e| engine_error(format!("{}: {e}", backdrop.display())))?;
         let mut json = self.episode_json(world, episode);
         json["table"]["texture_png"] = serde_json::json!(texture);
+        json["backdrop_rgb"] = serde_json::json!(backdrop);
         Ok(json)
+    }
+
+    /// Removes the files [`MujocoEngine::scene_json`] wrote for `name`
+    /// (after the worker's reset has read them).
+    pub fn remove_scene_files(&self, name: &str) {
+        for file in [format!("{name}-table.png"), format!("{name}-backdrop.rgb")] {
+            let _ = std::fs::remove_file(self.dir.path().join(file));
+        }
     }
 
     /// Runs `episode` (planned by `world`) in MuJoCo.
@@ -227,7 +243,7 @@ impl MujocoEngine {
             None => session.step(&episode.joints[1..], Render::All)?,
         };
         drop(session);
-        let _ = std::fs::remove_file(self.dir.path().join(format!("{name}-table.png")));
+        self.remove_scene_files(&name);
         if let Some(reason) = reply.unstable {
             return Ok(Simulated::Unstable { reason });
         }

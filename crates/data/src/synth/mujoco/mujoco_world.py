@@ -13,7 +13,8 @@ An episode (the JSON of a reset, written by the Rust side):
   fps             frames per second (physics steps per frame = 1 / (fps x 2 ms))
   camera          fx, fy, cx, cy, width, height, world_from_camera (4x4)
   table           z_m, x_m [lo, hi], y_m [lo, hi], colors [[r,g,b] x2], texture_png (optional)
-  background      [[r,g,b] x2]
+  background      [[r,g,b] x2]: the sky's gradient
+  backdrop_rgb    optional: raw sRGB8 [height, width, 3] file, drawn where a pixel's ray meets no geom
   to_light_world  unit vector towards the light
   objects         [{kind: box|cylinder, size_m | radius_m+height_m, color, position_m (bottom centre), yaw_rad}]
 
@@ -253,6 +254,12 @@ class Sim:
         self.half_h = [(o["size_m"][2] if o["kind"] == "box" else o["height_m"]) / 2 for o in ep["objects"]]
         self.substeps = max(1, int(round(1.0 / (float(ep["fps"]) * model.opt.timestep))))
         self.table_z = float(ep["table"]["z_m"])
+        self.backdrop = None
+        if ep.get("backdrop_rgb"):
+            raw = np.fromfile(ep["backdrop_rgb"], dtype=np.uint8)
+            if raw.size != h * w * 3:
+                fail(f"{ep['backdrop_rgb']}: {raw.size} bytes, expected {h} x {w} x 3 (the camera's size)")
+            self.backdrop = raw.reshape(h, w, 3)
         self.frame_index = 0
         # Start at the first joints, at rest, and let the objects settle.
         first = np.asarray(ep["joints"][0], float)
@@ -329,6 +336,10 @@ class Sim:
         ids = self.seg.render()
         geom = np.where(ids[..., 1] == int(self.mj.mjtObj.mjOBJ_GEOM), ids[..., 0], -1)
         robot = ((geom >= 0) & self.robot_geoms[np.clip(geom, 0, self.model.ngeom - 1)]).astype(np.uint8)
+        if self.backdrop is not None:
+            # The built-in world's backdrop where the ray meets nothing (the
+            # skybox, its gradient, shows only through edge pixels).
+            rgb = np.where((ids[..., 0] < 0)[..., None], self.backdrop, rgb)
         return rgb, robot
 
 

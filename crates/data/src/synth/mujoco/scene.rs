@@ -34,6 +34,7 @@ impl MujocoScene {
         let mut session = engine.session(name)?;
         let k = &episode.camera.intrinsics;
         let start = session.reset(&json, (k.height as usize, k.width as usize))?;
+        engine.remove_scene_files(name);
         if let Some(reason) = start.unstable {
             return Err(engine_error(format!("the scene's start: {reason}")));
         }
