@@ -13,23 +13,26 @@
 # dtype), their safetensors metadata (the mask coding) kept; HALF_WEIGHTS=0
 # keeps them as trained (float32).
 #
-# Usage: scripts/export-demo.sh [OUT_DIR]      (default runs/reproduce)
+# Usage: scripts/export-demo.sh [OUT_DIR [DEST]]
+#   (defaults: runs/reproduce, assets/demo-model; reproduce-synthetic.sh's
+#   planning stages export a run's model to OUT_DIR/model)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 OUT=${1:-runs/reproduce}
+DEST=${2:-assets/demo-model}
 for f in "$OUT/vae-decoder/final/backbone" "$OUT/bridgev2w/final/weights.safetensors" "$OUT/configs/bridgev2w-eval.toml"; do
     [[ -e $f ]] || { echo "error: $f is missing: run scripts/reproduce-synthetic.sh $OUT first" >&2; exit 1; }
 done
-rm -rf assets/demo-model.tmp
-mkdir -p assets/demo-model.tmp
-cp -r "$OUT/vae-decoder/final/backbone" assets/demo-model.tmp/backbone
-cp "$OUT/bridgev2w/final/weights.safetensors" assets/demo-model.tmp/bridgev2w.safetensors
+rm -rf "$DEST.tmp"
+mkdir -p "$DEST.tmp"
+cp -r "$OUT/vae-decoder/final/backbone" "$DEST.tmp"/backbone
+cp "$OUT/bridgev2w/final/weights.safetensors" "$DEST.tmp"/bridgev2w.safetensors
 # The configs as they stand, paths relative to the repository root: the
 # backbone is the exported one, the dataset and run folders the
 # reproduction's (rerun the script to recreate them).
 repo_config() { # repo_config CONFIG: CONFIG with the repository's paths
-    sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"assets/demo-model/backbone\"|" \
+    sed -e "s|\"$OUT/vae-decoder/final/backbone\"|\"$DEST/backbone\"|" \
         -e "s|\"$ROOT/|\"|" "$1"
 }
 {
@@ -38,20 +41,20 @@ repo_config() { # repo_config CONFIG: CONFIG with the repository's paths
     echo "# prior's backbone, which differs from this one only in the decoder (the stage"
     echo "# vae-decoder trained it further; the encoder, the latents and the transformer are the same)."
     repo_config "$OUT/configs/bridgev2w-eval.toml"
-} >assets/demo-model.tmp/train-config.toml
+} >"$DEST.tmp"/train-config.toml
 if [[ -f $OUT/bridgev2w-short/final/weights.safetensors ]]; then
-    cp "$OUT/bridgev2w-short/final/weights.safetensors" assets/demo-model.tmp/bridgev2w-plan.safetensors
+    cp "$OUT/bridgev2w-short/final/weights.safetensors" "$DEST.tmp"/bridgev2w-plan.safetensors
     {
         echo "# The planning model's config (scripts/reproduce-synthetic.sh $OUT, stage bridgev2w-short):"
         echo "# the fine-tuned BridgeV2W (train-config.toml) continued on 3-frame clips; paths"
         echo "# relative to the repository root, the run folders the reproduction's."
         repo_config "$OUT/configs/bridgev2w-short.toml"
-    } >assets/demo-model.tmp/plan-config.toml
+    } >"$DEST.tmp"/plan-config.toml
 fi
 PY=${PYTHON:-.venv/bin/python}
 if [[ ${HALF_WEIGHTS:-1} != 0 ]]; then
 [[ -x $PY ]] || { echo "error: $PY not found: run scripts/setup-venv.sh first" >&2; exit 1; }
-"$PY" - assets/demo-model.tmp <<'PYTHON'
+"$PY" - "$DEST.tmp" <<'PYTHON'
 import pathlib, sys
 import torch
 from safetensors import safe_open
@@ -64,5 +67,5 @@ for path in sorted(pathlib.Path(sys.argv[1]).rglob("*.safetensors")):
     save_file(half, str(path), metadata=meta)
 PYTHON
 fi
-rm -rf assets/demo-model && mv assets/demo-model.tmp assets/demo-model
-du -sh assets/demo-model
+rm -rf "$DEST" && mv "$DEST.tmp" "$DEST"
+du -sh "$DEST"

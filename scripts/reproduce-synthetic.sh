@@ -36,6 +36,13 @@
 # built-in world; its results go to the `video-mujoco` section of RESULTS and
 # its GIFs to RESULTS_without_.md/grids-mujoco/ (run it with another OUT_DIR,
 # e.g. runs/reproduce-mujoco).
+# PLAN_TRIALS (default 0, with ENGINE=mujoco 20) adds the planning stages:
+# `plan-report` with the perfect model, then with this run's model (exported
+# to OUT/model, planning with its bridgev2w-short weights), planning reach,
+# push and pick_place PLAN_TRIALS times each against random actions, and
+# evaluating the scripted policies PLAN_EVAL_TRIALS (default 10) times each,
+# executed in ENGINE's world: sections planning-ENGINE and
+# planning-ENGINE-trained of RESULTS (builtin: planning-builtin...).
 # Rerunning resumes: a finished stage is kept, a cut one resumes from its last
 # checkpoint. Each stage records a fingerprint of its inputs (its config and
 # the fingerprints of the stages it starts from) in OUT/NAME.inputs; a stage
@@ -230,12 +237,16 @@ finetune_config "$OUT/ablation-action-mlp" false "$OUT/vae-decoder/final/backbon
     >"$OUT/configs/ablation-action-mlp-eval.toml"
 
 SYNTH_ARGS=(--episodes-per-split "$EPISODES" --frames 17 --tasks "$TASKS")
+ROBOT=franka
 # Only a non-default engine joins the arguments (and so the fingerprint):
 # the built-in world's runs keep theirs.
 if [[ $ENGINE == mujoco ]]; then
-    "$ROOT/scripts/setup-mujoco-venv.sh"
-    export BRIDGEV2W_MUJOCO_PYTHON=${BRIDGEV2W_MUJOCO_PYTHON:-$ROOT/.venv-mujoco/bin/python}
-    SYNTH_ARGS+=(--engine mujoco --robot franka-robotiq)
+    if [[ -z ${BRIDGEV2W_MUJOCO_PYTHON:-} ]]; then
+        "$ROOT/scripts/setup-mujoco-venv.sh"
+        export BRIDGEV2W_MUJOCO_PYTHON=$ROOT/.venv-mujoco/bin/python
+    fi
+    ROBOT=franka-robotiq
+    SYNTH_ARGS+=(--engine mujoco --robot "$ROBOT")
 fi
 fresh synth "$(fingerprint "synth ${SYNTH_ARGS[*]}")"
 if [[ -f $OUT/synth/meta/info.json && $MASK_CODING == links && ! -d $OUT/synth/labels ]]; then
@@ -338,6 +349,43 @@ PRE="$OUT/preamble.md"
     --training-run "bridgev2w=$OUT/bridgev2w" \
     --training-run "ablation-action-mlp=$OUT/ablation-action-mlp" \
     --grids "$GRIDS" --section "$SECTION" --title "Video prediction in $WORLD"
+
+# The planning stages (PLAN_TRIALS > 0): the perfect model, then this run's
+# model with its planning weights, each kept when its command and the runs
+# it reads are unchanged. The settings are those of docs/results.md's
+# `planning` and `planning-trained-plan` sections.
+PLAN_TRIALS=${PLAN_TRIALS:-$([[ $ENGINE == mujoco ]] && echo 20 || echo 0)}
+PLAN_EVAL_TRIALS=${PLAN_EVAL_TRIALS:-10}
+planning() { # planning NAME INPUTS... -- PLAN-REPORT-ARGS...: plan-report into section NAME of RESULTS, kept when done before
+    local name=$1 fp inputs=()
+    shift
+    while [[ $1 != -- ]]; do inputs+=("$1"); shift; done
+    shift
+    fp=$(fingerprint "plan-report $* --section $name --out $RESULTS" "$OUT/$DATA_STAGE.inputs" "${inputs[@]}")
+    if [[ $(cat "$OUT/$name.inputs" 2>/dev/null) == "$fp" ]]; then
+        echo "== $name: done before from the same runs and settings, kept"
+        return
+    fi
+    rm -f "$OUT/$name.inputs"
+    stage "$name" "$BIN" plan-report "$@" --section "$name" --out "$RESULTS"
+    printf '%s\n' "$fp" >"$OUT/$name.inputs"
+}
+if ((PLAN_TRIALS > 0)); then
+    planning "planning-$ENGINE" -- --engine "$ENGINE" --robot "$ROBOT" --models perfect --tasks reach,push,pick_place \
+        --trials "$PLAN_TRIALS" --eval-trials "$PLAN_EVAL_TRIALS" --samples 64 --elites 8 --iters 3 --horizon 1 \
+        --keep-elites --execute-best --max-steps 25 --translation-std-m 0.1 --waypoints 2
+    # This run's model as a model folder (as assets/demo-model), float32.
+    if [[ $(cat "$OUT/model.inputs" 2>/dev/null) != "$(cat "$OUT/bridgev2w-short.inputs")" ]]; then
+        HALF_WEIGHTS=0 scripts/export-demo.sh "$OUT" "$OUT/model"
+        cp "$OUT/bridgev2w-short.inputs" "$OUT/model.inputs"
+    fi
+    planning "planning-$ENGINE-trained" "$OUT/model.inputs" -- --engine "$ENGINE" --robot "$ROBOT" --models trained \
+        --trained "$OUT/model" --plan-weights "$OUT/model/bridgev2w-plan.safetensors" --tasks reach,push,pick_place \
+        --trials "$PLAN_TRIALS" --eval-trials "$PLAN_EVAL_TRIALS" --samples 16 --elites 4 --iters 3 --horizon 1 \
+        --keep-elites --execute-best --max-steps 25 --translation-std-m 0.05 --waypoint-every-m 0.12 \
+        --denoise-steps 1 --batch-noise shared --goal-latent pyramid --view-margin 0.2 --patience 8 \
+        --plan-clip-frames 3 --decode-frames last
+fi
 
 if [[ ${EXPORT_DEMO:-0} == 1 ]]; then
     scripts/export-demo.sh "$OUT"

@@ -17,7 +17,8 @@ fn repo() -> PathBuf {
 }
 
 /// A fake `bridgev2w`: appends `COMMAND NAME` to `calls.log` (`train NAME
-/// --resume` for a resumed run, `eval-report --grids DIR`) and makes the
+/// --resume` for a resumed run, `synth --engine mujoco`, `eval-report
+/// --grids DIR --section NAME`, `plan-report --engine E --section NAME`) and makes the
 /// files the script checks (`synth`'s `meta/info.json`, `train`'s
 /// `final/weights.safetensors`, `final/backbone/` and `checkpoints/`,
 /// `eval-grid`'s GIFs).
@@ -28,7 +29,9 @@ case $1 in
 synth)
     out=$3
     mkdir -p "$out/meta" "$out/labels" && touch "$out/meta/info.json"
-    echo "synth" >>"$log" ;;
+    engine=""
+    [[ " $* " == *" --engine mujoco --robot franka-robotiq "* ]] && engine=" --engine mujoco"
+    echo "synth$engine" >>"$log" ;;
 train)
     out=$(sed -n 's/^out = "\(.*\)"$/\1/p' "$2")
     mkdir -p "$out/final/backbone" "$out/checkpoints" && touch "$out/final/weights.safetensors"
@@ -48,9 +51,21 @@ eval-grid)
     echo "eval-grid" >>"$log" ;;
 eval-report)
     shift
-    grids=""
-    while [[ $# -gt 0 ]]; do [[ $1 == --grids ]] && grids=" --grids $2"; shift; done
-    echo "eval-report$grids" >>"$log" ;;
+    grids="" section=""
+    while [[ $# -gt 0 ]]; do
+        [[ $1 == --grids ]] && grids=" --grids $2"
+        [[ $1 == --section ]] && section=" --section $2"
+        shift
+    done
+    echo "eval-report$grids$section" >>"$log" ;;
+plan-report)
+    engine="" section=""
+    while [[ $# -gt 0 ]]; do
+        [[ $1 == --engine ]] && engine=" --engine $2"
+        [[ $1 == --section ]] && section=" --section $2"
+        shift
+    done
+    echo "plan-report$engine$section" >>"$log" ;;
 esac
 "#;
 
@@ -130,7 +145,7 @@ fn reruns_keep_what_is_done_and_redo_what_changed() {
     assert_eq!(grids(&first), 1, "{first:?}");
     assert_eq!(
         first.last().map(String::as_str),
-        Some("eval-report --grids results/grids"),
+        Some("eval-report --grids results/grids --section video"),
         "{first:?}"
     );
     // Same inputs: nothing is trained or evaluated again.
@@ -350,4 +365,71 @@ fn the_exported_demo_config_names_repository_paths() {
         "{plan}"
     );
     bridgev2w_train::config::TrainConfig::from_toml(&plan).expect("a valid config");
+}
+
+/// `ENGINE=mujoco` (issue 72): the dataset from `synth --engine mujoco`
+/// with the real-mesh robot, the table and GIFs in their own places, and
+/// the planning stages in MuJoCo (the perfect model, then the run's own
+/// model exported to OUT/model), kept on a rerun and redone when their
+/// budget changes.
+#[test]
+fn the_mujoco_study_synthesises_and_plans_in_mujoco() {
+    let root = sandbox();
+    let r = root.path();
+    let env = [
+        ("ENGINE", "mujoco"),
+        ("BRIDGEV2W_MUJOCO_PYTHON", "/no/such/python"),
+        ("PLAN_TRIALS", "2"),
+    ];
+    let first = run(r, &env);
+    assert_eq!(first[0], "synth --engine mujoco", "{first:?}");
+    let planned: Vec<&String> = first
+        .iter()
+        .filter(|c| c.starts_with("plan-report"))
+        .collect();
+    assert_eq!(
+        planned,
+        [
+            "plan-report --engine mujoco --section planning-mujoco",
+            "plan-report --engine mujoco --section planning-mujoco-trained"
+        ],
+        "{first:?}"
+    );
+    assert!(
+        first.contains(
+            &"eval-report --grids results/grids-mujoco --section video-mujoco".to_string()
+        ),
+        "{first:?}"
+    );
+    // The run's model, as a model folder, its config naming its backbone.
+    let config = fs::read_to_string(r.join("runs/r/model/train-config.toml")).expect("config");
+    assert!(config.contains("\"runs/r/model/backbone\""), "{config}");
+    assert!(r.join("runs/r/model/bridgev2w-plan.safetensors").is_file());
+    // The preamble names the engine.
+    let preamble = fs::read_to_string(r.join("runs/r/preamble.md")).expect("preamble");
+    assert!(
+        preamble.contains("simulated and rendered by MuJoCo"),
+        "{preamble}"
+    );
+    // Rerun: nothing again; a larger budget: both planning stages again.
+    let second = run(r, &env);
+    assert!(
+        !second
+            .iter()
+            .any(|c| c.starts_with("plan-report") || c.starts_with("synth")),
+        "{second:?}"
+    );
+    let more = run(r, &[env[0], env[1], ("PLAN_TRIALS", "3")]);
+    assert_eq!(
+        more.iter().filter(|c| c.starts_with("plan-report")).count(),
+        2,
+        "{more:?}"
+    );
+    // The built-in world's run plans nothing unless asked.
+    let builtin = sandbox();
+    let calls = run(builtin.path(), &[]);
+    assert!(
+        !calls.iter().any(|c| c.starts_with("plan-report")),
+        "{calls:?}"
+    );
 }

@@ -210,7 +210,8 @@ fn policies_are_executed_in_mujoco_for_their_true_success() {
 }
 
 /// `plan-report --engine mujoco` (issue 72): plans and policies executed in
-/// MuJoCo, the section saying so, both tables filled.
+/// MuJoCo with the robot asked (the real-mesh one the MuJoCo study's data
+/// has), the section saying so, both tables filled.
 #[test]
 fn plan_report_runs_its_trials_in_mujoco() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -219,6 +220,8 @@ fn plan_report_runs_its_trials_in_mujoco() {
         "plan-report",
         "--engine",
         "mujoco",
+        "--robot",
+        "franka-robotiq",
         "--tasks",
         "push",
         "--models",
@@ -244,7 +247,7 @@ fn plan_report_runs_its_trials_in_mujoco() {
     let md = std::fs::read_to_string(&results).expect("results");
     assert!(
         md.contains("## Goal-image planning and policy evaluation in the MuJoCo world")
-            && md.contains("MuJoCo (the synthetic world's scenes")
+            && md.contains("MuJoCo (the synthetic world's scenes, robot `franka-robotiq`")
             && md.contains("| push | perfect | ")
             && md.contains("MuJoCo-world success: the task's state check on MuJoCo's state")
             && !md.contains("synthetic-world success |"),

@@ -92,6 +92,9 @@ pub struct PlanReportArgs {
     /// (as `plan --engine`).
     #[arg(long, default_value_t = bridgev2w_data::synth::Engine::Builtin)]
     pub engine: bridgev2w_data::synth::Engine,
+    /// The synthetic world's robot (as `plan --robot`).
+    #[arg(long, default_value = "franka")]
+    pub robot: String,
 }
 
 /// `bridgev2w plan-report`: runs planning on all tasks and the policy
@@ -124,6 +127,7 @@ pub fn run(a: &PlanReportArgs) -> Result<()> {
         seed: a.seed,
         results: Some(a.out.clone()),
         engine: a.engine,
+        robot: a.robot.clone(),
     };
     let command = std::env::args().collect::<Vec<_>>().join(" ");
     let md = plan_report(&o, &command, &mut progress)?;

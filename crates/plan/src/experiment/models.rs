@@ -110,6 +110,12 @@ pub struct ModelOptions {
     /// conv cache, an approximation; beyond the paper).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = ModelOptions::default().decode_frames))]
     pub decode_frames: DecodeFrames,
+    /// The synthetic world's robot (a built-in robot: `bridgev2w robot-info
+    /// --list`): the one a trained model's data had (`synth --robot`;
+    /// `franka-robotiq` for data made with `--engine mujoco` by the
+    /// reproduction script). MuJoCo loads its URDF.
+    #[cfg_attr(feature = "clap", arg(long, default_value = "franka"))]
+    pub robot: String,
 }
 
 /// The perfect model's clip frames unless [`ModelOptions::clip_frames`] says
@@ -130,6 +136,7 @@ impl Default for ModelOptions {
             height: 64,
             clip_frames: None,
             decode_frames: DecodeFrames::All,
+            robot: "franka".into(),
         }
     }
 }
@@ -174,6 +181,8 @@ pub enum LoadedModel {
         height: u32,
         /// Clip frames.
         clip_frames: usize,
+        /// The synthetic world's robot.
+        robot: String,
     },
     /// A BridgeV2W diffusion model.
     Diffusion {
@@ -185,6 +194,8 @@ pub enum LoadedModel {
         max_batch: Option<usize>,
         /// Which frames are decoded.
         decode_frames: DecodeFrames,
+        /// The synthetic world's robot (the one the model's data had).
+        robot: String,
     },
 }
 
@@ -207,6 +218,7 @@ impl LoadedModel {
                 width: o.width,
                 height: o.height,
                 clip_frames: o.clip_frames.unwrap_or(PERFECT_CLIP_FRAMES),
+                robot: o.robot.clone(),
             },
             PlanModel::World(spec) => {
                 let mut model = spec.load_bridge(
@@ -229,6 +241,7 @@ impl LoadedModel {
                     sampling: o.sampling,
                     max_batch: o.max_batch,
                     decode_frames: o.decode_frames,
+                    robot: o.robot.clone(),
                 }
             }
         })
@@ -249,14 +262,18 @@ impl LoadedModel {
         }
     }
 
-    /// The synthetic world at this model's resolution.
+    /// The synthetic world at this model's resolution, with its robot.
     pub fn world(&self, episode_frames: usize, seed: u64) -> Result<World> {
         let (h, w) = self.resolution();
+        let robot = match self {
+            Self::Perfect { robot, .. } | Self::Diffusion { robot, .. } => robot.clone(),
+        };
         Ok(World::new(&SynthConfig {
             frames: episode_frames,
             width: w,
             height: h,
             seed,
+            robot,
             ..SynthConfig::default()
         })?)
     }
@@ -279,6 +296,7 @@ impl LoadedModel {
                 sampling,
                 max_batch,
                 decode_frames,
+                ..
             } => {
                 let predict = PredictOptions {
                     sample: SampleOptions {

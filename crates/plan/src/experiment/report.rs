@@ -65,6 +65,7 @@ impl ReportModel {
             decode_frames: o.decode_frames,
             width: 96,
             height: 64,
+            robot: o.robot.clone(),
             ..ModelOptions::default()
         })
     }
@@ -118,6 +119,8 @@ pub struct PlanReportOptions {
     pub results: Option<PathBuf>,
     /// What executes the plans and the policies ([`PlanOptions::engine`]).
     pub engine: Engine,
+    /// The synthetic world's robot ([`ModelOptions::robot`]).
+    pub robot: String,
 }
 
 /// The models of the report from a comma-separated list (or, without one,
@@ -264,8 +267,8 @@ pub fn plan_report(
             Precision::Bf16 => " in bfloat16",
         },
         match o.engine {
-            Engine::Builtin => "The synthetic tabletop world (Franka, 96x64 images, split `test`)".to_string(),
-            Engine::Mujoco => "MuJoCo (the synthetic world's scenes, split `test`, simulated with physics: position-controlled arm, free objects with contact and friction; 96x64 images)".to_string() + ": every plan and policy is executed there and judged on MuJoCo's object poses against MuJoCo's run of the scripted expert, whose states the goal images show (the perfect model, the built-in world stepped kinematically, sees them drawn by the built-in renderer; a diffusion model sees MuJoCo's frames)",
+            Engine::Builtin => format!("The synthetic tabletop world (robot `{}`, 96x64 images, split `test`)", o.robot),
+            Engine::Mujoco => format!("MuJoCo (the synthetic world's scenes, robot `{}`, split `test`, simulated with physics: position-controlled arm, free objects with contact and friction; 96x64 images)", o.robot) + ": every plan and policy is executed there and judged on MuJoCo's object poses against MuJoCo's run of the scripted expert, whose states the goal images show (the perfect model, the built-in world stepped kinematically, sees them drawn by the built-in renderer; a diffusion model sees MuJoCo's frames)",
         },
     );
     let mut plans = Vec::new();

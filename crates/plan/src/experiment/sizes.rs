@@ -192,6 +192,7 @@ mod tests {
             width: 96,
             height: 64,
             clip_frames: 9,
+            robot: "franka".into(),
         };
         assert_eq!(candidates_bytes(&small, 64), 64 * 96 * 64 * 12);
         assert!(check_candidates_memory(&small, "--samples", 64).is_ok());
@@ -199,6 +200,7 @@ mod tests {
             width: MAX_SIDE,
             height: MAX_SIDE,
             clip_frames: 9,
+            robot: "franka".into(),
         };
         let r = check_candidates_memory(&huge, "--samples", MAX_CEM_SAMPLES);
         if bridgev2w_io::memory::available_bytes().is_some() {
