@@ -252,6 +252,17 @@ impl LoadedModel {
         matches!(self, Self::Diffusion { .. })
     }
 
+    /// How this model sees the scene: a diffusion model the executing
+    /// world's frames (in MuJoCo: a model trained on `synth --engine
+    /// mujoco`); the perfect model, the built-in world stepped
+    /// kinematically, the built-in renderer's drawing of the same states.
+    pub fn look(&self) -> crate::synthetic::GoalLook {
+        match self.is_diffusion() {
+            true => crate::synthetic::GoalLook::Executed,
+            false => crate::synthetic::GoalLook::Builtin,
+        }
+    }
+
     /// `(height, width)` the synthetic world must render at.
     pub fn resolution(&self) -> (u32, u32) {
         match self {

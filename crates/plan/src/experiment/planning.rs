@@ -5,7 +5,7 @@ use super::{trial_seed, LoadedModel, ModelOptions};
 use crate::cem::{CemConfig, RotationSearch};
 use crate::model::ViewLimit;
 use crate::mpc::{run_mpc, run_random, GripperChoice, GripperPolicy, MpcConfig, MpcTraceStep};
-use crate::synthetic::{GoalLook, SyntheticEnv, TaskInstance, WaypointSpacing};
+use crate::synthetic::{SyntheticEnv, TaskInstance, WaypointSpacing};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::mujoco::{find_python, MujocoEngine};
 use bridgev2w_data::synth::Engine;
@@ -389,14 +389,7 @@ pub(crate) fn plan_with(
         Engine::Builtin => None,
         Engine::Mujoco => Some(MujocoEngine::new(&world.config.robot, find_python()?)?),
     };
-    // A diffusion model plans on the executing world's frames (in MuJoCo: a
-    // model trained on `synth --engine mujoco`); the perfect model, the
-    // built-in world stepped kinematically, on the built-in renderer's
-    // drawing of the same states.
-    let look = match loaded.is_diffusion() {
-        true => GoalLook::Executed,
-        false => GoalLook::Builtin,
-    };
+    let look = loaded.look();
     let t0 = Instant::now();
     let (mut planned, mut planned_carried, mut random) = (0, 0, 0);
     let (mut planned_err, mut random_err, mut steps) = (0.0, 0.0, 0.0);

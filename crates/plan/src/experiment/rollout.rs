@@ -13,7 +13,7 @@ use crate::policy::{
     PolicyEvalReport, PolicyTally, ScriptedPolicy, SuccessJudge,
 };
 use crate::served::{ServedPolicy, ServedPolicyConfig, TcpKinematics};
-use crate::synthetic::{GoalLook, TaskInstance};
+use crate::synthetic::TaskInstance;
 use crate::{EeAction, Observation};
 use crate::{PlanError, Result};
 use bridgev2w_data::synth::mujoco::{find_python, MujocoEngine};
@@ -286,13 +286,7 @@ pub(crate) fn rollout_with<'p>(
         .collect::<Result<_>>()?;
     let labels = o.labels.as_deref().map(LabelJudge::read).transpose()?;
     let horizon = o.episode_frames - 1;
-    // A diffusion model sees the executing world's frames (in MuJoCo: a
-    // model trained on `synth --engine mujoco`); the kinematic models the
-    // built-in world's.
-    let look = match loaded.is_diffusion() {
-        true => GoalLook::Executed,
-        false => GoalLook::Builtin,
-    };
+    let look = loaded.look();
     let calibration = match o.calibrate_judge {
         0 => None,
         n => {
