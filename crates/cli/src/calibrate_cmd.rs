@@ -45,6 +45,9 @@ pub struct FitArgs {
     /// moved along an orbit or the dolly-zoom); 0 skips the walk.
     #[arg(long, default_value_t = CalibrateOptions::default().walk_evaluations)]
     walk_evaluations: usize,
+    /// Weight of the background-consistency cost beside the silhouette's 1 - IoU (0: the silhouette alone).
+    #[arg(long, default_value_t = CalibrateOptions::default().background_weight)]
+    background_weight: f64,
     /// Found pixels that keep their colour over the frames around (a moved object at rest, a drift): `score` them or `leave-out` of the score.
     #[arg(long, default_value_t = StaticChanges::Score)]
     static_changes: StaticChanges,
@@ -67,6 +70,7 @@ impl FitArgs {
             azimuth_step_deg: self.azimuth_step_deg,
             max_evaluations: self.max_evaluations,
             walk_evaluations: self.walk_evaluations,
+            background_weight: self.background_weight,
             low_iou: self.low_iou,
             min_motion_m: self.min_motion_m,
             foreground: ForegroundOptions {

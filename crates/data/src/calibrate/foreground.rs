@@ -142,6 +142,9 @@ pub struct Foreground {
     pub unknown: Vec<Vec<u8>>,
     /// The background (RGB8).
     pub background: Vec<u8>,
+    /// The frames after gain compensation (RGB8), what the masks were
+    /// found in.
+    pub frames: Vec<Vec<u8>>,
     /// Measurements.
     pub stats: ForegroundStats,
 }
@@ -363,6 +366,7 @@ pub fn find_foreground(episode: &EpisodeData, options: &ForegroundOptions) -> Fo
         masks,
         unknown,
         background,
+        frames,
         stats: ForegroundStats {
             frames: n,
             frames_with_robot,

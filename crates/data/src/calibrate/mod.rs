@@ -25,6 +25,7 @@
 //! [`study`] measures the errors against the synthetic world's known
 //! cameras.
 
+mod background;
 pub mod droid_study;
 pub mod episode;
 pub mod foreground;
@@ -615,17 +616,22 @@ pub fn calibrate(
         let df = (c.intrinsics.fx / best_mid.intrinsics.fx - 1.0).abs();
         ambiguity.max_focal_fraction = ambiguity.max_focal_fraction.max(df);
     }
-    progress("refining on the full grid");
-    let full = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames);
-    let (camera, _) = refine(
-        &full,
-        &best_mid,
-        target,
-        &all,
-        0.5,
-        options.max_evaluations,
-        2,
-    );
+    // The full grid: the silhouette and the background's consistency
+    // together (see `background`), from each distinct finalist, since the
+    // silhouette alone can rank a misplaced camera first.
+    let full = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames)
+        .with_background(options.background_weight);
+    let last: Vec<(Camera, f64)> = if options.background_weight > 0.0 {
+        distinct(&finalists, options.finalists)
+    } else {
+        vec![finalists[0].clone()]
+    };
+    progress(&format!("refining {} on the full grid", last.len()));
+    let (camera, _) = last
+        .iter()
+        .map(|(c, _)| refine(&full, c, target, &all, 0.5, options.max_evaluations, 2))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap_or_else(|| (best_mid.clone(), best_value));
     progress("probing how well the camera is pinned down");
     let basic = active_parameters(options, false);
     let (rise, direction) = probe(

@@ -29,6 +29,7 @@
 //!   quarter of the image width) and the distance between the predicted and
 //!   found pixels' centroids, smooth enough to pull a far-off camera in.
 
+use super::background::{background_cost, reduce_rgb};
 use super::foreground::Foreground;
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
 use bridgev2w_embodiment::masks::render_items;
@@ -53,13 +54,23 @@ pub(crate) struct Level {
     pub known: Vec<Vec<f32>>,
     /// Distance cap (pixels).
     pub cap: f32,
+    /// Per frame: the gain-compensated frame on this grid (RGB8), for
+    /// [`super::background`]; empty when not kept.
+    pub rgb: Vec<Vec<u8>>,
 }
 
 impl Level {
     /// The level of `foreground`'s masks reduced by `factor`.
     pub fn new(foreground: &Foreground, factor: usize) -> Level {
         let (w, h) = (foreground.width, foreground.height);
-        Self::from_masks(&foreground.masks, &foreground.unknown, (w, h), factor)
+        Level {
+            rgb: foreground
+                .frames
+                .par_iter()
+                .map(|f| reduce_rgb(f, (w, h), factor))
+                .collect(),
+            ..Self::from_masks(&foreground.masks, &foreground.unknown, (w, h), factor)
+        }
     }
 
     /// The level of 0/1 `masks` on a `w` x `h` grid reduced by `factor`,
@@ -106,6 +117,7 @@ impl Level {
             found,
             known,
             cap: (lw as f32 / 4.0).max(2.0),
+            rgb: Vec::new(),
         }
     }
 
@@ -239,7 +251,8 @@ fn modal(values: &mut [u16]) -> u16 {
     best
 }
 
-/// The predicted pixels of `frames` through `camera` (on the level's grid):
+/// The predicted pixels of `frames` through `camera` (on the level's grid),
+/// and the robot's rendered pixels there:
 /// 1 where the robot appears over its usual background or leaves its usual
 /// place (the rendered label differs from the pixel's usual label over
 /// `mode_frames`, one of them background), [`OVER_ROBOT`] where another
@@ -251,7 +264,7 @@ pub(crate) fn predicted(
     camera: &Camera,
     frames: &[usize],
     mode_frames: &[usize],
-) -> Vec<Vec<u8>> {
+) -> Prediction {
     let mut all: Vec<usize> = frames.iter().chain(mode_frames).copied().collect();
     all.sort_unstable();
     all.dedup();
@@ -274,16 +287,30 @@ pub(crate) fn predicted(
                 *u = modal(&mut values);
             }
         });
-    frames
+    let (change, robot) = frames
         .par_iter()
         .map(|&t| {
-            labels[at(t)]
-                .iter()
-                .zip(&usual)
-                .map(|(&l, &u)| change_code(l, u))
-                .collect()
+            let l = &labels[at(t)];
+            (
+                l.iter()
+                    .zip(&usual)
+                    .map(|(&l, &u)| change_code(l, u))
+                    .collect(),
+                l.iter().map(|&l| u8::from(l != 0)).collect(),
+            )
         })
-        .collect()
+        .unzip();
+    Prediction { change, robot }
+}
+
+/// What a camera predicts in the scored frames (see [`predicted`]).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Prediction {
+    /// Per frame: 1 where a change shows, [`OVER_ROBOT`] where one link
+    /// passes over another, else 0.
+    pub change: Vec<Vec<u8>>,
+    /// Per frame: 1 where the robot is rendered.
+    pub robot: Vec<Vec<u8>>,
 }
 
 /// The predicted change of a pixel whose rendered label is `l` and usual
@@ -328,6 +355,10 @@ pub(crate) struct Score {
     pub frames: usize,
     /// The level's distance cap (pixels).
     pub cap: f64,
+    /// Summed background-consistency cost (see [`super::background`]).
+    pub background: f64,
+    /// Pixel-frames it sums over (0 when not computed).
+    pub background_n: f64,
 }
 
 impl Score {
@@ -341,6 +372,8 @@ impl Score {
         self.centroid += other.centroid;
         self.frames += other.frames;
         self.cap = self.cap.max(other.cap);
+        self.background += other.background;
+        self.background_n += other.background_n;
     }
 
     /// Pooled soft IoU (1 when nothing is predicted or found anywhere).
@@ -358,6 +391,15 @@ impl Score {
             0.0
         } else {
             self.chamfer / self.frames as f64 / self.cap
+        }
+    }
+
+    /// The mean background-consistency cost (0..1; 0 when not computed).
+    pub fn background_mean(&self) -> f64 {
+        if self.background_n > 0.0 {
+            self.background / self.background_n
+        } else {
+            0.0
         }
     }
 
@@ -460,23 +502,27 @@ pub(crate) fn frame_score(
             centroid,
             frames: 1,
             cap: f64::from(cap),
+            ..Score::default()
         },
         Some(if union > 0.0 { inter / union } else { 0.0 }),
     )
 }
 
 /// The pooled [`Score`] and the per-frame IoUs of the predicted pixels of
-/// `frames` against the level's found ones (chamfer only `with_chamfer`).
+/// `frames` against the level's found ones (chamfer only `with_chamfer`;
+/// the background-consistency cost only `with_background`, and only when
+/// the level keeps its frames).
 pub(crate) fn score(
     level: &Level,
     frames: &[usize],
-    predicted: &[Vec<u8>],
+    predicted: &Prediction,
     with_chamfer: bool,
+    with_background: bool,
 ) -> (Score, Vec<f64>) {
     let size = (level.width, level.height);
     let parts: Vec<(Score, Option<f64>)> = frames
         .par_iter()
-        .zip(predicted)
+        .zip(&predicted.change)
         .map(|(&t, m)| {
             frame_score(
                 m,
@@ -496,6 +542,16 @@ pub(crate) fn score(
     for (s, iou) in &parts {
         total.add(s);
         per_frame.extend(iou);
+    }
+    if with_background && !level.rgb.is_empty() {
+        let (sum, n) = background_cost(
+            &level.rgb,
+            frames,
+            &predicted.robot,
+            level.width * level.height,
+        );
+        total.background = sum;
+        total.background_n = n;
     }
     (total, per_frame)
 }

@@ -60,6 +60,11 @@ pub struct CalibrateOptions {
     /// 0 skips the walk (a quick look: the walk costs about as much again
     /// as the rest of the search).
     pub walk_evaluations: usize,
+    /// Weight of the background-consistency cost (see
+    /// `calibrate::background`) added to the silhouette's `1 - IoU` in the
+    /// refinement, the valley walk and the probe (not in the coarse
+    /// search); 0 fits the silhouette alone.
+    pub background_weight: f64,
     /// Refuse an episode whose robot surface moves less (metres).
     pub min_motion_m: f64,
     /// Refuse an episode with fewer frames showing robot pixels.
@@ -123,6 +128,7 @@ impl Default for CalibrateOptions {
             mode_frames: 24,
             max_evaluations: 250,
             walk_evaluations: 120,
+            background_weight: 10.0,
             min_motion_m: 0.05,
             min_robot_frames: 6,
             min_robot_frame_fraction: 0.3,
@@ -274,6 +280,7 @@ impl CalibrateOptions {
         }
         let positive = [
             ("--min-motion-m", self.min_motion_m),
+            ("--background-weight", self.background_weight),
             ("--moving-noise-level", self.moving_noise_level),
             ("--ambiguous-margin", self.ambiguous_margin),
             ("--ambiguous-position-m", self.ambiguous_position_m),
