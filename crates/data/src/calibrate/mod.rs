@@ -157,6 +157,12 @@ pub enum CalibrateError {
     Synth(#[from] SynthError),
 }
 
+/// Finalists whose silhouette objective on the middle grid is within this
+/// of the best one's are refined again on the full grid with the
+/// background's consistency. Measured on the synthetic world: with every
+/// distinct finalist, one camera of ten moved from 5.8 to 40 cm off.
+const FINALIST_MARGIN: f64 = 0.05;
+
 /// At most this many steps of the valley walk after the middle-grid
 /// refinement (each from the best camera so far, while it improves).
 const MAX_WALK_STEPS: usize = 8;
@@ -617,12 +623,18 @@ pub fn calibrate(
         ambiguity.max_focal_fraction = ambiguity.max_focal_fraction.max(df);
     }
     // The full grid: the silhouette and the background's consistency
-    // together (see `background`), from each distinct finalist, since the
+    // together (see `background`), from each distinct finalist the
+    // silhouette scores within `FINALIST_MARGIN` of the best, since the
     // silhouette alone can rank a misplaced camera first.
     let full = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames)
         .with_background(options.background_weight);
     let last: Vec<(Camera, f64)> = if options.background_weight > 0.0 {
-        distinct(&finalists, options.finalists)
+        let close: Vec<(Camera, f64)> = finalists
+            .iter()
+            .filter(|(_, v)| *v <= best_value + FINALIST_MARGIN)
+            .cloned()
+            .collect();
+        distinct(&close, options.finalists)
     } else {
         vec![finalists[0].clone()]
     };

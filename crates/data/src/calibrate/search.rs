@@ -637,18 +637,28 @@ mod tests {
     use crate::calibrate::study::camera_errors;
     use crate::synth::{Split, SynthConfig, Task, World};
 
-    #[test]
-    fn the_valley_walk_brings_an_orbited_camera_back_towards_the_truth() {
+    /// A synthetic `test` episode of `frames` frames at 128 x 80 (dataset
+    /// `seed`) made ready on the analysis grid, with options that know the
+    /// true focal length.
+    fn synthetic(
+        (frames, seed): (usize, u64),
+        index: usize,
+        task: Task,
+    ) -> (
+        World,
+        crate::synth::Episode,
+        CalibrateOptions,
+        [Prepared; 1],
+    ) {
         let world = World::new(&SynthConfig {
-            frames: 16,
+            frames,
             width: 128,
             height: 80,
-            seed: 3,
+            seed,
             ..SynthConfig::default()
         })
         .unwrap();
-        let ep = world.generate(Split::Test, 0, Task::PickPlace).unwrap();
-        let truth = &ep.camera;
+        let ep = world.generate(Split::Test, index, task).unwrap();
         let data = EpisodeData::new(
             "synthetic",
             (128, 80),
@@ -659,12 +669,25 @@ mod tests {
         )
         .unwrap();
         let options = CalibrateOptions {
-            focal_px: Some(truth.intrinsics.fx),
+            focal_px: Some(ep.camera.intrinsics.fx),
             ..CalibrateOptions::default()
         };
-        let robot = &world.embodiment.robot;
         let fg = find_foreground(&data, &options.foreground);
-        let prepared = [prepare(robot, &data, &fg, &[1], 4, 16)];
+        let prepared = [prepare(
+            &world.embodiment.robot,
+            &data,
+            &fg,
+            &[1],
+            4,
+            frames,
+        )];
+        (world, ep, options, prepared)
+    }
+
+    #[test]
+    fn the_valley_walk_brings_an_orbited_camera_back_towards_the_truth() {
+        let (world, ep, options, prepared) = synthetic((16, 3), 0, Task::PickPlace);
+        let (truth, robot) = (&ep.camera, &world.embodiment.robot);
         let target = prepared[0].motion.centroid;
         let ev = Evaluator::fit(robot, &prepared, 0, 16);
         let active = active_parameters(&options, true);
@@ -689,32 +712,8 @@ mod tests {
 
     #[test]
     fn the_background_tells_a_camera_stalled_in_a_valley_from_the_truth() {
-        let world = World::new(&SynthConfig {
-            frames: 24,
-            width: 128,
-            height: 80,
-            seed: 7,
-            ..SynthConfig::default()
-        })
-        .unwrap();
-        let ep = world.generate(Split::Test, 1, Task::Push).unwrap();
-        let truth = &ep.camera;
-        let data = EpisodeData::new(
-            "synthetic",
-            (128, 80),
-            1,
-            (128, 80),
-            ep.rgb.clone(),
-            ep.joints.clone(),
-        )
-        .unwrap();
-        let options = CalibrateOptions {
-            focal_px: Some(truth.intrinsics.fx),
-            ..CalibrateOptions::default()
-        };
-        let robot = &world.embodiment.robot;
-        let fg = find_foreground(&data, &options.foreground);
-        let prepared = [prepare(robot, &data, &fg, &[1], 4, 24)];
+        let (world, ep, options, prepared) = synthetic((24, 7), 1, Task::Push);
+        let (truth, robot) = (&ep.camera, &world.embodiment.robot);
         let target = prepared[0].motion.centroid;
         let silhouette = Evaluator::fit(robot, &prepared, 0, 24);
         let both = Evaluator::fit(robot, &prepared, 0, 24).with_background(10.0);
