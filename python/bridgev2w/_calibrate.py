@@ -47,11 +47,19 @@ def _paths(name, value):
     return [_path(f"{name}[{i}]", v) for i, v in enumerate(value)]
 
 
+def _background_weight(value) -> float:
+    v = _float("background_weight", value)
+    if v < 0:
+        raise ValueError(f"background_weight: {value!r}, expected a finite value >= 0")
+    return v
+
+
 def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
               check_videos: Sequence = (), check_joints: Sequence = (),
               focal_px: Optional[float] = None, fy_over_fx: float = 1.0, analysis_width: int = 320,
               max_evaluations: int = 250, walk_evaluations: int = 120, marks=None,
-              static_changes: str = "score", overwrite: bool = False) -> Calibration:
+              static_changes: str = "score", background_weight: float = 10.0,
+              overwrite: bool = False) -> Calibration:
     """Finds the fixed camera of ``videos`` (one MP4 or a list, one per
     episode) from the robot's joints in each (``joints``, in the same order:
     trajectory files, or DROID annotation JSONs of the Ctrl-World layout),
@@ -68,7 +76,9 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
     about half the time). ``static_changes``: ``"score"`` every found pixel,
     or ``"leave-out"`` the found pixels that keep their colour over the
     frames around them (a moved object at rest, an exposure drift) of the
-    score. The GIL is released while it runs (minutes).
+    score. ``background_weight``: the weight of the background's consistency
+    beside the silhouette in the full-grid refinement (0: the silhouette
+    alone; see the calibrate guide). The GIL is released while it runs (minutes).
 
     Missing files are a ``FileNotFoundError``, bad arguments a ``ValueError``
     naming them, an existing ``out`` without ``overwrite`` or a video the
@@ -85,6 +95,6 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
         _int("max_evaluations", max_evaluations, 10, 100000),
         _int("walk_evaluations", walk_evaluations, 0, 100000),
         None if marks is None else _path("marks", marks), str(static_changes),
-        bool(overwrite))
+        _background_weight(background_weight), bool(overwrite))
     d["camera"] = Camera(_core_camera=d["camera"])
     return Calibration(**d)

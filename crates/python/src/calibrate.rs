@@ -20,7 +20,7 @@ use bridgev2w_data::calibrate::{
 /// `marks` (per episode with hand marks: `(name, median_px, max_px,
 /// marks)`), `summary` (the CLI's text).
 #[pyfunction]
-#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, walk_evaluations, marks, static_changes, overwrite))]
+#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, walk_evaluations, marks, static_changes, background_weight, overwrite))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn calibrate<'py>(
     py: Python<'py>,
@@ -37,6 +37,7 @@ pub(crate) fn calibrate<'py>(
     walk_evaluations: usize,
     marks: Option<PathBuf>,
     static_changes: &str,
+    background_weight: f64,
     overwrite: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let static_changes: StaticChanges = static_changes
@@ -79,6 +80,7 @@ pub(crate) fn calibrate<'py>(
         fy_over_fx,
         max_evaluations,
         walk_evaluations,
+        background_weight,
         marks,
         foreground: ForegroundOptions {
             static_changes,
