@@ -61,11 +61,13 @@ pub(crate) struct Level {
 
 impl Level {
     /// The level of `foreground`'s masks reduced by `factor`.
-    pub fn new(foreground: &Foreground, factor: usize) -> Level {
+    /// `keep_rgb`: also keep the frames on this grid (for the background's
+    /// consistency).
+    pub fn new(foreground: &Foreground, factor: usize, keep_rgb: bool) -> Level {
         let (w, h) = (foreground.width, foreground.height);
+        let frames: &[Vec<u8>] = if keep_rgb { &foreground.frames } else { &[] };
         Level {
-            rgb: foreground
-                .frames
+            rgb: frames
                 .par_iter()
                 .map(|f| reduce_rgb(f, (w, h), factor))
                 .collect(),

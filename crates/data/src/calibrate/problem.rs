@@ -170,7 +170,13 @@ pub(crate) fn prepare(
     let n = poses.len();
     let (fit, held) = split_frames(n, block_size(n), held_out_every);
     let all: Vec<usize> = (0..n).collect();
-    let levels = factors.iter().map(|&f| Level::new(foreground, f)).collect();
+    // Only the analysis grid (level 0) keeps the frames: the background's
+    // consistency is scored there alone.
+    let levels = factors
+        .iter()
+        .enumerate()
+        .map(|(i, &f)| Level::new(foreground, f, i == 0))
+        .collect();
     let mode = spread(&all, max_mode_frames);
     Prepared {
         name: episode.name.clone(),
