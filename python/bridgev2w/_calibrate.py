@@ -47,10 +47,10 @@ def _paths(name, value):
     return [_path(f"{name}[{i}]", v) for i, v in enumerate(value)]
 
 
-def _background_weight(value) -> float:
-    v = _float("background_weight", value)
+def _weight(name, value) -> float:
+    v = _float(name, value)
     if v < 0:
-        raise ValueError(f"background_weight: {value!r}, expected a finite value >= 0")
+        raise ValueError(f"{name}: {value!r}, expected a finite value >= 0")
     return v
 
 
@@ -59,7 +59,7 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
               focal_px: Optional[float] = None, fy_over_fx: float = 1.0, analysis_width: int = 320,
               max_evaluations: int = 250, walk_evaluations: int = 120, marks=None,
               static_changes: str = "score", background_weight: float = 10.0,
-              overwrite: bool = False) -> Calibration:
+              appearance_weight: float = 1.0, overwrite: bool = False) -> Calibration:
     """Finds the fixed camera of ``videos`` (one MP4 or a list, one per
     episode) from the robot's joints in each (``joints``, in the same order:
     trajectory files, or DROID annotation JSONs of the Ctrl-World layout),
@@ -78,7 +78,9 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
     frames around them (a moved object at rest, an exposure drift) of the
     score. ``background_weight``: the weight of the background's consistency
     beside the silhouette in the full-grid refinement (0: the silhouette
-    alone; see the calibrate guide). The GIL is released while it runs (minutes).
+    alone; see the calibrate guide); ``appearance_weight``: the weight of how
+    well the rendered robot splits the frames' colours, in the middle- and
+    full-grid refinements (0: left out). The GIL is released while it runs (minutes).
 
     Missing files are a ``FileNotFoundError``, bad arguments a ``ValueError``
     naming them, an existing ``out`` without ``overwrite`` or a video the
@@ -95,6 +97,7 @@ def calibrate(videos, joints, out, *, robot: Union[Robot, str, None] = None,
         _int("max_evaluations", max_evaluations, 10, 100000),
         _int("walk_evaluations", walk_evaluations, 0, 100000),
         None if marks is None else _path("marks", marks), str(static_changes),
-        _background_weight(background_weight), bool(overwrite))
+        _weight("background_weight", background_weight),
+        _weight("appearance_weight", appearance_weight), bool(overwrite))
     d["camera"] = Camera(_core_camera=d["camera"])
     return Calibration(**d)

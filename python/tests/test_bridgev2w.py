@@ -427,6 +427,10 @@ def test_calibrate_finds_a_camera_and_writes_its_folder():
         bw.calibrate(video, joints, WORK / "c5", walk_evaluations=-1)
     with pytest.raises(ValueError, match=r"background_weight: -1.0, expected a finite value >= 0"):
         bw.calibrate(video, joints, WORK / "c5", background_weight=-1.0)
+    with pytest.raises(ValueError, match=r"appearance_weight: -2.5, expected a finite value >= 0"):
+        bw.calibrate(video, joints, WORK / "c5", appearance_weight=-2.5)
+    with pytest.raises(ValueError, match=r"appearance_weight: expected a finite number, got nan"):
+        bw.calibrate(video, joints, WORK / "c5", appearance_weight=float("nan"))
     with pytest.raises(ValueError, match=r"static_changes: .*leaveout.*expected one of score, leave-out"):
         bw.calibrate(video, joints, WORK / "c6", static_changes="leaveout")
 

@@ -48,6 +48,9 @@ pub struct FitArgs {
     /// Weight of the background-consistency cost beside the silhouette's 1 - IoU (0: the silhouette alone).
     #[arg(long, default_value_t = CalibrateOptions::default().background_weight)]
     background_weight: f64,
+    /// Weight of the appearance cost (how well the rendered robot splits the frames' colours) in the last refinement (0: left out).
+    #[arg(long, default_value_t = CalibrateOptions::default().appearance_weight)]
+    appearance_weight: f64,
     /// Found pixels that keep their colour over the frames around (a moved object at rest, a drift): `score` them or `leave-out` of the score.
     #[arg(long, default_value_t = StaticChanges::Score)]
     static_changes: StaticChanges,
@@ -71,6 +74,7 @@ impl FitArgs {
             max_evaluations: self.max_evaluations,
             walk_evaluations: self.walk_evaluations,
             background_weight: self.background_weight,
+            appearance_weight: self.appearance_weight,
             low_iou: self.low_iou,
             min_motion_m: self.min_motion_m,
             foreground: ForegroundOptions {

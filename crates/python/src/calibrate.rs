@@ -20,7 +20,7 @@ use bridgev2w_data::calibrate::{
 /// `marks` (per episode with hand marks: `(name, median_px, max_px,
 /// marks)`), `summary` (the CLI's text).
 #[pyfunction]
-#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, walk_evaluations, marks, static_changes, background_weight, overwrite))]
+#[pyo3(signature = (robot, videos, joints, out, check_videos, check_joints, focal_px, fy_over_fx, analysis_width, max_evaluations, walk_evaluations, marks, static_changes, background_weight, appearance_weight, overwrite))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn calibrate<'py>(
     py: Python<'py>,
@@ -38,6 +38,7 @@ pub(crate) fn calibrate<'py>(
     marks: Option<PathBuf>,
     static_changes: &str,
     background_weight: f64,
+    appearance_weight: f64,
     overwrite: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let static_changes: StaticChanges = static_changes
@@ -81,6 +82,7 @@ pub(crate) fn calibrate<'py>(
         max_evaluations,
         walk_evaluations,
         background_weight,
+        appearance_weight,
         marks,
         foreground: ForegroundOptions {
             static_changes,

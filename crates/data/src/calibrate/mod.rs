@@ -25,6 +25,7 @@
 //! [`study`] measures the errors against the synthetic world's known
 //! cameras.
 
+mod appearance;
 mod background;
 pub mod droid_study;
 pub mod episode;
@@ -623,13 +624,15 @@ pub fn calibrate(
         let df = (c.intrinsics.fx / best_mid.intrinsics.fx - 1.0).abs();
         ambiguity.max_focal_fraction = ambiguity.max_focal_fraction.max(df);
     }
-    // The full grid: the silhouette and the background's consistency
-    // together (see `background`), from each distinct finalist the
-    // silhouette scores within `FINALIST_MARGIN` of the best, since the
-    // silhouette alone can rank a misplaced camera first.
-    let full = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames)
-        .with_background(options.background_weight);
-    let last: Vec<(Camera, f64)> = if options.background_weight > 0.0 {
+    // The full grid: the silhouette, the background's consistency and the
+    // appearance together (see `background`, `appearance`), from each
+    // distinct finalist the silhouette scores within `FINALIST_MARGIN` of
+    // the best, since the silhouette alone can rank a misplaced camera
+    // first; the silhouette kept within `FINALIST_MARGIN` of the best
+    // start's on this grid, since the other scores can have wrong minima of
+    // their own far from the silhouette's.
+    let extras = options.background_weight > 0.0 || options.appearance_weight > 0.0;
+    let last: Vec<(Camera, f64)> = if extras {
         let close: Vec<(Camera, f64)> = finalists
             .iter()
             .filter(|(_, v)| *v <= best_value + FINALIST_MARGIN)
@@ -639,6 +642,16 @@ pub fn calibrate(
     } else {
         vec![finalists[0].clone()]
     };
+    let silhouette = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames);
+    let ceiling = last
+        .iter()
+        .map(|(c, _)| silhouette.value(c))
+        .fold(f64::INFINITY, f64::min)
+        + FINALIST_MARGIN;
+    let full = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames)
+        .with_background(options.background_weight)
+        .with_appearance(options.appearance_weight)
+        .with_silhouette_ceiling(if extras { ceiling } else { f64::INFINITY });
     progress(&format!("refining {} on the full grid", last.len()));
     let (camera, _) = last
         .iter()
@@ -657,8 +670,11 @@ pub fn calibrate(
     );
     ambiguity.probe_rise = rise;
     ambiguity.probe_direction = direction;
-    let evaluations =
-        coarse.evaluations() + fit.evaluations() + mid.evaluations() + full.evaluations();
+    let evaluations = coarse.evaluations()
+        + fit.evaluations()
+        + mid.evaluations()
+        + silhouette.evaluations()
+        + full.evaluations();
     let episode_residuals = residuals(embodiment, &scored, episodes, &camera, true);
     let pooled = |held: bool| {
         let ev = Evaluator::new(

@@ -29,6 +29,7 @@
 //!   quarter of the image width) and the distance between the predicted and
 //!   found pixels' centroids, smooth enough to pull a far-off camera in.
 
+use super::appearance::{appearance_cost, histograms};
 use super::background::{background_cost, reduce_rgb};
 use super::foreground::Foreground;
 use bridgev2w_embodiment::camera::{Camera, Intrinsics};
@@ -361,6 +362,11 @@ pub(crate) struct Score {
     pub background: f64,
     /// Pixel-frames it sums over (0 when not computed).
     pub background_n: f64,
+    /// Summed appearance cost (see [`super::appearance`]): each episode's
+    /// cost times its pixel-frames.
+    pub appearance: f64,
+    /// Pixel-frames it weighs (0 when not computed).
+    pub appearance_n: f64,
 }
 
 impl Score {
@@ -376,6 +382,8 @@ impl Score {
         self.cap = self.cap.max(other.cap);
         self.background += other.background;
         self.background_n += other.background_n;
+        self.appearance += other.appearance;
+        self.appearance_n += other.appearance_n;
     }
 
     /// Pooled soft IoU (1 when nothing is predicted or found anywhere).
@@ -400,6 +408,15 @@ impl Score {
     pub fn background_mean(&self) -> f64 {
         if self.background_n > 0.0 {
             self.background / self.background_n
+        } else {
+            0.0
+        }
+    }
+
+    /// The mean appearance cost (0..1; 0 when not computed).
+    pub fn appearance_mean(&self) -> f64 {
+        if self.appearance_n > 0.0 {
+            self.appearance / self.appearance_n
         } else {
             0.0
         }
@@ -512,8 +529,8 @@ pub(crate) fn frame_score(
 
 /// The pooled [`Score`] and the per-frame IoUs of the predicted pixels of
 /// `frames` against the level's found ones (chamfer only `with_chamfer`;
-/// the background-consistency cost only `with_background`, and only when
-/// the level keeps its frames).
+/// the background-consistency and appearance costs only `with_background`,
+/// and only when the level keeps its frames).
 pub(crate) fn score(
     level: &Level,
     frames: &[usize],
@@ -554,6 +571,14 @@ pub(crate) fn score(
         );
         total.background = sum;
         total.background_n = n;
+        let h = histograms(
+            &level.rgb,
+            frames,
+            &predicted.robot,
+            level.width * level.height,
+        );
+        total.appearance = appearance_cost(&h) * n;
+        total.appearance_n = n;
     }
     (total, per_frame)
 }

@@ -62,9 +62,13 @@ pub struct CalibrateOptions {
     pub walk_evaluations: usize,
     /// Weight of the background-consistency cost (see
     /// `calibrate::background`) added to the silhouette's `1 - IoU` in the
-    /// refinement, the valley walk and the probe (not in the coarse
-    /// search); 0 fits the silhouette alone.
+    /// full-grid refinement (not in the earlier stages); 0 fits the
+    /// silhouette alone.
     pub background_weight: f64,
+    /// Weight of the appearance cost (see `calibrate::appearance`: how well
+    /// the rendered robot splits the frames' colours) added in the
+    /// full-grid refinement, like the background's; 0 leaves it out.
+    pub appearance_weight: f64,
     /// Refuse an episode whose robot surface moves less (metres).
     pub min_motion_m: f64,
     /// Refuse an episode with fewer frames showing robot pixels.
@@ -129,6 +133,7 @@ impl Default for CalibrateOptions {
             max_evaluations: 250,
             walk_evaluations: 120,
             background_weight: 10.0,
+            appearance_weight: 1.0,
             min_motion_m: 0.05,
             min_robot_frames: 6,
             min_robot_frame_fraction: 0.3,
@@ -281,6 +286,7 @@ impl CalibrateOptions {
         let positive = [
             ("--min-motion-m", self.min_motion_m),
             ("--background-weight", self.background_weight),
+            ("--appearance-weight", self.appearance_weight),
             ("--moving-noise-level", self.moving_noise_level),
             ("--ambiguous-margin", self.ambiguous_margin),
             ("--ambiguous-position-m", self.ambiguous_position_m),

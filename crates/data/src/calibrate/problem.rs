@@ -171,7 +171,7 @@ pub(crate) fn prepare(
     let (fit, held) = split_frames(n, block_size(n), held_out_every);
     let all: Vec<usize> = (0..n).collect();
     // Only the analysis grid (level 0) keeps the frames: the background's
-    // consistency is scored there alone.
+    // consistency and the appearance are scored there alone.
     let levels = factors
         .iter()
         .enumerate()
