@@ -39,6 +39,7 @@ pub mod report;
 pub mod run;
 mod search;
 pub mod study;
+mod valley;
 
 pub use episode::{load_episode, pair_inputs, EpisodeData, EpisodeInput};
 pub use foreground::{
@@ -53,11 +54,12 @@ use bridgev2w_embodiment::embodiment::Embodiment;
 use objective::reduce_intrinsics;
 use problem::{prepare, Prepared};
 use search::{
-    active_parameters, angle_between, coarse_candidates, distinct, marks_start, probe, refine,
-    start_intrinsics, walk_step, Evaluator,
+    active_parameters, angle_between, coarse_candidates, distinct, marks_start, refine,
+    refine_on_full_grid, start_intrinsics, Evaluator,
 };
 use serde::Serialize;
 use std::path::PathBuf;
+use valley::{probe, walk_step, PROBES};
 
 /// Errors of the calibration; each names the input and the measured value.
 #[derive(Debug, thiserror::Error)]
@@ -157,13 +159,6 @@ pub enum CalibrateError {
     #[error(transparent)]
     Synth(#[from] SynthError),
 }
-
-/// Finalists whose silhouette objective on the middle grid is within this
-/// of the best one's are refined again on the full grid with the
-/// background's consistency. Measured on the synthetic world (ten cameras,
-/// docs/guide/calibrate.md): the same median error with every distinct
-/// finalist, the worst camera 40.0 cm off against 31.8 with the margin.
-const FINALIST_MARGIN: f64 = 0.05;
 
 /// At most this many steps of the valley walk after the middle-grid
 /// refinement (each from the best camera so far, while it improves).
@@ -593,6 +588,7 @@ pub fn calibrate(
             target,
             &all,
             options.walk_evaluations,
+            &PROBES,
         ) else {
             break;
         };
@@ -624,40 +620,8 @@ pub fn calibrate(
         let df = (c.intrinsics.fx / best_mid.intrinsics.fx - 1.0).abs();
         ambiguity.max_focal_fraction = ambiguity.max_focal_fraction.max(df);
     }
-    // The full grid: the silhouette, the background's consistency and the
-    // appearance together (see `background`, `appearance`), from each
-    // distinct finalist the silhouette scores within `FINALIST_MARGIN` of
-    // the best, since the silhouette alone can rank a misplaced camera
-    // first; the silhouette kept within `FINALIST_MARGIN` of the best
-    // start's on this grid, since the other scores can have wrong minima of
-    // their own far from the silhouette's.
-    let extras = options.background_weight > 0.0 || options.appearance_weight > 0.0;
-    let last: Vec<(Camera, f64)> = if extras {
-        let close: Vec<(Camera, f64)> = finalists
-            .iter()
-            .filter(|(_, v)| *v <= best_value + FINALIST_MARGIN)
-            .cloned()
-            .collect();
-        distinct(&close, options.finalists)
-    } else {
-        vec![finalists[0].clone()]
-    };
-    let silhouette = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames);
-    let ceiling = last
-        .iter()
-        .map(|(c, _)| silhouette.value(c))
-        .fold(f64::INFINITY, f64::min)
-        + FINALIST_MARGIN;
-    let full = Evaluator::fit(robot, prepared, 0, 2 * options.fit_frames)
-        .with_background(options.background_weight)
-        .with_appearance(options.appearance_weight)
-        .with_silhouette_ceiling(if extras { ceiling } else { f64::INFINITY });
-    progress(&format!("refining {} on the full grid", last.len()));
-    let (camera, _) = last
-        .iter()
-        .map(|(c, _)| refine(&full, c, target, &all, 0.5, options.max_evaluations, 2))
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .unwrap_or_else(|| (best_mid.clone(), best_value));
+    let (camera, full_evaluations) =
+        refine_on_full_grid(robot, prepared, &finalists, target, options, progress);
     progress("probing how well the camera is pinned down");
     let basic = active_parameters(options, false);
     let (rise, direction) = probe(
@@ -670,11 +634,8 @@ pub fn calibrate(
     );
     ambiguity.probe_rise = rise;
     ambiguity.probe_direction = direction;
-    let evaluations = coarse.evaluations()
-        + fit.evaluations()
-        + mid.evaluations()
-        + silhouette.evaluations()
-        + full.evaluations();
+    let evaluations =
+        coarse.evaluations() + fit.evaluations() + mid.evaluations() + full_evaluations;
     let episode_residuals = residuals(embodiment, &scored, episodes, &camera, true);
     let pooled = |held: bool| {
         let ev = Evaluator::new(
