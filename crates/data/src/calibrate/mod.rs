@@ -30,6 +30,7 @@ mod background;
 pub mod droid_study;
 pub mod episode;
 pub mod foreground;
+mod full_grid;
 pub mod marks;
 mod nelder_mead;
 mod objective;
@@ -51,11 +52,12 @@ use crate::synth::SynthError;
 use crate::video::VideoError;
 use bridgev2w_embodiment::camera::{Camera, CameraError};
 use bridgev2w_embodiment::embodiment::Embodiment;
+use full_grid::refine_on_full_grid;
 use objective::reduce_intrinsics;
 use problem::{prepare, Prepared};
 use search::{
     active_parameters, angle_between, coarse_candidates, distinct, marks_start, refine,
-    refine_on_full_grid, start_intrinsics, Evaluator,
+    start_intrinsics, Evaluator,
 };
 use serde::Serialize;
 use std::path::PathBuf;
